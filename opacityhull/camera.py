@@ -1,0 +1,698 @@
+"""Camera model shared by every stage, and its conversions.
+
+Conventions (DESIGN.md, fixed):
+
+* OpenCV pinhole with OpenCV's 5-coefficient distortion ``(k1, k2, p1, p2, k3)``.
+* Camera frame: x right, y down, z forward. The centre of the top-left pixel is
+  ``(0, 0)``.
+* Extrinsics are stored as ``world_from_cam`` (4×4, camera-to-world).
+* World frame of the rig: origin at the centre of the turntable top, +Y up along the
+  table axis. The *object frame* is the rig frame at table angle 0; a table angle
+  ``a`` rotates the object by ``+a`` degrees about +Y (right-handed: +Z towards +X).
+  See :func:`rig_from_object`.
+
+Conversions live here and only here:
+
+* COLMAP text (``cameras.txt``/``images.txt``): COLMAP puts the centre of the top-left
+  pixel at (0.5, 0.5), so ``cx_colmap = cx + 0.5``; it stores ``cam_from_world``.
+* OpenCV ``FileStorage`` YAML.
+* Mitsuba's ``perspective`` sensor: x left, y up, z forward, so
+  ``to_world = world_from_cam @ diag(-1, -1, 1, 1)``; the principal point offset is
+  a fraction of the film size with the sign flipped by the same mirror.
+* nerfstudio ``transforms.json`` frames (OpenGL camera: x right, y up, z backward).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Iterable, Sequence
+
+import numpy as np
+
+from .errors import FormatError, InputError, ShapeError, check_shape
+
+__all__ = [
+    "Camera",
+    "rot_y",
+    "rig_from_object",
+    "object_from_rig",
+    "look_at_world_from_cam",
+    "write_colmap_text",
+    "read_colmap_text",
+    "write_opencv_yaml",
+    "read_opencv_yaml",
+    "mitsuba_sensor_params",
+    "camera_from_mitsuba_params",
+    "nerfstudio_transform_matrix",
+]
+
+_MITSUBA_FLIP = np.diag([-1.0, -1.0, 1.0, 1.0])
+_OPENGL_FLIP = np.diag([1.0, -1.0, -1.0, 1.0])
+
+
+# --------------------------------------------------------------------------- frames
+
+
+def rot_y(angle_rad: float) -> np.ndarray:
+    """3×3 right-handed rotation about +Y by ``angle_rad`` (+Z turns towards +X)."""
+    c, s = math.cos(angle_rad), math.sin(angle_rad)
+    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+
+
+def rig_from_object(table_deg: float) -> np.ndarray:
+    """4×4 transform taking object-frame points to the rig frame at table angle ``table_deg``."""
+    T = np.eye(4)
+    T[:3, :3] = rot_y(math.radians(table_deg))
+    return T
+
+
+def object_from_rig(table_deg: float) -> np.ndarray:
+    """Inverse of :func:`rig_from_object`."""
+    T = np.eye(4)
+    T[:3, :3] = rot_y(math.radians(table_deg)).T
+    return T
+
+
+def look_at_world_from_cam(eye, target, up=(0.0, 1.0, 0.0)) -> np.ndarray:
+    """OpenCV-convention ``world_from_cam`` for a camera at ``eye`` looking at ``target``.
+
+    Image "up" (−y of the camera) is as close to ``up`` as possible. Raises
+    :class:`InputError` when ``eye == target``; a view straight along ``up`` picks a
+    deterministic perpendicular instead of failing.
+    """
+    eye = np.asarray(eye, dtype=np.float64)
+    target = np.asarray(target, dtype=np.float64)
+    up = np.asarray(up, dtype=np.float64)
+    z = target - eye
+    n = np.linalg.norm(z)
+    if not np.isfinite(n) or n < 1e-12:
+        raise InputError(f"look-at eye {eye.tolist()} coincides with target {target.tolist()}")
+    z /= n
+    x = np.cross(z, -up)  # camera x = right; image up is -y
+    if np.linalg.norm(x) < 1e-9:  # looking along the up axis: choose world +X as right
+        alt = np.array([0.0, 0.0, 1.0]) if abs(z[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
+        x = np.cross(z, -alt)
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    T = np.eye(4)
+    T[:3, 0], T[:3, 1], T[:3, 2], T[:3, 3] = x, y, z, eye
+    return T
+
+
+def _check_rigid(name: str, T: np.ndarray) -> np.ndarray:
+    T = np.asarray(T, dtype=np.float64)
+    check_shape(name, T, (4, 4))
+    if not np.all(np.isfinite(T)):
+        raise InputError(f"{name} contains NaN or Inf")
+    R = T[:3, :3]
+    if not np.allclose(R.T @ R, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
+        raise InputError(f"{name} is not a rigid transform (rotation part not orthonormal, det=+1)")
+    if not np.allclose(T[3], [0, 0, 0, 1]):
+        raise InputError(f"{name} last row is {T[3].tolist()}, expected [0, 0, 0, 1]")
+    return T
+
+
+# --------------------------------------------------------------------------- camera
+
+
+@dataclass(frozen=True)
+class Camera:
+    """A calibrated camera: intrinsics ``K``, distortion, image size and pose.
+
+    Parameters
+    ----------
+    K : (3, 3) array
+        Pinhole intrinsics, OpenCV pixel convention (top-left pixel centre at 0, 0).
+        Skew must be zero (COLMAP has no skew).
+    dist : (5,) array
+        OpenCV distortion ``(k1, k2, p1, p2, k3)``.
+    width, height : int
+        Image size in pixels.
+    world_from_cam : (4, 4) array
+        Camera-to-world rigid transform, camera frame x right, y down, z forward.
+    name : str
+        Free-form identifier (``cam0``, a view id, ...).
+    """
+
+    K: np.ndarray
+    width: int
+    height: int
+    world_from_cam: np.ndarray = field(default_factory=lambda: np.eye(4))
+    dist: np.ndarray = field(default_factory=lambda: np.zeros(5))
+    name: str = ""
+
+    def __post_init__(self):
+        K = np.asarray(self.K, dtype=np.float64)
+        check_shape("K", K, (3, 3))
+        if abs(K[0, 1]) > 1e-9:
+            raise InputError(f"camera {self.name!r}: K has skew {K[0, 1]}; resample to a skew-free K")
+        if K[0, 0] <= 0 or K[1, 1] <= 0:
+            raise InputError(f"camera {self.name!r}: focal lengths must be > 0, got {K[0, 0]}, {K[1, 1]}")
+        dist = np.zeros(5)
+        d = np.asarray(self.dist, dtype=np.float64).ravel()
+        if d.size > 5:
+            raise ShapeError(f"camera {self.name!r}: dist has {d.size} coefficients, expected at most 5")
+        dist[: d.size] = d
+        if int(self.width) <= 0 or int(self.height) <= 0:
+            raise InputError(f"camera {self.name!r}: image size {self.width}x{self.height} must be positive")
+        object.__setattr__(self, "K", K)
+        object.__setattr__(self, "dist", dist)
+        object.__setattr__(self, "width", int(self.width))
+        object.__setattr__(self, "height", int(self.height))
+        object.__setattr__(self, "world_from_cam", _check_rigid("world_from_cam", self.world_from_cam))
+
+    # -- simple accessors
+    @property
+    def fx(self) -> float:
+        return float(self.K[0, 0])
+
+    @property
+    def fy(self) -> float:
+        return float(self.K[1, 1])
+
+    @property
+    def cx(self) -> float:
+        return float(self.K[0, 2])
+
+    @property
+    def cy(self) -> float:
+        return float(self.K[1, 2])
+
+    @property
+    def size(self) -> tuple[int, int]:
+        """``(width, height)``."""
+        return (self.width, self.height)
+
+    @property
+    def cam_from_world(self) -> np.ndarray:
+        T = np.eye(4)
+        R = self.world_from_cam[:3, :3]
+        T[:3, :3] = R.T
+        T[:3, 3] = -R.T @ self.world_from_cam[:3, 3]
+        return T
+
+    @property
+    def centre_world(self) -> np.ndarray:
+        """Camera centre in world coordinates, shape (3,)."""
+        return self.world_from_cam[:3, 3].copy()
+
+    @property
+    def forward_world(self) -> np.ndarray:
+        """Unit optical axis (+z of the camera) in world coordinates."""
+        return self.world_from_cam[:3, 2].copy()
+
+    @property
+    def has_distortion(self) -> bool:
+        return bool(np.any(self.dist != 0))
+
+    def with_pose(self, world_from_cam) -> "Camera":
+        return replace(self, world_from_cam=np.asarray(world_from_cam, dtype=np.float64))
+
+    def with_name(self, name: str) -> "Camera":
+        return replace(self, name=name)
+
+    def scaled(self, factor: float) -> "Camera":
+        """The same camera at ``factor`` times the resolution (pixel centres kept consistent)."""
+        w = int(round(self.width * factor))
+        h = int(round(self.height * factor))
+        sx, sy = w / self.width, h / self.height
+        K = self.K.copy()
+        K[0, 0] *= sx
+        K[1, 1] *= sy
+        K[0, 2] = (K[0, 2] + 0.5) * sx - 0.5
+        K[1, 2] = (K[1, 2] + 0.5) * sy - 0.5
+        return replace(self, K=K, width=w, height=h)
+
+    # -- projection
+    def world_to_cam(self, points_world) -> np.ndarray:
+        """Transform (N, 3) world points into the camera frame."""
+        P = np.asarray(points_world, dtype=np.float64)
+        check_shape("points_world", P, (None, 3))
+        T = self.cam_from_world
+        return P @ T[:3, :3].T + T[:3, 3]
+
+    def distort_normalized(self, xy) -> np.ndarray:
+        """Apply the OpenCV distortion model to normalised coordinates, (N, 2) → (N, 2)."""
+        xy = np.asarray(xy, dtype=np.float64)
+        if not self.has_distortion:
+            return xy.copy()
+        k1, k2, p1, p2, k3 = self.dist
+        x, y = xy[:, 0], xy[:, 1]
+        r2 = x * x + y * y
+        radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+        xd = x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+        yd = y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+        return np.stack([xd, yd], axis=1)
+
+    def undistort_normalized(self, xy_distorted, iterations: int = 20) -> np.ndarray:
+        """Invert :meth:`distort_normalized` by fixed-point iteration (as OpenCV does)."""
+        xyd = np.asarray(xy_distorted, dtype=np.float64)
+        if not self.has_distortion:
+            return xyd.copy()
+        k1, k2, p1, p2, k3 = self.dist
+        x, y = xyd[:, 0].copy(), xyd[:, 1].copy()
+        for _ in range(iterations):
+            r2 = x * x + y * y
+            radial = 1 + r2 * (k1 + r2 * (k2 + r2 * k3))
+            dx = 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
+            dy = p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
+            x = (xyd[:, 0] - dx) / radial
+            y = (xyd[:, 1] - dy) / radial
+        return np.stack([x, y], axis=1)
+
+    def project(self, points_world) -> tuple[np.ndarray, np.ndarray]:
+        """Project world points to pixels.
+
+        Parameters
+        ----------
+        points_world : (N, 3) array, metres.
+
+        Returns
+        -------
+        uv : (N, 2) float64 pixel coordinates (OpenCV convention). Points at or behind
+            the camera (z <= 0) get NaN.
+        z : (N,) depth along the optical axis in metres.
+        """
+        Pc = self.world_to_cam(points_world)
+        z = Pc[:, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            xy = Pc[:, :2] / z[:, None]
+        xy[z <= 0] = np.nan
+        xy = self.distort_normalized(xy)
+        uv = np.empty_like(xy)
+        uv[:, 0] = self.fx * xy[:, 0] + self.cx
+        uv[:, 1] = self.fy * xy[:, 1] + self.cy
+        return uv, z
+
+    def unproject(self, uv, z) -> np.ndarray:
+        """Inverse of :meth:`project`: pixels (N, 2) and depths z (N,) → world points (N, 3)."""
+        uv = np.asarray(uv, dtype=np.float64)
+        check_shape("uv", uv, (None, 2))
+        z = np.broadcast_to(np.asarray(z, dtype=np.float64), (uv.shape[0],))
+        xyd = np.stack([(uv[:, 0] - self.cx) / self.fx, (uv[:, 1] - self.cy) / self.fy], axis=1)
+        xy = self.undistort_normalized(xyd)
+        Pc = np.concatenate([xy * z[:, None], z[:, None]], axis=1)
+        R, t = self.world_from_cam[:3, :3], self.world_from_cam[:3, 3]
+        return Pc @ R.T + t
+
+    def pixel_rays(self, uv=None) -> tuple[np.ndarray, np.ndarray]:
+        """Unit world-space ray directions through pixel centres.
+
+        Parameters
+        ----------
+        uv : (N, 2) array, optional
+            Pixels to cast through. Default: every pixel, returned as (H, W, 3).
+
+        Returns
+        -------
+        origin : (3,) camera centre in world coordinates.
+        directions : (N, 3) or (H, W, 3) unit vectors.
+        """
+        if uv is None:
+            v, u = np.mgrid[0 : self.height, 0 : self.width].astype(np.float64)
+            pts = np.stack([u.ravel(), v.ravel()], axis=1)
+            shape = (self.height, self.width, 3)
+        else:
+            pts = np.asarray(uv, dtype=np.float64)
+            check_shape("uv", pts, (None, 2))
+            shape = (pts.shape[0], 3)
+        xyd = np.stack([(pts[:, 0] - self.cx) / self.fx, (pts[:, 1] - self.cy) / self.fy], axis=1)
+        xy = self.undistort_normalized(xyd)
+        d = np.concatenate([xy, np.ones((xy.shape[0], 1))], axis=1)
+        d = d @ self.world_from_cam[:3, :3].T
+        d /= np.linalg.norm(d, axis=1, keepdims=True)
+        return self.centre_world, d.reshape(shape)
+
+    def in_image(self, uv, margin: float = 0.0) -> np.ndarray:
+        """Boolean mask of pixels inside the image (pixel centres 0..W-1, with ``margin``)."""
+        uv = np.asarray(uv)
+        with np.errstate(invalid="ignore"):
+            return (
+                (uv[:, 0] >= -0.5 - margin)
+                & (uv[:, 0] <= self.width - 0.5 + margin)
+                & (uv[:, 1] >= -0.5 - margin)
+                & (uv[:, 1] <= self.height - 0.5 + margin)
+            )
+
+    def projection_matrix(self) -> np.ndarray:
+        """3×4 ``K [R | t]`` (ignores distortion)."""
+        return self.K @ self.cam_from_world[:3, :]
+
+
+# --------------------------------------------------------------------------- atomic text
+
+
+def _atomic_write_text(path: Path, text: str) -> None:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+    with open(tmp, "w", encoding="utf-8") as f:
+        f.write(text)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
+# --------------------------------------------------------------------------- COLMAP text
+
+
+def _colmap_model_and_params(cam: Camera) -> tuple[str, list[float]]:
+    fx, fy, cx, cy = cam.fx, cam.fy, cam.cx + 0.5, cam.cy + 0.5
+    k1, k2, p1, p2, k3 = cam.dist
+    if not cam.has_distortion:
+        return "PINHOLE", [fx, fy, cx, cy]
+    if k3 == 0:
+        return "OPENCV", [fx, fy, cx, cy, k1, k2, p1, p2]
+    return "FULL_OPENCV", [fx, fy, cx, cy, k1, k2, p1, p2, k3, 0.0, 0.0, 0.0]
+
+
+def _rotmat_to_qwxyz(R: np.ndarray) -> np.ndarray:
+    from scipy.spatial.transform import Rotation
+
+    x, y, z, w = Rotation.from_matrix(R).as_quat()
+    q = np.array([w, x, y, z])
+    return q if q[0] >= 0 else -q
+
+
+def _qwxyz_to_rotmat(q) -> np.ndarray:
+    from scipy.spatial.transform import Rotation
+
+    w, x, y, z = q
+    return Rotation.from_quat([x, y, z, w]).as_matrix()
+
+
+def write_colmap_text(
+    directory,
+    cameras: Sequence[Camera],
+    names: Sequence[str] | None = None,
+    *,
+    share_intrinsics: Sequence[int] | None = None,
+    points3d=None,
+) -> None:
+    """Write a COLMAP text model (``cameras.txt``, ``images.txt``, ``points3D.txt``).
+
+    Parameters
+    ----------
+    directory : path
+        Output folder (created). Any ``*.bin`` model files there are removed, since
+        COLMAP reads ``.bin`` before ``.txt``.
+    cameras : sequence of Camera
+        One per image.
+    names : sequence of str, optional
+        Image names (relative paths); default ``cam.name``.
+    share_intrinsics : sequence of int, optional
+        For each image, the index of its COLMAP camera; images with the same index
+        share intrinsics (e.g. one physical camera over many table angles). Default:
+        one COLMAP camera per image.
+    points3d : (M, 3) array, optional
+        Sparse points written to ``points3D.txt`` (no tracks).
+    """
+    d = Path(directory)
+    d.mkdir(parents=True, exist_ok=True)
+    for b in ("cameras.bin", "images.bin", "points3D.bin"):
+        (d / b).unlink(missing_ok=True)
+    names = list(names) if names is not None else [c.name for c in cameras]
+    if len(names) != len(cameras):
+        raise InputError(f"{len(names)} names for {len(cameras)} cameras")
+    groups = list(share_intrinsics) if share_intrinsics is not None else list(range(len(cameras)))
+    cam_lines = ["# Camera list with one line of data per camera:", "#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]"]
+    written: dict[int, int] = {}
+    for cam, g in zip(cameras, groups):
+        if g in written:
+            continue
+        model, params = _colmap_model_and_params(cam)
+        cid = len(written) + 1
+        written[g] = cid
+        cam_lines.append(f"{cid} {model} {cam.width} {cam.height} " + " ".join(f"{p:.17g}" for p in params))
+    img_lines = [
+        "# Image list with two lines of data per image:",
+        "#   IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME",
+        "#   POINTS2D[] as (X, Y, POINT3D_ID)",
+    ]
+    for i, (cam, g, name) in enumerate(zip(cameras, groups, names), start=1):
+        if " " in name:
+            raise InputError(f"COLMAP image names cannot contain spaces: {name!r}")
+        T = cam.cam_from_world
+        q = _rotmat_to_qwxyz(T[:3, :3])
+        t = T[:3, 3]
+        img_lines.append(
+            f"{i} " + " ".join(f"{v:.17g}" for v in (*q, *t)) + f" {written[g]} {name}"
+        )
+        img_lines.append("")
+    pts_lines = ["# 3D point list with one line of data per point:", "#   POINT3D_ID, X, Y, Z, R, G, B, ERROR, TRACK[]"]
+    if points3d is not None:
+        for j, p in enumerate(np.asarray(points3d, dtype=np.float64), start=1):
+            pts_lines.append(f"{j} {p[0]:.9g} {p[1]:.9g} {p[2]:.9g} 128 128 128 0")
+    _atomic_write_text(d / "cameras.txt", "\n".join(cam_lines) + "\n")
+    _atomic_write_text(d / "images.txt", "\n".join(img_lines) + "\n")
+    _atomic_write_text(d / "points3D.txt", "\n".join(pts_lines) + "\n")
+
+
+def read_colmap_text(directory) -> list[tuple[str, Camera]]:
+    """Read ``cameras.txt`` and ``images.txt`` into ``[(image_name, Camera), ...]``.
+
+    Supports the SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV and
+    FULL_OPENCV camera models (FULL_OPENCV only with k4 = k5 = k6 = 0). Errors name
+    the file and line.
+    """
+    d = Path(directory)
+    cams_path, imgs_path = d / "cameras.txt", d / "images.txt"
+    for p in (cams_path, imgs_path):
+        if not p.is_file():
+            raise FormatError(f"COLMAP text model: {p} not found (expected cameras.txt and images.txt in {d})")
+    intr: dict[int, tuple[np.ndarray, np.ndarray, int, int]] = {}
+    for lineno, line in enumerate(cams_path.read_text().splitlines(), start=1):
+        line = line.strip()
+        if not line or line.startswith("#"):
+            continue
+        parts = line.split()
+        try:
+            cid, model, w, h = int(parts[0]), parts[1], int(parts[2]), int(parts[3])
+            p = [float(x) for x in parts[4:]]
+        except (ValueError, IndexError) as e:
+            raise FormatError(f"{cams_path}:{lineno}: cannot parse camera line ({e})") from None
+        dist = np.zeros(5)
+        try:
+            if model == "SIMPLE_PINHOLE":
+                f, cx, cy = p
+                fx = fy = f
+            elif model == "PINHOLE":
+                fx, fy, cx, cy = p
+            elif model == "SIMPLE_RADIAL":
+                f, cx, cy, k = p
+                fx = fy = f
+                dist[0] = k
+            elif model == "RADIAL":
+                f, cx, cy, k1, k2 = p
+                fx = fy = f
+                dist[:2] = (k1, k2)
+            elif model == "OPENCV":
+                fx, fy, cx, cy, k1, k2, p1, p2 = p
+                dist[:4] = (k1, k2, p1, p2)
+            elif model == "FULL_OPENCV":
+                fx, fy, cx, cy, k1, k2, p1, p2, k3, k4, k5, k6 = p
+                if k4 or k5 or k6:
+                    raise FormatError(f"{cams_path}:{lineno}: FULL_OPENCV with k4..k6 != 0 is not supported")
+                dist[:] = (k1, k2, p1, p2, k3)
+            else:
+                raise FormatError(
+                    f"{cams_path}:{lineno}: camera model {model} not supported "
+                    "(use SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV or FULL_OPENCV)"
+                )
+        except ValueError:
+            raise FormatError(f"{cams_path}:{lineno}: wrong number of parameters for {model}") from None
+        K = np.array([[fx, 0, cx - 0.5], [0, fy, cy - 0.5], [0, 0, 1]])
+        intr[cid] = (K, dist, w, h)
+    out: list[tuple[str, Camera]] = []
+    lines = imgs_path.read_text().splitlines()
+    i = 0
+    expect_points = False
+    for lineno, line in enumerate(lines, start=1):
+        s = line.strip()
+        if s.startswith("#"):
+            continue
+        if expect_points:
+            expect_points = False
+            continue
+        if not s:
+            continue
+        parts = s.split()
+        try:
+            qw, qx, qy, qz, tx, ty, tz = (float(v) for v in parts[1:8])
+            cid = int(parts[8])
+            name = " ".join(parts[9:])
+        except (ValueError, IndexError) as e:
+            raise FormatError(f"{imgs_path}:{lineno}: cannot parse image line ({e})") from None
+        if cid not in intr:
+            raise FormatError(f"{imgs_path}:{lineno}: image {name!r} refers to camera {cid}, not in cameras.txt")
+        T = np.eye(4)
+        T[:3, :3] = _qwxyz_to_rotmat([qw, qx, qy, qz])
+        T[:3, 3] = (tx, ty, tz)
+        Tinv = np.eye(4)
+        Tinv[:3, :3] = T[:3, :3].T
+        Tinv[:3, 3] = -T[:3, :3].T @ T[:3, 3]
+        K, dist, w, h = intr[cid]
+        out.append((name, Camera(K=K, dist=dist, width=w, height=h, world_from_cam=Tinv, name=name)))
+        expect_points = True
+        i += 1
+    return out
+
+
+# --------------------------------------------------------------------------- OpenCV YAML
+
+
+def write_opencv_yaml(path, cam: Camera, *, extra: dict | None = None) -> None:
+    """Write a camera as OpenCV FileStorage YAML (``camera_matrix``,
+    ``distortion_coefficients``, ``image_width``, ``image_height``, ``world_from_cam``).
+
+    ``extra`` maps names to numbers or arrays written alongside (e.g. ``reproj_rms_px``).
+    The write is atomic.
+    """
+    import cv2
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".tmp{os.getpid()}_{path.name}")
+    if not str(tmp).endswith((".yaml", ".yml")):
+        tmp = tmp.with_suffix(".yaml")
+    fs = cv2.FileStorage(str(tmp), cv2.FILE_STORAGE_WRITE)
+    try:
+        fs.write("camera_name", cam.name or path.stem)
+        fs.write("image_width", int(cam.width))
+        fs.write("image_height", int(cam.height))
+        fs.write("camera_matrix", cam.K)
+        fs.write("distortion_coefficients", cam.dist.reshape(1, 5))
+        fs.write("world_from_cam", cam.world_from_cam)
+        for k, v in (extra or {}).items():
+            if isinstance(v, (int, float, np.floating, np.integer)):
+                fs.write(k, float(v))
+            elif isinstance(v, str):
+                fs.write(k, v)
+            else:
+                fs.write(k, np.asarray(v, dtype=np.float64))
+    finally:
+        fs.release()
+    with open(tmp, "rb") as f:
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
+def read_opencv_yaml(path) -> Camera:
+    """Read a camera written by :func:`write_opencv_yaml` (or any OpenCV calibration
+    YAML with ``camera_matrix``, ``distortion_coefficients``, ``image_width``,
+    ``image_height``; the pose defaults to identity)."""
+    import cv2
+
+    path = Path(path)
+    if not path.is_file():
+        raise FormatError(f"camera file {path} not found")
+    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    try:
+        if not fs.isOpened():
+            raise FormatError(f"{path}: not a readable OpenCV YAML/XML file")
+
+        def mat(key, required=True):
+            node = fs.getNode(key)
+            if node.empty():
+                if required:
+                    raise FormatError(f"{path}: missing key {key!r}")
+                return None
+            return node.mat()
+
+        K = mat("camera_matrix")
+        dist = mat("distortion_coefficients", required=False)
+        T = mat("world_from_cam", required=False)
+        w = fs.getNode("image_width").real()
+        h = fs.getNode("image_height").real()
+        name_node = fs.getNode("camera_name")
+        name = name_node.string() if not name_node.empty() else path.stem
+    finally:
+        fs.release()
+    if K is None or K.shape != (3, 3):
+        raise FormatError(f"{path}: camera_matrix must be 3x3")
+    return Camera(
+        K=K,
+        dist=np.zeros(5) if dist is None else dist.ravel()[:5],
+        width=int(w),
+        height=int(h),
+        world_from_cam=np.eye(4) if T is None else T,
+        name=name,
+    )
+
+
+# --------------------------------------------------------------------------- Mitsuba
+
+
+def mitsuba_sensor_params(cam: Camera) -> dict:
+    """Parameters of a Mitsuba ``perspective`` sensor equivalent to ``cam``.
+
+    Returns a plain dict (``fov``, ``fov_axis``, ``principal_point_offset_x``/``_y``,
+    ``to_world`` as a nested 4×4 list, ``width``, ``height``); ``sim`` wraps it into a
+    Mitsuba dict. Mitsuba has no distortion and no separate fx/fy, so a camera with
+    distortion or non-square pixels raises :class:`InputError` — render undistorted
+    and distort afterwards.
+    """
+    if cam.has_distortion:
+        raise InputError(f"camera {cam.name!r} has distortion; Mitsuba's perspective sensor has none")
+    if abs(cam.fx - cam.fy) > 1e-6 * cam.fx:
+        raise InputError(f"camera {cam.name!r}: fx={cam.fx} != fy={cam.fy}; Mitsuba needs square pixels")
+    fov_y = math.degrees(2.0 * math.atan(cam.height / (2.0 * cam.fy)))
+    # Mitsuba's film x/y run opposite to its camera x/y (mirror), hence the minus signs;
+    # +0.5 converts OpenCV's pixel-centre convention to continuous film coordinates.
+    ppx = -(cam.cx + 0.5 - cam.width / 2.0) / cam.width
+    ppy = -(cam.cy + 0.5 - cam.height / 2.0) / cam.height
+    return {
+        "fov": fov_y,
+        "fov_axis": "y",
+        "principal_point_offset_x": ppx,
+        "principal_point_offset_y": ppy,
+        "to_world": (cam.world_from_cam @ _MITSUBA_FLIP).tolist(),
+        "width": cam.width,
+        "height": cam.height,
+    }
+
+
+def camera_from_mitsuba_params(p: dict, name: str = "") -> Camera:
+    """Inverse of :func:`mitsuba_sensor_params`."""
+    w, h = int(p["width"]), int(p["height"])
+    if p.get("fov_axis", "x") != "y":
+        raise InputError("only fov_axis='y' sensors are supported")
+    fy = h / (2.0 * math.tan(math.radians(p["fov"]) / 2.0))
+    cx = -p.get("principal_point_offset_x", 0.0) * w + w / 2.0 - 0.5
+    cy = -p.get("principal_point_offset_y", 0.0) * h + h / 2.0 - 0.5
+    K = np.array([[fy, 0, cx], [0, fy, cy], [0, 0, 1]])
+    T = np.asarray(p["to_world"], dtype=np.float64) @ _MITSUBA_FLIP
+    return Camera(K=K, width=w, height=h, world_from_cam=T, name=name)
+
+
+# --------------------------------------------------------------------------- nerfstudio
+
+
+def nerfstudio_transform_matrix(cam: Camera) -> list[list[float]]:
+    """``transform_matrix`` of a nerfstudio frame (OpenGL camera-to-world)."""
+    return (cam.world_from_cam @ _OPENGL_FLIP).tolist()
+
+
+def nerfstudio_intrinsics(cam: Camera) -> dict:
+    """Per-frame intrinsics keys of nerfstudio's ``transforms.json`` (``OPENCV`` model).
+
+    nerfstudio uses the same pixel-centre convention as COLMAP (+0.5).
+    """
+    k1, k2, p1, p2, k3 = cam.dist
+    return {
+        "camera_model": "OPENCV",
+        "fl_x": cam.fx,
+        "fl_y": cam.fy,
+        "cx": cam.cx + 0.5,
+        "cy": cam.cy + 0.5,
+        "w": cam.width,
+        "h": cam.height,
+        "k1": k1,
+        "k2": k2,
+        "k3": k3,
+        "p1": p1,
+        "p2": p2,
+    }

@@ -1,0 +1,106 @@
+"""The ChArUco calibration target: one definition for the simulator that renders it and
+the calibration that detects it.
+
+The board lies flat on the turntable. Its pose at table angle 0 fixes the gauge of the
+rig frame about the table axis: board x along rig +X, board y (down the board image)
+along rig +Z, so the board's z axis (into the board, as OpenCV defines it) is rig −Y.
+``offset_m`` / ``yaw_deg`` describe how far the board's centre is from the table centre
+and how it is turned — a real user never places it exactly; calibration estimates the
+true placement and the table axis from the observations.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from .camera import rot_y
+from .errors import ConfigError
+
+__all__ = ["CharucoSpec"]
+
+
+@dataclass(frozen=True)
+class CharucoSpec:
+    """A ChArUco board and its nominal placement on the table.
+
+    Parameters
+    ----------
+    squares_x, squares_y : squares along the board's x and y.
+    square_m, marker_m : square and marker side lengths in metres.
+    dictionary : OpenCV predefined ArUco dictionary name (``DICT_5X5_100``).
+    offset_m : (x, z) of the board centre from the table centre, rig frame, table angle 0.
+    yaw_deg : rotation of the board about +Y at table angle 0.
+    height_m : board top above the table plane (its thickness).
+    """
+
+    squares_x: int = 7
+    squares_y: int = 5
+    square_m: float = 0.04
+    marker_m: float = 0.03
+    dictionary: str = "DICT_5X5_100"
+    offset_m: tuple[float, float] = (0.0, 0.0)
+    yaw_deg: float = 0.0
+    height_m: float = 0.0
+
+    def __post_init__(self):
+        if self.squares_x < 3 or self.squares_y < 3:
+            raise ConfigError(f"charuco: need at least 3x3 squares, got {self.squares_x}x{self.squares_y}")
+        if not 0 < self.marker_m < self.square_m:
+            raise ConfigError(f"charuco: marker_m={self.marker_m} must be in (0, square_m={self.square_m})")
+
+    @classmethod
+    def from_dict(cls, d: dict, where: str = "charuco") -> "CharucoSpec":
+        allowed = set(cls.__dataclass_fields__)
+        unknown = sorted(set(d) - allowed)
+        if unknown:
+            raise ConfigError(f"{where}: unknown key(s) {unknown}; allowed: {sorted(allowed)}")
+        kw = dict(d)
+        if "offset_m" in kw:
+            kw["offset_m"] = tuple(float(v) for v in kw["offset_m"])
+        return cls(**kw)
+
+    def to_dict(self) -> dict:
+        return {
+            "squares_x": self.squares_x,
+            "squares_y": self.squares_y,
+            "square_m": self.square_m,
+            "marker_m": self.marker_m,
+            "dictionary": self.dictionary,
+            "offset_m": list(self.offset_m),
+            "yaw_deg": self.yaw_deg,
+            "height_m": self.height_m,
+        }
+
+    @property
+    def size_m(self) -> tuple[float, float]:
+        return (self.squares_x * self.square_m, self.squares_y * self.square_m)
+
+    def board(self):
+        """The ``cv2.aruco.CharucoBoard``."""
+        import cv2
+
+        name = self.dictionary
+        if not hasattr(cv2.aruco, name):
+            raise ConfigError(f"charuco.dictionary: unknown ArUco dictionary {name!r}")
+        d = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, name))
+        return cv2.aruco.CharucoBoard((self.squares_x, self.squares_y), self.square_m, self.marker_m, d)
+
+    def image(self, px_per_square: int = 100) -> np.ndarray:
+        """Board image, uint8 (rows, cols), row 0 = board y = 0 (no margin)."""
+        w, h = self.squares_x * px_per_square, self.squares_y * px_per_square
+        return self.board().generateImage((w, h), marginSize=0, borderBits=1)
+
+    def object_from_board(self) -> np.ndarray:
+        """4×4 pose of the board frame (OpenCV board coordinates, metres) in the object
+        frame (= rig frame at table angle 0), as placed nominally."""
+        w, h = self.size_m
+        R0 = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])  # board x→+X, y→+Z, z→−Y
+        R = rot_y(math.radians(self.yaw_deg)) @ R0
+        centre = np.array([self.offset_m[0], self.height_m, self.offset_m[1]])
+        T = np.eye(4)
+        T[:3, :3] = R
+        T[:3, 3] = centre - R @ np.array([w / 2, h / 2, 0.0])
+        return T

@@ -1,0 +1,22 @@
+"""``opacityhull demo``: the main job on the built-in simulated rig, end to end."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+from .cliutil import cli_errors
+
+
+def register(app, groups) -> None:
+    @app.command("demo")
+    @cli_errors
+    def demo(
+        out: Path = typer.Option(Path("out/demo"), "--out", help="Folder for the session, model and pictures."),
+        json_out: bool = typer.Option(False, "--json", help="Print a machine-readable summary."),
+    ):
+        """Run capture → build → render → relight on the simulated rig and say where the pictures are."""
+        from .demo_runner import run_demo
+
+        run_demo(out, as_json=json_out)

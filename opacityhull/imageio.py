@@ -1,0 +1,381 @@
+"""Image files in and out. In memory: float32, linear Rec.709 RGB(A), shape (H, W, C).
+
+* EXR through the OpenEXR package (the OpenCV 5 wheel has no EXR codec). float32 by
+  default; half only on request, after clamping to the half range (65504) with a
+  warning that names the file, since half overflows to Inf silently otherwise.
+* Radiance ``.hdr`` (RGBE) through OpenCV (it stores BGR).
+* PNG 8/16-bit through OpenCV, sRGB-encoded on write and decoded on read unless
+  ``linear=True`` (masks, data images).
+
+All writes are atomic: a temporary file in the target folder, fsync, rename — a
+crash leaves either the old file or the new one, never a torn one.
+"""
+
+from __future__ import annotations
+
+import os
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+from .errors import FormatError, InputError, ShapeError
+
+__all__ = [
+    "HALF_MAX",
+    "read_image",
+    "write_image",
+    "read_exr",
+    "write_exr",
+    "read_hdr",
+    "write_hdr",
+    "read_png",
+    "write_png",
+    "srgb_encode",
+    "srgb_decode",
+    "atomic_path",
+    "fsync_dir",
+    "write_exr_layers",
+    "read_exr_layers",
+]
+
+HALF_MAX = 65504.0
+
+_CHANNEL_SETS = {1: "Y", 2: "YA", 3: "RGB", 4: "RGBA"}
+
+
+class HalfOverflowWarning(RuntimeWarning):
+    """Values above the half-float range were clamped before a half EXR write."""
+
+
+def fsync_dir(directory) -> None:
+    """fsync a directory so a rename into it survives a power cut (no-op where unsupported)."""
+    try:
+        fd = os.open(str(directory), os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+class atomic_path:
+    """Context manager yielding a temporary path next to ``path``; on success the
+    temporary file is fsynced and renamed over ``path``; on error it is removed.
+
+    The temporary name keeps the suffix so that libraries choosing a codec by
+    extension still work.
+    """
+
+    def __init__(self, path):
+        self.path = Path(path)
+        self.tmp = self.path.with_name(f".tmp-{os.getpid()}-{id(self):x}-{self.path.name}")
+
+    def __enter__(self) -> Path:
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        return self.tmp
+
+    def __exit__(self, exc_type, exc, tb):
+        if exc_type is not None:
+            self.tmp.unlink(missing_ok=True)
+            return False
+        try:
+            with open(self.tmp, "rb") as f:
+                os.fsync(f.fileno())
+            os.replace(self.tmp, self.path)
+        except BaseException:
+            self.tmp.unlink(missing_ok=True)
+            raise
+        fsync_dir(self.path.parent)
+        return False
+
+
+def _as_hwc(name, image) -> np.ndarray:
+    a = np.asarray(image)
+    if a.ndim == 2:
+        a = a[:, :, None]
+    if a.ndim != 3 or a.shape[2] not in (1, 2, 3, 4):
+        raise ShapeError(f"{name} has shape {np.shape(image)}, expected (H, W), (H, W, 1..4)")
+    if a.shape[0] == 0 or a.shape[1] == 0:
+        raise ShapeError(f"{name} is empty: shape {a.shape}")
+    return a
+
+
+# --------------------------------------------------------------------------- sRGB
+
+
+def srgb_encode(linear) -> np.ndarray:
+    """Linear [0, 1] → sRGB-encoded [0, 1] (IEC 61966-2-1). Values are clipped to [0, 1]."""
+    x = np.clip(np.nan_to_num(np.asarray(linear, dtype=np.float32), nan=0.0), 0.0, 1.0)
+    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055).astype(np.float32)
+
+
+def srgb_decode(encoded) -> np.ndarray:
+    """sRGB-encoded [0, 1] → linear [0, 1]."""
+    x = np.asarray(encoded, dtype=np.float32)
+    return np.where(x <= 0.04045, x / 12.92, np.power((x + 0.055) / 1.055, 2.4)).astype(np.float32)
+
+
+# --------------------------------------------------------------------------- EXR
+
+
+def write_exr(path, image, *, half: bool = False, channels: str | None = None, header: dict | None = None) -> None:
+    """Write an (H, W[, C]) image as EXR, atomically.
+
+    Parameters
+    ----------
+    path : path
+    image : array (H, W) or (H, W, C), C in 1..4, any float dtype.
+    half : bool
+        Store 16-bit floats. Values beyond ±65504 are clamped first and a
+        :class:`HalfOverflowWarning` naming the file is issued; NaN stays NaN.
+    channels : str, optional
+        Channel names, one letter each (default Y, YA, RGB, RGBA by channel count).
+    header : dict, optional
+        Extra string attributes stored in the header.
+    """
+    import OpenEXR
+
+    path = Path(path)
+    a = _as_hwc(f"image for {path}", image)
+    names = channels or _CHANNEL_SETS[a.shape[2]]
+    if len(names) != a.shape[2]:
+        raise InputError(f"{len(names)} channel names {names!r} for {a.shape[2]} channels ({path})")
+    if half:
+        a32 = a.astype(np.float32)
+        over = np.abs(a32) > HALF_MAX
+        if np.any(over & np.isfinite(a32)) or np.any(np.isinf(a32)):
+            warnings.warn(
+                f"{path}: {int(np.count_nonzero(over))} values beyond the half-float range "
+                f"(max |v| = {float(np.nanmax(np.abs(a32))):.4g}) clamped to ±{HALF_MAX}",
+                HalfOverflowWarning,
+                stacklevel=2,
+            )
+        data = np.clip(a32, -HALF_MAX, HALF_MAX).astype(np.float16)
+    else:
+        data = a.astype(np.float32)
+    chans = {n: np.ascontiguousarray(data[:, :, i]) for i, n in enumerate(names)}
+    hdr = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    for k, v in (header or {}).items():
+        hdr[k] = str(v)
+    with atomic_path(path) as tmp:
+        with OpenEXR.File(hdr, chans) as f:
+            f.write(str(tmp))
+
+
+def read_exr(path, *, channels: str | None = None) -> np.ndarray:
+    """Read an EXR as float32 (H, W, C).
+
+    Channel order: ``channels`` if given (e.g. ``"RGBA"``), else R, G, B, A in that
+    order when present, else Y (and A), else all channels sorted by name. Half data
+    are widened to float32.
+    """
+    import OpenEXR
+
+    path = Path(path)
+    if not path.is_file():
+        raise FormatError(f"image {path} not found")
+    try:
+        with OpenEXR.File(str(path), separate_channels=True) as f:
+            ch = {k: np.asarray(v.pixels) for k, v in f.channels().items()}
+    except Exception as e:  # OpenEXR raises bare exceptions on truncated files
+        raise FormatError(f"{path}: not a readable EXR file ({e})") from None
+    if channels:
+        missing = [c for c in channels if c not in ch]
+        if missing:
+            raise FormatError(f"{path}: missing channel(s) {missing}; has {sorted(ch)}")
+        order = list(channels)
+    elif all(c in ch for c in "RGB"):
+        order = list("RGB") + (["A"] if "A" in ch else [])
+    elif "Y" in ch:
+        order = ["Y"] + (["A"] if "A" in ch else [])
+    else:
+        order = sorted(ch)
+    return np.stack([ch[c].astype(np.float32) for c in order], axis=-1)
+
+
+# --------------------------------------------------------------------------- HDR
+
+
+def read_hdr(path) -> np.ndarray:
+    """Read a Radiance RGBE ``.hdr`` as float32 linear RGB (H, W, 3)."""
+    import cv2
+
+    path = Path(path)
+    if not path.is_file():
+        raise FormatError(f"image {path} not found")
+    bgr = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if bgr is None or bgr.ndim != 3:
+        raise FormatError(f"{path}: not a readable Radiance .hdr file")
+    return np.ascontiguousarray(bgr[:, :, ::-1].astype(np.float32))
+
+
+def write_hdr(path, image) -> None:
+    """Write linear RGB (H, W, 3) as Radiance RGBE ``.hdr`` (atomic). Negative and NaN
+    values cannot be stored in RGBE and raise :class:`InputError`."""
+    import cv2
+
+    path = Path(path)
+    a = _as_hwc(f"image for {path}", image).astype(np.float32)
+    if a.shape[2] != 3:
+        raise ShapeError(f"image for {path} has {a.shape[2]} channels, .hdr needs 3")
+    if not np.all(np.isfinite(a)) or np.any(a < 0):
+        raise InputError(f"image for {path}: RGBE cannot store negative, NaN or Inf values")
+    with atomic_path(path) as tmp:
+        if not cv2.imwrite(str(tmp), np.ascontiguousarray(a[:, :, ::-1])):
+            raise FormatError(f"OpenCV could not write {path}")
+
+
+# --------------------------------------------------------------------------- PNG
+
+
+def write_png(path, image, *, bits: int = 8, linear: bool = False) -> None:
+    """Write (H, W[, C]) float data in [0, 1] as PNG, atomically.
+
+    ``linear=False`` (default) sRGB-encodes colour channels (alpha is never encoded);
+    ``linear=True`` writes values as they are (masks, data). Values are clipped to
+    [0, 1]; NaN becomes 0.
+    """
+    import cv2
+
+    if bits not in (8, 16):
+        raise InputError(f"PNG bit depth must be 8 or 16, got {bits}")
+    path = Path(path)
+    a = _as_hwc(f"image for {path}", image).astype(np.float32)
+    a = np.nan_to_num(a, nan=0.0, posinf=1.0, neginf=0.0)
+    if not linear:
+        n_colour = 1 if a.shape[2] in (1, 2) else 3
+        a = a.copy()
+        a[:, :, :n_colour] = srgb_encode(a[:, :, :n_colour])
+    a = np.clip(a, 0.0, 1.0)
+    maxv = 255 if bits == 8 else 65535
+    q = np.round(a * maxv).astype(np.uint8 if bits == 8 else np.uint16)
+    if q.shape[2] == 3:
+        q = q[:, :, ::-1]
+    elif q.shape[2] == 4:
+        q = q[:, :, [2, 1, 0, 3]]
+    elif q.shape[2] == 2:
+        raise ShapeError(f"image for {path}: PNG cannot store 2 channels (gray+alpha) through OpenCV")
+    with atomic_path(path) as tmp:
+        if not cv2.imwrite(str(tmp), np.ascontiguousarray(q)):
+            raise FormatError(f"OpenCV could not write {path}")
+
+
+def read_png(path, *, linear: bool = False) -> np.ndarray:
+    """Read an 8- or 16-bit PNG (or JPEG) to float32 (H, W, C) in [0, 1].
+
+    ``linear=False`` decodes sRGB colour channels to linear light.
+    """
+    import cv2
+
+    path = Path(path)
+    if not path.is_file():
+        raise FormatError(f"image {path} not found")
+    q = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if q is None:
+        raise FormatError(f"{path}: not a readable PNG/JPEG file")
+    if q.ndim == 2:
+        q = q[:, :, None]
+    if q.shape[2] == 3:
+        q = q[:, :, ::-1]
+    elif q.shape[2] == 4:
+        q = q[:, :, [2, 1, 0, 3]]
+    maxv = 65535.0 if q.dtype == np.uint16 else 255.0
+    a = q.astype(np.float32) / maxv
+    if not linear:
+        n_colour = 1 if a.shape[2] in (1, 2) else 3
+        a[:, :, :n_colour] = srgb_decode(a[:, :, :n_colour])
+    return np.ascontiguousarray(a)
+
+
+# --------------------------------------------------------------------------- dispatch
+
+
+def read_image(path, **kw) -> np.ndarray:
+    """Read EXR, HDR or PNG/JPEG by extension, float32 (H, W, C), linear."""
+    suffix = Path(path).suffix.lower()
+    if suffix == ".exr":
+        return read_exr(path, **kw)
+    if suffix in (".hdr", ".pic"):
+        return read_hdr(path)
+    if suffix in (".png", ".jpg", ".jpeg", ".tif", ".tiff"):
+        return read_png(path, **kw)
+    raise InputError(f"{path}: unknown image extension {suffix!r} (expected .exr, .hdr, .png, .jpg)")
+
+
+def write_image(path, image, **kw) -> None:
+    """Write by extension: ``.exr`` (float), ``.hdr`` (RGBE) or ``.png`` (sRGB 8-bit)."""
+    suffix = Path(path).suffix.lower()
+    if suffix == ".exr":
+        return write_exr(path, image, **kw)
+    if suffix == ".hdr":
+        return write_hdr(path, image)
+    if suffix == ".png":
+        return write_png(path, image, **kw)
+    raise InputError(f"{path}: unknown image extension {suffix!r} (expected .exr, .hdr or .png)")
+
+
+# --------------------------------------------------------------------------- layered EXR
+
+
+def write_exr_layers(path, layers: dict, *, half: bool = False) -> None:
+    """Write several same-sized images into one EXR as layers ``<name>.R``, ``.G``, ...
+
+    ``layers`` maps a layer name (no dots) to an (H, W, C) array, C in 1..4. Used for a
+    view's one-light-at-a-time images: one file per view, one layer per light.
+    """
+    import OpenEXR
+
+    path = Path(path)
+    if not layers:
+        raise InputError(f"no layers to write to {path}")
+    chans = {}
+    shape = None
+    for name, img in layers.items():
+        if "." in name:
+            raise InputError(f"layer name {name!r} must not contain '.' ({path})")
+        a = _as_hwc(f"layer {name} for {path}", img)
+        if shape is None:
+            shape = a.shape[:2]
+        elif a.shape[:2] != shape:
+            raise ShapeError(f"layer {name} for {path} is {a.shape[:2]}, other layers are {shape}")
+        if half:
+            a = np.clip(a.astype(np.float32), -HALF_MAX, HALF_MAX).astype(np.float16)
+        else:
+            a = a.astype(np.float32)
+        for i, c in enumerate(_CHANNEL_SETS[a.shape[2]]):
+            chans[f"{name}.{c}"] = np.ascontiguousarray(a[:, :, i])
+    hdr = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    with atomic_path(path) as tmp:
+        with OpenEXR.File(hdr, chans) as f:
+            f.write(str(tmp))
+
+
+def read_exr_layers(path) -> dict:
+    """Inverse of :func:`write_exr_layers`: ``{layer: (H, W, C) float32}``."""
+    import OpenEXR
+
+    path = Path(path)
+    if not path.is_file():
+        raise FormatError(f"image {path} not found")
+    try:
+        with OpenEXR.File(str(path), separate_channels=True) as f:
+            ch = {k: np.asarray(v.pixels) for k, v in f.channels().items()}
+    except Exception as e:
+        raise FormatError(f"{path}: not a readable EXR file ({e})") from None
+    groups: dict[str, dict[str, np.ndarray]] = {}
+    for k, v in ch.items():
+        layer, _, c = k.rpartition(".")
+        groups.setdefault(layer, {})[c] = v
+    out = {}
+    for layer, cs in groups.items():
+        for order in ("RGBA", "RGB", "YA", "Y"):
+            if set(cs) == set(order):
+                out[layer] = np.stack([cs[c].astype(np.float32) for c in order], axis=-1)
+                break
+        else:
+            raise FormatError(f"{path}: layer {layer!r} has channels {sorted(cs)}, expected RGB(A) or Y(A)")
+    return out

@@ -1,0 +1,396 @@
+"""The opacity-hull model on disk: written by ``reconstruct``, read by ``render`` and
+``relight``.
+
+Layout of a model folder::
+
+    model.toml              [model] format, units, software version, created;
+                            [provenance] session, rig source, build options;
+                            [rig] rig geometry table (riggeometry schema);
+                            [[views]] id, camera, table_deg, image (in views order);
+                            [reflectance] present, lights = [{key, light_id, array_deg}]
+    surfels.ply             binary PLY, element vertex: x y z nx ny nz radius (float32)
+                            and vis_000 .. vis_NNN (uint8): the visibility bit vector,
+                            bit v of byte v // 8 (LSB first) set when view v sees the
+                            surfel (depth-tested, not just in the frustum)
+    cameras/                COLMAP text model of all views; image NAME = view id; the
+                            order of images.txt is the order of the views (bit index)
+    views/<view id>.exr     opacity light field sample of that view: RGBA float32,
+                            straight (not premultiplied) colour, alpha from the matte
+    reflectance/<view id>.exr   one layer per light sample (``<key>.R/G/B``): the
+                            one-light-at-a-time radiance as observed over black
+                            backdrops, i.e. premultiplied by alpha
+    calibration/<camera>.yaml   rig cameras (OpenCV YAML, world_from_cam = rig_from_cam)
+    report.json             metrics and timings of the build
+    pictures/               contact sheets, overlays, plots
+
+World frame = object frame (rig frame at table angle 0), metres.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from . import __version__
+from .camera import Camera, read_colmap_text, write_colmap_text
+from .errors import FormatError, InputError, ShapeError, check_shape
+from .riggeometry import RigGeometry, parse_view_id
+
+__all__ = [
+    "MODEL_FORMAT",
+    "Surfels",
+    "ViewInfo",
+    "LightSample",
+    "OpacityHullModel",
+    "write_surfels_ply",
+    "read_surfels_ply",
+    "write_model",
+    "light_key",
+]
+
+MODEL_FORMAT = "opacityhull-model/1"
+
+
+def light_key(light_id: int, array_deg: float) -> str:
+    """Layer name of a light sample in ``reflectance/<view>.exr``: ``a045p000_l2``
+    (array angle with ``p`` for the decimal point, since EXR layer names use dots)."""
+    return f"a{float(array_deg) % 360.0:07.3f}".replace(".", "p") + f"_l{int(light_id)}"
+
+
+# --------------------------------------------------------------------------- surfels
+
+
+@dataclass
+class Surfels:
+    """Surfel set of the opacity hull.
+
+    Attributes
+    ----------
+    positions : (N, 3) float32, metres, object frame.
+    normals : (N, 3) float32, unit, pointing out of the hull.
+    radii : (N,) float32, metres; discs of this radius cover the surface without holes.
+    visibility : (N, ceil(V / 8)) uint8, packed bits (view v → byte v // 8, bit v % 8).
+    n_views : V.
+    """
+
+    positions: np.ndarray
+    normals: np.ndarray
+    radii: np.ndarray
+    visibility: np.ndarray
+    n_views: int
+
+    def __post_init__(self):
+        self.positions = np.ascontiguousarray(self.positions, dtype=np.float32)
+        n = self.positions.shape[0]
+        check_shape("positions", self.positions, (n, 3))
+        self.normals = np.ascontiguousarray(self.normals, dtype=np.float32)
+        check_shape("normals", self.normals, (n, 3))
+        self.radii = np.ascontiguousarray(self.radii, dtype=np.float32).reshape(-1)
+        check_shape("radii", self.radii, (n,))
+        nb = (int(self.n_views) + 7) // 8
+        self.visibility = np.ascontiguousarray(self.visibility, dtype=np.uint8)
+        if self.visibility.ndim == 2 and self.visibility.shape[1] == self.n_views and self.n_views != nb:
+            raise ShapeError("visibility looks unpacked (N, V); use Surfels.from_bool()")
+        check_shape("visibility", self.visibility, (n, nb))
+
+    def __len__(self) -> int:
+        return self.positions.shape[0]
+
+    @classmethod
+    def from_bool(cls, positions, normals, radii, visible_bool) -> "Surfels":
+        vb = np.asarray(visible_bool, dtype=bool)
+        check_shape("visible_bool", vb, (np.shape(positions)[0], None))
+        return cls(positions, normals, radii, pack_visibility(vb), vb.shape[1])
+
+    def visible_bool(self) -> np.ndarray:
+        """(N, V) bool visibility matrix."""
+        return unpack_visibility(self.visibility, self.n_views)
+
+    def visible_in(self, view: int) -> np.ndarray:
+        """(N,) bool: surfels seen by ``view``."""
+        if not 0 <= view < self.n_views:
+            raise InputError(f"view index {view} out of range [0, {self.n_views})")
+        return (self.visibility[:, view // 8] >> (view % 8)) & 1 == 1
+
+    def subset(self, mask) -> "Surfels":
+        return Surfels(self.positions[mask], self.normals[mask], self.radii[mask], self.visibility[mask], self.n_views)
+
+
+def pack_visibility(visible_bool: np.ndarray) -> np.ndarray:
+    return np.packbits(np.asarray(visible_bool, dtype=bool), axis=1, bitorder="little")
+
+
+def unpack_visibility(packed: np.ndarray, n_views: int) -> np.ndarray:
+    return np.unpackbits(packed, axis=1, count=n_views, bitorder="little").astype(bool)
+
+
+def write_surfels_ply(path, surfels: Surfels) -> None:
+    """Binary little-endian PLY with the visibility bit vector (atomic)."""
+    from plyfile import PlyData, PlyElement
+
+    from .imageio import atomic_path
+
+    nb = surfels.visibility.shape[1]
+    dtype = [(k, "f4") for k in ("x", "y", "z", "nx", "ny", "nz", "radius")] + [(f"vis_{i:03d}", "u1") for i in range(nb)]
+    arr = np.empty(len(surfels), dtype=dtype)
+    for i, k in enumerate("xyz"):
+        arr[k] = surfels.positions[:, i]
+        arr["n" + k] = surfels.normals[:, i]
+    arr["radius"] = surfels.radii
+    for i in range(nb):
+        arr[f"vis_{i:03d}"] = surfels.visibility[:, i]
+    el = PlyElement.describe(arr, "vertex", comments=[f"opacityhull surfels; n_views {surfels.n_views}"])
+    with atomic_path(path) as tmp:
+        PlyData([el], text=False, byte_order="<", comments=[f"n_views {surfels.n_views}"]).write(str(tmp))
+
+
+def read_surfels_ply(path) -> Surfels:
+    from plyfile import PlyData
+
+    path = Path(path)
+    if not path.is_file():
+        raise FormatError(f"surfel file {path} not found")
+    try:
+        ply = PlyData.read(str(path))
+        v = ply["vertex"].data
+    except Exception as e:
+        raise FormatError(f"{path}: not a readable PLY with a vertex element ({e})") from None
+    n_views = None
+    for c in ply.comments:
+        if c.startswith("n_views "):
+            n_views = int(c.split()[1])
+    names = v.dtype.names
+    for k in ("x", "y", "z", "nx", "ny", "nz", "radius"):
+        if k not in names:
+            raise FormatError(f"{path}: vertex property {k!r} missing")
+    vis_cols = sorted(n for n in names if n.startswith("vis_"))
+    if n_views is None:
+        n_views = 8 * len(vis_cols)
+    pos = np.stack([v["x"], v["y"], v["z"]], axis=1)
+    nrm = np.stack([v["nx"], v["ny"], v["nz"]], axis=1)
+    vis = np.stack([v[c] for c in vis_cols], axis=1) if vis_cols else np.zeros((len(v), 0), np.uint8)
+    return Surfels(pos, nrm, v["radius"], vis, n_views)
+
+
+# --------------------------------------------------------------------------- views
+
+
+@dataclass(frozen=True)
+class ViewInfo:
+    """One captured view (c, a) of the model."""
+
+    index: int
+    id: str
+    camera_index: int
+    table_deg: float
+    camera: Camera
+
+
+@dataclass(frozen=True)
+class LightSample:
+    """One light direction of the reflectance field: light ``light_id`` at array angle ``array_deg``."""
+
+    key: str
+    light_id: int
+    array_deg: float
+
+
+class OpacityHullModel:
+    """A model folder opened for reading. Use :meth:`open`."""
+
+    def __init__(self, root: Path, meta: dict, views: list[ViewInfo]):
+        self.root = root
+        self.meta = meta
+        self.views = views
+        self._surfels: Surfels | None = None
+
+    @classmethod
+    def open(cls, root) -> "OpacityHullModel":
+        root = Path(root)
+        p = root / "model.toml"
+        if not p.is_file():
+            raise FormatError(f"{root} is not a model: {p} not found")
+        try:
+            meta = tomllib.loads(p.read_text())
+        except tomllib.TOMLDecodeError as e:
+            raise FormatError(f"{p}: invalid TOML ({e})") from None
+        fmt = meta.get("model", {}).get("format")
+        if fmt != MODEL_FORMAT:
+            raise FormatError(f"{p}: model format {fmt!r}, expected {MODEL_FORMAT!r}")
+        cams = dict(read_colmap_text(root / "cameras"))
+        views = []
+        for i, v in enumerate(meta.get("views", [])):
+            vid = v["id"]
+            if vid not in cams:
+                raise FormatError(f"{root / 'cameras' / 'images.txt'}: view {vid!r} listed in model.toml is missing")
+            views.append(ViewInfo(i, vid, int(v["camera"]), float(v["table_deg"]), cams[vid].with_name(vid)))
+        if not views:
+            raise FormatError(f"{p}: no [[views]]")
+        return cls(root, meta, views)
+
+    # ---- geometry
+    @property
+    def surfels(self) -> Surfels:
+        if self._surfels is None:
+            self._surfels = read_surfels_ply(self.root / "surfels.ply")
+            if self._surfels.n_views != len(self.views):
+                raise FormatError(
+                    f"{self.root / 'surfels.ply'}: visibility has {self._surfels.n_views} views, model has {len(self.views)}"
+                )
+        return self._surfels
+
+    @property
+    def geometry(self) -> RigGeometry | None:
+        if "rig" not in self.meta:
+            return None
+        return RigGeometry.from_dict(self.meta["rig"], where=f"{self.root / 'model.toml'}:rig")
+
+    def view_index(self, view_id: str) -> int:
+        for v in self.views:
+            if v.id == view_id:
+                return v.index
+        raise InputError(f"view {view_id!r} not in model {self.root} (views: {[v.id for v in self.views][:8]}...)")
+
+    def find_view(self, camera: int, table_deg: float) -> int:
+        for v in self.views:
+            if v.camera_index == camera and abs(((v.table_deg - table_deg) + 180) % 360 - 180) < 1e-6:
+                return v.index
+        raise InputError(f"no view (camera {camera}, table {table_deg} deg) in model {self.root}")
+
+    # ---- appearance
+    def view_path(self, i: int) -> Path:
+        return self.root / "views" / f"{self.views[i].id}.exr"
+
+    def load_view_rgba(self, i: int) -> np.ndarray:
+        """(H, W, 4) float32 RGBA of view ``i``, straight alpha."""
+        from .imageio import read_exr
+
+        return read_exr(self.view_path(i), channels="RGBA")
+
+    def load_views_premul(self, indices: Sequence[int] | None = None) -> list[np.ndarray]:
+        """Premultiplied RGBA per view (list of (H, W, 4) float32; views may differ in size)."""
+        out = []
+        for i in range(len(self.views)) if indices is None else indices:
+            a = self.load_view_rgba(i)
+            a[..., :3] *= a[..., 3:4]
+            out.append(a)
+        return out
+
+    @property
+    def has_reflectance(self) -> bool:
+        return bool(self.meta.get("reflectance", {}).get("present", False))
+
+    @property
+    def light_samples(self) -> list[LightSample]:
+        r = self.meta.get("reflectance", {})
+        return [LightSample(L["key"], int(L["light_id"]), float(L["array_deg"])) for L in r.get("lights", [])]
+
+    def load_reflectance(self, i: int) -> dict[str, np.ndarray]:
+        """``{light key: (H, W, 3) premultiplied radiance}`` of view ``i``; raises
+        :class:`FormatError` naming the view and light when a sample is missing."""
+        from .imageio import read_exr_layers
+
+        p = self.root / "reflectance" / f"{self.views[i].id}.exr"
+        if not p.is_file():
+            raise FormatError(f"{p}: one-light-at-a-time images of view {self.views[i].id} not found")
+        layers = read_exr_layers(p)
+        for L in self.light_samples:
+            if L.key not in layers:
+                raise FormatError(f"{p}: one-light image {L.key} (light {L.light_id} at array {L.array_deg} deg) missing")
+        return {k: v[..., :3] for k, v in layers.items()}
+
+    def light_direction(self, i: int, sample: LightSample) -> np.ndarray:
+        """Unit direction towards the light sample in the object frame, for view ``i``."""
+        g = self.geometry
+        if g is None:
+            raise FormatError(f"{self.root / 'model.toml'}: no [rig] table, light directions unknown")
+        return g.light_direction_object(sample.light_id, self.views[i].table_deg, sample.array_deg)
+
+
+# --------------------------------------------------------------------------- writer
+
+
+def write_model(
+    root,
+    *,
+    views: Sequence[ViewInfo],
+    surfels: Surfels,
+    view_rgba: Sequence[np.ndarray] | None = None,
+    rig: dict | None = None,
+    provenance: dict | None = None,
+    reflectance: dict | None = None,
+    extra_meta: dict | None = None,
+    progress=None,
+) -> Path:
+    """Write a complete model folder.
+
+    Parameters
+    ----------
+    views : ViewInfo per view, in bit order.
+    surfels : Surfels with ``n_views == len(views)``.
+    view_rgba : per-view (H, W, 4) straight RGBA, optional (written to ``views/``).
+    rig : rig geometry table (copied from the session).
+    provenance : session path, options, timings.
+    reflectance : ``{"lights": [LightSample...], "images": callable(view_index) -> {key: (H, W, 3)}}``.
+    progress : callable(done, total) or None.
+
+    ``model.toml`` is written last, so a folder without it is an unfinished build.
+    """
+    from .imageio import atomic_path, write_exr, write_exr_layers
+    from .session import toml_dumps
+
+    root = Path(root)
+    root.mkdir(parents=True, exist_ok=True)
+    if surfels.n_views != len(views):
+        raise InputError(f"surfels have {surfels.n_views} views, {len(views)} views given")
+    write_colmap_text(root / "cameras", [v.camera for v in views], [v.id for v in views],
+                      share_intrinsics=[v.camera_index for v in views])
+    write_surfels_ply(root / "surfels.ply", surfels)
+    total = len(views) * (1 + (reflectance is not None))
+    done = 0
+    if view_rgba is not None:
+        for v, img in zip(views, view_rgba):
+            check_shape(f"view {v.id} RGBA", img, (v.camera.height, v.camera.width, 4))
+            write_exr(root / "views" / f"{v.id}.exr", img)
+            done += 1
+            if progress:
+                progress(done, total)
+    meta = {
+        "model": {
+            "format": MODEL_FORMAT,
+            "units": "m",
+            "software_version": __version__,
+            "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+            "n_views": len(views),
+            "n_surfels": len(surfels),
+        },
+        "provenance": provenance or {},
+        "views": [{"id": v.id, "camera": v.camera_index, "table_deg": v.table_deg} for v in views],
+    }
+    if rig is not None:
+        meta["rig"] = rig
+    if reflectance is not None:
+        lights = list(reflectance["lights"])
+        for v in views:
+            imgs = reflectance["images"](v.index)
+            write_exr_layers(root / "reflectance" / f"{v.id}.exr", {L.key: imgs[L.key] for L in lights})
+            done += 1
+            if progress:
+                progress(done, total)
+        meta["reflectance"] = {
+            "present": True,
+            "lights": [{"key": L.key, "light_id": L.light_id, "array_deg": L.array_deg} for L in lights],
+        }
+    else:
+        meta["reflectance"] = {"present": False}
+    if extra_meta:
+        meta.update(extra_meta)
+    with atomic_path(root / "model.toml") as tmp:
+        tmp.write_text(toml_dumps(meta))
+    return root

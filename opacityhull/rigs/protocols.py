@@ -1,0 +1,164 @@
+"""Device protocols the pipeline depends on.
+
+``acquire`` types its rig against these and never against a concrete driver or
+``sim``. Hardware drivers (``rigs``) and the simulated rig (``sim``) both implement
+them. All angles are in degrees, times in seconds.
+"""
+
+from __future__ import annotations
+
+from contextlib import AbstractContextManager
+from dataclasses import dataclass, field
+from typing import Mapping, Protocol, Sequence, runtime_checkable
+
+import numpy as np
+
+from ..riggeometry import RigGeometry
+
+__all__ = [
+    "DeviceInfo",
+    "Turntable",
+    "RotaryAxis",
+    "LightArray",
+    "Backdrops",
+    "CameraDevice",
+    "CameraInfo",
+    "Rig",
+]
+
+
+@dataclass(frozen=True)
+class DeviceInfo:
+    """What ``rig check`` reports for one device."""
+
+    name: str
+    ok: bool
+    detail: str
+    identity: str = ""
+    state: dict = field(default_factory=dict)
+
+
+@runtime_checkable
+class RotaryAxis(Protocol):
+    """A motorised rotation (turntable, light-array rotation)."""
+
+    name: str
+
+    def move_to(self, angle_deg: float, *, timeout_s: float | None = None) -> float:
+        """Absolute move; blocks until idle at the target; returns the reached angle."""
+
+    def position_deg(self) -> float:
+        """Current angle from the controller's status report."""
+
+    def home(self) -> None:
+        """Run the homing cycle (angle 0 afterwards)."""
+
+    def stop(self) -> None:
+        """Feed hold: stop motion now (safe to call at any time, never raises on a dead port)."""
+
+    def check(self) -> DeviceInfo: ...
+
+
+class Turntable(RotaryAxis, Protocol):
+    """The object turntable (carries the bottom display)."""
+
+
+@runtime_checkable
+class LightArray(Protocol):
+    """Overhead array of lights on DMX channels, rotating about the table axis."""
+
+    name: str
+
+    @property
+    def light_ids(self) -> Sequence[int]: ...
+
+    def set_levels(self, levels: Mapping[int, int]) -> None:
+        """Set the given lights (id → 0..255) and switch every other light off."""
+
+    def all_off(self) -> None:
+        """Every light off (never raises on a dead port; used by ``Rig.safe``)."""
+
+    def levels(self) -> dict[int, int]:
+        """Last levels sent, per light id."""
+
+    @property
+    def rotation(self) -> RotaryAxis: ...
+
+    def check(self) -> DeviceInfo: ...
+
+
+@runtime_checkable
+class Backdrops(Protocol):
+    """The plasma displays under and behind the object."""
+
+    name: str
+
+    @property
+    def displays(self) -> Sequence[str]: ...
+
+    def upload(self, display: str, pattern_id: int, image_rgb8: np.ndarray) -> None:
+        """Store pattern ``pattern_id`` (uint8 (rows, cols, 3)) in the display controller."""
+
+    def show(self, display: str, pattern_id: int) -> None:
+        """Show a stored pattern (powers the panel on)."""
+
+    def blank(self, display: str | None = None) -> None:
+        """Show black on one display or all (never raises on a dead port)."""
+
+    def shown(self) -> dict[str, int | None]:
+        """Pattern id shown per display (None = blank)."""
+
+    def check(self) -> DeviceInfo: ...
+
+
+@dataclass(frozen=True)
+class CameraInfo:
+    name: str
+    width: int
+    height: int
+    model: str = ""
+    serial: str = ""
+    white_level: float = 1.0
+    linear: bool = True
+
+
+@runtime_checkable
+class CameraDevice(Protocol):
+    """A camera that returns linear float32 RGB images (H, W, 3)."""
+
+    name: str
+
+    def capture(self, exposure_s: float) -> np.ndarray: ...
+
+    def info(self) -> CameraInfo: ...
+
+
+@runtime_checkable
+class Rig(Protocol):
+    """A capture rig: devices plus geometry.
+
+    ``with rig.safe():`` guarantees lights off, backdrops blank and a feed hold on
+    the axes on any exit, Ctrl-C included.
+    """
+
+    geometry: RigGeometry
+    turntable: Turntable
+    light_array: LightArray | None
+    backdrops: Backdrops | None
+    cameras: Sequence[CameraDevice]
+
+    def open(self) -> None: ...
+
+    def close(self) -> None: ...
+
+    def safe(self) -> AbstractContextManager: ...
+
+    def check(self) -> list[DeviceInfo]: ...
+
+    def describe(self) -> dict:
+        """The rig TOML content (geometry and devices) to record in a session."""
+
+    def ground_truth(self, root, views: Sequence[tuple[int, float]]) -> None:
+        """Write what the rig knows exactly about the given views (camera index, table
+        angle) under ``root / "groundtruth"``. Simulated rigs write true cameras,
+        coverage alpha, the object mesh and light positions; hardware rigs do nothing."""

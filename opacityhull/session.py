@@ -1,0 +1,512 @@
+"""The capture session on disk: written by ``acquire``, read by ``reconstruct``.
+
+Neither stage imports the other; this module is the contract between them.
+
+Layout of a session folder::
+
+    session.toml        [session] format, software version, created, rig/plan source,
+                        seed; [rig] the rig geometry table (riggeometry schema);
+                        [plan] the plan as run; [patterns] what each pattern id is
+    manifest.jsonl      one JSON record per image, appended only after the image file
+                        was atomically renamed into place, then flushed and fsynced
+    images/<phase>/<camera>/<file>.exr    linear float images (EXR)
+    patterns/<display>/p<id>.png          backdrop patterns exactly as uploaded (8-bit)
+    calibration/<camera>.yaml             optional: known intrinsics + rig_from_cam
+    cameras/                              optional: COLMAP text model giving each view's
+                                          camera directly (imported image sets)
+    groundtruth/                          simulated sessions only: true cameras,
+                                          coverage alpha per view, object mesh, lights
+
+A manifest record (see :class:`ShotRecord`) says which phase, camera, table angle,
+light-array angle, light or pattern and exposure produced the image, its path relative
+to the session, its sha256 and size. ``shot`` identifies the shot independently of
+the exposure bracket; ``id`` is unique per image. HDR merges (a separate step) append
+records with ``kind = "hdr"`` that list their ``sources``.
+
+Image values are linear sensor values; ``value = gain * exposure_s * radiance`` with
+the camera's ``gain`` from the rig geometry, so :meth:`Session.load_radiance` returns
+radiance in the scene's units regardless of exposure.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import time
+import tomllib
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any, Iterable, Iterator
+
+import numpy as np
+
+from . import __version__
+from .errors import FormatError, InputError
+from .riggeometry import RigGeometry, view_id
+
+__all__ = [
+    "SESSION_FORMAT",
+    "PHASES",
+    "ShotRecord",
+    "Session",
+    "SessionWriter",
+    "sha256_file",
+    "shot_key",
+    "toml_dumps",
+]
+
+SESSION_FORMAT = "opacityhull-session/1"
+PHASES = ("calibration", "matting", "lightfield", "reflectance", "envmatte", "mask")
+
+
+def sha256_file(path, chunk: int = 1 << 20) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        while True:
+            b = f.read(chunk)
+            if not b:
+                break
+            h.update(b)
+    return h.hexdigest()
+
+
+def shot_key(
+    phase: str,
+    camera: int,
+    table_deg: float,
+    *,
+    lights_deg: float | None = None,
+    light: int | None = None,
+    pattern: int | None = None,
+    object_present: bool = True,
+) -> str:
+    """Bracket-independent shot identifier, also the stem of its image files.
+
+    e.g. ``matting/c0_t030.000/p003_obj`` or ``reflectance/c1_t000.000/a045.000_l2``.
+    """
+    parts = [phase, view_id(camera, table_deg)]
+    leaf = []
+    if lights_deg is not None:
+        leaf.append(f"a{float(lights_deg) % 360.0:07.3f}")
+    if light is not None:
+        leaf.append(f"l{int(light)}")
+    if pattern is not None:
+        leaf.append(f"p{int(pattern):03d}")
+    elif phase in ("matting", "envmatte"):
+        leaf.append("off")
+    if not object_present:
+        leaf.append("bg")
+    return "/".join(parts + ["_".join(leaf) if leaf else "img"])
+
+
+@dataclass(frozen=True)
+class ShotRecord:
+    """One image of a session (one line of ``manifest.jsonl``).
+
+    Attributes
+    ----------
+    id : unique image id (``shot`` + ``/e<bracket index>``, or ``/hdr``).
+    shot : bracket-independent shot key (:func:`shot_key`).
+    phase : one of :data:`PHASES`.
+    camera : index of the physical camera (rig geometry order).
+    table_deg : turntable angle in degrees.
+    lights_deg : light-array angle in degrees, or None when irrelevant.
+    light : light id lit alone (reflectance phase), or None.
+    pattern : backdrop pattern id shown on every display, None = displays blank.
+    object_present : False for the object-absent backdrop captures.
+    exposure_s : exposure time in seconds (None for an HDR merge).
+    path : image path relative to the session folder (POSIX separators).
+    sha256, bytes : of the file as written.
+    kind : "raw" (a capture) or "hdr" (a merge of ``sources``).
+    extra : free-form details (lights on in the lightfield phase, seed, ...).
+    """
+
+    id: str
+    shot: str
+    phase: str
+    camera: int
+    table_deg: float
+    path: str
+    sha256: str
+    bytes: int
+    exposure_s: float | None = None
+    lights_deg: float | None = None
+    light: int | None = None
+    pattern: int | None = None
+    object_present: bool = True
+    kind: str = "raw"
+    sources: tuple[str, ...] = ()
+    extra: dict = field(default_factory=dict)
+
+    @property
+    def view(self) -> str:
+        return view_id(self.camera, self.table_deg)
+
+    def to_json(self) -> str:
+        d = asdict(self)
+        d["sources"] = list(self.sources)
+        return json.dumps(d, sort_keys=True, separators=(",", ":"))
+
+    @classmethod
+    def from_dict(cls, d: dict, where: str = "manifest") -> "ShotRecord":
+        try:
+            d = dict(d)
+            d["sources"] = tuple(d.get("sources", ()))
+            return cls(**d)
+        except TypeError as e:
+            raise FormatError(f"{where}: record does not match the session format ({e})") from None
+
+
+# --------------------------------------------------------------------------- TOML
+
+
+def _toml_value(v: Any) -> str:
+    if isinstance(v, bool):
+        return "true" if v else "false"
+    if isinstance(v, (int, np.integer)):
+        return str(int(v))
+    if isinstance(v, (float, np.floating)):
+        f = float(v)
+        if f != f:
+            return "nan"
+        if f in (float("inf"), float("-inf")):
+            return "inf" if f > 0 else "-inf"
+        return repr(f)
+    if isinstance(v, str):
+        return json.dumps(v)
+    if isinstance(v, (list, tuple, np.ndarray)):
+        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
+    if isinstance(v, dict):
+        return "{" + ", ".join(f"{json.dumps(str(k))} = {_toml_value(x)}" for k, x in v.items()) + "}"
+    if v is None:
+        raise InputError("TOML cannot store None; leave the key out")
+    return json.dumps(str(v))
+
+
+def toml_dumps(data: dict) -> str:
+    """Minimal TOML writer for nested tables, arrays of tables and plain values.
+
+    (The standard library reads TOML but cannot write it; this covers what sessions,
+    models and rig copies need.)
+    """
+    lines: list[str] = []
+
+    def emit(table: dict, prefix: str):
+        scalars = {k: v for k, v in table.items() if v is not None and not _is_table(v) and not _is_table_array(v)}
+        for k, v in scalars.items():
+            lines.append(f"{_key(k)} = {_toml_value(v)}")
+        for k, v in table.items():
+            name = f"{prefix}.{_key(k)}" if prefix else _key(k)
+            if _is_table(v):
+                lines.append("")
+                lines.append(f"[{name}]")
+                emit(v, name)
+            elif _is_table_array(v):
+                for item in v:
+                    lines.append("")
+                    lines.append(f"[[{name}]]")
+                    emit(item, name)
+
+    emit(data, "")
+    return "\n".join(lines).lstrip("\n") + "\n"
+
+
+def _key(k: str) -> str:
+    k = str(k)
+    return k if k.replace("_", "").replace("-", "").isalnum() else json.dumps(k)
+
+
+def _is_table(v) -> bool:
+    return isinstance(v, dict)
+
+
+def _is_table_array(v) -> bool:
+    return isinstance(v, (list, tuple)) and len(v) > 0 and all(isinstance(x, dict) for x in v)
+
+
+# --------------------------------------------------------------------------- reader
+
+
+class Session:
+    """A session folder opened for reading.
+
+    Use :meth:`open`. Records whose ``kind`` is ``"hdr"`` supersede the raw brackets
+    of the same shot in :meth:`load_radiance`.
+    """
+
+    def __init__(self, root: Path, meta: dict, records: list[ShotRecord]):
+        self.root = root
+        self.meta = meta
+        self.records = records
+        self._by_shot: dict[str, list[ShotRecord]] = {}
+        for r in records:
+            self._by_shot.setdefault(r.shot, []).append(r)
+
+    @classmethod
+    def open(cls, root) -> "Session":
+        root = Path(root)
+        toml_path = root / "session.toml"
+        if not toml_path.is_file():
+            raise FormatError(f"{root} is not a session: {toml_path} not found")
+        try:
+            meta = tomllib.loads(toml_path.read_text())
+        except tomllib.TOMLDecodeError as e:
+            raise FormatError(f"{toml_path}: invalid TOML ({e})") from None
+        fmt = meta.get("session", {}).get("format")
+        if fmt != SESSION_FORMAT:
+            raise FormatError(f"{toml_path}: session format {fmt!r}, expected {SESSION_FORMAT!r}")
+        return cls(root, meta, list(read_manifest(root / "manifest.jsonl")))
+
+    # ---- metadata
+    @property
+    def geometry(self) -> RigGeometry:
+        if "rig" not in self.meta:
+            raise FormatError(f"{self.root / 'session.toml'}: no [rig] table")
+        return RigGeometry.from_dict(self.meta["rig"], where=f"{self.root / 'session.toml'}:rig")
+
+    @property
+    def plan(self) -> dict:
+        return self.meta.get("plan", {})
+
+    @property
+    def source(self) -> str:
+        """``rig_source`` of the session: a rig TOML path or ``sim:<scene>``."""
+        return self.meta.get("session", {}).get("rig_source", "")
+
+    @property
+    def is_simulated(self) -> bool:
+        return (self.root / "groundtruth").is_dir()
+
+    # ---- records
+    def select(self, *, phase=None, camera=None, table_deg=None, kind="raw", **eq) -> list[ShotRecord]:
+        """Records matching every given attribute (``kind=None`` for any kind)."""
+        out = []
+        for r in self.records:
+            if phase is not None and r.phase != phase:
+                continue
+            if camera is not None and r.camera != camera:
+                continue
+            if table_deg is not None and abs(((r.table_deg - table_deg) + 180) % 360 - 180) > 1e-6:
+                continue
+            if kind is not None and r.kind != kind:
+                continue
+            if any(getattr(r, k) != v for k, v in eq.items()):
+                continue
+            out.append(r)
+        return out
+
+    def phases(self) -> set[str]:
+        return {r.phase for r in self.records}
+
+    def views(self, phase: str | None = None) -> list[tuple[int, float]]:
+        """Sorted distinct (camera, table_deg) pairs with images (in ``phase`` if given)."""
+        seen = {(r.camera, round(r.table_deg % 360.0, 6)) for r in self.records if phase is None or r.phase == phase}
+        return sorted(seen)
+
+    def shots(self, **kw) -> list[str]:
+        return sorted({r.shot for r in self.select(kind=None, **kw)})
+
+    def abspath(self, record: ShotRecord) -> Path:
+        return self.root / record.path
+
+    def load_image(self, record: ShotRecord) -> np.ndarray:
+        from .imageio import read_image
+
+        return read_image(self.abspath(record))
+
+    def load_radiance(self, shot: str, *, saturation: float = 0.98) -> np.ndarray:
+        """Radiance image (H, W, C) of a shot, float32.
+
+        The HDR merge when there is one; otherwise the longest exposure in which no
+        channel reaches ``saturation`` x white level in more than 0.1 % of pixels (or
+        the shortest one), divided by ``gain * exposure_s``.
+        """
+        recs = self._by_shot.get(shot)
+        if not recs:
+            raise FormatError(f"{self.root}: no image for shot {shot!r} in the manifest")
+        hdr = [r for r in recs if r.kind == "hdr"]
+        cam_gain = self._gain(recs[0].camera)
+        if hdr:
+            return self.load_image(hdr[-1])
+        raws = sorted((r for r in recs if r.kind == "raw"), key=lambda r: r.exposure_s or 0.0)
+        white = float(self.meta.get("session", {}).get("white_level", 1.0))
+        chosen, img = None, None
+        for r in reversed(raws):
+            im = self.load_image(r)
+            if np.mean(np.any(im[..., :3] >= saturation * white, axis=-1)) <= 1e-3 or r is raws[0]:
+                chosen, img = r, im
+                break
+        exp = chosen.exposure_s or 1.0
+        return (img / np.float32(cam_gain * exp)).astype(np.float32)
+
+    def _gain(self, camera: int) -> float:
+        try:
+            return float(self.geometry.cameras[camera].gain)
+        except (IndexError, FormatError):
+            return 1.0
+
+    def pattern_image(self, display: str, pattern: int) -> np.ndarray:
+        """The uploaded pattern (rows, cols, 3) as display drive values in [0, 1]."""
+        from .imageio import read_png
+
+        return read_png(self.root / "patterns" / display / f"p{int(pattern):03d}.png", linear=True)
+
+    def calibration_cameras(self) -> dict[int, "Camera"] | None:
+        """Known calibration (``calibration/<camera name>.yaml``) per camera index, or None."""
+        from .camera import read_opencv_yaml
+
+        d = self.root / "calibration"
+        if not d.is_dir():
+            return None
+        out = {}
+        for i, spec in enumerate(self.geometry.cameras):
+            p = d / f"{spec.name}.yaml"
+            if p.is_file():
+                out[i] = read_opencv_yaml(p)
+        return out or None
+
+    def view_cameras(self) -> dict[str, "Camera"] | None:
+        """Cameras given per view in ``cameras/`` (COLMAP text, names = view ids), or None."""
+        from .camera import read_colmap_text
+
+        d = self.root / "cameras"
+        if not (d / "images.txt").is_file():
+            return None
+        return {name: cam.with_name(name) for name, cam in read_colmap_text(d)}
+
+    @property
+    def groundtruth_dir(self) -> Path | None:
+        d = self.root / "groundtruth"
+        return d if d.is_dir() else None
+
+
+def read_manifest(path) -> Iterator[ShotRecord]:
+    """Records of a ``manifest.jsonl``. A torn last line (crash mid-append) is skipped;
+    a corrupt line elsewhere raises :class:`FormatError` naming the line."""
+    path = Path(path)
+    if not path.is_file():
+        return iter(())
+    lines = path.read_bytes().split(b"\n")
+    out = []
+    for i, raw in enumerate(lines, start=1):
+        if not raw.strip():
+            continue
+        try:
+            d = json.loads(raw)
+        except json.JSONDecodeError:
+            if i >= len(lines) - 1:  # the last (unterminated) line: a torn append
+                continue
+            raise FormatError(f"{path}:{i}: not valid JSON") from None
+        out.append(ShotRecord.from_dict(d, where=f"{path}:{i}"))
+    return iter(out)
+
+
+# --------------------------------------------------------------------------- writer
+
+
+class SessionWriter:
+    """Appends images to a session folder, never losing or duplicating one.
+
+    Each image is written to a temporary file, fsynced and renamed into place; only
+    then is its record appended to ``manifest.jsonl`` and the manifest fsynced. A crash
+    at any point leaves at worst an image without a record (found by ``session
+    verify`` as *unlisted*, and overwritten when the shot is re-taken on resume).
+    """
+
+    def __init__(self, root, *, fsync: bool = True):
+        self.root = Path(root)
+        self.fsync = fsync
+        self._manifest = None
+        self._ids: set[str] = set()
+
+    # ---- lifecycle
+    def create(self, meta: dict) -> "SessionWriter":
+        """Start a new session in an empty (or absent) folder; refuses a non-empty one."""
+        from .imageio import atomic_path
+
+        if self.root.exists() and any(self.root.iterdir()):
+            raise InputError(f"{self.root} is not empty; use --resume to continue a session there")
+        self.root.mkdir(parents=True, exist_ok=True)
+        meta = dict(meta)
+        s = dict(meta.get("session", {}))
+        s.setdefault("format", SESSION_FORMAT)
+        s.setdefault("software_version", __version__)
+        s.setdefault("created_utc", time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()))
+        meta["session"] = s
+        with atomic_path(self.root / "session.toml") as tmp:
+            tmp.write_text(toml_dumps(meta))
+        return self._open_manifest()
+
+    def resume(self) -> "SessionWriter":
+        """Open an existing session for appending; returns self."""
+        if not (self.root / "session.toml").is_file():
+            raise InputError(f"{self.root} holds no session.toml; nothing to resume")
+        return self._open_manifest()
+
+    def _open_manifest(self) -> "SessionWriter":
+        path = self.root / "manifest.jsonl"
+        self._ids = {r.id for r in read_manifest(path)}
+        # A torn last line (no newline) must not glue onto the next record.
+        if path.is_file() and path.stat().st_size > 0:
+            with open(path, "rb") as f:
+                f.seek(-1, os.SEEK_END)
+                torn = f.read(1) != b"\n"
+            if torn:
+                with open(path, "ab") as f:
+                    f.write(b"\n")
+        self._manifest = open(path, "ab", buffering=0)
+        return self
+
+    def close(self) -> None:
+        if self._manifest is not None:
+            self._manifest.close()
+            self._manifest = None
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+        return False
+
+    # ---- writing
+    @property
+    def ids(self) -> set[str]:
+        return set(self._ids)
+
+    def add_image(self, image: np.ndarray, *, id: str, shot: str, phase: str, camera: int, table_deg: float,
+                  rel_path: str, half: bool = False, **fields) -> ShotRecord:
+        """Write ``image`` (EXR) at ``rel_path`` atomically and append its record."""
+        from .imageio import write_exr
+
+        if phase not in PHASES:
+            raise InputError(f"unknown phase {phase!r}; expected one of {PHASES}")
+        path = self.root / rel_path
+        write_exr(path, image, half=half)
+        return self.add_file(path, id=id, shot=shot, phase=phase, camera=camera, table_deg=table_deg, **fields)
+
+    def add_file(self, path, *, id: str, shot: str, phase: str, camera: int, table_deg: float, **fields) -> ShotRecord:
+        """Append the record of a file already atomically in place inside the session."""
+        if self._manifest is None:
+            raise InputError("session writer is not open (call create() or resume())")
+        path = Path(path)
+        rel = path.relative_to(self.root).as_posix()
+        rec = ShotRecord(
+            id=id,
+            shot=shot,
+            phase=phase,
+            camera=int(camera),
+            table_deg=float(table_deg),
+            path=rel,
+            sha256=sha256_file(path),
+            bytes=path.stat().st_size,
+            **fields,
+        )
+        if rec.id in self._ids:
+            raise InputError(f"image id {rec.id!r} is already in {self.root / 'manifest.jsonl'}")
+        self._manifest.write((rec.to_json() + "\n").encode())
+        if self.fsync:
+            os.fsync(self._manifest.fileno())
+        self._ids.add(rec.id)
+        return rec
