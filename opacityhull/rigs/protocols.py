@@ -158,6 +158,12 @@ class Rig(Protocol):
     def describe(self) -> dict:
         """The rig TOML content (geometry and devices) to record in a session."""
 
+    def operator(self, action: str, **details) -> None:
+        """A manual step between phases, asked of the operator on a hardware rig (and
+        waited for) or performed by a simulated rig. Actions: ``"place_board"``
+        (details: ``charuco`` = :class:`~opacityhull.charuco.CharucoSpec`),
+        ``"remove_board"``, ``"remove_object"``, ``"place_object"``."""
+
     def ground_truth(self, root, views: Sequence[tuple[int, float]]) -> None:
         """Write what the rig knows exactly about the given views (camera index, table
         angle) under ``root / "groundtruth"``. Simulated rigs write true cameras,
