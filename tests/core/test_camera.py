@@ -1,0 +1,184 @@
+"""Camera model and its conversions: each round-trips, and each agrees with an
+independent implementation (OpenCV's projectPoints, pycolmap's reader)."""
+
+import math
+
+import cv2
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from opacityhull.camera import (
+    Camera,
+    camera_from_mitsuba_params,
+    look_at_world_from_cam,
+    mitsuba_sensor_params,
+    nerfstudio_transform_matrix,
+    object_from_rig,
+    read_colmap_text,
+    read_opencv_yaml,
+    rig_from_object,
+    rot_y,
+    write_colmap_text,
+    write_opencv_yaml,
+)
+from opacityhull.errors import FormatError, InputError, ShapeError
+
+
+def make_cam(dist=(0, 0, 0, 0, 0), eye=(0.3, 0.4, 1.0), fx=300.0, fy=300.0, name="c"):
+    K = np.array([[fx, 0, 79.3], [0, fy, 61.7], [0, 0, 1]])
+    return Camera(K=K, width=160, height=120, dist=dist, world_from_cam=look_at_world_from_cam(eye, (0, 0.05, 0)), name=name)
+
+
+def test_project_matches_opencv_with_distortion():
+    cam = make_cam(dist=(-0.21, 0.08, 0.001, -0.0015, 0.01))
+    rng = np.random.default_rng(0)
+    P = rng.uniform(-0.1, 0.1, (200, 3))
+    uv, z = cam.project(P)
+    T = cam.cam_from_world
+    rvec, _ = cv2.Rodrigues(T[:3, :3])
+    ref, _ = cv2.projectPoints(P, rvec, T[:3, 3], cam.K, cam.dist)
+    np.testing.assert_allclose(uv, ref.reshape(-1, 2), atol=1e-9)
+    assert np.all(z > 0)
+
+
+def test_unproject_inverts_project_with_distortion():
+    cam = make_cam(dist=(-0.2, 0.05, 0.001, 0.002, 0.0))
+    P = np.random.default_rng(1).uniform(-0.08, 0.08, (100, 3))
+    uv, z = cam.project(P)
+    np.testing.assert_allclose(cam.unproject(uv, z), P, atol=1e-9)
+
+
+def test_points_behind_camera_are_nan():
+    cam = make_cam()
+    behind = cam.centre_world - 0.5 * cam.forward_world
+    uv, z = cam.project(behind[None])
+    assert z[0] < 0 and np.all(np.isnan(uv))
+
+
+def test_pixel_rays_hit_projected_points():
+    cam = make_cam(dist=(-0.1, 0.0, 0.0, 0.0, 0.0))
+    o, d = cam.pixel_rays()
+    assert d.shape == (120, 160, 3)
+    np.testing.assert_allclose(np.linalg.norm(d, axis=-1), 1.0, atol=1e-12)
+    # a point 0.8 m along the ray through pixel (37, 91) projects back to that pixel
+    p = o + 0.8 * d[91, 37]
+    uv, _ = cam.project(p[None])
+    np.testing.assert_allclose(uv[0], [37, 91], atol=1e-6)
+
+
+def test_camera_validation_messages():
+    with pytest.raises(ShapeError, match=r"K has shape \(2, 2\)"):
+        Camera(K=np.eye(2), width=10, height=10)
+    with pytest.raises(InputError, match="skew"):
+        Camera(K=np.array([[100, 1.0, 5], [0, 100, 5], [0, 0, 1]]), width=10, height=10)
+    bad = np.eye(4)
+    bad[0, 0] = 2
+    with pytest.raises(InputError, match="not a rigid transform"):
+        Camera(K=np.eye(3) * [100, 100, 1], width=10, height=10, world_from_cam=bad)
+
+
+def test_look_at_handles_view_along_up_axis():
+    T = look_at_world_from_cam((0, 2, 0), (0, 0, 0))  # straight down the table axis
+    assert np.all(np.isfinite(T))
+    np.testing.assert_allclose(T[:3, 2], [0, -1, 0], atol=1e-12)
+    with pytest.raises(InputError, match="coincides"):
+        look_at_world_from_cam((1, 1, 1), (1, 1, 1))
+
+
+def test_table_rotation_convention():
+    # +90 deg turns +Z towards +X (right-handed about +Y)
+    np.testing.assert_allclose(rot_y(math.pi / 2) @ [0, 0, 1], [1, 0, 0], atol=1e-12)
+    np.testing.assert_allclose(rig_from_object(37.0) @ object_from_rig(37.0), np.eye(4), atol=1e-12)
+
+
+def test_scaled_camera_projects_consistently():
+    cam = make_cam()
+    half = cam.scaled(0.5)
+    P = np.random.default_rng(2).uniform(-0.05, 0.05, (20, 3))
+    uv, _ = cam.project(P)
+    uv2, _ = half.project(P)
+    # continuous coordinates (pixel centre + 0.5) scale exactly
+    np.testing.assert_allclose((uv2 + 0.5), (uv + 0.5) * 0.5, atol=1e-9)
+
+
+@pytest.mark.parametrize("dist", [(0, 0, 0, 0, 0), (-0.2, 0.05, 0.001, 0.002, 0.0), (-0.2, 0.05, 0.001, 0.002, 0.01)])
+def test_colmap_roundtrip_and_pycolmap_agrees(tmp_path, dist):
+    import pycolmap
+
+    cams = [make_cam(dist=dist, eye=(0.5 * math.sin(a), 0.3, 0.5 * math.cos(a)), name=f"v{i}") for i, a in enumerate([0, 1, 2])]
+    write_colmap_text(tmp_path, cams, share_intrinsics=[0, 0, 0], points3d=np.zeros((1, 3)))
+    back = dict(read_colmap_text(tmp_path))
+    for c in cams:
+        b = back[c.name]
+        np.testing.assert_allclose(b.K, c.K, atol=1e-9)
+        np.testing.assert_allclose(b.dist, c.dist, atol=1e-12)
+        np.testing.assert_allclose(b.world_from_cam, c.world_from_cam, atol=1e-9)
+    rec = pycolmap.Reconstruction(str(tmp_path))
+    assert len(rec.cameras) == 1 and len(rec.images) == 3
+    for img in rec.images.values():
+        c = next(x for x in cams if x.name == img.name)
+        cfw = img.cam_from_world() if callable(img.cam_from_world) else img.cam_from_world
+        np.testing.assert_allclose(cfw.matrix(), c.cam_from_world[:3], atol=1e-9)
+        # pycolmap projects with COLMAP's +0.5 pixel convention
+        pcam = rec.cameras[img.camera_id]
+        P = np.array([[0.01, 0.02, 0.03]])
+        uv, _ = c.project(P)
+        cam_pt = c.world_to_cam(P)[0]
+        img_pt = pcam.img_from_cam(cam_pt[None] / cam_pt[2]) if False else pcam.img_from_cam(cam_pt[None])
+        np.testing.assert_allclose(np.asarray(img_pt).reshape(-1)[:2], uv[0] + 0.5, atol=1e-6)
+
+
+def test_colmap_reader_errors_name_file_and_line(tmp_path):
+    (tmp_path / "cameras.txt").write_text("1 FISHEYE 10 10 1 2 3\n")
+    (tmp_path / "images.txt").write_text("")
+    with pytest.raises(FormatError, match=r"cameras.txt:1: camera model FISHEYE"):
+        read_colmap_text(tmp_path)
+    with pytest.raises(FormatError, match="not found"):
+        read_colmap_text(tmp_path / "nope")
+
+
+def test_opencv_yaml_roundtrip(tmp_path):
+    cam = make_cam(dist=(-0.1, 0.01, 0.0, 0.001, 0.0), name="cam3")
+    write_opencv_yaml(tmp_path / "cam3.yaml", cam, extra={"reproj_rms_px": 0.25})
+    back = read_opencv_yaml(tmp_path / "cam3.yaml")
+    np.testing.assert_allclose(back.K, cam.K)
+    np.testing.assert_allclose(back.dist, cam.dist)
+    np.testing.assert_allclose(back.world_from_cam, cam.world_from_cam)
+    assert back.name == "cam3" and back.size == cam.size
+    fs = cv2.FileStorage(str(tmp_path / "cam3.yaml"), cv2.FILE_STORAGE_READ)
+    assert fs.getNode("reproj_rms_px").real() == pytest.approx(0.25)
+    fs.release()
+
+
+def test_mitsuba_params_roundtrip_and_refuse_distortion():
+    cam = make_cam()
+    back = camera_from_mitsuba_params(mitsuba_sensor_params(cam))
+    np.testing.assert_allclose(back.K, cam.K, atol=1e-9)
+    np.testing.assert_allclose(back.world_from_cam, cam.world_from_cam, atol=1e-12)
+    with pytest.raises(InputError, match="distortion"):
+        mitsuba_sensor_params(make_cam(dist=(0.1, 0, 0, 0, 0)))
+    with pytest.raises(InputError, match="square pixels"):
+        mitsuba_sensor_params(make_cam(fy=310.0))
+
+
+def test_nerfstudio_matrix_is_opengl_convention():
+    cam = make_cam()
+    M = np.array(nerfstudio_transform_matrix(cam))
+    # OpenGL camera looks down its -z; that must be the OpenCV +z (forward)
+    np.testing.assert_allclose(-M[:3, 2], cam.forward_world, atol=1e-12)
+    np.testing.assert_allclose(M[:3, 1], -cam.world_from_cam[:3, 1], atol=1e-12)
+    np.testing.assert_allclose(M[:3, 3], cam.centre_world)
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    st.floats(-0.3, 0.3), st.floats(-0.1, 0.1), st.floats(-0.005, 0.005), st.floats(-0.005, 0.005),
+    st.floats(-0.9, 0.9), st.floats(-0.9, 0.9),
+)
+def test_undistort_inverts_distort(k1, k2, p1, p2, x, y):
+    cam = make_cam(dist=(k1, k2, p1, p2, 0.0))
+    xy = np.array([[x * 0.5, y * 0.5]])
+    back = cam.undistort_normalized(cam.distort_normalized(xy), iterations=50)
+    np.testing.assert_allclose(back, xy, atol=1e-6)
