@@ -84,12 +84,9 @@ def test_hdr_roundtrip_within_rgbe_precision(tmp_path):
 
 
 def test_hdr_reads_shared_probe():
-    from pathlib import Path
+    from opacityhull.data import probe_path
 
-    p = Path(__file__).resolve().parents[3] / "shared" / "data" / "probes" / "grace.hdr"
-    if not p.exists():
-        pytest.skip("shared probes not present")
-    env = read_hdr(p)
+    env = read_hdr(probe_path("grace"))
     assert env.shape == (128, 256, 3) and env.dtype == np.float32
     assert np.all(np.isfinite(env)) and env.min() >= 0
     # real HDR: the brightest texel is far above the median
