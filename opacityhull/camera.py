@@ -91,10 +91,10 @@ def look_at_world_from_cam(eye, target, up=(0.0, 1.0, 0.0)) -> np.ndarray:
     if not np.isfinite(n) or n < 1e-12:
         raise InputError(f"look-at eye {eye.tolist()} coincides with target {target.tolist()}")
     z /= n
-    x = np.cross(z, -up)  # camera x = right; image up is -y
-    if np.linalg.norm(x) < 1e-9:  # looking along the up axis: choose world +X as right
+    x = np.cross(z, up)  # camera x = right = forward x up, so that image up (-y) follows `up`
+    if np.linalg.norm(x) < 1e-9:  # looking along the up axis: image up follows world +Z instead
         alt = np.array([0.0, 0.0, 1.0]) if abs(z[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
-        x = np.cross(z, -alt)
+        x = np.cross(z, alt)
     x /= np.linalg.norm(x)
     y = np.cross(z, x)
     T = np.eye(4)

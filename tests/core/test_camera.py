@@ -182,3 +182,12 @@ def test_undistort_inverts_distort(k1, k2, p1, p2, x, y):
     xy = np.array([[x * 0.5, y * 0.5]])
     back = cam.undistort_normalized(cam.distort_normalized(xy), iterations=50)
     np.testing.assert_allclose(back, xy, atol=1e-6)
+
+
+def test_look_at_image_up_is_world_up_and_right_handed():
+    T = look_at_world_from_cam((0.0, 0.0, 1.0), (0.0, 0.0, 0.0))
+    cam = Camera(K=np.array([[100.0, 0, 50], [0, 100.0, 50], [0, 0, 1]]), width=101, height=101, world_from_cam=T)
+    (u_up, v_up), (u_right, v_right) = cam.project(np.array([[0, 0.1, 0], [0.1, 0, 0]]))[0]
+    assert v_up < 50 and abs(u_up - 50) < 1e-9  # world +Y appears above the centre
+    assert u_right > 50  # seen from +Z, world +X is on the right
+    assert np.linalg.det(T[:3, :3]) == pytest.approx(1.0)
