@@ -9,15 +9,23 @@ subclass whose message names the device and the URL and says what to check.
 pyserial facts this module is built around (PITFALLS.md): a read that times out
 returns ``b''`` or a partial line and never raises; ``readline`` splits on ``\\n``
 only; late replies stay in the input buffer (so :meth:`query` flushes first); when the
-other end of a pty goes away, reads raise ``OSError(EIO)``.
+other end of a pty goes away, reads raise ``OSError(EIO)``; a TCP peer that closed
+shows up as a readable socket whose ``recv`` returns ``b''`` (pyserial raises
+``SerialException('socket disconnected')``).
+
+The port is opened non-blocking (``timeout=0``) and waits happen in ``select`` on its
+file descriptor, so one read call drains everything available (pyserial's socket
+handler otherwise reads a TCP stream one byte per system call).
 """
 
 from __future__ import annotations
 
+import select
+import socket
 import time
 from typing import Callable
 
-from ..errors import DeviceError
+from ..errors import ConfigError, DeviceError
 
 try:  # termios.error is not an OSError; a hung-up pty raises it from tcdrain()
     import termios
@@ -37,6 +45,9 @@ __all__ = [
 
 URL_SCHEMES = ("socket://", "loop://", "rfc2217://", "/dev/", "COM")
 
+#: Longest single wait inside a read loop; bounds how late a deadline is noticed.
+_POLL_S = 0.05
+
 
 class DeviceTimeout(DeviceError):
     """The device did not answer (completely) within the timeout."""
@@ -52,13 +63,10 @@ class ProtocolError(DeviceError):
 
 def check_url(url: str, *, where: str = "url") -> str:
     """Validate a transport URL; raise :class:`~opacityhull.errors.ConfigError` naming ``where``."""
-    from ..errors import ConfigError
-
     if not isinstance(url, str) or not url:
         raise ConfigError(f"{where}: expected a serial URL string, got {url!r}")
     if url.startswith(URL_SCHEMES) or url.startswith("emulator:"):
         return url
-    scheme = url.split("://")[0] + "://" if "://" in url else url
     raise ConfigError(
         f"{where}: unknown URL scheme in {url!r} (expected a device path like /dev/ttyUSB0, "
         "socket://HOST:PORT, loop://, or emulator:KIND)"
@@ -80,6 +88,12 @@ class SerialTransport:
     write_timeout_s : float
     exclusive : bool
         Request exclusive access (POSIX ports only; ignored for sockets).
+
+    Notes
+    -----
+    Not thread-safe for concurrent reads; device drivers serialise transactions with
+    their own lock. A single-byte :meth:`write` from another thread (a GRBL feed hold)
+    is safe: it is one ``write(2)`` call.
     """
 
     def __init__(self, url: str, *, name: str = "device", baudrate: int = 115200, timeout_s: float = 2.0,
@@ -91,38 +105,61 @@ class SerialTransport:
         self.write_timeout_s = float(write_timeout_s)
         self.exclusive = exclusive
         self._port = None
+        self._fd: int | None = None
         self._rxbuf = bytearray()
+        self.bytes_written = 0
+        self.bytes_read = 0
 
     # ---- lifecycle
     @property
     def is_open(self) -> bool:
-        return self._port is not None and self._port.is_open
+        port = self._port
+        return port is not None and port.is_open
 
     def open(self) -> "SerialTransport":
         import serial
 
         if self.is_open:
             return self
-        kw = dict(baudrate=self.baudrate, timeout=0.05, write_timeout=self.write_timeout_s)
+        kw = dict(baudrate=self.baudrate, timeout=0, write_timeout=self.write_timeout_s)
         if self.exclusive and self.url.startswith("/dev/"):
             kw["exclusive"] = True
         try:
-            self._port = serial.serial_for_url(self.url, **kw)
+            port = serial.serial_for_url(self.url, **kw)
         except (serial.SerialException, OSError, ValueError) as e:
             raise DeviceGone(
                 f"{self.name}: cannot open {self.url} ({e}) — is it plugged in, powered, and not in use by "
                 "another program?"
             ) from None
+        try:
+            self._fd = port.fileno()
+        except Exception:  # loop:// and rfc2217:// have no descriptor: poll instead
+            self._fd = None
+        self._port = port
         self._rxbuf.clear()
         return self
 
     def close(self) -> None:
         port, self._port = self._port, None
-        if port is not None:
-            try:
+        self._fd = None
+        if port is None:
+            return
+        try:
+            sock = getattr(port, "_socket", None) if self.url.startswith("socket://") else None
+            if sock is not None:
+                # pyserial's socket close() sleeps 0.3 s "for quick reconnects"; a rig with
+                # three TCP devices would pay it on every close and reconnect attempt.
+                try:
+                    sock.shutdown(socket.SHUT_RDWR)
+                except OSError:
+                    pass
+                sock.close()
+                port._socket = None
+                port.is_open = False
+            else:
                 port.close()
-            except Exception:  # closing a dead port must never mask the real error
-                pass
+        except Exception:  # closing a dead port must never mask the real error
+            pass
 
     def __enter__(self):
         return self.open()
@@ -132,9 +169,10 @@ class SerialTransport:
         return False
 
     def _require_open(self):
-        if not self.is_open:
-            raise DeviceGone(f"{self.name}: port {self.url} is not open")
-        return self._port
+        port = self._port
+        if port is None or not port.is_open:
+            raise DeviceGone(f"{self.name}: port {self.url} is not open — call open() first (or reconnect)")
+        return port
 
     def _gone(self, e: Exception) -> DeviceGone:
         self.close()
@@ -142,6 +180,8 @@ class SerialTransport:
 
     # ---- writing
     def write(self, data: bytes) -> None:
+        """Write all of ``data``; :class:`DeviceTimeout` if it does not leave within the write timeout,
+        :class:`DeviceGone` if the port is dead."""
         import serial
 
         port = self._require_open()
@@ -156,42 +196,73 @@ class SerialTransport:
         except (serial.SerialException, *_PORT_ERRORS) as e:
             raise self._gone(e) from None
         if n is not None and n != len(data):
-            raise DeviceTimeout(f"{self.name}: wrote {n} of {len(data)} bytes to {self.url}")
+            raise DeviceTimeout(f"{self.name}: wrote {n} of {len(data)} bytes to {self.url} — is the device hung?")
+        self.bytes_written += len(data)
 
     # ---- reading
-    def _fill(self, deadline: float) -> bool:
-        """Read whatever is available (waiting at most until ``deadline``); True if bytes came."""
+    def _read_now(self) -> bytes:
+        """Everything the OS has for us right now (non-blocking)."""
         import serial
 
         port = self._require_open()
         try:
-            waiting = port.in_waiting
-            chunk = port.read(max(1, waiting))
+            chunk = port.read(65536)
         except (serial.SerialException, *_PORT_ERRORS) as e:
             raise self._gone(e) from None
         if chunk:
             self._rxbuf += chunk
+            self.bytes_read += len(chunk)
+        return chunk
+
+    def _fill(self, deadline: float) -> bool:
+        """Wait (at most until ``deadline``, in slices of ``_POLL_S``) for bytes; True if some came."""
+        if self._read_now():
             return True
-        return False
+        wait = min(_POLL_S, max(0.0, deadline - time.monotonic()))
+        if self._fd is not None:
+            try:
+                select.select([self._fd], [], [], wait)
+            except (OSError, ValueError) as e:
+                raise self._gone(e) from None
+        else:
+            time.sleep(min(wait, 0.002))
+        return bool(self._read_now())
+
+    def read_some(self, *, timeout_s: float | None = None) -> bytes:
+        """Whatever arrives first (at least one byte), or ``b''`` when nothing came within the timeout."""
+        t = self.timeout_s if timeout_s is None else timeout_s
+        deadline = time.monotonic() + t
+        while not self._rxbuf:
+            self._fill(deadline)
+            if self._rxbuf or time.monotonic() >= deadline:
+                break
+        out = bytes(self._rxbuf)
+        self._rxbuf.clear()
+        return out
 
     def read_until(self, terminator: bytes = b"\n", *, timeout_s: float | None = None, what: str = "reply") -> bytes:
         """Bytes up to and including ``terminator``; raises :class:`DeviceTimeout` (with the
         partial data in the message) when it does not arrive in time."""
         t = self.timeout_s if timeout_s is None else timeout_s
         deadline = time.monotonic() + t
+        last_look = False
         while True:
             i = self._rxbuf.find(terminator)
             if i >= 0:
                 out = bytes(self._rxbuf[: i + len(terminator)])
                 del self._rxbuf[: i + len(terminator)]
                 return out
-            if time.monotonic() >= deadline:
+            if last_look:
                 partial = bytes(self._rxbuf)
                 raise DeviceTimeout(
-                    f"{self.name}: no {what} within {t:.1f} s on {self.url}"
+                    f"{self.name}: no {what} within {t:.2f} s on {self.url}"
                     + (f" (partial: {partial[:40]!r})" if partial else "")
-                    + " — is it powered and connected?"
+                    + " — is it powered, connected and set to the right baud rate?"
                 )
+            if time.monotonic() >= deadline:
+                self._read_now()  # what arrived while we were busy still counts
+                last_look = True
+                continue
             self._fill(deadline)
 
     def read_exact(self, n: int, *, timeout_s: float | None = None, what: str = "reply") -> bytes:
@@ -199,8 +270,11 @@ class SerialTransport:
         deadline = time.monotonic() + t
         while len(self._rxbuf) < n:
             if time.monotonic() >= deadline:
+                self._read_now()
+                if len(self._rxbuf) >= n:
+                    break
                 raise DeviceTimeout(
-                    f"{self.name}: {what}: got {len(self._rxbuf)} of {n} bytes within {t:.1f} s on {self.url}"
+                    f"{self.name}: {what}: got {len(self._rxbuf)} of {n} bytes within {t:.2f} s on {self.url}"
                     " — is it powered and connected?"
                 )
             self._fill(deadline)
@@ -209,18 +283,28 @@ class SerialTransport:
         return out
 
     def read_available(self) -> bytes:
-        """Everything already received (no waiting)."""
-        import serial
+        """Everything already received, partial lines included (no waiting).
 
-        port = self._require_open()
-        try:
-            while port.in_waiting:
-                self._rxbuf += port.read(port.in_waiting)
-        except (serial.SerialException, *_PORT_ERRORS) as e:
-            raise self._gone(e) from None
+        Also how a vanished port is noticed without writing: a closed TCP peer or a
+        hung-up pty raises :class:`DeviceGone` here.
+        """
+        while self._read_now():
+            pass
         out = bytes(self._rxbuf)
         self._rxbuf.clear()
         return out
+
+    def pending_lines(self, terminator: bytes = b"\n") -> list[bytes]:
+        """Complete lines already received (no waiting); a partial line stays buffered."""
+        while self._read_now():
+            pass
+        lines = []
+        while True:
+            i = self._rxbuf.find(terminator)
+            if i < 0:
+                return lines
+            lines.append(bytes(self._rxbuf[: i + len(terminator)]))
+            del self._rxbuf[: i + len(terminator)]
 
     def flush_input(self) -> bytes:
         """Discard (and return) late replies waiting in the input buffer."""

@@ -6,11 +6,13 @@ takes bytes from the host and returns the replies (with optional delays). An
 (``os.openpty``; the driver opens the slave path like any serial port) or a TCP socket
 on 127.0.0.1 (the driver uses ``socket://127.0.0.1:PORT``). Replies pass through a
 :class:`Faults` object first, so tests can drop, garble, delay, silence or cut the
-line, or make the device vanish (the pty master closes: the driver sees EIO).
+line, or make the device vanish (the pty master closes: the driver sees EIO; the
+socket closes: the driver sees EOF) and come back (:meth:`EmulatorServer.reappear`).
 """
 
 from __future__ import annotations
 
+import heapq
 import os
 import select
 import socket
@@ -25,10 +27,16 @@ __all__ = ["Reply", "Faults", "EmulatedDevice", "EmulatorServer"]
 
 @dataclass
 class Reply:
-    """Bytes to send back, after ``delay_s`` seconds of emulator time."""
+    """Bytes to send back, after ``delay_s`` seconds of emulator time.
+
+    Replies leave in order: a delayed reply holds back the ones queued after it (one
+    serial line), unless it is ``independent`` — then later replies may overtake it (as
+    GRBL's real-time status report overtakes the ``ok`` of a line still being planned).
+    """
 
     data: bytes
     delay_s: float = 0.0
+    independent: bool = False
 
 
 @dataclass
@@ -38,15 +46,25 @@ class Faults:
     Attributes
     ----------
     drop : number of next replies silently discarded.
-    garble : number of next replies with bytes corrupted.
-    truncate : number of next replies cut to half (no terminator).
+    garble : number of next replies with bytes corrupted (every even byte XOR 0x5A; a
+        trailing ``\r\n`` is kept, so the receiver gets a complete but garbled line).
+    truncate : number of next replies cut to half (the terminator is lost).
+    late : number of next replies delivered ``late_s`` seconds late; later replies
+        overtake them.
+    late_s : the delay for ``late`` replies.
+    match : when set, the four counters above only fire on replies whose bytes start
+        with ``match`` (``b"ok"``, ``b"<"``, ``b"\\x7e\\x03"`` ...); others pass untouched.
     delay_s : extra delay added to every reply while > 0.
     silent : when True, nothing is answered at all (device hung).
+    log : what fired, as ``(kind, original bytes)``.
     """
 
     drop: int = 0
     garble: int = 0
     truncate: int = 0
+    late: int = 0
+    late_s: float = 0.0
+    match: bytes | None = None
     delay_s: float = 0.0
     silent: bool = False
     log: list = field(default_factory=list)
@@ -55,32 +73,45 @@ class Faults:
         if self.silent:
             self.log.append(("silent", reply.data))
             return None
-        if self.drop > 0:
+        targeted = self.match is None or reply.data.startswith(self.match)
+        if targeted and self.drop > 0:
             self.drop -= 1
             self.log.append(("drop", reply.data))
             return None
         data = reply.data
-        if self.garble > 0:
+        delay = reply.delay_s + self.delay_s
+        independent = reply.independent
+        if targeted and self.garble > 0:
             self.garble -= 1
-            data = bytes((b ^ 0x5A) if i % 2 == 0 else b for i, b in enumerate(data))
+            body = data.rstrip(b"\r\n")
+            data = bytes((b ^ 0x5A) if i % 2 == 0 else b for i, b in enumerate(body)) + data[len(body):]
             self.log.append(("garble", reply.data))
-        if self.truncate > 0:
+        if targeted and self.truncate > 0:
             self.truncate -= 1
             data = data[: max(1, len(data) // 2)]
             self.log.append(("truncate", reply.data))
-        return Reply(data, reply.delay_s + self.delay_s)
+        if targeted and self.late > 0:
+            self.late -= 1
+            delay += self.late_s
+            independent = True
+            self.log.append(("late", reply.data))
+        return Reply(data, delay, independent)
 
 
 class EmulatedDevice:
     """Base class of device emulators: override :meth:`receive`.
 
     ``time_scale`` multiplies every physical duration (moves, settling): 0 makes them
-    instant, 1 is real time. Subclasses read :meth:`now` for their own clock.
+    instant, 1 is real time. Subclasses read :meth:`now` for their own clock. The server
+    calls :meth:`receive` and :meth:`tick` with :attr:`lock` held; public accessors of
+    subclasses take it too, so tests and the simulator can read state from any thread.
     """
 
     name = "device"
 
     def __init__(self, *, time_scale: float = 0.0):
+        if not time_scale >= 0.0:
+            raise ValueError(f"time_scale must be >= 0, got {time_scale!r}")
         self.time_scale = float(time_scale)
         self.faults = Faults()
         self.lock = threading.RLock()
@@ -124,30 +155,43 @@ class EmulatorServer:
         self._slave: int | None = None
         self._lsock: socket.socket | None = None
         self._conn: socket.socket | None = None
-        self._pending: list[tuple[float, bytes]] = []
+        self._pending: list[tuple[float, int, bytes]] = []  # heap of (due, seq, data)
+        self._ordered_due = 0.0  # due time of the last in-order reply
+        self._seq = 0
+        self._pending_lock = threading.Lock()
         self._gone = False
+        self.connections = 0
 
     # ---- lifecycle
-    def start(self) -> str:
+    def _open_endpoint(self) -> str:
         if self.kind == "pty":
             self._master, self._slave = os.openpty()
             tty.setraw(self._slave)  # no echo, no line discipline before the driver opens it
             tty.setraw(self._master)
-            self.url = os.ttyname(self._slave)
-        else:
-            self._lsock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
-            self._lsock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-            self._lsock.bind(("127.0.0.1", self._port))
-            self._lsock.listen(1)
-            self.url = f"socket://127.0.0.1:{self._lsock.getsockname()[1]}"
+            return os.ttyname(self._slave)
+        self._lsock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        self._lsock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        self._lsock.bind(("127.0.0.1", self._port))
+        self._lsock.listen(1)
+        self._port = self._lsock.getsockname()[1]  # keep it: reappear() binds the same port
+        return f"socket://127.0.0.1:{self._port}"
+
+    def start(self) -> str:
+        self._stop.clear()
+        self._gone = False
+        self.url = self._open_endpoint()
         self._thread = threading.Thread(target=self._run, name=f"emu-{self.device.name}", daemon=True)
         self._thread.start()
         return self.url
 
+    def _join(self) -> None:
+        t = self._thread
+        if t is not None and t is not threading.current_thread():
+            t.join(timeout=2.0)
+
     def stop(self) -> None:
         self._stop.set()
-        if self._thread is not None:
-            self._thread.join(timeout=2.0)
+        self._join()
         self._close_all()
 
     def __enter__(self) -> "EmulatorServer":
@@ -159,9 +203,38 @@ class EmulatorServer:
         return False
 
     def vanish(self) -> None:
-        """Simulate unplugging: close our end so the driver's next read fails (EIO / EOF)."""
+        """Simulate unplugging: close our end so the driver's next read fails (EIO / EOF).
+
+        The serving thread is joined before the descriptors close, so it can never
+        touch a descriptor number the OS hands out again afterwards.
+        """
         self._gone = True
+        self._join()
         self._close_all()
+        with self._pending_lock:
+            self._pending.clear()
+
+    def reappear(self) -> str:
+        """Plug back in after :meth:`vanish`: serve again (same TCP port; a new pty path).
+
+        The device state is kept (a controller with its own power supply whose USB cable
+        was pulled). Returns the URL to reconnect to.
+        """
+        if not self._gone:
+            raise RuntimeError("reappear() without vanish()")
+        self._join()
+        self._close_all()
+        return self.start()
+
+    @property
+    def vanished(self) -> bool:
+        return self._gone
+
+    @property
+    def backlog(self) -> int:
+        """Replies queued but not yet sent (delayed or late ones)."""
+        with self._pending_lock:
+            return len(self._pending)
 
     def _close_all(self) -> None:
         for attr in ("_master", "_slave"):
@@ -185,7 +258,10 @@ class EmulatorServer:
     def _send_now(self, data: bytes) -> None:
         try:
             if self.kind == "pty" and self._master is not None:
-                os.write(self._master, data)
+                view = memoryview(data)
+                while view:
+                    n = os.write(self._master, view)
+                    view = view[n:]
             elif self.kind == "tcp" and self._conn is not None:
                 self._conn.sendall(data)
         except OSError:
@@ -197,17 +273,24 @@ class EmulatorServer:
             r2 = self.device.faults.apply(r)
             if r2 is None or not r2.data:
                 continue
-            if r2.delay_s <= 0 and not self._pending:
-                self._send_now(r2.data)
-            else:
-                due = max([now + r2.delay_s] + [d for d, _ in self._pending])  # keep order
-                self._pending.append((due, r2.data))
+            with self._pending_lock:
+                if r2.independent:
+                    due = now + r2.delay_s
+                else:
+                    due = max(now + r2.delay_s, self._ordered_due)  # one line: keep order
+                    self._ordered_due = due
+                    if due <= now:
+                        self._send_now(r2.data)
+                        continue
+                self._seq += 1
+                heapq.heappush(self._pending, (due, self._seq, r2.data))
 
     def _flush_due(self) -> None:
         now = time.monotonic()
-        while self._pending and self._pending[0][0] <= now:
-            _, data = self._pending.pop(0)
-            self._send_now(data)
+        with self._pending_lock:
+            while self._pending and self._pending[0][0] <= now:
+                _, _, data = heapq.heappop(self._pending)
+                self._send_now(data)
 
     def _run(self) -> None:
         while not self._stop.is_set() and not self._gone:
@@ -218,10 +301,17 @@ class EmulatorServer:
                 if self._conn is None:
                     if self._lsock is None:
                         return
-                    r, _, _ = select.select([self._lsock], [], [], 0.02)
-                    if r:
-                        self._conn, _ = self._lsock.accept()
+                    try:
+                        r, _, _ = select.select([self._lsock], [], [], 0.02)
+                    except (OSError, ValueError):
+                        return
+                    if r and not self._gone:
+                        try:
+                            self._conn, _ = self._lsock.accept()
+                        except OSError:
+                            return
                         self._conn.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+                        self.connections += 1
                     with self.device.lock:
                         self._queue(self.device.tick())
                     self._flush_due()
@@ -229,18 +319,21 @@ class EmulatorServer:
                 fd = self._conn.fileno()
             if fd is None:
                 return
-            timeout = 0.01 if self._pending else 0.02
+            with self._pending_lock:
+                timeout = 0.005 if self._pending else 0.02
             try:
                 r, _, _ = select.select([fd], [], [], timeout)
             except (OSError, ValueError):
                 return
+            if self._gone or self._stop.is_set():
+                return
             if r:
                 try:
                     if self.kind == "pty":
-                        data = os.read(fd, 4096)
+                        data = os.read(fd, 65536)
                     else:
                         conn = self._conn
-                        data = conn.recv(4096) if conn is not None else b""
+                        data = conn.recv(65536) if conn is not None else b""
                 except (OSError, AttributeError):
                     if self._gone or self._stop.is_set():
                         return
@@ -255,6 +348,8 @@ class EmulatorServer:
                         except OSError:
                             pass
                         self._conn = None
+                        with self._pending_lock:
+                            self._pending.clear()
                         continue
                     time.sleep(0.01)  # pty slave closed by the driver; keep serving
                     continue

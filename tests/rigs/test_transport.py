@@ -1,0 +1,179 @@
+"""SerialTransport and EmulatorServer over real ptys and TCP sockets (no pyserial mocks)."""
+
+from __future__ import annotations
+
+import pytest
+
+from opacityhull.errors import ConfigError, DeviceError
+from opacityhull.rigs.emulators.base import EmulatedDevice, EmulatorServer, Faults, Reply
+from opacityhull.rigs.transport import DeviceGone, DeviceTimeout, SerialTransport, check_url
+
+
+class Echo(EmulatedDevice):
+    """Answers every line with ``got:<line>``; ``mute`` lines are not answered."""
+
+    name = "echo"
+
+    def __init__(self):
+        super().__init__()
+        self.buf = bytearray()
+
+    def receive(self, data):
+        out = []
+        self.buf += data
+        while b"\n" in self.buf:
+            line, _, rest = bytes(self.buf).partition(b"\n")
+            self.buf = bytearray(rest)
+            if line != b"mute":
+                out.append(Reply(b"got:" + line + b"\r\n"))
+        return out
+
+
+@pytest.fixture
+def echo(kind):
+    dev = Echo()
+    with EmulatorServer(dev, kind=kind) as srv:
+        t = SerialTransport(srv.url, name="echo-dev", timeout_s=0.3)
+        t.open()
+        yield srv, dev, t
+        t.close()
+
+
+def test_round_trip_and_exact_lines(echo):
+    srv, dev, t = echo
+    t.write(b"a\nbb\n")
+    assert t.read_until(b"\n") == b"got:a\r\n"
+    assert t.read_until(b"\n") == b"got:bb\r\n"
+    assert dev.received == bytearray(b"a\nbb\n")
+
+
+def test_timeout_names_device_url_and_what_to_check(echo):
+    srv, dev, t = echo
+    t.write(b"mute\n")
+    with pytest.raises(DeviceTimeout) as ei:
+        t.read_until(b"\n", what="answer to mute")
+    msg = str(ei.value)
+    assert "echo-dev" in msg and srv.url in msg and "answer to mute" in msg and "powered" in msg
+
+
+def test_partial_reply_is_quoted_in_the_timeout(echo):
+    srv, dev, t = echo
+    dev.faults.truncate = 1
+    t.write(b"hello\n")
+    with pytest.raises(DeviceTimeout) as ei:
+        t.read_until(b"\n")
+    assert "partial: b'got:h'" in str(ei.value)
+
+
+def test_query_flushes_a_late_reply_first(echo, wait_for):
+    srv, dev, t = echo
+    dev.faults.delay_s = 0.5
+    t.write(b"first\n")
+    with pytest.raises(DeviceTimeout):
+        t.read_until(b"\n", timeout_s=0.1)
+    dev.faults.delay_s = 0.0
+    wait_for(lambda: srv.backlog == 0, what="late reply delivered")
+    assert t.query(b"second\n") == b"got:second\r\n"
+
+
+def test_read_exact_and_read_some(echo):
+    srv, dev, t = echo
+    t.write(b"xyz\n")
+    assert t.read_exact(4) == b"got:"
+    assert t.read_until(b"\n") == b"xyz\r\n"
+    assert t.read_some(timeout_s=0.05) == b""
+    with pytest.raises(DeviceTimeout, match="got 0 of 3 bytes"):
+        t.read_exact(3, timeout_s=0.05)
+
+
+def test_vanish_gives_device_gone_on_read_and_write(echo):
+    srv, dev, t = echo
+    srv.vanish()
+    with pytest.raises(DeviceGone) as ei:
+        for _ in range(3):  # the first write into a closed TCP peer may still be buffered
+            t.write(b"x\n")
+            t.read_until(b"\n", timeout_s=0.2)
+    assert srv.url in str(ei.value) and "unplugged" in str(ei.value)
+    assert not t.is_open
+    with pytest.raises(DeviceGone, match="not open"):
+        t.write(b"x")
+
+
+def test_vanished_port_is_noticed_by_read_available(echo):
+    srv, dev, t = echo
+    srv.vanish()
+    with pytest.raises(DeviceGone):
+        t.read_available()
+
+
+def test_reappear_serves_again(echo):
+    srv, dev, t = echo
+    srv.vanish()
+    with pytest.raises(DeviceGone):
+        t.read_available()
+    url = srv.reappear()
+    if srv.kind == "tcp":
+        assert url == t.url  # same port: a reconnect finds it again
+    t.url = url
+    t.open()
+    t.write(b"back\n")
+    assert t.read_until(b"\n") == b"got:back\r\n"
+
+
+def test_open_missing_port_names_url():
+    t = SerialTransport("/dev/ttyDOESNOTEXIST9", name="turntable")
+    with pytest.raises(DeviceGone, match=r"turntable: cannot open /dev/ttyDOESNOTEXIST9 .*plugged in"):
+        t.open()
+    t2 = SerialTransport("socket://127.0.0.1:1", name="t2")
+    with pytest.raises(DeviceGone, match="socket://127.0.0.1:1"):
+        t2.open()
+    assert isinstance(DeviceGone("x"), DeviceError)
+
+
+def test_loop_url_without_file_descriptor():
+    t = SerialTransport("loop://", timeout_s=0.1)
+    with t:
+        t.write(b"ping\n")
+        assert t.read_until(b"\n") == b"ping\n"
+        with pytest.raises(DeviceTimeout):
+            t.read_until(b"\n")
+
+
+@pytest.mark.parametrize("url", ["/dev/ttyUSB0", "socket://h:1", "loop://", "emulator:grbl#a", "COM3"])
+def test_check_url_accepts(url):
+    assert check_url(url) == url
+
+
+@pytest.mark.parametrize("url", ["", "http://x", "ttyUSB0", 5, None])
+def test_check_url_rejects_naming_the_key(url):
+    with pytest.raises(ConfigError, match="devices.turntable.url"):
+        check_url(url, where="devices.turntable.url")
+
+
+def test_faults_match_targets_only_matching_replies():
+    f = Faults(drop=1, match=b"ok")
+    assert f.apply(Reply(b"<Idle>\r\n")).data == b"<Idle>\r\n"
+    assert f.apply(Reply(b"ok\r\n")) is None
+    assert f.apply(Reply(b"ok\r\n")).data == b"ok\r\n"  # the counter is spent
+    g = Faults(garble=1)
+    assert g.apply(Reply(b"ok\r\n")).data == bytes([ord("o") ^ 0x5A, ord("k"), ord("\r"), ord("\n")])
+    late = Faults(late=1, late_s=0.25).apply(Reply(b"ok\r\n"))
+    assert late.independent and late.delay_s == 0.25
+
+
+def test_late_reply_is_overtaken_but_delayed_replies_keep_order(kind, wait_for):
+    dev = Echo()
+    with EmulatorServer(dev, kind=kind) as srv:
+        t = SerialTransport(srv.url, timeout_s=2.0)
+        with t:
+            dev.faults.late, dev.faults.late_s = 1, 0.3
+            t.write(b"one\n")
+            t.write(b"two\n")
+            assert t.read_until(b"\n") == b"got:two\r\n"  # overtook the late one
+            assert t.read_until(b"\n") == b"got:one\r\n"
+            dev.faults.delay_s = 0.2
+            t.write(b"three\n")
+            dev.faults.delay_s = 0.0
+            t.write(b"four\n")
+            assert t.read_until(b"\n") == b"got:three\r\n"  # one serial line: order kept
+            assert t.read_until(b"\n") == b"got:four\r\n"
