@@ -1,7 +1,104 @@
-"""CLI commands of `opacityhull.rigs` (registered by :mod:`opacityhull.cli`)."""
+"""CLI commands of `opacityhull.rigs` (registered by :mod:`opacityhull.cli`):
+``opacityhull rig emulate`` and ``opacityhull rig check``."""
 
 from __future__ import annotations
+
+from pathlib import Path
+
+import typer
+
+from ..cliutil import cli_errors, emit
 
 
 def register(app, groups) -> None:
     """Add this stage's commands to the root app and the subcommand groups."""
+    rig = groups["rig"]
+
+    @rig.command("emulate")
+    @cli_errors
+    def emulate(
+        config: Path = typer.Option(..., "--config", help="Rig TOML whose emulator:KIND URLs to serve."),
+        write_config: Path = typer.Option(..., "--write-config",
+                                          help="Where to write the runtime rig TOML (same rig, real URLs)."),
+        tcp: bool = typer.Option(False, "--tcp", help="Serve on TCP sockets (socket://127.0.0.1:PORT) instead of "
+                                                      "ptys (/dev/pts/N)."),
+        time_scale: float = typer.Option(0.0, "--time-scale", min=0.0,
+                                         help="Real seconds per physical second of motion (0 = instant, 1 = real)."),
+        json_out: bool = typer.Option(False, "--json", help="Print {config, devices} as one JSON line."),
+    ):
+        """Start an emulator for every `emulator:` device of a rig TOML and serve until Ctrl-C / SIGTERM.
+
+        Writes RUNTIME.toml (the same rig with real URLs) for `rig check`, `capture` and
+        scripts to use from other processes. pty URLs work across processes on Linux while
+        this process runs (it keeps the pty masters open); --tcp works across machines too.
+        """
+        import signal
+        import threading
+
+        from ..errors import ConfigError
+        from .config import load_rig_config
+        from .emulators.launch import start_emulators
+
+        cfg = load_rig_config(config)
+        if not cfg.emulated():
+            raise ConfigError(f"{config}: no device has an emulator:KIND URL — nothing to emulate")
+        stop = threading.Event()
+        received: list[int] = []
+
+        def on_signal(signum, frame):
+            received.append(signum)
+            stop.set()
+
+        old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+        try:
+            with start_emulators(cfg, kind="tcp" if tcp else "pty", time_scale=time_scale) as emus:
+                emus.config.write(write_config)
+                summary = {"config": str(write_config), "devices": emus.devices(),
+                           "transport": "tcp" if tcp else "pty", "time_scale": time_scale}
+
+                def human(s):
+                    typer.echo(f"runtime config: {s['config']}")
+                    for name, url in s["devices"].items():
+                        typer.echo(f"  {name:24s} {url}")
+                    typer.echo("serving; Ctrl-C or SIGTERM stops", err=True)
+
+                emit(summary, json_out, human)
+                while not stop.is_set():
+                    stop.wait(0.25)
+        finally:
+            for s, h in old.items():
+                signal.signal(s, h)
+
+    @rig.command("check")
+    @cli_errors
+    def check(
+        config: Path = typer.Option(..., "--config", help="Rig TOML with real URLs (e.g. written by `rig emulate`)."),
+        timeout_s: float = typer.Option(1.0, "--timeout", min=0.05, help="Seconds to wait for each reply."),
+        json_out: bool = typer.Option(False, "--json", help='Print {"ok", "devices": [{"name", "ok", "detail"}]}.'),
+    ):
+        """Talk to every device of a rig and print its identity and state; exit 3 naming the devices that fail.
+
+        Simulated cameras (driver = "sim") are reported as checked by the simulator.
+        """
+        from ..errors import DeviceError
+        from .rig import check_rig_config
+
+        infos = check_rig_config(config, timeout_s=timeout_s)
+        ok = all(i.ok for i in infos)
+        summary = {
+            "ok": ok,
+            "config": str(config),
+            "devices": [{"name": i.name, "ok": i.ok, "detail": i.detail, "identity": i.identity, "state": i.state}
+                        for i in infos],
+        }
+
+        def human(s):
+            for d in s["devices"]:
+                mark = "ok  " if d["ok"] else "FAIL"
+                ident = f"  [{d['identity']}]" if d["identity"] and d["identity"] not in d["detail"] else ""
+                typer.echo(f"{mark} {d['name']:24s} {d['detail']}{ident}")
+
+        emit(summary, json_out, human)
+        if not ok:
+            bad = [i for i in infos if not i.ok]
+            raise DeviceError("rig check failed: " + "; ".join(f"{i.name}: {i.detail}" for i in bad))

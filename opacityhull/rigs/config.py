@@ -1,0 +1,532 @@
+"""The rig TOML: devices (this module) and geometry (:mod:`opacityhull.riggeometry`).
+
+:func:`load_rig_config` parses a rig file into a frozen :class:`RigConfig`. Every
+problem raises :class:`~opacityhull.errors.ConfigError` naming the file and the key
+(``rig.toml: devices.light_array.channels: no DMX channel for light 2``), and the
+devices are checked against the geometry: a DMX channel per light, a controller
+output per display, the cameras in the same names and order as ``geometry.cameras``.
+
+URLs: a device path, ``socket://HOST:PORT``, ``loop://`` or ``emulator:KIND[#tag]``
+(``KIND`` = ``grbl`` | ``enttec`` | ``display``, resolved by
+:func:`opacityhull.rigs.emulators.launch.start_emulators`). Identical URL strings name
+the same port: the turntable and the light-array rotation on one URL are two axes of
+one GRBL controller.
+
+The schema is documented in the notes shared by the rig engineers (RIGTOML) and in
+``examples/rig-emulated.toml``.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import tomllib
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any, Mapping
+
+from ..errors import ConfigError
+from ..riggeometry import RigGeometry
+from .transport import check_url
+
+__all__ = [
+    "AxisConfig",
+    "LightArrayConfig",
+    "BackdropsConfig",
+    "CameraConfig",
+    "RigConfig",
+    "load_rig_config",
+    "parse_rig_config",
+    "parse_emulator_url",
+    "EMULATOR_KINDS",
+    "CAMERA_DRIVERS",
+]
+
+EMULATOR_KINDS = ("grbl", "enttec", "display")
+CAMERA_DRIVERS = ("opencv", "directory", "sim")
+GRBL_AXES = ("X", "Y", "Z", "A", "B", "C")
+
+_AXIS_KEYS = {"url", "axis", "steps_per_deg", "max_rate_deg_s", "accel_deg_s2", "backlash_deg", "soft_limits_deg",
+              "timeout_s", "baudrate"}
+_LIGHT_KEYS = {"url", "timeout_s", "baudrate", "rotation", "channels"}
+_BACKDROP_KEYS = {"url", "timeout_s", "baudrate", "outputs", "retries", "chunk_bytes"}
+_CAMERA_COMMON = {"name", "driver", "device"}
+_CAMERA_OPTIONS = {
+    "opencv": {"fourcc", "timeout_s", "linearize", "white_level", "backend", "exposure_control", "discard_frames"},
+    "directory": {"pattern", "timeout_s", "settle_s", "trigger", "linearize", "white_level"},
+    "sim": None,  # options belong to the simulator
+}
+
+
+def parse_emulator_url(url: str) -> tuple[str, str] | None:
+    """``"emulator:grbl#a"`` → ``("grbl", "a")``; None for other URLs."""
+    if not isinstance(url, str) or not url.startswith("emulator:"):
+        return None
+    rest = url[len("emulator:"):]
+    kind, _, tag = rest.partition("#")
+    return kind, tag
+
+
+# --------------------------------------------------------------------------- dataclasses
+
+
+@dataclass(frozen=True)
+class AxisConfig:
+    """A GRBL axis: the turntable or the light-array rotation."""
+
+    name: str
+    url: str
+    axis: str = "X"
+    steps_per_deg: float = 80.0
+    max_rate_deg_s: float = 30.0
+    accel_deg_s2: float = 60.0
+    backlash_deg: float = 0.0
+    soft_limits_deg: tuple[float, float] | None = None
+    timeout_s: float = 2.0
+    baudrate: int = 115200
+    key: str = ""  # TOML key path, for messages
+
+
+@dataclass(frozen=True)
+class LightArrayConfig:
+    """Enttec DMX USB Pro and the light id → DMX channel map; the rotation axis if any."""
+
+    name: str
+    url: str
+    channels: tuple[tuple[int, int], ...]
+    rotation: AxisConfig | None = None
+    timeout_s: float = 2.0
+    baudrate: int = 57600
+    key: str = "devices.light_array"
+
+    @property
+    def channel_map(self) -> dict[int, int]:
+        """Light id → DMX channel (1-based)."""
+        return dict(self.channels)
+
+
+@dataclass(frozen=True)
+class BackdropsConfig:
+    """The plasma-display controller and the display name → output map."""
+
+    name: str
+    url: str
+    outputs: tuple[tuple[str, int], ...]
+    timeout_s: float = 2.0
+    baudrate: int = 115200
+    retries: int = 3
+    chunk_bytes: int = 512
+    key: str = "devices.backdrops"
+
+    @property
+    def output_map(self) -> dict[str, int]:
+        return dict(self.outputs)
+
+
+@dataclass(frozen=True)
+class CameraConfig:
+    """One ``[[devices.cameras]]`` entry; ``width``/``height`` come from the geometry."""
+
+    name: str
+    driver: str
+    device: Any = None
+    width: int = 0
+    height: int = 0
+    options: tuple[tuple[str, Any], ...] = ()
+    key: str = ""
+
+    def option(self, key: str, default=None):
+        return dict(self.options).get(key, default)
+
+
+@dataclass(frozen=True)
+class RigConfig:
+    """A parsed rig TOML."""
+
+    name: str
+    turntable: AxisConfig
+    geometry: RigGeometry
+    light_array: LightArrayConfig | None = None
+    backdrops: BackdropsConfig | None = None
+    cameras: tuple[CameraConfig, ...] = ()
+    raw: dict = field(default_factory=dict, compare=False, repr=False)
+    source: str = "<rig config>"
+
+    # ---- queries
+    def axes(self) -> list[AxisConfig]:
+        out = [self.turntable]
+        if self.light_array is not None and self.light_array.rotation is not None:
+            out.append(self.light_array.rotation)
+        return out
+
+    def device_urls(self) -> dict[str, str]:
+        """Device name → URL (serial devices only; cameras have none)."""
+        out = {self.turntable.name: self.turntable.url}
+        if self.light_array is not None:
+            out[self.light_array.name] = self.light_array.url
+            if self.light_array.rotation is not None:
+                out[self.light_array.rotation.name] = self.light_array.rotation.url
+        if self.backdrops is not None:
+            out[self.backdrops.name] = self.backdrops.url
+        return out
+
+    def grbl_ports(self) -> dict[str, list[AxisConfig]]:
+        """URL → the axes on that GRBL controller (one controller per distinct URL)."""
+        out: dict[str, list[AxisConfig]] = {}
+        for ax in self.axes():
+            out.setdefault(ax.url, []).append(ax)
+        return out
+
+    def emulated(self) -> bool:
+        return any(parse_emulator_url(u) for u in self.device_urls().values())
+
+    # ---- rewriting
+    def with_urls(self, mapping: Mapping[str, str]) -> "RigConfig":
+        """A copy with every URL in ``mapping`` replaced (e.g. ``emulator:grbl`` → ``/dev/pts/4``)."""
+
+        def sub(u: str) -> str:
+            return mapping.get(u, u)
+
+        raw = copy.deepcopy(self.raw)
+        dev = raw.get("devices", {})
+        for k in ("turntable", "light_array", "backdrops"):
+            if isinstance(dev.get(k), dict) and "url" in dev[k]:
+                dev[k]["url"] = sub(dev[k]["url"])
+        la = dev.get("light_array")
+        if isinstance(la, dict) and isinstance(la.get("rotation"), dict) and "url" in la["rotation"]:
+            la["rotation"]["url"] = sub(la["rotation"]["url"])
+        la_cfg = self.light_array
+        if la_cfg is not None:
+            rot = la_cfg.rotation
+            la_cfg = replace(la_cfg, url=sub(la_cfg.url), rotation=None if rot is None else replace(rot, url=sub(rot.url)))
+        bd = self.backdrops if self.backdrops is None else replace(self.backdrops, url=sub(self.backdrops.url))
+        return replace(self, turntable=replace(self.turntable, url=sub(self.turntable.url)), light_array=la_cfg,
+                       backdrops=bd, raw=raw)
+
+    def to_dict(self) -> dict:
+        """The TOML content (``rig``, ``devices``, ``geometry`` tables)."""
+        return copy.deepcopy(self.raw)
+
+    def to_toml(self) -> str:
+        from ..session import toml_dumps
+
+        return toml_dumps(self.to_dict())
+
+    def write(self, path) -> Path:
+        """Write :meth:`to_toml` atomically."""
+        from ..imageio import atomic_path
+
+        path = Path(path)
+        with atomic_path(path) as tmp:
+            tmp.write_text(self.to_toml())
+        return path
+
+
+# --------------------------------------------------------------------------- parsing helpers
+
+
+class _Ctx:
+    def __init__(self, source: str):
+        self.source = source
+
+    def err(self, key: str, msg: str) -> ConfigError:
+        return ConfigError(f"{self.source}: {key}: {msg}")
+
+    def table(self, key: str, v) -> dict:
+        if not isinstance(v, dict):
+            raise self.err(key, f"expected a table, got {type(v).__name__} {v!r}")
+        return v
+
+    def keys(self, key: str, d: Mapping, allowed: set[str]) -> None:
+        unknown = sorted(set(d) - allowed)
+        if unknown:
+            raise self.err(key, f"unknown key(s) {unknown}; allowed: {sorted(allowed)}")
+
+    def num(self, key: str, d: Mapping, name: str, default=None, *, positive=False, nonneg=False) -> float:
+        if name not in d:
+            if default is None:
+                raise self.err(key, f"missing key {name!r}")
+            return float(default)
+        v = d[name]
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+            raise self.err(f"{key}.{name}", f"expected a number, got {v!r}")
+        if positive and v <= 0:
+            raise self.err(f"{key}.{name}", f"must be > 0, got {v}")
+        if nonneg and v < 0:
+            raise self.err(f"{key}.{name}", f"must be >= 0, got {v}")
+        return float(v)
+
+    def int_(self, key: str, d: Mapping, name: str, default: int, lo: int, hi: int) -> int:
+        v = d.get(name, default)
+        if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= hi:
+            raise self.err(f"{key}.{name}", f"expected an integer in {lo}..{hi}, got {v!r}")
+        return int(v)
+
+    def str_(self, key: str, d: Mapping, name: str, default: str | None = None) -> str:
+        if name not in d:
+            if default is None:
+                raise self.err(key, f"missing key {name!r}")
+            return default
+        v = d[name]
+        if not isinstance(v, str):
+            raise self.err(f"{key}.{name}", f"expected a string, got {v!r}")
+        return v
+
+    def url(self, key: str, d: Mapping, kind: str) -> str:
+        if "url" not in d:
+            raise self.err(key, "missing key 'url'")
+        u = d["url"]
+        check_url(u, where=f"{self.source}: {key}.url")
+        em = parse_emulator_url(u)
+        if em is not None:
+            k, _tag = em
+            if k not in EMULATOR_KINDS:
+                raise self.err(f"{key}.url", f"unknown emulator kind {k!r} in {u!r} (expected emulator:KIND[#tag] "
+                                             f"with KIND one of {list(EMULATOR_KINDS)})")
+            if k != kind:
+                raise self.err(f"{key}.url", f"{u!r} emulates a {k} device, but this device is a {kind} "
+                                             f"(use emulator:{kind})")
+        return u
+
+
+def _axis(ctx: _Ctx, key: str, name: str, d, defaults: AxisConfig | None = None) -> AxisConfig:
+    d = ctx.table(key, d)
+    ctx.keys(key, d, _AXIS_KEYS)
+    url = ctx.url(key, d, "grbl")
+    axis = ctx.str_(key, d, "axis", "X")
+    if axis.upper() not in GRBL_AXES:
+        raise ctx.err(f"{key}.axis", f"expected a GRBL axis letter {list(GRBL_AXES)}, got {axis!r}")
+    limits = d.get("soft_limits_deg")
+    if limits is not None:
+        if (not isinstance(limits, list) or len(limits) != 2
+                or not all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in limits)
+                or not limits[0] < limits[1]):
+            raise ctx.err(f"{key}.soft_limits_deg", f"expected [min_deg, max_deg] with min < max, got {limits!r}")
+        limits = (float(limits[0]), float(limits[1]))
+    return AxisConfig(
+        name=name,
+        url=url,
+        axis=axis.upper(),
+        steps_per_deg=ctx.num(key, d, "steps_per_deg", 80.0, positive=True),
+        max_rate_deg_s=ctx.num(key, d, "max_rate_deg_s", 30.0, positive=True),
+        accel_deg_s2=ctx.num(key, d, "accel_deg_s2", 60.0, positive=True),
+        backlash_deg=ctx.num(key, d, "backlash_deg", 0.0, nonneg=True),
+        soft_limits_deg=limits,
+        timeout_s=ctx.num(key, d, "timeout_s", 2.0, positive=True),
+        baudrate=ctx.int_(key, d, "baudrate", 115200, 300, 4_000_000),
+        key=key,
+    )
+
+
+# --------------------------------------------------------------------------- entry points
+
+
+def load_rig_config(path) -> RigConfig:
+    """Parse a rig TOML file; :class:`ConfigError` names the file and key on any problem."""
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"rig config {path} not found")
+    try:
+        data = tomllib.loads(path.read_text())
+    except tomllib.TOMLDecodeError as e:
+        raise ConfigError(f"{path}: invalid TOML ({e})") from None
+    except UnicodeDecodeError as e:
+        raise ConfigError(f"{path}: not a text file ({e})") from None
+    return parse_rig_config(data, source=str(path), base_dir=path.parent)
+
+
+def parse_rig_config(data: Mapping[str, Any], *, source: str = "<rig config>", base_dir=None) -> RigConfig:
+    """Parse the content of a rig TOML (see :func:`load_rig_config`).
+
+    ``base_dir`` resolves relative folders of ``driver = "directory"`` cameras.
+    """
+    ctx = _Ctx(source)
+    data = ctx.table("(top level)", data)
+    ctx.keys("(top level)", data, {"rig", "devices", "geometry"})
+    raw = copy.deepcopy(dict(data))
+    rig = ctx.table("rig", data.get("rig", {}))
+    ctx.keys("rig", rig, {"name", "description"})
+    name = ctx.str_("rig", rig, "name", Path(source).stem if source != "<rig config>" else "rig")
+    if "geometry" not in data:
+        raise ctx.err("geometry", "missing [geometry] table (cameras, lights, displays)")
+    geometry = RigGeometry.from_dict(data["geometry"], where=f"{source}: geometry")
+    if "devices" not in data:
+        raise ctx.err("devices", "missing [devices] table")
+    dev = ctx.table("devices", data["devices"])
+    ctx.keys("devices", dev, {"turntable", "light_array", "backdrops", "cameras"})
+
+    # ---- turntable
+    if "turntable" not in dev:
+        raise ctx.err("devices", "missing [devices.turntable]")
+    turntable = _axis(ctx, "devices.turntable", "turntable", dev["turntable"])
+
+    # ---- light array
+    light_array = None
+    light_ids = [L.id for L in geometry.lights]
+    if "light_array" in dev:
+        key = "devices.light_array"
+        la = ctx.table(key, dev["light_array"])
+        ctx.keys(key, la, _LIGHT_KEYS)
+        url = ctx.url(key, la, "enttec")
+        if "channels" not in la:
+            raise ctx.err(key, "missing [devices.light_array.channels] (light id = DMX channel)")
+        ch_tab = ctx.table(f"{key}.channels", la["channels"])
+        channels: dict[int, int] = {}
+        for k, v in ch_tab.items():
+            try:
+                lid = int(k)
+            except ValueError:
+                raise ctx.err(f"{key}.channels", f"key {k!r} is not a light id (an integer)") from None
+            if lid not in light_ids:
+                raise ctx.err(f"{key}.channels.{k}", f"no light with id {lid} in geometry.lights (ids: {light_ids})")
+            if isinstance(v, bool) or not isinstance(v, int) or not 1 <= v <= 512:
+                raise ctx.err(f"{key}.channels.{k}", f"expected a DMX channel 1..512, got {v!r}")
+            if v in channels.values():
+                other = [i for i, c in channels.items() if c == v][0]
+                raise ctx.err(f"{key}.channels.{k}", f"DMX channel {v} is already used by light {other}")
+            channels[lid] = v
+        for i, lid in enumerate(light_ids):
+            if lid not in channels:
+                raise ctx.err(f"{key}.channels", f"no DMX channel for light {lid} (geometry.lights[{i}]); "
+                                                 f"add '{lid} = <channel>'")
+        rotation = None
+        if "rotation" in la:
+            rotation = _axis(ctx, f"{key}.rotation", "light_array.rotation", la["rotation"])
+        light_array = LightArrayConfig(
+            name="light_array", url=url, channels=tuple(sorted(channels.items())), rotation=rotation,
+            timeout_s=ctx.num(key, la, "timeout_s", 2.0, positive=True),
+            baudrate=ctx.int_(key, la, "baudrate", 57600, 300, 4_000_000), key=key)
+    elif light_ids:
+        raise ctx.err("devices", f"geometry.lights has {len(light_ids)} light(s) but there is no "
+                                 "[devices.light_array] to switch them")
+
+    # ---- backdrops
+    backdrops = None
+    display_names = [d.name for d in geometry.displays]
+    if "backdrops" in dev:
+        key = "devices.backdrops"
+        bd = ctx.table(key, dev["backdrops"])
+        ctx.keys(key, bd, _BACKDROP_KEYS)
+        url = ctx.url(key, bd, "display")
+        if "outputs" not in bd:
+            raise ctx.err(key, "missing [devices.backdrops.outputs] (display name = controller output)")
+        out_tab = ctx.table(f"{key}.outputs", bd["outputs"])
+        outputs: dict[str, int] = {}
+        for k, v in out_tab.items():
+            if k not in display_names:
+                raise ctx.err(f"{key}.outputs.{k}", f"no display named {k!r} in geometry.displays "
+                                                    f"(names: {display_names})")
+            if isinstance(v, bool) or not isinstance(v, int) or not 0 <= v <= 254:
+                raise ctx.err(f"{key}.outputs.{k}", f"expected a controller output index 0..254, got {v!r}")
+            if v in outputs.values():
+                other = [n for n, o in outputs.items() if o == v][0]
+                raise ctx.err(f"{key}.outputs.{k}", f"output {v} is already used by display {other!r}")
+            outputs[k] = v
+        for i, dn in enumerate(display_names):
+            if dn not in outputs:
+                raise ctx.err(f"{key}.outputs", f"no controller output for display {dn!r} (geometry.displays[{i}]); "
+                                                f"add '{dn} = <output>'")
+        backdrops = BackdropsConfig(
+            name="backdrops", url=url, outputs=tuple((n, outputs[n]) for n in display_names),
+            timeout_s=ctx.num(key, bd, "timeout_s", 2.0, positive=True),
+            baudrate=ctx.int_(key, bd, "baudrate", 115200, 300, 4_000_000),
+            retries=ctx.int_(key, bd, "retries", 3, 0, 100),
+            chunk_bytes=ctx.int_(key, bd, "chunk_bytes", 512, 1, 1024), key=key)
+    elif display_names:
+        raise ctx.err("devices", f"geometry.displays has {len(display_names)} display(s) but there is no "
+                                 "[devices.backdrops] to drive them")
+
+    # ---- cameras
+    cameras: list[CameraConfig] = []
+    raw_cams = dev.get("cameras", [])
+    if not isinstance(raw_cams, list):
+        raise ctx.err("devices.cameras", "expected an array of tables [[devices.cameras]]")
+    geo_names = [c.name for c in geometry.cameras]
+    seen: dict[str, int] = {}
+    for i, c in enumerate(raw_cams):
+        key = f"devices.cameras[{i}]"
+        c = ctx.table(key, c)
+        cname = ctx.str_(key, c, "name")
+        if cname in seen:
+            raise ctx.err(f"{key}.name", f"duplicate camera name {cname!r} (also devices.cameras[{seen[cname]}])")
+        seen[cname] = i
+        driver = ctx.str_(key, c, "driver")
+        if driver not in CAMERA_DRIVERS:
+            raise ctx.err(f"{key}.driver", f"unknown camera driver {driver!r} (one of {list(CAMERA_DRIVERS)})")
+        allowed = _CAMERA_OPTIONS[driver]
+        if allowed is not None:
+            ctx.keys(key, c, _CAMERA_COMMON | allowed)
+        device = c.get("device")
+        if driver == "opencv":
+            if device is None or isinstance(device, bool) or not isinstance(device, (int, str)):
+                raise ctx.err(f"{key}.device", f"expected a device index or path for an opencv camera, got {device!r}")
+        elif driver == "directory":
+            if not isinstance(device, str) or not device:
+                raise ctx.err(f"{key}.device", f"expected the folder the camera writes into, got {device!r}")
+            p = Path(device).expanduser()
+            if not p.is_absolute() and base_dir is not None:
+                p = Path(base_dir) / p
+            device = str(p)
+        opts = {k: v for k, v in c.items() if k not in _CAMERA_COMMON}
+        for k in ("timeout_s", "settle_s", "white_level"):
+            if k in opts:
+                ctx.num(key, opts, k, positive=True)
+        if "linearize" in opts and opts["linearize"] not in ("srgb", "none"):
+            raise ctx.err(f"{key}.linearize", f"expected 'srgb' or 'none', got {opts['linearize']!r}")
+        if "exposure_control" in opts and not isinstance(opts["exposure_control"], bool):
+            raise ctx.err(f"{key}.exposure_control", f"expected true or false, got {opts['exposure_control']!r}")
+        if "trigger" in opts and (not isinstance(opts["trigger"], list)
+                                  or not all(isinstance(a, str) for a in opts["trigger"]) or not opts["trigger"]):
+            raise ctx.err(f"{key}.trigger", f"expected a command as a list of strings, got {opts['trigger']!r}")
+        if "pattern" in opts and not isinstance(opts["pattern"], str):
+            raise ctx.err(f"{key}.pattern", f"expected a glob string, got {opts['pattern']!r}")
+        spec = geometry.cameras[i] if i < len(geometry.cameras) else None
+        cameras.append(CameraConfig(name=cname, driver=driver, device=device,
+                                    width=spec.width if spec else 0, height=spec.height if spec else 0,
+                                    options=tuple(sorted(opts.items())), key=key))
+    if raw_cams:
+        names = [c.name for c in cameras]
+        if names != geo_names:
+            missing = [n for n in geo_names if n not in names]
+            extra = [n for n in names if n not in geo_names]
+            why = []
+            if missing:
+                why.append(f"missing {missing}")
+            if extra:
+                why.append(f"not in geometry.cameras: {extra}")
+            if not why:
+                why.append("same names in a different order")
+            raise ctx.err("devices.cameras", f"camera names {names} must match geometry.cameras {geo_names} in "
+                                             f"name and order ({'; '.join(why)})")
+
+    # ---- ports shared between devices
+    kinds: dict[str, tuple[str, str]] = {}  # url -> (kind, key)
+    entries = [(turntable.url, "grbl", turntable.key, turntable)]
+    if light_array is not None:
+        entries.append((light_array.url, "enttec", light_array.key, light_array))
+        if light_array.rotation is not None:
+            r = light_array.rotation
+            entries.append((r.url, "grbl", r.key, r))
+    if backdrops is not None:
+        entries.append((backdrops.url, "display", backdrops.key, backdrops))
+    axes_on: dict[str, AxisConfig] = {}
+    for url, kind, key, obj in entries:
+        if url in kinds and kinds[url][0] != kind:
+            raise ctx.err(f"{key}.url", f"{url!r} is also {kinds[url][1]}.url (a {kinds[url][0]} device); one port "
+                                        f"cannot be a {kind} device too")
+        if url in kinds and kind != "grbl":
+            raise ctx.err(f"{key}.url", f"{url!r} is also {kinds[url][1]}.url; give each device its own port")
+        kinds.setdefault(url, (kind, key))
+        if isinstance(obj, AxisConfig):
+            prev = axes_on.get(url + "|" + obj.axis)
+            if prev is not None:
+                raise ctx.err(f"{key}.axis", f"axis {obj.axis} of the controller at {url!r} is already "
+                                             f"{prev.key}; use another axis letter")
+            axes_on[url + "|" + obj.axis] = obj
+            for other in axes_on.values():
+                if other.url == url and other.baudrate != obj.baudrate:
+                    raise ctx.err(f"{key}.baudrate", f"{obj.baudrate} differs from {other.key}.baudrate "
+                                                     f"{other.baudrate} on the same controller {url!r}")
+
+    return RigConfig(name=name, turntable=turntable, geometry=geometry, light_array=light_array,
+                     backdrops=backdrops, cameras=tuple(cameras), raw=raw, source=source)

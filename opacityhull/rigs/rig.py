@@ -1,0 +1,572 @@
+"""A hardware rig: the drivers of one rig TOML bundled as a :class:`~opacityhull.rigs.protocols.Rig`.
+
+:func:`open_rig` builds the drivers from a :class:`~opacityhull.rigs.config.RigConfig`
+(one GRBL controller per distinct URL, shared by the axes on it) and opens them;
+:class:`HardwareRig` adds what a capture needs around them: ``safe()`` (lights off,
+backdrops blank, feed hold on every exit, Ctrl-C included), bounded reconnects,
+``check()``, ``describe()`` and the operator prompts between capture phases.
+
+:func:`check_rig_config` talks to every device of a config separately, with short
+timeouts and no reconnects, and never raises for a device failure — it is what
+``opacityhull rig check`` runs.
+"""
+
+from __future__ import annotations
+
+import signal
+import sys
+import threading
+import time
+import warnings
+from contextlib import contextmanager
+from typing import Callable, Iterator, Sequence
+
+from ..errors import CaptureInterrupted, ConfigError, DeviceError
+from .config import AxisConfig, CameraConfig, RigConfig, load_rig_config, parse_emulator_url
+from .protocols import CameraDevice, DeviceInfo
+from .transport import DeviceGone
+
+__all__ = ["HardwareRig", "open_rig", "build_rig", "check_rig_config", "OperatorActionRequired", "OPERATOR_PROMPTS",
+           "SIM_CAMERA_DETAIL"]
+
+SIM_CAMERA_DETAIL = "simulated: checked by sim"
+
+#: What the operator is asked to do for each action of :meth:`HardwareRig.operator`.
+OPERATOR_PROMPTS = {
+    "place_board": "Place the ChArUco calibration board flat on the turntable, centred on the axis{board}.",
+    "remove_board": "Remove the calibration board from the turntable.",
+    "remove_object": "Remove the object from the turntable (background-only captures follow); touch nothing else.",
+    "place_object": "Place the object on the turntable, centred on the axis, inside the capture volume.",
+}
+
+
+class OperatorActionRequired(CaptureInterrupted):
+    """A manual step is needed and nobody is at the terminal to do it (non-interactive run)."""
+
+
+def _board_text(details: dict) -> str:
+    spec = details.get("charuco")
+    if spec is None:
+        return ""
+    try:
+        return (f" ({spec.squares_x}x{spec.squares_y} squares of {spec.square_m * 1000:g} mm, {spec.dictionary}"
+                f", offset {tuple(spec.offset_m)} m, yaw {spec.yaw_deg:g}°)")
+    except AttributeError:
+        return f" ({spec})"
+
+
+class HardwareRig:
+    """Devices plus geometry, implementing :class:`~opacityhull.rigs.protocols.Rig`.
+
+    Parameters
+    ----------
+    config : RigConfig
+    turntable : Turntable
+    light_array : LightArray, optional
+    backdrops : Backdrops, optional
+    cameras : sequence of CameraDevice, in ``geometry.cameras`` order
+    ports : sequence of objects with ``open()``/``close()`` (and ``name``), optional
+        The transports to open and close (GRBL controllers, DMX interface, display
+        controller). Default: found on the devices (``controller``, ``dmx`` attributes
+        and the backdrops themselves), each once.
+    interactive : bool, optional
+        Whether :meth:`operator` may prompt on the terminal; default: stdin is a tty.
+    assume_ready : bool
+        Non-interactive runs treat every operator action as done (scripts, emulated rigs).
+    reconnect_attempts, reconnect_delay_s :
+        Bound on :meth:`open` / :meth:`reconnect` retries of a port that is not there.
+    input_fn : callable, optional
+        Reads the operator's Enter (default :func:`input`).
+    clear_hold : bool
+        When a GRBL controller is found in a feed hold on :meth:`open` (left by an earlier
+        ``safe()`` exit), clear it with a soft reset (GRBL keeps its position after the
+        hold has decelerated to ``Hold:0``).
+    """
+
+    def __init__(self, config: RigConfig, *, turntable, light_array=None, backdrops=None,
+                 cameras: Sequence[CameraDevice] = (), ports: Sequence | None = None,
+                 interactive: bool | None = None, assume_ready: bool = False, reconnect_attempts: int = 3,
+                 reconnect_delay_s: float = 0.5, input_fn: Callable[[str], str] | None = None,
+                 clear_hold: bool = True):
+        self.config = config
+        self.geometry = config.geometry
+        self.turntable = turntable
+        self.light_array = light_array
+        self.backdrops = backdrops
+        self.cameras = list(cameras)
+        self.interactive = interactive
+        self.assume_ready = assume_ready
+        self.reconnect_attempts = int(reconnect_attempts)
+        self.reconnect_delay_s = float(reconnect_delay_s)
+        self._input = input_fn
+        self.clear_hold = bool(clear_hold)
+        self._ports = list(ports) if ports is not None else self._find_ports()
+        self._open = False
+        self.safe_errors: list[tuple[str, str]] = []  # (step, error) of the last safe() exit
+        self.operator_log: list[tuple[str, dict]] = []
+
+    def _find_ports(self) -> list:
+        found: list = []
+
+        def add(obj):
+            if obj is not None and hasattr(obj, "open") and hasattr(obj, "close") and all(obj is not p for p in found):
+                found.append(obj)
+
+        add(getattr(self.turntable, "controller", None))
+        if self.light_array is not None:
+            add(getattr(getattr(self.light_array, "rotation", None), "controller", None))
+            add(getattr(self.light_array, "dmx", None))
+        add(self.backdrops)
+        return found
+
+    @property
+    def name(self) -> str:
+        return self.config.name
+
+    @property
+    def ports(self) -> list:
+        return list(self._ports)
+
+    # ---- lifecycle
+    def _open_port(self, port, attempts: int) -> None:
+        last: Exception | None = None
+        for i in range(max(1, attempts)):
+            if i:
+                time.sleep(self.reconnect_delay_s)  # a re-plugged USB adapter needs time to enumerate
+            try:
+                try:
+                    port.open()
+                except DeviceError as e:
+                    # A feed hold left by an earlier safe() exit: GRBL keeps its position through
+                    # a soft reset from Hold:0, and the reset clears the hold.
+                    if not (self.clear_hold and getattr(e, "state", None) == "Hold"):
+                        raise
+                    # A reset during Hold:1 (still decelerating) would lose the position: give
+                    # the slowest axis on this controller time to stop first.
+                    axes = getattr(port, "axes", {}).values()
+                    time.sleep(min(5.0, max([a.max_rate_deg_s / (a.accel_deg_s2 or 10.0) for a in axes] or [0.5]))
+                               + 0.1)
+                    port.open(reset=True)
+                return
+            except DeviceGone as e:
+                last = e
+        name = getattr(port, "name", type(port).__name__)
+        raise DeviceGone(f"{name}: could not open {getattr(port, 'url', '')} after {max(1, attempts)} attempt(s) "
+                         f"({last})") from None
+
+    def open(self) -> "HardwareRig":
+        """Open every port (each retried up to ``reconnect_attempts`` times); on failure the ports
+        already opened are closed again and the error names the device."""
+        if self._open:
+            return self
+        opened = []
+        try:
+            for p in self._ports:
+                self._open_port(p, self.reconnect_attempts)
+                opened.append(p)
+        except BaseException:
+            for p in reversed(opened):
+                try:
+                    p.close()
+                except Exception:
+                    pass
+            raise
+        self._open = True
+        return self
+
+    def close(self) -> None:
+        """Close every port and camera (each attempted even if another fails)."""
+        for p in reversed(self._ports):
+            try:
+                p.close()
+            except Exception:  # a dead port must not keep the others open
+                pass
+        for c in self.cameras:
+            close = getattr(c, "close", None)
+            if close is not None:
+                try:
+                    close()
+                except Exception:
+                    pass
+        self._open = False
+
+    def __enter__(self) -> "HardwareRig":
+        return self.open()
+
+    def __exit__(self, *exc):
+        self.close()
+        return False
+
+    def reconnect(self, device: str | None = None, *, max_attempts: int | None = None,
+                  delay_s: float | None = None) -> None:
+        """Close and re-open one port (by device name) or all, up to ``max_attempts`` tries
+        each; raise :class:`DeviceGone` naming the device if it does not come back."""
+        n = self.reconnect_attempts if max_attempts is None else int(max_attempts)
+        old_delay = self.reconnect_delay_s
+        if delay_s is not None:
+            self.reconnect_delay_s = float(delay_s)
+        try:
+            ports = self._ports if device is None else [p for p in self._ports if getattr(p, "name", None) == device]
+            if not ports:
+                names = [getattr(p, "name", "?") for p in self._ports]
+                raise ConfigError(f"rig {self.name}: no port named {device!r} (ports: {names})")
+            for p in ports:
+                try:
+                    p.close()
+                except Exception:
+                    pass
+                self._open_port(p, n)
+        finally:
+            self.reconnect_delay_s = old_delay
+
+    # ---- safety
+    def _axes(self) -> list:
+        axes = [self.turntable]
+        rot = getattr(self.light_array, "rotation", None) if self.light_array is not None else None
+        if rot is not None and rot is not self.turntable:
+            axes.append(rot)
+        return axes
+
+    def make_safe(self) -> list[tuple[str, str]]:
+        """Feed hold on every axis, every light off, every backdrop blank. Each step is
+        attempted even if another fails; returns the failures as ``(step, error)``."""
+        failures: list[tuple[str, str]] = []
+
+        def step(label: str, fn):
+            try:
+                fn()
+            except BaseException as e:  # noqa: BLE001 - a Ctrl-C inside one step must not skip the others
+                failures.append((label, f"{type(e).__name__}: {e}"))
+
+        for ax in self._axes():
+            step(f"{getattr(ax, 'name', 'axis')}: feed hold", ax.stop)
+        if self.light_array is not None:
+            step(f"{self.light_array.name}: all off", self.light_array.all_off)
+            err = getattr(self.light_array, "last_error", None)
+            if err:
+                failures.append((f"{self.light_array.name}: all off", str(err)))
+        if self.backdrops is not None:
+            step(f"{self.backdrops.name}: blank", self.backdrops.blank)
+            err = getattr(self.backdrops, "last_error", None)
+            if err:
+                failures.append((f"{self.backdrops.name}: blank", str(err)))
+        return failures
+
+    @contextmanager
+    def safe(self) -> Iterator["HardwareRig"]:
+        """``with rig.safe():`` — on any exit (normal, exception, Ctrl-C) the axes get a feed
+        hold, the lights go off and the backdrops go blank.
+
+        A second Ctrl-C during the clean-up is held back until the clean-up is done. If
+        the body succeeded but the clean-up failed, :class:`DeviceError` names the steps
+        that failed; if the body raised, that exception propagates and the clean-up
+        failures are issued as a warning (and kept in :attr:`safe_errors`).
+        """
+        ok = False
+        try:
+            yield self
+            ok = True
+        finally:
+            with _sigint_deferred() as pending:
+                self.safe_errors = self.make_safe()
+            if self.safe_errors:
+                text = "; ".join(f"{s}: {e}" for s, e in self.safe_errors)
+                if ok and not pending:
+                    raise DeviceError(f"rig {self.name}: could not make the rig safe ({text}) — "
+                                      "switch the lights and displays off and stop the motors by hand")
+                warnings.warn(f"rig {self.name}: clean-up incomplete: {text}", RuntimeWarning, stacklevel=3)
+            if pending and ok:
+                raise KeyboardInterrupt
+
+    # ---- queries
+    def check(self) -> list[DeviceInfo]:
+        """One :class:`DeviceInfo` per device (axes, lights, backdrops, cameras); never raises."""
+        out = []
+        for dev in [*self._axes(), self.light_array, self.backdrops]:
+            if dev is None:
+                continue
+            out.append(_safe_check(dev))
+        for i, cam in enumerate(self.cameras):
+            cfg = self.config.cameras[i] if i < len(self.config.cameras) else None
+            out.append(_camera_check(cam, cfg))
+        return out
+
+    def describe(self) -> dict:
+        """The rig TOML content (``rig``, ``devices``, ``geometry``) to record in a session."""
+        return self.config.to_dict()
+
+    def operator(self, action: str, **details) -> None:
+        """Ask the operator to do ``action`` and wait for Enter.
+
+        Non-interactive (stdin is not a terminal, or ``interactive=False``): with
+        ``assume_ready`` the action is logged and taken as done; otherwise
+        :class:`OperatorActionRequired` (exit code 5: the capture can be resumed) says
+        what to do.
+        """
+        template = OPERATOR_PROMPTS.get(action)
+        text = template.format(board=_board_text(details)) if template else \
+            f"Operator action {action!r}" + (f": {details}" if details else "") + "."
+        self.operator_log.append((action, dict(details)))
+        interactive = self.interactive if self.interactive is not None else _stdin_is_tty()
+        if not interactive:
+            if self.assume_ready:
+                sys.stderr.write(f"[{self.name}] operator: {text} (assumed done: non-interactive run)\n")
+                sys.stderr.flush()
+                return
+            raise OperatorActionRequired(
+                f"rig {self.name}: a manual step is needed — {text} Run the capture in a terminal to be prompted, "
+                "or pass assume_ready (e.g. --assume-ready) if the step is already done; the capture can be resumed."
+            )
+        read = self._input or input
+        sys.stderr.write(f"\n[{self.name}] {text}\n")
+        sys.stderr.flush()
+        try:
+            read("Press Enter when done (Ctrl-C to stop)... ")
+        except EOFError:
+            raise OperatorActionRequired(f"rig {self.name}: stdin closed while waiting for: {text}") from None
+
+    def ground_truth(self, root, views) -> None:
+        """Hardware knows nothing exactly: nothing is written."""
+        return None
+
+
+def _stdin_is_tty() -> bool:
+    try:
+        return sys.stdin is not None and sys.stdin.isatty()
+    except (ValueError, AttributeError):
+        return False
+
+
+@contextmanager
+def _sigint_deferred():
+    """Hold back SIGINT during a critical section (main thread only); yields a list that
+    is non-empty afterwards if a SIGINT arrived meanwhile."""
+    pending: list[int] = []
+    if threading.current_thread() is not threading.main_thread():
+        yield pending
+        return
+    try:
+        old = signal.signal(signal.SIGINT, lambda signum, frame: pending.append(signum))
+    except ValueError:  # not the main interpreter
+        yield pending
+        return
+    try:
+        yield pending
+    finally:
+        signal.signal(signal.SIGINT, old)
+
+
+def _safe_check(dev) -> DeviceInfo:
+    name = getattr(dev, "name", type(dev).__name__)
+    try:
+        info = dev.check()
+    except Exception as e:  # check() should not raise, but a driver bug must not hide the others
+        return DeviceInfo(name, False, f"{type(e).__name__}: {e}")
+    return info
+
+
+def _camera_check(cam, cfg: CameraConfig | None) -> DeviceInfo:
+    name = getattr(cam, "name", cfg.name if cfg else "camera")
+    if hasattr(cam, "check"):
+        return _safe_check(cam)
+    try:
+        info = cam.info()
+    except Exception as e:
+        return DeviceInfo(name, False, f"{type(e).__name__}: {e}")
+    return DeviceInfo(name, True, f"{info.model or type(cam).__name__} {info.width}x{info.height}",
+                      identity=info.model, state={"width": info.width, "height": info.height})
+
+
+# --------------------------------------------------------------------------- building drivers
+
+
+def _grbl_classes():
+    try:
+        from .motion import GrblAxis, GrblController
+    except ImportError as e:  # pragma: no cover - only while the motion drivers are missing
+        raise DeviceError(f"GRBL motion drivers are not available ({e})") from None
+    return GrblController, GrblAxis
+
+
+def _dmx_classes():
+    try:
+        from .lights import DmxLightArray, EnttecDmx
+    except ImportError as e:  # pragma: no cover
+        raise DeviceError(f"DMX light drivers are not available ({e})") from None
+    return EnttecDmx, DmxLightArray
+
+
+def _check_runnable_url(url: str, key: str, source: str) -> None:
+    if parse_emulator_url(url) is not None:
+        raise ConfigError(
+            f"{source}: {key}.url is {url!r}: emulator URLs must be started first — run "
+            "`opacityhull rig emulate --config RIG.toml --write-config RUNTIME.toml` and use RUNTIME.toml, or "
+            "start_emulators(config) in Python"
+        )
+
+
+def _build_devices(config: RigConfig, *, timeout_s: float | None = None):
+    """Driver objects (no I/O) for the serial devices: (turntable, light_array, backdrops, ports)."""
+    from .backdrops import DisplayController
+
+    GrblController, GrblAxis = _grbl_classes()
+    controllers: dict[str, object] = {}
+    ports: list = []
+
+    def controller(ax: AxisConfig):
+        if ax.url not in controllers:
+            _check_runnable_url(ax.url, ax.key, config.source)
+            names = [a.name for a in config.grbl_ports()[ax.url]]
+            c = GrblController(ax.url, name="+".join(names) if len(names) > 1 else ax.name, baudrate=ax.baudrate,
+                               timeout_s=ax.timeout_s if timeout_s is None else timeout_s)
+            controllers[ax.url] = c
+            ports.append(c)
+        return controllers[ax.url]
+
+    def axis(ax: AxisConfig):
+        return GrblAxis(controller(ax), axis=ax.axis, steps_per_deg=ax.steps_per_deg,
+                        max_rate_deg_s=ax.max_rate_deg_s, accel_deg_s2=ax.accel_deg_s2,
+                        backlash_deg=ax.backlash_deg, soft_limits_deg=ax.soft_limits_deg, name=ax.name)
+
+    turntable = axis(config.turntable)
+    light_array = None
+    if config.light_array is not None:
+        la = config.light_array
+        EnttecDmx, DmxLightArray = _dmx_classes()
+        _check_runnable_url(la.url, la.key, config.source)
+        dmx = EnttecDmx(la.url, name=f"{la.name}.dmx", timeout_s=la.timeout_s if timeout_s is None else timeout_s,
+                        baudrate=la.baudrate)
+        ports.append(dmx)
+        rotation = axis(la.rotation) if la.rotation is not None else None
+        light_array = DmxLightArray(dmx, channels=la.channel_map, rotation=rotation, name=la.name)
+    backdrops = None
+    if config.backdrops is not None:
+        bd = config.backdrops
+        _check_runnable_url(bd.url, bd.key, config.source)
+        quick = timeout_s is not None
+        backdrops = DisplayController(bd.url, outputs=bd.output_map, name=bd.name,
+                                      timeout_s=bd.timeout_s if timeout_s is None else timeout_s,
+                                      baudrate=bd.baudrate, retries=0 if quick else bd.retries,
+                                      chunk_bytes=bd.chunk_bytes, reconnect_attempts=0 if quick else 2)
+        ports.append(backdrops)
+    return turntable, light_array, backdrops, ports
+
+
+def _build_camera(c: CameraConfig, source: str) -> CameraDevice:
+    from .cameras import DirectoryCamera, OpenCVCamera
+
+    opts = dict(c.options)
+    if c.driver == "opencv":
+        return OpenCVCamera(c.device, name=c.name, width=c.width, height=c.height, **opts)
+    if c.driver == "directory":
+        return DirectoryCamera(c.device, name=c.name, width=c.width, height=c.height, **opts)
+    raise ConfigError(
+        f"{source}: {c.key}.driver = \"sim\": simulated cameras render through the simulator — use "
+        "`--rig sim:SCENE` (or pass cameras= to open_rig), or give this camera driver = \"opencv\" or \"directory\""
+    )
+
+
+def build_rig(config_or_path, *, cameras: Sequence[CameraDevice] | None = None, **rig_kwargs) -> HardwareRig:
+    """Build the drivers of a rig without opening anything (see :func:`open_rig`)."""
+    config = config_or_path if isinstance(config_or_path, RigConfig) else load_rig_config(config_or_path)
+    geo_names = [c.name for c in config.geometry.cameras]
+    if cameras is not None:
+        cams = list(cameras)
+        names = [getattr(c, "name", None) for c in cams]
+        if names != geo_names:
+            raise ConfigError(f"{config.source}: injected cameras {names} must match geometry.cameras {geo_names} "
+                              "in name and order")
+    else:
+        if not config.cameras:
+            raise ConfigError(f"{config.source}: devices.cameras: no [[devices.cameras]] entries — add one per "
+                              f"geometry camera {geo_names}, or pass cameras= to open_rig")
+        cams = [_build_camera(c, config.source) for c in config.cameras]
+    turntable, light_array, backdrops, ports = _build_devices(config)
+    return HardwareRig(config, turntable=turntable, light_array=light_array, backdrops=backdrops, cameras=cams,
+                       ports=ports, **rig_kwargs)
+
+
+def open_rig(config_or_path, *, cameras: Sequence[CameraDevice] | None = None, **rig_kwargs) -> HardwareRig:
+    """Build the rig of a config (or rig TOML path) and open its ports.
+
+    Parameters
+    ----------
+    config_or_path : RigConfig or path
+        ``emulator:`` URLs must have been replaced by real ones (:func:`start_emulators`
+        returns such a config; ``opacityhull rig emulate`` writes one).
+    cameras : sequence of CameraDevice, optional
+        Camera drivers to use instead of ``[[devices.cameras]]`` (the simulator injects
+        its own), in ``geometry.cameras`` order. Without them, ``driver = "sim"`` cameras
+        raise :class:`ConfigError`.
+    **rig_kwargs
+        Passed to :class:`HardwareRig` (``interactive``, ``assume_ready``,
+        ``reconnect_attempts``, ``reconnect_delay_s``, ``input_fn``).
+
+    Use as ``with open_rig(path) as rig, rig.safe(): ...`` so the ports close on exit.
+    """
+    rig = build_rig(config_or_path, cameras=cameras, **rig_kwargs)
+    rig.open()
+    return rig
+
+
+def check_rig_config(config_or_path, *, timeout_s: float = 1.0) -> list[DeviceInfo]:
+    """Talk to every device of a rig config and report identity and state, one
+    :class:`DeviceInfo` per device; never raises for a device that fails.
+
+    Each device is opened on its own with ``timeout_s`` per reply and no retries or
+    reconnects, so a dead device costs about one timeout. Cameras with ``driver = "sim"``
+    are reported ok with :data:`SIM_CAMERA_DETAIL`. A config that still has
+    ``emulator:`` URLs raises :class:`ConfigError` (start the emulators first).
+    """
+    config = config_or_path if isinstance(config_or_path, RigConfig) else load_rig_config(config_or_path)
+    out: list[DeviceInfo] = []
+    emulated = [k for k, u in config.device_urls().items() if parse_emulator_url(u) is not None]
+    if emulated:
+        raise ConfigError(
+            f"{config.source}: {', '.join(emulated)} have emulator:KIND URLs, which only `opacityhull rig emulate "
+            f"--config {config.source} --write-config RUNTIME.toml` can serve; check RUNTIME.toml instead")
+    turntable, light_array, backdrops, ports = _build_devices(config, timeout_s=timeout_s)
+    port_ok: dict[int, DeviceInfo | None] = {}
+    for p in ports:
+        try:
+            p.open()
+            port_ok[id(p)] = None
+        except (DeviceError, OSError) as e:
+            port_ok[id(p)] = DeviceInfo(getattr(p, "name", "?"), False, str(e))
+    try:
+        devices = [turntable]
+        if light_array is not None:
+            if getattr(light_array, "rotation", None) is not None:
+                devices.append(light_array.rotation)
+            devices.append(light_array)
+        if backdrops is not None:
+            devices.append(backdrops)
+        for dev in devices:
+            port = getattr(dev, "controller", None) or getattr(dev, "dmx", None) or dev
+            failed = port_ok.get(id(port))
+            if failed is not None:
+                out.append(DeviceInfo(dev.name, False, failed.detail))
+            else:
+                out.append(_safe_check(dev))
+    finally:
+        for p in ports:
+            try:
+                p.close()
+            except Exception:
+                pass
+    for c in config.cameras:
+        if c.driver == "sim":
+            out.append(DeviceInfo(c.name, True, SIM_CAMERA_DETAIL, identity="sim"))
+            continue
+        try:
+            cam = _build_camera(c, config.source)
+        except (ConfigError, DeviceError) as e:
+            out.append(DeviceInfo(c.name, False, str(e)))
+            continue
+        if hasattr(cam, "timeout_s"):
+            cam.timeout_s = min(cam.timeout_s, max(timeout_s, 2.0))
+        out.append(_camera_check(cam, c))
+        close = getattr(cam, "close", None)
+        if close is not None:
+            close()
+    return out
