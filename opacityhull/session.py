@@ -83,7 +83,9 @@ def shot_key(
 ) -> str:
     """Bracket-independent shot identifier, also the stem of its image files.
 
-    e.g. ``matting/c0_t030.000/p003_obj`` or ``reflectance/c1_t000.000/a045.000_l2``.
+    e.g. ``matting/c0_t030.000/p003`` (``p003_bg`` with the object removed, ``off`` with
+    the backdrops blank), ``lightfield/c0_t030.000/img`` or
+    ``reflectance/c1_t000.000/a045.000_l2``.
     """
     parts = [phase, view_id(camera, table_deg)]
     leaf = []
@@ -238,9 +240,15 @@ class Session:
     def __init__(self, root: Path, meta: dict, records: list[ShotRecord]):
         self.root = root
         self.meta = meta
-        self.records = records
+        # An image re-shot on resume (its file was corrupt) appends a second record
+        # with the same id: the last record of an id wins.
+        last: dict[str, int] = {}
+        for i, r in enumerate(records):
+            last[r.id] = i
+        self.superseded = len(records) - len(last)
+        self.records = [r for i, r in enumerate(records) if last[r.id] == i]
         self._by_shot: dict[str, list[ShotRecord]] = {}
-        for r in records:
+        for r in self.records:
             self._by_shot.setdefault(r.shot, []).append(r)
 
     @classmethod
@@ -273,6 +281,31 @@ class Session:
     def source(self) -> str:
         """``rig_source`` of the session: a rig TOML path or ``sim:<scene>``."""
         return self.meta.get("session", {}).get("rig_source", "")
+
+    @property
+    def white_level(self) -> float:
+        """Sensor value at saturation (``[session] white_level``; 1.0 when not recorded)."""
+        return float(self.meta.get("session", {}).get("white_level", 1.0))
+
+    @property
+    def charuco(self):
+        """The calibration board (:class:`~opacityhull.charuco.CharucoSpec`) of the
+        calibration phase (``[charuco]``), or None."""
+        from .charuco import CharucoSpec
+
+        d = self.meta.get("charuco")
+        return None if not d else CharucoSpec.from_dict(d, where=f"{self.root / 'session.toml'}:charuco")
+
+    @property
+    def patterns(self) -> dict:
+        """``[patterns]``: per pattern key (``p001``) its id, kind (random, complement,
+        natural), phase, ``files`` per display, and for complements the id it inverts."""
+        return dict(self.meta.get("patterns", {}))
+
+    @property
+    def camera_info(self) -> list[dict]:
+        """``[[camera_info]]``: what each camera reported (name, size, white_level, linear)."""
+        return list(self.meta.get("camera_info", []))
 
     @property
     def is_simulated(self) -> bool:
@@ -330,7 +363,7 @@ class Session:
         if hdr:
             return self.load_image(hdr[-1])
         raws = sorted((r for r in recs if r.kind == "raw"), key=lambda r: r.exposure_s or 0.0)
-        white = float(self.meta.get("session", {}).get("white_level", 1.0))
+        white = self.white_level
         chosen, img = None, None
         for r in reversed(raws):
             im = self.load_image(r)
@@ -446,15 +479,17 @@ class SessionWriter:
 
     def _open_manifest(self) -> "SessionWriter":
         path = self.root / "manifest.jsonl"
-        self._ids = {r.id for r in read_manifest(path)}
-        # A torn last line (no newline) must not glue onto the next record.
+        # A torn last line (crash or full disk mid-append) is not a record: cut it off so
+        # that it neither glues onto the next record nor sits corrupt mid-file.
         if path.is_file() and path.stat().st_size > 0:
-            with open(path, "rb") as f:
-                f.seek(-1, os.SEEK_END)
-                torn = f.read(1) != b"\n"
-            if torn:
-                with open(path, "ab") as f:
-                    f.write(b"\n")
+            data = path.read_bytes()
+            if not data.endswith(b"\n"):
+                keep = data.rfind(b"\n") + 1
+                with open(path, "r+b") as f:
+                    f.truncate(keep)
+                    f.flush()
+                    os.fsync(f.fileno())
+        self._ids = {r.id for r in read_manifest(path)}
         self._manifest = open(path, "ab", buffering=0)
         return self
 
@@ -486,8 +521,12 @@ class SessionWriter:
         write_exr(path, image, half=half)
         return self.add_file(path, id=id, shot=shot, phase=phase, camera=camera, table_deg=table_deg, **fields)
 
-    def add_file(self, path, *, id: str, shot: str, phase: str, camera: int, table_deg: float, **fields) -> ShotRecord:
-        """Append the record of a file already atomically in place inside the session."""
+    def add_file(self, path, *, id: str, shot: str, phase: str, camera: int, table_deg: float,
+                 replace: bool = False, **fields) -> ShotRecord:
+        """Append the record of a file already atomically in place inside the session.
+
+        ``replace=True`` allows an id that is already listed (an image re-taken because
+        its file was corrupt); readers take the last record of an id."""
         if self._manifest is None:
             raise InputError("session writer is not open (call create() or resume())")
         path = Path(path)
@@ -503,10 +542,23 @@ class SessionWriter:
             bytes=path.stat().st_size,
             **fields,
         )
-        if rec.id in self._ids:
+        if rec.id in self._ids and not replace:
             raise InputError(f"image id {rec.id!r} is already in {self.root / 'manifest.jsonl'}")
-        self._manifest.write((rec.to_json() + "\n").encode())
-        if self.fsync:
-            os.fsync(self._manifest.fileno())
+        line = (rec.to_json() + "\n").encode()
+        start = self._manifest.tell()
+        try:
+            n = self._manifest.write(line)
+            if n != len(line):
+                raise OSError(28, f"short write to {self.root / 'manifest.jsonl'} ({n} of {len(line)} bytes)")
+            if self.fsync:
+                os.fsync(self._manifest.fileno())
+        except OSError:
+            # Never leave half a record behind (e.g. the disk filled up mid-line).
+            try:
+                self._manifest.truncate(start)
+                self._manifest.seek(start)
+            except OSError:
+                pass
+            raise
         self._ids.add(rec.id)
         return rec

@@ -1,7 +1,285 @@
-"""CLI commands of `opacityhull.acquire` (registered by :mod:`opacityhull.cli`)."""
+"""CLI commands of `opacityhull.acquire` (registered by :mod:`opacityhull.cli`).
+
+``capture``, ``session verify|info|hdr``, ``import colmap``.
+"""
 
 from __future__ import annotations
+
+import os
+import sys
+import tomllib
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from ..cliutil import cli_errors, console, emit, progress
+from ..errors import CaptureInterrupted, ConfigError, OpacityHullError
+
+__all__ = ["register", "resolve_rig", "rig_static"]
+
+
+def resolve_rig(spec: str, *, assume_ready: bool = False):
+    """The :class:`~opacityhull.rigs.protocols.Rig` named by ``--rig``, opened: a rig
+    TOML path (hardware, or emulators started by ``opacityhull rig emulate``), or
+    ``sim:SCENE[@RIG.toml][?opts]`` for the simulated rig. ``assume_ready`` lets a
+    hardware rig run without a terminal, taking every manual step as done."""
+    if spec.startswith("sim:"):
+        from ..sim.simrig import open_sim_rig
+
+        return open_sim_rig(spec)
+    path = Path(spec)
+    if not path.is_file():
+        raise ConfigError(f"--rig {spec}: no such rig TOML (give a path, or sim:SCENE for the simulated rig)")
+    from ..rigs.rig import open_rig
+
+    return open_rig(path, assume_ready=assume_ready)
+
+
+def rig_static(spec: str):
+    """Geometry and ``[devices]`` table of ``--rig`` without touching any device
+    (dry runs): read from the rig TOML, or asked of the simulator's scene spec."""
+    from ..riggeometry import RigGeometry
+
+    if spec.startswith("sim:"):
+        from ..sim import simrig
+
+        if hasattr(simrig, "sim_rig_config"):
+            cfg = simrig.sim_rig_config(spec)
+        else:  # the simulator offers no static description: build its rig but do not open it
+            rig = simrig.open_sim_rig(spec)
+            try:
+                return rig.geometry, (rig.describe() or {}).get("devices", {})
+            finally:
+                close = getattr(rig, "close", None)
+                if close is not None:
+                    close()
+        return RigGeometry.from_dict(cfg["geometry"], where=f"--rig {spec}: geometry"), cfg.get("devices", {})
+    path = Path(spec)
+    if not path.is_file():
+        raise ConfigError(f"--rig {spec}: no such rig TOML (give a path, or sim:SCENE for the simulated rig)")
+    try:
+        d = tomllib.loads(path.read_text())
+    except tomllib.TOMLDecodeError as e:
+        raise ConfigError(f"{path}: invalid TOML ({e})") from None
+    if "geometry" not in d:
+        raise ConfigError(f"{path}: no [geometry] table")
+    return RigGeometry.from_dict(d["geometry"], where=f"{path}: geometry"), d.get("devices", {})
+
+
+def _print_estimate(summary: dict) -> None:
+    from rich.table import Table
+
+    from .schedule import human_bytes, human_seconds
+
+    est = summary["estimate"]
+    t = Table(title=f"dry run: plan {summary['plan']} on {summary['rig']}")
+    for col in ("phase", "shots", "images", "bytes", "time"):
+        t.add_column(col, justify="right" if col != "phase" else "left")
+    for p, v in est["per_phase"].items():
+        t.add_row(p, str(v["shots"]), str(v["images"]), human_bytes(v["bytes"]), human_seconds(v["seconds"]))
+    t.add_row("[bold]total", "", f"[bold]{est['images']}", f"[bold]{human_bytes(est['bytes'])}",
+              f"[bold]{human_seconds(est['seconds'])}")
+    c = console()
+    c.print(t)
+    b = est["breakdown_s"]
+    c.print(f"time: moves {human_seconds(b['moves'])}, exposure {human_seconds(b['exposure'])}, per-image overhead "
+            f"{human_seconds(b['overhead'])}, pattern upload {human_seconds(b['pattern_upload'])}, "
+            f"{est['operator_steps']} manual step(s) {human_seconds(b['operator'])}", highlight=False)
+
+
+@contextmanager
+def _stdout_to_stderr():
+    """Route file descriptor 1 to stderr while devices and renderers run, so that
+    ``--json`` leaves exactly one JSON object on stdout whatever a library prints
+    (Mitsuba logs "Received interrupt signal" to stdout from C++). C stdio buffers are
+    flushed before fd 1 comes back, or their bytes would still land on stdout."""
+    import ctypes
+
+    try:
+        sys.stdout.flush()
+        saved = os.dup(1)
+    except (OSError, ValueError):  # no real fd 1 (embedded, test runners): nothing to do
+        yield
+        return
+    libc = None
+    try:
+        libc = ctypes.CDLL(None)
+    except OSError:
+        pass
+    os.dup2(2, 1)
+    try:
+        yield
+    finally:
+        try:
+            sys.stdout.flush()
+        except ValueError:
+            pass
+        if libc is not None:
+            libc.fflush(None)
+        os.dup2(saved, 1)
+        os.close(saved)
+
+
+def _manifest_count(out: Path) -> int:
+    from ..session import Session
+
+    try:
+        return sum(1 for r in Session.open(out).records if r.kind == "raw")
+    except Exception:
+        return 0
 
 
 def register(app, groups) -> None:
     """Add this stage's commands to the root app and the subcommand groups."""
+
+    @app.command("capture")
+    @cli_errors
+    def capture(
+        rig: str = typer.Option(..., "--rig", help="Rig TOML path, or sim:SCENE (or sim:SCENE@RIG.toml) for the simulated rig."),
+        plan: str = typer.Option(..., "--plan", help="Plan TOML path or builtin:tiny|demo|paper."),
+        out: Optional[Path] = typer.Option(None, "--out", help="Session folder (new/empty, or existing with --resume)."),
+        resume: bool = typer.Option(False, "--resume", help="Continue the session in --out: verify what is there, "
+                                                            "take only what is missing or corrupt."),
+        dry_run: bool = typer.Option(False, "--dry-run", help="Print counts, bytes and estimated time per phase; "
+                                                              "touch no device, write nothing."),
+        assume_ready: bool = typer.Option(False, "--assume-ready", help="Hardware rigs without a terminal: take "
+                                                                        "every manual step (board, object) as done."),
+        json_out: bool = typer.Option(False, "--json", help="Print one JSON object on stdout."),
+    ):
+        """Capture a session: run a plan on a rig, resumably (exit 5 = stopped early, resumable; 130 = Ctrl-C)."""
+        from .plan import load_plan
+        from .schedule import MotionRates, estimate, expected_counts, schedule
+
+        the_plan = load_plan(plan)
+        if dry_run:
+            geometry, devices = rig_static(rig)
+            stages = schedule(the_plan, geometry)
+            est = estimate(the_plan, geometry, MotionRates.from_devices(devices), stages)
+            summary = {"complete": False, "images": 0, "session": str(out) if out else None, "dry_run": True,
+                       "plan": the_plan.name, "rig": rig, "planned_per_phase": expected_counts(stages),
+                       "estimate": est.to_dict()}
+            emit(summary, json_out, _print_estimate)
+            return
+        if out is None:
+            raise ConfigError("--out: a session folder is required (except with --dry-run)")
+        from .runner import run_capture
+
+        summary = {"complete": False, "images": 0, "session": str(out)}
+        try:
+            with _stdout_to_stderr():
+                the_rig = resolve_rig(rig, assume_ready=assume_ready)
+                try:
+                    the_rig.open()
+                    with progress(f"capture {the_plan.name}") as cb:
+                        res = run_capture(the_rig, the_plan, out, resume=resume, progress=cb, rig_source=rig,
+                                          log=lambda m: console().print(f"[cyan]{m}", highlight=False))
+                finally:
+                    the_rig.close()
+        except (OpacityHullError, KeyboardInterrupt) as e:
+            if json_out:
+                summary.update(images=_manifest_count(out), error=str(e) or type(e).__name__)
+                emit(summary, True)
+            raise
+        summary = res.to_dict()
+
+        def human(s):
+            state = "complete" if s["complete"] else "INCOMPLETE"
+            console().print(f"capture {state}: {s['images']}/{s['planned']} images in {s['session']} "
+                            f"({s['taken']} taken now, {s['seconds']:.1f} s)", highlight=False)
+
+        emit(summary, json_out, human)
+        if not res.complete:
+            raise CaptureInterrupted(f"capture incomplete: {res.images} of {res.planned} images; run again with "
+                                     "--resume")
+
+    session = groups["session"]
+
+    @session.command("verify")
+    @cli_errors
+    def verify(
+        directory: Path = typer.Argument(..., help="Session folder."),
+        json_out: bool = typer.Option(False, "--json", help="Print one JSON object on stdout."),
+    ):
+        """Check every manifest entry exists with its sha256 and no image is unlisted (exit 4 if not ok)."""
+        from .verify import verify_session
+
+        with progress("verify", enabled=not json_out) as cb:
+            rep = verify_session(directory, progress=cb)
+
+        def human(r):
+            c = console()
+            c.print(f"{'OK' if r['ok'] else 'NOT OK'}: {r['images']} images; missing {len(r['missing'])}, "
+                    f"corrupt {len(r['corrupt'])}, unlisted {len(r['unlisted'])}", highlight=False)
+            for k in ("missing", "corrupt", "unlisted"):
+                for p in r[k][:10]:
+                    c.print(f"  {k}: {p}", highlight=False)
+            for ph, n in r["per_phase"].items():
+                want = (r["planned_per_phase"] or {}).get(ph)
+                c.print(f"  {ph}: {n}" + (f" / {want} planned" if want is not None else ""), highlight=False)
+
+        emit(rep, json_out, human)
+        if not rep["ok"]:
+            raise typer.Exit(code=4)
+
+    @session.command("info")
+    @cli_errors
+    def info(
+        directory: Path = typer.Argument(..., help="Session folder."),
+        json_out: bool = typer.Option(False, "--json", help="Print one JSON object on stdout."),
+    ):
+        """Phases, views, image counts and bytes of a session."""
+        from .schedule import human_bytes
+        from .verify import session_info
+
+        rep = session_info(directory)
+
+        def human(r):
+            c = console()
+            c.print(f"session {r['session']}: plan {r['plan']}, rig {r['rig_source'] or '?'}, {r['images']} images, "
+                    f"{human_bytes(r['bytes'])}, {r['views']} views", highlight=False)
+            for ph, v in r["phases"].items():
+                c.print(f"  {ph}: {v['images']} images ({v['hdr']} hdr), {v['views']} views, "
+                        f"{human_bytes(v['bytes'])}, exposures {v['exposures_s']}", highlight=False)
+
+        emit(rep, json_out, human)
+
+    @session.command("hdr")
+    @cli_errors
+    def hdr(
+        directory: Path = typer.Argument(..., help="Session folder."),
+        phase: Optional[list[str]] = typer.Option(None, "--phase", help="Only this phase (repeatable)."),
+        method: str = typer.Option("auto", "--method", help="auto | linear | debevec."),
+        saturation: float = typer.Option(0.98, "--saturation", help="Clipped above this fraction of white."),
+        force: bool = typer.Option(False, "--force", help="Merge again even if up to date."),
+        json_out: bool = typer.Option(False, "--json", help="Print one JSON object on stdout."),
+    ):
+        """Merge exposure brackets into linear radiance (kind = "hdr" records; raw brackets stay)."""
+        from .hdr import hdr_session
+
+        with progress("hdr merge", enabled=not json_out) as cb:
+            rep = hdr_session(directory, phases=phase or None, method=method, saturation=saturation, force=force,
+                              progress=cb)
+        emit(rep, json_out, lambda r: console().print(
+            f"merged {r['merged']} of {r['shots']} bracketed shots ({r['skipped']} up to date); "
+            f"{r['saturated_px']} pixels clipped in every exposure", highlight=False))
+
+    imp = groups["import"]
+
+    @imp.command("colmap")
+    @cli_errors
+    def import_colmap_cmd(
+        model: Path = typer.Option(..., "--model", help="COLMAP text model folder (cameras.txt, images.txt)."),
+        images: Path = typer.Option(..., "--images", help="Folder of the images (PNG/JPG/EXR)."),
+        masks: Optional[Path] = typer.Option(None, "--masks", help="Folder of masks named like the images."),
+        out: Path = typer.Option(..., "--out", help="New session folder."),
+        json_out: bool = typer.Option(False, "--json", help="Print one JSON object on stdout."),
+    ):
+        """Turn a COLMAP-calibrated image set into a session that `build` accepts."""
+        from .importers import import_colmap
+
+        with progress("import", enabled=not json_out) as cb:
+            rep = import_colmap(model, images, out, masks_dir=masks, progress=cb)
+        emit(rep, json_out, lambda r: console().print(
+            f"imported {r['images']} images ({r['masks']} masks) into {r['session']}", highlight=False))

@@ -1,0 +1,403 @@
+"""From a plan and a rig geometry to the ordered list of shots, and what they cost.
+
+Pure functions, no devices: the runner executes the schedule, the dry run prices it.
+
+Order (slow things outermost): the stages follow the manual steps — calibration with
+the board on the table, then the object-absent backdrops, then the object phases —
+so the operator is asked at most three times. Within a phase the table angle is the
+outermost loop, the light-array angle next, then the pattern or light, then the
+cameras, then the exposure bracket. Consecutive phases sweep the table in alternating
+directions (and the reflectance phase alternates the array sweep per table angle), so
+no full return move is made between sweeps.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Mapping, Sequence
+
+from ..errors import ConfigError
+from ..riggeometry import RigGeometry
+from ..session import shot_key
+from .plan import CapturePlan
+
+__all__ = [
+    "PlannedShot",
+    "Stage",
+    "MotionRates",
+    "Estimate",
+    "schedule",
+    "select_cameras",
+    "select_lights",
+    "estimate",
+    "move_time_s",
+    "expected_counts",
+]
+
+
+@dataclass(frozen=True)
+class PlannedShot:
+    """One rig state photographed by one camera over one exposure bracket."""
+
+    phase: str
+    camera: int
+    table_deg: float
+    exposures_s: tuple[float, ...]
+    lights_deg: float | None = None
+    light: int | None = None  # reflectance: the one light on
+    level: int = 0  # DMX level of the lit lights
+    lights_on: tuple[int, ...] = ()  # ids lit at ``level``
+    pattern: int | None = None  # shown on every display; None = blank
+    object_present: bool = True
+
+    @property
+    def key(self) -> str:
+        # The array angle names the shot only where it varies within a view (reflectance).
+        ld = self.lights_deg if self.phase == "reflectance" else None
+        return shot_key(self.phase, self.camera, self.table_deg, lights_deg=ld, light=self.light,
+                        pattern=self.pattern, object_present=self.object_present)
+
+    def ids(self) -> list[str]:
+        return [f"{self.key}/e{i}" for i in range(len(self.exposures_s))]
+
+    def rel_path(self, i: int) -> str:
+        return f"images/{self.key}_e{i}.exr"
+
+    @property
+    def state(self) -> tuple:
+        """The device state this shot needs (shots of one state differ only by camera)."""
+        return (self.table_deg, self.lights_deg, self.lights_on, self.level, self.pattern, self.object_present)
+
+
+@dataclass(frozen=True)
+class Stage:
+    """Shots that share a manual set-up: ``scene`` is ``"board"``, ``"empty"`` or ``"object"``."""
+
+    scene: str
+    shots: tuple[PlannedShot, ...]
+    charuco: object = None
+
+
+def select_cameras(plan: CapturePlan, geometry: RigGeometry) -> tuple[int, ...]:
+    n = len(geometry.cameras)
+    if plan.cameras is None:
+        return tuple(range(n))
+    if isinstance(plan.cameras, int):
+        if plan.cameras > n:
+            raise ConfigError(f"{plan.source or 'plan'}: [plan].cameras = {plan.cameras} but the rig has {n} cameras")
+        return tuple(sorted({int(round(i * n / plan.cameras)) % n for i in range(plan.cameras)}))
+    bad = [c for c in plan.cameras if c >= n]
+    if bad:
+        raise ConfigError(f"{plan.source or 'plan'}: [plan].cameras: index {bad} not in the rig (it has {n} cameras: "
+                          f"0..{n - 1})")
+    return tuple(plan.cameras)
+
+
+def select_lights(plan: CapturePlan, geometry: RigGeometry) -> tuple[int, ...]:
+    ids = [L.id for L in geometry.lights]
+    ph = plan.reflectance
+    if ph is None or ph.lights is None:
+        return tuple(ids)
+    if isinstance(ph.lights, int):
+        if ph.lights > len(ids):
+            raise ConfigError(f"{plan.source or 'plan'}: [phases.reflectance].lights = {ph.lights} but the rig has "
+                              f"{len(ids)} lights")
+        return tuple(ids[int(round(i * len(ids) / ph.lights)) % len(ids)] for i in range(ph.lights))
+    bad = [i for i in ph.lights if i not in ids]
+    if bad:
+        raise ConfigError(f"{plan.source or 'plan'}: [phases.reflectance].lights: id(s) {bad} not in the rig "
+                          f"(light ids: {ids})")
+    return tuple(ph.lights)
+
+
+def _lights_at(spec, table_deg: float) -> float:
+    return table_deg if spec == "table" else float(spec)
+
+
+def schedule(plan: CapturePlan, geometry: RigGeometry) -> list[Stage]:
+    """The shots of ``plan`` on a rig with ``geometry``, grouped in stages, in capture order."""
+    cams = select_cameras(plan, geometry)
+    all_lights = tuple(L.id for L in geometry.lights)
+    stages: list[Stage] = []
+    sweep_dir = [1]
+
+    def sweep(angles: Sequence[float]) -> list[float]:
+        a = sorted(angles)
+        if sweep_dir[0] < 0:
+            a = a[::-1]
+        sweep_dir[0] = -sweep_dir[0]
+        return a
+
+    def need_lights(phase: str, level: int):
+        if level > 0 and not all_lights:
+            raise ConfigError(f"{plan.source or 'plan'}: [phases.{phase}].level = {level} but the rig has no lights "
+                              "(set level = 0)")
+
+    if plan.calibration is not None:
+        ph = plan.calibration
+        need_lights("calibration", ph.level)
+        exps = plan.exposures("calibration")
+        shots = []
+        for a in sweep(ph.table_deg):
+            for c in cams:
+                shots.append(PlannedShot("calibration", c, a, exps, lights_deg=ph.lights_deg if all_lights else None,
+                                         level=ph.level, lights_on=all_lights if ph.level else ()))
+        stages.append(Stage("board", tuple(shots), charuco=ph.charuco))
+
+    if plan.matting is not None and plan.matting.object_absent:
+        ph = plan.matting
+        if not geometry.displays:
+            raise ConfigError(f"{plan.source or 'plan'}: [phases.matting] needs backdrop displays; the rig has none")
+        exps = plan.exposures("matting")
+        shots = []
+        need_lights("matting", ph.level)
+        for a in sweep(plan.table_deg):
+            # Exactly the conditions of the object-present matting shots (same lights, same
+            # array angle), so that each backdrop image is what the camera would see behind
+            # the object, light spilled on the display surfaces included.
+            ld = _lights_at(ph.lights_deg, a) if all_lights else None
+            for pid in ph.pattern_ids:
+                for c in cams:
+                    shots.append(PlannedShot("matting", c, a, exps, lights_deg=ld, level=ph.level,
+                                             lights_on=all_lights if ph.level else (), pattern=pid,
+                                             object_present=False))
+        stages.append(Stage("empty", tuple(shots)))
+
+    obj: list[PlannedShot] = []
+    if plan.matting is not None:
+        ph = plan.matting
+        if not geometry.displays:
+            raise ConfigError(f"{plan.source or 'plan'}: [phases.matting] needs backdrop displays; the rig has none")
+        need_lights("matting", ph.level)
+        exps = plan.exposures("matting")
+        for a in sweep(plan.table_deg):
+            ld = _lights_at(ph.lights_deg, a) if all_lights else None
+            for pid in (*ph.pattern_ids, None):
+                for c in cams:
+                    obj.append(PlannedShot("matting", c, a, exps, lights_deg=ld, level=ph.level,
+                                           lights_on=all_lights if ph.level else (), pattern=pid))
+    if plan.lightfield is not None:
+        ph = plan.lightfield
+        need_lights("lightfield", ph.level)
+        exps = plan.exposures("lightfield")
+        for a in sweep(plan.table_deg):
+            ld = _lights_at(ph.lights_deg, a) if all_lights else None
+            for c in cams:
+                obj.append(PlannedShot("lightfield", c, a, exps, lights_deg=ld, level=ph.level,
+                                       lights_on=all_lights if ph.level else ()))
+    if plan.reflectance is not None:
+        ph = plan.reflectance
+        if not all_lights:
+            raise ConfigError(f"{plan.source or 'plan'}: [phases.reflectance] needs lights; the rig has none")
+        lights = select_lights(plan, geometry)
+        exps = plan.exposures("reflectance")
+        arr_dir = 1
+        for a in sweep(plan.table_deg):
+            arr = sorted(ph.array_deg)[::arr_dir]
+            arr_dir = -arr_dir
+            for ad in arr:
+                for lid in lights:
+                    for c in cams:
+                        obj.append(PlannedShot("reflectance", c, a, exps, lights_deg=ad, light=lid, level=ph.level,
+                                               lights_on=(lid,)))
+    if plan.envmatte is not None:
+        ph = plan.envmatte
+        if not geometry.displays:
+            raise ConfigError(f"{plan.source or 'plan'}: [phases.envmatte] needs backdrop displays; the rig has none")
+        need_lights("envmatte", ph.level)
+        exps = plan.exposures("envmatte")
+        first = envmatte_first_id(plan)
+        for a in sweep(plan.table_deg):
+            ld = _lights_at(ph.lights_deg, a) if (all_lights and ph.level) else None
+            for k in range(ph.count):
+                for c in cams:
+                    obj.append(PlannedShot("envmatte", c, a, exps, lights_deg=ld, level=ph.level,
+                                           lights_on=all_lights if ph.level else (), pattern=first + k))
+    if obj:
+        stages.append(Stage("object", tuple(obj)))
+    keys = [s.key for st in stages for s in st.shots]
+    if len(set(keys)) != len(keys):  # pragma: no cover - a bug in the loops above, not bad input
+        raise RuntimeError("schedule produced duplicate shot keys")
+    return stages
+
+
+def envmatte_first_id(plan: CapturePlan) -> int:
+    """Pattern ids: matting 1..2K, then the envmatte images."""
+    return (2 * plan.matting.patterns if plan.matting is not None else 0) + 1
+
+
+def expected_counts(stages: Sequence[Stage]) -> dict[str, int]:
+    """Images per phase (brackets counted)."""
+    out: dict[str, int] = {}
+    for st in stages:
+        for s in st.shots:
+            out[s.phase] = out.get(s.phase, 0) + len(s.exposures_s)
+    return out
+
+
+# --------------------------------------------------------------------------- estimates
+
+
+@dataclass(frozen=True)
+class MotionRates:
+    """Declared (or measured) speeds of the rig's motions."""
+
+    table_rate_deg_s: float = 30.0
+    table_accel_deg_s2: float = 60.0
+    array_rate_deg_s: float = 30.0
+    array_accel_deg_s2: float = 60.0
+    serial_bytes_s: float = 11520.0  # display controller link (115200 baud, 10 bits per byte)
+
+    @classmethod
+    def from_devices(cls, devices: Mapping | None) -> "MotionRates":
+        """From the ``[devices]`` table of a rig TOML; missing values keep the defaults."""
+        d = dict(devices or {})
+        kw = {}
+        tt = d.get("turntable") or {}
+        if isinstance(tt, Mapping):
+            if _pos(tt.get("max_rate_deg_s")):
+                kw["table_rate_deg_s"] = float(tt["max_rate_deg_s"])
+            if _pos(tt.get("accel_deg_s2")):
+                kw["table_accel_deg_s2"] = float(tt["accel_deg_s2"])
+        la = d.get("light_array") or {}
+        rot = la.get("rotation") if isinstance(la, Mapping) else None
+        if isinstance(rot, Mapping):
+            if _pos(rot.get("max_rate_deg_s")):
+                kw["array_rate_deg_s"] = float(rot["max_rate_deg_s"])
+            if _pos(rot.get("accel_deg_s2")):
+                kw["array_accel_deg_s2"] = float(rot["accel_deg_s2"])
+        bd = d.get("backdrops") or {}
+        if isinstance(bd, Mapping) and _pos(bd.get("baudrate")):
+            kw["serial_bytes_s"] = float(bd["baudrate"]) / 10.0
+        return cls(**kw)
+
+
+def _pos(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v > 0
+
+
+def move_time_s(delta_deg: float, rate_deg_s: float, accel_deg_s2: float) -> float:
+    """Time of a trapezoidal (or triangular) move over ``|delta_deg``|."""
+    d = abs(float(delta_deg))
+    if d == 0:
+        return 0.0
+    if accel_deg_s2 <= 0:
+        return d / rate_deg_s
+    d_acc = rate_deg_s**2 / accel_deg_s2  # accelerating and braking together
+    if d >= d_acc:
+        return d / rate_deg_s + rate_deg_s / accel_deg_s2
+    return 2.0 * math.sqrt(d / accel_deg_s2)
+
+
+@dataclass
+class Estimate:
+    """What a capture will take: counts, bytes and time, per phase and in total."""
+
+    images: dict[str, int] = field(default_factory=dict)
+    shots: dict[str, int] = field(default_factory=dict)
+    bytes: dict[str, int] = field(default_factory=dict)
+    seconds: dict[str, float] = field(default_factory=dict)
+    moves_s: float = 0.0
+    exposure_s: float = 0.0
+    overhead_s: float = 0.0
+    operator_s: float = 0.0
+    upload_s: float = 0.0
+    operator_steps: int = 0
+
+    @property
+    def total_images(self) -> int:
+        return sum(self.images.values())
+
+    @property
+    def total_bytes(self) -> int:
+        return sum(self.bytes.values())
+
+    @property
+    def total_s(self) -> float:
+        return sum(self.seconds.values()) + self.operator_s + self.upload_s
+
+    def to_dict(self) -> dict:
+        return {
+            "images": self.total_images,
+            "bytes": self.total_bytes,
+            "seconds": self.total_s,
+            "per_phase": {p: {"images": self.images[p], "shots": self.shots[p], "bytes": self.bytes[p],
+                              "seconds": self.seconds[p]} for p in self.images},
+            "breakdown_s": {"moves": self.moves_s, "exposure": self.exposure_s, "overhead": self.overhead_s,
+                            "operator": self.operator_s, "pattern_upload": self.upload_s},
+            "operator_steps": self.operator_steps,
+        }
+
+
+def image_bytes(width: int, height: int, *, half: bool = False, channels: int = 3) -> int:
+    """Upper estimate of one EXR image on disk: uncompressed pixels plus a header.
+
+    ZIP compression of noisy sensor data saves little, and the free-disk check wants
+    an upper bound."""
+    return int(width * height * channels * (2 if half else 4) + 1024)
+
+
+def estimate(plan: CapturePlan, geometry: RigGeometry, rates: MotionRates | None = None,
+             stages: Sequence[Stage] | None = None, *, upload_patterns: bool = True) -> Estimate:
+    """Counts, bytes and time of a capture, walking the schedule like the runner does."""
+    rates = rates or MotionRates()
+    stages = list(stages) if stages is not None else schedule(plan, geometry)
+    est = Estimate()
+    tm = plan.timing
+    table, array = 0.0, 0.0
+    prev_state = None
+    for st in stages:
+        est.operator_steps += 1 if st.scene != "empty" else 2
+        for s in st.shots:
+            p = s.phase
+            t = 0.0
+            if s.state != prev_state:
+                dt = move_time_s(_ang(s.table_deg - table), rates.table_rate_deg_s, rates.table_accel_deg_s2)
+                da = 0.0
+                if s.lights_deg is not None:
+                    da = move_time_s(_ang(s.lights_deg - array), rates.array_rate_deg_s, rates.array_accel_deg_s2)
+                    array = s.lights_deg
+                table = s.table_deg
+                mv = max(dt, da)  # the two axes move at the same time
+                est.moves_s += mv
+                t += mv + tm.settle_s
+                prev_state = s.state
+            cam = geometry.cameras[s.camera]
+            n = len(s.exposures_s)
+            t += sum(s.exposures_s) + n * tm.per_image_s
+            est.exposure_s += sum(s.exposures_s)
+            est.overhead_s += n * tm.per_image_s
+            est.images[p] = est.images.get(p, 0) + n
+            est.shots[p] = est.shots.get(p, 0) + 1
+            est.bytes[p] = est.bytes.get(p, 0) + n * image_bytes(cam.width, cam.height, half=plan.half_float)
+            est.seconds[p] = est.seconds.get(p, 0.0) + t
+    est.operator_s = est.operator_steps * tm.operator_s
+    if upload_patterns and geometry.displays:
+        n_pat = (2 * plan.matting.patterns if plan.matting else 0) + (plan.envmatte.count if plan.envmatte else 0)
+        px = sum(d.resolution[0] * d.resolution[1] * 3 for d in geometry.displays)
+        est.upload_s = n_pat * px / rates.serial_bytes_s
+    return est
+
+
+def _ang(d: float) -> float:
+    """Absolute moves: the table goes the way the controller goes (no wrap-around)."""
+    return float(d)
+
+
+def human_bytes(n: float) -> str:
+    for unit in ("B", "kB", "MB", "GB", "TB"):
+        if abs(n) < 1000 or unit == "TB":
+            return f"{n:.1f} {unit}" if unit != "B" else f"{int(n)} B"
+        n /= 1000.0
+    return f"{n:.1f} TB"  # pragma: no cover
+
+
+def human_seconds(s: float) -> str:
+    s = float(s)
+    if s < 60:
+        return f"{s:.1f} s"
+    m, sec = divmod(int(round(s)), 60)
+    h, m = divmod(m, 60)
+    return f"{h} h {m:02d} min" if h else f"{m} min {sec:02d} s"
+
