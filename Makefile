@@ -48,10 +48,10 @@ demo: venv
 	@$(VENV)/bin/opacityhull demo --out $(OUT)/demo
 
 test: venv
-	@$(PY) -m pytest $(PYTEST_ARGS)
+	@OPENBLAS_NUM_THREADS=1 $(PY) -m pytest $(PYTEST_ARGS)
 
 test-fast: venv
-	@$(PY) -m pytest -m 'not slow' $(PYTEST_ARGS)
+	@OPENBLAS_NUM_THREADS=1 $(PY) -m pytest -m "not slow" $(PYTEST_ARGS)
 
 bench: venv
 	@for b in benchmarks/*.py; do echo "== $$b"; $(PY) $$b --quick || exit 1; done

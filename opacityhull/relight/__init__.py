@@ -1,0 +1,16 @@
+"""Relighting: surface reflectance fields from one-light-at-a-time captures.
+
+Modules (imported lazily by the CLI; import them directly)::
+
+    envmap     EnvironmentMap, load_envmap (EXR/HDR, latlong/angular/mirror, yaw,
+               NaN/Inf/negative/half-overflow checks), solid angles, lookups
+    basis      LightSet (captured light directions per table angle, calibrated
+               output), KernelConfig, integrate_envmap (vmf/linear/voronoi partitions
+               of unity), directional_light_weights, parse_lights
+    relit      Relighter (relit premultiplied RGBA per captured view), relight_stack
+               (numba kernel) and its reference, near-light correction,
+               compress_reflectance (per-view PCA)
+    runner     relight_model (``opacityhull relight``), demo_step
+    evaluate   eval_relight (``opacityhull eval relight``) against the simulator
+    synthetic  an analytic Lambertian-sphere model with exact ground truth
+"""

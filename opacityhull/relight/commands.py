@@ -1,7 +1,129 @@
-"""CLI commands of `opacityhull.relight` (registered by :mod:`opacityhull.cli`)."""
+"""CLI commands of `opacityhull.relight` (registered by :mod:`opacityhull.cli`):
+``opacityhull relight`` and ``opacityhull eval relight``."""
 
 from __future__ import annotations
 
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from ..cliutil import cli_errors, console, emit, progress
+
+
+def _config(kernel: str, kernel_width: float, lower_hemisphere: str, near_light: bool, pca_rank: Optional[int]):
+    from .basis import KernelConfig
+    from .relit import RelightConfig
+
+    return RelightConfig(kernel=KernelConfig(kind=kernel, width=kernel_width, lower_hemisphere=lower_hemisphere),
+                         near_light=near_light, pca_rank=pca_rank)
+
+
+_ENVMAP_HELP = ("Environment map: equirectangular .exr or Radiance .hdr (+Y up, centre column along +Z), or "
+                "builtin:NAME for a shipped probe (ennis, grace, pisa, uffizi, wells).")
+_YAW_HELP = ("Rotate the map about +Y by this many degrees after reading (ICT probes put their centre at -Z: use 180). "
+             "Default: 180 for builtin: probes, else 0.")
+_FORMAT_HELP = "Layout of the map: latlong (equirectangular), angular (Debevec light probe) or mirror (mirror-ball image)."
+
 
 def register(app, groups) -> None:
-    """Add this stage's commands to the root app and the subcommand groups."""
+    """Add ``relight`` to the root app and ``relight`` to the ``eval`` group."""
+
+    @app.command("relight")
+    @cli_errors
+    def relight(
+        model: Path = typer.Argument(..., help="Model folder written by `opacityhull build` (with reflectance data)."),
+        out: Path = typer.Option(..., "--out", help="Output folder (EXR + PNG per image, contact sheets, GIF, relight.json)."),
+        envmap: Optional[str] = typer.Option(None, "--envmap", help=_ENVMAP_HELP),
+        yaw_deg: Optional[float] = typer.Option(None, "--yaw-deg", help=_YAW_HELP),
+        probe_format: str = typer.Option("latlong", "--probe-format", help=_FORMAT_HELP),
+        flip_u: bool = typer.Option(False, "--flip-u", help="The lat-long map is stored mirrored left-right."),
+        lights: Optional[str] = typer.Option(
+            None, "--lights",
+            help="Directional lights 'dx,dy,dz,r,g,b;...' (direction towards the light in the object frame, RGB "
+                 "irradiance), or 'point:x,y,z,r,g,b' (position in metres, RGB intensity). Adds to --envmap."),
+        view: Optional[str] = typer.Option(None, "--view", help="Also render camera CAM at table angle DEG: 'CAM,DEG'."),
+        orbit: Optional[int] = typer.Option(None, "--orbit", help="Also render an orbit of N frames (PNGs + GIF)."),
+        kernel: str = typer.Option("vmf", "--kernel",
+                                   help="Light-cell partition: vmf (smooth, default), linear (barycentric on the "
+                                        "lights' triangulation) or voronoi (nearest light)."),
+        kernel_width: float = typer.Option(0.25, "--kernel-width", help="vMF kernel sigma as a fraction of the light spacing."),
+        lower_hemisphere: str = typer.Option("drop", "--lower-hemisphere",
+                                             help="Light from below the table plane: drop (the table blocks it) or nearest."),
+        near_light: bool = typer.Option(True, "--near-light/--no-near-light",
+                                        help="Correct the one-light images for the lights' finite distance (1/r^2 at the hull surface)."),
+        pca_rank: Optional[int] = typer.Option(None, "--pca-rank", help="Relight from a rank-R PCA of each view's data (reports its error)."),
+        exposure: Optional[float] = typer.Option(None, "--exposure", help="PNG exposure multiplier (default: automatic, key 0.18)."),
+        no_views: bool = typer.Option(False, "--no-views", help="Do not write the relit captured views."),
+        json_out: bool = typer.Option(False, "--json", help="Print a JSON summary on stdout."),
+    ):
+        """Relight a captured model under an environment map or lights: every captured view is relit as a weighted
+        sum of its one-light images, then (--view/--orbit) blended onto the surfels with ULR over the environment."""
+        from .runner import parse_view_spec, relight_model
+
+        from .envmap import default_yaw_deg
+
+        cfg = _config(kernel, kernel_width, lower_hemisphere, near_light, pca_rank)
+        v = parse_view_spec(view) if view else None
+        if yaw_deg is None:
+            yaw_deg = default_yaw_deg(envmap)
+        with progress("relight", enabled=not json_out) as cb:
+            s = relight_model(model, out=out, envmap=envmap, yaw_deg=yaw_deg, probe_format=probe_format, flip_u=flip_u,
+                              lights=lights, view=v, orbit=orbit, config=cfg, exposure=exposure, write_views=not no_views,
+                              progress=cb)
+
+        def human(s):
+            c = console()
+            c.print(f"relit {s['n_views']} views of {s['model']} ({s['n_lights_captured']} captured lights, "
+                    f"{s['relit_views_per_s']:.1f} views/s)")
+            if "pca" in s:
+                p = s["pca"]
+                c.print(f"PCA rank {p['rank']}: {p['compression_ratio']:.1f}x smaller, reflectance error "
+                        f"{100 * p['reflectance_rel_error_mean']:.2f} % (max {100 * p['reflectance_rel_error_max']:.2f} %)")
+            if "views_sheet" in s:
+                c.print(f"relit views: {s['views_dir']}  contact sheet: {s['views_sheet']}")
+            if "view" in s:
+                c.print(f"view: {s['view']['png']}")
+            if "orbit" in s:
+                c.print(f"orbit: {s['orbit']['gif']} ({s['orbit']['frames']} frames, {s['orbit']['render_s']:.1f} s)")
+            c.print(f"summary: {s['out']}/relight.json")
+
+        emit(s, json_out, human)
+
+    @groups["eval"].command("relight")
+    @cli_errors
+    def eval_relight_cmd(
+        model: Path = typer.Argument(..., help="Model folder built from a simulated session (with reflectance data)."),
+        envmap: str = typer.Option(..., "--envmap", help=_ENVMAP_HELP),
+        yaw_deg: Optional[float] = typer.Option(None, "--yaw-deg", help=_YAW_HELP),
+        probe_format: str = typer.Option("latlong", "--probe-format", help=_FORMAT_HELP),
+        out: Optional[Path] = typer.Option(None, "--out", help="Folder for the contact sheet and per-view EXRs (default MODEL/eval_relight)."),
+        spp: int = typer.Option(64, "--spp", help="Samples per pixel of Mitsuba's ground-truth render."),
+        max_views: Optional[int] = typer.Option(None, "--max-views", help="Evaluate at most this many views (spread evenly)."),
+        kernel: str = typer.Option("vmf", "--kernel", help="Light-cell partition: vmf, linear or voronoi."),
+        kernel_width: float = typer.Option(0.25, "--kernel-width", help="vMF kernel sigma as a fraction of the light spacing."),
+        lower_hemisphere: str = typer.Option("drop", "--lower-hemisphere", help="drop or nearest."),
+        near_light: bool = typer.Option(True, "--near-light/--no-near-light", help="Near-light correction (1/r^2 at the hull surface)."),
+        pca_rank: Optional[int] = typer.Option(None, "--pca-rank", help="Evaluate rank-R PCA relighting."),
+        json_out: bool = typer.Option(False, "--json", help='Print {"psnr_mean", "rel_err_mean", "per_view", ...} on stdout.'),
+    ):
+        """Relit captured views of a simulated model against Mitsuba's direct render of the same object under the
+        same environment map from the same cameras: PSNR and relative error inside the mask, and a contact sheet
+        (truth | relit | error)."""
+        from .envmap import default_yaw_deg
+        from .evaluate import eval_relight
+
+        cfg = _config(kernel, kernel_width, lower_hemisphere, near_light, pca_rank)
+        if yaw_deg is None:
+            yaw_deg = default_yaw_deg(envmap)
+        with progress("eval relight", enabled=not json_out) as cb:
+            s = eval_relight(model, envmap=envmap, yaw_deg=yaw_deg, probe_format=probe_format, out=out, spp=spp,
+                             max_views=max_views, config=cfg, progress=cb)
+
+        def human(s):
+            c = console()
+            c.print(f"relighting vs Mitsuba over {len(s['per_view'])} views: PSNR {s['psnr_mean']:.2f} dB, "
+                    f"relative error {100 * s['rel_err_mean']:.2f} %")
+            c.print(f"contact sheet (truth | relit | error): {s['sheet']}")
+
+        emit(s, json_out, human)

@@ -1,0 +1,55 @@
+"""Rendering opacity hulls: Unstructured-Lumigraph blending per surfel (Buehler et al.
+2001), EWA surface splatting with an ε-z-buffer (Zwicker et al. 2001), compositing over
+colours, images and environment maps, novel-view cameras, and leave-one-out evaluation.
+
+Public API (used by ``relight`` and the CLI)::
+
+    RenderConfig, RenderResult, render_image, render_model, ulr_weights, UlrWeights,
+    PreparedViews, prepare_views, prepare_model_views, EnvMap, envmap_lookup,
+    spatially_sorted
+
+Imports are lazy: numba kernels load (or compile) on first use.
+"""
+
+from __future__ import annotations
+
+_EXPORTS = {
+    "RenderConfig": ".config",
+    "RenderResult": ".renderer",
+    "UlrWeights": ".renderer",
+    "render_image": ".renderer",
+    "render_model": ".renderer",
+    "ulr_weights": ".renderer",
+    "prepare_model_views": ".renderer",
+    "spatially_sorted": ".renderer",
+    "PreparedViews": ".views",
+    "prepare_views": ".views",
+    "EnvMap": ".background",
+    "envmap_lookup": ".background",
+    "composite_over": ".background",
+}
+
+
+def __getattr__(name):  # lazy: `opacityhull render --help` must not load numba
+    if name in _EXPORTS:
+        import importlib
+
+        return getattr(importlib.import_module(_EXPORTS[name], __name__), name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+__all__ = [
+    "RenderConfig",
+    "RenderResult",
+    "UlrWeights",
+    "render_image",
+    "render_model",
+    "ulr_weights",
+    "PreparedViews",
+    "prepare_views",
+    "prepare_model_views",
+    "spatially_sorted",
+    "EnvMap",
+    "envmap_lookup",
+    "composite_over",
+]

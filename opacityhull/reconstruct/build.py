@@ -1,0 +1,803 @@
+"""``opacityhull build``: a session folder in, an opacity-hull model folder out.
+
+Steps (each timed into ``report.json``):
+
+1. **cameras** — object-frame camera of every view, from the first source present:
+   the session's ``calibration`` phase (calibrated by :mod:`.calibration`), then its
+   ``calibration/<camera>.yaml`` (known rig cameras), then ``cameras/`` (a camera per view,
+   imported image sets). Nothing else is used silently: ``BuildConfig.cameras =
+   "groundtruth"`` (simulated sessions) or ``"nominal"`` (the rig as designed) are
+   debug options, recorded as such in the report.
+2. **matting** — per view, triangulation matting (:mod:`.matting`) over the
+   ``matting`` phase: each backdrop pattern shot with the object is paired with the
+   same pattern shot with the object absent (the backdrop ``B_k``). Without
+   object-absent shots the backdrops are predicted from the patterns through the
+   display geometry (:func:`.matting.backdrop_from_displays`), reported as such. An
+   imported session's ``mask`` phase is its alpha.
+3. **silhouettes** — ``alpha > alpha_threshold``, dilated by half a pixel (the
+   threshold's quantisation) plus the camera's calibration reprojection RMS (×
+   ``dilate_rms_factor``), rounded up; conservative. Distorted cameras' silhouettes are
+   resampled to pinhole.
+4. **hull** — bounds by LP over the silhouettes (clipped at the table top for rig
+   sessions: the object stands on the turntable), grown by two voxels, then the octree
+   carve (:func:`.hull.carve_octree`). An empty hull raises :class:`.hull.EmptyHullError`.
+5. **surfels** — LDC sampling of the hull (:func:`.surfels.sample_hull_surfels`), normals
+   at the pixel-footprint scale.
+6. **visibility** — z-buffer depth test per view (:func:`.visibility.surfel_visibility`).
+7. **views** — the opacity light field sample of each view: alpha from the matte, colour
+   from the ``lightfield`` image ``C = alpha F + (1 - alpha) B_off`` (displays off; the
+   object-absent lightfield shot is subtracted when there is one, else ``B_off = 0``),
+   stored straight: ``F = (C - (1 - alpha) B_off) / alpha`` where alpha > ``alpha_eps``,
+   else 0.
+8. **reflectance** — per view and light sample (light id, array angle) the
+   one-light-at-a-time image as observed over the dark backdrops: premultiplied by
+   construction; pixels with alpha <= ``alpha_eps`` are set to 0 (the panels' own
+   reflection of the light is not part of the object).
+9. **write** — :func:`opacityhull.model.write_model`, rig cameras as OpenCV YAML in
+   ``calibration/``, ``report.json``.
+10. **pictures** — matte contact sheet, hull overlays, reprojection histogram.
+11. **metrics** (``ground_truth=True``, simulated sessions) — alpha MAE per view inside
+    the dilated object region, hull IoU against the voxelised ``groundtruth/object.ply``
+    (and, to tell matting/carving error from what no visual hull can recover, the IoU of
+    the hull carved from the *true* alphas against the object, and of our hull against
+    that one), reprojection RMS, pose errors against ``groundtruth/calibration``.
+
+An empty silhouette in any view makes the hull empty; the build stops with an error
+naming the views (exclude them with ``BuildConfig.exclude_views``) rather than writing
+an empty model.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from contextlib import contextmanager
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Callable, Sequence
+
+import numpy as np
+
+from ..camera import Camera, read_colmap_text, read_opencv_yaml
+from ..errors import ConfigError, FormatError, InputError
+from ..model import LightSample, Surfels, ViewInfo, light_key, write_model
+from ..riggeometry import RigGeometry, view_id
+from ..session import Session
+from .hull import (EmptyHullError, HullGrid, carve_octree, hull_bounds, silhouette_from_alpha,
+                   undistort_silhouette)
+from .matting import MattingOptions, backdrop_from_displays, solve_matte, straight_from_premul
+from .surfels import sample_hull_surfels
+from .visibility import surfel_visibility
+
+__all__ = ["BuildConfig", "BuildReport", "build_model", "view_list", "load_matting_pairs", "resolve_cameras"]
+
+CAMERA_SOURCES = ("auto", "groundtruth", "nominal")
+BACKDROP_SOURCES = ("auto", "object-absent", "geometry")
+STEPS = ("cameras", "matting", "silhouettes", "hull", "surfels", "visibility", "views", "reflectance", "write",
+         "pictures", "metrics")
+
+
+@dataclass(frozen=True)
+class BuildConfig:
+    """Options of :func:`build_model`.
+
+    Parameters
+    ----------
+    hull_res : voxels along the longest side of the hull's bounding box.
+    alpha_threshold : silhouette = alpha > threshold.
+    matting : MattingOptions of the triangulation matting.
+    dilate_base_px, dilate_rms_factor : silhouettes are dilated by a disc of radius
+        ``ceil(dilate_base_px + dilate_rms_factor * reprojection RMS)`` px. The base half
+        pixel is the quantisation of a thresholded matte (the true outline can lie up to
+        half a pixel outside it: measured, 6 % of a sphere's voxels were cut without it);
+        the RMS term absorbs calibration error.
+    surfel_oversample : LDC rays per voxel column and transverse axis.
+    bisection_iters : bisection steps per surfel (precision voxel / 2**iters).
+    radius_scale : multiplies the hole-free surfel radius.
+    depth_tol_m : visibility z-buffer tolerance (None: the largest surfel radius).
+    facing_cos : visibility back-face limit (cosine between normal and view direction).
+    bounds_m : ((x0, y0, z0), (x1, y1, z1)) object-frame box for the hull, or None (LP).
+    bounds_min_component_frac : the LP box ignores silhouette components smaller than this
+        fraction of the largest (matting specks); the carve uses every pixel.
+    clip_below_table : for rig sessions, no hull below the table top (y < 0).
+    cameras : "auto" (calibration phase → calibration/ → cameras/), or the debug
+        sources "groundtruth" and "nominal".
+    backdrops : "auto" (object-absent captures, else the display geometry),
+        "object-absent" (required) or "geometry" (always predicted; for comparisons).
+    exclude_views : view ids left out of the model.
+    root_cell : octree root cell edge (voxels, power of two).
+    alpha_eps : below this alpha the straight colour is 0.
+    reflectance : attach one-light-at-a-time images when the session has them.
+    pictures : write the PNG pictures.
+    ground_truth_dilate_px : dilation of the object region for ``alpha_mae``.
+    """
+
+    hull_res: int = 128
+    alpha_threshold: float = 0.5
+    matting: MattingOptions = MattingOptions()
+    dilate_base_px: float = 0.5
+    dilate_rms_factor: float = 1.0
+    surfel_oversample: int = 1
+    bisection_iters: int = 10
+    radius_scale: float = 1.0
+    depth_tol_m: float | None = None
+    facing_cos: float = -0.1
+    bounds_m: tuple | None = None
+    bounds_min_component_frac: float = 0.02
+    clip_below_table: bool = True
+    cameras: str = "auto"
+    backdrops: str = "auto"
+    exclude_views: tuple[str, ...] = ()
+    root_cell: int = 32
+    alpha_eps: float = 1e-3
+    reflectance: bool = True
+    pictures: bool = True
+    ground_truth_dilate_px: int = 3
+
+    def __post_init__(self):
+        if not (4 <= int(self.hull_res) <= 2048):
+            raise ConfigError(f"hull_res must be in [4, 2048], got {self.hull_res}")
+        if not (0.0 <= self.alpha_threshold < 1.0):
+            raise ConfigError(f"alpha_threshold must be in [0, 1), got {self.alpha_threshold}")
+        if self.cameras not in CAMERA_SOURCES:
+            raise ConfigError(f"cameras must be one of {CAMERA_SOURCES}, got {self.cameras!r}")
+        if self.backdrops not in BACKDROP_SOURCES:
+            raise ConfigError(f"backdrops must be one of {BACKDROP_SOURCES}, got {self.backdrops!r}")
+        if self.dilate_rms_factor < 0 or self.dilate_base_px < 0:
+            raise ConfigError("dilate_rms_factor and dilate_base_px must be >= 0")
+        if self.bounds_m is not None:
+            b = np.asarray(self.bounds_m, dtype=np.float64)
+            if b.shape != (2, 3) or not np.all(b[1] > b[0]):
+                raise ConfigError(f"bounds_m must be ((x0, y0, z0), (x1, y1, z1)) with x1 > x0 ..., got {self.bounds_m}")
+        object.__setattr__(self, "exclude_views", tuple(self.exclude_views))
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        d["matting"] = asdict(self.matting)
+        return d
+
+
+@dataclass
+class BuildReport:
+    """What :func:`build_model` did: counts, timings per step (s), metrics, decisions."""
+
+    model_dir: str
+    views: int
+    surfels: int
+    seconds: dict = field(default_factory=dict)
+    metrics: dict = field(default_factory=dict)
+    camera_source: str = ""
+    backdrop_source: str = ""
+    hull: dict = field(default_factory=dict)
+    notes: list = field(default_factory=list)
+    pictures: list = field(default_factory=list)
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+    def summary(self) -> dict:
+        """The ``--json`` object: views, surfels, seconds, metrics (+ where and how)."""
+        return {"views": self.views, "surfels": self.surfels, "seconds": dict(self.seconds),
+                "metrics": dict(self.metrics), "model": self.model_dir, "camera_source": self.camera_source,
+                "backdrop_source": self.backdrop_source}
+
+
+# --------------------------------------------------------------------------- helpers
+
+
+class _Timer:
+    def __init__(self, on_step):
+        self.seconds: dict[str, float] = {}
+        self.on_step = on_step
+
+    @contextmanager
+    def step(self, name: str):
+        if self.on_step is not None:
+            self.on_step(name)
+        t = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.seconds[name] = self.seconds.get(name, 0.0) + time.perf_counter() - t
+
+
+def view_list(session: Session, *, exclude: Sequence[str] = ()) -> list[tuple[int, float]]:
+    """The views of the model: (camera, table_deg) of the lightfield phase, else of the
+    matting or mask phase; minus ``exclude`` (view ids)."""
+    phases = session.phases()
+    for ph in ("lightfield", "matting", "mask"):
+        if ph in phases:
+            views = session.views(ph)
+            break
+    else:
+        raise FormatError(f"{session.root}: no lightfield, matting or mask images: nothing to build from")
+    ex = set(exclude)
+    unknown = ex - {view_id(c, a) for c, a in views}
+    if unknown:
+        raise InputError(f"exclude_views: {sorted(unknown)[:5]} are not views of {session.root}")
+    out = [(c, a) for c, a in views if view_id(c, a) not in ex]
+    if not out:
+        raise InputError(f"{session.root}: every view is excluded")
+    return out
+
+
+def _read_yaml_number(path: Path, key: str) -> float | None:
+    import cv2
+
+    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    try:
+        node = fs.getNode(key)
+        return None if node.empty() else float(node.real())
+    finally:
+        fs.release()
+
+
+@dataclass
+class _Cameras:
+    views: list[Camera]
+    rig: list[Camera] | None
+    rms_px: dict[int, float]
+    source: str
+    calibration: object = None
+
+
+def resolve_cameras(session: Session, views: Sequence[tuple[int, float]], *, source: str = "auto",
+                    progress=None) -> _Cameras:
+    """Object-frame cameras of ``views`` (see the module docstring for the order).
+
+    Returns an object with ``views`` (Camera per view, named by view id), ``rig``
+    (rig cameras or None), ``rms_px`` (camera index → reprojection RMS), ``source`` and
+    ``calibration`` (the CalibrationResult when calibrated here).
+    """
+    vids = [view_id(c, a) for c, a in views]
+    if source == "groundtruth":
+        gt = session.groundtruth_dir
+        if gt is None or not (gt / "cameras" / "images.txt").is_file():
+            raise InputError(f"--cameras groundtruth: {session.root} has no groundtruth/cameras (not simulated?)")
+        cams = dict(read_colmap_text(gt / "cameras"))
+        missing = [v for v in vids if v not in cams]
+        if missing:
+            raise FormatError(f"{gt / 'cameras'}: no true camera for views {missing[:5]}")
+        rig = None
+        if (gt / "calibration").is_dir():
+            rig = [read_opencv_yaml(gt / "calibration" / f"{s.name}.yaml") for s in session.geometry.cameras]
+        return _Cameras([cams[v].with_name(v) for v in vids], rig, {}, "groundtruth (debug)")
+    if source == "nominal":
+        g = session.geometry
+        rig = g.nominal_cameras()
+        return _Cameras([RigGeometry.view_camera(rig[c], a, name=view_id(c, a)) for c, a in views], rig, {},
+                        "nominal (debug: the rig as designed, not calibrated)")
+    # auto
+    if "calibration" in session.phases():
+        from .calibration import CalibrationError, calibrate_session, view_cameras
+
+        try:
+            result = calibrate_session(session, progress=progress)
+        except CalibrationError as e:
+            # never fall back silently to another camera source: say what to do instead
+            raise CalibrationError(f"{e} — the session's calibration phase could not be used; fix the "
+                                   "calibration captures, or (debugging only) build with --cameras "
+                                   "groundtruth|nominal") from None
+        cams = view_cameras(result, views)
+        rms = {i: float(r) for i, r in enumerate(result.reproj_rms_px)}
+        return _Cameras(list(cams), list(result.rig_cameras), rms, "calibration phase (calibrated)", result)
+    known = session.calibration_cameras()
+    if known:
+        missing = sorted({c for c, _ in views} - set(known))
+        if missing:
+            raise FormatError(f"{session.root / 'calibration'}: no YAML for camera(s) {missing}")
+        rms = {}
+        for i, spec in enumerate(session.geometry.cameras):
+            p = session.root / "calibration" / f"{spec.name}.yaml"
+            if p.is_file():
+                r = _read_yaml_number(p, "reproj_rms_px")
+                if r is not None:
+                    rms[i] = r
+        rig = [known.get(i) for i in range(len(session.geometry.cameras))]
+        return _Cameras([RigGeometry.view_camera(known[c], a, name=view_id(c, a)) for c, a in views], rig, rms,
+                        "calibration/ (known rig cameras)")
+    per_view = session.view_cameras()
+    if per_view:
+        missing = [v for v in vids if v not in per_view]
+        if missing:
+            raise FormatError(f"{session.root / 'cameras'}: no camera for views {missing[:5]}")
+        return _Cameras([per_view[v] for v in vids], None, {}, "cameras/ (per-view, imported)")
+    raise FormatError(
+        f"{session.root}: no cameras — the session has no calibration phase, no calibration/<camera>.yaml and "
+        "no cameras/ model. Capture the ChArUco board, add calibration files, or (debugging only) use "
+        "--cameras groundtruth|nominal")
+
+
+def _rgb(img: np.ndarray) -> np.ndarray:
+    img = np.asarray(img, dtype=np.float32)
+    if img.shape[2] == 1 or img.shape[2] == 2:
+        return np.repeat(img[..., :1], 3, axis=2)
+    return img[..., :3]
+
+
+def _camera_gain(session: Session, camera: int) -> float:
+    """The camera's gain from the rig geometry (as :meth:`Session.load_radiance` uses),
+    parsed once per session rather than per image."""
+    cache = session.__dict__.setdefault("_rc_gains", {})
+    if not cache:
+        try:
+            cache.update({i: float(c.gain) for i, c in enumerate(session.geometry.cameras)})
+        except FormatError:
+            cache[-1] = 1.0
+    return cache.get(camera, 1.0)
+
+
+def _load_with_clip(session: Session, shot: str, *, saturation: float = 0.98) -> tuple[np.ndarray, float]:
+    """Radiance (H, W, 3) of a shot and the radiance at which its pixels clip (inf for an
+    HDR merge). The bracket is chosen exactly as :meth:`Session.load_radiance` does (the
+    HDR merge, else the longest exposure with at most 0.1 % of pixels at
+    ``saturation`` × white level, else the shortest), so the clip level belongs to the
+    image used."""
+    recs = session.select(kind=None, shot=shot)
+    if not recs:
+        raise FormatError(f"{session.root}: no image for shot {shot!r} in the manifest")
+    hdr = [r for r in recs if r.kind == "hdr"]
+    if hdr:
+        return _rgb(session.load_image(hdr[-1])), float("inf")
+    raws = sorted((r for r in recs if r.kind == "raw"), key=lambda r: r.exposure_s or 0.0)
+    white = session.white_level
+    gain = _camera_gain(session, recs[0].camera)
+    for r in reversed(raws):
+        im = session.load_image(r)
+        if np.mean(np.any(im[..., :3] >= saturation * white, axis=-1)) <= 1e-3 or r is raws[0]:
+            exp = r.exposure_s or 1.0
+            return _rgb(im / np.float32(gain * exp)), float(saturation * white / (gain * exp))
+    raise FormatError(f"{session.root}: shot {shot!r} has no raw or HDR image")  # pragma: no cover
+
+
+def load_matting_pairs(session: Session, camera: int, table_deg: float, view_cam: Camera | None = None, *,
+                       backdrops: str = "auto"):
+    """(C, B, c_clip, b_clip, source) of one view: observations (K, H, W, 3), backdrops,
+    clip levels (K,), and where the backdrops came from.
+
+    ``backdrops``: "auto" (object-absent captures when at least two patterns have them,
+    else the display geometry), "object-absent" (error without them) or "geometry"
+    (predict them even when captures exist: for comparisons)."""
+    recs = session.select(phase="matting", camera=camera, table_deg=table_deg, kind=None)
+    with_obj: dict = {}
+    without: dict = {}
+    for r in recs:
+        (with_obj if r.object_present else without).setdefault(r.pattern, r.shot)
+    if not with_obj:
+        raise FormatError(f"{session.root}: no matting images of view {view_id(camera, table_deg)}")
+    C, B, cc, bc = [], [], [], []
+    paired = [p for p in sorted(with_obj, key=lambda x: -1 if x is None else x) if p in without]
+    if backdrops == "object-absent" and len(paired) < 2:
+        raise FormatError(f"{session.root}: view {view_id(camera, table_deg)} has {len(paired)} backdrop pattern(s) "
+                          "shot with the object absent; triangulation matting needs at least 2")
+    if len(paired) >= 2 and backdrops != "geometry":
+        for p in paired:
+            c_img, c_clip = _load_with_clip(session, with_obj[p])
+            b_img, b_clip = _load_with_clip(session, without[p])
+            C.append(c_img)
+            B.append(b_img)
+            cc.append(c_clip)
+            bc.append(b_clip)
+        source = "object-absent captures"
+    else:
+        if view_cam is None:
+            raise InputError("backdrops from display geometry need the view's camera")
+        geo = session.geometry
+        if not geo.displays:
+            raise FormatError(f"{session.root}: view {view_id(camera, table_deg)} has no object-absent backdrop "
+                              "shots and the rig has no displays to predict them from; object-absent backdrops "
+                              "are required")
+        for p in sorted(with_obj, key=lambda x: -1 if x is None else x):
+            c_img, c_clip = _load_with_clip(session, with_obj[p])
+            pats = {}
+            if p is not None:
+                for d in geo.displays:
+                    f = session.root / "patterns" / d.name / f"p{int(p):03d}.png"
+                    if f.is_file():
+                        pats[d.name] = session.pattern_image(d.name, p)
+            cam = view_cam
+            if (cam.width, cam.height) != (c_img.shape[1], c_img.shape[0]):
+                raise FormatError(f"view {view_id(camera, table_deg)}: image is {c_img.shape[1]}x{c_img.shape[0]}, "
+                                  f"camera is {cam.width}x{cam.height}")
+            B.append(backdrop_from_displays(cam, table_deg, geo, pats))
+            C.append(c_img)
+            cc.append(c_clip)
+            bc.append(float("inf"))
+        source = "display geometry" + (" (no object-absent captures)" if backdrops == "auto" else " (requested)")
+    shapes = {x.shape for x in C + B}
+    if len(shapes) != 1:
+        raise FormatError(f"view {view_id(camera, table_deg)}: matting images differ in size {sorted(shapes)}")
+    return np.stack(C), np.stack(B), np.array(cc, np.float32), np.array(bc, np.float32), source
+
+
+def _mask_alpha(session: Session, camera: int, table_deg: float) -> np.ndarray:
+    recs = session.select(phase="mask", camera=camera, table_deg=table_deg, kind=None)
+    if not recs:
+        raise FormatError(f"{session.root}: no mask image of view {view_id(camera, table_deg)}")
+    m = session.load_image(recs[-1])
+    a = m[..., 3] if m.shape[2] == 4 else m[..., 0]
+    return np.clip(np.nan_to_num(a, nan=0.0), 0.0, 1.0).astype(np.float32)
+
+
+def _colour_shot(session: Session, camera: int, table_deg: float) -> tuple[str | None, str | None]:
+    """(object shot, object-absent shot) giving the view's colour."""
+    lf = session.select(phase="lightfield", camera=camera, table_deg=table_deg, kind=None)
+    obj = sorted({r.shot for r in lf if r.object_present})
+    bg = sorted({r.shot for r in lf if not r.object_present})
+    if obj:
+        return obj[0], (bg[0] if bg else None)
+    mt = session.select(phase="matting", camera=camera, table_deg=table_deg, kind=None, pattern=None)
+    obj = sorted({r.shot for r in mt if r.object_present})
+    bg = sorted({r.shot for r in mt if not r.object_present})
+    if obj:
+        return obj[0], (bg[0] if bg else None)
+    return None, None
+
+
+def _rig_volume(geo: RigGeometry | None) -> tuple[np.ndarray, np.ndarray] | None:
+    """A generous box above the table (for unbounded LPs): the bottom display's extent."""
+    if geo is None:
+        return None
+    bottom = [d for d in geo.displays if d.rotates_with_table]
+    if bottom:
+        w, h = bottom[0].size_m
+        r = 0.5 * math.hypot(w, h)
+    else:
+        r = 2.0 * float(np.linalg.norm(geo.target_m)) + 0.5
+    top = 2.0 * r
+    return np.array([-r, 0.0, -r]), np.array([r, top, r])
+
+
+def _is_rig_session(session: Session) -> bool:
+    return not str(session.source).startswith("import:") and "mask" not in session.phases()
+
+
+# --------------------------------------------------------------------------- runner
+
+
+def build_model(session_dir, out_dir, *, config: BuildConfig = BuildConfig(), ground_truth: bool = False,
+                progress: Callable[[int, int], None] | None = None,
+                on_step: Callable[[str], None] | None = None) -> BuildReport:
+    """Build the opacity-hull model of a session (see the module docstring).
+
+    Parameters
+    ----------
+    session_dir : session folder.
+    out_dir : model folder (created; files in it are overwritten).
+    config : BuildConfig.
+    ground_truth : compare with ``groundtruth/`` (simulated sessions) and put the
+        metrics in the report.
+    progress : callable(done, total) within the current step.
+    on_step : callable(step name) when a step starts (CLI progress descriptions).
+
+    Returns
+    -------
+    BuildReport (also written to ``out_dir/report.json``).
+    """
+    session = Session.open(session_dir)
+    out = Path(out_dir)
+    if ground_truth and session.groundtruth_dir is None:
+        raise InputError(f"--ground-truth: {session.root} has no groundtruth/ folder (only simulated sessions do)")
+    timer = _Timer(on_step)
+    notes: list[str] = []
+    prog = progress or (lambda done, total: None)
+
+    # 1. cameras
+    with timer.step("cameras"):
+        views = view_list(session, exclude=config.exclude_views)
+        cams = resolve_cameras(session, views, source=config.cameras, progress=prog)
+        vids = [view_id(c, a) for c, a in views]
+    V = len(views)
+
+    # 2. matting (or imported masks)
+    alphas: list[np.ndarray] = []
+    matte_stats = []
+    backdrop_sources = set()
+    with timer.step("matting"):
+        use_masks = "mask" in session.phases() and "matting" not in session.phases()
+        for i, ((c, a), cam) in enumerate(zip(views, cams.views)):
+            if use_masks:
+                alpha = _mask_alpha(session, c, a)
+                backdrop_sources.add("imported masks")
+            else:
+                C, B, cc, bc, src = load_matting_pairs(session, c, a, cam, backdrops=config.backdrops)
+                backdrop_sources.add(src)
+                res = solve_matte(C, B, c_saturation=cc, b_saturation=bc, options=config.matting)
+                alpha = res.alpha
+                matte_stats.append({"view": vids[i], "unknown_frac": float(res.unknown.mean()),
+                                    "saturated_frac": float(res.saturated.mean()),
+                                    "invalid_frac": float(res.invalid.mean()), "noise_sigma": res.noise_sigma,
+                                    "K": int(C.shape[0])})
+            if alpha.shape != (cam.height, cam.width):
+                raise FormatError(f"view {vids[i]}: alpha is {alpha.shape[1]}x{alpha.shape[0]}, camera is "
+                                  f"{cam.width}x{cam.height}")
+            alphas.append(alpha)
+            prog(i + 1, V)
+    backdrop_source = ", ".join(sorted(backdrop_sources))
+    if any("display geometry" in s for s in backdrop_sources):
+        notes.append("backdrops predicted from the display geometry (no object-absent captures): an "
+                     "approximation without display falloff or blur")
+
+    # 3. silhouettes (pinhole)
+    with timer.step("silhouettes"):
+        sils, pin, dilations = [], [], {}
+        for (c, a), cam, alpha in zip(views, cams.views, alphas):
+            rms = cams.rms_px.get(c, 0.0)
+            dil = config.dilate_base_px + config.dilate_rms_factor * rms
+            dilations[c] = int(math.ceil(dil - 1e-9))
+            s = silhouette_from_alpha(alpha, threshold=config.alpha_threshold, dilate_px=dil)
+            s, pc = undistort_silhouette(s, cam)
+            sils.append(s)
+            pin.append(pc)
+        cover = float(np.median([s.mean() for s in sils]))
+        if cover > 0.8:
+            notes.append(f"the silhouettes cover {100 * cover:.0f} % of the images (median): the mattes are nearly "
+                         "all opaque — were the backdrops lit in the object-present matting shots?")
+        empty = [vids[i] for i, s in enumerate(sils) if not s.any()]
+        if empty:
+            raise EmptyHullError(
+                f"empty silhouette (alpha <= {config.alpha_threshold} everywhere) in view(s) {', '.join(empty[:10])}"
+                f"{' ...' if len(empty) > 10 else ''}: the visual hull would be empty. Check those images, lower "
+                "--alpha-threshold, or leave the views out with --exclude-view")
+
+    # 4. hull
+    with timer.step("hull"):
+        rig_session = _is_rig_session(session)
+        geo = None
+        try:
+            geo = session.geometry
+        except FormatError:
+            pass
+        if config.bounds_m is not None:
+            lo, hi = (np.asarray(x, dtype=np.float64) for x in config.bounds_m)
+        else:
+            fb = _rig_volume(geo) if rig_session else None
+            if fb is not None and not config.clip_below_table:
+                fb = (fb[0] - np.array([0.0, fb[1][1], 0.0]), fb[1])
+            lo, hi = hull_bounds(sils, pin, fallback=fb, min_component_frac=config.bounds_min_component_frac)
+        pad = 2.0 * float(np.max(hi - lo)) / config.hull_res
+        lo_p, hi_p = lo - pad, hi + pad
+        if rig_session and config.clip_below_table and config.bounds_m is None:
+            lo_p[1] = max(lo_p[1], 0.0)
+        grid = HullGrid.from_bounds(lo_p, hi_p, config.hull_res)
+        occ, ostats = carve_octree(sils, pin, grid, root_cell=config.root_cell, return_stats=True)
+        n_occ = int(occ.sum())
+        if n_occ == 0:
+            raise EmptyHullError("the visual hull is empty: the silhouettes have no common volume "
+                                 "(inconsistent cameras or mattes?)")
+        hull_info = {"dilate_px_per_camera": {str(k): v for k, v in sorted(dilations.items())},
+                     "grid_shape": list(grid.shape), "voxel_m": grid.voxel_m, "lo_m": grid.lo.tolist(),
+                     "hi_m": grid.hi.tolist(), "occupied_voxels": n_occ, "octree_cells": ostats.cells,
+                     "octree_tests": ostats.tests}
+
+    # 5. surfels
+    with timer.step("surfels"):
+        centre = 0.5 * (grid.lo + grid.hi)
+        footprints = [float(np.linalg.norm(c.centre_world - centre)) / min(c.fx, c.fy) for c in pin]
+        footprint = float(np.median(footprints))
+        sample = sample_hull_surfels(occ, grid, sils, pin, oversample=config.surfel_oversample,
+                                     bisection_iters=config.bisection_iters, radius_scale=config.radius_scale,
+                                     normal_scale_vox=max(1.0, footprint / grid.voxel_m))
+        hull_info.update({"pixel_footprint_m": footprint, "surfel_spacing_m": sample.spacing_m})
+        if sample.spacing_m > 1.5 * footprint:
+            notes.append(f"surfel spacing {sample.spacing_m * 1e3:.2f} mm is coarser than the pixel footprint "
+                         f"{footprint * 1e3:.2f} mm: raise --hull-res for full capture resolution")
+
+    # 6. visibility
+    with timer.step("visibility"):
+        vis = surfel_visibility(sample.positions, sample.normals, sample.radii, pin, depth_tol_m=config.depth_tol_m,
+                                facing_cos=config.facing_cos)
+        surfels = Surfels.from_bool(sample.positions, sample.normals, sample.radii, vis)
+        hull_info["visible_views_per_surfel"] = float(vis.sum(1).mean()) if len(vis) else 0.0
+        hull_info["surfels_seen_by_no_view"] = int((~vis.any(1)).sum()) if len(vis) else 0
+
+    # 7. views: opacity light field samples (computed lazily while writing)
+    view_infos = [ViewInfo(i, vids[i], c, float(a), cams.views[i]) for i, (c, a) in enumerate(views)]
+    colour_shots = [_colour_shot(session, c, a) for c, a in views]
+    missing_colour = [vids[i] for i, (s, _) in enumerate(colour_shots) if s is None]
+    if missing_colour:
+        raise FormatError(f"{session.root}: no lightfield (or displays-off matting) image for views "
+                          f"{missing_colour[:5]}: nothing to colour the model with")
+
+    def view_rgba(i: int) -> np.ndarray:
+        obj, bg = colour_shots[i]
+        Cimg = _rgb(session.load_radiance(obj))
+        a = alphas[i]
+        if bg is not None:
+            prem = Cimg - (1.0 - a)[..., None] * _rgb(session.load_radiance(bg))
+        elif use_masks:
+            prem = Cimg * a[..., None]  # external images: colour seen through the mask
+        else:
+            prem = Cimg
+        F = straight_from_premul(np.nan_to_num(prem, nan=0.0, posinf=0.0, neginf=0.0), a, eps=config.alpha_eps)
+        return np.concatenate([np.maximum(F, 0.0), a[..., None]], axis=-1).astype(np.float32)
+
+    # 8. reflectance
+    reflectance = None
+    with timer.step("reflectance"):
+        refl = session.select(phase="reflectance", kind=None) if config.reflectance else []
+        if refl:
+            per_view: dict[tuple, dict[str, str]] = {}
+            samples: dict[str, LightSample] = {}
+            for r in refl:
+                if not r.object_present or r.light is None:
+                    continue
+                arr = float(r.lights_deg or 0.0)
+                key = light_key(r.light, arr)
+                samples.setdefault(key, LightSample(key, int(r.light), arr))
+                per_view.setdefault((r.camera, round(r.table_deg % 360.0, 6)), {}).setdefault(key, r.shot)
+            common = set(samples)
+            for c, a in views:
+                common &= set(per_view.get((c, round(a % 360.0, 6)), {}))
+            dropped = set(samples) - common
+            if dropped:
+                notes.append(f"reflectance: {len(dropped)} light sample(s) missing in some views were left out")
+            if common:
+                lights = [samples[k] for k in sorted(common, key=lambda k: (samples[k].array_deg, samples[k].light_id))]
+
+                def images(i: int) -> dict[str, np.ndarray]:
+                    c, a = views[i]
+                    shots = per_view[(c, round(a % 360.0, 6))]
+                    mask = (alphas[i] > config.alpha_eps)[..., None]
+                    outd = {}
+                    for L in lights:
+                        img = _rgb(session.load_radiance(shots[L.key]))
+                        outd[L.key] = np.where(mask, np.nan_to_num(img, nan=0.0, posinf=0.0, neginf=0.0), 0.0
+                                               ).astype(np.float32)
+                    return outd
+
+                reflectance = {"lights": lights, "images": images}
+            else:
+                notes.append("reflectance: no light sample present in every view; none attached")
+
+    # 9. write
+    report = BuildReport(model_dir=str(out), views=V, surfels=len(surfels), camera_source=cams.source,
+                         backdrop_source=backdrop_source, hull=hull_info, notes=notes)
+    with timer.step("write"):
+        out.mkdir(parents=True, exist_ok=True)
+        provenance = {"session": str(session.root.resolve()), "rig_source": session.source,
+                      "camera_source": cams.source, "backdrop_source": backdrop_source,
+                      "build_config": json.dumps(_jsonable(config.to_dict()), sort_keys=True)}
+        rgba_iter = (view_rgba(i) for i in range(V))
+        write_model(out, views=view_infos, surfels=surfels, view_rgba=rgba_iter, rig=session.meta.get("rig"),
+                    provenance=provenance, reflectance=reflectance, progress=prog)
+        if cams.rig:
+            from ..camera import write_opencv_yaml
+
+            for i, rc in enumerate(cams.rig):
+                if rc is None:
+                    continue
+                extra = {"reproj_rms_px": cams.rms_px[i]} if i in cams.rms_px else None
+                name = session.geometry.cameras[i].name if i < len(session.geometry.cameras) else f"cam{i}"
+                write_opencv_yaml(out / "calibration" / f"{name}.yaml", rc.with_name(name), extra=extra)
+
+    # 10. pictures
+    with timer.step("pictures"):
+        if config.pictures:
+            report.pictures = _pictures(out, session, views, vids, alphas, sils, pin, surfels, cams, colour_shots)
+
+    # 11. metrics
+    metrics: dict = {}
+    if cams.calibration is not None:
+        metrics["reproj_rms_px"] = float(cams.calibration.rms_px)
+        metrics["reproj_rms_px_per_camera"] = {c.name: float(r) for c, r in
+                                               zip(cams.calibration.rig_cameras, cams.calibration.reproj_rms_px)}
+    if matte_stats:
+        metrics["matting_unknown_frac"] = float(np.mean([m["unknown_frac"] for m in matte_stats]))
+        metrics["matting_saturated_frac"] = float(np.mean([m["saturated_frac"] for m in matte_stats]))
+        metrics["matting_backdrops_K"] = int(np.median([m["K"] for m in matte_stats]))
+    if ground_truth:
+        with timer.step("metrics"):
+            metrics.update(_ground_truth_metrics(session, views, vids, alphas, occ, grid, cams, config, pin,
+                                                 dilations))
+    report.metrics = metrics
+    report.seconds = {k: round(v, 4) for k, v in timer.seconds.items()}
+    report.seconds["total"] = round(sum(timer.seconds.values()), 4)
+    from ..imageio import atomic_path
+    from ..cliutil import to_jsonable
+
+    with atomic_path(out / "report.json") as tmp:
+        tmp.write_text(json.dumps(to_jsonable(report.to_dict()), indent=2) + "\n")
+    return report
+
+
+def _jsonable(d):
+    from ..cliutil import to_jsonable
+
+    return to_jsonable(d)
+
+
+def _pictures(out: Path, session, views, vids, alphas, sils, pin, surfels, cams, colour_shots) -> list[str]:
+    from .pictures import hull_overlays, matte_contact_sheet, reprojection_histogram, surfel_mask
+
+    pics = out / "pictures"
+    made = [matte_contact_sheet(alphas, vids, pics / "mattes.png")]
+    pick = sorted(set(np.linspace(0, len(views) - 1, min(8, len(views))).round().astype(int).tolist()))
+    imgs, ss, ms, names = [], [], [], []
+    for i in pick:
+        obj, _ = colour_shots[i]
+        imgs.append(_rgb(session.load_radiance(obj)))
+        ss.append(sils[i])
+        ms.append(surfel_mask(surfels.positions, surfels.radii, pin[i]))
+        names.append(vids[i])
+    made.append(hull_overlays(imgs, ss, ms, names, pics / "hull_overlay.png"))
+    cal = cams.calibration
+    p = None
+    if cal is not None:
+        p = reprojection_histogram(pics / "reprojection.png", residuals_px=cal.residuals_px,
+                                   rms_per_camera={c.name: r for c, r in zip(cal.rig_cameras, cal.reproj_rms_px)})
+    elif cams.rms_px and cams.rig:
+        p = reprojection_histogram(pics / "reprojection.png",
+                                   rms_per_camera={f"cam{i}": r for i, r in cams.rms_px.items()})
+    if p is not None:
+        made.append(p)
+    return [str(Path(m).relative_to(out)) for m in made]
+
+
+def _ground_truth_metrics(session, views, vids, alphas, occ, grid, cams, config, pin, dilations) -> dict:
+    from ..imageio import read_exr
+    from .metrics import alpha_mae, hull_iou, read_mesh_ply, voxelize_mesh
+
+    gt = session.groundtruth_dir
+    m: dict = {}
+    per_view = []
+    true_sils = []
+    for (c, _), vid, a, pc in zip(views, vids, alphas, pin):
+        p = gt / "alpha" / f"{vid}.exr"
+        if not p.is_file():
+            continue
+        t = read_exr(p)[..., 0]
+        if t.shape != a.shape:
+            continue
+        per_view.append(alpha_mae(a, t, dilate_px=config.ground_truth_dilate_px))
+        true_sils.append(silhouette_from_alpha(t, threshold=config.alpha_threshold, dilate_px=dilations.get(c, 0)))
+    # the hull the same cameras would carve from perfect mattes: separates matting and
+    # carving errors from what no visual hull can see (cavities, concavities)
+    true_hull = None
+    if len(true_sils) == len(vids):
+        ts = [undistort_silhouette(s, cam)[0] for s, cam in zip(true_sils, [c for c in cams.views])]
+        true_hull = carve_octree(ts, pin, grid, root_cell=config.root_cell)
+    if per_view:
+        w = np.array([r["pixels"] for r in per_view], dtype=np.float64)
+        m["alpha_mae"] = float(np.sum([r["mae"] * r["pixels"] for r in per_view]) / max(w.sum(), 1))
+        m["alpha_mae_worst_view"] = float(max(r["mae"] for r in per_view))
+        fr = [r for r in per_view if r["fractional_pixels"]]
+        if fr:
+            nf = np.array([r["fractional_pixels"] for r in fr], dtype=np.float64)
+            m["alpha_mae_fractional"] = float(np.sum([r["mae_fractional"] * r["fractional_pixels"] for r in fr]) / nf.sum())
+            m["alpha_fractional_recovered"] = float(
+                np.sum([r["fractional_recovered"] * r["fractional_pixels"] for r in fr]) / nf.sum())
+            m["alpha_fractional_pixels"] = int(nf.sum())
+        m["alpha_views_compared"] = len(per_view)
+    mesh = gt / "object.ply"
+    if mesh.is_file():
+        Vt, Ft = read_mesh_ply(mesh)
+        truth = voxelize_mesh(Vt, Ft, grid)
+        h = hull_iou(occ, truth)
+        m["hull_iou"] = h["iou"]
+        m["hull_object_in_hull"] = h["object_in_hull"]
+        if true_hull is not None:
+            m["true_alpha_hull_iou"] = hull_iou(true_hull, truth)["iou"]
+    if true_hull is not None:
+        m["hull_iou_vs_true_alpha_hull"] = hull_iou(occ, true_hull)["iou"]
+    if cams.calibration is not None and (gt / "calibration").is_dir():
+        from .calibration import pose_errors
+
+        true_rig = [read_opencv_yaml(gt / "calibration" / f"{s.name}.yaml") for s in session.geometry.cameras]
+        try:
+            # in the true frame (what the hull is compared in), and after removing the
+            # gauge (rotation about / shift along the table axis) calibration cannot see
+            pe = pose_errors(cams.calibration, true_rig, align_gauge=False)
+            pg = pose_errors(cams.calibration, true_rig, align_gauge=True)
+            m["pose_max_rotation_deg"] = pe["max_rotation_deg"]
+            m["pose_max_position_mm"] = pe["max_position_mm"]
+            m["pose_max_focal_pct"] = pe["max_focal_pct"]
+            m["pose_gauge_aligned_max_rotation_deg"] = pg["max_rotation_deg"]
+            m["pose_gauge_aligned_max_position_mm"] = pg["max_position_mm"]
+            m["pose_gauge_yaw_deg"] = pg["gauge_yaw_deg"]
+            m["pose_gauge_dy_mm"] = pg["gauge_dy_mm"]
+            m["pose_errors"] = pe
+        except InputError as e:
+            m["pose_errors_error"] = str(e)
+    return m

@@ -1,0 +1,100 @@
+"""Render options (no heavy imports: the CLI reads the defaults for ``--help``)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..errors import InputError
+
+__all__ = ["RenderConfig", "KMAX"]
+
+KMAX = 16
+"""Largest supported ULR k (the kernels keep per-surfel candidate lists on the stack)."""
+
+
+@dataclass(frozen=True)
+class RenderConfig:
+    """Options of :func:`render_image`.
+
+    Attributes
+    ----------
+    k : int, 1..16
+        ULR neighbourhood: the k nearest visible views by angle; the k-th is the
+        threshold, so k−1 views blend (k = 1: nearest view only). Fewer than k visible
+        views: all of them blend with the threshold at 180°.
+    filter : float, px²
+        Variance of the EWA low-pass prefilter ``H = filter·I`` (Zwicker: identity).
+        0 disables the prefilter (minified splats may then miss pixel centres).
+    sigma_radius : float
+        Standard deviation of the surfel's tangent-plane Gaussian as a fraction of its
+        radius (0.5: the disc edge is at 2σ).
+    cutoff_sigma : float
+        The resampling kernel is evaluated where the Mahalanobis distance
+        ``√(dᵀM⁻¹d) ≤ cutoff_sigma``.
+    epsilon_z : float, relative
+        ε-z-buffer tolerance **in units of the surfel radius**: a fragment blends when
+        its depth is within ``epsilon_z · r`` of the front-most fragment at that pixel
+        (r of that front-most splat); farther fragments belong to a surface behind
+        and are discarded. Relative, so the same value works at any model scale.
+    edge_coverage : bool
+        Edge antialiasing (Zwicker 2001): besides the normalised colour Σw·c/Σw, each
+        pixel accumulates the area-weighted kernel sum Σw·A (A = surface area per
+        surfel), which is ≈ 1 where the surface covers the pixel's filter footprint and
+        falls to 0 across the silhouette. The normalised RGBA is scaled by that
+        coverage, so the kernels' tails beyond the silhouette fade out instead of being
+        normalised to full opacity (a 1–2 px opaque halo without it).
+    coverage_threshold : float in (0, 1]
+        Coverage counts as full from this fraction of the expected interior sum, so that
+        the ripple of the kernel sum inside the surface does not dim it.
+    backface_cull : bool
+        Skip surfels whose normal faces away from the camera (they are on the far side
+        of the hull and would only be discarded by the ε-z test).
+    band_rows : int
+        Rows per band of the rasteriser (bands are dealt to threads round-robin).
+    threads : int or None
+        Worker threads (None: the CPUs this process may use). 1 runs everything on the
+        calling thread.
+    background : None, colour, image or :class:`EnvMap`
+        Default background of :meth:`RenderResult.over`.
+    """
+
+    k: int = 4
+    filter: float = 0.25
+    sigma_radius: float = 0.5
+    cutoff_sigma: float = 2.0
+    epsilon_z: float = 2.0
+    edge_coverage: bool = True
+    coverage_threshold: float = 0.8
+    backface_cull: bool = True
+    band_rows: int = 16
+    threads: int | None = None
+    background: object = None
+
+    @property
+    def n_threads(self) -> int:
+        if self.threads is not None:
+            return int(self.threads)
+        from .kernels import default_threads
+
+        return default_threads()
+
+    def __post_init__(self):
+        if not (isinstance(self.k, (int, np.integer)) and 1 <= int(self.k) <= KMAX):
+            raise InputError(f"RenderConfig.k = {self.k!r}: expected an integer in [1, {KMAX}]")
+        for name, lo in (("filter", 0.0), ("epsilon_z", 0.0)):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float, np.number)) and math.isfinite(v) and v >= lo):
+                raise InputError(f"RenderConfig.{name} = {v!r}: expected a finite number >= {lo}")
+        for name in ("sigma_radius", "cutoff_sigma"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float, np.number)) and math.isfinite(v) and v > 0):
+                raise InputError(f"RenderConfig.{name} = {v!r}: expected a finite number > 0")
+        if not (isinstance(self.coverage_threshold, (int, float, np.number)) and 0 < self.coverage_threshold <= 1):
+            raise InputError(f"RenderConfig.coverage_threshold = {self.coverage_threshold!r}: expected a number in (0, 1]")
+        if self.threads is not None and not (isinstance(self.threads, (int, np.integer)) and self.threads >= 1):
+            raise InputError(f"RenderConfig.threads = {self.threads!r}: expected None or an integer >= 1")
+        if not (isinstance(self.band_rows, (int, np.integer)) and self.band_rows >= 1):
+            raise InputError(f"RenderConfig.band_rows = {self.band_rows!r}: expected an integer >= 1")

@@ -1,0 +1,442 @@
+"""Rendering an opacity hull: ULR-blended RGBA per surfel, EWA surface splatting with an
+ε-z-buffer, normalisation, and compositing.
+
+Pipeline of :func:`render_image` (every step a numba kernel with a NumPy twin in
+:mod:`opacityhull.render.reference`):
+
+1. :func:`~opacityhull.render.kernels.splat_setup` — project each surfel, cull it when
+   behind the camera, facing away, or off-screen, and build its EWA resampling kernel
+   ``M = J V Jᵀ + H`` (Zwicker et al. 2001).
+2. :func:`~opacityhull.render.kernels.ulr_shade` — for each surviving surfel, the k
+   nearest views by angle among those in its visibility vector (minus excluded views,
+   minus views it projects outside of), Unstructured-Lumigraph weights (Buehler et al.
+   2001), bilinear fetch of premultiplied RGBA from the chosen views.
+3. :func:`~opacityhull.render.kernels.rasterize` — ε-z-buffer: a depth pass, then the
+   fragments within ε of the front-most depth accumulate ``w·RGBA``; normalised by Σw.
+
+Only the first visible surface is rendered: the opacity light field's alpha already
+holds the total coverage along each ray (the matte saw all layers at once), so the
+splatted RGBA is composited directly over the background.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Callable, Sequence
+
+import numpy as np
+
+from ..camera import Camera
+from ..errors import InputError
+from ..model import OpacityHullModel, Surfels
+from . import kernels as K
+from .background import composite_over, resolve_background
+from .config import RenderConfig
+from .views import PreparedViews, pack_camera, prepare_views, scan_order
+
+__all__ = ["RenderConfig", "RenderResult", "UlrWeights", "render_image", "render_model", "ulr_weights",
+           "ALPHA_MIN"]
+
+ALPHA_MIN = 1.0 / 4096
+"""Below this alpha a pixel's straight colour is reported as 0 (premultiplied colour / α
+is meaningless there)."""
+
+
+@dataclass
+class RenderResult:
+    """A rendered frame.
+
+    Attributes
+    ----------
+    rgba : (H, W, 4) float32, straight alpha (colour 0 where α < ALPHA_MIN).
+    depth : (H, W) float32, weighted mean z (metres along the optical axis) of the blended
+        fragments; +inf where nothing was drawn.
+    weight : (H, W) float32, Σ of the EWA kernel weights (0 where nothing was drawn).
+    coverage : (H, W) float32 in [0, 1], geometric coverage of each pixel's filter footprint
+        by the splatted surface (1 everywhere drawn when ``config.edge_coverage`` is off).
+    camera : the camera rendered.
+    config : the options used.
+    stats : counts (surfels, splats drawn, ...) and timings in ms.
+    """
+
+    rgba: np.ndarray
+    depth: np.ndarray
+    weight: np.ndarray
+    coverage: np.ndarray
+    camera: Camera
+    config: RenderConfig = field(default_factory=RenderConfig)
+    stats: dict = field(default_factory=dict)
+
+    @property
+    def premul(self) -> np.ndarray:
+        """(H, W, 4) premultiplied RGBA."""
+        out = self.rgba.copy()
+        out[..., :3] *= out[..., 3:4]
+        return out
+
+    @property
+    def alpha(self) -> np.ndarray:
+        return self.rgba[..., 3]
+
+    def over(self, background=None) -> np.ndarray:
+        """Composite over a background: None (``config.background``, else black), a
+        colour (number or RGB triple), an (H, W, 3|4) image, or an :class:`EnvMap`
+        (looked up along this camera's pixel rays). Returns (H, W, 3) float32 linear."""
+        bg = self.config.background if background is None else background
+        return composite_over(self.rgba, resolve_background(bg, self.camera))
+
+
+@dataclass(frozen=True)
+class UlrWeights:
+    """ULR blending of every surfel for one desired viewpoint.
+
+    index : (N, k) int32 view indices, −1 where unused. weight : (N, k) float32, each row
+    sums to 1 for drawn surfels, 0 otherwise. uv : (N, k, 2) float32 pixel position of the
+    surfel in each chosen view. count : (N,) int32 candidates found (0 = not drawn).
+    """
+
+    index: np.ndarray
+    weight: np.ndarray
+    uv: np.ndarray
+    count: np.ndarray
+
+    def dense(self, n_views: int) -> np.ndarray:
+        """(N, V) float64 weight matrix."""
+        W = np.zeros((self.index.shape[0], n_views))
+        rows = np.repeat(np.arange(self.index.shape[0]), self.index.shape[1])
+        idx = self.index.ravel()
+        ok = idx >= 0
+        np.add.at(W, (rows[ok], idx[ok]), self.weight.ravel()[ok])
+        return W
+
+
+def _allowed(n_views: int, exclude_views: Sequence[int]) -> np.ndarray:
+    allowed = np.ones(n_views, np.uint8)
+    for v in exclude_views:
+        if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, np.integer)):
+            raise InputError(f"exclude_views: {v!r} is not a view index")
+        if not 0 <= int(v) < n_views:
+            raise InputError(f"exclude_views: view index {v} out of range [0, {n_views})")
+        allowed[int(v)] = 0
+    return allowed
+
+
+def _check_views(surfels: Surfels, views: PreparedViews) -> None:
+    if surfels.n_views != views.n_views:
+        raise InputError(f"surfels carry visibility for {surfels.n_views} views, {views.n_views} views given")
+
+
+def _as_prepared(view_cameras, view_rgba_premul) -> PreparedViews:
+    if isinstance(view_rgba_premul, PreparedViews):
+        pv = view_rgba_premul
+        if view_cameras is not None and len(view_cameras) != pv.n_views:
+            raise InputError(f"{len(view_cameras)} view cameras for {pv.n_views} prepared views")
+        return pv
+    return prepare_views(view_cameras, view_rgba_premul)
+
+
+def ulr_weights(surfels: Surfels, view_cameras: Sequence[Camera] | PreparedViews, desired_centre, *, k: int = 4,
+                exclude_views: Sequence[int] = (), threads: int | None = 1) -> UlrWeights:
+    """Unstructured-Lumigraph blending weights of every surfel (no culling, no images).
+
+    Parameters
+    ----------
+    surfels : the model's surfels (visibility vectors over V views).
+    view_cameras : V cameras, or :class:`PreparedViews`.
+    desired_centre : (3,) centre of the desired camera, object frame, metres.
+    k : ULR neighbourhood (see :class:`RenderConfig`).
+    exclude_views : view indices that must not be blended.
+    """
+    cfg = RenderConfig(k=k, threads=threads)  # validates k
+    pv = view_cameras if isinstance(view_cameras, PreparedViews) else prepare_views(view_cameras)
+    _check_views(surfels, pv)
+    C = np.asarray(desired_centre, dtype=np.float64).reshape(3)
+    if not np.all(np.isfinite(C)):
+        raise InputError(f"desired camera centre {C.tolist()} is not finite")
+    allowed = _allowed(pv.n_views, exclude_views)
+    o, rho = K.bounding_sphere(surfels.positions)
+    order, s_lb = scan_order(pv.centres, C, o, rho)
+    N = len(surfels)
+    idx = np.empty((N, k), np.int32)
+    w = np.empty((N, k), np.float32)
+    uv = np.empty((N, k, 2), np.float32)
+    count = np.empty(N, np.int32)
+    drawable = np.ones(N, np.bool_)
+    K.parallel_for(K.ulr_select, N, (surfels.positions, surfels.visibility, drawable, allowed, C, pv.centres, pv.cams,
+                                     pv.sizes, order, s_lb, pv.tie_rank, int(k), idx, w, uv, count),
+                   threads=cfg.n_threads)
+    return UlrWeights(idx, w, uv, count)
+
+
+def _pinhole_for(camera: Camera) -> tuple[Camera, np.ndarray | None]:
+    """A distortion-free camera covering ``camera``'s field of view, and the remap grid
+    (H, W, 2) from the distorted image to it (None when there is no distortion)."""
+    if not camera.has_distortion:
+        return camera, None
+    v, u = np.mgrid[0 : camera.height, 0 : camera.width].astype(np.float64)
+    uv = np.stack([u.ravel(), v.ravel()], axis=1)
+    xyd = np.stack([(uv[:, 0] - camera.cx) / camera.fx, (uv[:, 1] - camera.cy) / camera.fy], axis=1)
+    xy = camera.undistort_normalized(xyd)
+    pu = camera.fx * xy[:, 0] + camera.cx
+    pv = camera.fy * xy[:, 1] + camera.cy
+    # a canvas covering every undistorted pixel, at most twice the image each way
+    lo_u = max(np.floor(np.nanmin(pu)) - 1, -camera.width / 2)
+    hi_u = min(np.ceil(np.nanmax(pu)) + 1, 1.5 * camera.width)
+    lo_v = max(np.floor(np.nanmin(pv)) - 1, -camera.height / 2)
+    hi_v = min(np.ceil(np.nanmax(pv)) + 1, 1.5 * camera.height)
+    lo_u, lo_v = min(lo_u, 0.0), min(lo_v, 0.0)
+    hi_u, hi_v = max(hi_u, camera.width - 1.0), max(hi_v, camera.height - 1.0)
+    Kp = camera.K.copy()
+    Kp[0, 2] -= lo_u
+    Kp[1, 2] -= lo_v
+    pin = Camera(K=Kp, width=int(hi_u - lo_u) + 1, height=int(hi_v - lo_v) + 1,
+                 world_from_cam=camera.world_from_cam, name=camera.name)
+    grid = np.stack([pu - lo_u, pv - lo_v], axis=1).reshape(camera.height, camera.width, 2).astype(np.float32)
+    return pin, grid
+
+
+def _remap(img: np.ndarray, grid: np.ndarray, *, nearest: bool = False, border=0.0) -> np.ndarray:
+    import cv2
+
+    return cv2.remap(img, grid[..., 0], grid[..., 1], cv2.INTER_NEAREST if nearest else cv2.INTER_LINEAR,
+                     borderMode=cv2.BORDER_CONSTANT, borderValue=border)
+
+
+def render_image(
+    surfels: Surfels,
+    view_cameras: Sequence[Camera],
+    view_rgba_premul: Sequence[np.ndarray] | PreparedViews,
+    camera: Camera,
+    *,
+    config: RenderConfig = RenderConfig(),
+    exclude_views: Sequence[int] = (),
+    progress: Callable[[int, int], None] | None = None,
+) -> RenderResult:
+    """Render the opacity hull from ``camera``.
+
+    Parameters
+    ----------
+    surfels : positions (N, 3), normals, radii (metres) and visibility over V views.
+    view_cameras : V object-frame cameras of the captured views (bit order).
+    view_rgba_premul : V premultiplied RGBA images (H_v, W_v, 4), or a
+        :class:`PreparedViews` built once by :func:`prepare_views` (reuse it across frames).
+    camera : the desired camera. With lens distortion, the frame is rendered through a
+        distortion-free camera covering the same field of view and remapped.
+    config : :class:`RenderConfig`.
+    exclude_views : views not used for blending (leave-one-out); they still count for
+        nothing else, since visibility and geometry come from the model.
+    progress : callable(done, total) over the 3 stages.
+
+    Returns
+    -------
+    :class:`RenderResult` with straight RGBA, depth, weight.
+    """
+    t0 = time.perf_counter()
+    pv = _as_prepared(view_cameras, view_rgba_premul)
+    if not pv.has_images:
+        raise InputError("render_image needs the views' RGBA images (prepared without images)")
+    _check_views(surfels, pv)
+    allowed = _allowed(pv.n_views, exclude_views)
+    pin, grid = _pinhole_for(camera)
+    H, W = pin.height, pin.width
+    cam_row = pack_camera(pin, ignore_distortion=True)
+    C = pin.centre_world
+    N = len(surfels)
+    t_prep = time.perf_counter()
+
+    threads = config.n_threads
+    splat = np.empty((N, K.SPLAT_FIELDS), np.float32)
+    areas = surfel_areas(surfels)
+    valid = np.empty(N, np.bool_)
+    K.parallel_for(K.splat_setup, N, (surfels.positions, surfels.normals, surfels.radii, areas, cam_row, W, H,
+                                      float(config.sigma_radius), float(config.filter), float(config.cutoff_sigma),
+                                      float(config.epsilon_z), bool(config.backface_cull), splat, valid),
+                   threads=threads)
+    t_setup = time.perf_counter()
+    if progress:
+        progress(1, 3)
+
+    o, rho = K.bounding_sphere(surfels.positions)
+    order, s_lb = scan_order(pv.centres, C, o, rho)
+    ok = np.empty(N, np.bool_)
+    K.parallel_for(K.ulr_shade, N, (surfels.positions, surfels.visibility, valid, allowed, C, pv.centres, pv.cams,
+                                    pv.sizes, pv.offsets, pv.texels, order, s_lb, pv.tie_rank, int(config.k), splat,
+                                    K.S_RGBA, ok), threads=threads)
+    t_shade = time.perf_counter()
+    if progress:
+        progress(2, 3)
+
+    draw = np.flatnonzero(ok).astype(np.int64)
+    accum, _ = K.splat_frame(splat, draw, H, W, float(config.cutoff_sigma), int(config.band_rows), threads=threads)
+    t_raster = time.perf_counter()
+
+    wsum = accum[..., 4]
+    cov = coverage_from(accum[..., 6], wsum, config)
+    rgba_img, depth = normalise(accum[..., :4], wsum, accum[..., 5], cov)
+    if grid is not None:
+        premul = rgba_img.copy()
+        premul[..., :3] *= premul[..., 3:4]
+        premul = _remap(premul, grid)
+        wsum = _remap(np.ascontiguousarray(wsum), grid)
+        cov = _remap(cov, grid)
+        depth = _remap(depth, grid, nearest=True, border=float("inf"))
+        rgba_img = straight_from_premul(premul)
+    t_end = time.perf_counter()
+    if progress:
+        progress(3, 3)
+    stats = {
+        "surfels": N,
+        "splats_setup": int(valid.sum()),
+        "splats_drawn": int(draw.size),
+        "not_drawn_no_view": int(valid.sum() - draw.size),
+        "width": camera.width,
+        "height": camera.height,
+        "k": int(config.k),
+        "threads": threads,
+        "excluded_views": [int(v) for v in exclude_views],
+        "nonfinite_texels": pv.nonfinite_texels,
+        "ms": {
+            "prepare": 1e3 * (t_prep - t0),
+            "setup": 1e3 * (t_setup - t_prep),
+            "shade": 1e3 * (t_shade - t_setup),
+            "raster": 1e3 * (t_raster - t_shade),
+            "finish": 1e3 * (t_end - t_raster),
+            "total": 1e3 * (t_end - t0),
+        },
+    }
+    return RenderResult(rgba_img, depth, np.ascontiguousarray(wsum), cov, camera, config, stats)
+
+
+def straight_from_premul(premul: np.ndarray) -> np.ndarray:
+    """Premultiplied (H, W, 4) → straight RGBA, α clipped to [0, 1], colour 0 where α < ALPHA_MIN."""
+    out = np.asarray(premul, dtype=np.float32).copy()
+    a = np.clip(out[..., 3], 0.0, 1.0)
+    ok = a >= ALPHA_MIN
+    out[..., :3] = np.where(ok[..., None], out[..., :3] / np.where(ok, a, 1.0)[..., None], 0.0)
+    out[..., 3] = a
+    return out
+
+
+def coverage_from(area_sum: np.ndarray, wsum: np.ndarray, config: RenderConfig) -> np.ndarray:
+    """Pixel coverage in [0, 1] from the area-weighted kernel sum Σw·A.
+
+    Inside a surface Σw·A ≈ the Gaussian's mass within the cutoff, ``1 − exp(−c²/2)``;
+    coverage is Σw·A over ``coverage_threshold`` times that, clipped to [0, 1].
+    """
+    if not config.edge_coverage:
+        return (wsum > 0).astype(np.float32)
+    full = config.coverage_threshold * (1.0 - math.exp(-0.5 * config.cutoff_sigma**2))
+    return np.clip(area_sum / full, 0.0, 1.0).astype(np.float32)
+
+
+def normalise(acc: np.ndarray, wsum: np.ndarray, zsum: np.ndarray, coverage: np.ndarray | None = None
+              ) -> tuple[np.ndarray, np.ndarray]:
+    """EWA normalisation: premultiplied RGBA Σw·c / Σw (times ``coverage`` when given) →
+    straight RGBA; depth Σw·z / Σw (inf where Σw = 0)."""
+    has = wsum > 0
+    inv = np.where(has, 1.0 / np.where(has, wsum, 1.0), 0.0).astype(np.float32)
+    if coverage is not None:
+        inv = inv * coverage
+    premul = acc * inv[..., None]
+    depth = np.where(has, zsum * inv, np.inf).astype(np.float32)
+    return straight_from_premul(premul), depth
+
+
+_AREA_CACHE: dict = {}
+
+
+def surfel_areas(surfels: Surfels, *, neighbours: int = 12) -> np.ndarray:
+    """(N,) float32 surface area represented by each surfel (m²), for edge coverage.
+
+    From the k nearest neighbours (SciPy cKDTree): the j-th neighbour at distance r_j
+    means about j surfels per π r_j², so A ≈ mean over j of π r_j² / j; the estimate is
+    then averaged over each surfel's neighbourhood, which removes the banding a regular
+    lattice gives single-k estimates. Cached per Surfels object (a model is opened once,
+    rendered many times).
+    """
+    import weakref
+
+    key = id(surfels)
+    hit = _AREA_CACHE.get(key)
+    if hit is not None and hit[0]() is surfels and hit[1].shape[0] == len(surfels):
+        return hit[1]
+    from scipy.spatial import cKDTree
+
+    N = len(surfels)
+    P = np.asarray(surfels.positions, dtype=np.float64)
+    fin = np.all(np.isfinite(P), axis=1)
+    areas = np.zeros(N, np.float32)
+    n_ok = int(fin.sum())
+    if n_ok >= 2:
+        k = min(neighbours, n_ok - 1)
+        tree = cKDTree(P[fin])
+        d, nb = tree.query(P[fin], k=k + 1)
+        j = np.arange(1, k + 1)
+        a = np.pi * np.mean(d[:, 1:] ** 2 / j, axis=1)
+        a = np.mean(a[nb], axis=1)
+        areas[fin] = a
+    elif n_ok == 1:
+        r = np.asarray(surfels.radii, np.float64)[fin]
+        areas[fin] = np.pi * r**2
+    ref = weakref.ref(surfels, lambda _r, key=key: _AREA_CACHE.pop(key, None))
+    _AREA_CACHE[key] = (ref, areas)
+    return areas
+
+
+def _part1by2(x: np.ndarray) -> np.ndarray:
+    x = x.astype(np.uint64) & np.uint64(0x1FFFFF)
+    for shift, mask in ((32, 0x1F00000000FFFF), (16, 0x1F0000FF0000FF), (8, 0x100F00F00F00F00F),
+                        (4, 0x10C30C30C30C30C3), (2, 0x1249249249249249)):
+        x = (x | (x << np.uint64(shift))) & np.uint64(mask)
+    return x
+
+
+def spatially_sorted(surfels: Surfels, *, bits: int = 16) -> Surfels:
+    """The surfels reordered along a 3-D Morton (Z-order) curve.
+
+    Rendered images do not depend on the order (up to float rounding of the sums);
+    spatially coherent order makes the texel fetches and the rasteriser's record
+    gathers cache-friendly. :func:`render_model` and the CLI sort once per model.
+    """
+    P = np.asarray(surfels.positions, dtype=np.float64)
+    if len(P) == 0:
+        return surfels
+    fin = np.all(np.isfinite(P), axis=1)
+    lo = P[fin].min(axis=0) if fin.any() else np.zeros(3)
+    span = float((P[fin].max(axis=0) - lo).max()) if fin.any() else 1.0
+    q = np.clip(np.nan_to_num((P - lo) / (span or 1.0)) * (2**bits - 1), 0, 2**bits - 1).astype(np.uint64)
+    code = _part1by2(q[:, 0]) | (_part1by2(q[:, 1]) << np.uint64(1)) | (_part1by2(q[:, 2]) << np.uint64(2))
+    return surfels.subset(np.argsort(code, kind="stable"))
+
+
+def model_surfels(model: OpacityHullModel) -> Surfels:
+    """The model's surfels in Morton order (computed once per opened model)."""
+    cached = getattr(model, "_render_sorted_surfels", None)
+    if cached is None:
+        cached = spatially_sorted(model.surfels)
+        model._render_sorted_surfels = cached
+    return cached
+
+
+def render_model(
+    model: OpacityHullModel,
+    camera: Camera,
+    *,
+    config: RenderConfig = RenderConfig(),
+    exclude_views: Sequence[int] = (),
+    views_rgba_premul: Sequence[np.ndarray] | PreparedViews | None = None,
+    progress: Callable[[int, int], None] | None = None,
+) -> RenderResult:
+    """Render a model folder's opacity hull from ``camera`` (loads the views unless given)."""
+    cams = [v.camera for v in model.views]
+    if views_rgba_premul is None:
+        views_rgba_premul = prepare_views(cams, model.load_views_premul())
+    return render_image(model_surfels(model), cams, views_rgba_premul, camera, config=config,
+                        exclude_views=exclude_views, progress=progress)
+
+
+def prepare_model_views(model: OpacityHullModel) -> PreparedViews:
+    """Load and pack all views of a model once (for several frames)."""
+    return prepare_views([v.camera for v in model.views], model.load_views_premul())

@@ -1,0 +1,607 @@
+"""Rendering the simulated rig with Mitsuba 3.
+
+Frames. Everything is rendered in the **object frame** (= rig frame at table angle 0):
+the object, the bottom display (it turns with the table) and the calibration board are
+static there; the view camera (``RigGeometry.view_camera``), the lights and the fixed
+back display move by ``object_from_rig(table_deg)``. So meshes are loaded once and a
+capture only rewrites a few transforms.
+
+Scene cache. A Mitsuba scene is loaded once per *structure* — effect configuration,
+what stands on the table (object, board or nothing), film size, and which emitters
+exist — and changed between captures with ``mi.traverse`` + ``params.update()``
+(sensor ``to_world``/field of view/principal point, rectangle ``to_world``, point-light
+``position``/``intensity``, display bitmap ``data``): ~0.03 s per re-render against
+seconds per load (PITFALLS).
+
+Light model. Light-array lights are point lights at ``LightSpec.position_rig(array_deg)``
+(then moved into the object frame). A light of calibrated ``intensity = 1`` gives
+irradiance 1 (on a surface facing it) at the rig origin, whatever its distance:
+Mitsuba intensity ``I = intensity * |p|^2 * (level / 255) * colour`` (W/sr), ``p`` its
+rig-frame position. DMX level ``L`` scales linearly (``L / 255``).
+
+Displays. A display is a rectangle whose emitting side is its ``normal``; showing a
+pattern makes it an area emitter of radiance ``max_radiance * pattern / 255`` (linear
+drive), the pattern upscaled to the panel's ``resolution`` with nearest neighbour and
+shown with nearest-neighbour texture lookup, pattern row 0 towards the panel's ``up``.
+Blank, powered-off or all-black panels have *no emitter*; they stay in the scene as
+black absorbers (they shadow). Panels are drawn 0.5 mm behind their nominal plane (a
+panel's cover glass) so an object or board resting on the bottom panel does not
+z-fight with it.
+
+Superposition. Light transport is linear in the emitters, so a capture with several
+lights on is rendered as one render per light (one point light in the scene, no
+emitter-selection noise) plus one render of the emitting displays, summed. A capture
+with nothing switched on is exactly black without calling Mitsuba.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import math
+import os
+import threading
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Mapping, Sequence
+
+import numpy as np
+
+from ..camera import Camera, mitsuba_sensor_params, object_from_rig
+from ..charuco import CharucoSpec
+from ..errors import InputError
+from ..riggeometry import DisplaySpec, RigGeometry
+from . import shapes as S
+from .effects import EffectConfig, select_effects
+from .scenes import MaterialSpec, Part, SceneSpec, board_parts
+from .variants import use_mitsuba
+
+__all__ = [
+    "SimState",
+    "SimRenderer",
+    "phase_for_state",
+    "light_intensity",
+    "display_radiance",
+    "nearest_resize",
+    "DISPLAY_SETBACK_M",
+    "NEAR_CLIP_M",
+]
+
+#: Panels are rendered this far behind their nominal plane (see module docstring).
+DISPLAY_SETBACK_M = 0.0005
+
+#: Near clip plane of the simulated cameras (z, metres). Mitsuba starts camera rays on
+#: this plane, so the aov ``depth`` (ray distance) is measured from it.
+NEAR_CLIP_M = 0.005
+
+_DIAG_FLIP_Y = np.diag([1.0, -1.0, 1.0, 1.0])
+
+
+# --------------------------------------------------------------------------- state
+
+
+@dataclass(frozen=True)
+class SimState:
+    """What the rig is doing at capture time (read from the emulators by ``SimRig``).
+
+    Attributes
+    ----------
+    table_deg : turntable angle (GRBL table axis).
+    array_deg : light-array rotation angle.
+    light_levels : light id -> DMX level 0..255 (missing = off).
+    displays : display name -> shown pattern, uint8 (rows, cols, 3), or None (blank/off).
+    content : "object" (the scene's object), "board" (the ChArUco board) or "none".
+    charuco : the board placed when ``content == "board"``.
+    """
+
+    table_deg: float = 0.0
+    array_deg: float = 0.0
+    light_levels: Mapping[int, int] = field(default_factory=dict)
+    displays: Mapping[str, np.ndarray | None] = field(default_factory=dict)
+    content: str = "object"
+    charuco: CharucoSpec | None = None
+
+    def lights_on(self) -> dict[int, int]:
+        return {int(k): int(v) for k, v in self.light_levels.items() if int(v) > 0}
+
+    def displays_on(self) -> dict[str, np.ndarray]:
+        """Displays that emit anything (a shown, not all-black pattern)."""
+        return {k: v for k, v in self.displays.items() if v is not None and np.any(np.asarray(v) > 0)}
+
+
+def phase_for_state(state: SimState) -> str:
+    """The capture phase a rig state belongs to (the simulator cannot be told; it infers).
+
+    Board on the table → calibration; displays emitting and no light → matting (an
+    envmatte capture looks the same to the rig; the matting selection stays within the
+    envmatte error bounds, see ``benchmarks/sim_effects.py``); lights on → reflectance for
+    a single light, lightfield for several or lights plus displays; nothing on → matting
+    (the image is black anyway and nothing is rendered).
+    """
+    if state.content == "board":
+        return "calibration"
+    lights = state.lights_on()
+    if not lights:
+        return "matting"
+    if len(lights) == 1 and not state.displays_on():
+        return "reflectance"
+    return "lightfield"
+
+
+def light_intensity(geometry: RigGeometry, light_id: int, level: int) -> np.ndarray:
+    """Mitsuba radiant intensity (RGB, W/sr) of a light at DMX ``level``: irradiance
+    ``intensity * level / 255 * colour`` at the rig origin."""
+    L = geometry.light(light_id)
+    d2 = float(np.dot(L.position_m, L.position_m))
+    return L.intensity * d2 * (float(level) / 255.0) * np.asarray(L.colour, dtype=np.float64)
+
+
+def nearest_resize(img: np.ndarray, width: int, height: int) -> np.ndarray:
+    """Nearest-neighbour resize of (rows, cols, C) to (height, width, C) by pixel centres."""
+    img = np.asarray(img)
+    h, w = img.shape[:2]
+    if (w, h) == (width, height):
+        return img
+    ri = np.minimum(((np.arange(height) + 0.5) * h / height).astype(np.int64), h - 1)
+    ci = np.minimum(((np.arange(width) + 0.5) * w / width).astype(np.int64), w - 1)
+    return img[ri][:, ci]
+
+
+def display_radiance(display: DisplaySpec, pattern: np.ndarray) -> np.ndarray:
+    """Emitted radiance (rows, cols, 3) float32 of ``pattern`` (uint8) on ``display``:
+    nearest-neighbour upscaled to the panel resolution, linear drive."""
+    p = np.asarray(pattern)
+    if p.ndim == 2:
+        p = np.repeat(p[:, :, None], 3, axis=2)
+    if p.ndim != 3 or p.shape[2] != 3:
+        raise InputError(f"pattern for display {display.name!r} has shape {p.shape}, expected (rows, cols, 3)")
+    w, h = display.resolution
+    p = nearest_resize(p, w, h)
+    return (display.max_radiance / 255.0) * p.astype(np.float32)
+
+
+# --------------------------------------------------------------------------- helpers
+
+
+def _cache_dir() -> Path:
+    base = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
+    d = Path(base) / "opacityhull" / "sim-geometry"
+    d.mkdir(parents=True, exist_ok=True)
+    return d
+
+
+def _geometry_file(kind: str, payload: np.ndarray, writer) -> str:
+    """Write geometry once to a content-addressed cache file (Mitsuba loads files)."""
+    h = hashlib.sha1(np.ascontiguousarray(payload).tobytes()).hexdigest()[:20]
+    path = _cache_dir() / f"{kind}-{h}.{'ply' if kind == 'mesh' else 'txt'}"
+    if not path.is_file():
+        writer(path)
+    return str(path)
+
+
+def _mesh_file(mesh: S.TriMesh) -> str:
+    payload = np.concatenate([mesh.vertices.ravel(), mesh.normals.ravel(), mesh.uv.ravel(),
+                              mesh.faces.ravel().astype(np.float64)])
+    return _geometry_file("mesh", payload, lambda p: S.write_ply_mesh(p, mesh))
+
+
+def _curves_file(fib: S.Fibres) -> str:
+    payload = np.concatenate([fib.points.ravel(), [fib.radius_m]])
+    return _geometry_file("curves", payload, lambda p: S.write_curves_txt(p, fib))
+
+
+def _tensor(mi, img: np.ndarray):
+    return mi.TensorXf(np.ascontiguousarray(img, dtype=np.float32))
+
+
+def _texture(mi, img_rows_top: np.ndarray, *, nearest: bool = False) -> dict:
+    # Mitsuba's bitmap row 0 is v = 0; images store the top row first: flip rows.
+    return {
+        "type": "bitmap",
+        "data": _tensor(mi, img_rows_top[::-1]),
+        "raw": True,
+        "filter_type": "nearest" if nearest else "bilinear",
+        "wrap_mode": "clamp" if nearest else "repeat",
+    }
+
+
+def bsdf_dict(mi, mat: MaterialSpec) -> dict:
+    """Mitsuba BSDF dict of a material."""
+    p = mat.params
+    tex = None
+    if mat.texture is not None:
+        tex = _texture(mi, mat.texture.image())
+    t = mat.type
+    if t == "diffuse":
+        refl = tex if tex is not None else {"type": "rgb", "value": list(p.get("reflectance", (0.5, 0.5, 0.5)))}
+        return {"type": "diffuse", "reflectance": refl}
+    if t in ("plastic", "roughplastic"):
+        d = tex if tex is not None else {"type": "rgb", "value": list(p.get("diffuse", (0.5, 0.5, 0.5)))}
+        out = {"type": t, "diffuse_reflectance": d, "int_ior": float(p.get("ior", 1.49))}
+        if t == "roughplastic":
+            out["alpha"] = float(p.get("roughness", 0.1))
+            out["distribution"] = "ggx"
+        return out
+    if t in ("conductor", "roughconductor"):
+        out = {"type": t}
+        if "specular" in p:
+            out["material"] = "none"
+            out["specular_reflectance"] = {"type": "rgb", "value": list(p["specular"])}
+        else:
+            out["material"] = p.get("conductor", "Al")
+        if t == "roughconductor":
+            out["alpha"] = float(p.get("roughness", 0.1))
+            out["distribution"] = "ggx"
+        return out
+    if t in ("dielectric", "roughdielectric", "thindielectric"):
+        out = {"type": t, "int_ior": float(p.get("ior", 1.5)), "ext_ior": 1.0}
+        if "tint" in p:
+            out["specular_transmittance"] = {"type": "rgb", "value": list(p["tint"])}
+        if t == "roughdielectric":
+            out["alpha"] = float(p.get("roughness", 0.1))
+            out["distribution"] = "ggx"
+        return out
+    raise InputError(f"material {mat.name!r}: type {t!r} has no Mitsuba mapping")
+
+
+def _black() -> dict:
+    # a fresh dict per shape: Mitsuba merges shapes that share a BSDF instance into one
+    # mesh, which would hide their to_world parameters
+    return {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.0, 0.0, 0.0]}}
+
+
+def part_dicts(mi, parts: Sequence[Part]) -> dict:
+    """Mitsuba shape dicts (keyed ``obj_<i>``) of object parts, object frame."""
+    out = {}
+    for i, p in enumerate(parts):
+        key = f"obj_{i}"
+        if p.kind == "mesh":
+            out[key] = {"type": "ply", "filename": _mesh_file(p.mesh), "face_normals": False,
+                        "bsdf": bsdf_dict(mi, p.material)}
+        elif p.kind == "sphere":
+            out[key] = {"type": "sphere", "center": [float(v) for v in p.centre_m], "radius": float(p.radius_m),
+                        "bsdf": bsdf_dict(mi, p.material)}
+        elif p.kind == "disk":
+            T = np.eye(4)
+            T[:3, :3] = np.array([[1.0, 0, 0], [0, 0, 1.0], [0, -1.0, 0]]) * float(p.radius_m)  # local +z -> +Y
+            T[:3, 3] = p.centre_m
+            out[key] = {"type": "disk", "to_world": mi.ScalarTransform4f(T), "bsdf": bsdf_dict(mi, p.material)}
+        elif p.kind == "curves":
+            out[key] = {"type": "linearcurve", "filename": _curves_file(p.fibres), "bsdf": bsdf_dict(mi, p.material)}
+        elif p.kind == "board":
+            out[key] = board_dict(mi, p.charuco)
+        else:
+            raise InputError(f"part {p.name!r}: unknown kind {p.kind!r}")
+    return out
+
+
+def board_to_world(charuco: CharucoSpec) -> np.ndarray:
+    """4×4 map from Mitsuba's rectangle ([-1, 1]², normal +z) to the board in the object
+    frame: local x → board x, local y → −board y (so the normal −board z points up;
+    board z is into the board), scaled to the board size."""
+    w, h = charuco.size_m
+    local_to_board = np.array([[w / 2, 0, 0, w / 2], [0, -h / 2, 0, h / 2], [0, 0, -1, 0], [0, 0, 0, 1.0]])
+    return charuco.object_from_board() @ local_to_board
+
+
+def board_image(charuco: CharucoSpec, px_per_square: int = 120) -> np.ndarray:
+    """Linear reflectance (rows, cols, 3) of the printed board: white paper 0.8, ink 0.03."""
+    g = charuco.image(px_per_square).astype(np.float32) / 255.0
+    refl = 0.03 + (0.8 - 0.03) * g
+    return np.repeat(refl[:, :, None], 3, axis=2)
+
+
+def board_dict(mi, charuco: CharucoSpec) -> dict:
+    # Local y runs against board y (see board_to_world), so v = 0 (bitmap row 0) is the
+    # board's last image row: the image goes in flipped — done by _texture.
+    return {
+        "type": "rectangle",
+        "to_world": mi.ScalarTransform4f(board_to_world(charuco)),
+        "bsdf": {"type": "diffuse", "reflectance": _texture(mi, board_image(charuco))},
+    }
+
+
+def display_to_world(display: DisplaySpec, table_deg: float) -> np.ndarray:
+    """Rectangle ``to_world`` of a panel in the object frame at ``table_deg`` (local x →
+    panel right, local y → panel up, local z → normal; set back by DISPLAY_SETBACK_M)."""
+    F = display.frame().copy()
+    F[:3, 3] = F[:3, 3] - DISPLAY_SETBACK_M * F[:3, 2]
+    w, h = display.size_m
+    T = F @ np.diag([w / 2, h / 2, 1.0, 1.0])
+    if not display.rotates_with_table:
+        T = object_from_rig(table_deg) @ T
+    return T
+
+
+def _sensor_dict(mi, cam: Camera, sampler: str, spp: int) -> dict:
+    p = mitsuba_sensor_params(cam)
+    if sampler == "stratified":
+        side = max(1, int(round(math.sqrt(spp))))
+        smp = {"type": "stratified", "sample_count": side * side, "jitter": True}
+    else:
+        smp = {"type": "independent", "sample_count": int(spp)}
+    return {
+        "type": "perspective",
+        "fov": p["fov"],
+        "fov_axis": "y",
+        "principal_point_offset_x": p["principal_point_offset_x"],
+        "principal_point_offset_y": p["principal_point_offset_y"],
+        "near_clip": NEAR_CLIP_M,
+        "far_clip": 100.0,
+        "to_world": mi.ScalarTransform4f(np.asarray(p["to_world"])),
+        "film": {"type": "hdrfilm", "width": cam.width, "height": cam.height, "rfilter": {"type": "box"},
+                 "pixel_format": "rgba", "sample_border": False},
+        "sampler": smp,
+    }
+
+
+def _integrator_dict(cfg: EffectConfig) -> dict:
+    if cfg.integrator == "direct":
+        return {"type": "direct"}
+    if cfg.integrator == "path":
+        return {"type": "path", "max_depth": int(cfg.max_depth), "rr_depth": max(int(cfg.max_depth), 5)}
+    if cfg.integrator == "aov":
+        return {"type": "aov", "aovs": "dd:depth,nn:sh_normal,si:shape_index", "inner": {"type": "direct"}}
+    raise InputError(f"integrator {cfg.integrator!r} unknown")
+
+
+def _camera_key(cam: Camera) -> tuple:
+    return (cam.width, cam.height)
+
+
+# --------------------------------------------------------------------------- renderer
+
+
+@dataclass
+class _Loaded:
+    scene: object
+    params: object
+    keys: dict
+    lock: threading.Lock = field(default_factory=threading.Lock)
+
+
+class SimRenderer:
+    """Renders a scene on a rig for given cameras and rig states; caches Mitsuba scenes.
+
+    Parameters
+    ----------
+    scene : SceneSpec
+    geometry : RigGeometry
+        Lights and displays (cameras are passed per call).
+    variant : str, optional
+        Mitsuba variant (default :func:`~opacityhull.sim.variants.choose_variant`).
+    overrides : mapping, optional
+        Effect overrides applied to every selection (``select_effects(overrides=...)``).
+
+    Notes
+    -----
+    Thread-safe: renders of one cached scene are serialised (its parameters are
+    rewritten per render).
+    """
+
+    def __init__(self, scene: SceneSpec, geometry: RigGeometry, *, variant: str | None = None,
+                 overrides: Mapping | None = None):
+        self.scene = scene
+        self.geometry = geometry
+        self.variant = variant
+        self.overrides = dict(overrides or {})
+        self._cache: dict[tuple, _Loaded] = {}
+        self._cache_lock = threading.Lock()
+        self.loads = 0  # number of Mitsuba scene loads (tests check caching)
+        self.renders = 0
+
+    # ---- public
+    @property
+    def mi(self):
+        return use_mitsuba(self.variant)
+
+    def effects_for(self, state: SimState) -> EffectConfig:
+        """The effect configuration used for a capture in ``state``."""
+        phase = phase_for_state(state)
+        scene = self.scene
+        if state.content == "board":
+            phase = "calibration"
+        cfg = select_effects(scene, phase, overrides=self.overrides or None)
+        # whatever is switched on is in the picture, even where the phase would not use it
+        extra = []
+        if state.lights_on() and "light_array" not in cfg.emitters:
+            extra.append("light_array")
+        if state.displays_on() and "displays" not in cfg.emitters:
+            extra.append("displays")
+        if extra:
+            cfg = replace(cfg, emitters=cfg.emitters + tuple(extra),
+                          reasons=cfg.reasons + (f"also switched on at capture time: {', '.join(extra)}",))
+        return cfg
+
+    def render(self, rig_camera: Camera, state: SimState, *, effects: EffectConfig | None = None,
+               seed: int = 0) -> np.ndarray:
+        """Radiance image (H, W, 3) float32 of ``rig_camera`` (pose in the rig frame) in
+        ``state``.
+
+        Parameters
+        ----------
+        rig_camera : Camera
+            ``world_from_cam`` = rig_from_cam. No distortion (Mitsuba has none).
+        state : SimState
+        effects : EffectConfig, optional
+            Default: :meth:`effects_for` ``(state)``.
+        seed : int
+            Sampler seed; different seeds give independent noise.
+        """
+        cfg = effects or self.effects_for(state)
+        if cfg.integrator == "aov":
+            raise InputError("render(): the aov integrator is for ground truth (groundtruth.render_ground_truth)")
+        parts = self._content_parts(state)
+        cam = self._render_camera(rig_camera, cfg)
+        view = RigGeometry.view_camera(cam, state.table_deg)
+        out = np.zeros((cam.height, cam.width, 3), np.float32)
+        k = 0
+        if "displays" in cfg.emitters:
+            on = state.displays_on()
+            on = {n: img for n, img in on.items() if self._has_display(n)}
+            if on:
+                loaded = self._get(cfg, parts, state, cam, mode=("displays", tuple(sorted(on))))
+                out += self._run(loaded, view, state, cfg, seed * 1009 + k, displays=on)
+                k += 1
+        if "light_array" in cfg.emitters:
+            for lid, level in sorted(state.lights_on().items()):
+                self.geometry.light(lid)  # raises ConfigError for an unknown id
+                loaded = self._get(cfg, parts, state, cam, mode=("light",))
+                out += self._run(loaded, view, state, cfg, seed * 1009 + k, light=(lid, level))
+                k += 1
+        if cam.size != rig_camera.size:
+            out = _downsample(out, rig_camera.width, rig_camera.height)
+        return out
+
+    def render_rgba(self, camera_object: Camera, parts: Sequence[Part], *, extra: Mapping | None = None,
+                    integrator: dict, spp: int, sampler: str = "stratified", seed: int = 0,
+                    key: tuple = (), with_shape_names: bool = False, updates: Mapping | None = None):
+        """Low-level: render ``parts`` (plus ``extra`` Mitsuba dict entries) from a camera
+        posed in the object frame with the given integrator; returns the raw film
+        channels (H, W, C) — and, with ``with_shape_names``, the map from aov
+        ``shape_index`` values to shape ids (``obj_<i>`` for part i). ``extra`` is used
+        when the scene is first loaded (``key`` identifies it); ``updates`` (Mitsuba
+        parameter name → value, e.g. a ``to_world``) are applied before every render.
+        Used by ground truth and environment-map renders."""
+        mi = self.mi
+        full_key = ("raw", key, _camera_key(camera_object), sampler, spp, tuple(p.name for p in parts),
+                    repr(integrator))
+        with self._cache_lock:
+            loaded = self._cache.get(full_key)
+            if loaded is None:
+                d = {"type": "scene", "integrator": integrator, "sensor": _sensor_dict(mi, camera_object, sampler, spp)}
+                d.update(part_dicts(mi, parts))
+                d.update(extra or {})
+                sc = mi.load_dict(d, optimize=False)  # keep shapes separate: their params are rewritten
+                self.loads += 1
+                loaded = _Loaded(sc, mi.traverse(sc), {})
+                self._cache[full_key] = loaded
+        with loaded.lock:
+            self._set_sensor(loaded, "sensor", camera_object)
+            for k, v in (updates or {}).items():
+                loaded.params[k] = v
+            loaded.params.update()
+            img = mi.render(loaded.scene, loaded.params, seed=int(seed) & 0x7FFFFFFF, spp=int(spp))
+            self.renders += 1
+            out = np.array(img, dtype=np.float32)
+            if with_shape_names:
+                return out, shape_index_names(mi, loaded.scene)
+            return out
+
+    def cache_info(self) -> dict:
+        return {"scenes": len(self._cache), "loads": self.loads, "renders": self.renders}
+
+    # ---- internals
+    def _has_display(self, name: str) -> bool:
+        return any(d.name == name for d in self.geometry.displays)
+
+    def _content_parts(self, state: SimState) -> tuple[Part, ...]:
+        if state.content == "object":
+            return self.scene.parts
+        if state.content == "board":
+            if state.charuco is None:
+                return tuple(p for p in self.scene.parts if p.kind == "board") or board_parts(CharucoSpec())
+            return board_parts(state.charuco)
+        if state.content == "none":
+            return ()
+        raise InputError(f"state.content {state.content!r}: expected 'object', 'board' or 'none'")
+
+    @staticmethod
+    def _render_camera(rig_camera: Camera, cfg: EffectConfig) -> Camera:
+        s = float(cfg.resolution_scale)
+        return rig_camera if abs(s - 1.0) < 1e-9 else rig_camera.scaled(s)
+
+    def _get(self, cfg: EffectConfig, parts, state: SimState, cam: Camera, mode: tuple) -> _Loaded:
+        content_key = (state.content, None if state.charuco is None or state.content != "board"
+                       else repr(state.charuco))
+        key = ("capture", cfg.key(), cfg.spp, content_key, _camera_key(cam), mode)
+        with self._cache_lock:
+            loaded = self._cache.get(key)
+            if loaded is None:
+                loaded = self._build(cfg, parts, cam, mode)
+                self._cache[key] = loaded
+            return loaded
+
+    def _build(self, cfg: EffectConfig, parts, cam: Camera, mode: tuple) -> _Loaded:
+        mi = self.mi
+        d: dict = {"type": "scene", "integrator": _integrator_dict(cfg),
+                   "sensor": _sensor_dict(mi, cam, cfg.sampler, cfg.spp)}
+        d.update(part_dicts(mi, parts))
+        emitting = set(mode[1]) if mode[0] == "displays" else set()
+        keys: dict = {"displays": {}}
+        if "displays" in cfg.shapes or emitting:
+            for i, disp in enumerate(self.geometry.displays):
+                k = f"display_{i}"
+                entry = {"type": "rectangle", "to_world": mi.ScalarTransform4f(display_to_world(disp, 0.0)),
+                         "bsdf": _black()}
+                if disp.name in emitting:
+                    w, h = disp.resolution
+                    entry["emitter"] = {"type": "area",
+                                        "radiance": _texture(mi, np.zeros((h, w, 3), np.float32), nearest=True)}
+                d[k] = entry
+                keys["displays"][disp.name] = k
+        if mode[0] == "light":
+            d["light"] = {"type": "point", "position": [0.0, 1.0, 0.0],
+                          "intensity": {"type": "rgb", "value": [1.0, 1.0, 1.0]}}
+        sc = mi.load_dict(d, optimize=False)  # keep shapes separate: their params are rewritten
+        self.loads += 1
+        return _Loaded(sc, mi.traverse(sc), keys)
+
+    def _set_sensor(self, loaded: _Loaded, name: str, cam: Camera) -> None:
+        mi = self.mi
+        p = mitsuba_sensor_params(cam)
+        params = loaded.params
+        params[f"{name}.to_world"] = mi.AffineTransform4f(np.asarray(p["to_world"]))
+        fov_x = math.degrees(2.0 * math.atan(cam.width / (2.0 * cam.fx)))
+        params[f"{name}.x_fov"] = fov_x
+        params[f"{name}.principal_point_offset_x"] = p["principal_point_offset_x"]
+        params[f"{name}.principal_point_offset_y"] = p["principal_point_offset_y"]
+
+    def _run(self, loaded: _Loaded, view: Camera, state: SimState, cfg: EffectConfig, seed: int, *,
+             displays: Mapping[str, np.ndarray] | None = None, light: tuple[int, int] | None = None) -> np.ndarray:
+        mi = self.mi
+        with loaded.lock:
+            params = loaded.params
+            self._set_sensor(loaded, "sensor", view)
+            for disp in self.geometry.displays:
+                k = loaded.keys["displays"].get(disp.name)
+                if k is None:
+                    continue
+                params[f"{k}.to_world"] = mi.AffineTransform4f(display_to_world(disp, state.table_deg))
+                if displays is not None and disp.name in displays:
+                    rad = display_radiance(disp, displays[disp.name])
+                    params[f"{k}.emitter.radiance.data"] = _tensor(mi, rad[::-1])
+            if light is not None:
+                lid, level = light
+                pos_rig = self.geometry.light(lid).position_rig(state.array_deg)
+                pos = object_from_rig(state.table_deg)[:3, :3] @ pos_rig
+                params["light.position"] = mi.Point3f(*[float(v) for v in pos])
+                params["light.intensity.value"] = mi.Color3f(*[float(v) for v in
+                                                               light_intensity(self.geometry, lid, level)])
+            params.update()
+            img = mi.render(loaded.scene, params, seed=int(seed) & 0x7FFFFFFF, spp=int(cfg.spp))
+            self.renders += 1
+            return np.array(img, dtype=np.float32)[:, :, :3]
+
+
+def shape_index_names(mi, scene) -> dict[int, str]:
+    """Value of the aov ``shape_index`` channel → shape id (the Mitsuba dict key).
+
+    In the JIT variants the channel holds the shape's registry id, which counts shapes
+    across every scene loaded in the process; in scalar variants it is 1 + the position
+    in ``scene.shapes()``. 0 is the background in both.
+    """
+    shapes = list(scene.shapes())
+    ptr_type = getattr(mi, "ShapePtr", None)
+    if ptr_type is not None:
+        import drjit as dr
+
+        ids = np.array(dr.reinterpret_array(mi.UInt32, ptr_type(shapes))).astype(np.int64).ravel().tolist()
+    else:
+        ids = list(range(1, len(shapes) + 1))
+    return {int(i): s.id() for i, s in zip(ids, shapes)}
+
+
+def _downsample(img: np.ndarray, width: int, height: int) -> np.ndarray:
+    import cv2
+
+    return cv2.resize(img, (width, height), interpolation=cv2.INTER_AREA).astype(np.float32)

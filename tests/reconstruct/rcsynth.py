@@ -1,0 +1,253 @@
+"""Analytic test scenes for the reconstruction tests: sessions on disk whose every pixel
+is known, written with the real :class:`opacityhull.session.SessionWriter`.
+
+The object is a sphere (``kind="sphere"``) or a sphere core with a semi-transparent
+halo (``kind="fuzzy"``: true alpha 0.35 where a ray meets only the halo, so mattes are
+fractional there). Images are ray-cast in NumPy with ``ss × ss`` samples per pixel:
+each sample sees the object or, behind it, the display texel the ray hits (the bottom
+panel turns with the table, the back panel is fixed), so composites and coverage alpha
+come from the same rays. This is independent of the code under test (it does not call
+``matting.backdrop_from_displays``).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from opacityhull.camera import Camera, object_from_rig, write_colmap_text, write_opencv_yaml
+from opacityhull.imageio import read_png, write_exr, write_png
+from opacityhull.riggeometry import RigGeometry, view_id
+from opacityhull.session import SessionWriter, shot_key
+
+CORE_R = 0.04
+HALO_R = 0.055
+CENTRE = np.array([0.0, 0.06, 0.0])
+HALO_ALPHA = 0.35
+
+
+def rig_dict(n_cams=3, width=64, height=48, *, fov_y_deg=20.0, distance_m=0.8):
+    els = np.linspace(15.0, 55.0, n_cams)
+    cams = [{"name": f"cam{i}", "width": width, "height": height, "distance_m": distance_m,
+             "elevation_deg": float(e), "azimuth_deg": 0.0, "fov_y_deg": fov_y_deg} for i, e in enumerate(els)]
+    return {
+        "target_m": [0.0, 0.06, 0.0],
+        "cameras": cams,
+        "lights": [{"id": 0, "elevation_deg": 40.0, "azimuth_deg": 90.0, "distance_m": 1.0},
+                   {"id": 1, "elevation_deg": 70.0, "azimuth_deg": -60.0, "distance_m": 1.0}],
+        "displays": [
+            {"name": "bottom", "centre_m": [0.0, 0.0, 0.0], "normal": [0.0, 1.0, 0.0], "up": [0.0, 0.0, -1.0],
+             "size_m": [1.0, 1.0], "resolution": [32, 32], "rotates_with_table": True, "max_radiance": 1.0},
+            {"name": "back", "centre_m": [0.0, 0.28, -0.4], "normal": [0.0, 0.0, 1.0], "up": [0.0, 1.0, 0.0],
+             "size_m": [1.0, 0.56], "resolution": [32, 18], "rotates_with_table": False, "max_radiance": 1.0},
+        ],
+    }
+
+
+def _sphere_t(o, d, c, r):
+    oc = o - c
+    b = d @ oc
+    cc = oc @ oc - r * r
+    disc = b * b - cc
+    t = -b - np.sqrt(np.maximum(disc, 0.0))
+    return np.where((disc >= 0) & (t > 0), t, np.inf)
+
+
+def _display_radiance(o, d, table_deg, geo: RigGeometry, patterns: dict | None):
+    """Radiance of the displays along rays (object frame); 0 where no display is hit."""
+    out = np.zeros((d.shape[0], 3))
+    best = np.full(d.shape[0], np.inf)
+    if patterns is None:
+        return out
+    Robj = object_from_rig(table_deg)[:3, :3]
+    for disp in geo.displays:
+        pat = patterns.get(disp.name)
+        if pat is None:
+            continue
+        F = disp.frame()
+        right, up, n, ctr = F[:3, 0], F[:3, 1], F[:3, 2], F[:3, 3]
+        if not disp.rotates_with_table:  # fixed in the rig: turns by -a in the object frame
+            right, up, n, ctr = Robj @ right, Robj @ up, Robj @ n, Robj @ ctr
+        den = d @ n
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = ((ctr - o) @ n) / den
+        X = o + t[:, None] * d
+        x = (X - ctr) @ right
+        y = (X - ctr) @ up
+        w, h = disp.size_m
+        hit = np.isfinite(t) & (t > 0) & (t < best) & (np.abs(x) < w / 2) & (np.abs(y) < h / 2)
+        rows, cols = pat.shape[:2]
+        col = np.clip(((x[hit] + w / 2) / w * cols).astype(int), 0, cols - 1)
+        row = np.clip(((h / 2 - y[hit]) / h * rows).astype(int), 0, rows - 1)
+        out[hit] = disp.max_radiance * pat[row, col]
+        best[hit] = t[hit]
+    return out
+
+
+def _albedo(n):
+    """A smooth colour pattern on the sphere (object-frame normal)."""
+    return np.stack([0.35 + 0.25 * np.sin(5 * n[:, 0]), 0.35 + 0.25 * np.cos(4 * n[:, 1]),
+                     0.3 + 0.2 * np.sin(3 * n[:, 2] + 1)], axis=1)
+
+
+def render_view(cam: Camera, table_deg: float, geo: RigGeometry, *, kind="sphere", patterns=None,
+                light_dir=None, ss=3, rays=None, hide_object=False):
+    """(colour (H, W, 3), alpha (H, W)) of the object in front of the displays showing
+    ``patterns`` ({display: (rows, cols, 3)} or None = dark), lit by a directional
+    ``light_dir`` (object frame) plus ambient (None: a fixed key light)."""
+    H, W = cam.height, cam.width
+    o, d = rays if rays is not None else _rays(cam, ss)
+    tc = _sphere_t(o, d, CENTRE, CORE_R)
+    if hide_object:
+        tc = np.full_like(tc, np.inf)
+    core = np.isfinite(tc)
+    X = o + np.where(core, tc, 0.0)[:, None] * d
+    n = (X - CENTRE) / CORE_R
+    L = np.array([0.5, 0.8, 0.4]) if light_dir is None else np.asarray(light_dir, float)
+    L = L / np.linalg.norm(L)
+    shade = (0.15 if light_dir is None else 0.0) + 0.85 * np.clip(n @ L, 0, None)
+    Fcore = _albedo(n) * shade[:, None]
+    back = _display_radiance(o, d, table_deg, geo, patterns)
+    col = np.where(core[:, None], Fcore, back)
+    a = core.astype(np.float64)
+    if kind == "fuzzy" and not hide_object:
+        halo = (~core) & np.isfinite(_sphere_t(o, d, CENTRE, HALO_R))
+        Fh = np.array([0.6, 0.5, 0.35]) * (0.3 if light_dir is None else 0.8 * max(L[1], 0.0))
+        col = np.where(halo[:, None], HALO_ALPHA * Fh + (1 - HALO_ALPHA) * back, col)
+        a = np.where(halo, HALO_ALPHA, a)
+    col = col.reshape(H, W, ss * ss, 3).mean(2)
+    a = a.reshape(H, W, ss * ss).mean(2)
+    return col.astype(np.float32), a.astype(np.float32)
+
+
+def uv_sphere(c, r, seg=48, rings=24):
+    th = np.linspace(0, np.pi, rings + 1)
+    ph = np.linspace(0, 2 * np.pi, seg, endpoint=False)
+    V = [c + r * np.array([0, 1, 0])]
+    for t in th[1:-1]:
+        for p in ph:
+            V.append(c + r * np.array([np.sin(t) * np.sin(p), np.cos(t), np.sin(t) * np.cos(p)]))
+    V.append(c - r * np.array([0, 1, 0]))
+    V = np.array(V)
+    F = []
+    for j in range(seg):
+        F.append([0, 1 + j, 1 + (j + 1) % seg])
+    for i in range(rings - 2):
+        for j in range(seg):
+            a = 1 + i * seg + j
+            b = 1 + i * seg + (j + 1) % seg
+            F += [[a, a + seg, b], [b, a + seg, b + seg]]
+    last = len(V) - 1
+    base = 1 + (rings - 2) * seg
+    for j in range(seg):
+        F.append([base + j, last, base + (j + 1) % seg])
+    F = np.array(F)
+    # orient outwards
+    A, B, C = V[F[:, 0]], V[F[:, 1]], V[F[:, 2]]
+    nrm = np.cross(B - A, C - A)
+    flip = (nrm * (A + B + C - 3 * c)).sum(1) < 0
+    F[flip] = F[flip][:, ::-1]
+    return V, F
+
+
+def write_ply(path, V, F):
+    from plyfile import PlyData, PlyElement
+
+    v = np.empty(len(V), dtype=[("x", "f4"), ("y", "f4"), ("z", "f4")])
+    v["x"], v["y"], v["z"] = V.T
+    f = np.empty(len(F), dtype=[("vertex_indices", "i4", (3,))])
+    f["vertex_indices"] = F
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    PlyData([PlyElement.describe(v, "vertex"), PlyElement.describe(f, "face")]).write(str(path))
+
+
+def make_session(root, *, kind="sphere", n_cams=3, n_angles=6, width=64, height=48, n_patterns=2,
+                 object_absent=True, off_shots=True, reflectance=True, cameras="yaml", noise=0.002, seed=0,
+                 ss=3, exposure_s=1.0, white_level=4.0, rms_px=0.3, hide_object_in=()):
+    """Write a session folder; returns a dict with geometry, views, true alphas, cameras.
+
+    ``cameras``: "yaml" (calibration/<cam>.yaml), "none" (no camera source at all).
+    ``n_patterns`` random patterns, each followed by its complement (2 n_patterns shots).
+    ``hide_object_in``: view ids whose images show no object (an empty silhouette).
+    """
+    root = Path(root)
+    rng = np.random.default_rng(seed)
+    rig = rig_dict(n_cams, width, height)
+    geo = RigGeometry.from_dict(rig)
+    rig_cams = geo.nominal_cameras()
+    angles = [360.0 * i / n_angles for i in range(n_angles)]
+    views = [(c, a) for c in range(n_cams) for a in angles]
+    meta = {"session": {"rig_source": f"synthetic:{kind}", "plan_name": "synthetic", "white_level": white_level,
+                        "seed": seed},
+            "rig": rig}
+    w = SessionWriter(root, fsync=False).create(meta)
+    # patterns: random cells and their complements, saved as uploaded (8-bit PNG)
+    pats = {}
+    for k in range(n_patterns):
+        base = {}
+        for d in geo.displays:
+            cols, rows = d.resolution
+            base[d.name] = rng.uniform(0.05, 0.95, (rows, cols, 3)).astype(np.float32)
+        for pid, imgs in ((2 * k + 1, base), (2 * k + 2, {n: 1.0 - x for n, x in base.items()})):
+            for name, img in imgs.items():
+                write_png(root / "patterns" / name / f"p{pid:03d}.png", img, linear=True)
+            pats[pid] = {d.name: read_png(root / "patterns" / d.name / f"p{pid:03d}.png", linear=True)
+                         for d in geo.displays}
+    gain = 1.0
+
+    def add(img, phase, c, a, **kw):
+        key = shot_key(phase, c, a, lights_deg=kw.get("lights_deg"), light=kw.get("light"),
+                       pattern=kw.get("pattern"), object_present=kw.get("object_present", True))
+        img = img + rng.normal(0.0, noise, img.shape).astype(np.float32)
+        val = np.minimum(img * gain * exposure_s, white_level).astype(np.float32)
+        w.add_image(val, id=f"{key}/e0", shot=key, phase=phase, camera=c, table_deg=a,
+                    rel_path=f"images/{key}_e0.exr", exposure_s=exposure_s, **kw)
+
+    true_alpha = {}
+    vcams = []
+    for c, a in views:
+        cam = RigGeometry.view_camera(rig_cams[c], a, name=view_id(c, a))
+        vcams.append(cam)
+        rays = _rays(cam, ss)
+        kw = {"kind": kind, "ss": ss, "rays": rays, "hide_object": view_id(c, a) in hide_object_in}
+        for pid, p in pats.items():
+            col, al = render_view(cam, a, geo, patterns=p, **kw)
+            add(col, "matting", c, a, pattern=pid)
+            if object_absent:
+                bg = _display_radiance(*rays, a, geo, p).reshape(height, width, ss * ss, 3).mean(2)
+                add(bg.astype(np.float32), "matting", c, a, pattern=pid, object_present=False)
+        col, al = render_view(cam, a, geo, patterns=None, **kw)
+        if off_shots:
+            add(col, "matting", c, a, pattern=None)
+        add(col, "lightfield", c, a)
+        true_alpha[view_id(c, a)] = al
+        if reflectance:
+            for lid in (0, 1):
+                Ld = geo.light_direction_object(lid, a, 0.0)
+                colL, _ = render_view(cam, a, geo, patterns=None, light_dir=Ld, **kw)
+                add(colL, "reflectance", c, a, light=lid, lights_deg=0.0)
+    w.close()
+    if cameras == "yaml":
+        for cam in rig_cams:
+            write_opencv_yaml(root / "calibration" / f"{cam.name}.yaml", cam, extra={"reproj_rms_px": rms_px})
+    gt = root / "groundtruth"
+    write_colmap_text(gt / "cameras", vcams, [v.name for v in vcams], share_intrinsics=[c for c, _ in views])
+    for cam in rig_cams:
+        write_opencv_yaml(gt / "calibration" / f"{cam.name}.yaml", cam)
+    for vid, al in true_alpha.items():
+        write_exr(gt / "alpha" / f"{vid}.exr", al)
+    V, F = uv_sphere(CENTRE, CORE_R)
+    write_ply(gt / "object.ply", V, F)
+    return {"geometry": geo, "views": views, "alpha": true_alpha, "view_cameras": vcams, "rig_cameras": rig_cams,
+            "patterns": pats}
+
+
+def _rays(cam, ss):
+    H, W = cam.height, cam.width
+    offs = (np.arange(ss) + 0.5) / ss - 0.5
+    v, u = np.mgrid[0:H, 0:W].astype(np.float64)
+    uu, vv = np.broadcast_arrays(u[..., None, None] + offs[None, None, None, :],
+                                 v[..., None, None] + offs[None, None, :, None])
+    uu, vv = uu.reshape(-1), vv.reshape(-1)
+    return cam.pixel_rays(np.stack([uu, vv], 1))

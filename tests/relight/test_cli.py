@@ -1,0 +1,126 @@
+"""`opacityhull relight` and `opacityhull eval relight` end to end on the analytic
+sphere model (the real CLI in a subprocess-free typer runner)."""
+
+import json
+
+import numpy as np
+import pytest
+from typer.testing import CliRunner
+
+from opacityhull.cli import app
+from opacityhull.imageio import read_exr, write_exr
+
+
+def run(*args):
+    r = CliRunner().invoke(app, [str(a) for a in args])
+    r.text = " ".join(r.output.split())  # rich wraps long messages
+    return r
+
+
+def test_relight_envmap_writes_views_and_summary(sphere_model, probes_dir, tmp_path):
+    r = run("relight", sphere_model, "--envmap", probes_dir / "uffizi.hdr", "--yaw-deg", 180, "--out", tmp_path / "o",
+            "--json")
+    assert r.exit_code == 0, r.output
+    s = json.loads(r.stdout.strip().splitlines()[-1])
+    assert s["n_views"] == 8 and s["n_lights_captured"] == 60
+    assert s["lighting"]["envmap"]["source"] == "uffizi.hdr yaw 180"
+    rgba = read_exr(tmp_path / "o" / "views" / "c0_t000.000.exr")
+    assert rgba.shape == (32, 40, 4) and rgba[..., :3].max() > 0
+    assert (tmp_path / "o" / "views.png").stat().st_size > 0
+    assert json.loads((tmp_path / "o" / "relight.json").read_text())["n_views"] == 8
+
+
+def test_builtin_probe_gets_its_yaw_by_default(sphere_model, tmp_path):
+    r = run("relight", sphere_model, "--envmap", "builtin:grace", "--out", tmp_path / "o", "--json", "--no-views")
+    assert r.exit_code == 0, r.output
+    assert json.loads(r.stdout.strip().splitlines()[-1])["lighting"]["envmap"]["source"] == "grace.hdr yaw 180"
+    r = run("relight", sphere_model, "--envmap", "builtin:grace", "--yaw-deg", 0, "--out", tmp_path / "o", "--json",
+            "--no-views")
+    assert json.loads(r.stdout.strip().splitlines()[-1])["lighting"]["envmap"]["source"] == "grace.hdr"
+    r = run("relight", sphere_model, "--envmap", "builtin:sun", "--out", tmp_path / "o")
+    assert r.exit_code == 2 and "unknown built-in probe" in r.text
+
+
+def test_relight_with_lights_and_pca(sphere_model, tmp_path):
+    r = run("relight", sphere_model, "--lights", "0,1,0.2,1,1,1;point:1,1,0,2,0,0", "--pca-rank", 9,
+            "--out", tmp_path / "o", "--json", "--no-views")
+    assert r.exit_code == 0, r.output
+    s = json.loads(r.stdout.strip().splitlines()[-1])
+    assert s["lighting"]["envmap"] is None and len(s["lighting"]["lights"]) == 2
+    np.testing.assert_allclose(s["lighting"]["lights"][1]["irradiance_rgb"], [1.0, 0, 0])  # 2 / |(1,1,0)|^2
+    assert s["pca"]["rank"] == 9 and 0 < s["pca"]["reflectance_rel_error_mean"] < 0.05
+    assert not (tmp_path / "o" / "views").exists()
+
+
+def test_relight_orbit_and_view_render_through_ulr(sphere_model, probes_dir, tmp_path):
+    r = run("relight", sphere_model, "--envmap", probes_dir / "pisa.hdr", "--yaw-deg", 180, "--orbit", 3,
+            "--view", "1,45", "--out", tmp_path / "o", "--json", "--no-views")
+    assert r.exit_code == 0, r.output
+    s = json.loads(r.stdout.strip().splitlines()[-1])
+    assert s["orbit"]["frames"] == 3 and (tmp_path / "o" / "orbit.gif").stat().st_size > 0
+    f = read_exr(tmp_path / "o" / "orbit" / "frame_001.exr")
+    assert f.shape == (32, 40, 4) and f[..., 3].max() > 0.9  # the sphere is in frame
+    assert (tmp_path / "o" / "view_c1_t045.000.png").is_file()
+
+
+def test_relight_bad_inputs_exit_nonzero_with_a_clear_message(sphere_model, tmp_path):
+    bad = np.ones((8, 16, 3), np.float32)
+    bad[3, 4, 0] = np.nan
+    write_exr(tmp_path / "nan.exr", bad)
+    r = run("relight", sphere_model, "--envmap", tmp_path / "nan.exr", "--out", tmp_path / "o")
+    assert r.exit_code == 2 and "nan.exr" in r.text and "1 NaN" in r.text
+    r = run("relight", sphere_model, "--out", tmp_path / "o")
+    assert r.exit_code == 2 and "--envmap" in r.text
+    r = run("relight", tmp_path / "nope", "--lights", "0,1,0,1,1,1", "--out", tmp_path / "o")
+    assert r.exit_code == 4 and "not a model" in r.text
+    r = run("relight", sphere_model, "--lights", "0,1,0,1,1", "--out", tmp_path / "o")
+    assert r.exit_code == 2 and "--lights" in r.text
+    r = run("relight", sphere_model, "--lights", "0,1,0,1,1,1", "--view", "9,0", "--out", tmp_path / "o")
+    assert r.exit_code == 2 and "no captured camera 9" in r.text
+
+
+def test_eval_relight_on_the_analytic_sphere(sphere_model, probes_dir, tmp_path):
+    r = run("eval", "relight", sphere_model, "--envmap", probes_dir / "uffizi.hdr", "--yaw-deg", 180,
+            "--max-views", 3, "--out", tmp_path / "e", "--json")
+    assert r.exit_code == 0, r.output
+    s = json.loads(r.stdout.strip().splitlines()[-1])
+    assert {"psnr_mean", "rel_err_mean", "per_view"} <= set(s)
+    assert len(s["per_view"]) == 3 and s["truth"] == "analytic quadrature"
+    assert s["rel_err_mean"] < 0.03 and s["psnr_mean"] > 30
+    assert (tmp_path / "e" / "eval_relight.png").stat().st_size > 0
+
+
+def test_eval_relight_refuses_a_model_of_a_real_rig(sphere_model, tmp_path, probes_dir):
+    """A model whose session was captured on hardware has no ground truth to compare with."""
+    import shutil
+    import tomllib
+
+    from opacityhull.session import SESSION_FORMAT, toml_dumps
+
+    m = tmp_path / "m"
+    shutil.copytree(sphere_model, m)
+    sess = tmp_path / "sess"
+    sess.mkdir()
+    (sess / "session.toml").write_text(toml_dumps({"session": {"format": SESSION_FORMAT, "rig_source": "rigs/lab.toml"}}))
+    (sess / "manifest.jsonl").write_text("")
+    meta = tomllib.loads((m / "model.toml").read_text())
+    meta["provenance"] = {"session": str(sess)}
+    (m / "model.toml").write_text(toml_dumps(meta))
+    r = run("eval", "relight", m, "--envmap", probes_dir / "uffizi.hdr", "--json")
+    assert r.exit_code == 2 and "not a simulated rig" in r.text and "rigs/lab.toml" in r.text
+
+
+def test_metrics_and_scene_lookup():
+    from opacityhull.relight.evaluate import _scene_of, relight_metrics
+
+    a = np.ones((4, 5, 3), np.float32)
+    m = np.zeros((4, 5), bool)
+    m[1:3, 1:4] = True
+    r = relight_metrics(a, a, m)
+    assert r["psnr"] == float("inf") and r["rel_err"] == 0 and r["pixels"] == 6
+    r = relight_metrics(a * 1.1, a, m)
+    assert r["rel_err"] == pytest.approx(0.1, rel=1e-5) and r["psnr"] == pytest.approx(20.0, abs=1e-3)
+    assert np.isnan(relight_metrics(a, a, np.zeros_like(m))["rel_err"])
+    assert _scene_of("sim:builtin:glossy") == "builtin:glossy"
+    assert _scene_of("sim:builtin:diffuse@/tmp/small/rig.toml") == "builtin:diffuse"
+    assert _scene_of("sim:glossy?scale=0.5") == "builtin:glossy"
