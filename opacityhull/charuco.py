@@ -7,6 +7,11 @@ along rig +Z, so the board's z axis (into the board, as OpenCV defines it) is ri
 ``offset_m`` / ``yaw_deg`` describe how far the board's centre is from the table centre
 and how it is turned — a real user never places it exactly; calibration estimates the
 true placement and the table axis from the observations.
+
+``tilt_deg`` stands the board on a wedge: rotated about its own x axis (rig +X at yaw 0)
+so that, at table angle 0, it leans back to face the cameras (which sit on the +Z side).
+A flat board is seen edge-on by cameras near the table plane; a board tilted by about
+the middle of the cameras' elevation range is seen by all of them at some table angles.
 """
 
 from __future__ import annotations
@@ -19,7 +24,16 @@ import numpy as np
 from .camera import rot_y
 from .errors import ConfigError
 
-__all__ = ["CharucoSpec"]
+__all__ = ["CharucoSpec", "BOARD_R0", "rot_x"]
+
+#: Orientation of a flat board at yaw 0: board x → rig +X, board y → +Z, board z → −Y.
+BOARD_R0 = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
+
+
+def rot_x(angle_rad: float) -> np.ndarray:
+    """3×3 right-handed rotation about +X (+Y turns towards +Z)."""
+    c, s = math.cos(angle_rad), math.sin(angle_rad)
+    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
 
 
 @dataclass(frozen=True)
@@ -33,7 +47,9 @@ class CharucoSpec:
     dictionary : OpenCV predefined ArUco dictionary name (``DICT_5X5_100``).
     offset_m : (x, z) of the board centre from the table centre, rig frame, table angle 0.
     yaw_deg : rotation of the board about +Y at table angle 0.
-    height_m : board top above the table plane (its thickness).
+    height_m : height of the board's centre above the table top (a flat board's
+        thickness; for a tilted board, whatever the wedge makes it).
+    tilt_deg : lean of the board about its x axis, towards the cameras at table angle 0.
     """
 
     squares_x: int = 7
@@ -44,12 +60,15 @@ class CharucoSpec:
     offset_m: tuple[float, float] = (0.0, 0.0)
     yaw_deg: float = 0.0
     height_m: float = 0.0
+    tilt_deg: float = 0.0
 
     def __post_init__(self):
         if self.squares_x < 3 or self.squares_y < 3:
             raise ConfigError(f"charuco: need at least 3x3 squares, got {self.squares_x}x{self.squares_y}")
         if not 0 < self.marker_m < self.square_m:
             raise ConfigError(f"charuco: marker_m={self.marker_m} must be in (0, square_m={self.square_m})")
+        if not 0.0 <= self.tilt_deg < 90.0:
+            raise ConfigError(f"charuco.tilt_deg: must be in [0, 90), got {self.tilt_deg}")
 
     @classmethod
     def from_dict(cls, d: dict, where: str = "charuco") -> "CharucoSpec":
@@ -72,6 +91,7 @@ class CharucoSpec:
             "offset_m": list(self.offset_m),
             "yaw_deg": self.yaw_deg,
             "height_m": self.height_m,
+            "tilt_deg": self.tilt_deg,
         }
 
     @property
@@ -93,12 +113,15 @@ class CharucoSpec:
         w, h = self.squares_x * px_per_square, self.squares_y * px_per_square
         return self.board().generateImage((w, h), marginSize=0, borderBits=1)
 
+    def tilt_rotation(self) -> np.ndarray:
+        """Rotation about rig +X that leans the board's upper face (−board z) towards +Z."""
+        return rot_x(math.radians(self.tilt_deg))
+
     def object_from_board(self) -> np.ndarray:
         """4×4 pose of the board frame (OpenCV board coordinates, metres) in the object
         frame (= rig frame at table angle 0), as placed nominally."""
         w, h = self.size_m
-        R0 = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])  # board x→+X, y→+Z, z→−Y
-        R = rot_y(math.radians(self.yaw_deg)) @ R0
+        R = rot_y(math.radians(self.yaw_deg)) @ self.tilt_rotation() @ BOARD_R0
         centre = np.array([self.offset_m[0], self.height_m, self.offset_m[1]])
         T = np.eye(4)
         T[:3, :3] = R
