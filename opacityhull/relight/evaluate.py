@@ -143,10 +143,20 @@ def _truth_renderer(model, kind, ref, *, spp: int) -> Callable:
     except (ImportError, TypeError):
         renderer = None
 
+    # The relit view is an image of the *physical* view (c, a): render the truth with the
+    # simulator's true camera of that view, not the calibrated estimate (which may also
+    # have fx != fy, which Mitsuba's sensor cannot represent).
+    true_cams = {}
+    if _sess is not None and _sess.groundtruth_dir is not None and (_sess.groundtruth_dir / "cameras").is_dir():
+        from ..camera import read_colmap_text
+
+        true_cams = dict(read_colmap_text(_sess.groundtruth_dir / "cameras"))
+
     def truth(i, env):
         v = model.views[i]
+        cam = true_cams.get(v.id, v.camera)
         # a writable copy: Mitsuba's Bitmap refuses read-only arrays
-        img = np.asarray(render_under_envmap(scene, v.camera, np.array(env.radiance), spp=spp, rig=geom,
+        img = np.asarray(render_under_envmap(scene, cam, np.array(env.radiance), spp=spp, rig=geom,
                                              table_deg=v.table_deg, renderer=renderer), np.float32)
         return img[..., :3] * img[..., 3:4], img[..., 3]  # premultiplied by the true coverage
 
