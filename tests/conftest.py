@@ -11,3 +11,26 @@ import os
 
 for _var in ("OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
+
+
+import pytest  # noqa: E402
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _simcache_root(tmp_path_factory):
+    """Root of tests/simcache.py for this run: ``<basetemp>/simcache`` (shared by the
+    pytest-xdist workers, whose basetemps are siblings)."""
+    import simcache
+
+    base = tmp_path_factory.getbasetemp()
+    if base.name.startswith("popen-gw"):
+        base = base.parent
+    return simcache.configure(base / "simcache")
+
+
+@pytest.fixture(scope="session")
+def sim_cache(_simcache_root):
+    """The :mod:`simcache` module (``captured``, ``built``, ``report``), configured."""
+    import simcache
+
+    return simcache
