@@ -77,7 +77,8 @@ def bench_matting(quick: bool) -> dict:
     reps = 3 if quick else 7
     out = {"K": K, "width": W, "height": H, "compile_s": compile_s}
     Cr, Br = C.reshape(K, N, 3), B.reshape(K, N, 3)
-    bufs = [np.empty(N), np.empty((N, 3)), np.empty(N), np.empty(N), np.empty(N), np.empty(N, np.uint8)]
+    bufs = [np.empty(N, np.float32), np.empty((N, 3), np.float32), np.empty(N), np.empty(N, np.float32),
+            np.empty(N, np.float32), np.empty(N, np.uint8)]  # as solve_matte allocates them
     inf = np.full(K, np.inf, np.float32)
     threads = numba.config.NUMBA_NUM_THREADS
     for nt in sorted({1, threads}):

@@ -7,7 +7,9 @@ Steps (each timed into ``report.json``):
    ``calibration/<camera>.yaml`` (known rig cameras), then ``cameras/`` (a camera per view,
    imported image sets). Nothing else is used silently: ``BuildConfig.cameras =
    "groundtruth"`` (simulated sessions) or ``"nominal"`` (the rig as designed) are
-   debug options, recorded as such in the report.
+   debug options, recorded as such in the report. A camera the calibration phase
+   cannot calibrate (fewer than three usable board views) is left out with its views,
+   and the report says so (``BuildConfig.drop_uncalibrated_cameras``).
 2. **matting** — per view, triangulation matting (:mod:`.matting`) over the
    ``matting`` phase: each backdrop pattern shot with the object is paired with the
    same pattern shot with the object absent (the backdrop ``B_k``). Without
@@ -32,7 +34,9 @@ Steps (each timed into ``report.json``):
 8. **reflectance** — per view and light sample (light id, array angle) the
    one-light-at-a-time image as observed over the dark backdrops: premultiplied by
    construction; pixels with alpha <= ``alpha_eps`` are set to 0 (the panels' own
-   reflection of the light is not part of the object).
+   reflection of the light is not part of the object). Images taken with the light
+   dimmed to DMX level ``L`` (``extra["level"]`` of the record, else the plan's level)
+   are scaled by ``255 / L``: the model holds radiance at full level.
 9. **write** — :func:`opacityhull.model.write_model`, rig cameras as OpenCV YAML in
    ``calibration/``, ``report.json``.
 10. **pictures** — matte contact sheet, hull overlays, reprojection histogram.
@@ -106,6 +110,9 @@ class BuildConfig:
     backdrops : "auto" (object-absent captures, else the display geometry),
         "object-absent" (required) or "geometry" (always predicted; for comparisons).
     exclude_views : view ids left out of the model.
+    drop_uncalibrated_cameras : with a calibration phase, a camera that cannot be
+        calibrated (fewer than three usable board views) is left out with its views and a
+        note in the report; False makes it an error.
     root_cell : octree root cell edge (voxels, power of two).
     alpha_eps : below this alpha the straight colour is 0.
     reflectance : attach one-light-at-a-time images when the session has them.
@@ -129,6 +136,7 @@ class BuildConfig:
     cameras: str = "auto"
     backdrops: str = "auto"
     exclude_views: tuple[str, ...] = ()
+    drop_uncalibrated_cameras: bool = True
     root_cell: int = 32
     alpha_eps: float = 1e-3
     reflectance: bool = True
@@ -240,16 +248,27 @@ class _Cameras:
     rms_px: dict[int, float]
     source: str
     calibration: object = None
+    #: the views these cameras belong to (``views`` minus those of uncalibrated cameras)
+    kept: list | None = None
+    #: camera index → why it was left out (its views dropped)
+    dropped_cameras: dict = field(default_factory=dict)
 
 
 def resolve_cameras(session: Session, views: Sequence[tuple[int, float]], *, source: str = "auto",
-                    progress=None) -> _Cameras:
+                    progress=None, drop_uncalibrated: bool = True) -> _Cameras:
     """Object-frame cameras of ``views`` (see the module docstring for the order).
 
-    Returns an object with ``views`` (Camera per view, named by view id), ``rig``
-    (rig cameras or None), ``rms_px`` (camera index → reprojection RMS), ``source`` and
-    ``calibration`` (the CalibrationResult when calibrated here).
+    Returns an object with ``views`` (Camera per kept view, named by view id), ``kept``
+    (the kept views: all of ``views`` unless a camera could not be calibrated),
+    ``dropped_cameras`` (camera index → reason), ``rig`` (rig cameras or None; None
+    entries for uncalibrated cameras), ``rms_px`` (camera index → reprojection RMS),
+    ``source`` and ``calibration`` (the CalibrationResult when calibrated here).
+
+    ``drop_uncalibrated``: with a calibration phase, a camera without three usable
+    board views is left uncalibrated and its views are dropped (``kept``); False makes
+    it an error (:class:`.calibration.CalibrationError`).
     """
+    views = list(views)
     vids = [view_id(c, a) for c, a in views]
     if source == "groundtruth":
         gt = session.groundtruth_dir
@@ -270,18 +289,33 @@ def resolve_cameras(session: Session, views: Sequence[tuple[int, float]], *, sou
                         "nominal (debug: the rig as designed, not calibrated)")
     # auto
     if "calibration" in session.phases():
-        from .calibration import CalibrationError, calibrate_session, view_cameras
+        from .calibration import CalibrationConfig, CalibrationError, calibrate_session, view_cameras
 
         try:
-            result = calibrate_session(session, progress=progress)
+            result = calibrate_session(session, progress=progress,
+                                       config=CalibrationConfig(skip_unusable_cameras=drop_uncalibrated))
         except CalibrationError as e:
             # never fall back silently to another camera source: say what to do instead
             raise CalibrationError(f"{e} — the session's calibration phase could not be used; fix the "
                                    "calibration captures, or (debugging only) build with --cameras "
                                    "groundtruth|nominal") from None
-        cams = view_cameras(result, views)
-        rms = {i: float(r) for i, r in enumerate(result.reproj_rms_px)}
-        return _Cameras(list(cams), list(result.rig_cameras), rms, "calibration phase (calibrated)", result)
+        ok = set(result.camera_indices)
+        kept = [(c, a) for c, a in views if c in ok]
+        dropped = {}
+        for c in sorted({c for c, _ in views} - ok):
+            dropped[c] = result.uncalibrated.get(c, "not calibrated")
+        if not kept:
+            raise CalibrationError(
+                f"{session.root}: no camera could be calibrated from the calibration phase ("
+                + "; ".join(f"camera {c}: {why}" for c, why in dropped.items())
+                + ") — nothing to build. Fix the calibration captures, or (debugging only) build with "
+                "--cameras groundtruth|nominal")
+        cams = view_cameras(result, kept)
+        # only calibrated cameras have an RMS (uncalibrated ones report NaN)
+        rms = {c: float(result.reproj_rms_px[c]) for c in result.camera_indices
+               if math.isfinite(float(result.reproj_rms_px[c]))}
+        rig = [rc if i in ok else None for i, rc in enumerate(result.rig_cameras)]
+        return _Cameras(list(cams), rig, rms, "calibration phase (calibrated)", result, kept, dropped)
     known = session.calibration_cameras()
     if known:
         missing = sorted({c for c, _ in views} - set(known))
@@ -293,6 +327,10 @@ def resolve_cameras(session: Session, views: Sequence[tuple[int, float]], *, sou
             if p.is_file():
                 r = _read_yaml_number(p, "reproj_rms_px")
                 if r is not None:
+                    if not (math.isfinite(r) and r >= 0):
+                        # the silhouettes are dilated by this: an unknown RMS cannot size that
+                        raise FormatError(f"{p}: reproj_rms_px is {r}; expected a finite number >= 0 (or no "
+                                          "such key when the calibration error is unknown)")
                     rms[i] = r
         rig = [known.get(i) for i in range(len(session.geometry.cameras))]
         return _Cameras([RigGeometry.view_camera(known[c], a, name=view_id(c, a)) for c, a in views], rig, rms,
@@ -435,6 +473,21 @@ def _colour_shot(session: Session, camera: int, table_deg: float) -> tuple[str |
     return None, None
 
 
+def _plan_reflectance_level(session: Session):
+    """The reflectance phase's DMX level from the plan recorded in the session (None if
+    not recorded)."""
+    plan = session.meta.get("plan", {})
+    ph = plan.get("phases", {}).get("reflectance", {}) if isinstance(plan, dict) else {}
+    return ph.get("level") if isinstance(ph, dict) else None
+
+
+def _camera_names(session: Session) -> dict[int, str]:
+    try:
+        return {i: c.name for i, c in enumerate(session.geometry.cameras)}
+    except FormatError:
+        return {}
+
+
 def _rig_volume(geo: RigGeometry | None) -> tuple[np.ndarray, np.ndarray] | None:
     """A generous box above the table (for unbounded LPs): the bottom display's extent."""
     if geo is None:
@@ -486,7 +539,15 @@ def build_model(session_dir, out_dir, *, config: BuildConfig = BuildConfig(), gr
     # 1. cameras
     with timer.step("cameras"):
         views = view_list(session, exclude=config.exclude_views)
-        cams = resolve_cameras(session, views, source=config.cameras, progress=prog)
+        cams = resolve_cameras(session, views, source=config.cameras, progress=prog,
+                               drop_uncalibrated=config.drop_uncalibrated_cameras)
+        if cams.kept is not None and len(cams.kept) < len(views):
+            names = _camera_names(session)
+            for c, why in cams.dropped_cameras.items():
+                n = sum(1 for cc, _ in views if cc == c)
+                notes.append(f"camera {names.get(c, c)} could not be calibrated ({why}): its {n} view(s) were left "
+                             "out of the model")
+            views = cams.kept
         vids = [view_id(c, a) for c, a in views]
     V = len(views)
 
@@ -620,6 +681,9 @@ def build_model(session_dir, out_dir, *, config: BuildConfig = BuildConfig(), gr
         if refl:
             per_view: dict[tuple, dict[str, str]] = {}
             samples: dict[str, LightSample] = {}
+            levels: dict[str, float] = {}
+            plan_level = _plan_reflectance_level(session)
+            unknown_level = 0
             for r in refl:
                 if not r.object_present or r.light is None:
                     continue
@@ -627,6 +691,24 @@ def build_model(session_dir, out_dir, *, config: BuildConfig = BuildConfig(), gr
                 key = light_key(r.light, arr)
                 samples.setdefault(key, LightSample(key, int(r.light), arr))
                 per_view.setdefault((r.camera, round(r.table_deg % 360.0, 6)), {}).setdefault(key, r.shot)
+                lv = (r.extra or {}).get("level", plan_level)
+                if lv is None:
+                    unknown_level += 1
+                    lv = 255
+                try:
+                    lv = float(lv)
+                except (TypeError, ValueError):
+                    lv = float("nan")
+                if not (0 < lv <= 255):
+                    raise FormatError(f"{session.root}: reflectance shot {r.shot} was taken at DMX level {lv!r}; "
+                                      "expected 1..255 (the one-light image is normalised to full level)")
+                levels.setdefault(r.shot, lv)
+            if unknown_level:
+                notes.append(f"reflectance: {unknown_level} one-light image(s) record no DMX level; taken as full "
+                             "level (255)")
+            if any(v != 255 for v in levels.values()):
+                notes.append("reflectance: one-light images taken below full DMX level were scaled by 255/level "
+                             "(the model stores radiance at full level)")
             common = set(samples)
             for c, a in views:
                 common &= set(per_view.get((c, round(a % 360.0, 6)), {}))
@@ -642,7 +724,9 @@ def build_model(session_dir, out_dir, *, config: BuildConfig = BuildConfig(), gr
                     mask = (alphas[i] > config.alpha_eps)[..., None]
                     outd = {}
                     for L in lights:
-                        img = _rgb(session.load_radiance(shots[L.key]))
+                        shot = shots[L.key]
+                        # radiance at full DMX level: a light dimmed to `level` emits level/255
+                        img = _rgb(session.load_radiance(shot)) * np.float32(255.0 / levels[shot])
                         outd[L.key] = np.where(mask, np.nan_to_num(img, nan=0.0, posinf=0.0, neginf=0.0), 0.0
                                                ).astype(np.float32)
                     return outd
@@ -658,6 +742,7 @@ def build_model(session_dir, out_dir, *, config: BuildConfig = BuildConfig(), gr
         out.mkdir(parents=True, exist_ok=True)
         provenance = {"session": str(session.root.resolve()), "rig_source": session.source,
                       "camera_source": cams.source, "backdrop_source": backdrop_source,
+                      "reflectance_units": "radiance at full DMX level (one-light images scaled by 255/level)",
                       "build_config": json.dumps(_jsonable(config.to_dict()), sort_keys=True)}
         rgba_iter = (view_rgba(i) for i in range(V))
         write_model(out, views=view_infos, surfels=surfels, view_rgba=rgba_iter, rig=session.meta.get("rig"),
@@ -681,8 +766,11 @@ def build_model(session_dir, out_dir, *, config: BuildConfig = BuildConfig(), gr
     metrics: dict = {}
     if cams.calibration is not None:
         metrics["reproj_rms_px"] = float(cams.calibration.rms_px)
-        metrics["reproj_rms_px_per_camera"] = {c.name: float(r) for c, r in
-                                               zip(cams.calibration.rig_cameras, cams.calibration.reproj_rms_px)}
+        cal = cams.calibration
+        metrics["reproj_rms_px_per_camera"] = {cal.rig_cameras[c].name: float(cal.reproj_rms_px[c])
+                                               for c in cal.camera_indices}
+        if cams.dropped_cameras:
+            metrics["uncalibrated_cameras"] = {cal.rig_cameras[c].name: why for c, why in cams.dropped_cameras.items()}
     if matte_stats:
         metrics["matting_unknown_frac"] = float(np.mean([m["unknown_frac"] for m in matte_stats]))
         metrics["matting_saturated_frac"] = float(np.mean([m["saturated_frac"] for m in matte_stats]))
@@ -726,7 +814,8 @@ def _pictures(out: Path, session, views, vids, alphas, sils, pin, surfels, cams,
     p = None
     if cal is not None:
         p = reprojection_histogram(pics / "reprojection.png", residuals_px=cal.residuals_px,
-                                   rms_per_camera={c.name: r for c, r in zip(cal.rig_cameras, cal.reproj_rms_px)})
+                                   rms_per_camera={cal.rig_cameras[c].name: cal.reproj_rms_px[c]
+                                                   for c in cal.camera_indices})
     elif cams.rms_px and cams.rig:
         p = reprojection_histogram(pics / "reprojection.png",
                                    rms_per_camera={f"cam{i}": r for i, r in cams.rms_px.items()})

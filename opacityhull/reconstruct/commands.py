@@ -78,13 +78,18 @@ def register(app, groups) -> None:
         max_alpha_std: float = typer.Option(0.05, "--max-alpha-std",
                                             help="Matting: pixels whose predicted alpha std exceeds this are "
                                                  "filled from their neighbours."),
+        require_all_cameras: bool = typer.Option(False, "--require-all-cameras",
+                                                 help="With a calibration phase: fail when a camera cannot be "
+                                                      "calibrated (default: leave it and its views out, with a "
+                                                      "note)."),
         no_reflectance: bool = typer.Option(False, "--no-reflectance", help="Do not attach one-light images."),
         no_pictures: bool = typer.Option(False, "--no-pictures", help="Skip the PNG pictures."),
         as_json: bool = typer.Option(False, "--json", help="Print one JSON object on stdout."),
     ):
         """Build the opacity hull of a session: cameras, matting, visual hull, surfels,
         visibility, per-view RGBA and reflectance, pictures (and ground-truth metrics)."""
-        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+        from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn,
+                                   TimeRemainingColumn)
 
         from .build import BuildConfig, build_model
         from .matting import MattingOptions
@@ -92,9 +97,13 @@ def register(app, groups) -> None:
         cfg = BuildConfig(hull_res=hull_res, alpha_threshold=alpha_threshold, cameras=cameras, backdrops=backdrops,
                           exclude_views=tuple(exclude_view or ()), bounds_m=_parse_bounds(bounds),
                           surfel_oversample=oversample, matting=MattingOptions(max_alpha_std=max_alpha_std),
-                          reflectance=not no_reflectance, pictures=not no_pictures)
+                          reflectance=not no_reflectance, pictures=not no_pictures,
+                          drop_uncalibrated_cameras=not require_all_cameras)
         with Progress(TextColumn("[bold]build: {task.description}"), BarColumn(), MofNCompleteColumn(),
-                      TextColumn("elapsed"), TimeElapsedColumn(), console=console(), transient=False) as bar:
+                      TextColumn("elapsed"), TimeElapsedColumn(), TextColumn("eta"), TimeRemainingColumn(),
+                      console=console(), transient=False) as bar:
+            # one bar for the whole build: its description names the step, its count and
+            # ETA are the step's (views matted, images calibrated, files written, ...)
             task = bar.add_task("start", total=None)
 
             def on_step(name: str) -> None:

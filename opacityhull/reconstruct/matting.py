@@ -332,8 +332,8 @@ def _finish(alpha, fg, S, res2, dof, flags, B, H, W, options: MattingOptions) ->
     conf = np.empty(N, np.float32)
     _confidence_kernel(np.ascontiguousarray(S, dtype=np.float64), sigma_eff, float(options.max_alpha_std),
                        flags, astd, conf)
-    alpha = alpha.reshape(H, W).astype(np.float32)
-    fg = fg.reshape(H, W, 3).astype(np.float32)
+    alpha = np.asarray(alpha, dtype=np.float32).reshape(H, W)  # no copy when already float32
+    fg = np.asarray(fg, dtype=np.float32).reshape(H, W, 3)
     flags = flags.reshape(H, W)
     unknown = (flags & FLAG_UNKNOWN) != 0
     if options.fill and np.any(unknown):
@@ -373,11 +373,12 @@ def solve_matte(observations, backdrops, *, c_saturation=None, b_saturation=None
     N = H * W
     Cr = C.reshape(K, N, 3)
     Br = B.reshape(K, N, 3)
-    alpha = np.empty(N, np.float64)
-    fg = np.empty((N, 3), np.float64)
+    # float32 outputs (S, which decides confidence, stays float64): less write traffic
+    alpha = np.empty(N, np.float32)
+    fg = np.empty((N, 3), np.float32)
     S = np.empty(N, np.float64)
-    res2 = np.empty(N, np.float64)
-    dof = np.empty(N, np.float64)
+    res2 = np.empty(N, np.float32)
+    dof = np.empty(N, np.float32)
     flags = np.empty(N, np.uint8)
     _matte_kernel(Cr, Br, cs, bs, alpha, fg, S, res2, dof, flags)
     return _finish(alpha, fg, S, res2, dof, flags, Br, H, W, options)

@@ -1,22 +1,24 @@
 """Per-surfel visibility over the captured views, by a depth test.
 
-For each view the surfels are splatted into a z-buffer (each surfel covers the square
-of pixels within its projected radius ``f r / z``, at least its own pixel, at the depth
-of its centre; the minimum wins). A surfel is visible in the view when
+For each view the surfels are splatted into a z-buffer as discs: every pixel whose
+ray meets a surfel's disc (centre, normal, radius) gets the depth of the disc's plane
+there, and a disc seen edge-on still writes its centre depth into its own pixel; the
+minimum wins. A surfel is visible in the view when
 
 * its centre is in front of the camera and projects inside the image,
 * it faces the camera: ``n · (c - p) / |c - p| >= facing_cos`` (a small negative slack
   keeps rim surfels, whose normals are perpendicular to the ray),
-* and its depth is at most the z-buffer's at its pixel plus a tolerance
-  (``depth_tol_m``; default twice the largest surfel radius: the discs of the front
-  surface overlap, so a surfel's own neighbours can be up to a radius closer).
+* and its depth is at most the z-buffer's at its pixel plus a tolerance: ``depth_tol_m``
+  (default the largest surfel radius: the discs of the front surface overlap, so a
+  surfel's own neighbours can be up to a radius closer) plus ``slope_px`` pixels of
+  depth slope for surfaces seen obliquely.
 
 This is the "visibility vector" of the opacity-hull paper, computed with occlusion —
 a surfel on the far side of the object, or hidden behind another part, is not visible
 even though it is in the frustum.
 
 :func:`surfel_visibility` is numba (parallel over views); :func:`surfel_visibility_reference`
-is the same rule in plain NumPy (``np.minimum.at``) for tests.
+is the same rule in plain NumPy (a loop over surfels, array maths over each footprint) for tests.
 """
 
 from __future__ import annotations

@@ -326,7 +326,9 @@ def triangulate(light_dirs) -> Triangulation:
     L = L / np.linalg.norm(L, axis=1, keepdims=True)
     K = len(L)
     sp = angular_spacing(L) if K > 1 else math.pi / 4
-    far = np.all(_GHOSTS @ L.T < math.cos(sp), axis=1)
+    # ghosts farther than the spacing (at most 45°) from every light: with very few
+    # lights the spacing is huge and would leave too few points to triangulate
+    far = np.all(_GHOSTS @ L.T < math.cos(min(sp, math.pi / 4)), axis=1)
     V = np.concatenate([L, _GHOSTS[far]])
     try:
         hull = ConvexHull(V, qhull_options="Qt")

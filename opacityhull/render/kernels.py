@@ -39,6 +39,7 @@ scattered reads of separate arrays made it latency-bound (measured 2–3× slowe
 from __future__ import annotations
 
 import math
+import threading
 
 import numpy as np
 from numba import njit
@@ -72,20 +73,22 @@ extrapolates far over the prefiltered footprint)."""
 
 
 @njit(cache=True, inline="always")
-def _project(cam, x, y, z):
-    """World point → (u, v, depth) through a packed camera; u = v = nan behind it."""
-    X = cam[0] * x + cam[1] * y + cam[2] * z + cam[9]
-    Y = cam[3] * x + cam[4] * y + cam[5] * z + cam[10]
-    Z = cam[6] * x + cam[7] * y + cam[8] * z + cam[11]
+def _project(cams, c, x, y, z):
+    """World point → (u, v, depth) through packed camera row ``c`` of ``cams``; u = v = nan
+    behind it. (Indexing ``cams[c, j]`` rather than taking the row ``cams[c]``: a row slice
+    is a new array object with reference counting, which made the ULR search ~1.5× slower.)"""
+    X = cams[c, 0] * x + cams[c, 1] * y + cams[c, 2] * z + cams[c, 9]
+    Y = cams[c, 3] * x + cams[c, 4] * y + cams[c, 5] * z + cams[c, 10]
+    Z = cams[c, 6] * x + cams[c, 7] * y + cams[c, 8] * z + cams[c, 11]
     if not Z > 0.0:
         return np.nan, np.nan, Z
     xn = X / Z
     yn = Y / Z
-    k1 = cam[16]
-    k2 = cam[17]
-    p1 = cam[18]
-    p2 = cam[19]
-    k3 = cam[20]
+    k1 = cams[c, 16]
+    k2 = cams[c, 17]
+    p1 = cams[c, 18]
+    p2 = cams[c, 19]
+    k3 = cams[c, 20]
     if k1 != 0.0 or k2 != 0.0 or p1 != 0.0 or p2 != 0.0 or k3 != 0.0:
         r2 = xn * xn + yn * yn
         radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
@@ -93,7 +96,7 @@ def _project(cam, x, y, z):
         yd = yn * radial + p1 * (r2 + 2.0 * yn * yn) + 2.0 * p2 * xn * yn
         xn = xd
         yn = yd
-    return cam[12] * xn + cam[14], cam[13] * yn + cam[15], Z
+    return cams[c, 12] * xn + cams[c, 14], cams[c, 13] * yn + cams[c, 15], Z
 
 
 @njit(cache=True, inline="always")
@@ -102,92 +105,6 @@ def _before(s_a, r_a, s_b, r_b):
     (its position when views are sorted by centre coordinates, so that the order of
     views in the model does not matter)."""
     return s_a < s_b or (s_a == s_b and r_a < r_b)
-
-
-@njit(cache=True, inline="always")
-def _select(px, py, pz, vis_row, allowed, dcx, dcy, dcz, view_centres, view_cams, view_sizes,
-            order, s_lb, tie_rank, k, best_s, best_v, best_u, best_y):
-    """k nearest allowed views of one surfel by the angle between the rays from the
-    surfel to the desired centre and to the view centre; views must see the surfel
-    (visibility bit), not be excluded, and project it inside their image.
-
-    Fills ``best_*[:m]`` sorted by (s, tie rank), where ``s = 1 − cos θ`` computed as
-    ``|d − d_v|² / 2`` (no cancellation near θ = 0). Returns m (−1 when the surfel sits
-    on the desired centre).
-
-    Fast path: choose by angle alone, then project the winners; only when a winner falls
-    outside its image (rare: the visibility bits were set from in-image projections) is
-    the search repeated with the image test applied to every candidate. Both paths
-    return the same list.
-    """
-    dx = dcx - px
-    dy = dcy - py
-    dz = dcz - pz
-    nd = math.sqrt(dx * dx + dy * dy + dz * dz)
-    if not nd > 0.0:
-        return -1
-    inv = 1.0 / nd
-    dx *= inv
-    dy *= inv
-    dz *= inv
-    for strict in range(2):
-        m = 0
-        for j in range(order.shape[0]):
-            if m == k and s_lb[j] > best_s[k - 1]:
-                break  # every later view is provably farther (sorted lower bounds)
-            v = order[j]
-            if allowed[v] == 0:
-                continue
-            if (vis_row[v >> 3] >> (v & 7)) & 1 == 0:
-                continue
-            ex = view_centres[v, 0] - px
-            ey = view_centres[v, 1] - py
-            ez = view_centres[v, 2] - pz
-            ne = math.sqrt(ex * ex + ey * ey + ez * ez)
-            if not ne > 0.0:
-                continue
-            inv = 1.0 / ne
-            ex = ex * inv - dx
-            ey = ey * inv - dy
-            ez = ez * inv - dz
-            s = 0.5 * (ex * ex + ey * ey + ez * ez)
-            rv = tie_rank[v]
-            if m == k and not _before(s, rv, best_s[k - 1], tie_rank[best_v[k - 1]]):
-                continue
-            u = 0.0
-            y = 0.0
-            if strict == 1:
-                u, y, zc = _project(view_cams[v], px, py, pz)
-                if not (u >= -0.5 and u <= view_sizes[v, 0] - 0.5 and y >= -0.5 and y <= view_sizes[v, 1] - 0.5):
-                    continue
-            # insertion into the sorted list (dropping the last when full)
-            pos = m if m < k else k - 1
-            while pos > 0 and _before(s, rv, best_s[pos - 1], tie_rank[best_v[pos - 1]]):
-                if pos < k:
-                    best_s[pos] = best_s[pos - 1]
-                    best_v[pos] = best_v[pos - 1]
-                    best_u[pos] = best_u[pos - 1]
-                    best_y[pos] = best_y[pos - 1]
-                pos -= 1
-            best_s[pos] = s
-            best_v[pos] = v
-            best_u[pos] = u
-            best_y[pos] = y
-            if m < k:
-                m += 1
-        if strict == 1:
-            return m
-        inside = True
-        for j in range(m):
-            v = best_v[j]
-            u, y, zc = _project(view_cams[v], px, py, pz)
-            best_u[j] = u
-            best_y[j] = y
-            if not (u >= -0.5 and u <= view_sizes[v, 0] - 0.5 and y >= -0.5 and y <= view_sizes[v, 1] - 0.5):
-                inside = False
-        if inside:
-            return m
-    return 0
 
 
 @njit(cache=True, inline="always")
@@ -238,20 +155,23 @@ def _weights(best_s, m, k, w):
 @njit(cache=True, inline="always")
 def _bilinear(texels, off, W, H, u, y):
     """Bilinear sample (4 values) of a premultiplied RGBA view at pixel (u, y) (pixel
-    centres at integers, edge texels repeated over the half-pixel border)."""
+    centres at integers, edge texels repeated over the half-pixel border). The weights
+    and sums are float32 like the texels (measured ~10 % faster shading than float64;
+    relative error ~1e-7)."""
     fx = math.floor(u)
     fy = math.floor(y)
-    ax = u - fx
-    ay = y - fy
+    ax = np.float32(u - fx)
+    ay = np.float32(y - fy)
     x0 = int(fx)
     y0 = int(fy)
     x1 = min(max(x0 + 1, 0), W - 1)
     y1 = min(max(y0 + 1, 0), H - 1)
     x0 = min(max(x0, 0), W - 1)
     y0 = min(max(y0, 0), H - 1)
-    w00 = (1.0 - ax) * (1.0 - ay)
-    w01 = ax * (1.0 - ay)
-    w10 = (1.0 - ax) * ay
+    one = np.float32(1.0)
+    w00 = (one - ax) * (one - ay)
+    w01 = ax * (one - ay)
+    w10 = (one - ax) * ay
     w11 = ax * ay
     i00 = off + y0 * W + x0
     i01 = off + y0 * W + x1
@@ -376,6 +296,18 @@ def ulr_kernel(positions, visibility, drawable, allowed, desired_centre, view_ce
     """ULR blending of surfels ``i0:i1``: the weights (``shade=False``) or the blended
     RGBA (``shade=True``). One kernel for both, so it compiles once.
 
+    Per surfel p: the k nearest allowed views by the angle θ between the rays from p to
+    the desired centre and to the view centre; a view must see p (visibility bit), not
+    be excluded, and project p inside its image. Candidates are ordered by
+    ``s = 1 − cos θ``, computed as ``|d − d_v|² / 2`` for unit rays d, d_v (no
+    cancellation near θ = 0), ties broken by ``tie_rank``. The scan visits views in
+    order of a lower bound of s and stops once the bound exceeds the current k-th best
+    (exact). Fast path: choose by angle alone, then project the winners; only when a
+    winner falls outside its image (rare: visibility bits come from in-image
+    projections) is the search repeated with the image test on every candidate — both
+    give the same list. Weights: :func:`_weights`. A surfel on the desired centre is not
+    drawn.
+
     Parameters
     ----------
     positions : (N, 3) float32. visibility : (N, ceil(V/8)) uint8 packed bits.
@@ -407,6 +339,9 @@ def ulr_kernel(positions, visibility, drawable, allowed, desired_centre, view_ce
     best_y = np.empty(KMAX)
     w = np.empty(KMAX)
     V = view_centres.shape[0]
+    dcx = desired_centre[0]
+    dcy = desired_centre[1]
+    dcz = desired_centre[2]
     if block > 0:
         order = np.empty(V, np.int64)
         s_lb = np.empty(V)
@@ -424,9 +359,79 @@ def ulr_kernel(positions, visibility, drawable, allowed, desired_centre, view_ce
                 out_uv[i, j, 1] = np.nan
         if not drawable[i]:
             continue
-        m = _select(positions[i, 0], positions[i, 1], positions[i, 2], visibility[i], allowed,
-                    desired_centre[0], desired_centre[1], desired_centre[2], view_centres, view_cams,
-                    view_sizes, order, s_lb, tie_rank, k, best_s, best_v, best_u, best_y)
+        # the k nearest allowed views (see the docstring); written out here rather than
+        # called: as a separate function (inlined by numba or not) the search measured
+        # 10–50 % slower
+        px = np.float64(positions[i, 0])
+        py = np.float64(positions[i, 1])
+        pz = np.float64(positions[i, 2])
+        dx = dcx - px
+        dy = dcy - py
+        dz = dcz - pz
+        nd = math.sqrt(dx * dx + dy * dy + dz * dz)
+        if not nd > 0.0:
+            continue  # the surfel sits on the desired centre
+        inv = 1.0 / nd
+        dx *= inv
+        dy *= inv
+        dz *= inv
+        m = 0
+        for strict in range(2):
+            m = 0
+            for j in range(V):
+                if m == k and s_lb[j] > best_s[k - 1]:
+                    break  # every later view is provably farther (sorted lower bounds)
+                v = order[j]
+                if allowed[v] == 0 or (visibility[i, v >> 3] >> (v & 7)) & 1 == 0:
+                    continue
+                ex = view_centres[v, 0] - px
+                ey = view_centres[v, 1] - py
+                ez = view_centres[v, 2] - pz
+                ne = math.sqrt(ex * ex + ey * ey + ez * ez)
+                if not ne > 0.0:
+                    continue
+                inv = 1.0 / ne
+                ex = ex * inv - dx
+                ey = ey * inv - dy
+                ez = ez * inv - dz
+                s = 0.5 * (ex * ex + ey * ey + ez * ez)  # 1 − cos θ without cancellation
+                rv = tie_rank[v]
+                if m == k and not _before(s, rv, best_s[k - 1], tie_rank[best_v[k - 1]]):
+                    continue
+                u = 0.0
+                yy = 0.0
+                if strict == 1:
+                    u, yy, zc = _project(view_cams, v, px, py, pz)
+                    if not (u >= -0.5 and u <= view_sizes[v, 0] - 0.5 and yy >= -0.5 and yy <= view_sizes[v, 1] - 0.5):
+                        continue
+                pos = m if m < k else k - 1  # insertion, dropping the last when full
+                while pos > 0 and _before(s, rv, best_s[pos - 1], tie_rank[best_v[pos - 1]]):
+                    if pos < k:
+                        best_s[pos] = best_s[pos - 1]
+                        best_v[pos] = best_v[pos - 1]
+                        best_u[pos] = best_u[pos - 1]
+                        best_y[pos] = best_y[pos - 1]
+                    pos -= 1
+                best_s[pos] = s
+                best_v[pos] = v
+                best_u[pos] = u
+                best_y[pos] = yy
+                if m < k:
+                    m += 1
+            if strict == 1:
+                break
+            # fast path: chosen by angle alone; project the winners, and only when one
+            # falls outside its image search again with the image test on every candidate
+            inside = True
+            for j in range(m):
+                v = best_v[j]
+                u, yy, zc = _project(view_cams, v, px, py, pz)
+                best_u[j] = u
+                best_y[j] = yy
+                if not (u >= -0.5 and u <= view_sizes[v, 0] - 0.5 and yy >= -0.5 and yy <= view_sizes[v, 1] - 0.5):
+                    inside = False
+            if inside:
+                break
         if m <= 0:
             continue
         _weights(best_s, m, k, w)
@@ -523,6 +528,11 @@ def splat_setup(positions, normals, radii, areas, cam, width, height, sigma_radi
     cx = cam[14]
     cy = cam[15]
     two_pi = 2.0 * math.pi
+    # camera centre −Rᵀt: back faces (about half of a closed surface) are culled in the
+    # world frame before any projection work
+    ccx = -(cam[0] * cam[9] + cam[3] * cam[10] + cam[6] * cam[11])
+    ccy = -(cam[1] * cam[9] + cam[4] * cam[10] + cam[7] * cam[11])
+    ccz = -(cam[2] * cam[9] + cam[5] * cam[10] + cam[8] * cam[11])
     for i in range(i0, i1):
         valid[i] = False
         px = np.float64(positions[i, 0])
@@ -531,16 +541,19 @@ def splat_setup(positions, normals, radii, areas, cam, width, height, sigma_radi
         r = np.float64(radii[i])
         if not (r > 0.0 and math.isfinite(r) and math.isfinite(px) and math.isfinite(py) and math.isfinite(pz)):
             continue
+        ax = np.float64(normals[i, 0])
+        ay = np.float64(normals[i, 1])
+        az = np.float64(normals[i, 2])
+        nn = math.sqrt(ax * ax + ay * ay + az * az)
+        has_normal = nn > 1e-12 and math.isfinite(nn)
+        if cull_backfaces and has_normal and ax * (px - ccx) + ay * (py - ccy) + az * (pz - ccz) >= 0.0:
+            continue
         X = cam[0] * px + cam[1] * py + cam[2] * pz + cam[9]
         Y = cam[3] * px + cam[4] * py + cam[5] * pz + cam[10]
         Z = cam[6] * px + cam[7] * py + cam[8] * pz + cam[11]
         if not Z > 1e-9:
             continue
-        ax = np.float64(normals[i, 0])
-        ay = np.float64(normals[i, 1])
-        az = np.float64(normals[i, 2])
-        nn = math.sqrt(ax * ax + ay * ay + az * az)
-        if nn > 1e-12 and math.isfinite(nn):
+        if has_normal:
             n0 = (cam[0] * ax + cam[1] * ay + cam[2] * az) / nn
             n1 = (cam[3] * ax + cam[4] * ay + cam[5] * az) / nn
             n2 = (cam[6] * ax + cam[7] * ay + cam[8] * az) / nn
@@ -765,6 +778,57 @@ def rasterize(rec, counts, height, width, cutoff, band_h, lut, accum, zlim, b0, 
                     accum[y, x, 6] += w * ar
 
 
+@njit(cache=True, nogil=True)
+def resolve(accum, coverage_full, edge_coverage, alpha_min, out_rgba, out_depth, out_weight, out_cov, y0, y1):
+    """EWA normalisation of rows ``y0:y1`` of the accumulators (the fast twin of
+    :func:`opacityhull.render.renderer.coverage_from` + :func:`~opacityhull.render.renderer.normalise`).
+
+    Per pixel with Σw > 0: coverage ``c = clip(Σw·A / coverage_full, 0, 1)`` (edge
+    coverage) or 1; premultiplied RGBA ``Σw·rgba / Σw · c``; alpha clipped to [0, 1];
+    straight colour = premultiplied / α where α ≥ ``alpha_min``, else 0; depth
+    ``Σw·z / Σw``. Pixels with Σw = 0: RGBA 0, depth +inf, coverage 0.
+
+    accum : (H, W, 7) float32 from :func:`rasterize`. Outputs (H, W, 4), (H, W), (H, W),
+    (H, W) float32.
+    """
+    W = accum.shape[1]
+    inv_full = np.float32(1.0 / coverage_full)
+    one = np.float32(1.0)
+    zero = np.float32(0.0)
+    amin = np.float32(alpha_min)
+    for y in range(y0, y1):
+        for x in range(W):
+            ws = accum[y, x, 4]
+            out_weight[y, x] = ws
+            if not ws > zero:
+                out_rgba[y, x, 0] = zero
+                out_rgba[y, x, 1] = zero
+                out_rgba[y, x, 2] = zero
+                out_rgba[y, x, 3] = zero
+                out_depth[y, x] = np.inf
+                out_cov[y, x] = zero
+                continue
+            if edge_coverage:
+                c = min(max(accum[y, x, 6] * inv_full, zero), one)
+            else:
+                c = one
+            out_cov[y, x] = c
+            inv = one / ws
+            out_depth[y, x] = accum[y, x, 5] * inv
+            s = inv * c
+            a = min(max(accum[y, x, 3] * s, zero), one)
+            out_rgba[y, x, 3] = a
+            if a >= amin:
+                s = s / a
+                out_rgba[y, x, 0] = accum[y, x, 0] * s
+                out_rgba[y, x, 1] = accum[y, x, 1] * s
+                out_rgba[y, x, 2] = accum[y, x, 2] * s
+            else:
+                out_rgba[y, x, 0] = zero
+                out_rgba[y, x, 1] = zero
+                out_rgba[y, x, 2] = zero
+
+
 # --------------------------------------------------------------------------- threads
 
 _POOL = None
@@ -800,13 +864,56 @@ def parallel_for(fn, n: int, args: tuple, *, threads: int = 1, chunk: int = CHUN
         f.result()
 
 
-def splat_frame(splat, draw, height, width, cutoff, band_h, *, threads: int = 1):
-    """Bin, gather and rasterise the drawn splats. Returns (accum (H, W, 7), zlim)."""
+class Scratch(threading.local):
+    """Per-thread work arrays reused from frame to frame.
+
+    The renderer's per-frame buffers (splat records: 80 B per surfel; band records;
+    accumulators) are tens of MB; fresh ones come from ``mmap`` and are page-faulted in
+    on first touch each frame (measured: 40 MB fresh + filled 9.5 ms, refilled 4.9 ms).
+    Buffers grow by 25 % when too small and are never shrunk; :meth:`clear` frees them.
+    Arrays handed out are views into the buffers: valid until the same name is asked for
+    again on this thread, so nothing returned to a caller may be one of them.
+    """
+
+    def __init__(self):
+        self._bufs = {}
+
+    def get(self, name: str, shape, dtype) -> np.ndarray:
+        shape = tuple(int(x) for x in shape)
+        n = 1
+        for x in shape:
+            n *= x
+        dtype = np.dtype(dtype)
+        buf = self._bufs.get(name)
+        if buf is None or buf.dtype != dtype or buf.size < n:
+            grown = int(1.25 * buf.size) if buf is not None and buf.dtype == dtype else 0
+            buf = np.empty(max(n, grown, 1), dtype)
+            self._bufs[name] = buf
+        return buf[:n].reshape(shape)
+
+    def clear(self) -> None:
+        self._bufs.clear()
+
+
+SCRATCH = Scratch()
+"""The renderer's per-thread :class:`Scratch` (``SCRATCH.clear()`` releases the memory)."""
+
+
+def splat_frame(splat, draw, height, width, cutoff, band_h, *, threads: int = 1, scratch: Scratch | None = None):
+    """Bin, gather and rasterise the drawn splats. Returns (accum (H, W, 7), zlim); with
+    ``scratch`` they (and the band records) live in its buffers."""
     counts, lists = bin_splats(splat, draw, height, band_h)
-    rec = np.empty((lists.shape[0], SPLAT_FIELDS), np.float32)
+    if scratch is None:
+        rec = np.empty((lists.shape[0], SPLAT_FIELDS), np.float32)
+        accum = np.zeros((height, width, 7), np.float32)
+        zlim = np.full((height, width), np.inf, np.float32)
+    else:
+        rec = scratch.get("records", (lists.shape[0], SPLAT_FIELDS), np.float32)
+        accum = scratch.get("accum", (height, width, 7), np.float32)
+        accum.fill(0.0)
+        zlim = scratch.get("zlim", (height, width), np.float32)
+        zlim.fill(np.inf)
     parallel_for(gather_records, lists.shape[0], (splat, lists, rec), threads=threads, chunk=8 * CHUNK)
-    accum = np.zeros((height, width, 7), np.float32)
-    zlim = np.full((height, width), np.inf, np.float32)
     lut = exp_table(cutoff)
     nb = counts.shape[0] - 1
     if threads <= 1 or nb < 2:

@@ -247,9 +247,10 @@ def render_image(
     t_prep = time.perf_counter()
 
     threads = config.n_threads
-    splat = np.empty((N, K.SPLAT_FIELDS), np.float32)
+    scratch = K.SCRATCH
+    splat = scratch.get("splat", (N, K.SPLAT_FIELDS), np.float32)
     areas = surfel_areas(surfels)
-    valid = np.empty(N, np.bool_)
+    valid = scratch.get("valid", (N,), np.bool_)
     K.parallel_for(K.splat_setup, N, (surfels.positions, surfels.normals, surfels.radii, areas, cam_row, W, H,
                                       float(config.sigma_radius), float(config.filter), float(config.cutoff_sigma),
                                       float(config.epsilon_z), bool(config.backface_cull), splat, valid),
@@ -258,9 +259,9 @@ def render_image(
     if progress:
         progress(1, 3)
 
-    o, rho = K.bounding_sphere(surfels.positions)
-    order, s_lb = scan_order(pv.centres, C, o, rho)
-    ok = np.empty(N, np.bool_)
+    # the kernel bounds each block of surfels itself (K.ULR_BLOCK): no per-frame scan order
+    order, s_lb = np.arange(pv.n_views, dtype=np.int64), np.zeros(pv.n_views)
+    ok = scratch.get("ok", (N,), np.bool_)
     K.parallel_for(K.ulr_shade, N, (surfels.positions, surfels.visibility, valid, allowed, C, pv.centres, pv.cams,
                                     pv.sizes, pv.offsets, pv.texels, order, s_lb, pv.tie_rank, int(config.k), splat,
                                     K.S_RGBA, ok), threads=threads)
@@ -269,12 +270,16 @@ def render_image(
         progress(2, 3)
 
     draw = np.flatnonzero(ok).astype(np.int64)
-    accum, _ = K.splat_frame(splat, draw, H, W, float(config.cutoff_sigma), int(config.band_rows), threads=threads)
+    accum, _ = K.splat_frame(splat, draw, H, W, float(config.cutoff_sigma), int(config.band_rows), threads=threads,
+                             scratch=scratch)
     t_raster = time.perf_counter()
 
-    wsum = accum[..., 4]
-    cov = coverage_from(accum[..., 6], wsum, config)
-    rgba_img, depth = normalise(accum[..., :4], wsum, accum[..., 5], cov)
+    rgba_img = np.empty((H, W, 4), np.float32)
+    depth = np.empty((H, W), np.float32)
+    wsum = np.empty((H, W), np.float32)
+    cov = np.empty((H, W), np.float32)
+    K.parallel_for(K.resolve, H, (accum, coverage_full(config), bool(config.edge_coverage), ALPHA_MIN, rgba_img, depth,
+                                  wsum, cov), threads=threads, chunk=64)
     if grid is not None:
         premul = rgba_img.copy()
         premul[..., :3] *= premul[..., 3:4]
@@ -319,28 +324,34 @@ def straight_from_premul(premul: np.ndarray) -> np.ndarray:
     return out
 
 
-def coverage_from(area_sum: np.ndarray, wsum: np.ndarray, config: RenderConfig) -> np.ndarray:
-    """Pixel coverage in [0, 1] from the area-weighted kernel sum Σw·A.
+def coverage_full(config: RenderConfig) -> float:
+    """The area-weighted kernel sum Σw·A that counts as full coverage: inside a surface
+    Σw·A ≈ the Gaussian's mass within the cutoff, ``1 − exp(−c²/2)``, times
+    ``coverage_threshold``."""
+    return config.coverage_threshold * (1.0 - math.exp(-0.5 * config.cutoff_sigma**2))
 
-    Inside a surface Σw·A ≈ the Gaussian's mass within the cutoff, ``1 − exp(−c²/2)``;
-    coverage is Σw·A over ``coverage_threshold`` times that, clipped to [0, 1].
-    """
+
+def coverage_from(area_sum: np.ndarray, wsum: np.ndarray, config: RenderConfig) -> np.ndarray:
+    """Pixel coverage in [0, 1] from the area-weighted kernel sum Σw·A: Σw·A over
+    :func:`coverage_full`, clipped to [0, 1] (0 where nothing was drawn). NumPy reference
+    of the coverage part of :func:`~opacityhull.render.kernels.resolve`."""
     if not config.edge_coverage:
         return (wsum > 0).astype(np.float32)
-    full = config.coverage_threshold * (1.0 - math.exp(-0.5 * config.cutoff_sigma**2))
-    return np.clip(area_sum / full, 0.0, 1.0).astype(np.float32)
+    cov = np.clip(area_sum / coverage_full(config), 0.0, 1.0).astype(np.float32)
+    return np.where(wsum > 0, cov, np.float32(0.0)).astype(np.float32)
 
 
 def normalise(acc: np.ndarray, wsum: np.ndarray, zsum: np.ndarray, coverage: np.ndarray | None = None
               ) -> tuple[np.ndarray, np.ndarray]:
-    """EWA normalisation: premultiplied RGBA Σw·c / Σw (times ``coverage`` when given) →
-    straight RGBA; depth Σw·z / Σw (inf where Σw = 0)."""
+    """EWA normalisation (NumPy reference of :func:`~opacityhull.render.kernels.resolve`):
+    premultiplied RGBA Σw·c / Σw (times ``coverage`` when given) → straight RGBA; depth
+    Σw·z / Σw (inf where Σw = 0) — the depth is not scaled by the coverage."""
     has = wsum > 0
     inv = np.where(has, 1.0 / np.where(has, wsum, 1.0), 0.0).astype(np.float32)
+    depth = np.where(has, zsum * inv, np.inf).astype(np.float32)
     if coverage is not None:
         inv = inv * coverage
     premul = acc * inv[..., None]
-    depth = np.where(has, zsum * inv, np.inf).astype(np.float32)
     return straight_from_premul(premul), depth
 
 

@@ -132,14 +132,15 @@ def register(app, groups) -> None:
                          content="board" if board else "object")
         r = SimRenderer(sc, geometry, overrides={"spp": spp} if spp else None)
         eff = r.effects_for(state)
+        passes = r.passes_for(state)
         t0 = time.perf_counter()
-        img = r.render(geometry.nominal_cameras()[ci], state, effects=eff, seed=seed)
+        img = r.render(geometry.nominal_cameras()[ci], state, seed=seed)
         dt = time.perf_counter() - t0
         summary = {
             "scene": sc.source, "camera": geometry.cameras[ci].name, "table_deg": table_deg, "array_deg": array_deg,
             "lights": sorted(k for k, v in levels.items() if v > 0), "pattern": pattern, "board": board,
             "width": img.shape[1], "height": img.shape[0], "variant": r.mi.variant(),
-            "effects": eff.to_json(), "seconds": dt, "mean_radiance": float(np.mean(img)),
+            "effects": eff.to_json(), "passes": [p.to_json() for p in passes], "seconds": dt, "mean_radiance": float(np.mean(img)),
             "max_radiance": float(np.max(img)), "out": None, "preview": None,
         }
         if out is not None:
@@ -154,9 +155,13 @@ def register(app, groups) -> None:
         def human(s):
             e = s["effects"]
             console().print(f"{s['scene']} from {s['camera']} at table {s['table_deg']:g}°: {s['width']}x{s['height']}"
-                            f" in {s['seconds']:.3f} s ({s['variant']}); {e['integrator']} depth {e['max_depth']}, "
-                            f"{e['spp']} spp, phase {e['phase']}; mean radiance {s['mean_radiance']:.4g}"
-                            + (f" → {s['out']}" if s["out"] else ""))
+                            f" in {s['seconds']:.3f} s ({s['variant']}); phase {e['phase']}, "
+                            f"{len(s['passes'])} Mitsuba pass(es): "
+                            + (", ".join(f"{p['group']}{'' if p['light'] is None else ' ' + str(p['light'][0])} "
+                                         f"{p['integrator']} d{p['max_depth']} {p['spp']} spp" for p in s["passes"])
+                               or "none (nothing emits)")
+                            + f"; mean radiance {s['mean_radiance']:.4g}" + (f" → {s['out']}" if s["out"] else ""),
+                            highlight=False)
 
         emit(summary, json_out, human)
 

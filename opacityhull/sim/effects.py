@@ -12,7 +12,11 @@ pixel) and at the capture phase, and picks
   the ``aov`` integrator for ground truth;
 * which emitters exist at all — the light array in the lightfield / reflectance
   phases, the displays in the matting / envmatte phases, whatever is switched on in
-  calibration; an emitter that is off is left out of the Mitsuba scene, not set to 0;
+  calibration; an emitter that is off is left out of the Mitsuba scene, not set to 0,
+  and an emitter group that provably adds nothing is not rendered even when it is on
+  (``skipped``): point lights seen through an object made only of delta BSDFs (smooth
+  glass, polished metal) on black panels, or anything but the displays themselves when
+  the table is empty (:func:`backdrop_only_effects`);
 * which shapes exist — the object (or, in calibration, the board) and the display
   panels (black absorbers when off, since they still cast shadows); ground truth
   renders the object alone;
@@ -21,6 +25,11 @@ pixel) and at the capture phase, and picks
 * ``resolution_scale`` — supersampling factor of the render relative to the camera
   (the capture is box-filtered back to the camera's size); 1 everywhere by default
   since the box pixel filter already integrates the pixel area.
+
+A capture whose rig state has several emitter groups on (the matting phase with the
+lights on) is rendered as one pass per group, each with the selection of the phase
+that group belongs to — displays with the matting selection, lights with the lightfield
+one (light transport is linear; :meth:`opacityhull.sim.render.SimRenderer.passes_for`).
 
 Each selection states the error it promises against a full-effects reference
 (``path``, ``max_depth`` 16, high spp) on the quantity its phase consumes
@@ -36,7 +45,8 @@ from typing import Any, Mapping
 from ..errors import ConfigError
 from .scenes import SceneSpec
 
-__all__ = ["EffectConfig", "select_effects", "reference_effects", "PHASES", "ERROR_METRICS"]
+__all__ = ["EffectConfig", "select_effects", "reference_effects", "backdrop_only_effects", "PHASES",
+           "ERROR_METRICS", "PHASE_EMITTERS"]
 
 #: Phases the simulator knows; the first five are capture phases of ``acquire``.
 PHASES = ("calibration", "matting", "lightfield", "reflectance", "envmatte", "groundtruth")
@@ -53,6 +63,16 @@ ERROR_METRICS = {
     "reflectance": "rel_mae",
     "envmatte": "rel_mae",
     "groundtruth": "alpha_mae",
+}
+
+#: The emitter groups each phase switches on (what the full-effects reference renders).
+PHASE_EMITTERS = {
+    "calibration": ("light_array", "displays"),
+    "matting": ("displays",),
+    "envmatte": ("displays",),
+    "lightfield": ("light_array",),
+    "reflectance": ("light_array",),
+    "groundtruth": (),
 }
 
 _INTEGRATORS = ("direct", "path", "aov")
@@ -84,6 +104,9 @@ class EffectConfig:
     phase : str
     error_metric, error_bound : str, float
         The promise against the full-effects reference (see :data:`ERROR_METRICS`).
+    skipped : tuple of str
+        Emitter groups that may be switched on in this phase but provably add nothing
+        to the image (exactly 0): they are not rendered.
     """
 
     integrator: str
@@ -97,6 +120,7 @@ class EffectConfig:
     phase: str = ""
     error_metric: str = "rel_mae"
     error_bound: float = 0.05
+    skipped: tuple[str, ...] = ()
 
     def key(self) -> tuple:
         """What determines the Mitsuba scene's structure and kernels (cache key)."""
@@ -114,6 +138,7 @@ class EffectConfig:
             "phase": self.phase,
             "error_metric": self.error_metric,
             "error_bound": self.error_bound,
+            "skipped": list(self.skipped),
             "reasons": list(self.reasons),
         }
 
@@ -175,6 +200,12 @@ def select_effects(scene: SceneSpec, phase: str, *, overrides: Mapping[str, Any]
         reasons.append(f"{phase}: light-array point lights only; displays are black panels "
                        "(kept as geometry: they shadow)")
     reasons.append("emitters that are off are left out of the scene entirely")
+    skipped: tuple[str, ...] = ()
+    if phase in ("lightfield", "reflectance") and scene.delta_only and not board:
+        emitters, skipped = (), ("light_array",)
+        reasons.append("every material is a delta BSDF (smooth dielectric or polished conductor) and the panels "
+                       "are black: no path joins a point light to the camera (a ray cannot hit a point, light "
+                       "sampling cannot leave a delta surface) — the image is exactly black; nothing is rendered")
 
     # --- integrator, depth, samples: a table measured by benchmarks/sim_effects.py
     # (errors against path tracing at depth 16, 1024 spp; see _TABLE)
@@ -197,8 +228,30 @@ def select_effects(scene: SceneSpec, phase: str, *, overrides: Mapping[str, Any]
     reasons.extend(why)
     reasons.append(f"stratified samples ({spp} = {int(round(spp ** 0.5))}x{int(round(spp ** 0.5))} per pixel)")
     cfg = EffectConfig(integrator, depth, spp, emitters, shapes, 1.0, tuple(reasons), "stratified", phase,
-                       metric, bound[phase] if isinstance(bound, dict) else bound)
+                       metric, bound[phase] if isinstance(bound, dict) else bound, skipped)
     return _apply_overrides(cfg, overrides)
+
+
+def backdrop_only_effects(cfg: EffectConfig) -> EffectConfig:
+    """What a capture with nothing on the table needs, from the selection ``cfg`` of the
+    phase (the object-absent backdrop shots of matting).
+
+    The only geometry left is the display panels, black except where they emit: a camera
+    ray either hits an emitting panel (its radiance, depth 1) or something black, and no
+    bounce can add anything, so ``path`` at ``max_depth`` 1 is *exact* — the same
+    expected image as any deeper integrator — and the light array adds exactly nothing
+    (``skipped``). The samples per pixel and the sampler stay those of ``cfg``, so the
+    panel's pixel edges are anti-aliased like the backdrop around the object in the
+    object-present shot.
+    """
+    if cfg.integrator == "aov":
+        return cfg
+    reasons = cfg.reasons + (
+        "nothing on the table: only the emitting panels are seen (black everywhere else, nothing to bounce "
+        "off) — path depth 1 is exact; the light array adds nothing and is not rendered",)
+    return replace(cfg, integrator="path", max_depth=1, emitters=tuple(e for e in cfg.emitters if e == "displays"),
+                   shapes=("displays",), skipped=tuple(sorted(set(cfg.skipped) | {"light_array"})),
+                   reasons=reasons)
 
 
 _WHY_DIRECT_DIFFUSE = ("diffuse opaque materials: direct lighting only (light -> surface -> camera); "
@@ -243,13 +296,17 @@ _FIBRES_MATTING = ("direct", 2, 64, 0.05, (
 
 def reference_effects(scene: SceneSpec, phase: str, *, spp: int = 512) -> EffectConfig:
     """The full-effects reference for ``phase``: ``path`` tracing, ``max_depth`` 16,
-    ``spp`` samples, same emitters and shapes as the selection (ground truth: the aov
-    integrator at ``spp``)."""
+    ``spp`` samples, every emitter group the phase switches on (:data:`PHASE_EMITTERS`,
+    also those the selection skips as provably black), the selection's shapes (ground
+    truth: the aov integrator at ``spp``)."""
     sel = select_effects(scene, phase)
     if phase == "groundtruth":
         return replace(sel, spp=spp, reasons=("reference: aov at high spp",))
+    # every emitter group of the phase, including those the selection proves black
     return replace(sel, integrator="path", max_depth=16, spp=spp, sampler="independent",
-                   reasons=("reference: path tracing, max_depth 16, high spp (independent samples)",))
+                   emitters=PHASE_EMITTERS[phase], skipped=(),
+                   reasons=("reference: path tracing, max_depth 16, high spp (independent samples), every emitter "
+                            "group of the phase",))
 
 
 def _apply_overrides(cfg: EffectConfig, overrides: Mapping[str, Any] | None) -> EffectConfig:

@@ -219,7 +219,8 @@ def phase_error(scene: SceneSpec, phase: str, *, geometry: RigGeometry, camera: 
     mask = coverage_mask(cov)
 
     def run(cfg: EffectConfig, s0: int):
-        return [r.render(camera, st, effects=cfg, seed=s0 + k) for k, st in enumerate(states)]
+        # no radiance cache: every render is timed and has its own noise
+        return [r.render(camera, st, effects=cfg, seed=s0 + k, use_cache=False) for k, st in enumerate(states)]
 
     if warm:  # the selection twice: the first launch of a cached kernel still costs extra
         run(sel, seed + 100)

@@ -28,10 +28,24 @@ black absorbers (they shadow). Panels are drawn 0.5 mm behind their nominal plan
 panel's cover glass) so an object or board resting on the bottom panel does not
 z-fight with it.
 
-Superposition. Light transport is linear in the emitters, so a capture with several
-lights on is rendered as one render per light (one point light in the scene, no
-emitter-selection noise) plus one render of the emitting displays, summed. A capture
-with nothing switched on is exactly black without calling Mitsuba.
+Superposition. Light transport is linear in the emitters, so a capture is rendered as
+*passes* — one per light switched on (one point light in the scene, no emitter-selection
+noise) and one for the emitting displays — summed (:meth:`SimRenderer.passes_for`).
+Each pass gets the effect selection of the phase its emitter group belongs to: the
+displays of a matting shot taken with the lights on are rendered with the matting
+selection, its lights with the lightfield one. Groups that provably add nothing are not
+rendered: a capture with nothing switched on is exactly black without calling Mitsuba;
+with the table empty only the emitting panels are visible (path depth 1, no light
+passes: :func:`~opacityhull.sim.effects.backdrop_only_effects`); point lights on an
+object made only of delta BSDFs show nothing.
+
+Radiance cache. The rig is deterministic: the same camera, table and array angles,
+lights, patterns and content give the same radiance. The Monte-Carlo estimate of a pass
+is therefore kept (LRU, ``cache_mb``) and reused by later captures of the same physical
+state — the matting shots with and without a pattern and the lightfield shot of one
+view share their light passes; exposure brackets and re-shoots cost nothing. The sensor
+model (:mod:`~opacityhull.sim.sensor`) still draws fresh noise per capture. A reused
+pass keeps the noise of the seed it was first rendered with.
 """
 
 from __future__ import annotations
@@ -40,6 +54,7 @@ import hashlib
 import math
 import os
 import threading
+from collections import OrderedDict
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Mapping, Sequence
@@ -51,13 +66,14 @@ from ..charuco import CharucoSpec
 from ..errors import InputError
 from ..riggeometry import DisplaySpec, RigGeometry
 from . import shapes as S
-from .effects import EffectConfig, select_effects
+from .effects import EffectConfig, backdrop_only_effects, select_effects
 from .scenes import MaterialSpec, Part, SceneSpec, board_parts
-from .variants import use_mitsuba
+from .variants import choose_variant, use_mitsuba
 
 __all__ = [
     "SimState",
     "SimRenderer",
+    "RenderPass",
     "phase_for_state",
     "light_intensity",
     "display_radiance",
@@ -125,6 +141,28 @@ def phase_for_state(state: SimState) -> str:
     if len(lights) == 1 and not state.displays_on():
         return "reflectance"
     return "lightfield"
+
+
+@dataclass(frozen=True)
+class RenderPass:
+    """One Mitsuba render of a capture: an emitter group and the effects it is rendered with.
+
+    Attributes
+    ----------
+    group : "displays" | "light"
+    effects : EffectConfig
+    light : (light id, DMX level) for a light pass, else None.
+    """
+
+    group: str
+    effects: EffectConfig
+    light: tuple[int, int] | None = None
+
+    def to_json(self) -> dict:
+        e = self.effects
+        return {"group": self.group, "light": None if self.light is None else list(self.light),
+                "phase": e.phase, "integrator": e.integrator, "max_depth": e.max_depth, "spp": e.spp,
+                "sampler": e.sampler, "resolution_scale": e.resolution_scale}
 
 
 def light_intensity(geometry: RigGeometry, light_id: int, level: int) -> np.ndarray:
@@ -357,6 +395,28 @@ class _Loaded:
     params: object
     keys: dict
     lock: threading.Lock = field(default_factory=threading.Lock)
+    last: dict = field(default_factory=dict)  # parameter name -> signature of the value last set
+
+    def assign(self, name: str, signature, make_value) -> None:
+        """Set parameter ``name`` only if ``signature`` differs from the last one set: a
+        parameter write marks its shape dirty, and a moved shape rebuilds the scene's
+        acceleration structure (the whole object) at the next ``params.update()``."""
+        if self.last.get(name) == signature:
+            return
+        self.params[name] = make_value()
+        self.last[name] = signature
+
+
+#: The only parameters a capture changes. ``params.update()`` schedules every parameter
+#: it holds (meshes, textures...); keeping just these makes an update cost what changed.
+_PARAM_KEEP = [r"sensor\..*", r"display_\d+\.to_world", r"display_\d+\.emitter\.radiance\.data",
+               r"light\.position", r"light\.intensity\.value"]
+
+
+def _traverse(mi, scene):
+    params = mi.traverse(scene)
+    params.keep(_PARAM_KEEP)
+    return params
 
 
 class SimRenderer:
@@ -379,7 +439,7 @@ class SimRenderer:
     """
 
     def __init__(self, scene: SceneSpec, geometry: RigGeometry, *, variant: str | None = None,
-                 overrides: Mapping | None = None):
+                 overrides: Mapping | None = None, cache_mb: float = 256.0):
         self.scene = scene
         self.geometry = geometry
         self.variant = variant
@@ -388,34 +448,80 @@ class SimRenderer:
         self._cache_lock = threading.Lock()
         self.loads = 0  # number of Mitsuba scene loads (tests check caching)
         self.renders = 0
+        self.cache_bytes = int(max(0.0, float(cache_mb)) * 2**20)
+        self._radiance: OrderedDict[tuple, np.ndarray] = OrderedDict()
+        self._radiance_bytes = 0
+        self._radiance_lock = threading.Lock()
+        self.cache_hits = 0
 
     # ---- public
     @property
     def mi(self):
+        # pinned at first use: Mitsuba's variant is process-global, and another caller
+        # switching it must not change the variant this renderer's scenes were loaded in
+        if self.variant is None:
+            self.variant = choose_variant()
         return use_mitsuba(self.variant)
 
     def effects_for(self, state: SimState) -> EffectConfig:
-        """The effect configuration used for a capture in ``state``."""
-        phase = phase_for_state(state)
-        scene = self.scene
-        if state.content == "board":
-            phase = "calibration"
-        cfg = select_effects(scene, phase, overrides=self.overrides or None)
+        """The effect configuration of the phase a capture in ``state`` belongs to
+        (:func:`phase_for_state`), listing every emitter group switched on that is not
+        provably black. What is actually rendered, pass by pass: :meth:`passes_for`."""
+        phase = "calibration" if state.content == "board" else phase_for_state(state)
+        cfg = select_effects(self.scene, phase, overrides=self.overrides or None)
+        if state.content == "none":
+            return backdrop_only_effects(cfg)
         # whatever is switched on is in the picture, even where the phase would not use it
         extra = []
-        if state.lights_on() and "light_array" not in cfg.emitters:
+        if state.lights_on() and "light_array" not in cfg.emitters and "light_array" not in cfg.skipped:
             extra.append("light_array")
-        if state.displays_on() and "displays" not in cfg.emitters:
+        if state.displays_on() and "displays" not in cfg.emitters and "displays" not in cfg.skipped:
             extra.append("displays")
         if extra:
             cfg = replace(cfg, emitters=cfg.emitters + tuple(extra),
-                          reasons=cfg.reasons + (f"also switched on at capture time: {', '.join(extra)}",))
+                          reasons=cfg.reasons + (f"also switched on at capture time: {', '.join(extra)} "
+                                                 "(rendered with that group's own selection)",))
         return cfg
 
+    def passes_for(self, state: SimState, effects: EffectConfig | None = None) -> list[RenderPass]:
+        """The Mitsuba renders a capture in ``state`` is the sum of.
+
+        Without ``effects``, each emitter group switched on gets the selection of its own
+        phase: the displays that of ``matting``, the lights that of ``reflectance`` (one
+        light) or ``lightfield``; with the board on the table both get ``calibration``.
+        With ``effects`` every group uses it (groups not in ``effects.emitters`` are not
+        rendered). Either way, with nothing on the table only the displays are rendered,
+        at depth 1 (:func:`~opacityhull.sim.effects.backdrop_only_effects`: exact).
+
+        Raises
+        ------
+        ConfigError
+            A light id that is not in the rig.
+        """
+        lights = state.lights_on()
+        for lid in lights:
+            self.geometry.light(lid)  # raises ConfigError for an unknown id
+        disp = {n for n in state.displays_on() if self._has_display(n)}
+        if effects is not None:
+            cfg_d = cfg_l = effects
+        elif state.content == "board":
+            cfg_d = cfg_l = self._select("calibration")
+        else:
+            cfg_d = self._select("matting")
+            cfg_l = self._select("reflectance" if len(lights) == 1 else "lightfield")
+        if state.content == "none":
+            cfg_d, cfg_l = backdrop_only_effects(cfg_d), None
+        passes = []
+        if disp and "displays" in cfg_d.emitters:
+            passes.append(RenderPass("displays", cfg_d))
+        if cfg_l is not None and "light_array" in cfg_l.emitters:
+            passes.extend(RenderPass("light", cfg_l, (lid, level)) for lid, level in sorted(lights.items()))
+        return passes
+
     def render(self, rig_camera: Camera, state: SimState, *, effects: EffectConfig | None = None,
-               seed: int = 0) -> np.ndarray:
+               seed: int = 0, use_cache: bool = True) -> np.ndarray:
         """Radiance image (H, W, 3) float32 of ``rig_camera`` (pose in the rig frame) in
-        ``state``.
+        ``state``: the sum of :meth:`passes_for` ``(state, effects)``.
 
         Parameters
         ----------
@@ -423,34 +529,88 @@ class SimRenderer:
             ``world_from_cam`` = rig_from_cam. No distortion (Mitsuba has none).
         state : SimState
         effects : EffectConfig, optional
-            Default: :meth:`effects_for` ``(state)``.
+            Force one configuration on every pass (default: each pass its own selection).
         seed : int
-            Sampler seed; different seeds give independent noise.
+            Sampler seed; different seeds give independent noise (for passes not taken
+            from the radiance cache).
+        use_cache : bool
+            Reuse (and keep) passes of physical states rendered before (module docstring).
+            Off for timing and noise measurements.
         """
-        cfg = effects or self.effects_for(state)
-        if cfg.integrator == "aov":
+        if effects is not None and effects.integrator == "aov":
             raise InputError("render(): the aov integrator is for ground truth (groundtruth.render_ground_truth)")
+        passes = self.passes_for(state, effects)
+        out = np.zeros((rig_camera.height, rig_camera.width, 3), np.float32)
+        if not passes:
+            return out
         parts = self._content_parts(state)
+        for k, p in enumerate(passes):
+            key = self._pass_key(rig_camera, state, p) if use_cache and self.cache_bytes > 0 else None
+            img = self._cache_get(key)
+            if img is None:
+                img = self._render_pass(rig_camera, state, p, parts, seed * 1009 + k)
+                self._cache_put(key, img)
+            out += img
+        return out
+
+    def _select(self, phase: str) -> EffectConfig:
+        return select_effects(self.scene, phase, overrides=self.overrides or None)
+
+    def _render_pass(self, rig_camera: Camera, state: SimState, p: RenderPass, parts, seed: int) -> np.ndarray:
+        cfg = p.effects
         cam = self._render_camera(rig_camera, cfg)
         view = RigGeometry.view_camera(cam, state.table_deg)
-        out = np.zeros((cam.height, cam.width, 3), np.float32)
-        k = 0
-        if "displays" in cfg.emitters:
-            on = state.displays_on()
-            on = {n: img for n, img in on.items() if self._has_display(n)}
-            if on:
-                loaded = self._get(cfg, parts, state, cam, mode=("displays", tuple(sorted(on))))
-                out += self._run(loaded, view, state, cfg, seed * 1009 + k, displays=on)
-                k += 1
-        if "light_array" in cfg.emitters:
-            for lid, level in sorted(state.lights_on().items()):
-                self.geometry.light(lid)  # raises ConfigError for an unknown id
-                loaded = self._get(cfg, parts, state, cam, mode=("light",))
-                out += self._run(loaded, view, state, cfg, seed * 1009 + k, light=(lid, level))
-                k += 1
+        if p.group == "displays":
+            on = {n: img for n, img in state.displays_on().items() if self._has_display(n)}
+            loaded = self._get(cfg, parts, state, cam, mode=("displays", tuple(sorted(on))))
+            img = self._run(loaded, view, state, cfg, seed, displays=on)
+        else:
+            loaded = self._get(cfg, parts, state, cam, mode=("light",))
+            img = self._run(loaded, view, state, cfg, seed, light=p.light)
         if cam.size != rig_camera.size:
-            out = _downsample(out, rig_camera.width, rig_camera.height)
-        return out
+            img = _downsample(img, rig_camera.width, rig_camera.height)
+        return img
+
+    def _pass_key(self, cam: Camera, state: SimState, p: RenderPass) -> tuple:
+        e = p.effects
+        cam_key = (cam.width, cam.height, np.asarray(cam.K, np.float64).tobytes(),
+                   np.asarray(cam.world_from_cam, np.float64).tobytes())
+        content = (state.content, repr(state.charuco) if state.content == "board" else None)
+        if p.group == "displays":
+            what = tuple((n, _digest(img)) for n, img in sorted(state.displays_on().items()) if self._has_display(n))
+            array = None
+        else:
+            what, array = p.light, float(state.array_deg)
+        return (p.group, e.key(), e.spp, e.resolution_scale, cam_key, float(state.table_deg), array, content, what)
+
+    def _cache_get(self, key) -> np.ndarray | None:
+        if key is None:
+            return None
+        with self._radiance_lock:
+            img = self._radiance.get(key)
+            if img is not None:
+                self._radiance.move_to_end(key)
+                self.cache_hits += 1
+            return img
+
+    def _cache_put(self, key, img: np.ndarray) -> None:
+        if key is None or img.nbytes > self.cache_bytes:
+            return
+        img.setflags(write=False)  # shared between captures: never modified in place
+        with self._radiance_lock:
+            if key in self._radiance:
+                return
+            self._radiance[key] = img
+            self._radiance_bytes += img.nbytes
+            while self._radiance_bytes > self.cache_bytes and self._radiance:
+                _, old = self._radiance.popitem(last=False)
+                self._radiance_bytes -= old.nbytes
+
+    def clear_radiance_cache(self) -> None:
+        """Forget every cached pass (e.g. after changing the scene's geometry in place)."""
+        with self._radiance_lock:
+            self._radiance.clear()
+            self._radiance_bytes = 0
 
     def render_rgba(self, camera_object: Camera, parts: Sequence[Part], *, extra: Mapping | None = None,
                     integrator: dict, spp: int, sampler: str = "stratified", seed: int = 0,
@@ -473,12 +633,12 @@ class SimRenderer:
                 d.update(extra or {})
                 sc = mi.load_dict(d, optimize=False)  # keep shapes separate: their params are rewritten
                 self.loads += 1
-                loaded = _Loaded(sc, mi.traverse(sc), {})
+                loaded = _Loaded(sc, _traverse(mi, sc), {})
                 self._cache[full_key] = loaded
         with loaded.lock:
             self._set_sensor(loaded, "sensor", camera_object)
             for k, v in (updates or {}).items():
-                loaded.params[k] = v
+                loaded.assign(k, _signature(v), lambda v=v: v)
             loaded.params.update()
             img = mi.render(loaded.scene, loaded.params, seed=int(seed) & 0x7FFFFFFF, spp=int(spp))
             self.renders += 1
@@ -488,7 +648,10 @@ class SimRenderer:
             return out
 
     def cache_info(self) -> dict:
-        return {"scenes": len(self._cache), "loads": self.loads, "renders": self.renders}
+        """Mitsuba scenes loaded and renders run; radiance-cache entries, bytes and hits."""
+        return {"scenes": len(self._cache), "loads": self.loads, "renders": self.renders,
+                "radiance_entries": len(self._radiance), "radiance_bytes": self._radiance_bytes,
+                "radiance_hits": self.cache_hits}
 
     # ---- internals
     def _has_display(self, name: str) -> bool:
@@ -544,17 +707,17 @@ class SimRenderer:
                           "intensity": {"type": "rgb", "value": [1.0, 1.0, 1.0]}}
         sc = mi.load_dict(d, optimize=False)  # keep shapes separate: their params are rewritten
         self.loads += 1
-        return _Loaded(sc, mi.traverse(sc), keys)
+        return _Loaded(sc, _traverse(mi, sc), keys)
 
     def _set_sensor(self, loaded: _Loaded, name: str, cam: Camera) -> None:
         mi = self.mi
         p = mitsuba_sensor_params(cam)
-        params = loaded.params
-        params[f"{name}.to_world"] = mi.AffineTransform4f(np.asarray(p["to_world"]))
+        T = np.asarray(p["to_world"], dtype=np.float64)
+        loaded.assign(f"{name}.to_world", T.tobytes(), lambda: mi.AffineTransform4f(T))
         fov_x = math.degrees(2.0 * math.atan(cam.width / (2.0 * cam.fx)))
-        params[f"{name}.x_fov"] = fov_x
-        params[f"{name}.principal_point_offset_x"] = p["principal_point_offset_x"]
-        params[f"{name}.principal_point_offset_y"] = p["principal_point_offset_y"]
+        loaded.assign(f"{name}.x_fov", fov_x, lambda: fov_x)
+        for k in ("principal_point_offset_x", "principal_point_offset_y"):
+            loaded.assign(f"{name}.{k}", float(p[k]), lambda k=k: p[k])
 
     def _run(self, loaded: _Loaded, view: Camera, state: SimState, cfg: EffectConfig, seed: int, *,
              displays: Mapping[str, np.ndarray] | None = None, light: tuple[int, int] | None = None) -> np.ndarray:
@@ -566,17 +729,19 @@ class SimRenderer:
                 k = loaded.keys["displays"].get(disp.name)
                 if k is None:
                     continue
-                params[f"{k}.to_world"] = mi.AffineTransform4f(display_to_world(disp, state.table_deg))
+                T = display_to_world(disp, state.table_deg)
+                loaded.assign(f"{k}.to_world", T.tobytes(), lambda T=T: mi.AffineTransform4f(T))
                 if displays is not None and disp.name in displays:
-                    rad = display_radiance(disp, displays[disp.name])
-                    params[f"{k}.emitter.radiance.data"] = _tensor(mi, rad[::-1])
+                    pat = displays[disp.name]
+                    loaded.assign(f"{k}.emitter.radiance.data", _digest(pat),
+                                  lambda disp=disp, pat=pat: _tensor(mi, display_radiance(disp, pat)[::-1]))
             if light is not None:
                 lid, level = light
                 pos_rig = self.geometry.light(lid).position_rig(state.array_deg)
-                pos = object_from_rig(state.table_deg)[:3, :3] @ pos_rig
-                params["light.position"] = mi.Point3f(*[float(v) for v in pos])
-                params["light.intensity.value"] = mi.Color3f(*[float(v) for v in
-                                                               light_intensity(self.geometry, lid, level)])
+                pos = tuple(float(v) for v in object_from_rig(state.table_deg)[:3, :3] @ pos_rig)
+                rgb = tuple(float(v) for v in light_intensity(self.geometry, lid, level))
+                loaded.assign("light.position", pos, lambda: mi.Point3f(*pos))
+                loaded.assign("light.intensity.value", rgb, lambda: mi.Color3f(*rgb))
             params.update()
             img = mi.render(loaded.scene, params, seed=int(seed) & 0x7FFFFFFF, spp=int(cfg.spp))
             self.renders += 1
@@ -592,13 +757,26 @@ def shape_index_names(mi, scene) -> dict[int, str]:
     """
     shapes = list(scene.shapes())
     ptr_type = getattr(mi, "ShapePtr", None)
-    if ptr_type is not None:
+    if ptr_type is not None and not mi.variant().startswith("scalar"):
         import drjit as dr
 
         ids = np.array(dr.reinterpret_array(mi.UInt32, ptr_type(shapes))).astype(np.int64).ravel().tolist()
     else:
         ids = list(range(1, len(shapes) + 1))
     return {int(i): s.id() for i, s in zip(ids, shapes)}
+
+
+def _signature(v):
+    """A comparable signature of a parameter value (Mitsuba transforms via NumPy)."""
+    try:
+        return np.asarray(v.matrix if hasattr(v, "matrix") else v, dtype=np.float64).tobytes()
+    except (TypeError, ValueError):
+        return ("id", id(v))
+
+
+def _digest(img: np.ndarray) -> str:
+    a = np.ascontiguousarray(img)
+    return hashlib.sha1(a.tobytes() + repr((a.shape, a.dtype.str)).encode()).hexdigest()
 
 
 def _downsample(img: np.ndarray, width: int, height: int) -> np.ndarray:

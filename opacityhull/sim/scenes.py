@@ -52,6 +52,7 @@ __all__ = [
     "builtin_names",
     "board_parts",
     "MATERIAL_TYPES",
+    "DELTA_TYPES",
     "SHAPE_KEYS",
     "DATA_DIR",
 ]
@@ -72,6 +73,13 @@ MATERIAL_TYPES: dict[str, tuple[str, frozenset]] = {
     "roughdielectric": ("transmissive", frozenset({"ior", "tint", "roughness"})),
     "thindielectric": ("transmissive", frozenset({"ior", "tint"})),
 }
+
+#: Material types whose BSDF is a Dirac delta (smooth glass, polished metal): a ray meets
+#: them only in one or two directions, so a *point* light can never be reached through
+#: them — neither by a ray (the light has no area) nor by light sampling (the BSDF has no
+#: spread). Effect selection uses this to leave the light array out of scenes made of
+#: them alone.
+DELTA_TYPES = frozenset({"dielectric", "thindielectric", "conductor"})
 
 _COMMON_OBJECT_KEYS = frozenset({"name", "shape", "material"})
 #: shape -> allowed parameter keys (besides name, shape, material)
@@ -160,6 +168,11 @@ class MaterialSpec:
     @property
     def effect_class(self) -> str:
         return MATERIAL_TYPES[self.type][0]
+
+    @property
+    def is_delta(self) -> bool:
+        """The BSDF is a Dirac delta (see :data:`DELTA_TYPES`)."""
+        return self.type in DELTA_TYPES
 
 
 @dataclass(frozen=True)
@@ -250,6 +263,12 @@ class SceneSpec:
     def effect_classes(self) -> frozenset:
         """Effect classes of the materials the objects actually use."""
         return frozenset(p.material.effect_class for p in self.parts if p.material is not None)
+
+    @property
+    def delta_only(self) -> bool:
+        """Every part is made of a delta-BSDF material (smooth glass, polished metal):
+        under point lights and black panels such an object shows nothing at all."""
+        return bool(self.parts) and all(p.material is not None and p.material.is_delta for p in self.parts)
 
     @property
     def has_fibres(self) -> bool:

@@ -198,6 +198,7 @@ class SimCamera:
         self._lock = threading.Lock()
         self.last_state: SimState | None = None
         self.last_effects = None
+        self.last_passes: list = []
         self.last_seed: int | None = None
 
     @property
@@ -216,8 +217,9 @@ class SimCamera:
             self._captures += 1
         seed = (rig.seed * 1_000_003 + self.index * 10_007 + n) & 0x7FFFFFFF
         cfg = rig.renderer.effects_for(state)
-        radiance = rig.renderer.render(self.camera, state, effects=cfg, seed=seed)
+        radiance = rig.renderer.render(self.camera, state, seed=seed)
         self.last_state, self.last_effects, self.last_seed = state, cfg, seed
+        self.last_passes = rig.renderer.passes_for(state)
         value = (self.spec.gain * float(exposure_s)) * radiance
         if rig.sensor is not None:
             value = rig.sensor.apply(value, np.random.default_rng([rig.seed, self.index, n]))

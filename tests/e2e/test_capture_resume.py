@@ -58,7 +58,10 @@ def test_capture_interrupt_kill_resume_verify(tmp_path):
     assert dry.returncode == 0, dry.stderr
     planned = json.loads(dry.stdout)["planned_per_phase"]
     total = sum(planned.values())
-    assert total == 108
+    # 3 cameras x 4 table angles (12 views): calibration 3 cameras x 8 board angles, matting
+    # 5 shots per view, lightfield 1, reflectance 2 (the plan's lights)
+    assert planned == {"calibration": 24, "matting": 60, "lightfield": 12, "reflectance": 24}
+    assert total == 120
     rng = random.Random(20240611)
     k1 = rng.randrange(5, total // 3)
     k2 = rng.randrange(total // 3 + 5, 2 * total // 3)

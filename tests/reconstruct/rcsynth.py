@@ -27,8 +27,8 @@ CENTRE = np.array([0.0, 0.06, 0.0])
 HALO_ALPHA = 0.35
 
 
-def rig_dict(n_cams=3, width=64, height=48, *, fov_y_deg=20.0, distance_m=0.8):
-    els = np.linspace(15.0, 55.0, n_cams)
+def rig_dict(n_cams=3, width=64, height=48, *, fov_y_deg=20.0, distance_m=0.8, elevations=(15.0, 55.0)):
+    els = np.linspace(elevations[0], elevations[1], n_cams)
     cams = [{"name": f"cam{i}", "width": width, "height": height, "distance_m": distance_m,
              "elevation_deg": float(e), "azimuth_deg": 0.0, "fov_y_deg": fov_y_deg} for i, e in enumerate(els)]
     return {
@@ -164,16 +164,23 @@ def write_ply(path, V, F):
 
 def make_session(root, *, kind="sphere", n_cams=3, n_angles=6, width=64, height=48, n_patterns=2,
                  object_absent=True, off_shots=True, reflectance=True, cameras="yaml", noise=0.002, seed=0,
-                 ss=3, exposure_s=1.0, white_level=4.0, rms_px=0.3, hide_object_in=()):
+                 ss=3, exposure_s=1.0, white_level=4.0, rms_px=0.3, hide_object_in=(), calibration_phase=False,
+                 elevations=(15.0, 55.0), board_hidden_from=(), reflectance_level=255):
     """Write a session folder; returns a dict with geometry, views, true alphas, cameras.
 
     ``cameras``: "yaml" (calibration/<cam>.yaml), "none" (no camera source at all).
     ``n_patterns`` random patterns, each followed by its complement (2 n_patterns shots).
     ``hide_object_in``: view ids whose images show no object (an empty silhouette).
+    ``calibration_phase``: add ChArUco captures (the board lying on the table, rendered by
+    the calibration module's independent ray caster) at the session's table angles.
+    ``board_hidden_from``: camera indices whose calibration images show no board (a
+    camera that cannot be calibrated).
+    ``reflectance_level``: DMX level of the one-light shots (recorded in ``extra``); the
+    images are dimmed by ``level / 255`` as a real light would be.
     """
     root = Path(root)
     rng = np.random.default_rng(seed)
-    rig = rig_dict(n_cams, width, height)
+    rig = rig_dict(n_cams, width, height, elevations=elevations)
     geo = RigGeometry.from_dict(rig)
     rig_cams = geo.nominal_cameras()
     angles = [360.0 * i / n_angles for i in range(n_angles)]
@@ -181,6 +188,11 @@ def make_session(root, *, kind="sphere", n_cams=3, n_angles=6, width=64, height=
     meta = {"session": {"rig_source": f"synthetic:{kind}", "plan_name": "synthetic", "white_level": white_level,
                         "seed": seed},
             "rig": rig}
+    if calibration_phase:
+        from opacityhull.charuco import CharucoSpec
+
+        spec = CharucoSpec()
+        meta["charuco"] = spec.to_dict()
     w = SessionWriter(root, fsync=False).create(meta)
     # patterns: random cells and their complements, saved as uploaded (8-bit PNG)
     pats = {}
@@ -204,6 +216,21 @@ def make_session(root, *, kind="sphere", n_cams=3, n_angles=6, width=64, height=
         w.add_image(val, id=f"{key}/e0", shot=key, phase=phase, camera=c, table_deg=a,
                     rel_path=f"images/{key}_e0.exr", exposure_s=exposure_s, **kw)
 
+    if calibration_phase:
+        from opacityhull.reconstruct.calibration import render_charuco_view
+
+        for c in range(n_cams):
+            for a in angles:
+                cam = RigGeometry.view_camera(rig_cams[c], a)
+                if c in board_hidden_from:
+                    img = np.full((height, width), 0.4, np.float32)
+                else:
+                    img = render_charuco_view(cam, world_from_board=spec.object_from_board(), charuco=spec,
+                                              px_per_square=48)
+                img = np.asarray(img, np.float32)
+                if img.ndim == 2:
+                    img = np.repeat(img[..., None], 3, axis=2)
+                add(0.8 * img, "calibration", c, a)
     true_alpha = {}
     vcams = []
     for c, a in views:
@@ -226,7 +253,8 @@ def make_session(root, *, kind="sphere", n_cams=3, n_angles=6, width=64, height=
             for lid in (0, 1):
                 Ld = geo.light_direction_object(lid, a, 0.0)
                 colL, _ = render_view(cam, a, geo, patterns=None, light_dir=Ld, **kw)
-                add(colL, "reflectance", c, a, light=lid, lights_deg=0.0)
+                add(colL * np.float32(reflectance_level / 255.0), "reflectance", c, a, light=lid, lights_deg=0.0,
+                    extra={"level": int(reflectance_level)})
     w.close()
     if cameras == "yaml":
         for cam in rig_cams:

@@ -172,3 +172,61 @@ def test_nan_images_do_not_reach_the_model(tmp_path):
     for i in range(len(model.views)):
         assert np.all(np.isfinite(model.load_view_rgba(i)))
     assert r.metrics["alpha_mae"] < 0.02
+
+
+def test_cameras_from_the_calibration_phase(tmp_path):
+    """The first camera source: the session's own ChArUco captures, calibrated by the real
+    calibration code (board rendered by its independent ray caster). The metrics then
+    include the reprojection RMS and pose errors; with calibrated cameras the silhouettes
+    are dilated by the RMS too, and the hull still contains the object.
+
+    The third camera never sees the board (its calibration images are blank): the build
+    leaves it uncalibrated and drops its four views with a note, rather than crash on
+    its NaN RMS; with ``drop_uncalibrated_cameras=False`` that is an error naming it."""
+    from opacityhull.reconstruct.calibration import CalibrationError
+
+    rcsynth.make_session(tmp_path / "s", n_cams=3, n_angles=4, width=200, height=150, n_patterns=1,
+                         reflectance=False, calibration_phase=True, cameras="none", elevations=(50.0, 75.0), ss=2,
+                         seed=9, board_hidden_from=(2,))
+    r = build_model(tmp_path / "s", tmp_path / "m", config=BuildConfig(hull_res=48), ground_truth=True)
+    m = r.metrics
+    assert r.camera_source == "calibration phase (calibrated)"
+    assert r.views == 8 and all(not v.startswith("c2_") for v in (x["id"] for x in _model_views(tmp_path / "m")))
+    assert any("cam2" in n and "could not be calibrated" in n and "4 view(s)" in n for n in r.notes)
+    assert set(m["uncalibrated_cameras"]) == {"cam2"}
+    assert set(m["reproj_rms_px_per_camera"]) == {"cam0", "cam1"}
+    assert m["reproj_rms_px"] < 0.5
+    assert m["pose_max_rotation_deg"] < 1.0 and m["pose_max_position_mm"] < 20.0
+    assert m["hull_object_in_hull"] > 0.999
+    assert m["hull_iou_vs_true_alpha_hull"] > 0.95
+    assert r.hull["dilate_px_per_camera"] == {"0": 1, "1": 1}  # ceil(0.5 + RMS < 0.5)
+    assert (tmp_path / "m" / "pictures" / "reprojection.png").is_file()
+    assert (tmp_path / "m" / "calibration" / "cam0.yaml").is_file()
+    assert not (tmp_path / "m" / "calibration" / "cam2.yaml").exists()
+    with pytest.raises(CalibrationError, match="cam2"):
+        build_model(tmp_path / "s", tmp_path / "m2", config=BuildConfig(hull_res=48, drop_uncalibrated_cameras=False))
+
+
+def _model_views(model_dir):
+    import tomllib
+
+    return tomllib.loads((model_dir / "model.toml").read_text())["views"]
+
+
+def test_reflectance_is_normalised_by_the_dmx_level(sphere_build, tmp_path):
+    """One-light images taken at DMX level 128 hold 128/255 of the light: the model stores
+    them scaled back to full level, equal to the same capture at level 255 (the sphere
+    fixture: same seed, so the same noise and mattes) up to the amplified noise."""
+    rcsynth.make_session(tmp_path / "s", kind="sphere", n_angles=4, reflectance_level=128)
+    r = build_model(tmp_path / "s", tmp_path / "m", config=BuildConfig(hull_res=64, pictures=False))
+    assert any("255/level" in n for n in r.notes)
+    dim = OpacityHullModel.open(tmp_path / "m")
+    full = OpacityHullModel.open(sphere_build[2] / "model")
+    assert "full DMX level" in dim.meta["provenance"]["reflectance_units"]
+    for i in (0, 7):
+        a, b = dim.load_reflectance(i), full.load_reflectance(i)
+        for k in b:
+            s_full = float(b[k].sum())
+            assert s_full > 1.0
+            assert float(a[k].sum()) / s_full == pytest.approx(1.0, abs=0.01)  # unscaled: 0.502
+            assert np.abs(a[k] - b[k]).mean() < 0.003

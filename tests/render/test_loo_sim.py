@@ -2,9 +2,11 @@
 `eval loo`): the whole pipeline's view interpolation measured against photographs the
 blend did not use.
 
-CI plan (tests/render/data/loo_ci.toml): 3 cameras × 6 table angles (60° steps), one
-backdrop pattern pair with object-absent shots, the lightfield; built with the
-simulator's true cameras (calibration has its own tests) at hull resolution 96.
+Captures come from the shared cache (tests/simcache.py: ``simcache.CI_PLAN``, 3 cameras
+× 6 table angles (60° steps), one backdrop pattern pair with object-absent shots, the
+lightfield), the same sessions the reconstruction e2e tests build; the models here are
+built with the simulator's true cameras (calibration has its own tests) at hull
+resolution 96.
 
 Thresholds are the measured values minus a margin for Monte Carlo noise (~1 dB); the
 measurements are in the docstrings. With 60° between table angles the held-out view's
@@ -15,47 +17,35 @@ analytic sphere's (36 views) and than the demo plan's (48 views).
 from __future__ import annotations
 
 import json
-import os
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
 
+import simcache
 from opacityhull.model import OpacityHullModel
 from opacityhull.render.evaluate import leave_one_out
 from opacityhull.render.renderer import RenderConfig, prepare_model_views
 
-PLAN = Path(__file__).parent / "data" / "loo_ci.toml"
-
 pytestmark = pytest.mark.slow
 
 
-def capture_and_build(scene: str, root: Path, *, alpha_threshold: float = 0.5) -> Path:
-    env = dict(os.environ, COLUMNS="400")
-    p = subprocess.run([sys.executable, "-m", "opacityhull.cli", "capture", "--rig", f"sim:builtin:{scene}",
-                        "--plan", str(PLAN), "--out", str(root / "session"), "--json"], capture_output=True,
-                       text=True, timeout=1500, env=env)
-    if p.returncode != 0:
-        raise AssertionError(f"capture failed ({p.returncode}): {p.stderr[-2000:]}")
-    from opacityhull.reconstruct.build import BuildConfig, build_model
-
-    build_model(root / "session", root / "model", config=BuildConfig(hull_res=96, cameras="groundtruth",
-                                                                      reflectance=False, pictures=False,
-                                                                      alpha_threshold=alpha_threshold))
-    return root / "model"
+def build(scene: str, *, alpha_threshold: float = 0.5) -> Path:
+    return simcache.built(scene, simcache.CI_PLAN, simcache.CI_SCALE, hull_res=96, cameras="groundtruth",
+                          reflectance=False, pictures=False, alpha_threshold=alpha_threshold)
 
 
 @pytest.fixture(scope="module")
-def diffuse_model(tmp_path_factory):
-    return capture_and_build("diffuse", tmp_path_factory.mktemp("loo_sim_diffuse"))
+def diffuse_model():
+    return build("diffuse")
 
 
 @pytest.fixture(scope="module")
-def fuzzy_model(tmp_path_factory):
+def fuzzy_model():
     # a conservative hull (silhouette = alpha > 0.05, as in the opacity-hull paper): the
     # fibres' fringe has alpha < 0.5 and the default hull cuts it off (measured 18.1 dB)
-    return capture_and_build("fuzzy", tmp_path_factory.mktemp("loo_sim_fuzzy"), alpha_threshold=0.05)
+    return build("fuzzy", alpha_threshold=0.05)
 
 
 @pytest.mark.timeout(1800)

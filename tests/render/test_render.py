@@ -233,7 +233,16 @@ def test_envmap_background_agrees_with_mitsuba():
     differs by ~0.1."""
     import mitsuba as mi
 
+    previous = mi.variant()
     mi.set_variant("scalar_rgb")
+    try:
+        _envmap_vs_mitsuba(mi)
+    finally:  # the variant is process-global: later simulator tests load scenes in theirs
+        if previous:
+            mi.set_variant(previous)
+
+
+def _envmap_vs_mitsuba(mi):
     from opacityhull.camera import mitsuba_sensor_params
 
     h, w = 32, 64

@@ -54,10 +54,29 @@ def test_matting_has_no_light_array_emitters(scenes):
 
 
 def test_light_phases_have_no_display_emitters_but_keep_the_panels(scenes):
-    for s in scenes.values():
+    for name, s in scenes.items():
         for phase in ("lightfield", "reflectance"):
             cfg = select_effects(s, phase)
-            assert cfg.emitters == ("light_array",) and "displays" in cfg.shapes
+            assert "displays" not in cfg.emitters and "displays" in cfg.shapes
+            if name == "glass":  # smooth glass on black panels: point lights show nothing
+                assert cfg.emitters == () and cfg.skipped == ("light_array",)
+            else:
+                assert cfg.emitters == ("light_array",) and cfg.skipped == ()
+
+
+def test_delta_only_objects_skip_the_light_array_and_the_reference_checks_it(scenes, tmp_path):
+    """Smooth glass and polished metal alone: no light pass; the reference still renders
+    the lights (to measure that claim); a rough or diffuse part brings them back."""
+    assert scenes["glass"].delta_only and not scenes["glossy"].delta_only
+    ref = reference_effects(scenes["glass"], "lightfield", spp=16)
+    assert ref.emitters == ("light_array",) and ref.skipped == ()
+    p = tmp_path / "mirror_and_clay.toml"
+    body = ('[materials.mirror]\ntype = "conductor"\n[materials.clay]\ntype = "diffuse"\n'
+            '[[objects]]\nname = "a"\nshape = "sphere"\nmaterial = "mirror"\nradius_m = 0.05\n')
+    p.write_text(body)
+    assert select_effects(load_scene(p), "reflectance").emitters == ()
+    p.write_text(body + '[[objects]]\nname = "b"\nshape = "disk"\nmaterial = "clay"\nradius_m = 0.1\n')
+    assert select_effects(load_scene(p), "reflectance").emitters == ("light_array",)
 
 
 def test_groundtruth_is_object_only_aov(scenes):
