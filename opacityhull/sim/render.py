@@ -621,8 +621,13 @@ class SimRenderer:
         ``shape_index`` values to shape ids (``obj_<i>`` for part i). ``extra`` is used
         when the scene is first loaded (``key`` identifies it); ``updates`` (Mitsuba
         parameter name → value, e.g. a ``to_world``) are applied before every render.
-        Used by ground truth and environment-map renders."""
+        Used by ground truth and environment-map renders. A ``stratified`` sampler
+        takes a square sample count: ``spp`` is rounded up to the next square (as
+        Mitsuba would, but without its warning per render)."""
         mi = self.mi
+        if sampler == "stratified":
+            spp = math.isqrt(max(int(spp), 1) - 1) + 1
+            spp *= spp
         full_key = ("raw", key, _camera_key(camera_object), sampler, spp, tuple(p.name for p in parts),
                     repr(integrator))
         with self._cache_lock:
