@@ -595,38 +595,36 @@ def _push_level(v, w, out_v, out_w):
             out_w[i, j] = sw if sw < 1.0 else 1.0
 
 
+@njit(cache=True, inline="always")
+def _upsample_taps(i, n_coarse):
+    """Bilinear taps of fine index ``i`` on a grid half as fine with ``n_coarse`` cells:
+    (lower index, upper index, weight of the upper), edges clamped."""
+    s = (i + 0.5) / 2.0 - 0.5
+    i0 = int(math.floor(s))
+    f = s - i0
+    i1 = i0 + 1
+    if i0 < 0:
+        i0 = 0
+        f = 0.0
+    if i1 > n_coarse - 1:
+        i1 = n_coarse - 1
+    if i0 > n_coarse - 1:
+        i0 = n_coarse - 1
+    return i0, i1, f
+
+
 @njit(cache=True, nogil=True)
 def _pull_level(v, w, coarse):
     """One pull step in place: v = w v + (1 - w) bilinear_up(coarse)."""
     h, wd, nc = v.shape
     hc, wc = coarse.shape[0], coarse.shape[1]
     for i in range(h):
-        ys = (i + 0.5) / 2.0 - 0.5
-        y0 = int(math.floor(ys))
-        fy = ys - y0
-        y1 = y0 + 1
-        if y0 < 0:
-            y0 = 0
-            fy = 0.0
-        if y1 > hc - 1:
-            y1 = hc - 1
-        if y0 > hc - 1:
-            y0 = hc - 1
+        y0, y1, fy = _upsample_taps(i, hc)
         for j in range(wd):
             ww = w[i, j]
             if ww >= 1.0:
                 continue
-            xs = (j + 0.5) / 2.0 - 0.5
-            x0 = int(math.floor(xs))
-            fx = xs - x0
-            x1 = x0 + 1
-            if x0 < 0:
-                x0 = 0
-                fx = 0.0
-            if x1 > wc - 1:
-                x1 = wc - 1
-            if x0 > wc - 1:
-                x0 = wc - 1
+            x0, x1, fx = _upsample_taps(j, wc)
             for c in range(nc):
                 up = ((1 - fy) * ((1 - fx) * coarse[y0, x0, c] + fx * coarse[y0, x1, c])
                       + fy * ((1 - fx) * coarse[y1, x0, c] + fx * coarse[y1, x1, c]))
