@@ -4,8 +4,10 @@ renders), measured against the simulator's ground truth.
 Captures come from the shared cache (tests/simcache.py), so the renderer's tests reuse
 them: the CI plan ``simcache.CI_PLAN`` (3 cameras × 6 table angles, one backdrop pattern
 pair with object-absent shots, lightfield, one light) at full rig resolution (200×150)
-for the diffuse cup and the fuzzy tuft, the glossy vase at half resolution (its
-matting renders cost ~5× the diffuse ones), and the built-in ``tiny`` plan (with its
+for the diffuse cup, the glossy vase at half resolution (its matting renders cost ~5×
+the diffuse ones), the demo plan's views (tests/render/data/demo_views.toml: 6 cameras
+× 8 table angles, two pattern pairs) for the fuzzy tuft — the capture the renderer's
+demo-plan leave-one-out test needs anyway — and the built-in ``tiny`` plan (with its
 ChArUco calibration phase) for the calibrated build. The CI-plan builds take the
 simulator's true cameras — explicitly (``cameras="groundtruth"``): they measure matting,
 carving and the model; the tiny-plan build measures the whole chain from the board.
@@ -29,6 +31,7 @@ figures are in the reconstruct report):
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -53,9 +56,12 @@ def diffuse():
     return built("diffuse")
 
 
+FUZZY_PLAN = Path(__file__).parents[1] / "render" / "data" / "demo_views.toml"
+
+
 @pytest.fixture(scope="module")
 def fuzzy():
-    return built("fuzzy", reflectance=False)
+    return built("fuzzy", FUZZY_PLAN, reflectance=False, pictures=False)
 
 
 @pytest.fixture(scope="module")
@@ -106,9 +112,13 @@ def test_glossy_vase(glossy):
 
 
 def test_fuzzy_tuft_mattes_are_fractional(fuzzy):
+    """Measured on the demo plan's 48 views: alpha MAE 0.018, 88 k pixels with
+    fractional true alpha of which 99.8 % get a fractional matte, 96.6 % of the object
+    inside the hull."""
     model_dir, r = fuzzy
     m = r["metrics"]
-    assert m["alpha_mae"] < 0.05
+    assert m["alpha_views_compared"] == 48
+    assert m["alpha_mae"] < 0.035
     assert m["alpha_fractional_pixels"] > 800
     assert m["alpha_fractional_recovered"] > 0.5
     # fibres thinner than a pixel stay below the 0.5 silhouette threshold, so the hull
