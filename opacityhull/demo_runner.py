@@ -32,7 +32,7 @@ def run_demo(out: Path, *, as_json: bool = False, rig: str = DEFAULT_RIG, plan: 
     Returns the summary (also written to ``out/demo.json``).
     """
     from .acquire.plan import load_plan
-    from .acquire.runner import run_capture
+    from .acquire.runner import resume_mismatch, run_capture
     from .imageio import atomic_path
     from .reconstruct.build import BuildConfig, build_model
     from .relight.runner import demo_step as relight_step
@@ -49,10 +49,20 @@ def run_demo(out: Path, *, as_json: bool = False, rig: str = DEFAULT_RIG, plan: 
     # 1. capture -------------------------------------------------------------------
     _step(f"1/4 capture {plan} on {rig}")
     t = time.monotonic()
-    resume = (session / "session.toml").is_file()
     plan_obj = load_plan(plan)
     sim_rig = open_sim_rig(rig)
     try:
+        why = resume_mismatch(session, plan_obj, sim_rig.geometry)
+        if why:
+            # an earlier demo with another plan or rig (e.g. before an upgrade changed
+            # builtin:demo): keep it, renamed, and start afresh rather than fail
+            stamp = time.strftime("%Y%m%dT%H%M%S", time.gmtime())
+            for d in (session, model):
+                if d.exists():
+                    d.rename(d.with_name(f"{d.name}.old-{stamp}"))
+            console().print(f"[yellow]earlier demo output does not match ({why}); kept it as "
+                            f"{session.name}.old-{stamp} / {model.name}.old-{stamp} and capturing afresh[/yellow]")
+        resume = (session / "session.toml").is_file()
         with progress(f"capture {plan}") as cb:
             cap = run_capture(sim_rig, plan_obj, session, resume=resume, progress=cb, rig_source=rig)
     finally:

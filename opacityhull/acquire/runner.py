@@ -43,7 +43,8 @@ from .plan import CapturePlan
 from .schedule import (Estimate, MotionRates, PlannedShot, Stage, estimate, expected_counts, image_bytes,
                        schedule)
 
-__all__ = ["CaptureResult", "DiskFull", "GroundTruthError", "run_capture", "device_pattern_id", "views_of"]
+__all__ = ["CaptureResult", "DiskFull", "GroundTruthError", "run_capture", "resume_mismatch", "device_pattern_id",
+           "views_of"]
 
 ProgressCallback = Callable[[int, int], None]
 
@@ -539,14 +540,48 @@ def _append_run_log(out: Path, started: str, result: CaptureResult) -> None:
         pass  # a full disk must not hide the real reason the run stopped
 
 
-def _check_resume_matches(sess: Session, plan: CapturePlan, geometry, out: Path) -> None:
+def _differences(a, b, prefix: str = "", limit: int = 3) -> list[str]:
+    """Up to ``limit`` dotted keys where tables ``a`` (stored) and ``b`` (given) differ,
+    as "key: stored -> given"."""
+    out: list[str] = []
+    if isinstance(a, dict) and isinstance(b, dict):
+        for k in sorted(set(a) | set(b), key=str):
+            if len(out) >= limit:
+                break
+            out += _differences(a.get(k), b.get(k), f"{prefix}{k}.", limit - len(out))
+        return out
+    if a != b:
+        out.append(f"{prefix.rstrip('.')}: {a!r} in the session, {b!r} now")
+    return out
+
+
+def resume_mismatch(session_dir, plan: CapturePlan, geometry) -> str | None:
+    """Why a capture in ``session_dir`` cannot be resumed with ``plan`` on a rig of
+    ``geometry`` (a message naming the differing keys), or None when it can (or when
+    there is no session yet)."""
+    out = Path(session_dir)
+    if not (out / "session.toml").is_file():
+        return None
+    sess = Session.open(out)
     stored_plan = sess.plan
-    if stored_plan and _roundtrip(plan.to_dict()) != stored_plan:
-        raise ConfigError(f"--plan {plan.source or plan.name}: differs from the plan of the session in {out} "
-                          f"({sess.meta.get('session', {}).get('plan_source', '?')}); resume with the same plan")
-    if _roundtrip(geometry.to_dict()) != sess.meta.get("rig", {}):
-        raise ConfigError(f"--rig: its geometry differs from the rig recorded in {out / 'session.toml'}; "
-                          "resume on the same rig")
+    given = _roundtrip(plan.to_dict())
+    if stored_plan and given != stored_plan:
+        diff = "; ".join(_differences(stored_plan, given))
+        return (f"--plan {plan.source or plan.name}: differs from the plan of the session in {out} "
+                f"({sess.meta.get('session', {}).get('plan_source', '?')}): {diff}; resume with the same plan")
+    stored_rig = sess.meta.get("rig", {})
+    given_rig = _roundtrip(geometry.to_dict())
+    if given_rig != stored_rig:
+        diff = "; ".join(_differences(stored_rig, given_rig))
+        return (f"--rig: its geometry differs from the rig recorded in {out / 'session.toml'}: {diff}; "
+                "resume on the same rig")
+    return None
+
+
+def _check_resume_matches(sess: Session, plan: CapturePlan, geometry, out: Path) -> None:
+    why = resume_mismatch(out, plan, geometry)
+    if why:
+        raise ConfigError(why)
 
 
 def _session_meta(rig, cam_info, plan, geometry, stages, patterns, rig_source) -> dict:

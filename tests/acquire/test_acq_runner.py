@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from opacityhull.acquire.plan import parse_plan
-from opacityhull.acquire.runner import DiskFull, device_pattern_id, run_capture
+from opacityhull.acquire.runner import DiskFull, device_pattern_id, resume_mismatch, run_capture
 from opacityhull.acquire.schedule import expected_counts, schedule
 from opacityhull.acquire.verify import verify_session
 from opacityhull.errors import ConfigError, DeviceError, InputError
@@ -168,8 +168,11 @@ def test_resume_of_complete_session_takes_nothing_and_plan_must_match(captured, 
     assert res.complete and res.taken == 0
     assert len(_manifest_ids(out)) == n_lines
     other = dict(rigkit.TINY_PLAN, plan={"name": "lab-tiny", "seed": 6})
-    with pytest.raises(ConfigError, match="differs from the plan"):
+    with pytest.raises(ConfigError, match=r"differs from the plan.*plan\.seed: 5 in the session, 6 now"):
         run_capture(rig, parse_plan(other, where="other"), out, resume=True)
+    assert resume_mismatch(out, tiny_plan(), rig.geometry) is None
+    assert "plan.seed" in resume_mismatch(out, parse_plan(other, where="other"), rig.geometry)
+    assert resume_mismatch(out.parent / "no-session-here", tiny_plan(), rig.geometry) is None
 
 
 def _assert_safe(rig):
