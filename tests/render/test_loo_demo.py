@@ -18,10 +18,10 @@ How the thresholds were chosen (measured values in the test docstrings):
   seed; re-capturing the diffuse cup with another seed (12 instead of 11) moved the
   means by 0.06 dB, 0.0014 SSIM and 0.0003 alpha MAE, so the margins are ten times the
   seed spread, yet smaller than what losing a renderer feature costs (on the CI plan:
-  edge coverage off −1.2 dB, the textbook prefilter H = I −2.1 dB).
+  edge coverage off −1.0 dB, the textbook prefilter H = I −2.4 dB).
 * Relative checks carry the meaning: blending (k = 4) must beat the nearest remaining
-  view alone (k = 1, measured +0.6 dB diffuse, +0.5 dB fuzzy), and the demo plan's 48
-  views must beat the CI plan's 18 on the diffuse cup by at least 1.5 dB (measured +2.3
+  view alone (k = 1, measured +0.9 dB diffuse, +0.7 dB fuzzy), and the demo plan's 48
+  views must beat the CI plan's 18 on the diffuse cup by at least 2 dB (measured +3.1
   dB) — view interpolation improves when the held-out view's neighbours are closer (45°
   instead of 60° on the table, six camera heights instead of three).
 """
@@ -73,32 +73,33 @@ def loo(model_dir: Path, **cfg):
 
 @pytest.mark.timeout(2400)
 def test_loo_demo_plan_builtin_diffuse(tmp_path):
-    """Measured: PSNR 23.95 dB, SSIM 0.888, alpha MAE 0.035 over the 48 views; nearest
-    view only (k = 1) 23.33 dB; the CI plan's 18 views 21.64 dB."""
+    """Measured: PSNR 25.05 dB, SSIM 0.904, alpha MAE 0.028 over the 48 views (seed 12:
+    25.11 dB, 0.906, 0.028); nearest view only (k = 1) 24.15 dB; the CI plan's 18 views
+    21.93 dB."""
     model = build("diffuse", PLAN, alpha_threshold=0.5)
     m, pv, s = loo(model)
     assert len(s["per_view"]) == 48
-    assert s["psnr_mean"] > 23.2 and s["ssim_mean"] > 0.868 and s["alpha_mae"] < 0.045
+    assert s["psnr_mean"] > 24.35 and s["ssim_mean"] > 0.884 and s["alpha_mae"] < 0.038
     nearest = leave_one_out(m, prepared=pv, config=RenderConfig(k=1))
-    assert s["psnr_mean"] > nearest["psnr_mean"] + 0.3
+    assert s["psnr_mean"] > nearest["psnr_mean"] + 0.5
     ci = loo(build("diffuse", simcache.CI_PLAN, alpha_threshold=0.5))[2]
     assert len(ci["per_view"]) == 18
-    assert s["psnr_mean"] > ci["psnr_mean"] + 1.5
+    assert s["psnr_mean"] > ci["psnr_mean"] + 2.0
 
 
 @pytest.mark.timeout(2400)  # the tuft's capture took ~300 s on the shared 2-core machine
 def test_loo_demo_plan_builtin_fuzzy_cli(tmp_path):
     """Through the CLI (`eval loo --json`), on a conservative hull (silhouette = alpha >
     0.05, as in the opacity-hull paper: the fibres' fringe has alpha < 0.5 and the
-    default hull cuts it off). Measured: PSNR 22.50 dB, SSIM 0.703, alpha MAE 0.072 over
-    the 48 views; nearest view only 21.97 dB; on the CI plan's 18 views it was 21.0 dB."""
+    default hull cuts it off). Measured: PSNR 23.25 dB, SSIM 0.725, alpha MAE 0.071 over
+    the 48 views; nearest view only 22.52 dB."""
     model = build("fuzzy", PLAN, alpha_threshold=0.05)
     p = subprocess.run([sys.executable, "-m", "opacityhull.cli", "eval", "loo", str(model), "--out",
                         str(tmp_path), "--json"], capture_output=True, text=True, timeout=900)
     assert p.returncode == 0, p.stderr[-2000:]
     s = json.loads(p.stdout.strip().splitlines()[-1])
     assert len(s["views"]) == 48 and len(s["per_view"]) == 48 and Path(s["sheet"]).is_file()
-    assert s["psnr_mean"] > 21.8 and s["ssim_mean"] > 0.683 and s["alpha_mae"] < 0.082
+    assert s["psnr_mean"] > 22.55 and s["ssim_mean"] > 0.705 and s["alpha_mae"] < 0.081
     m = OpacityHullModel.open(model)
     nearest = leave_one_out(m, prepared=prepare_model_views(m), config=RenderConfig(k=1))
-    assert s["psnr_mean"] > nearest["psnr_mean"] + 0.25
+    assert s["psnr_mean"] > nearest["psnr_mean"] + 0.4
