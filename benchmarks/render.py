@@ -255,7 +255,9 @@ def main():
         f"NumPy copy bandwidth {bw:.1f} GB/s (read + write). numba compile / cache load "
         f"{info['compile_or_cache_load_s']:.1f} s (not in the timings).", "",
         "## Throughput at 512×512 (analytic sphere, novel view, warm)", "",
-        "CPU time is the best of 5 frames (median in brackets); M surfels/s/core from the best.", "",
+        "CPU time is the best of 5 frames (median in brackets); M surfels/s/core from the best. "
+        "On this shared VM whole runs an hour apart differed by up to 1.7x (2 M surfels, k = 4: "
+        "297 ms against 506 ms per frame, the other tenants' load), so compare rows within one run.", "",
         "| surfels | drawn | k | threads | CPU ms/frame | wall ms/frame | M surfels/s/core | setup / shade / raster ms |",
         "|---:|---:|---:|---:|---:|---:|---:|---|",
     ]
