@@ -33,10 +33,16 @@ def _listed(out: Path) -> int:
     return sum(1 for _ in read_manifest(out / "manifest.jsonl")) if (out / "manifest.jsonl").is_file() else 0
 
 
+def _default_sigint() -> None:
+    # a suite started in the background by a non-interactive shell inherits SIGINT
+    # ignored, and Python then installs no KeyboardInterrupt handler in the child
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _start(out: Path, *extra) -> subprocess.Popen:
     return subprocess.Popen(_cli("capture", "--rig", RIG, "--plan", PLAN, "--out", str(out), "--json", *extra),
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            env=dict(os.environ, PYTHONUNBUFFERED="1"))
+                            env=dict(os.environ, PYTHONUNBUFFERED="1"), preexec_fn=_default_sigint)
 
 
 def _signal_after(proc: subprocess.Popen, out: Path, n_images: int, sig, deadline_s: float = 240.0) -> None:

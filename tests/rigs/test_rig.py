@@ -165,8 +165,11 @@ def test_ctrl_c_during_move_leaves_rig_safe(tmp_path, cfg, wait_for):
             "finally:\n"
             "    rig.close()\n"
         )
+        # SIG_DFL in the child: a suite started in the background by a non-interactive
+        # shell inherits SIGINT ignored, and Python then raises no KeyboardInterrupt
         proc = subprocess.Popen([sys.executable, "-c", script, str(runtime)], stdout=subprocess.PIPE,
-                                stderr=subprocess.PIPE, text=True, cwd=ROOT)
+                                stderr=subprocess.PIPE, text=True, cwd=ROOT,
+                                preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
         try:
             assert proc.stdout.readline().strip() == "moving"
             wait_for(lambda: g.state == "Run" and g.position_deg("X") > 1.0, 20, "the turntable to move")
