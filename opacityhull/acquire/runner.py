@@ -562,7 +562,10 @@ def resume_mismatch(session_dir, plan: CapturePlan, geometry) -> str | None:
     out = Path(session_dir)
     if not (out / "session.toml").is_file():
         return None
-    sess = Session.open(out)
+    return _mismatch(Session.open(out), plan, geometry, out)
+
+
+def _mismatch(sess: Session, plan: CapturePlan, geometry, out: Path) -> str | None:
     stored_plan = sess.plan
     given = _roundtrip(plan.to_dict())
     if stored_plan and given != stored_plan:
@@ -579,7 +582,7 @@ def resume_mismatch(session_dir, plan: CapturePlan, geometry) -> str | None:
 
 
 def _check_resume_matches(sess: Session, plan: CapturePlan, geometry, out: Path) -> None:
-    why = resume_mismatch(out, plan, geometry)
+    why = _mismatch(sess, plan, geometry, out)
     if why:
         raise ConfigError(why)
 

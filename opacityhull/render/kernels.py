@@ -679,6 +679,17 @@ def bin_splats(splat, draw, height, band_h):
     return counts, lists
 
 
+@njit(cache=True, inline="always", error_model="numpy")
+def _splat_geometry(splat, i):
+    """Record ``i``'s centre (px), depth (m), conic A, 2B, C, depth gradients, depth
+    clamp range and column range, as the rasteriser's two passes both need them."""
+    z0 = np.float64(splat[i, S_Z])
+    dev = np.float64(splat[i, S_ZDEV])
+    return (np.float64(splat[i, S_X]), np.float64(splat[i, S_Y]), z0, np.float64(splat[i, S_A]),
+            2.0 * np.float64(splat[i, S_B]), np.float64(splat[i, S_C]), np.float64(splat[i, S_DZX]),
+            np.float64(splat[i, S_DZY]), z0 - dev, z0 + dev, int(splat[i, S_BX0]), int(splat[i, S_BX1]))
+
+
 @njit(cache=True, nogil=True, error_model="numpy", fastmath={"contract"})
 def rasterize(splat, lists, counts, height, width, cutoff, band_h, lut, accum, zlim, b0, stride):
     """Two-pass ε-z-buffer splatting of binned splat records.
@@ -713,20 +724,8 @@ def rasterize(splat, lists, counts, height, width, cutoff, band_h, lut, accum, z
         yhi = min(height - 1, ylo + band_h - 1)
         for t in range(counts[b], counts[b + 1]):
             i = lists[t]
-            x0 = np.float64(splat[i, S_X])
-            y0 = np.float64(splat[i, S_Y])
-            z0 = np.float64(splat[i, S_Z])
-            A = np.float64(splat[i, S_A])
-            B2 = 2.0 * np.float64(splat[i, S_B])
-            C = np.float64(splat[i, S_C])
-            dzx = np.float64(splat[i, S_DZX])
-            dzy = np.float64(splat[i, S_DZY])
-            dev = np.float64(splat[i, S_ZDEV])
+            x0, y0, z0, A, B2, C, dzx, dzy, zlo, zhi, xa, xb = _splat_geometry(splat, i)
             eps = np.float64(splat[i, S_ZEPS])
-            zlo = z0 - dev
-            zhi = z0 + dev
-            xa = int(splat[i, S_BX0])
-            xb = int(splat[i, S_BX1])
             for y in range(max(int(splat[i, S_BY0]), ylo), min(int(splat[i, S_BY1]), yhi) + 1):
                 dy = y - y0
                 tt = B2 * dy
@@ -740,20 +739,8 @@ def rasterize(splat, lists, counts, height, width, cutoff, band_h, lut, accum, z
                     zlim[y, x] = min(zlim[y, x], zl)
         for t in range(counts[b], counts[b + 1]):
             i = lists[t]
-            x0 = np.float64(splat[i, S_X])
-            y0 = np.float64(splat[i, S_Y])
-            z0 = np.float64(splat[i, S_Z])
-            A = np.float64(splat[i, S_A])
-            B2 = 2.0 * np.float64(splat[i, S_B])
-            C = np.float64(splat[i, S_C])
+            x0, y0, z0, A, B2, C, dzx, dzy, zlo, zhi, xa, xb = _splat_geometry(splat, i)
             w0 = splat[i, S_W]
-            dzx = np.float64(splat[i, S_DZX])
-            dzy = np.float64(splat[i, S_DZY])
-            dev = np.float64(splat[i, S_ZDEV])
-            zlo = z0 - dev
-            zhi = z0 + dev
-            xa = int(splat[i, S_BX0])
-            xb = int(splat[i, S_BX1])
             r0 = splat[i, S_RGBA]
             r1 = splat[i, S_RGBA + 1]
             r2 = splat[i, S_RGBA + 2]
