@@ -409,7 +409,7 @@ def spatially_sorted(surfels: Surfels, *, bits: int = 16) -> Surfels:
 
     Rendered images do not depend on the order (up to float rounding of the sums);
     spatially coherent order makes the texel fetches and the rasteriser's record
-    gathers cache-friendly. :func:`render_model` and the CLI sort once per model.
+    reads cache-friendly. :func:`render_model` and the CLI sort once per model.
     """
     P = np.asarray(surfels.positions, dtype=np.float64)
     if len(P) == 0:
