@@ -69,12 +69,13 @@ from ..model import LightSample, Surfels, ViewInfo, light_key, write_model
 from ..riggeometry import RigGeometry, view_id
 from ..session import Session
 from .hull import (EmptyHullError, HullGrid, carve_octree, hull_bounds, silhouette_from_alpha,
-                   undistort_silhouette)
+                   carve_robust, undistort_silhouette, view_rejections)
 from .matting import MattingOptions, backdrop_from_displays, solve_matte, straight_from_premul
 from .surfels import sample_hull_surfels
 from .visibility import surfel_visibility
 
-__all__ = ["BuildConfig", "BuildReport", "build_model", "view_list", "load_matting_pairs", "resolve_cameras"]
+__all__ = ["BuildConfig", "BuildReport", "build_model", "build_geometry", "choose_resolution", "Geometry",
+           "Resolution", "pixel_footprint_m", "view_list", "load_matting_pairs", "resolve_cameras"]
 
 CAMERA_SOURCES = ("auto", "groundtruth", "nominal")
 BACKDROP_SOURCES = ("auto", "object-absent", "geometry")
@@ -82,13 +83,23 @@ STEPS = ("cameras", "matting", "silhouettes", "hull", "surfels", "visibility", "
          "pictures", "metrics")
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class BuildConfig:
     """Options of :func:`build_model`.
 
     Parameters
     ----------
-    hull_res : voxels along the longest side of the hull's bounding box.
+    hull_res : voxels along the longest side of the hull's bounding box, or None (the
+        default): chosen from the photographs' pixel footprint on the object so there is
+        one surfel per projected pixel or finer (:func:`choose_resolution`).
+    max_hull_res : cap of the automatic grid (memory grows with its cube); past it the
+        LDC rays are oversampled to keep the surfel spacing.
+    surfels_per_pixel : automatic resolution: surfel spacing = footprint / this.
+    carve_tolerance : robust carving under imperfect masks (:func:`.hull.carve_robust`):
+        a voxel seen as background through a view's outer contour is removed; one seen
+        through enclosed holes survives up to this many such views. None (default) = 1
+        for imported image sets with at least 8 views (thresholded masks have shadow
+        holes), 0 for rig sessions (triangulation mattes).
     alpha_threshold : silhouette = alpha > threshold.
     matting : MattingOptions of the triangulation matting.
     dilate_base_px, dilate_rms_factor : silhouettes are dilated by a disc of radius
@@ -120,7 +131,10 @@ class BuildConfig:
     ground_truth_dilate_px : dilation of the object region for ``alpha_mae``.
     """
 
-    hull_res: int = 128
+    hull_res: int | None = None
+    max_hull_res: int = 640
+    surfels_per_pixel: float = 1.0
+    carve_tolerance: int | None = None
     alpha_threshold: float = 0.5
     matting: MattingOptions = MattingOptions()
     dilate_base_px: float = 0.5
@@ -144,8 +158,17 @@ class BuildConfig:
     ground_truth_dilate_px: int = 3
 
     def __post_init__(self):
-        if not (4 <= int(self.hull_res) <= 2048):
+        if self.hull_res is not None and not (4 <= int(self.hull_res) <= 2048):
             raise ConfigError(f"hull_res must be in [4, 2048], got {self.hull_res}")
+        if not (8 <= int(self.max_hull_res) <= 2048):
+            raise ConfigError(f"max_hull_res must be in [8, 2048], got {self.max_hull_res}")
+        if not (isinstance(self.surfels_per_pixel, (int, float)) and 0.1 <= self.surfels_per_pixel <= 8):
+            raise ConfigError(f"surfels_per_pixel must be in [0.1, 8], got {self.surfels_per_pixel}")
+        if self.carve_tolerance is not None and not (isinstance(self.carve_tolerance, int)
+                                                     and self.carve_tolerance >= 0):
+            raise ConfigError(f"carve_tolerance must be None or an integer >= 0, got {self.carve_tolerance!r}")
+        if int(self.surfel_oversample) < 1:
+            raise ConfigError(f"surfel_oversample must be >= 1, got {self.surfel_oversample}")
         if not (0.0 <= self.alpha_threshold < 1.0):
             raise ConfigError(f"alpha_threshold must be in [0, 1), got {self.alpha_threshold}")
         if self.cameras not in CAMERA_SOURCES:
@@ -188,7 +211,9 @@ class BuildReport:
         """The ``--json`` object: views, surfels, seconds, metrics (+ where and how)."""
         return {"views": self.views, "surfels": self.surfels, "seconds": dict(self.seconds),
                 "metrics": dict(self.metrics), "model": self.model_dir, "camera_source": self.camera_source,
-                "backdrop_source": self.backdrop_source}
+                "backdrop_source": self.backdrop_source, "resolution": self.hull.get("resolution"),
+                "carve_tolerance": self.hull.get("carve_tolerance"),
+                "views_disagreeing_with_hull": self.hull.get("views_disagreeing_with_hull", [])}
 
 
 # --------------------------------------------------------------------------- helpers
@@ -506,6 +531,192 @@ def _is_rig_session(session: Session) -> bool:
     return not str(session.source).startswith("import:") and "mask" not in session.phases()
 
 
+# --------------------------------------------------------------------------- geometry
+
+
+@dataclass(frozen=True, kw_only=True)
+class Resolution:
+    """The hull grid and surfel spacing :func:`choose_resolution` picked, and why."""
+
+    hull_res: int
+    oversample: int
+    pixel_footprint_m: float
+    voxel_m: float
+    surfel_spacing_m: float
+    reason: str
+
+    def to_dict(self) -> dict:
+        return asdict(self)
+
+
+def pixel_footprint_m(cameras: Sequence[Camera], centre) -> float:
+    """Median over the views of the size of one pixel on the object, metres: the
+    distance from the camera centre to ``centre`` over the focal length in pixels."""
+    c = np.asarray(centre, dtype=np.float64)
+    fp = [float(np.linalg.norm(cam.centre_world - c)) / max(min(cam.fx, cam.fy), 1e-12) for cam in cameras]
+    return float(np.median(fp))
+
+
+def choose_resolution(lo, hi, cameras: Sequence[Camera], *, config: "BuildConfig") -> Resolution:
+    """Hull resolution and surfel oversampling from the photographs' pixel footprint.
+
+    By default (``config.hull_res is None``) a voxel is the pixel footprint divided by
+    ``config.surfels_per_pixel`` along the box's longest side, so surfels are one per
+    projected pixel or finer: the model is never coarser than the capture. Above
+    ``config.max_hull_res`` the grid is capped (memory grows with its cube) and the LDC
+    rays are oversampled instead, which keeps the surfel spacing at the footprint.
+    ``config.hull_res`` (``--hull-res``) overrides; a coarser-than-capture result is then
+    stated in the reason, never silent.
+    """
+    lo = np.asarray(lo, dtype=np.float64)
+    hi = np.asarray(hi, dtype=np.float64)
+    ext = float(np.max(hi - lo))
+    fp = pixel_footprint_m(cameras, 0.5 * (lo + hi))
+    target = fp / float(config.surfels_per_pixel)
+    if config.hull_res is not None:
+        res = int(config.hull_res)
+        over = int(config.surfel_oversample)
+        spacing = ext / res / over
+        why = f"--hull-res {res} (override)"
+        if spacing > 1.5 * fp:
+            why += (f": surfel spacing {spacing * 1e3:.3g} mm is coarser than the pixel footprint "
+                    f"{fp * 1e3:.3g} mm")
+        return Resolution(hull_res=res, oversample=over, pixel_footprint_m=fp, voxel_m=ext / res,
+                          surfel_spacing_m=spacing, reason=why)
+    want = max(8, int(math.ceil(ext / target - 1e-9)))
+    res = min(want, int(config.max_hull_res))
+    over = max(int(config.surfel_oversample), int(math.ceil(want / res - 1e-9)))
+    why = (f"auto: one surfel per {1.0 / config.surfels_per_pixel:.3g} projected pixel (footprint "
+           f"{fp * 1e3:.3g} mm over a {ext * 1e3:.3g} mm box)")
+    if res < want:
+        why += f"; grid capped at {res} (max_hull_res), LDC rays oversampled {over}x to keep the spacing"
+    return Resolution(hull_res=res, oversample=over, pixel_footprint_m=fp, voxel_m=ext / res,
+                      surfel_spacing_m=ext / res / over, reason=why)
+
+
+@dataclass(frozen=True, kw_only=True)
+class Geometry:
+    """What :func:`build_geometry` made: pinhole silhouettes and cameras, the carved
+    grid, the surfels with visibility, and what to report."""
+
+    sils: list
+    pin: list
+    dilations: list
+    occ: np.ndarray
+    grid: HullGrid
+    surfels: Surfels
+    info: dict
+    notes: list
+
+
+def _nullstep(name):
+    from contextlib import nullcontext
+
+    return nullcontext()
+
+
+def build_geometry(alphas: Sequence[np.ndarray], cameras: Sequence[Camera], rms_px: Sequence[float],
+                   view_ids: Sequence[str], *, config: "BuildConfig", rig_session: bool = False,
+                   fallback_box=None, step=None, progress=None) -> Geometry:
+    """Silhouettes → hull → surfels → visibility from per-view alphas and cameras.
+
+    The build runs this once over all views; ``eval loo --holdout geometry`` runs it
+    again without the held-out view. ``rms_px`` is each view's calibration RMS (the
+    silhouette dilation), ``fallback_box`` a box for unbounded LPs (the rig volume),
+    ``rig_session`` clips the hull at the table top. ``step`` is the build's step timer
+    (a context-manager factory taking the step name).
+    """
+    step = step or _nullstep
+    prog = progress or (lambda done, total: None)
+    notes: list[str] = []
+    V = len(cameras)
+    with step("silhouettes"):
+        sils, pin, dil = [], [], []
+        for i, (cam, alpha) in enumerate(zip(cameras, alphas)):
+            d = config.dilate_base_px + config.dilate_rms_factor * float(rms_px[i])
+            dil.append(int(math.ceil(d - 1e-9)))
+            s = silhouette_from_alpha(alpha, threshold=config.alpha_threshold, dilate_px=d)
+            s, pc = undistort_silhouette(s, cam)
+            sils.append(s)
+            pin.append(pc)
+        cover = float(np.median([s.mean() for s in sils]))
+        if cover > 0.8:
+            notes.append(f"the silhouettes cover {100 * cover:.0f} % of the images (median): the mattes are nearly "
+                         "all opaque — were the backdrops lit in the object-present matting shots?")
+        empty = [view_ids[i] for i, s in enumerate(sils) if not s.any()]
+        if empty:
+            raise EmptyHullError(
+                f"empty silhouette (alpha <= {config.alpha_threshold} everywhere) in view(s) {', '.join(empty[:10])}"
+                f"{' ...' if len(empty) > 10 else ''}: the visual hull would be empty. Check those images, lower "
+                "--alpha-threshold, or leave the views out with --exclude-view")
+        full = [view_ids[i] for i, s in enumerate(sils) if s.all()]
+        if full:
+            notes.append(f"view(s) {', '.join(full[:10])} are opaque everywhere (full mask): they carve nothing")
+    tol = config.carve_tolerance if config.carve_tolerance is not None else (
+        1 if (not rig_session and V >= 8) else 0)
+    if tol >= V:
+        raise ConfigError(f"carve_tolerance {tol} >= the {V} views: every voxel would survive")
+    with step("hull"):
+        if config.bounds_m is not None:
+            lo, hi = (np.asarray(x, dtype=np.float64) for x in config.bounds_m)
+        else:
+            fb = fallback_box
+            if fb is not None and not config.clip_below_table:
+                fb = (fb[0] - np.array([0.0, fb[1][1], 0.0]), fb[1])
+            lo, hi = hull_bounds(sils, pin, fallback=fb, min_component_frac=config.bounds_min_component_frac)
+        res = choose_resolution(lo, hi, pin, config=config)
+        pad = 2.0 * float(np.max(hi - lo)) / res.hull_res
+        lo_p, hi_p = lo - pad, hi + pad
+        if rig_session and config.clip_below_table and config.bounds_m is None:
+            lo_p[1] = max(lo_p[1], 0.0)
+        grid = HullGrid.from_bounds(lo_p, hi_p, res.hull_res)
+        strong = None
+        if tol > 0:
+            occ, ostats, strong = carve_robust(sils, pin, grid, tolerance=tol, root_cell=config.root_cell,
+                                               return_stats=True)
+        else:
+            occ, ostats = carve_octree(sils, pin, grid, root_cell=config.root_cell, return_stats=True)
+        n_occ = int(occ.sum())
+        if n_occ == 0:
+            raise EmptyHullError("the visual hull is empty: the silhouettes have no common volume "
+                                 "(inconsistent cameras or mattes?)")
+        info = {"dilate_px_per_view": dict(zip(view_ids, dil)), "grid_shape": list(grid.shape),
+                "voxel_m": grid.voxel_m, "lo_m": grid.lo.tolist(), "hi_m": grid.hi.tolist(),
+                "occupied_voxels": n_occ, "octree_cells": ostats.cells, "octree_tests": ostats.tests,
+                "resolution": res.to_dict(), "carve_tolerance": tol}
+        # where a view's mask disagrees with the hull (shadow holes, lit cloth, frame
+        # edges): the share of the kept voxels it would have carved on its own
+        idx = np.argwhere(occ)
+        if len(idx) > 200_000:
+            idx = idx[np.random.default_rng(0).choice(len(idx), 200_000, replace=False)]
+        rej = view_rejections(grid.centres(idx), sils, pin).mean(axis=0) if tol > 0 else np.zeros(V)
+        info["view_disagreement"] = {view_ids[i]: round(float(rej[i]), 5) for i in range(V)}
+        bad = [(view_ids[i], float(rej[i])) for i in np.argsort(-rej) if rej[i] > 0.01]
+        info["views_disagreeing_with_hull"] = [v for v, _ in bad]
+        if bad:
+            notes.append("mask(s) disagree with the hull the other views agree on (tolerant carve kept what "
+                         "they alone rejected): " + ", ".join(f"{v} ({100 * f:.1f} % of the hull)" for v, f in bad[:8])
+                         + (" ..." if len(bad) > 8 else ""))
+    with step("surfels"):
+        sample = sample_hull_surfels(occ, grid, sils, pin, oversample=res.oversample,
+                                     bisection_iters=config.bisection_iters, radius_scale=config.radius_scale,
+                                     normal_scale_vox=max(1.0, res.pixel_footprint_m / grid.voxel_m),
+                                     tolerance=tol, strong_silhouettes=strong)
+        info.update({"pixel_footprint_m": res.pixel_footprint_m, "surfel_spacing_m": sample.spacing_m})
+        if sample.spacing_m > 1.5 * res.pixel_footprint_m:
+            notes.append(f"surfel spacing {sample.spacing_m * 1e3:.2f} mm is coarser than the pixel footprint "
+                         f"{res.pixel_footprint_m * 1e3:.2f} mm (--hull-res {res.hull_res}): drop --hull-res "
+                         "for full capture resolution")
+    with step("visibility"):
+        vis = surfel_visibility(sample.positions, sample.normals, sample.radii, pin, depth_tol_m=config.depth_tol_m,
+                                facing_cos=config.facing_cos)
+        surfels = Surfels.from_bool(sample.positions, sample.normals, sample.radii, vis)
+        info["visible_views_per_surfel"] = float(vis.sum(1).mean()) if len(vis) else 0.0
+        info["surfels_seen_by_no_view"] = int((~vis.any(1)).sum()) if len(vis) else 0
+        prog(V, V)
+    return Geometry(sils=sils, pin=pin, dilations=dil, occ=occ, grid=grid, surfels=surfels, info=info, notes=notes)
+
+
 # --------------------------------------------------------------------------- runner
 
 
@@ -580,78 +791,21 @@ def build_model(session_dir, out_dir, *, config: BuildConfig = BuildConfig(), gr
         notes.append("backdrops predicted from the display geometry (no object-absent captures): an "
                      "approximation without display falloff or blur")
 
-    # 3. silhouettes (pinhole)
-    with timer.step("silhouettes"):
-        sils, pin, dilations = [], [], {}
-        for (c, a), cam, alpha in zip(views, cams.views, alphas):
-            rms = cams.rms_px.get(c, 0.0)
-            dil = config.dilate_base_px + config.dilate_rms_factor * rms
-            dilations[c] = int(math.ceil(dil - 1e-9))
-            s = silhouette_from_alpha(alpha, threshold=config.alpha_threshold, dilate_px=dil)
-            s, pc = undistort_silhouette(s, cam)
-            sils.append(s)
-            pin.append(pc)
-        cover = float(np.median([s.mean() for s in sils]))
-        if cover > 0.8:
-            notes.append(f"the silhouettes cover {100 * cover:.0f} % of the images (median): the mattes are nearly "
-                         "all opaque — were the backdrops lit in the object-present matting shots?")
-        empty = [vids[i] for i, s in enumerate(sils) if not s.any()]
-        if empty:
-            raise EmptyHullError(
-                f"empty silhouette (alpha <= {config.alpha_threshold} everywhere) in view(s) {', '.join(empty[:10])}"
-                f"{' ...' if len(empty) > 10 else ''}: the visual hull would be empty. Check those images, lower "
-                "--alpha-threshold, or leave the views out with --exclude-view")
-
-    # 4. hull
-    with timer.step("hull"):
-        rig_session = _is_rig_session(session)
-        geo = None
-        try:
-            geo = session.geometry
-        except FormatError:
-            pass
-        if config.bounds_m is not None:
-            lo, hi = (np.asarray(x, dtype=np.float64) for x in config.bounds_m)
-        else:
-            fb = _rig_volume(geo) if rig_session else None
-            if fb is not None and not config.clip_below_table:
-                fb = (fb[0] - np.array([0.0, fb[1][1], 0.0]), fb[1])
-            lo, hi = hull_bounds(sils, pin, fallback=fb, min_component_frac=config.bounds_min_component_frac)
-        pad = 2.0 * float(np.max(hi - lo)) / config.hull_res
-        lo_p, hi_p = lo - pad, hi + pad
-        if rig_session and config.clip_below_table and config.bounds_m is None:
-            lo_p[1] = max(lo_p[1], 0.0)
-        grid = HullGrid.from_bounds(lo_p, hi_p, config.hull_res)
-        occ, ostats = carve_octree(sils, pin, grid, root_cell=config.root_cell, return_stats=True)
-        n_occ = int(occ.sum())
-        if n_occ == 0:
-            raise EmptyHullError("the visual hull is empty: the silhouettes have no common volume "
-                                 "(inconsistent cameras or mattes?)")
-        hull_info = {"dilate_px_per_camera": {str(k): v for k, v in sorted(dilations.items())},
-                     "grid_shape": list(grid.shape), "voxel_m": grid.voxel_m, "lo_m": grid.lo.tolist(),
-                     "hi_m": grid.hi.tolist(), "occupied_voxels": n_occ, "octree_cells": ostats.cells,
-                     "octree_tests": ostats.tests}
-
-    # 5. surfels
-    with timer.step("surfels"):
-        centre = 0.5 * (grid.lo + grid.hi)
-        footprints = [float(np.linalg.norm(c.centre_world - centre)) / min(c.fx, c.fy) for c in pin]
-        footprint = float(np.median(footprints))
-        sample = sample_hull_surfels(occ, grid, sils, pin, oversample=config.surfel_oversample,
-                                     bisection_iters=config.bisection_iters, radius_scale=config.radius_scale,
-                                     normal_scale_vox=max(1.0, footprint / grid.voxel_m))
-        hull_info.update({"pixel_footprint_m": footprint, "surfel_spacing_m": sample.spacing_m})
-        if sample.spacing_m > 1.5 * footprint:
-            notes.append(f"surfel spacing {sample.spacing_m * 1e3:.2f} mm is coarser than the pixel footprint "
-                         f"{footprint * 1e3:.2f} mm: raise --hull-res for full capture resolution")
-
-    # 6. visibility
-    with timer.step("visibility"):
-        vis = surfel_visibility(sample.positions, sample.normals, sample.radii, pin, depth_tol_m=config.depth_tol_m,
-                                facing_cos=config.facing_cos)
-        surfels = Surfels.from_bool(sample.positions, sample.normals, sample.radii, vis)
-        hull_info["visible_views_per_surfel"] = float(vis.sum(1).mean()) if len(vis) else 0.0
-        hull_info["surfels_seen_by_no_view"] = int((~vis.any(1)).sum()) if len(vis) else 0
+    # 3-6. silhouettes, hull, surfels, visibility
+    rig_session = _is_rig_session(session)
+    geo = None
+    try:
+        geo = session.geometry
+    except FormatError:
+        pass
+    fallback = _rig_volume(geo) if rig_session else None
+    rms_per_view = [cams.rms_px.get(c, 0.0) for c, _ in views]
+    g = build_geometry(alphas, cams.views, rms_per_view, vids, config=config, rig_session=rig_session,
+                       fallback_box=fallback, step=timer.step, progress=prog)
+    notes.extend(g.notes)
+    sils, pin, dilations, occ, grid, surfels, hull_info = g.sils, g.pin, g.dilations, g.occ, g.grid, g.surfels, g.info
+    dilations = {c: g.dilations[i] for i, (c, _) in enumerate(views)}
+    hull_info["dilate_px_per_camera"] = {str(k): v for k, v in sorted(dilations.items())}
 
     # 7. views: opacity light field samples (computed lazily while writing)
     view_infos = [ViewInfo(i, vids[i], c, float(a), cams.views[i]) for i, (c, a) in enumerate(views)]

@@ -45,6 +45,9 @@ def _human(summary: dict) -> None:
             m.add_row(k, f"{v:.4g}" if isinstance(v, float) else str(v))
         c.print(m)
     c.print(f"cameras: {summary['camera_source']}; backdrops: {summary['backdrop_source']}")
+    res = summary.get("resolution") or {}
+    if res:
+        c.print(f"hull resolution {res['hull_res']}, oversample {res['oversample']}: {res['reason']}", markup=False)
     for n in summary.get("notes", []):
         c.print(f"[yellow]note:[/] {n}")
     c.print(f"pictures: {Path(summary['model']) / 'pictures'}")
@@ -58,7 +61,14 @@ def register(app, groups) -> None:
     def build(
         session: Path = typer.Argument(..., help="Session folder (from `capture` or `import colmap`)."),
         out: Path = typer.Option(..., "--out", help="Model folder to write (created; existing files are replaced)."),
-        hull_res: int = typer.Option(128, "--hull-res", help="Voxels along the longest side of the hull's box."),
+        hull_res: Optional[int] = typer.Option(None, "--hull-res",
+                                               help="Voxels along the longest side of the hull's box (default: "
+                                                    "from the photographs' pixel footprint, one surfel per "
+                                                    "projected pixel)."),
+        carve_tolerance: Optional[int] = typer.Option(None, "--carve-tolerance",
+                                                      help="A voxel survives when at most this many views reject "
+                                                           "it (imperfect masks). Default: 1 for imported sets "
+                                                           "of 8+ views, 0 for rig sessions."),
         ground_truth: bool = typer.Option(False, "--ground-truth",
                                           help="Compare with the simulator's groundtruth/ (alpha MAE, hull IoU, "
                                                "pose errors) and report the metrics."),
@@ -94,7 +104,7 @@ def register(app, groups) -> None:
         from .build import BuildConfig, build_model
         from .matting import MattingOptions
 
-        cfg = BuildConfig(hull_res=hull_res, alpha_threshold=alpha_threshold, cameras=cameras, backdrops=backdrops,
+        cfg = BuildConfig(hull_res=hull_res, carve_tolerance=carve_tolerance, alpha_threshold=alpha_threshold, cameras=cameras, backdrops=backdrops,
                           exclude_views=tuple(exclude_view or ()), bounds_m=_parse_bounds(bounds),
                           surfel_oversample=oversample, matting=MattingOptions(max_alpha_std=max_alpha_std),
                           reflectance=not no_reflectance, pictures=not no_pictures,

@@ -58,6 +58,9 @@ __all__ = [
     "carve_dense",
     "carve_reference",
     "point_in_hull",
+    "view_rejections",
+    "carve_robust",
+    "enclosed_holes",
     "OctreeStats",
 ]
 
@@ -346,7 +349,7 @@ def _centre_carves(P, sil, sizes, v, x, y, z):
 
 
 @njit(cache=True, parallel=True, nogil=True)
-def _dense_kernel(P, sil, sizes, lo, h, nx, ny, nz, occ):
+def _dense_kernel(P, sil, sizes, lo, h, nx, ny, nz, tol, occ):
     V = P.shape[0]
     for ix in prange(nx):
         x = lo[0] + (ix + 0.5) * h
@@ -356,6 +359,7 @@ def _dense_kernel(P, sil, sizes, lo, h, nx, ny, nz, occ):
             for iz in range(nz):
                 z = lo[2] + (iz + 0.5) * h
                 keep = 1
+                rej = 0
                 # start with the view that carved the previous voxel: neighbours are
                 # usually carved by the same view, so most voxels exit after one test
                 for j in range(V):
@@ -363,27 +367,46 @@ def _dense_kernel(P, sil, sizes, lo, h, nx, ny, nz, occ):
                     if v >= V:
                         v -= V
                     if _centre_carves(P, sil, sizes, v, x, y, z):
-                        keep = 0
-                        last = v
-                        break
+                        rej += 1
+                        if rej > tol:
+                            keep = 0
+                            last = v
+                            break
                 occ[ix, iy, iz] = keep
 
 
-def carve_dense(silhouettes, cameras, grid: HullGrid) -> np.ndarray:
-    """Centre-sampled dense carve (numba). Returns (nx, ny, nz) bool occupancy."""
+def _check_tolerance(tolerance, n_views: int) -> int:
+    t = int(tolerance) if isinstance(tolerance, (int, np.integer)) else -1
+    if t < 0 or t != tolerance:
+        raise InputError(f"carve tolerance must be an integer >= 0 (views allowed to reject a kept voxel), "
+                         f"got {tolerance!r}")
+    if n_views and t >= n_views:
+        raise InputError(f"carve tolerance {t} would let every one of the {n_views} views reject a voxel and "
+                         f"keep it; expected 0 <= tolerance < {n_views}")
+    return t
+
+
+def carve_dense(silhouettes, cameras, grid: HullGrid, *, tolerance: int = 0) -> np.ndarray:
+    """Centre-sampled dense carve (numba). Returns (nx, ny, nz) bool occupancy.
+
+    ``tolerance``: a voxel survives when at most this many views reject it (robust
+    carving under imperfect masks; 0 is the classical visual hull)."""
     sil, sizes = _stack_silhouettes(silhouettes, cameras)
+    tol = _check_tolerance(tolerance, len(cameras))
     P = projection_matrices(cameras)
     occ = np.empty(grid.shape, np.uint8)
-    _dense_kernel(P, sil, sizes, grid.lo, grid.voxel_m, *grid.shape, occ)
+    _dense_kernel(P, sil, sizes, grid.lo, grid.voxel_m, *grid.shape, tol, occ)
     return occ.view(bool)
 
 
-def carve_reference(silhouettes, cameras, grid: HullGrid) -> np.ndarray:
-    """Slow NumPy oracle of the centre test through :meth:`Camera.project` (small grids)."""
+def carve_reference(silhouettes, cameras, grid: HullGrid, *, tolerance: int = 0) -> np.ndarray:
+    """Slow NumPy oracle of the centre test through :meth:`Camera.project` (small grids):
+    a voxel is kept when at most ``tolerance`` views carve its centre."""
     if len(silhouettes) != len(cameras):
         raise InputError(f"{len(silhouettes)} silhouettes for {len(cameras)} cameras")
+    tol = _check_tolerance(tolerance, len(cameras))
     pts = grid.all_centres().reshape(-1, 3)
-    keep = np.ones(pts.shape[0], bool)
+    rejections = np.zeros(pts.shape[0], np.int64)
     for s, c in zip(silhouettes, cameras):
         if c.has_distortion:
             raise InputError(f"camera {c.name!r} has lens distortion; undistort its silhouette first")
@@ -398,10 +421,10 @@ def carve_reference(silhouettes, cameras, grid: HullGrid) -> np.ndarray:
             fu = np.floor(a / w + 0.5)
             fv = np.floor(b / w + 0.5)
         inside = front & (fu >= 0) & (fu < c.width) & (fv >= 0) & (fv < c.height)
-        carved = np.zeros_like(keep)
+        carved = np.zeros(pts.shape[0], bool)
         carved[inside] = ~s[fv[inside].astype(int), fu[inside].astype(int)]
-        keep &= ~carved
-    return keep.reshape(grid.shape)
+        rejections += carved
+    return (rejections <= tol).reshape(grid.shape)
 
 
 @njit(cache=True, parallel=True, nogil=True)
@@ -489,7 +512,7 @@ def _cell_view_test(P, sat, sizes, v, x0, y0, z0, x1, y1, z1):
 
 
 @njit(cache=True, parallel=True, nogil=True)
-def _octree_kernel(P, sat, sizes, lo, h, nx, ny, nz, root, occ, stats):
+def _octree_kernel(P, sat, sizes, lo, h, nx, ny, nz, root, tol, occ, stats):
     """Coarse-to-fine carving over root cells of ``root`` voxels (a power of two)."""
     V = P.shape[0]
     rx = (nx + root - 1) // root
@@ -510,6 +533,7 @@ def _octree_kernel(P, sat, sizes, lo, h, nx, ny, nz, root, occ, stats):
         st_size = np.empty(cap, np.int64)
         st_nact = np.empty(cap, np.int64)
         st_act = np.empty((cap, V), np.int32)
+        st_rej = np.empty(cap, np.int64)
         act = np.empty(V, np.int32)
         top = 0
         st_pos[0, 0] = rix * root
@@ -517,6 +541,7 @@ def _octree_kernel(P, sat, sizes, lo, h, nx, ny, nz, root, occ, stats):
         st_pos[0, 2] = riz * root
         st_size[0] = root
         st_nact[0] = V
+        st_rej[0] = 0
         for v in range(V):
             st_act[0, v] = v
         top = 1
@@ -529,6 +554,7 @@ def _octree_kernel(P, sat, sizes, lo, h, nx, ny, nz, root, occ, stats):
             k0 = st_pos[top, 2]
             sz = st_size[top]
             nact = st_nact[top]
+            rej = st_rej[top]
             i1 = min(i0 + sz, nx)
             j1 = min(j0 + sz, ny)
             k1 = min(k0 + sz, nz)
@@ -549,8 +575,13 @@ def _octree_kernel(P, sat, sizes, lo, h, nx, ny, nz, root, occ, stats):
                 n_tests += 1
                 res = _cell_view_test(P, sat, sizes, v, x0, y0, z0, x1, y1, z1)
                 if res == 0:
-                    carved = True
-                    break
+                    # this view rejects every voxel of the cell; it is spent (no need to
+                    # test it again below), and the cell goes once more than `tol` do
+                    rej += 1
+                    if rej > tol:
+                        carved = True
+                        break
+                    continue
                 if res == 2:
                     act[keep_n] = v
                     keep_n += 1
@@ -575,6 +606,7 @@ def _octree_kernel(P, sat, sizes, lo, h, nx, ny, nz, root, occ, stats):
                 st_pos[top, 2] = ck
                 st_size[top] = half
                 st_nact[top] = keep_n
+                st_rej[top] = rej
                 for q in range(keep_n):
                     st_act[top, q] = act[q]
                 top += 1
@@ -591,8 +623,38 @@ class OctreeStats:
     root_cell: int
 
 
-def carve_octree(silhouettes, cameras, grid: HullGrid, *, root_cell: int = 32,
+def enclosed_holes(silhouette) -> np.ndarray:
+    """The silhouette with its enclosed holes filled: background regions not connected
+    to the image border (8-connected foreground encloses them). A hole in one view only
+    is the typical matting failure (a shadow as dark as the backdrop); a real
+    see-through gap shows in several neighbouring views."""
+    from scipy import ndimage
+
+    return ndimage.binary_fill_holes(np.asarray(silhouette, dtype=bool))
+
+
+def carve_robust(silhouettes, cameras, grid: HullGrid, *, tolerance: int = 1, root_cell: int = 32,
                  return_stats: bool = False):
+    """Confidence-weighted robust carve: a rejection by a view's outer contour is always
+    trusted (the view saw background there), a rejection through an *enclosed hole* of
+    its silhouette (:func:`enclosed_holes`) is doubtful, and a voxel is removed by one
+    trusted rejection or by more than ``tolerance`` rejections in all. With tolerance 0
+    it is the classical hull. Returns the occupancy (and the two carves' summed
+    :class:`OctreeStats`) and the filled ("strong") silhouettes for the surfel
+    bisection (:func:`.surfels.sample_hull_surfels`)."""
+    strong = [enclosed_holes(s) for s in silhouettes]
+    a, sa = carve_octree(strong, cameras, grid, root_cell=root_cell, return_stats=True)
+    if tolerance == 0:
+        b, sb = carve_octree(silhouettes, cameras, grid, root_cell=root_cell, return_stats=True)
+    else:
+        b, sb = carve_octree(silhouettes, cameras, grid, root_cell=root_cell, return_stats=True, tolerance=tolerance)
+    occ = a & b
+    st = OctreeStats(sa.cells + sb.cells, sa.tests + sb.tests, root_cell)
+    return (occ, st, strong) if return_stats else (occ, strong)
+
+
+def carve_octree(silhouettes, cameras, grid: HullGrid, *, root_cell: int = 32,
+                 return_stats: bool = False, tolerance: int = 0):
     """Octree visual-hull carve (numba, parallel over root cells); see the module docstring.
 
     Parameters
@@ -601,6 +663,12 @@ def carve_octree(silhouettes, cameras, grid: HullGrid, *, root_cell: int = 32,
     cameras : list of Camera.
     grid : HullGrid.
     root_cell : edge of the root cells in voxels (a power of two).
+    tolerance : a voxel survives when at most this many views reject it (robust carving
+        under imperfect masks: a shadow as dark as the backdrop punches a hole into one
+        view's mask, which then carves a tunnel through a classical hull). 0 is the
+        classical visual hull. A view that rejects a whole cell is counted once and not
+        tested again below it, so the result still equals the dense carve with the same
+        tolerance, voxel for voxel.
 
     Returns
     -------
@@ -610,13 +678,14 @@ def carve_octree(silhouettes, cameras, grid: HullGrid, *, root_cell: int = 32,
     if root_cell < 1 or (root_cell & (root_cell - 1)):
         raise InputError(f"root_cell must be a power of two, got {root_cell}")
     sil, sizes = _stack_silhouettes(silhouettes, cameras)
+    tol = _check_tolerance(tolerance, len(cameras))
     P = projection_matrices(cameras)
     sat = _summed_area(sil)
     occ = np.zeros(grid.shape, np.uint8)
     nx, ny, nz = grid.shape
     nroots = (-(-nx // root_cell)) * (-(-ny // root_cell)) * (-(-nz // root_cell))
     stats = np.zeros((nroots, 2), np.int64)
-    _octree_kernel(P, sat, sizes, grid.lo, grid.voxel_m, nx, ny, nz, int(root_cell), occ, stats)
+    _octree_kernel(P, sat, sizes, grid.lo, grid.voxel_m, nx, ny, nz, int(root_cell), tol, occ, stats)
     occ = occ.view(bool)
     if return_stats:
         return occ, OctreeStats(int(stats[:, 0].sum()), int(stats[:, 1].sum()), int(root_cell))
@@ -624,23 +693,48 @@ def carve_octree(silhouettes, cameras, grid: HullGrid, *, root_cell: int = 32,
 
 
 @njit(cache=True, parallel=True, nogil=True)
-def _points_kernel(P, sil, sizes, pts, out):
+def _points_kernel(P, sil, sizes, pts, tol, out):
     V = P.shape[0]
     for n in prange(pts.shape[0]):
         keep = True
+        rej = 0
         for v in range(V):
             if _centre_carves(P, sil, sizes, v, pts[n, 0], pts[n, 1], pts[n, 2]):
-                keep = False
-                break
+                rej += 1
+                if rej > tol:
+                    keep = False
+                    break
         out[n] = keep
 
 
-def point_in_hull(points, silhouettes, cameras) -> np.ndarray:
+@njit(cache=True, parallel=True, nogil=True)
+def _rejections_kernel(P, sil, sizes, pts, out):
+    V = P.shape[0]
+    for n in prange(pts.shape[0]):
+        for v in range(V):
+            out[n, v] = _centre_carves(P, sil, sizes, v, pts[n, 0], pts[n, 1], pts[n, 2])
+
+
+def point_in_hull(points, silhouettes, cameras, *, tolerance: int = 0) -> np.ndarray:
     """Image-based hull membership of arbitrary points (N, 3): the centre test of the
-    carvers applied to each point. Returns (N,) bool."""
+    carvers applied to each point (kept when at most ``tolerance`` views reject it).
+    Returns (N,) bool."""
+    pts = np.ascontiguousarray(np.asarray(points, dtype=np.float64).reshape(-1, 3))
+    sil, sizes = _stack_silhouettes(silhouettes, cameras)
+    tol = _check_tolerance(tolerance, len(cameras))
+    P = projection_matrices(cameras)
+    out = np.empty(pts.shape[0], np.bool_)
+    _points_kernel(P, sil, sizes, pts, tol, out)
+    return out
+
+
+def view_rejections(points, silhouettes, cameras) -> np.ndarray:
+    """(N, V) bool: view v's silhouette rejects point n (its centre test carves it).
+    With robust carving, the kept points a view rejects are where its mask disagrees
+    with the hull (shadow holes, frame edges, misregistration)."""
     pts = np.ascontiguousarray(np.asarray(points, dtype=np.float64).reshape(-1, 3))
     sil, sizes = _stack_silhouettes(silhouettes, cameras)
     P = projection_matrices(cameras)
-    out = np.empty(pts.shape[0], np.bool_)
-    _points_kernel(P, sil, sizes, pts, out)
+    out = np.empty((pts.shape[0], P.shape[0]), np.bool_)
+    _rejections_kernel(P, sil, sizes, pts, out)
     return out

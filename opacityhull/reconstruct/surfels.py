@@ -120,18 +120,32 @@ def _candidate_views(P, sizes, edt, pa, pb, cand):
 
 
 @njit(cache=True, nogil=True)
-def _inside_cand(P, sil, sizes, cand, nc, x, y, z):
+def _inside_cand(P, sil, strong, sizes, cand, nc, tol, x, y, z):
+    # views left out of `cand` provably accept every point of the bracket (`strong` is a
+    # superset of `sil`), so counting rejections among the candidates counts them among
+    # all views
+    rej = 0
     for q in range(nc):
-        if _centre_carves(P, sil, sizes, cand[q], x, y, z):
-            return False
+        v = cand[q]
+        if _centre_carves(P, sil, sizes, v, x, y, z):
+            if _centre_carves(P, strong, sizes, v, x, y, z):
+                return False
+            rej += 1
+            if rej > tol:
+                return False
     return True
 
 
 @njit(cache=True, nogil=True)
-def _inside_all(P, sil, sizes, x, y, z):
+def _inside_all(P, sil, strong, sizes, tol, x, y, z):
+    rej = 0
     for v in range(P.shape[0]):
         if _centre_carves(P, sil, sizes, v, x, y, z):
-            return False
+            if _centre_carves(P, strong, sizes, v, x, y, z):
+                return False
+            rej += 1
+            if rej > tol:
+                return False
     return True
 
 
@@ -164,7 +178,8 @@ def _count_crossings(occ, axis, nb, nc, na, s, counts):
 
 
 @njit(cache=True, parallel=True, nogil=True)
-def _fill_crossings(occ, axis, nb, nc, na, s, offsets, lo, h, P, sil, sizes, edt, iters, pos, sign, status):
+def _fill_crossings(occ, axis, nb, nc, na, s, offsets, lo, h, P, sil, strong, sizes, edt, iters, tol, pos, sign,
+                    status):
     V = P.shape[0]
     ax_b = 1 if axis == 0 else 0
     ax_c = 1 if axis == 2 else 2
@@ -209,8 +224,8 @@ def _fill_crossings(occ, axis, nb, nc, na, s, offsets, lo, h, P, sil, sizes, edt
                 in_ok = True
                 out_ok = True
             else:
-                in_ok = _inside_all(P, sil, sizes, pa[0], pa[1], pa[2])
-                out_ok = not _inside_all(P, sil, sizes, pb[0], pb[1], pb[2])
+                in_ok = _inside_all(P, sil, strong, sizes, tol, pa[0], pa[1], pa[2])
+                out_ok = not _inside_all(P, sil, strong, sizes, tol, pb[0], pb[1], pb[2])
             if in_ok and out_ok:
                 nc_ = _candidate_views(P, sizes, edt, pa, pb, cand)
                 lo_t = t_in
@@ -220,7 +235,7 @@ def _fill_crossings(occ, axis, nb, nc, na, s, offsets, lo, h, P, sil, sizes, edt
                     pm[axis] = mt
                     pm[ax_b] = cb
                     pm[ax_c] = cc
-                    if _inside_cand(P, sil, sizes, cand, nc_, pm[0], pm[1], pm[2]):
+                    if _inside_cand(P, sil, strong, sizes, cand, nc_, tol, pm[0], pm[1], pm[2]):
                         lo_t = mt
                     else:
                         hi_t = mt
@@ -332,7 +347,7 @@ def hull_normals_reference(occ, grid: HullGrid, points, *, sigma_vox: float = 1.
 
 def sample_hull_surfels(occ, grid: HullGrid, silhouettes, cameras, *, oversample: int = 1, bisection_iters: int = 10,
                         radius_scale: float = 1.0, normal_scale_vox: float = 1.0,
-                        seam_overlap: float = 0.15) -> SurfelSample:
+                        seam_overlap: float = 0.15, tolerance: int = 0, strong_silhouettes=None) -> SurfelSample:
     """Layered-depth-cube sampling of the visual hull into surfels (see module docstring).
 
     Parameters
@@ -351,6 +366,10 @@ def sample_hull_surfels(occ, grid: HullGrid, silhouettes, cameras, *, oversample
         over blocks of ``round(normal_scale_vox)``³ voxels and differentiated with a
         Gaussian of one block. Set it to the pixel footprint on the object (in voxels)
         so the normals see the object's shape rather than the silhouettes' pixel steps.
+    tolerance, strong_silhouettes : the carve's rule (see :func:`.hull.carve_octree`): a
+        point is inside when no ``strong_silhouettes`` view rejects it and at most
+        ``tolerance`` views of ``silhouettes`` do; the bisection uses the same rule as the
+        carve that made ``occ``. ``strong_silhouettes`` None means the same silhouettes.
 
     Returns
     -------
@@ -368,6 +387,9 @@ def sample_hull_surfels(occ, grid: HullGrid, silhouettes, cameras, *, oversample
         empty = np.zeros((0, 3))
         return SurfelSample(empty, empty.astype(np.float32), np.zeros(0, np.float32), np.zeros(0, np.uint8), grid.voxel_m / s)
     sil, sizes = _stack_silhouettes(silhouettes, cameras)
+    strong = sil if strong_silhouettes is None else _stack_silhouettes(strong_silhouettes, cameras)[0]
+    if strong_silhouettes is not None and np.any(sil > strong):
+        raise InputError("strong_silhouettes must contain the silhouettes (a superset of their pixels)")
     P = projection_matrices(cameras)
     edt = silhouette_distance([np.asarray(x, dtype=bool) for x in silhouettes])
     h = grid.voxel_m
@@ -384,8 +406,8 @@ def sample_hull_surfels(occ, grid: HullGrid, silhouettes, cameras, *, oversample
         pos = np.empty((total, 3))
         sign = np.empty(total, np.int8)
         status = np.empty(total, np.uint8)
-        _fill_crossings(occ, axis, nb, nc, na, s, offsets, grid.lo, h, P, sil, sizes, edt, int(bisection_iters),
-                        pos, sign, status)
+        _fill_crossings(occ, axis, nb, nc, na, s, offsets, grid.lo, h, P, sil, strong, sizes, edt,
+                        int(bisection_iters), int(tolerance), pos, sign, status)
         all_pos.append(pos)
         all_axis.append(np.full(total, axis, np.uint8))
         all_sign.append(sign)

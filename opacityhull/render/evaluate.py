@@ -22,16 +22,16 @@ from __future__ import annotations
 import math
 import time
 from pathlib import Path
-from typing import Callable, Sequence
+from typing import Callable, Literal, Sequence
 
 import numpy as np
 
 from ..errors import InputError
 from ..imageio import srgb_encode
-from ..model import OpacityHullModel
+from ..model import OpacityHullModel, Surfels
 from .renderer import RenderConfig, model_surfels, prepare_model_views, render_image
 
-__all__ = ["loo_metrics", "select_views", "leave_one_out", "contact_sheet", "ALPHA_THRESHOLD"]
+__all__ = ["loo_metrics", "region_masks", "select_views", "leave_one_out", "contact_sheet", "ALPHA_THRESHOLD"]
 
 ALPHA_THRESHOLD = 1.0 / 255.0
 
@@ -41,9 +41,53 @@ def _display(rgba_straight: np.ndarray) -> np.ndarray:
     return srgb_encode(np.clip(rgba_straight[..., :3] * a, 0.0, 1.0))
 
 
-def loo_metrics(photo_rgba: np.ndarray, render_rgba: np.ndarray, *, alpha_threshold: float = ALPHA_THRESHOLD) -> dict:
-    """PSNR, SSIM and alpha MAE of a rendering against a photograph (both (H, W, 4)
-    straight RGBA) inside the union of their masks. Empty masks give NaN metrics."""
+def _disc(r: int):
+    import cv2
+
+    return cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+
+
+def region_masks(photo_alpha: np.ndarray, *, band_px: int = 3, opaque: float = 0.99) -> dict:
+    """The photograph's regions the metrics are split by (all (H, W) bool).
+
+    ``mask`` photo α > ½; ``interior`` the mask eroded by ``band_px``; ``band`` the
+    ``2 band_px + 1``-px wide band around the silhouette (dilated minus eroded mask);
+    ``opaque`` pixels with α ≥ ``opaque`` eroded by ``band_px`` (where the rendering's
+    α must be 1).
+    """
+    import cv2
+
+    a = np.clip(np.nan_to_num(photo_alpha, nan=0.0), 0, 1)
+    m = (a > 0.5).astype(np.uint8)
+    k = _disc(band_px)
+    er = cv2.erode(m, k, borderType=cv2.BORDER_CONSTANT, borderValue=0).astype(bool)
+    di = cv2.dilate(m, k).astype(bool)
+    op = cv2.erode((a >= opaque).astype(np.uint8), k, borderType=cv2.BORDER_CONSTANT, borderValue=0).astype(bool)
+    return {"mask": m.astype(bool), "interior": er, "band": di & ~er, "opaque": op}
+
+
+def _psnr_ssim(dp: np.ndarray, dr: np.ndarray, sel: np.ndarray, smap: np.ndarray | None) -> tuple[float, float]:
+    n = int(sel.sum())
+    if n == 0:
+        return float("nan"), float("nan")
+    mse = float(np.mean((dp[sel] - dr[sel]) ** 2))
+    psnr = float("inf") if mse == 0 else 10.0 * math.log10(1.0 / mse)
+    ssim = float(np.mean(smap[sel])) if smap is not None else float("nan")
+    return psnr, ssim
+
+
+def loo_metrics(photo_rgba: np.ndarray, render_rgba: np.ndarray, *, alpha_threshold: float = ALPHA_THRESHOLD,
+                band_px: int = 3) -> dict:
+    """Metrics of a rendering against a photograph (both (H, W, 4) straight RGBA).
+
+    ``psnr``/``ssim``/``alpha_mae`` inside the union of the masks (α > ``alpha_threshold``);
+    ``psnr_interior``/``ssim_interior`` inside the photo's mask eroded by ``band_px`` and
+    ``psnr_band``/``ssim_band`` in the ``2 band_px + 1``-px band around its silhouette
+    (see :func:`region_masks`); ``coverage_iou`` of rendered α > ½ against photo α > ½;
+    ``spill_px`` rendered pixels (α > ½) outside the photo's mask dilated by one pixel;
+    ``interior_alpha`` the mean rendered α where the photo is opaque (α ≥ 0.99, eroded
+    by ``band_px``) and ``interior_alpha_deficit`` = 1 − that. Empty masks give NaN.
+    """
     from skimage.metrics import structural_similarity
 
     if photo_rgba.shape != render_rgba.shape or photo_rgba.ndim != 3 or photo_rgba.shape[2] != 4:
@@ -52,19 +96,35 @@ def loo_metrics(photo_rgba: np.ndarray, render_rgba: np.ndarray, *, alpha_thresh
     r = np.nan_to_num(render_rgba.astype(np.float32), nan=0.0, posinf=0.0, neginf=0.0)
     mask = (p[..., 3] > alpha_threshold) | (r[..., 3] > alpha_threshold)
     n = int(mask.sum())
+    nan = float("nan")
     if n == 0:
-        return {"psnr": float("nan"), "ssim": float("nan"), "alpha_mae": float("nan"), "mask_px": 0}
+        return {"psnr": nan, "ssim": nan, "alpha_mae": nan, "mask_px": 0, "psnr_interior": nan,
+                "ssim_interior": nan, "psnr_band": nan, "ssim_band": nan, "coverage_iou": nan, "spill_px": 0,
+                "interior_alpha": nan, "interior_alpha_deficit": nan}
     dp, dr = _display(p), _display(r)
-    mse = float(np.mean((dp[mask] - dr[mask]) ** 2))
-    psnr = float("inf") if mse == 0 else 10.0 * math.log10(1.0 / mse)
     win = min(7, min(p.shape[:2]) // 2 * 2 - 1)
+    smap = None
     if win >= 3:
         _, smap = structural_similarity(dp, dr, channel_axis=2, data_range=1.0, full=True, win_size=win)
-        ssim = float(np.mean(smap[mask]))
-    else:
-        ssim = float("nan")
-    amae = float(np.mean(np.abs(np.clip(p[..., 3], 0, 1)[mask] - np.clip(r[..., 3], 0, 1)[mask])))
-    return {"psnr": psnr, "ssim": ssim, "alpha_mae": amae, "mask_px": n}
+        smap = smap.mean(axis=2) if smap.ndim == 3 else smap
+    psnr, ssim = _psnr_ssim(dp, dr, mask, smap)
+    pa = np.clip(p[..., 3], 0, 1)
+    ra = np.clip(r[..., 3], 0, 1)
+    amae = float(np.mean(np.abs(pa[mask] - ra[mask])))
+    reg = region_masks(pa, band_px=band_px)
+    psnr_i, ssim_i = _psnr_ssim(dp, dr, reg["interior"], smap)
+    psnr_b, ssim_b = _psnr_ssim(dp, dr, reg["band"], smap)
+    pm, rm = reg["mask"], ra > 0.5
+    union = int((pm | rm).sum())
+    iou = float((pm & rm).sum()) / union if union else nan
+    import cv2
+
+    near = cv2.dilate(pm.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
+    spill = int((rm & ~near).sum())
+    ia = float(ra[reg["opaque"]].mean()) if reg["opaque"].any() else nan
+    return {"psnr": psnr, "ssim": ssim, "alpha_mae": amae, "mask_px": n, "psnr_interior": psnr_i,
+            "ssim_interior": ssim_i, "psnr_band": psnr_b, "ssim_band": ssim_b, "coverage_iou": iou,
+            "spill_px": spill, "interior_alpha": ia, "interior_alpha_deficit": (1.0 - ia) if ia == ia else nan}
 
 
 def select_views(model: OpacityHullModel, spec: str | Sequence | None) -> list[int]:
@@ -159,13 +219,26 @@ def leave_one_out(
     alpha_threshold: float = ALPHA_THRESHOLD,
     prepared=None,
     progress: Callable[[int, int], None] | None = None,
+    holdout: Literal["blend", "geometry"] = "blend",
+    geometry_without: Callable[[int], Surfels] | None = None,
 ) -> dict:
     """Leave-one-out rendering of the chosen views (default all).
 
-    Returns ``{"views", "psnr_mean", "ssim_mean", "alpha_mae", "per_view": [...], ...}``;
-    means are over views with a non-empty mask. Writes a contact sheet (photo | render |
-    error) of up to ``max_sheet_rows`` evenly spaced views when ``sheet_path`` is given.
+    ``holdout="blend"`` excludes the view from ULR blending only; ``"geometry"`` also
+    renders surfels whose hull and visibility were rebuilt without it
+    (``geometry_without(i)`` returns them, visibility over all V views with view i's
+    bit clear: the reconstruct stage provides it, see
+    :func:`opacityhull.reconstruct.holdout.geometry_without`).
+
+    Returns ``{"views", "psnr_mean", "ssim_mean", "alpha_mae", ..., "per_view": [...]}``
+    with the means of every :func:`loo_metrics` key over views with a non-empty mask.
+    Writes a contact sheet (photo | render | error) of up to ``max_sheet_rows`` evenly
+    spaced views when ``sheet_path`` is given.
     """
+    if holdout not in ("blend", "geometry"):
+        raise InputError(f"holdout {holdout!r}: expected 'blend' or 'geometry'")
+    if holdout == "geometry" and geometry_without is None:
+        raise InputError("holdout 'geometry' needs geometry_without (the hull rebuilt without the held-out view)")
     idx = list(range(len(model.views))) if views is None else list(views)
     if not idx:
         raise InputError("leave_one_out: no views selected")
@@ -174,13 +247,23 @@ def leave_one_out(
     cams = [v.camera for v in model.views]
     sheet_pick = set(np.unique(np.linspace(0, len(idx) - 1, min(max_sheet_rows, len(idx))).round().astype(int)))
     per_view, rows = [], []
+    build_ms = []
     for j, i in enumerate(idx):
+        use = surfels
+        if holdout == "geometry":
+            t0 = time.perf_counter()
+            use = geometry_without(i)
+            build_ms.append(1e3 * (time.perf_counter() - t0))
+            if use.n_views != len(cams):
+                raise InputError(f"geometry_without({i}) gave visibility over {use.n_views} views, expected "
+                                 f"{len(cams)}")
         t0 = time.perf_counter()
-        res = render_image(surfels, cams, pv, cams[i], config=config, exclude_views=[i])
+        res = render_image(use, cams, pv, cams[i], config=config, exclude_views=[i])
         ms = 1e3 * (time.perf_counter() - t0)
         photo = model.load_view_rgba(i)
         m = loo_metrics(photo, res.rgba, alpha_threshold=alpha_threshold)
-        per_view.append({"view": model.views[i].id, "index": i, **m, "ms": ms})
+        per_view.append({"view": model.views[i].id, "index": i, **m, "ms": ms,
+                         **({"rebuild_ms": build_ms[-1], "surfels": len(use)} if build_ms else {})})
         if j in sheet_pick:
             rows.append((model.views[i].id, photo, res.rgba, f"PSNR {m['psnr']:.1f} dB  SSIM {m['ssim']:.3f}"))
         if progress:
@@ -193,16 +276,26 @@ def leave_one_out(
     summary = {
         "model": str(model.root),
         "views": [model.views[i].id for i in idx],
+        "holdout": holdout,
         "psnr_mean": mean("psnr"),
         "ssim_mean": mean("ssim"),
         "alpha_mae": mean("alpha_mae"),
+        **{f"{k}_mean": mean(k) for k in ("psnr_interior", "ssim_interior", "psnr_band", "ssim_band",
+                                          "coverage_iou", "interior_alpha", "interior_alpha_deficit",
+                                          "spill_px")},
+        "coverage_iou_min": float(np.nanmin([p["coverage_iou"] for p in per_view])) if per_view else float("nan"),
         "per_view": per_view,
         "ms_per_view": float(np.mean([p["ms"] for p in per_view])),
         "config": {"k": config.k, "filter": config.filter, "sigma_radius": config.sigma_radius,
-                   "cutoff_sigma": config.cutoff_sigma, "epsilon_z": config.epsilon_z},
-        "held_out_from": "ULR blending only (hull and visibility were built with all views)",
-        "metric_space": "sRGB-encoded colour over black, inside the union of photo and render masks",
+                   "cutoff_sigma": config.cutoff_sigma, "epsilon_z": config.epsilon_z,
+                   "shading": getattr(config, "shading", "surfel")},
+        "held_out_from": ("ULR blending only (hull and visibility were built with all views)" if holdout == "blend"
+                          else "ULR blending, hull, surfels and visibility (rebuilt without the held-out view)"),
+        "metric_space": "sRGB-encoded colour over black, inside the union of photo and render masks "
+                        "(interior: photo mask eroded 3 px; band: the 7-px band around its silhouette)",
     }
+    if build_ms:
+        summary["rebuild_ms_per_view"] = float(np.mean(build_ms))
     if sheet_path is not None and rows:
         summary["sheet"] = str(contact_sheet(rows, sheet_path))
     return summary

@@ -238,3 +238,65 @@ def test_grid_validation():
     assert g.shape == (10, 5, 3) and g.voxel_m == pytest.approx(0.2)
     with pytest.raises(InputError, match="power of two"):
         carve_octree([np.ones((4, 4), bool)], ring_cameras(1, W=4, H=4), g, root_cell=6)
+
+
+# --------------------------------------------------------------------------- robust carving
+
+
+def _holed(sils, rng, holes=3, r_px=4):
+    """Punch dark-shadow holes (discs) into the silhouettes, as thresholded real masks have."""
+    out = []
+    for s in sils:
+        s = s.copy()
+        ys, xs = np.nonzero(s)
+        for _ in range(holes):
+            i = rng.integers(len(ys))
+            yy, xx = np.mgrid[: s.shape[0], : s.shape[1]]
+            s[(yy - ys[i]) ** 2 + (xx - xs[i]) ** 2 <= r_px * r_px] = False
+        out.append(s)
+    return out
+
+
+@pytest.mark.parametrize("tol", [1, 2])
+@pytest.mark.parametrize("res,root", [(17, 4), (33, 8)])
+def test_tolerant_octree_equals_dense_equals_reference(ring, tol, res, root):
+    cams, sils = ring
+    sils = _holed(sils, np.random.default_rng(res + tol))
+    grid = HullGrid.from_bounds((-0.07, -0.01, -0.07), (0.1, 0.11, 0.07), res)
+    ref = carve_reference(sils, cams, grid, tolerance=tol)
+    np.testing.assert_array_equal(carve_dense(sils, cams, grid, tolerance=tol), ref)
+    np.testing.assert_array_equal(carve_octree(sils, cams, grid, root_cell=root, tolerance=tol), ref)
+    pts = grid.all_centres().reshape(-1, 3)
+    np.testing.assert_array_equal(point_in_hull(pts, sils, cams, tolerance=tol).reshape(grid.shape), ref)
+    # monotone: tolerating more rejections never removes a voxel
+    assert np.all(ref >= carve_reference(sils, cams, grid, tolerance=tol - 1))
+
+
+def test_tolerance_one_closes_a_shadow_tunnel(ring):
+    """A hole in one view's mask tunnels through the classical hull; with tolerance 1
+    the other views keep those voxels, and the hull returns to the unholed one inside."""
+    cams, sils = ring
+    grid = HullGrid.from_bounds((-0.07, -0.01, -0.07), (0.1, 0.11, 0.07), 40)
+    clean = carve_octree(sils, cams, grid)
+    bad = list(sils)
+    bad[3] = _holed([sils[3]], np.random.default_rng(0), holes=4, r_px=5)[0]
+    classical = carve_octree(bad, cams, grid)
+    robust = carve_octree(bad, cams, grid, tolerance=1)
+    lost = clean & ~classical
+    assert lost.sum() > 50  # the holes did cut tunnels
+    assert not np.any(clean & ~robust)  # tolerance 1 repairs all of them
+    # and does not inflate the hull much: extra voxels only where a single view carved alone
+    assert (robust & ~clean).sum() < 0.25 * clean.sum()
+    from opacityhull.reconstruct.hull import view_rejections
+
+    rej = view_rejections(grid.centres(np.argwhere(robust)), bad, cams)
+    per_view = rej.sum(0)
+    assert int(np.argmax(per_view)) == 3  # the holed view is the one that disagrees most
+
+
+def test_tolerance_is_validated(ring):
+    cams, sils = ring
+    grid = HullGrid.from_bounds((-0.07, -0.01, -0.07), (0.1, 0.11, 0.07), 8)
+    for bad in (-1, 1.5, len(cams)):
+        with pytest.raises(InputError, match="tolerance"):
+            carve_octree(sils, cams, grid, tolerance=bad)

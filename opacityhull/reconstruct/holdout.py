@@ -1,0 +1,142 @@
+"""Honest held-out evaluation: rebuild the geometry without the held-out view.
+
+``eval loo --holdout blend`` only leaves a view out of the ULR blend; its silhouette
+still carved the hull and its depth test still decided the visibility, so the
+comparison flatters the model (the hull fits the held-out silhouette exactly).
+``--holdout geometry`` rebuilds silhouettes → hull → surfels → visibility from the
+other views with the build's own options (:func:`.build.build_geometry`, the same code
+the build ran), at the build's resolution, so the score says how the model does on a
+view it has never seen. The mattes are the model's own view alphas, so no session is
+needed.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from dataclasses import fields, replace
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from ..errors import FormatError
+from ..model import OpacityHullModel, Surfels
+from .build import BuildConfig, build_geometry
+from .matting import MattingOptions
+
+__all__ = ["build_config_of", "geometry_without", "run_loo_holdouts"]
+
+log = logging.getLogger(__name__)
+
+
+def build_config_of(model: OpacityHullModel) -> tuple[BuildConfig, dict]:
+    """The :class:`BuildConfig` a model was built with (from ``model.toml``'s
+    provenance) pinned to the resolution the build chose, and its ``report.json`` hull
+    section (empty when absent)."""
+    prov = model.meta.get("provenance", {})
+    raw = prov.get("build_config")
+    report = {}
+    rp = model.root / "report.json"
+    if rp.is_file():
+        try:
+            report = json.loads(rp.read_text()).get("hull", {})
+        except (OSError, ValueError) as e:
+            raise FormatError(f"{rp}: unreadable build report ({e})") from None
+    cfg_d = {}
+    if raw:
+        try:
+            cfg_d = json.loads(raw)
+        except ValueError as e:
+            raise FormatError(f"{model.root / 'model.toml'}: provenance.build_config is not JSON ({e})") from None
+    names = {f.name for f in fields(BuildConfig)}
+    kw = {k: v for k, v in cfg_d.items() if k in names and k != "matting"}
+    for k in ("bounds_m",):
+        if kw.get(k) is not None:
+            kw[k] = tuple(tuple(x) for x in kw[k])
+    kw["exclude_views"] = tuple(kw.get("exclude_views", ()))
+    if isinstance(cfg_d.get("matting"), dict):
+        mnames = {f.name for f in fields(MattingOptions)}
+        kw["matting"] = MattingOptions(**{k: v for k, v in cfg_d["matting"].items() if k in mnames})
+    cfg = BuildConfig(**kw)
+    res = report.get("resolution")
+    if res:
+        cfg = replace(cfg, hull_res=int(res["hull_res"]), surfel_oversample=int(res["oversample"]))
+    if report.get("carve_tolerance") is not None:
+        cfg = replace(cfg, carve_tolerance=int(report["carve_tolerance"]))
+    return replace(cfg, pictures=False, reflectance=False), report
+
+
+def geometry_without(model: OpacityHullModel, *, config: BuildConfig | None = None) -> Callable[[int], Surfels]:
+    """A function ``i → Surfels`` rebuilding the model's geometry without view ``i``.
+
+    The surfels' visibility covers all V views in the model's bit order, view ``i``'s
+    bit clear. ``config`` defaults to the build's own (:func:`build_config_of`); a
+    tolerant carve keeps its tolerance unless that would exceed V − 2.
+    """
+    cfg, report = build_config_of(model) if config is None else (config, {})
+    cams = [v.camera for v in model.views]
+    V = len(cams)
+    alphas = [model.load_view_rgba(i)[..., 3] for i in range(V)]
+    dil = report.get("dilate_px_per_view", {})
+    # the build dilated by base + rms; recover the rms part per view (0 when unknown)
+    rms = [max(0.0, float(dil.get(v.id, 0)) - cfg.dilate_base_px) if dil else 0.0 for v in model.views]
+    rig_session = not str(model.meta.get("provenance", {}).get("rig_source", "")).startswith("import:")
+    lo, hi = report.get("lo_m"), report.get("hi_m")
+    fallback = (np.asarray(lo), np.asarray(hi)) if lo and hi else None
+
+    def rebuild(i: int) -> Surfels:
+        keep = [j for j in range(V) if j != i]
+        c = cfg
+        if c.carve_tolerance is not None and c.carve_tolerance > max(0, len(keep) - 2):
+            c = replace(c, carve_tolerance=max(0, len(keep) - 2))
+        g = build_geometry([alphas[j] for j in keep], [cams[j] for j in keep], [rms[j] for j in keep],
+                           [model.views[j].id for j in keep], config=c, rig_session=rig_session,
+                           fallback_box=fallback)
+        s = g.surfels
+        vis = np.zeros((len(s), V), bool)
+        vis[:, keep] = s.visible_bool()
+        log.info("holdout %s: %d surfels rebuilt from %d views", model.views[i].id, len(s), len(keep))
+        return Surfels.from_bool(s.positions, s.normals, s.radii, vis)
+
+    return rebuild
+
+
+def run_loo_holdouts(model_path, *, views=None, config=None, holdout: str = "both", out=None,
+                     progress=None) -> dict:
+    """``eval loo`` with ``--holdout blend|geometry|both``: the render stage's
+    leave-one-out (:func:`opacityhull.render.evaluate.leave_one_out`) with the geometry
+    rebuilt here. ``both`` reports both; the top-level figures are the geometry
+    holdout's (the honest one). Writes ``loo.json`` and the contact sheets to ``out``."""
+    from ..cliutil import to_jsonable
+    from ..imageio import atomic_path
+    from ..render.evaluate import leave_one_out, select_views
+    from ..render.renderer import RenderConfig, prepare_model_views
+
+    if holdout not in ("blend", "geometry", "both"):
+        from ..errors import InputError
+
+        raise InputError(f"--holdout {holdout!r}: expected blend, geometry or both")
+    model = OpacityHullModel.open(model_path)
+    idx = select_views(model, views)
+    config = config or RenderConfig()
+    out = Path(out) if out is not None else Path(model_path) / "pictures"
+    pv = prepare_model_views(model)
+    results = {}
+    kinds = ["blend", "geometry"] if holdout == "both" else [holdout]
+    for kind in kinds:
+        gw = geometry_without(model) if kind == "geometry" else None
+        sheet = out / ("loo_sheet.png" if len(kinds) == 1 else f"loo_sheet_{kind}.png")
+        results[kind] = leave_one_out(model, views=idx, config=config, sheet_path=sheet, prepared=pv,
+                                      progress=progress, holdout=kind, geometry_without=gw)
+    main = results["geometry" if "geometry" in results else "blend"]
+    summary = dict(main)
+    if len(results) > 1:
+        keys = [k for k in main if k.endswith("_mean") or k in ("alpha_mae", "coverage_iou_min", "ms_per_view",
+                                                                "rebuild_ms_per_view", "sheet")]
+        summary["holdouts"] = {k: {kk: r.get(kk) for kk in keys} for k, r in results.items()}
+    with atomic_path(out / "loo.json") as tmp:
+        tmp.write_text(json.dumps(to_jsonable({**summary, "all": results if len(results) > 1 else None}),
+                                  indent=1))
+    summary["json"] = str(out / "loo.json")
+    return summary
