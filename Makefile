@@ -23,16 +23,20 @@ system-deps:
 	  need=""; \
 	  ldconfig -p 2>/dev/null | grep -q 'libLLVM.so.19\|libLLVM-19' || need="$$need libllvm19"; \
 	  $(PYTHON) -c 'import venv, ensurepip' 2>/dev/null || need="$$need python3-venv"; \
+	  command -v chromium >/dev/null 2>&1 || need="$$need chromium"; \
+	  command -v chromedriver >/dev/null 2>&1 || need="$$need chromium-driver"; \
 	  if [ -n "$$need" ]; then \
 	    echo "== installing system packages:$$need"; \
 	    DEBIAN_FRONTEND=noninteractive apt-get install -y -q $$need >/dev/null 2>&1 || \
 	    { DEBIAN_FRONTEND=noninteractive apt-get update -q >/dev/null 2>&1 && \
 	      DEBIAN_FRONTEND=noninteractive apt-get install -y -q $$need >/dev/null 2>&1; } || \
-	    echo "!! could not install$$need — Mitsuba will fall back to scalar_rgb (slower, same results)"; \
+	    echo "!! could not install$$need — without libllvm19 Mitsuba falls back to scalar_rgb (slower, same results); without chromium the browser-viewer tests skip"; \
 	  fi; \
 	else \
 	  ldconfig -p 2>/dev/null | grep -q 'libLLVM.so.19\|libLLVM-19' || \
 	    echo "!! libLLVM 19 not found and not root: Mitsuba will use scalar_rgb (install libllvm19 for 2-3x faster renders)"; \
+	  command -v chromium >/dev/null 2>&1 && command -v chromedriver >/dev/null 2>&1 || \
+	    echo "!! chromium / chromium-driver not found and not root: the browser-viewer tests will skip (apt-get install chromium chromium-driver)"; \
 	fi
 
 $(STAMP): pyproject.toml | system-deps

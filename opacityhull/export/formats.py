@@ -1,0 +1,302 @@
+"""Exports of a model folder to the formats other tools read.
+
+* ``nerfstudio`` — ``transforms.json`` + 8-bit sRGB images (RGBA, or RGB + single-channel
+  ``mask_path``) + ``sparse_pc.ply`` (coloured surfel positions, ``ply_file_path``).
+* ``colmap`` — ``sparse/0`` in COLMAP text and binary (written by pycolmap), ``images/``,
+  points3D = surfel positions with their mean colour and tracks from the visibility bits.
+* ``ply`` — ``points.ply`` (x y z nx ny nz red green blue alpha) and ``splats.ply``
+  (the 3DGS layout: ``f_dc_*``, ``f_rest_*``, ``opacity`` logit, ``scale_*`` log, ``rot_*``).
+* ``opencv`` — one FileStorage YAML per physical camera (``world_from_cam`` =
+  ``rig_from_cam``) and one per view under ``views/``.
+
+Camera conventions are converted in :mod:`opacityhull.camera` only; this module decides
+the layout. Each file is written atomically, and a format's folder is first built next to
+``out`` and renamed into place, so a failed export leaves nothing half-written.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import shutil
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+
+from ..errors import InputError
+from ..model import OpacityHullModel
+
+log = logging.getLogger(__name__)
+
+__all__ = ["FORMATS", "ExportFormat", "export_model", "export_nerfstudio_model", "export_colmap_model",
+           "export_ply", "export_opencv", "splat_params"]
+
+ExportFormat = Literal["nerfstudio", "colmap", "ply", "opencv"]
+FORMATS: tuple[str, ...] = ("nerfstudio", "colmap", "ply", "opencv")
+
+
+def _views(model: OpacityHullModel) -> list[np.ndarray]:
+    return [model.load_view_rgba(i) for i in range(len(model.views))]
+
+
+def _write_png_u8(path: Path, img01: np.ndarray) -> None:
+    from ..imageio import write_png
+
+    write_png(path, img01, bits=8)
+
+
+def _points_ply(path: Path, pos, nrm, rgb_lin, alpha, *, with_alpha: bool = True) -> None:
+    from plyfile import PlyData, PlyElement
+
+    from ..imageio import atomic_path, srgb_encode
+
+    fields = [(k, "f4") for k in ("x", "y", "z", "nx", "ny", "nz")] + [(k, "u1") for k in ("red", "green", "blue")]
+    if with_alpha:
+        fields.append(("alpha", "u1"))
+    arr = np.empty(len(pos), dtype=fields)
+    for i, k in enumerate("xyz"):
+        arr[k] = pos[:, i]
+        arr["n" + k] = nrm[:, i]
+    c8 = np.round(np.clip(srgb_encode(np.clip(rgb_lin, 0, 1)), 0, 1) * 255).astype(np.uint8)
+    arr["red"], arr["green"], arr["blue"] = c8[:, 0], c8[:, 1], c8[:, 2]
+    if with_alpha:
+        arr["alpha"] = np.round(np.clip(alpha, 0, 1) * 255).astype(np.uint8)
+    with atomic_path(path) as tmp:
+        PlyData([PlyElement.describe(arr, "vertex")], text=False, byte_order="<",
+                comments=["opacityhull export: sRGB 8-bit colour, straight alpha"]).write(str(tmp))
+
+
+# --------------------------------------------------------------------------- nerfstudio
+
+
+def export_nerfstudio_model(model: OpacityHullModel, out: Path, *, alpha: Literal["rgba", "mask"] = "rgba") -> dict:
+    """nerfstudio dataset: ``transforms.json``, ``images/<view>.png``, [``masks/<view>.png``],
+    ``sparse_pc.ply``.
+
+    ``alpha="rgba"``: 8-bit sRGB RGBA PNGs with straight alpha (nerfstudio composites
+    them over its background colour). ``alpha="mask"``: RGB PNGs composited over black
+    and single-channel masks (255 where α ≥ 0.5), listed as ``mask_path``.
+    """
+    from ..reconstruct.exports import export_nerfstudio
+
+    if alpha not in ("rgba", "mask"):
+        raise InputError(f"--nerfstudio-alpha {alpha!r}: expected 'rgba' or 'mask'")
+    imgs, masks = [], []
+    for i, v in enumerate(model.views):
+        rgba = model.load_view_rgba(i)
+        p = out / "images" / f"{v.id}.png"
+        if alpha == "rgba":
+            _write_png_u8(p, rgba)
+        else:
+            _write_png_u8(p, rgba[..., :3] * rgba[..., 3:4])
+            mp = out / "masks" / f"{v.id}.png"
+            from ..imageio import write_png
+
+            write_png(mp, (rgba[..., 3] >= 0.5).astype(np.float32), bits=8, linear=True)
+            masks.append(mp.relative_to(out))
+        imgs.append(p.relative_to(out))
+    from .samples import mean_colours
+
+    s = model.surfels
+    rgb, a = mean_colours(s, [v.camera for v in model.views], _views(model))
+    _points_ply(out / "sparse_pc.ply", s.positions, s.normals, rgb, a, with_alpha=False)
+    js = export_nerfstudio([v.camera for v in model.views], imgs, out / "transforms.json",
+                           mask_paths=masks if alpha == "mask" else None,
+                           extra={"ply_file_path": "sparse_pc.ply"})
+    return {"transforms": js, "images": len(imgs), "masks": len(masks), "points": len(s)}
+
+
+# --------------------------------------------------------------------------- colmap
+
+
+def export_colmap_model(model: OpacityHullModel, out: Path, *, max_points: int = 50000) -> dict:
+    """COLMAP dataset: ``images/<view>.png`` (8-bit sRGB RGB over black) and ``sparse/0``
+    (text and binary, written by pycolmap).
+
+    points3D: up to ``max_points`` surfels (evenly spaced in file order), colour = mean
+    sRGB colour over the views that see them, track = one observation in every view whose
+    visibility bit is set and inside whose image the surfel projects (COLMAP pixel
+    coordinates: +0.5), error = the reprojection error, 0 by construction.
+    """
+    import pycolmap
+
+    from ..camera import write_colmap_text
+    from ..imageio import srgb_encode
+    from .samples import iter_view_samples, mean_colours
+
+    if max_points < 0:
+        raise InputError(f"--max-points {max_points}: expected >= 0")
+    s = model.surfels
+    cams = [v.camera for v in model.views]
+    names = [f"{v.id}.png" for v in model.views]
+    images = _views(model)
+    for v, rgba in zip(model.views, images):
+        _write_png_u8(out / "images" / f"{v.id}.png", rgba[..., :3] * rgba[..., 3:4])
+    sparse = out / "sparse" / "0"
+    write_colmap_text(sparse, cams, names, share_intrinsics=[v.camera_index for v in model.views])
+    rec = pycolmap.Reconstruction(str(sparse))
+    by_name = {rec.image(i).name: i for i in rec.images.keys()}
+    n = len(s)
+    pick = np.unique(np.linspace(0, n - 1, min(n, max_points)).round().astype(np.int64)) if n and max_points else \
+        np.zeros(0, np.int64)
+    rgb, _ = mean_colours(s.subset(pick), cams, images)
+    obs: list[tuple[int, np.ndarray, np.ndarray]] = []  # (view, local point index, uv)
+    for smp in iter_view_samples(s, cams, images, subset=pick):
+        obs.append((smp.view, np.searchsorted(pick, smp.index), smp.uv + 0.5))
+    # every image's 2-D points first, then the 3-D points with their tracks
+    point_obs: list[list[tuple[int, int]]] = [[] for _ in range(len(pick))]
+    for v, loc, uv in obs:
+        iid = by_name[names[v]]
+        img = rec.image(iid)
+        img.points2D = pycolmap.Point2DList([pycolmap.Point2D(np.asarray(p, np.float64)) for p in uv])
+        for j, li in enumerate(loc):
+            point_obs[int(li)].append((iid, j))
+    c8 = np.round(np.clip(srgb_encode(np.clip(rgb, 0, 1)), 0, 1) * 255).astype(np.uint8)
+    n_pts = 0
+    for li, track_list in enumerate(point_obs):
+        if len(track_list) < 2:  # COLMAP drops points seen by fewer than two images
+            continue
+        tr = pycolmap.Track()
+        for iid, j in track_list:
+            tr.add_element(iid, j)
+        rec.add_point3D(s.positions[pick[li]].astype(np.float64), tr, c8[li])
+        n_pts += 1
+    for f in sparse.iterdir():
+        f.unlink()
+    rec.write_text(str(sparse))
+    rec.write_binary(str(sparse))
+    return {"sparse": sparse, "images": len(names), "points3D": n_pts,
+            "observations": int(sum(len(t) for t in point_obs if len(t) >= 2))}
+
+
+# --------------------------------------------------------------------------- ply
+
+
+def splat_params(model_or_surfels, *, sigma_radius: float = 0.5):
+    """3DGS geometry of the surfels: ``scale`` (N, 3) log σ (two tangent axes σ =
+    ``sigma_radius``·r, the normal axis 1 % of it) and ``rot`` (N, 4) unit quaternions
+    (w, x, y, z) whose rotation maps the local z axis onto the normal."""
+    from scipy.spatial.transform import Rotation
+
+    s = model_or_surfels.surfels if hasattr(model_or_surfels, "surfels") else model_or_surfels
+    n = s.normals.astype(np.float64)
+    nn = np.linalg.norm(n, axis=1, keepdims=True)
+    n = np.where(nn > 1e-12, n / np.maximum(nn, 1e-12), [0.0, 0.0, 1.0])
+    helper = np.where(np.abs(n[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+    t1 = np.cross(helper, n)
+    t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
+    t2 = np.cross(n, t1)
+    R = np.stack([t1, t2, n], axis=2)  # columns = local axes
+    x, y, z, w = Rotation.from_matrix(R).as_quat().T
+    rot = np.stack([w, x, y, z], axis=1)
+    sig = np.maximum(sigma_radius * s.radii.astype(np.float64), 1e-9)
+    scale = np.log(np.stack([sig, sig, 0.01 * sig], axis=1))
+    return scale.astype(np.float32), rot.astype(np.float32)
+
+
+def export_ply(model: OpacityHullModel, out: Path, *, sh_degree: int = 3) -> dict:
+    """``points.ply`` (coloured points) and ``splats.ply`` (3DGS layout with SH colour).
+
+    Returns the SH fit report: RMS residual (sRGB [0, 1] units) per degree ≤ ``sh_degree``.
+    """
+    from plyfile import PlyData, PlyElement
+
+    from ..imageio import atomic_path
+    from .samples import mean_colours
+    from .sh import fit_sh
+
+    if not 1 <= int(sh_degree) <= 3:
+        raise InputError(f"--sh-degree {sh_degree!r}: expected 1, 2 or 3")
+    s = model.surfels
+    cams = [v.camera for v in model.views]
+    images = _views(model)
+    rgb, alpha = mean_colours(s, cams, images)
+    _points_ply(out / "points.ply", s.positions, s.normals, rgb, alpha)
+    fit = fit_sh(s, cams, images, degree=sh_degree)
+    scale, rot = splat_params(s)
+    B = fit.coeffs.shape[1]
+    names = ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
+    names += [f"f_rest_{i}" for i in range(3 * (B - 1))]
+    names += ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
+    arr = np.empty(len(s), dtype=[(k, "f4") for k in names])
+    for i, k in enumerate("xyz"):
+        arr[k] = s.positions[:, i]
+        arr["n" + k] = s.normals[:, i]
+    for c in range(3):
+        arr[f"f_dc_{c}"] = fit.coeffs[:, 0, c]
+    # 3DGS stores features_rest as (N, 3, B−1) flattened: all R coefficients, then G, then B
+    for c in range(3):
+        for j in range(1, B):
+            arr[f"f_rest_{c * (B - 1) + j - 1}"] = fit.coeffs[:, j, c]
+    a = np.clip(alpha, 1e-4, 1 - 1e-4)
+    arr["opacity"] = np.log(a / (1 - a))
+    for i in range(3):
+        arr[f"scale_{i}"] = scale[:, i]
+    for i in range(4):
+        arr[f"rot_{i}"] = rot[:, i]
+    with atomic_path(out / "splats.ply") as tmp:
+        PlyData([PlyElement.describe(arr, "vertex")], text=False, byte_order="<").write(str(tmp))
+    return {"points": len(s), "sh_degree": int(sh_degree), "sh_rms": {str(k): v for k, v in fit.rms.items()},
+            "sh_observations": fit.n_obs}
+
+
+# --------------------------------------------------------------------------- opencv
+
+
+def export_opencv(model: OpacityHullModel, out: Path) -> dict:
+    """``<camera>.yaml`` per physical camera (``world_from_cam`` = rig_from_cam, read by
+    :func:`opacityhull.camera.read_opencv_yaml` and any OpenCV FileStorage reader) and
+    ``views/<view id>.yaml`` per view (object frame)."""
+    from ..camera import rig_from_object, write_opencv_yaml
+
+    geo = model.geometry
+    names = {}
+    if geo is not None:
+        for i, c in enumerate(geo.nominal_cameras()):
+            names[i] = c.name or f"cam{i}"
+    done: set[int] = set()
+    for v in model.views:
+        write_opencv_yaml(out / "views" / f"{v.id}.yaml", v.camera.with_name(v.id),
+                          extra={"table_deg": float(v.table_deg), "camera_index": int(v.camera_index)})
+        if v.camera_index in done:
+            continue
+        done.add(v.camera_index)
+        rig_cam = v.camera.with_pose(rig_from_object(v.table_deg) @ v.camera.world_from_cam)
+        name = names.get(v.camera_index, f"cam{v.camera_index}")
+        write_opencv_yaml(out / f"{name}.yaml", rig_cam.with_name(name), extra={"camera_index": int(v.camera_index)})
+    return {"cameras": len(done), "views": len(model.views)}
+
+
+# --------------------------------------------------------------------------- driver
+
+
+def export_model(model_dir, fmt: str, out, *, overwrite: bool = False, **options) -> dict:
+    """Export a model folder to ``out`` in format ``fmt`` (one of :data:`FORMATS`).
+
+    The export is built in a sibling temporary folder and renamed to ``out`` when
+    complete; an existing non-empty ``out`` is an :class:`InputError` unless ``overwrite``.
+    """
+    if fmt not in FORMATS:
+        raise InputError(f"--format {fmt!r}: expected one of {', '.join(FORMATS)}")
+    model = OpacityHullModel.open(model_dir)
+    out = Path(out)
+    if out.exists() and (not out.is_dir() or any(out.iterdir())):
+        if not overwrite:
+            raise InputError(f"--out {out}: exists and is not empty (pass --overwrite to replace it)")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_name(f".{out.name}.tmp{os.getpid()}")
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir()
+    fn = {"nerfstudio": export_nerfstudio_model, "colmap": export_colmap_model, "ply": export_ply,
+          "opencv": export_opencv}[fmt]
+    try:
+        summary = fn(model, tmp, **options)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    if out.exists():
+        shutil.rmtree(out)
+    os.replace(tmp, out)
+    summary = {k: (out / Path(v).relative_to(tmp) if isinstance(v, Path) else v) for k, v in summary.items()}
+    return {"format": fmt, "model": str(Path(model_dir)), "out": str(out), **summary}

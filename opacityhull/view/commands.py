@@ -1,0 +1,90 @@
+"""CLI of :mod:`opacityhull.view`: ``opacityhull view MODEL [--port P] [--out DIR]``."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+from ..cliutil import cli_errors, console, emit, progress
+
+
+def _parse_bg(text: str):
+    from ..errors import InputError
+
+    named = {"black": (0, 0, 0), "white": (1, 1, 1), "grey": (0.18, 0.18, 0.18), "gray": (0.18, 0.18, 0.18)}
+    if text in named:
+        return named[text]
+    try:
+        vals = [float(x) for x in text.split(",")]
+    except ValueError:
+        vals = []
+    if len(vals) == 1:
+        vals = vals * 3
+    if len(vals) != 3 or not all(0.0 <= v <= 1.0 for v in vals):
+        raise InputError(f"--background {text!r}: expected black | white | grey | R,G,B or one value in [0, 1]")
+    return tuple(vals)
+
+
+def register(app, groups) -> None:
+    @app.command("view")
+    @cli_errors
+    def view_cmd(
+        model: Path = typer.Argument(..., help="Model folder (model.toml, surfels.ply, views/)."),
+        out: Optional[Path] = typer.Option(None, "--out", help="Write the static web bundle here. Alone (without "
+                                           "--port) it only writes the bundle, for any static web host."),
+        port: Optional[int] = typer.Option(None, "--port", help="Serve on 127.0.0.1:PORT (0: any free port; "
+                                           "default 8765 when --out is not given)."),
+        k: int = typer.Option(4, "--k", help="Initial ULR k of the page (1-8; the page has a slider)."),
+        background: str = typer.Option("black", "--background", help="Initial background: black | white | grey | R,G,B."),
+        envmap: Optional[str] = typer.Option(None, "--envmap", help="Environment map the page can show behind the "
+                                             "model: an equirectangular .hdr/.exr, or builtin:NAME (ennis grace pisa "
+                                             "uffizi wells)."),
+        env_yaw_deg: Optional[float] = typer.Option(None, "--env-yaw-deg", help="Its rotation about +Y (default 180 "
+                                                    "for builtin: probes, else 0); the page has a slider."),
+        json_out: bool = typer.Option(False, "--json", help="Print a JSON summary (bundle path, bytes, URL) on stdout."),
+    ):
+        """Open a model in the browser: write a WebGL2 bundle (ULR-blended EWA splats) and serve it on 127.0.0.1."""
+        import tempfile
+        import time
+
+        from .bundle import write_bundle
+
+        import shutil
+        import signal
+
+        bg = _parse_bg(background)
+        serve = port is not None or out is None
+        target = out if out is not None else Path(tempfile.mkdtemp(prefix="opacityhull-view-")) / "bundle"
+        try:
+            with progress("writing viewer bundle", enabled=not json_out) as cb:
+                summary = write_bundle(model, target, k=k, background=bg, envmap=envmap, env_yaw_deg=env_yaw_deg,
+                                       progress=cb)
+            if not serve:
+                emit(summary, json_out, lambda s: console().print(
+                    f"wrote viewer bundle {s['out']} ({s['bytes'] / 1e6:.1f} MB, {s['surfels']} surfels, "
+                    f"{s['views']} views); serve it with any static web server, e.g. "
+                    f"python -m http.server -b 127.0.0.1 -d {s['out']} 8765"))
+                return
+            from .server import BundleServer
+
+            def _stop(signum, frame):
+                raise KeyboardInterrupt
+
+            signal.signal(signal.SIGTERM, _stop)  # `kill PID` stops the server like Ctrl-C
+            srv = BundleServer(target, port=8765 if port is None else port)
+            summary["url"] = srv.url
+            try:  # serving until Ctrl-C / SIGTERM is the normal end: exit 0
+                emit(summary, json_out, lambda s: None)
+                console().print(f"serving {target} at [bold]{srv.url}[/] — open it in a browser; Ctrl-C stops",
+                                highlight=False)
+                while True:
+                    time.sleep(3600)
+            except KeyboardInterrupt:
+                console().print("stopped")
+            finally:
+                srv.close()
+        finally:
+            if out is None:  # the bundle was only for this session
+                shutil.rmtree(target.parent, ignore_errors=True)

@@ -1,0 +1,673 @@
+// opacityhull viewer: WebGL2 EWA surfel splatting with ULR blending in the vertex shader.
+// Plain ES module, no dependencies. Bundle layout: docs/viewer-format.md.
+// The passes mirror opacityhull/render (renderer.render_image): per surfel the k nearest
+// visible views by angle with Unstructured Lumigraph weights, sampled from a texture array
+// of the views (premultiplied, bilinear); EWA kernel J V J^T + H; epsilon-z-buffer (depth
+// pre-pass at z + eps, then accumulation of w*rgba, w, w*area where z <= that depth);
+// resolve: colour / w, times the edge coverage clip(w*area / coverage_full, 0, 1).
+
+const KMAX = 8;
+const $ = (id) => document.getElementById(id);
+
+function showError(msg) {
+  const e = $("error");
+  e.textContent = msg;
+  e.style.display = "block";
+  $("progress").textContent = "failed";
+  window.opacityhull.error = msg;
+  console.error(msg);
+}
+
+async function fetchBytes(url, expected, what) {
+  let r;
+  try {
+    r = await fetch(url);
+  } catch (err) {
+    throw new Error(`Could not load ${what} (${url}): ${err.message}. Is the viewer's server still running?`);
+  }
+  if (!r.ok) {
+    throw new Error(`Could not load ${what} (${url}): HTTP ${r.status} ${r.statusText}. ` +
+      `The bundle is incomplete; write it again with "opacityhull view MODEL --out DIR".`);
+  }
+  const buf = await r.arrayBuffer();
+  if (expected !== undefined && buf.byteLength !== expected) {
+    throw new Error(`${what} (${url}) has ${buf.byteLength} bytes, expected ${expected}: the file is truncated or ` +
+      `from another bundle; write the bundle again.`);
+  }
+  return buf;
+}
+
+const VS = (words, shade) => `#version 300 es
+precision highp float; precision highp int; precision highp sampler2D; precision highp sampler2DArray;
+#define KMAX ${KMAX}
+${shade ? "#define SHADE 1" : ""}
+in vec3 a_pos; in vec3 a_nrm; in float a_radius; in float a_area; in float a_rmin; in float a_rmax;
+in uvec4 a_vis0;
+${words > 4 ? "in uvec4 a_vis1;" : ""}
+uniform mat3 u_R; uniform vec3 u_t; uniform vec4 u_K; uniform vec2 u_size; uniform vec3 u_C;
+uniform float u_sigma; uniform float u_filter; uniform float u_cutoff; uniform float u_eps; uniform float u_density;
+uniform float u_mfloor; uniform float u_zdevf; uniform float u_tau;
+uniform int u_nviews; uniform int u_k;
+uniform sampler2D u_viewdata; uniform sampler2DArray u_views; uniform vec2 u_layer;
+flat out vec2 v_c; flat out vec3 v_conic; flat out float v_w; flat out vec2 v_dz; flat out vec3 v_z;
+flat out vec4 v_rgba; flat out float v_area;
+
+bool visible(int v) {
+  ${words > 4 ? "uvec4 vis = v < 128 ? a_vis0 : a_vis1;" : "uvec4 vis = a_vis0;"}
+  uint w = vis[(v >> 5) & 3];
+  return ((w >> uint(v & 31)) & 1u) == 1u;
+}
+bool before(float sa, int ra, float sb, int rb) { return sa < sb || (sa == sb && ra < rb); }
+vec4 vd(int v, int j) { return texelFetch(u_viewdata, ivec2(j, v), 0); }
+
+// world point -> pixel (u, y) of view v (OpenCV pinhole + 5-term distortion); x = nan-ish (-1e9) behind
+vec2 projectView(int v, vec3 p) {
+  vec4 r0 = vd(v, 0), r1 = vd(v, 1), r2 = vd(v, 2), k = vd(v, 3), d = vd(v, 4), e = vd(v, 5);
+  float X = dot(r0.xyz, p) + r0.w, Y = dot(r1.xyz, p) + r1.w, Z = dot(r2.xyz, p) + r2.w;
+  if (!(Z > 0.0)) return vec2(-1e9);
+  float xn = X / Z, yn = Y / Z;
+  float k1 = d.x, k2 = d.y, p1 = d.z, p2 = d.w, k3 = e.x;
+  if (k1 != 0.0 || k2 != 0.0 || p1 != 0.0 || p2 != 0.0 || k3 != 0.0) {
+    float r2_ = xn * xn + yn * yn;
+    float radial = 1.0 + r2_ * (k1 + r2_ * (k2 + r2_ * k3));
+    float xd = xn * radial + 2.0 * p1 * xn * yn + p2 * (r2_ + 2.0 * xn * xn);
+    float yd = yn * radial + p1 * (r2_ + 2.0 * yn * yn) + 2.0 * p2 * xn * yn;
+    xn = xd; yn = yd;
+  }
+  return vec2(k.x * xn + k.z, k.y * yn + k.w);
+}
+
+void reject() { gl_Position = vec4(2.0, 2.0, 2.0, 1.0); gl_PointSize = 0.0; }
+
+void main() {
+  vec3 p = a_pos;
+  // level of detail: the sequential point tree's cut, r_min <= tau * distance < r_max
+  float tcut = u_tau * length(p - u_C);
+  if (!(a_rmin <= tcut && tcut < a_rmax)) { reject(); return; }
+  float r = a_radius * sqrt(u_density);
+  v_area = a_area * u_density;
+  v_rgba = vec4(0.0);
+  // back faces culled in the world frame (as splat_setup)
+  vec3 nw = a_nrm;
+  float nn2 = dot(nw, nw);
+  bool hasN = nn2 > 1e-24;
+  if (!(r > 0.0) || (hasN && dot(nw, p - u_C) >= 0.0)) { reject(); return; }
+  vec3 Pc = u_R * p + u_t;
+  float X = Pc.x, Y = Pc.y, Z = Pc.z;
+  if (!(Z > 1e-9)) { reject(); return; }
+  vec3 n = hasN ? (u_R * nw) * inversesqrt(nn2) : -normalize(Pc);
+  float ndp = dot(n, Pc);
+  if (ndp >= 0.0) { reject(); return; }
+  float fx = u_K.x, fy = u_K.y, cx = u_K.z, cy = u_K.w;
+  float iz = 1.0 / Z;
+  float a0 = fx * iz, a2 = -fx * X * iz * iz, b1 = fy * iz, b2 = -fy * Y * iz * iz;
+  float pn0 = a0 * n.x + a2 * n.z, pn1 = b1 * n.y + b2 * n.z;
+  float j00 = a0 * a0 + a2 * a2 - pn0 * pn0;
+  float j01 = a2 * b2 - pn0 * pn1;
+  float j11 = b1 * b1 + b2 * b2 - pn1 * pn1;
+  // |J| = |(p_a x p_b) . n| (Cauchy-Binet): the CPU's sqrt(j00 j11 - j01^2) cancels badly in float32 near edge-on
+  float detj = abs(-a2 * b1 * n.x - a0 * b2 * n.y + a0 * b1 * n.z);
+  float s2 = (u_sigma * r) * (u_sigma * r);
+  float m00 = s2 * j00 + u_filter + u_mfloor, m01 = s2 * j01, m11 = s2 * j11 + u_filter + u_mfloor;
+  float detm = m00 * m11 - m01 * m01;
+  if (!(detm > 0.0)) { reject(); return; }
+  float x0 = fx * X * iz + cx, y0 = fy * Y * iz + cy;
+  float hx = u_cutoff * sqrt(m00), hy = u_cutoff * sqrt(m11);
+  if (x0 + hx < 0.0 || x0 - hx > u_size.x - 1.0 || y0 + hy < 0.0 || y0 - hy > u_size.y - 1.0) { reject(); return; }
+  float dzx = 0.0, dzy = 0.0;
+  if (abs(ndp) > 1e-12 * Z) { float g = -Z * Z / ndp; dzx = g * n.x / fx; dzy = g * n.y / fy; }
+  float idet = 1.0 / detm;
+  v_conic = vec3(m11 * idet, -m01 * idet, m00 * idet);
+  v_w = detj * sqrt(idet) / 6.283185307179586;
+  v_dz = vec2(dzx, dzy);
+  float lmax = 0.5 * (m00 + m11) + sqrt(0.25 * (m00 - m11) * (m00 - m11) + m01 * m01);
+  float foot = u_cutoff * sqrt(lmax) * Z * 2.0 / (fx + fy);
+  v_z = vec3(Z, u_zdevf * foot, u_eps * foot);
+  v_c = vec2(x0, y0);
+
+#ifndef SHADE
+  // depth pass: drawn iff some view sees the surfel (the bits are set only where it projects
+  // inside the view), as the accumulation pass will find at least one view then
+  ${words > 4 ? "if (all(equal(a_vis0, uvec4(0u))) && all(equal(a_vis1, uvec4(0u)))) { reject(); return; }" : "if (all(equal(a_vis0, uvec4(0u)))) { reject(); return; }"}
+#else
+  // ULR: the k nearest views (by angle) that see the surfel and in which it projects
+  vec3 dd = u_C - p;
+  float nd = length(dd);
+  if (!(nd > 0.0)) { reject(); return; }
+  dd /= nd;
+  float bs[KMAX]; int bv[KMAX]; int br[KMAX]; vec2 buv[KMAX];
+  int m = 0;
+  int k = u_k;
+  for (int v = 0; v < u_nviews; v++) {
+    if (!visible(v)) continue;
+    vec4 c6 = vd(v, 6), e = vd(v, 5);
+    vec3 ev = c6.xyz - p;
+    float ne = length(ev);
+    if (!(ne > 0.0)) continue;
+    ev = ev / ne - dd;
+    float s = 0.5 * dot(ev, ev);
+    int rv = int(e.w);
+    if (m == k && !before(s, rv, bs[k - 1], br[k - 1])) continue;
+    vec2 uv = projectView(v, p);
+    if (!(uv.x >= -0.5 && uv.x <= e.y - 0.5 && uv.y >= -0.5 && uv.y <= e.z - 0.5)) continue;
+    int pos = m < k ? m : k - 1;
+    while (pos > 0 && before(s, rv, bs[pos - 1], br[pos - 1])) {
+      bs[pos] = bs[pos - 1]; bv[pos] = bv[pos - 1]; br[pos] = br[pos - 1]; buv[pos] = buv[pos - 1];
+      pos--;
+    }
+    bs[pos] = s; bv[pos] = v; br[pos] = rv; buv[pos] = uv;
+    if (m < k) m++;
+  }
+  if (m == 0) { reject(); return; }
+  // weights: as kernels._weights (one-hot threshold raised for float32 rounding)
+  float w[KMAX];
+  for (int i = 0; i < KMAX; i++) w[i] = 0.0;
+  if (bs[0] <= 1e-11) {
+    int c = 0;
+    for (int i = 0; i < m; i++) if (bs[i] <= 1e-11) c++;
+    for (int i = 0; i < c; i++) w[i] = 1.0 / float(c);
+  } else if (k == 1 || m == 1) {
+    w[0] = 1.0;
+  } else {
+    float thr; int nb;
+    if (m >= k) { thr = bs[k - 1]; nb = k - 1; } else { thr = 2.0; nb = m; }
+    float tot = 0.0;
+    for (int i = 0; i < nb; i++) { float ri = max((thr - bs[i]) / bs[i], 0.0); w[i] = ri; tot += ri; }
+    if (tot > 0.0 && tot < 1e30) { for (int i = 0; i < nb; i++) w[i] /= tot; }
+    else { for (int i = 0; i < m; i++) w[i] = 1.0 / float(m); }
+  }
+  vec4 acc = vec4(0.0);
+  for (int i = 0; i < m; i++) {
+    if (w[i] > 0.0) {
+      vec2 uv = buv[i];
+      acc += w[i] * textureLod(u_views, vec3((uv.x + 0.5) / u_layer.x, (uv.y + 0.5) / u_layer.y, float(bv[i])), 0.0);
+    }
+  }
+  v_rgba = acc;
+#endif
+  gl_Position = vec4((x0 + 0.5) / u_size.x * 2.0 - 1.0, 1.0 - (y0 + 0.5) / u_size.y * 2.0, 0.0, 1.0);
+  gl_PointSize = 2.0 * ceil(max(hx, hy)) + 3.0;
+}`;
+
+const FS = (shade) => `#version 300 es
+precision highp float;
+uniform vec2 u_size; uniform float u_cutoff; uniform float u_zscale;
+flat in vec2 v_c; flat in vec3 v_conic; flat in float v_w; flat in vec2 v_dz; flat in vec3 v_z;
+flat in vec4 v_rgba; flat in float v_area;
+layout(location = 0) out vec4 o0;
+${shade ? "layout(location = 1) out vec4 o1;" : ""}
+void main() {
+  vec2 px = vec2(gl_FragCoord.x - 0.5, u_size.y - gl_FragCoord.y - 0.5);
+  vec2 d = px - v_c;
+  float q = (v_conic.x * d.x + 2.0 * v_conic.y * d.y) * d.x + v_conic.z * d.y * d.y;
+  if (q > u_cutoff * u_cutoff) discard;
+  float z = clamp(v_z.x + v_dz.x * d.x + v_dz.y * d.y, v_z.x - v_z.y, v_z.x + v_z.y);
+${shade ? `  gl_FragDepth = z * u_zscale;
+  float w = v_w * exp(-0.5 * q);
+  o0 = w * v_rgba;
+  o1 = vec4(w, w * v_area, 0.0, 0.0);` : `  gl_FragDepth = (z + v_z.z) * u_zscale;
+  o0 = vec4(0.0);`}
+}`;
+
+const RESOLVE_VS = `#version 300 es
+void main() { vec2 p = vec2(float((gl_VertexID << 1) & 2), float(gl_VertexID & 2)); gl_Position = vec4(p * 2.0 - 1.0, 0.0, 1.0); }`;
+
+const RESOLVE_FS = `#version 300 es
+precision highp float;
+uniform highp sampler2D u_acc0; uniform highp sampler2D u_acc1;
+uniform float u_covfull; uniform float u_amin; uniform vec3 u_bg;
+uniform int u_useEnv; uniform highp sampler2D u_env; uniform mat3 u_Rwc; uniform vec4 u_K; uniform float u_H;
+uniform float u_yaw;
+out vec4 o;
+// equirectangular lookup as render/background.py: u = atan2(x, -z) / 2pi, v = acos(y) / pi,
+// bilinear, wrapping across the seam and clamping at the poles
+vec3 envTexel(ivec2 ij, ivec2 sz) { return texelFetch(u_env, ivec2((ij.x % sz.x + sz.x) % sz.x, clamp(ij.y, 0, sz.y - 1)), 0).rgb; }
+vec3 envLookup(vec3 d) {
+  float c = cos(-u_yaw), s = sin(-u_yaw);
+  d = vec3(c * d.x + s * d.z, d.y, -s * d.x + c * d.z);  // R_y(-yaw) d
+  ivec2 sz = textureSize(u_env, 0);
+  float u = atan(d.x, -d.z) / 6.283185307179586; u -= floor(u);
+  float v = acos(clamp(d.y / length(d), -1.0, 1.0)) / 3.141592653589793;
+  float x = u * float(sz.x) - 0.5, y = v * float(sz.y) - 0.5;
+  float x0 = floor(x), y0 = floor(y), ax = x - x0, ay = y - y0;
+  ivec2 p = ivec2(int(x0), int(y0));
+  return envTexel(p, sz) * (1.0 - ax) * (1.0 - ay) + envTexel(p + ivec2(1, 0), sz) * ax * (1.0 - ay)
+       + envTexel(p + ivec2(0, 1), sz) * (1.0 - ax) * ay + envTexel(p + ivec2(1, 1), sz) * ax * ay;
+}
+vec3 srgb(vec3 c) { c = clamp(c, 0.0, 1.0); return mix(12.92 * c, 1.055 * pow(c, vec3(1.0 / 2.4)) - 0.055, step(0.0031308, c)); }
+void main() {
+  ivec2 ij = ivec2(gl_FragCoord.xy);
+  vec4 a0 = texelFetch(u_acc0, ij, 0), a1 = texelFetch(u_acc1, ij, 0);
+  vec3 bg = u_bg;
+  if (u_useEnv == 1) {
+    vec2 px = vec2(gl_FragCoord.x - 0.5, u_H - gl_FragCoord.y - 0.5);
+    bg = envLookup(u_Rwc * vec3((px.x - u_K.z) / u_K.x, (px.y - u_K.w) / u_K.y, 1.0));
+  }
+  vec3 col = bg;
+  if (a1.x > 0.0) {
+    float c = clamp(a1.y / u_covfull, 0.0, 1.0);
+    float s = c / a1.x;
+    float a = clamp(a0.w * s, 0.0, 1.0);
+    vec3 pre = a >= u_amin ? a0.rgb * s : vec3(0.0);
+    col = pre + (1.0 - a) * bg;
+  }
+  o = vec4(srgb(col), 1.0);
+}`;
+
+function compile(gl, vs, fs, what) {
+  const mk = (type, src) => {
+    const s = gl.createShader(type);
+    gl.shaderSource(s, src);
+    gl.compileShader(s);
+    if (!gl.getShaderParameter(s, gl.COMPILE_STATUS)) throw new Error(`${what} shader: ${gl.getShaderInfoLog(s)}`);
+    return s;
+  };
+  const p = gl.createProgram();
+  gl.attachShader(p, mk(gl.VERTEX_SHADER, vs));
+  gl.attachShader(p, mk(gl.FRAGMENT_SHADER, fs));
+  gl.linkProgram(p);
+  if (!gl.getProgramParameter(p, gl.LINK_STATUS)) throw new Error(`${what} program: ${gl.getProgramInfoLog(p)}`);
+  const u = {};
+  const n = gl.getProgramParameter(p, gl.ACTIVE_UNIFORMS);
+  for (let i = 0; i < n; i++) { const info = gl.getActiveUniform(p, i); u[info.name] = gl.getUniformLocation(p, info.name); }
+  return { p, u };
+}
+
+function lookAt(eye, target) {
+  const sub = (a, b) => [a[0] - b[0], a[1] - b[1], a[2] - b[2]];
+  const cross = (a, b) => [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]];
+  const norm = (a) => { const l = Math.hypot(a[0], a[1], a[2]); return [a[0] / l, a[1] / l, a[2] / l]; };
+  const z = norm(sub(target, eye));
+  let x = cross(z, [0, 1, 0]);
+  if (Math.hypot(...x) < 1e-9) x = cross(z, [0, 0, 1]);
+  x = norm(x);
+  const y = cross(z, x);
+  return [x[0], y[0], z[0], eye[0], x[1], y[1], z[1], eye[1], x[2], y[2], z[2], eye[2], 0, 0, 0, 1];
+}
+
+class Viewer {
+  constructor(canvas, manifest) {
+    this.canvas = canvas;
+    this.man = manifest;
+    const gl = canvas.getContext("webgl2", { antialias: false, alpha: false, depth: false, preserveDrawingBuffer: true,
+      premultipliedAlpha: false });
+    if (!gl) throw new Error("This browser has no WebGL2: the viewer needs it (try a current Chrome or Firefox).");
+    this.gl = gl;
+    if (!gl.getExtension("EXT_color_buffer_float")) throw new Error("WebGL2 without EXT_color_buffer_float: cannot accumulate splats in float.");
+    this.float32 = !!gl.getExtension("EXT_float_blend");
+    const words = manifest.vis_words;
+    this.words = words;
+    this.depthProg = compile(gl, VS(words, false), FS(false), "depth pass");
+    this.shadeProg = compile(gl, VS(words, true), FS(true), "accumulation pass");
+    this.resolveProg = compile(gl, RESOLVE_VS, RESOLVE_FS, "resolve");
+    this.vbo = gl.createBuffer();
+    gl.bindBuffer(gl.ARRAY_BUFFER, this.vbo);
+    gl.bufferData(gl.ARRAY_BUFFER, manifest.n_nodes * manifest.record_bytes, gl.STATIC_DRAW);
+    this.vaos = [this.depthProg, this.shadeProg].map((pr) => this._vao(pr.p));
+    this.loaded = 0;
+    this.rLast = Infinity;  // r_max of the last node loaded: coarser cuts are complete
+    this.budget = null;  // splats; null: the full model
+    this.k = manifest.render.k;
+    this.bg = manifest.background.slice();
+    this.bgMode = "colour";
+    this.envTex = null;
+    this.envYawDeg = 0;
+    this._viewData();
+    this._allocViews();
+    this.fb = null;
+    const b = manifest.bounds;
+    this.orbitState = { target: b.centre, az: 0, el: 20, dist: 4 * b.radius };
+    this.cam = null;
+    this.lastFrameMs = null;
+  }
+
+  _vao(prog) {
+    const gl = this.gl, rec = this.man.record_bytes;
+    const vao = gl.createVertexArray();
+    gl.bindVertexArray(vao);
+    gl.bindBuffer(gl.ARRAY_BUFFER, this.vbo);
+    const f = (name, size, off) => { const l = gl.getAttribLocation(prog, name); if (l >= 0) { gl.enableVertexAttribArray(l); gl.vertexAttribPointer(l, size, gl.FLOAT, false, rec, off); } };
+    const u = (name, off) => { const l = gl.getAttribLocation(prog, name); if (l >= 0) { gl.enableVertexAttribArray(l); gl.vertexAttribIPointer(l, 4, gl.UNSIGNED_INT, rec, off); } };
+    f("a_pos", 3, 0); f("a_nrm", 3, 12); f("a_radius", 1, 24); f("a_area", 1, 28);
+    f("a_rmin", 1, 32); f("a_rmax", 1, 36);
+    u("a_vis0", 40); if (this.words > 4) u("a_vis1", 56);
+    gl.bindVertexArray(null);
+    return vao;
+  }
+
+  _viewData() {
+    const gl = this.gl, L = this.man.views.layers, V = L.length;
+    const d = new Float32Array(7 * 4 * V);
+    L.forEach((v, i) => {
+      const T = v.world_from_cam;  // row-major 4x4; cam_from_world = [R^T | -R^T t]
+      const R = [[T[0], T[1], T[2]], [T[4], T[5], T[6]], [T[8], T[9], T[10]]], t = [T[3], T[7], T[11]];
+      const o = i * 28;
+      for (let r = 0; r < 3; r++) {
+        d[o + 4 * r] = R[0][r]; d[o + 4 * r + 1] = R[1][r]; d[o + 4 * r + 2] = R[2][r];
+        d[o + 4 * r + 3] = -(R[0][r] * t[0] + R[1][r] * t[1] + R[2][r] * t[2]);
+      }
+      d.set([v.fx, v.fy, v.cx, v.cy], o + 12);
+      d.set([v.dist[0], v.dist[1], v.dist[2], v.dist[3]], o + 16);
+      d.set([v.dist[4], v.width, v.height, v.tie_rank], o + 20);
+      d.set([v.centre[0], v.centre[1], v.centre[2], 0], o + 24);
+    });
+    this.viewTex = gl.createTexture();
+    gl.activeTexture(gl.TEXTURE1);
+    gl.bindTexture(gl.TEXTURE_2D, this.viewTex);
+    gl.texImage2D(gl.TEXTURE_2D, 0, gl.RGBA32F, 7, V, 0, gl.RGBA, gl.FLOAT, d);
+    for (const p of [gl.TEXTURE_MIN_FILTER, gl.TEXTURE_MAG_FILTER]) gl.texParameteri(gl.TEXTURE_2D, p, gl.NEAREST);
+  }
+
+  _allocViews() {  // storage first, so that the shaders can be compiled against it before the data arrives
+    const gl = this.gl, v = this.man.views;
+    this.viewsTex = gl.createTexture();
+    gl.activeTexture(gl.TEXTURE0);
+    gl.bindTexture(gl.TEXTURE_2D_ARRAY, this.viewsTex);
+    gl.texStorage3D(gl.TEXTURE_2D_ARRAY, 1, gl.SRGB8_ALPHA8, v.layer_width, v.layer_height, v.layers.length);
+    gl.texParameteri(gl.TEXTURE_2D_ARRAY, gl.TEXTURE_MIN_FILTER, gl.LINEAR);
+    gl.texParameteri(gl.TEXTURE_2D_ARRAY, gl.TEXTURE_MAG_FILTER, gl.LINEAR);
+    gl.texParameteri(gl.TEXTURE_2D_ARRAY, gl.TEXTURE_WRAP_S, gl.CLAMP_TO_EDGE);
+    gl.texParameteri(gl.TEXTURE_2D_ARRAY, gl.TEXTURE_WRAP_T, gl.CLAMP_TO_EDGE);
+  }
+
+  uploadViews(buf) {
+    const gl = this.gl, v = this.man.views;
+    gl.activeTexture(gl.TEXTURE0);
+    gl.bindTexture(gl.TEXTURE_2D_ARRAY, this.viewsTex);
+    gl.pixelStorei(gl.UNPACK_ALIGNMENT, 1);
+    gl.texSubImage3D(gl.TEXTURE_2D_ARRAY, 0, 0, 0, 0, v.layer_width, v.layer_height, v.layers.length,
+      gl.RGBA, gl.UNSIGNED_BYTE, new Uint8Array(buf));
+  }
+
+  // one draw of a single (zero, hence culled) record: software GL compiles its shaders at the
+  // first draw, which then overlaps the downloads instead of delaying the first picture
+  warmup() {
+    const n = this.loaded;
+    this.loaded = 1;
+    this.draw();
+    this.loaded = n;
+  }
+
+  uploadEnvmap(buf) {
+    const gl = this.gl, e = this.man.envmap;
+    this.envTex = gl.createTexture();
+    gl.activeTexture(gl.TEXTURE4);
+    gl.bindTexture(gl.TEXTURE_2D, this.envTex);
+    gl.pixelStorei(gl.UNPACK_ALIGNMENT, 1);
+    gl.texImage2D(gl.TEXTURE_2D, 0, gl.RGB32F, e.width, e.height, 0, gl.RGB, gl.FLOAT, new Float32Array(buf));
+    for (const p of [gl.TEXTURE_MIN_FILTER, gl.TEXTURE_MAG_FILTER]) gl.texParameteri(gl.TEXTURE_2D, p, gl.NEAREST);
+    this.envYawDeg = e.yaw_deg;
+  }
+
+  uploadChunk(c, buf) {
+    const gl = this.gl;
+    gl.bindBuffer(gl.ARRAY_BUFFER, this.vbo);
+    gl.bufferSubData(gl.ARRAY_BUFFER, c.first * this.man.record_bytes, new Uint8Array(buf));
+    this.loaded = Math.max(this.loaded, c.first + c.count);
+    this.rLast = this.loaded >= this.man.n_nodes ? 0 : c.r_max_last;
+  }
+
+  _targets(W, H) {
+    const gl = this.gl;
+    if (this.fb && this.fbW === W && this.fbH === H) return;
+    const fmt = this.float32 ? gl.RGBA32F : gl.RGBA16F;
+    const mk = (ifmt, f, t) => { const x = gl.createTexture(); gl.bindTexture(gl.TEXTURE_2D, x); gl.texStorage2D(gl.TEXTURE_2D, 1, ifmt, W, H);
+      gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MIN_FILTER, gl.NEAREST); gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MAG_FILTER, gl.NEAREST); return x; };
+    gl.activeTexture(gl.TEXTURE2);
+    this.acc0 = mk(fmt); this.acc1 = mk(fmt); this.depth = mk(gl.DEPTH_COMPONENT32F);
+    this.fb = gl.createFramebuffer();
+    gl.bindFramebuffer(gl.FRAMEBUFFER, this.fb);
+    gl.framebufferTexture2D(gl.FRAMEBUFFER, gl.COLOR_ATTACHMENT0, gl.TEXTURE_2D, this.acc0, 0);
+    gl.framebufferTexture2D(gl.FRAMEBUFFER, gl.COLOR_ATTACHMENT1, gl.TEXTURE_2D, this.acc1, 0);
+    gl.framebufferTexture2D(gl.FRAMEBUFFER, gl.DEPTH_ATTACHMENT, gl.TEXTURE_2D, this.depth, 0);
+    const st = gl.checkFramebufferStatus(gl.FRAMEBUFFER);
+    if (st !== gl.FRAMEBUFFER_COMPLETE) throw new Error(`float framebuffer incomplete (status 0x${st.toString(16)})`);
+    gl.bindFramebuffer(gl.FRAMEBUFFER, null);
+    this.fbW = W; this.fbH = H;
+  }
+
+  setCamera(cam) {  // {fx, fy, cx, cy, width, height, world_from_cam: 16 row-major}
+    this.cam = cam;
+    this.canvas.width = cam.width;
+    this.canvas.height = cam.height;
+  }
+
+  setView(i) {
+    const v = this.man.views.layers[i];
+    if (!v) throw new Error(`no captured view ${i} (the model has ${this.man.views.layers.length})`);
+    this.setCamera({ fx: v.fx, fy: v.fy, cx: v.cx, cy: v.cy, width: v.width, height: v.height, world_from_cam: v.world_from_cam });
+    const c = v.centre, t = this.orbitState.target;
+    const d = [c[0] - t[0], c[1] - t[1], c[2] - t[2]], r = Math.hypot(...d);
+    this.orbitState = { target: t, dist: r, el: Math.asin(d[1] / r) * 180 / Math.PI, az: Math.atan2(d[0], d[2]) * 180 / Math.PI };
+  }
+
+  orbit(dAz, dEl, zoom = 1) {
+    const o = this.orbitState;
+    o.az += dAz; o.el = Math.max(-89, Math.min(89, o.el + dEl)); o.dist *= zoom;
+    const a = o.az * Math.PI / 180, e = o.el * Math.PI / 180;
+    const eye = [o.target[0] + o.dist * Math.cos(e) * Math.sin(a), o.target[1] + o.dist * Math.sin(e),
+      o.target[2] + o.dist * Math.cos(e) * Math.cos(a)];
+    const base = this.cam || this._defaultIntrinsics();
+    this.setCamera({ ...base, world_from_cam: lookAt(eye, o.target) });
+  }
+
+  // tau of the cut: the budget's uniform threshold t (from the manifest's table) over the
+  // distance to the model, and no finer than what the loaded prefix of the tree supports
+  tau(dist) {
+    const b = this.man.bounds, L = this.man.lod;
+    let tau = 0;
+    if (this.budget !== null && this.budget < this.man.n_surfels) {
+      let t = L.t[L.t.length - 1];
+      for (let i = 1; i < L.t.length; i++) {
+        if (L.splats[i] <= this.budget) {
+          const n0 = L.splats[i - 1], n1 = L.splats[i], f = n0 > n1 ? (n0 - this.budget) / (n0 - n1) : 1;
+          t = L.t[i - 1] > 0 ? Math.exp(Math.log(L.t[i - 1]) + f * (Math.log(L.t[i]) - Math.log(L.t[i - 1]))) : f * L.t[i];
+          break;
+        }
+      }
+      tau = t / Math.max(dist, 1e-9);
+    }
+    if (this.rLast > 0) tau = Math.max(tau, this.rLast / Math.max(dist - b.radius, 0.05 * dist, 1e-9));
+    return tau;
+  }
+
+  _defaultIntrinsics() {
+    const v = this.man.views.layers[0];
+    return { fx: v.fx, fy: v.fy, cx: v.cx, cy: v.cy, width: v.width, height: v.height };
+  }
+
+  draw() {
+    const gl = this.gl, man = this.man, cam = this.cam, r = man.render;
+    const t0 = performance.now();
+    const W = cam.width, H = cam.height;
+    this._targets(W, H);
+    const T = cam.world_from_cam;
+    // cam_from_world: R^T, -R^T t; uniformMatrix3fv takes column-major, i.e. rows of R^T = columns of R... pass R^T
+    const Rt = new Float32Array([T[0], T[1], T[2], T[4], T[5], T[6], T[8], T[9], T[10]]);  // column-major of R^T
+    const C = [T[3], T[7], T[11]];
+    const t = [-(T[0] * C[0] + T[4] * C[1] + T[8] * C[2]), -(T[1] * C[0] + T[5] * C[1] + T[9] * C[2]), -(T[2] * C[0] + T[6] * C[1] + T[10] * C[2])];
+    const b = man.bounds;
+    const dist = Math.hypot(C[0] - b.centre[0], C[1] - b.centre[1], C[2] - b.centre[2]);
+    const zscale = 1 / (2 * (dist + 4 * b.radius) + 1e-9);
+    const density = 1.0;
+    const tau = this.tau(dist);
+    gl.bindFramebuffer(gl.FRAMEBUFFER, this.fb);
+    gl.viewport(0, 0, W, H);
+    gl.drawBuffers([gl.COLOR_ATTACHMENT0, gl.COLOR_ATTACHMENT1]);
+    gl.clearBufferfv(gl.COLOR, 0, [0, 0, 0, 0]);
+    gl.clearBufferfv(gl.COLOR, 1, [0, 0, 0, 0]);
+    gl.clearBufferfv(gl.DEPTH, 0, [1]);
+    gl.enable(gl.DEPTH_TEST);
+    gl.activeTexture(gl.TEXTURE0); gl.bindTexture(gl.TEXTURE_2D_ARRAY, this.viewsTex);
+    gl.activeTexture(gl.TEXTURE1); gl.bindTexture(gl.TEXTURE_2D, this.viewTex);
+    for (const [pi, prog] of [[0, this.depthProg], [1, this.shadeProg]]) {
+      const u = prog.u;
+      gl.useProgram(prog.p);
+      gl.uniformMatrix3fv(u.u_R, false, Rt);
+      gl.uniform3fv(u.u_t, t); gl.uniform4f(u.u_K, cam.fx, cam.fy, cam.cx, cam.cy); gl.uniform2f(u.u_size, W, H);
+      gl.uniform3fv(u.u_C, C); gl.uniform1f(u.u_sigma, r.sigma_radius); gl.uniform1f(u.u_filter, r.filter);
+      gl.uniform1f(u.u_cutoff, r.cutoff); gl.uniform1f(u.u_eps, r.epsilon_z); gl.uniform1f(u.u_density, density);
+      gl.uniform1f(u.u_mfloor, r.m_floor); gl.uniform1f(u.u_zdevf, r.zdev_footprints);
+      gl.uniform1i(u.u_nviews, man.n_views); gl.uniform1i(u.u_k, this.k);
+      gl.uniform1i(u.u_views, 0); gl.uniform1i(u.u_viewdata, 1);
+      gl.uniform2f(u.u_layer, man.views.layer_width, man.views.layer_height);
+      gl.uniform1f(u.u_zscale, zscale); gl.uniform1f(u.u_tau, tau);
+      gl.bindVertexArray(this.vaos[pi]);
+      if (pi === 0) {
+        gl.drawBuffers([gl.COLOR_ATTACHMENT0, gl.NONE]);
+        gl.colorMask(false, false, false, false); gl.depthMask(true); gl.depthFunc(gl.LESS); gl.disable(gl.BLEND);
+      } else {
+        gl.drawBuffers([gl.COLOR_ATTACHMENT0, gl.COLOR_ATTACHMENT1]);
+        gl.colorMask(true, true, true, true); gl.depthMask(false); gl.depthFunc(gl.LEQUAL);
+        gl.enable(gl.BLEND); gl.blendFunc(gl.ONE, gl.ONE); gl.blendEquation(gl.FUNC_ADD);
+      }
+      gl.drawArrays(gl.POINTS, 0, this.loaded);
+    }
+    gl.bindVertexArray(null);
+    gl.disable(gl.BLEND); gl.disable(gl.DEPTH_TEST); gl.depthMask(true);
+    gl.bindFramebuffer(gl.FRAMEBUFFER, null);
+    gl.viewport(0, 0, W, H);
+    const rp = this.resolveProg;
+    gl.useProgram(rp.p);
+    gl.activeTexture(gl.TEXTURE2); gl.bindTexture(gl.TEXTURE_2D, this.acc0);
+    gl.activeTexture(gl.TEXTURE3); gl.bindTexture(gl.TEXTURE_2D, this.acc1);
+    gl.uniform1i(rp.u.u_acc0, 2); gl.uniform1i(rp.u.u_acc1, 3);
+    gl.uniform1f(rp.u.u_covfull, r.coverage_full); gl.uniform1f(rp.u.u_amin, r.alpha_min);
+    gl.uniform3fv(rp.u.u_bg, this.bg);
+    const useEnv = this.bgMode === "envmap" && this.envTex ? 1 : 0;
+    gl.uniform1i(rp.u.u_useEnv, useEnv);
+    gl.activeTexture(gl.TEXTURE4); gl.bindTexture(gl.TEXTURE_2D, useEnv ? this.envTex : this.acc1);
+    gl.uniform1i(rp.u.u_env, 4);
+    // world_from_cam rotation, column-major
+    gl.uniformMatrix3fv(rp.u.u_Rwc, false, new Float32Array([T[0], T[4], T[8], T[1], T[5], T[9], T[2], T[6], T[10]]));
+    gl.uniform4f(rp.u.u_K, cam.fx, cam.fy, cam.cx, cam.cy); gl.uniform1f(rp.u.u_H, H);
+    gl.uniform1f(rp.u.u_yaw, this.envYawDeg * Math.PI / 180);
+    gl.drawArrays(gl.TRIANGLES, 0, 3);
+    const px = new Uint8Array(4);
+    gl.readPixels(0, 0, 1, 1, gl.RGBA, gl.UNSIGNED_BYTE, px);  // waits for the frame: honest timing
+    this.lastFrameMs = performance.now() - t0;
+    return this.lastFrameMs;
+  }
+}
+
+async function main() {
+  const api = window.opacityhull;
+  const progress = $("progress");
+  let man;
+  try {
+    const r = await fetch("manifest.json");
+    if (!r.ok) throw new Error(`HTTP ${r.status}`);
+    man = await r.json();
+  } catch (err) {
+    throw new Error(`This folder is not an opacityhull viewer bundle: manifest.json could not be read (${err.message}). ` +
+      `Write one with "opacityhull view MODEL --out DIR".`);
+  }
+  api.timings = { manifest: performance.now() };
+  if (man.format !== "opacityhull-viewer/1") throw new Error(`manifest.json: format ${JSON.stringify(man.format)}, expected "opacityhull-viewer/1"`);
+  const viewer = new Viewer($("canvas"), man);
+  api.timings.gl_setup = performance.now();
+  api.viewer = viewer;
+  api.manifest = man;
+  const sel = $("view");
+  man.views.layers.forEach((v, i) => { const o = document.createElement("option"); o.value = i; o.textContent = `${i}: ${v.id}`; sel.appendChild(o); });
+  viewer.setView(0);
+  const total = man.views.bytes + man.chunks.reduce((a, c) => a + c.bytes, 0);
+  let got = 0;
+  const report = () => { progress.textContent = `loading ${(100 * got / total).toFixed(0)} % — ${viewer.loaded} / ${man.n_nodes} nodes`; };
+  report();
+  const bud = $("budget");
+  for (const f of [1, 1 / 4, 1 / 16, 1 / 64]) {
+    const o = document.createElement("option");
+    o.value = f === 1 ? "" : String(Math.round(man.n_surfels * f));
+    o.textContent = f === 1 ? `all ${man.n_surfels}` : `${o.value} (1/${Math.round(1 / f)})`;
+    bud.appendChild(o);
+  }
+  const viewsP = fetchBytes(man.views.file, man.views.bytes, "the views' texture array");
+  const c0 = man.chunks[0];
+  const chunk0P = fetchBytes(c0.file, c0.bytes, `surfel chunk 1 of ${man.chunks.length}`);
+  viewsP.catch(() => {}); chunk0P.catch(() => {});  // awaited below; no "unhandled rejection" noise
+  viewer.warmup();
+  api.timings.warmup = performance.now();
+  viewer.uploadViews(await viewsP);
+  got += man.views.bytes; report();
+  api.timings.views = performance.now();
+  if (man.envmap) {
+    viewer.uploadEnvmap(await fetchBytes(man.envmap.file, man.envmap.bytes, "the environment map"));
+    const o = document.createElement("option"); o.value = "envmap"; o.textContent = `environment map (${man.envmap.source})`;
+    $("bg").appendChild(o);
+    const yaw = $("yaw"); yaw.value = man.envmap.yaw_deg; $("yawlabel").style.display = "";
+    yaw.oninput = () => { viewer.envYawDeg = +yaw.value; dirty = true; };
+  }
+  let dirty = true;
+  const frame = () => { if (dirty) { dirty = false; viewer.draw(); $("fps").textContent = `${viewer.lastFrameMs.toFixed(1)} ms/frame`; } requestAnimationFrame(frame); };
+  api.redraw = () => { dirty = true; };
+  for (const [ci, c] of man.chunks.entries()) {
+    viewer.uploadChunk(c, ci === 0 ? await chunk0P : await fetchBytes(c.file, c.bytes, `surfel chunk ${ci + 1} of ${man.chunks.length}`));
+    got += c.bytes; report();
+    // the first (coarse) chunk is drawn at once; later ones through the frame loop, so that
+    // downloads are not held up by frames of a half-loaded model
+    if (ci === 0) {
+      api.timings.chunk0 = performance.now();
+      viewer.draw();
+      api.firstFrameMs = performance.now();
+      requestAnimationFrame(frame);
+    } else dirty = true;
+  }
+  progress.textContent = `${man.n_surfels} surfels, ${man.n_views} views`;
+  // controls
+  sel.onchange = () => { viewer.setView(+sel.value); dirty = true; };
+  const kIn = $("k"); kIn.value = viewer.k; $("kval").textContent = viewer.k;
+  kIn.oninput = () => { viewer.k = +kIn.value; $("kval").textContent = kIn.value; dirty = true; };
+  bud.onchange = () => { viewer.budget = bud.value === "" ? null : +bud.value; dirty = true; };
+  $("bg").onchange = () => {
+    const v = $("bg").value;
+    if (v === "envmap") viewer.bgMode = "envmap"; else { viewer.bgMode = "colour"; viewer.bg = v.split(",").map(Number); }
+    dirty = true;
+  };
+  const cv = $("canvas");
+  let drag = null;
+  cv.onpointerdown = (e) => { drag = [e.clientX, e.clientY]; cv.setPointerCapture(e.pointerId); };
+  cv.onpointermove = (e) => { if (!drag) return; viewer.orbit(-(e.clientX - drag[0]) * 0.4, (e.clientY - drag[1]) * 0.4); drag = [e.clientX, e.clientY]; dirty = true; };
+  cv.onpointerup = () => { drag = null; };
+  cv.onwheel = (e) => { e.preventDefault(); viewer.orbit(0, 0, Math.exp(e.deltaY * 0.001)); dirty = true; };
+  viewer.draw();
+  return viewer;
+}
+
+let resolveReady, rejectReady;
+window.opacityhull = {
+  error: null, lastFrameMs: null, firstFrameMs: null, viewer: null,
+  ready: new Promise((res, rej) => { resolveReady = res; rejectReady = rej; }),
+  setCamera(i) { this.viewer.setView(i); return this.viewer.draw(); },
+  setCameraMatrix(cam) { this.viewer.setCamera(cam); return this.viewer.draw(); },
+  setK(k) { this.viewer.k = Math.max(1, Math.min(KMAX, k | 0)); return this.viewer.draw(); },
+  setBudget(n) { this.viewer.budget = n === null || n === undefined ? null : Math.max(1, n | 0); return this.viewer.draw(); },
+  setBackground(rgb) {  // [r, g, b] (linear) or "envmap"
+    if (rgb === "envmap") { if (!this.viewer.envTex) throw new Error("this bundle has no environment map"); this.viewer.bgMode = "envmap"; }
+    else { this.viewer.bgMode = "colour"; this.viewer.bg = rgb.slice(0, 3); }
+    return this.viewer.draw();
+  },
+  setEnvYaw(deg) { this.viewer.envYawDeg = deg; return this.viewer.draw(); },
+  orbit(dAz, dEl, zoom = 1) { this.viewer.orbit(dAz, dEl, zoom); return this.viewer.draw(); },
+  // the float accumulators of the last frame, rows top to bottom: [att0 (w*rgba), att1 (w, w*area, 0, 0)]
+  accumulators() {
+    const v = this.viewer, gl = v.gl, W = v.fbW, H = v.fbH, out = [];
+    gl.bindFramebuffer(gl.READ_FRAMEBUFFER, v.fb);
+    for (const att of [gl.COLOR_ATTACHMENT0, gl.COLOR_ATTACHMENT1]) {
+      gl.readBuffer(att);
+      const px = new Float32Array(W * H * 4);
+      gl.readPixels(0, 0, W, H, gl.RGBA, gl.FLOAT, px);
+      const rows = [];
+      for (let y = H - 1; y >= 0; y--) rows.push(Array.from(px.subarray(y * W * 4, (y + 1) * W * 4)));
+      out.push(rows);
+    }
+    gl.bindFramebuffer(gl.READ_FRAMEBUFFER, null);
+    return out;
+  },
+  benchmark(n, dAz = 360 / n) { const t0 = performance.now(); for (let i = 0; i < n; i++) { this.viewer.orbit(dAz, 0); this.viewer.draw(); } return (performance.now() - t0) / n; },
+};
+Object.defineProperty(window.opacityhull, "lastFrameMs", { get() { return this.viewer ? this.viewer.lastFrameMs : null; } });
+window.opacityhull.ready.catch(() => {});
+window.addEventListener("error", (e) => showError(String(e.message || e)));
+main().then((v) => { window.opacityhull.status = "ready"; resolveReady(v); },
+  (err) => { window.opacityhull.status = "error"; showError(err.message || String(err)); rejectReady(err); });

@@ -1,0 +1,244 @@
+"""The browser viewer: bundle layout read back in NumPy, and the page in a real headless
+Chromium (software WebGL2) against the CPU renderer."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import subprocess
+import sys
+import urllib.request
+
+import numpy as np
+import pytest
+
+from opacityhull.imageio import srgb_decode
+from opacityhull.model import OpacityHullModel
+from opacityhull.view.bundle import VIEWER_FORMAT, write_bundle
+from opacityhull.view.server import BundleServer
+
+
+def _records(out, man):
+    words = man["vis_words"]
+    dt = np.dtype([("pos", "<f4", 3), ("nrm", "<f4", 3), ("radius", "<f4"), ("area", "<f4"), ("r_min", "<f4"),
+                   ("r_max", "<f4"), ("vis", "<u4", words)])
+    assert dt.itemsize == man["record_bytes"]
+    parts = [np.frombuffer((out / c["file"]).read_bytes(), dt) for c in man["chunks"]]
+    return np.concatenate(parts)
+
+
+def test_bundle_layout_reads_back(view_model, bundle):
+    root, m = view_model
+    out, summary = bundle
+    man = json.loads((out / "manifest.json").read_text())
+    assert man["format"] == VIEWER_FORMAT and man["n_surfels"] == len(m.surfels) and man["n_views"] == len(m.views)
+    assert len(man["chunks"]) > 2 and man["chunks"][0]["count"] == 500
+    assert [c["first"] for c in man["chunks"]] == list(np.cumsum([0] + [c["count"] for c in man["chunks"]])[:-1])
+    rec = _records(out, man)
+    assert len(rec) == man["n_nodes"] > len(m.surfels)
+    assert np.all(np.diff(rec["r_max"]) <= 0)  # sequential point tree: coarse first
+    # the leaves (r_min = 0) are the model's surfels, with their visibility bits
+    leaves = rec[rec["r_min"] == 0]
+    assert len(leaves) == len(m.surfels)
+    key = {tuple(p): i for i, p in enumerate(m.surfels.positions.tolist())}
+    idx = np.array([key[tuple(p)] for p in leaves["pos"].tolist()])
+    np.testing.assert_array_equal(np.sort(idx), np.arange(len(m.surfels)))
+    np.testing.assert_array_equal(leaves["radius"], m.surfels.radii[idx])
+    vis = np.unpackbits(leaves["vis"].view(np.uint8).reshape(len(leaves), -1), axis=1, bitorder="little")
+    np.testing.assert_array_equal(vis[:, : len(m.views)].astype(bool), m.surfels.visible_bool()[idx])
+    assert not vis[:, len(m.views):].any()
+    # the budget table: t = 0 draws exactly the leaves, larger t fewer splats
+    assert man["lod"]["t"][0] == 0 and man["lod"]["splats"][0] == len(m.surfels)
+    assert np.all(np.diff(man["lod"]["splats"]) <= 0) and man["lod"]["splats"][-1] == 1
+    L = man["views"]
+    tex = np.frombuffer((out / L["file"]).read_bytes(), np.uint8).reshape(len(m.views), L["layer_height"],
+                                                                            L["layer_width"], 4)
+    for v in (0, 11):
+        rgba = m.view_rgba[v]
+        np.testing.assert_allclose(tex[v, ..., 3] / 255, rgba[..., 3], atol=0.5 / 255 + 1e-6)
+        pre = srgb_decode(tex[v, ..., :3] / 255.0)
+        assert np.abs(pre - rgba[..., :3] * rgba[..., 3:4]).max() < 0.01
+        np.testing.assert_allclose(L["layers"][v]["world_from_cam"], m.views[v].camera.world_from_cam.ravel())
+    assert summary["bytes_per_surfel"] == pytest.approx(man["record_bytes"] * man["n_nodes"] / man["n_surfels"])
+
+
+def test_bundle_refuses_to_replace_other_folders(view_model, tmp_path):
+    from opacityhull.errors import FormatError, InputError
+
+    root, _ = view_model
+    keep = tmp_path / "keep"
+    keep.mkdir()
+    (keep / "notes.txt").write_text("mine")
+    with pytest.raises(InputError, match="not an earlier viewer bundle"):
+        write_bundle(root, keep)
+    assert (keep / "notes.txt").read_text() == "mine"
+    with pytest.raises(FormatError, match="model.toml"):
+        write_bundle(tmp_path / "nothing", tmp_path / "b")
+    with pytest.raises(InputError, match="k in"):
+        write_bundle(root, tmp_path / "b", k=9)
+    assert not (tmp_path / "b").exists()
+
+
+def test_cli_out_alone_writes_bundle_and_bad_model_exits_4(view_model, tmp_path):
+    root, _ = view_model
+    exe = [sys.executable, "-m", "opacityhull.cli", "view"]
+    r = subprocess.run(exe + [str(root), "--out", str(tmp_path / "b"), "--json"], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    s = json.loads(r.stdout)
+    assert s["surfels"] == 4000 and (tmp_path / "b" / "index.html").is_file() and "url" not in s
+    r = subprocess.run(exe + [str(tmp_path), "--out", str(tmp_path / "c")], capture_output=True, text=True)
+    err = " ".join(r.stderr.split())  # rich wraps long lines
+    assert r.returncode == 4 and "is not a model" in err and "model.toml not found" in err and "Traceback" not in err
+
+
+def test_server_serves_bundle(bundle):
+    out, _ = bundle
+    with BundleServer(out) as srv:
+        assert srv.url.startswith("http://127.0.0.1:")
+        with urllib.request.urlopen(srv.url + "manifest.json", timeout=10) as r:
+            assert json.loads(r.read())["format"] == VIEWER_FORMAT
+        with urllib.request.urlopen(srv.url + "viewer.js", timeout=10) as r:
+            assert "javascript" in r.headers["Content-Type"]
+
+
+# --------------------------------------------------------------------------- in the browser
+
+
+def _load(drv, url):
+    from opacityhull.view.browser import wait_ready
+
+    drv.get(url)
+    return wait_ready(drv, timeout_s=90)
+
+
+def test_browser_matches_cpu_renderer(browser, view_model, bundle):
+    """A captured camera set through the JS hook: PSNR ≥ 30 dB inside the mask against
+    render_model; frames/s of an orbit are printed, not asserted (software GL)."""
+    from opacityhull.render.config import RenderConfig
+    from opacityhull.render.renderer import render_model
+    from opacityhull.view.browser import canvas_rgb
+
+    root, m = view_model
+    out, _ = bundle
+    model = OpacityHullModel.open(root)
+    with BundleServer(out) as srv:
+        r = _load(browser, srv.url)
+        assert r["ok"], r["error"]
+        assert browser.execute_script("return window.opacityhull.viewer.loaded") == \
+            json.loads((out / "manifest.json").read_text())["n_nodes"]
+        for vi in (2, 13):
+            browser.execute_script(f"return window.opacityhull.setCamera({vi})")
+            gpu = srgb_decode(canvas_rgb(browser).astype(np.float32) / 255.0)
+            cpu = render_model(model, m.views[vi].camera, config=RenderConfig(k=4, threads=1))
+            pre = cpu.rgba[..., :3] * cpu.rgba[..., 3:4]
+            mask = cpu.rgba[..., 3] > 0.01
+            assert mask.sum() > 300
+            psnr = 10 * np.log10(1.0 / np.mean((gpu - pre)[mask] ** 2))
+            print(f"view {vi}: browser vs CPU PSNR {psnr:.1f} dB inside the mask")
+            assert psnr >= 30.0
+            # outside the silhouette the page shows the background (black) exactly
+            far = ~(np.abs(cpu.rgba[..., 3]) > 0) & (cpu.weight == 0)
+            assert np.abs(gpu[far]).max() < 1e-6
+        # a quarter of the splats: a coarser cut of the point tree, close to the full picture
+        full = canvas_rgb(browser).astype(np.float32) / 255.0
+        browser.execute_script(f"return window.opacityhull.setBudget({len(m.surfels) // 4})")
+        quarter = canvas_rgb(browser).astype(np.float32) / 255.0
+        browser.execute_script("return window.opacityhull.setBudget(null)")
+        again = canvas_rgb(browser).astype(np.float32) / 255.0
+        np.testing.assert_array_equal(again, full)
+        d = np.mean((srgb_decode(quarter) - srgb_decode(full))[mask] ** 2)
+        print(f"budget N/4 vs full in the browser: {10 * np.log10(1 / d):.1f} dB")
+        assert 0 < d < 10 ** (-2.0)
+        ms = browser.execute_script("return window.opacityhull.benchmark(10)")
+        print(f"orbit: {ms:.1f} ms/frame ({1000 / ms:.1f} frames/s, software GL, 4000 surfels, 64x48)")
+        # k and background through the hook change the picture
+        browser.execute_script("window.opacityhull.setBackground([1, 1, 1]); return window.opacityhull.setCamera(13)")
+        white = srgb_decode(canvas_rgb(browser).astype(np.float32) / 255.0)
+        far = cpu.weight == 0
+        assert np.all(white[far] > 0.99)
+
+
+def test_browser_missing_chunk_shows_error(browser, bundle, tmp_path):
+    out, _ = bundle
+    broken = tmp_path / "broken"
+    shutil.copytree(out, broken)
+    (broken / "surfels_002.bin").unlink()
+    with BundleServer(broken) as srv:
+        r = _load(browser, srv.url)
+        assert not r["ok"]
+        text = browser.find_element("id", "error").text
+        assert "surfels_002.bin" in text and "HTTP 404" in text and "incomplete" in text
+        assert browser.find_element("id", "error").is_displayed()
+
+
+def test_browser_truncated_chunk_and_not_a_bundle(browser, bundle, tmp_path):
+    out, _ = bundle
+    broken = tmp_path / "trunc"
+    shutil.copytree(out, broken)
+    p = broken / "surfels_001.bin"
+    p.write_bytes(p.read_bytes()[:-48])
+    with BundleServer(broken) as srv:
+        r = _load(browser, srv.url)
+        assert not r["ok"] and "truncated" in browser.find_element("id", "error").text
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    for f in ("index.html", "viewer.js"):
+        shutil.copyfile(out / f, empty / f)
+    with BundleServer(empty) as srv:
+        r = _load(browser, srv.url)
+        assert not r["ok"]
+        assert "not an opacityhull viewer bundle" in browser.find_element("id", "error").text
+
+
+def test_browser_environment_map_background(browser, view_model, tmp_path):
+    """--envmap: the page composites over the same equirectangular lookup as the CPU
+    renderer (render/background.py), yaw included."""
+    from opacityhull.relight.envmap import resolve_envmap_path
+    from opacityhull.render.background import load_background
+    from opacityhull.render.config import RenderConfig
+    from opacityhull.render.renderer import render_model
+    from opacityhull.view.browser import canvas_rgb
+
+    root, m = view_model
+    out = tmp_path / "env"
+    s = write_bundle(root, out, envmap="builtin:uffizi", env_yaw_deg=150.0)
+    assert s["envmap"]["yaw_deg"] == 150.0 and (out / "envmap.bin").stat().st_size == s["envmap"]["bytes"]
+    env = load_background(str(resolve_envmap_path("builtin:uffizi")), yaw_deg=150.0, kind="envmap")
+    model = OpacityHullModel.open(root)
+    with BundleServer(out) as srv:
+        r = _load(browser, srv.url)
+        assert r["ok"], r["error"]
+        browser.execute_script("window.opacityhull.viewer.setView(7); return window.opacityhull.setBackground('envmap')")
+        gpu = srgb_decode(canvas_rgb(browser).astype(np.float32) / 255.0)
+        cpu = render_model(model, m.views[7].camera, config=RenderConfig(threads=1))
+        ref = np.clip(cpu.over(env), 0, 1)
+        bg = cpu.weight == 0
+        assert bg.mean() > 0.5
+        assert 10 * np.log10(1 / np.mean((gpu - ref)[bg] ** 2)) > 45  # 8-bit sRGB output
+        assert 10 * np.log10(1 / np.mean((gpu - ref) ** 2)) > 30
+        # turning the map changes the background
+        browser.execute_script("return window.opacityhull.setEnvYaw(60)")
+        turned = srgb_decode(canvas_rgb(browser).astype(np.float32) / 255.0)
+        assert np.mean(np.abs(turned - gpu)[bg]) > 0.01
+
+
+def test_cli_serves_until_terminated(view_model):
+    """Without --out: a temporary bundle served on 127.0.0.1, URL in the JSON, removed on SIGTERM."""
+    import signal
+    from pathlib import Path
+
+    root, _ = view_model
+    p = subprocess.Popen([sys.executable, "-m", "opacityhull.cli", "view", str(root), "--port", "0", "--json"],
+                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        s = json.loads(p.stdout.readline())
+        assert s["url"].startswith("http://127.0.0.1:")
+        with urllib.request.urlopen(s["url"], timeout=10) as r:
+            assert b"viewer.js" in r.read()
+        p.send_signal(signal.SIGTERM)
+        assert p.wait(timeout=20) == 0
+        assert not Path(s["out"]).exists()
+    finally:
+        if p.poll() is None:
+            p.kill()
+            p.wait()
