@@ -4,16 +4,25 @@ For each built-in scene and phase, renders what the phase captures with the sele
 configuration and with the reference (path tracing, max_depth 16, high spp), and
 compares what the phase consumes (matting: triangulation alpha; lightfield, reflectance,
 envmatte, calibration: radiance over the object; groundtruth: coverage alpha) — see
-:mod:`opacityhull.sim.evaluate`. Timings are warm (each configuration is rendered once
-first so Dr.Jit's JIT compilation is not counted; compile time is reported separately
-in the throughput section).
+:mod:`opacityhull.sim.evaluate`. The camera is camera 2 of the default simulated rig
+(200x150, the object as a capture sees it) at ``--scales`` (1, 1.4, 2: 1x, 1.96x and 4x
+the pixels); calibration uses a 320x240 camera seeing the whole board, scaled alike.
+Timings are warm (each configuration is rendered once first so Dr.Jit's JIT compilation
+is not counted; compile time is reported separately in the throughput section).
 
-Throughput: renders per second of one camera of the default simulated rig (200x150) in
-the reflectance, lightfield and matting states, for each Mitsuba variant
-(``llvm_ad_rgb`` and ``scalar_rgb``, each in its own process since the variant is
-process-global).
+Equal error: besides the reference at ``ref_spp``, the reference configuration (path
+depth 16, whole frame) is measured at low spp against the same reference images; the
+spp at which it would reach the selection's error is interpolated (error ~ spp^-k,
+k fitted, time linear in spp) and its time reported: the speed-up at equal error.
 
-    .venv/bin/python benchmarks/sim_effects.py [--quick] [--json]
+Throughput: capture times of one camera of the default rig in the reflectance,
+lightfield and matting states, for each Mitsuba variant (``llvm_ad_rgb`` and
+``scalar_rgb``, each in its own process since the variant is process-global), at 1x and
+2x the rig resolution (200x150, 400x300); the matting object shot with the crop (its
+backdrop shot taken first, as a capture does) against the full frame (``crop`` off),
+measured alternately in one process.
+
+    .venv/bin/python benchmarks/sim_effects.py [--quick] [--json] [--scales 1,1.4,2]
 
 Writes ``benchmarks/out/sim_effects.md`` (tables), ``benchmarks/out/sim_effects.png``
 (error vs time per scene and phase) and ``benchmarks/out/sim_effects.json``.
@@ -34,11 +43,16 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "benchmarks" / "out"
+
+#: What seconds are: CPU time of this process (all Mitsuba threads; steadier on a machine
+#: shared with other jobs) by default, or wall time (--clock wall).
+CLOCK = time.process_time
 sys.path.insert(0, str(ROOT))
 
 
-def throughput(n: int) -> dict:
-    """Warm renders per second at the default rig resolution, in this process's variant."""
+def throughput(n: int, scales=(1.0, 2.0)) -> dict:
+    """Warm capture times at the default rig resolution and multiples, in this process's
+    variant; the matting object shot with and without the crop, alternately."""
     from opacityhull.sim.groundtruth import default_geometry
     from opacityhull.sim.render import SimRenderer, SimState
     from opacityhull.sim.scenes import load_scene
@@ -46,73 +60,147 @@ def throughput(n: int) -> dict:
 
     mi = use_mitsuba()
     g = default_geometry()
-    cam = g.nominal_cameras()[2]
-    pat = {d.name: np.random.default_rng(0).integers(0, 256, (d.resolution[1], d.resolution[0], 3), dtype=np.uint8)
-           for d in g.displays}
+    rng = np.random.default_rng(0)
+    pats = [{d.name: rng.integers(0, 256, (d.resolution[1], d.resolution[0], 3), dtype=np.uint8)
+             for d in g.displays} for _ in range(n + 1)]
     cases = [
         ("diffuse", "reflectance", SimState(table_deg=10, light_levels={1: 255})),
         ("diffuse", "lightfield", SimState(table_deg=10, light_levels={i: 255 for i in range(4)})),
-        ("diffuse", "matting", SimState(table_deg=10, displays=pat)),
+        ("diffuse", "matting", SimState(table_deg=10, displays=pats[0])),
         ("glossy", "reflectance", SimState(table_deg=10, light_levels={1: 255})),
-        ("glass", "matting", SimState(table_deg=10, displays=pat)),
-        ("fuzzy", "matting", SimState(table_deg=10, displays=pat)),
+        ("sphere", "matting", SimState(table_deg=10, displays=pats[0])),
+        ("glass", "matting", SimState(table_deg=10, displays=pats[0])),
+        ("fuzzy", "matting", SimState(table_deg=10, displays=pats[0])),
     ]
-    out = {"variant": mi.variant(), "width": cam.width, "height": cam.height, "cases": []}
-    for name, phase, st in cases:
-        r = SimRenderer(load_scene(f"builtin:{name}"), g)
-        t0 = time.perf_counter()
-        r.render(cam, st, seed=0)  # load + JIT compile
-        first = time.perf_counter() - t0
-        t0 = time.perf_counter()
-        for k in range(n):
-            r.render(cam, replace(st, table_deg=10 + 5 * (k + 1)), seed=k + 1)
-        dt = (time.perf_counter() - t0) / n
-        eff = r.effects_for(st)
-        passes = len(st.lights_on()) + (1 if st.displays_on() else 0)  # one Mitsuba render per light + displays
-        out["cases"].append({"scene": name, "phase": phase, "integrator": eff.integrator, "max_depth": eff.max_depth,
-                             "spp": eff.spp, "passes": passes, "first_render_s": first, "warm_render_s": dt,
-                             "renders_per_s": 1.0 / dt, "samples_per_s": cam.width * cam.height * eff.spp * passes / dt})
+    out = {"variant": mi.variant(), "cases": []}
+    for scale in scales:
+        cam = g.nominal_cameras()[2]
+        cam = cam if scale == 1 else cam.scaled(scale)
+        for name, phase, st in cases:
+            sc = load_scene(f"builtin:{name}")
+            modes = {"crop": SimRenderer(sc, g), "full frame": SimRenderer(sc, g, overrides={"crop": False})}
+            t_first, t_obj, t_bg, frac = {}, {}, {}, {}
+            for mode, r in modes.items():
+                t0 = CLOCK()
+                if phase == "matting":
+                    r.render(cam, replace(st, content="none"), seed=0)
+                r.render(cam, st, seed=0)  # load + JIT compile
+                t_first[mode] = CLOCK() - t0
+                t_obj[mode], t_bg[mode] = [], []
+                r.pixels_rendered = r.pixels_framed = 0
+            for k in range(n):
+                for mode, r in modes.items():  # alternately: contention hits both alike
+                    # consecutive shots of one table angle, as a capture takes them (a new table
+                    # angle moves the back display: the scene's BVH is rebuilt once per angle)
+                    s_k = replace(st, array_deg=5.0 * (k + 1), displays=pats[k + 1] if st.displays else {})
+                    if phase == "matting":
+                        t0 = CLOCK()
+                        r.render(cam, replace(s_k, content="none"), seed=k + 1)
+                        t_bg[mode].append(CLOCK() - t0)
+                    t0 = CLOCK()
+                    r.render(cam, s_k, seed=k + 1)
+                    t_obj[mode].append(CLOCK() - t0)
+            for mode, r in modes.items():
+                eff = r.effects_for(st)
+                passes = len(st.lights_on()) + (1 if st.displays_on() else 0)
+                dt = float(np.median(t_obj[mode]))
+                out["cases"].append({
+                    "scene": name, "phase": phase, "mode": mode, "width": cam.width, "height": cam.height,
+                    "integrator": eff.integrator, "max_depth": eff.max_depth, "spp": eff.spp, "passes": passes,
+                    "first_render_s": t_first[mode], "warm_render_s": dt, "warm_render_min_s": float(np.min(t_obj[mode])),
+                    "backdrop_shot_s": float(np.median(t_bg[mode])) if t_bg[mode] else None,
+                    "renders_per_s": 1.0 / dt, "pixel_fraction": r.pixels_rendered / max(r.pixels_framed, 1),
+                    "samples_per_s": cam.width * cam.height * eff.spp * passes / dt})
+                print(f"throughput {mi.variant()} {cam.width}x{cam.height} {name} {phase} {mode}: {dt:.3f} s",
+                      file=sys.stderr)
     return out
 
 
-def accuracy(quick: bool) -> list[dict]:
-    from opacityhull.sim.effects import PHASES, select_effects
-    from opacityhull.sim.evaluate import calibration_camera, eval_camera, phase_error
+def equal_error(err_sel: float, points: list[tuple[int, float, float]], ref_spp: int, t_ref: float) -> dict:
+    """The reference's spp and time at the selection's error, from (spp, error, seconds)
+    of the reference configuration at low spp: error ~ c spp^-k (k from two points,
+    else 1/2, clamped to [0.25, 1]), time ~ a + b spp (least squares with the
+    ``ref_spp`` run)."""
+    pts = sorted((s_, e, t) for s_, e, t in points if e > 0)
+    if not pts or not np.isfinite(err_sel) or err_sel <= 0:
+        return {"ref_spp_equal_error": None, "t_ref_equal_error": None}
+    if len(pts) >= 2:
+        (s1, e1, _), (s2, e2, _) = pts[0], pts[-1]
+        k = float(np.clip(np.log(e1 / e2) / np.log(s2 / s1), 0.25, 1.0)) if e1 > e2 else 0.5
+    else:
+        k = 0.5
+    s1, e1, _ = pts[0]
+    spp_eq = float(max(1.0, s1 * (e1 / err_sel) ** (1.0 / k)))
+    S = np.array([p[0] for p in pts] + [ref_spp], float)
+    T = np.array([p[2] for p in pts] + [t_ref], float)
+    b, a = np.polyfit(S, T, 1)
+    t_eq = float(max(a + b * spp_eq, T.min() if spp_eq <= S.min() else 0.0, 1e-6))
+    return {"ref_spp_equal_error": spp_eq, "t_ref_equal_error": t_eq, "error_exponent": k}
+
+
+def accuracy(quick: bool, scales=(1.0,), *, scenes=None, phases=None, ref_spp: int | None = None) -> list[dict]:
+    from opacityhull.sim.effects import PHASES, reference_effects, select_effects
+    from opacityhull.sim.evaluate import calibration_camera, phase_error
     from opacityhull.sim.groundtruth import default_geometry
     from opacityhull.sim.render import SimRenderer
     from opacityhull.sim.scenes import builtin_names, load_scene
 
     g = default_geometry()
-    ref_spp = 256 if quick else 1024
-    size = (64, 48) if quick else (128, 96)
+    ref_spp = ref_spp or (256 if quick else 1024)
+    low_spps = (16,) if quick else (16, 64)
     rows = []
-    for name in builtin_names():
+    for name in scenes or builtin_names():
         scene = load_scene(f"builtin:{name}")
         r = SimRenderer(scene, g)
-        for phase in PHASES:
+        for phase in phases or PHASES:
             if name == "charuco" and phase != "calibration" and phase != "groundtruth":
                 continue  # the board scene is only ever captured for calibration
             if name != "charuco" and phase == "calibration":
                 continue  # calibration renders the board, whatever the object: measured once on charuco
-            cam = calibration_camera() if phase == "calibration" else eval_camera(*size)
-            t0 = time.perf_counter()
-            e = phase_error(scene, phase, geometry=g, camera=cam, ref_spp=ref_spp, renderer=r, warm=True, seed=1)
-            rows.append({**e.to_json(), "wall_s": time.perf_counter() - t0, "width": size[0], "height": size[1],
-                         "ref_spp": ref_spp})
-            print(f"{name:8s} {phase:12s} {e.metric:9s} err {e.error:.4f} (bound {e.bound}) "
-                  f"sel {e.seconds_selected:.3f}s ref {e.seconds_reference:.3f}s", file=sys.stderr)
-            if phase == "envmatte":
-                # the rig cannot tell an envmatte capture from a matting one (same emitters):
-                # SimCamera renders it with the matting selection — measure that too
-                mat = select_effects(scene, "matting")
-                env = select_effects(scene, "envmatte")
-                if mat.key() != env.key() or mat.spp != env.spp:
-                    as_captured = replace(mat, phase="envmatte", error_metric=env.error_metric,
-                                          error_bound=env.error_bound)
-                    e2 = phase_error(scene, phase, geometry=g, camera=cam, ref_spp=ref_spp, renderer=r, warm=True,
-                                     seed=1, selected=as_captured)
-                    rows.append({**e2.to_json(), "phase": "envmatte (captured as matting)", "wall_s": 0.0,
-                                 "width": size[0], "height": size[1], "ref_spp": ref_spp})
+            for scale in scales:
+                base = calibration_camera() if phase == "calibration" else g.nominal_cameras()[2]
+                cam = base if scale == 1 else base.scaled(scale)
+                also = () if phase in ("calibration", "groundtruth") else tuple(
+                    reference_effects(scene, phase, spp=s_) for s_ in low_spps)
+                sel = select_effects(scene, phase)
+                # the selection as it was before crop rendering and cheaper backdrops (2026-12-01)
+                before = replace(sel, crop=False, backdrop_spp=None)
+                if phase != "groundtruth":
+                    also = also + (before,)
+                t0 = time.perf_counter()
+                e = phase_error(scene, phase, geometry=g, camera=cam, ref_spp=ref_spp, renderer=r, warm=True, seed=1,
+                                also=also, clock=CLOCK)
+                row = {**e.to_json(), "wall_s": time.perf_counter() - t0, "width": cam.width, "height": cam.height,
+                       "scale": scale, "ref_spp": ref_spp}
+                refs = [(c.spp, err, t) for c, err, t in e.also if c.max_depth == 16 and not c.crop]
+                row.update(equal_error(e.error, refs, ref_spp, e.seconds_reference))
+                prev = [(err, t) for c, err, t in e.also if c == before]
+                row["error_before"], row["seconds_before"] = prev[0] if prev else (None, None)
+                row["speedup_over_before"] = (row["seconds_before"] / max(e.seconds_selected, 1e-9)
+                                              if prev else None)
+                row["speedup_equal_error"] = (row["t_ref_equal_error"] / max(e.seconds_selected, 1e-9)
+                                              if row["t_ref_equal_error"] else None)
+                rows.append(row)
+                eq = (f" equal-error ref {row['ref_spp_equal_error']:.0f}spp {row['t_ref_equal_error']:.3f}s"
+                      if row["t_ref_equal_error"] else "")
+                print(f"{name:8s} {phase:12s} {cam.width}x{cam.height} {e.metric:9s} err {e.error:.4f} "
+                      f"(bound {e.bound}) sel {e.seconds_selected:.3f}s ref {e.seconds_reference:.3f}s{eq}",
+                      file=sys.stderr, flush=True)
+                if phase == "envmatte":
+                    # the rig cannot tell an envmatte capture from a matting one (same emitters):
+                    # SimCamera renders it with the matting selection — measure that too
+                    mat = select_effects(scene, "matting")
+                    env = select_effects(scene, "envmatte")
+                    if mat.key() != env.key() or mat.spp != env.spp:
+                        as_captured = replace(mat, phase="envmatte", error_metric=env.error_metric,
+                                              error_bound=env.error_bound)
+                        e2 = phase_error(scene, phase, geometry=g, camera=cam, ref_spp=ref_spp, renderer=r,
+                                         warm=True, seed=1, selected=as_captured, clock=CLOCK)
+                        rows.append({**e2.to_json(), "phase": "envmatte (captured as matting)", "wall_s": 0.0,
+                                     "width": cam.width, "height": cam.height, "scale": scale, "ref_spp": ref_spp,
+                                     "ref_spp_equal_error": None, "t_ref_equal_error": None,
+                                     "speedup_equal_error": None, "error_before": None, "seconds_before": None,
+                                     "speedup_over_before": None})
     return rows
 
 
@@ -129,32 +217,53 @@ def refresh_bounds(rows: list[dict]) -> list[dict]:
     return out
 
 
-def write_outputs(rows: list[dict], tput: list[dict], quick: bool) -> dict:
+def _f(v, fmt="{:.3f}"):
+    return "—" if v is None else fmt.format(v)
+
+
+def write_outputs(rows: list[dict], tput: list[dict], quick: bool, notes: list[str] | None = None) -> dict:
     OUT.mkdir(parents=True, exist_ok=True)
     lines = ["# Simulator effect selection vs full-effects reference", "",
-             f"Mode: {'quick' if quick else 'full'}; reference = path tracing, max_depth 16, "
-             f"{rows[0]['ref_spp'] if rows else '?'} spp; image {rows[0]['width']}x{rows[0]['height']} "
-             "framing the object; warm timings (JIT compile excluded).", "",
-             "| scene | phase | selected | metric | error | bound | ok | t selected (s) | t reference (s) | speed-up |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+             f"Mode: {'quick' if quick else 'full'}; reference = path tracing, max_depth 16, whole frame, "
+             f"{rows[0]['ref_spp'] if rows else '?'} spp; camera 2 of the default rig (calibration: a camera seeing "
+             "the whole board) at each size; warm timings (JIT compile excluded); selections crop to the object's "
+             "footprint. 'equal-error ref' = the reference configuration at the spp where its own noise equals the "
+             "selection's error (interpolated from its error at low spp).", "",
+             f"Timings: {'CPU seconds of the benchmark process (all Mitsuba threads)' if CLOCK is time.process_time else 'wall seconds'}"
+             "; 2-core machine shared with ~8 other jobs (contended); ratios are measured in one process.", "",
+             "'before' = the same selection rendered as on 2026-12-01 (whole frame, backdrops at the shot's spp).", "",
+             "| scene | phase | size | selected | metric | error | bound | ok | t selected (s) | t reference (s) | "
+             "speed-up | equal-error ref (spp, s) | speed-up at equal error | before: error, t (s) | "
+             "speed-up over before |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         s = r["selected"]
-        lines.append(f"| {r['scene']} | {r['phase']} | {s['integrator']} d{s['max_depth']} {s['spp']}spp | "
-                     f"{r['metric']} | {r['error']:.4f} | {r['bound']} | {'yes' if r['within_bound'] else '**NO**'} | "
-                     f"{r['seconds_selected']:.3f} | {r['seconds_reference']:.3f} | {r['speedup']:.1f}x |")
-    lines += ["", "# Render throughput at the default rig resolution (warm)", "",
-              "One capture = one Mitsuba render per light switched on plus one for the displays (x passes).", "",
-              "| variant | scene | phase | config | first capture (s, incl. load+JIT) | warm capture (s) | "
-              "captures/s | Msamples/s |", "|---|---|---|---|---|---|---|---|"]
+        eq = (f"{r['ref_spp_equal_error']:.0f}, {r['t_ref_equal_error']:.3f}" if r.get("t_ref_equal_error")
+              else "—")
+        lines.append(f"| {r['scene']} | {r['phase']} | {r['width']}x{r['height']} | {s['integrator']} d{s['max_depth']} "
+                     f"{s['spp']}spp{' crop' if s.get('crop') else ''} | {r['metric']} | {r['error']:.4f} | {r['bound']} | "
+                     f"{'yes' if r['within_bound'] else '**NO**'} | {r['seconds_selected']:.3f} | "
+                     f"{r['seconds_reference']:.3f} | {r['speedup']:.1f}x | {eq} | "
+                     f"{_f(r.get('speedup_equal_error'), '{:.1f}x')} | "
+                     + (f"{r['error_before']:.4f}, {r['seconds_before']:.3f}" if r.get("seconds_before") else "—")
+                     + f" | {_f(r.get('speedup_over_before'), '{:.1f}x')} |")
+    lines += ["", "# Capture times per shot (warm, median)", "",
+              "One capture = one Mitsuba render per light switched on plus one for the displays (x passes). "
+              "'crop' and 'full frame' were measured alternately in one process; a matting object shot takes "
+              "its outside pixels from the backdrop shot of the same patterns, taken first (as a capture does).", "",
+              "| variant | size | scene | phase | config | mode | pixels rendered | first capture (s, incl. load+JIT) | "
+              "warm object shot (s) | backdrop shot (s) |", "|---|---|---|---|---|---|---|---|---|---|"]
     for t in tput:
         for c in t.get("cases", []):
-            lines.append(f"| {t['variant']} | {c['scene']} | {c['phase']} | {c['integrator']} d{c['max_depth']} "
-                         f"{c['spp']}spp x{c.get('passes', 1)} | {c['first_render_s']:.2f} | {c['warm_render_s']:.3f} | "
-                         f"{c['renders_per_s']:.1f} | {c['samples_per_s'] / 1e6:.2f} |")
+            lines.append(f"| {t['variant']} | {c['width']}x{c['height']} | {c['scene']} | {c['phase']} | "
+                         f"{c['integrator']} d{c['max_depth']} {c['spp']}spp x{c.get('passes', 1)} | {c['mode']} | "
+                         f"{100 * c['pixel_fraction']:.0f}% | {c['first_render_s']:.2f} | {c['warm_render_s']:.3f} | "
+                         f"{_f(c.get('backdrop_shot_s'))} |")
         if "error" in t:
-            lines.append(f"| {t['variant']} | — | — | failed: {t['error']} | | | | |")
+            lines.append(f"| {t['variant']} | — | — | — | failed: {t['error']} | | | | | |")
     lines += ["", "Machine: 2 cores shared with other jobs; Mitsuba renders are compute-bound (ray "
               "traversal and shading), not memory-bound, so the 10 GB/s bandwidth limit is not the bound here."]
+    lines += [""] + list(notes or [])
     (OUT / "sim_effects.md").write_text("\n".join(lines) + "\n")
 
     import matplotlib
@@ -162,33 +271,43 @@ def write_outputs(rows: list[dict], tput: list[dict], quick: bool) -> dict:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 2, figsize=(12, 4.5))
+    fig, axes = plt.subplots(1, 2, figsize=(13, 5))
     ax = axes[0]
     phases = sorted({r["phase"] for r in rows})
-    markers = dict(zip(phases, "osD^vP*"))
+    markers = dict(zip(phases, "osD^vP*X"))
     for r in rows:
-        ax.scatter(r["seconds_selected"], max(r["error"], 1e-5), marker=markers[r["phase"]], s=40,
+        y = max(r["error"], 1e-5)
+        ax.scatter(r["seconds_selected"], y, marker=markers[r["phase"]], s=40,
                    color="tab:green" if r["within_bound"] else "tab:red")
-        ax.scatter(r["seconds_reference"], 1e-5, marker=markers[r["phase"]], s=20, color="tab:gray")
-        ax.annotate(f"{r['scene'].split(':')[-1]}", (r["seconds_selected"], max(r["error"], 1e-5)), fontsize=6)
-    for p, m in markers.items():
-        ax.scatter([], [], marker=m, color="k", label=p)
+        if r.get("t_ref_equal_error"):
+            ax.scatter(r["t_ref_equal_error"], y, marker=markers[r["phase"]], s=30, facecolors="none",
+                       edgecolors="tab:blue")
+            ax.plot([r["seconds_selected"], r["t_ref_equal_error"]], [y, y], color="tab:blue", lw=0.4)
+        for a in r.get("also", []):
+            ax.scatter(a["seconds"], max(a["error"], 1e-5), marker=markers[r["phase"]], s=12, color="tab:gray")
+        ax.annotate(f"{r['scene'].split(':')[-1]} {r['width']}", (r["seconds_selected"], y), fontsize=5)
+    for ph, m in markers.items():
+        ax.scatter([], [], marker=m, color="k", label=ph)
+    ax.scatter([], [], s=30, facecolors="none", edgecolors="tab:blue", label="reference at equal error")
+    ax.scatter([], [], s=12, color="tab:gray", label="reference at 16/64 spp")
     ax.set_xscale("log")
     ax.set_yscale("log")
-    ax.set_xlabel("render time (s): selected (coloured), reference (grey, at the bottom)")
-    ax.set_ylabel("error vs reference (green: within bound)")
-    ax.legend(fontsize=7)
-    ax.set_title("selected effects: error vs time")
+    ax.set_xlabel("time per phase measurement (s, contended 2-core machine)")
+    ax.set_ylabel("error vs reference (green: selection within bound)")
+    ax.legend(fontsize=6)
+    ax.set_title("error vs time: selection (filled) and reference")
     ax = axes[1]
-    labels = [f"{r['scene'].split(':')[-1]}\n{r['phase'][:5]}" for r in rows]
+    labels = [f"{r['scene'].split(':')[-1]} {r['phase'][:5]} {r['width']}" for r in rows]
     x = np.arange(len(rows))
     ax.bar(x - 0.2, [r["error"] / r["bound"] for r in rows], 0.4, label="error / bound")
-    ax.bar(x + 0.2, [np.log10(max(r["speedup"], 1.0)) for r in rows], 0.4, label="log10 speed-up")
+    ax.bar(x + 0.2, [np.log10(max(r.get("speedup_equal_error") or r["speedup"], 1.0)) for r in rows], 0.4,
+           label="log10 speed-up (at equal error where measured)")
     ax.axhline(1.0, color="r", lw=0.8)
+    ax.axhline(np.log10(3.0), color="k", lw=0.6, ls="--")
     ax.set_xticks(x)
-    ax.set_xticklabels(labels, fontsize=5, rotation=90)
+    ax.set_xticklabels(labels, fontsize=4, rotation=90)
     ax.legend(fontsize=7)
-    ax.set_title("error relative to the stated bound, and speed-up")
+    ax.set_title("error relative to the stated bound, and speed-up (dashed: 3x)")
     fig.tight_layout()
     fig.savefig(OUT / "sim_effects.png", dpi=120)
     plt.close(fig)
@@ -200,27 +319,57 @@ def write_outputs(rows: list[dict], tput: list[dict], quick: bool) -> dict:
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--quick", action="store_true", help="small images, 256-spp reference, fewer throughput renders")
+    ap.add_argument("--quick", action="store_true", help="256-spp reference, default size only, fewer throughput renders")
     ap.add_argument("--json", action="store_true", help="print the summary as one JSON object on stdout")
+    ap.add_argument("--scales", default=None,
+                    help="camera scales for the accuracy table (default 1,1.4,2: 1x, ~2x, 4x pixels, sizes that keep square pixels; quick: 1)")
+    ap.add_argument("--ref-spp", type=int, default=None, help="reference spp (default 1024; quick 256)")
+    ap.add_argument("--scenes", default=None, help="comma-separated built-in scenes (default: all)")
+    ap.add_argument("--phases", default=None, help="comma-separated phases (default: all)")
+    ap.add_argument("--variants", default="llvm_ad_rgb,scalar_rgb", help="Mitsuba variants for the throughput")
+    ap.add_argument("--clock", choices=("cpu", "wall"), default="cpu",
+                    help="seconds as CPU time of this process (default; steadier when the machine is shared) or wall")
     ap.add_argument("--throughput-only", action="store_true", help=argparse.SUPPRESS)
     ap.add_argument("--skip-throughput", action="store_true", help="only the accuracy table")
+    ap.add_argument("--skip-accuracy", action="store_true", help="only the throughput table")
+    ap.add_argument("--merge", type=Path, nargs="+", default=None,
+                    help="write the outputs from earlier --json summaries (or --throughput-only lines) measured in "
+                         "parts, e.g. one process per scale; nothing is measured")
     ap.add_argument("--accuracy-from", type=Path, default=None,
                     help="reuse the accuracy rows of an earlier sim_effects.json (bounds refreshed from the current "
                          "selection) and measure only the throughput")
     args = ap.parse_args()
-    n = 5 if args.quick else 20
+    global CLOCK
+    CLOCK = time.process_time if args.clock == "cpu" else time.perf_counter
+    n = 3 if args.quick else 5
     if args.throughput_only:
-        print(json.dumps(throughput(n)))
+        print(json.dumps(throughput(n, (1.0,) if args.quick else (1.0, 2.0))))
         return 0
+    if args.merge:
+        rows, tput = [], []
+        for f in args.merge:
+            d = json.loads(f.read_text().strip().splitlines()[-1])
+            if "cases" in d:
+                tput.append(d)
+            else:
+                rows += d.get("accuracy", [])
+                tput += d.get("throughput", [])
+        summary = write_outputs(rows, tput, args.quick)
+        print(json.dumps(summary) if args.json else (OUT / "sim_effects.md").read_text())
+        return 0
+    scales = tuple(float(v) for v in (args.scales or ("1" if args.quick else "1,1.4,2")).split(","))
     if args.accuracy_from is not None:
         rows = refresh_bounds(json.loads(args.accuracy_from.read_text())["accuracy"])
+    elif args.skip_accuracy:
+        rows = []
     else:
-        rows = accuracy(args.quick)
+        rows = accuracy(args.quick, scales, scenes=args.scenes.split(",") if args.scenes else None,
+                        phases=args.phases.split(",") if args.phases else None, ref_spp=args.ref_spp)
     tput = []
     if not args.skip_throughput:
-        for variant in ("llvm_ad_rgb", "scalar_rgb"):
+        for variant in args.variants.split(","):
             env = dict(os.environ, OPACITYHULL_MITSUBA_VARIANT=variant)
-            cmd = [sys.executable, str(Path(__file__).resolve()), "--throughput-only"]
+            cmd = [sys.executable, str(Path(__file__).resolve()), "--throughput-only", "--clock", args.clock]
             cmd += ["--quick"] if args.quick else []
             res = subprocess.run(cmd, env=env, capture_output=True, text=True)
             if res.returncode != 0:

@@ -13,8 +13,9 @@ Conventions (DESIGN.md, fixed):
 
 Conversions live here and only here:
 
-* COLMAP text (``cameras.txt``/``images.txt``): COLMAP puts the centre of the top-left
-  pixel at (0.5, 0.5), so ``cx_colmap = cx + 0.5``; it stores ``cam_from_world``.
+* COLMAP text (``cameras.txt``/``images.txt``) and binary (``*.bin`` through pycolmap,
+  winning over text as in COLMAP): COLMAP puts the centre of the top-left pixel at
+  (0.5, 0.5), so ``cx_colmap = cx + 0.5``; it stores ``cam_from_world``.
 * OpenCV ``FileStorage`` YAML.
 * Mitsuba's ``perspective`` sensor: x left, y up, z forward, so
   ``to_world = world_from_cam @ diag(-1, -1, 1, 1)``; the principal point offset is
@@ -42,11 +43,16 @@ __all__ = [
     "look_at_world_from_cam",
     "write_colmap_text",
     "read_colmap_text",
+    "read_colmap_binary",
+    "read_colmap_model",
+    "colmap_model_kind",
+    "colmap_intrinsics",
     "write_opencv_yaml",
     "read_opencv_yaml",
     "mitsuba_sensor_params",
     "camera_from_mitsuba_params",
     "nerfstudio_transform_matrix",
+    "camera_from_nerfstudio",
 ]
 
 _MITSUBA_FLIP = np.diag([-1.0, -1.0, 1.0, 1.0])
@@ -384,6 +390,77 @@ def _qwxyz_to_rotmat(q) -> np.ndarray:
     return Rotation.from_quat([x, y, z, w]).as_matrix()
 
 
+class _ColmapModelError(ValueError):
+    """Internal: a COLMAP camera model or parameter list this module cannot map."""
+
+
+#: COLMAP camera models with an exact OpenCV 5-term equivalent, and their parameter names.
+COLMAP_MODELS_SUPPORTED = {
+    "SIMPLE_PINHOLE": ("f", "cx", "cy"),
+    "PINHOLE": ("fx", "fy", "cx", "cy"),
+    "SIMPLE_RADIAL": ("f", "cx", "cy", "k"),
+    "RADIAL": ("f", "cx", "cy", "k1", "k2"),
+    "OPENCV": ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2"),
+    "FULL_OPENCV": ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6"),
+}
+
+
+def colmap_intrinsics(model: str, params) -> tuple[np.ndarray, np.ndarray]:
+    """``(K, dist)`` in the OpenCV convention of a COLMAP camera ``model`` and its ``params``.
+
+    Only models with an exact OpenCV 5-term equivalent are mapped (the keys of
+    :data:`COLMAP_MODELS_SUPPORTED`; FULL_OPENCV only with k4 = k5 = k6 = 0): fisheye,
+    FOV, thin-prism, division and spherical models have no such equivalent and raise
+    ``ValueError`` naming the model (undistort them with COLMAP's ``image_undistorter``
+    first). The principal point moves by −0.5 px (COLMAP's top-left pixel centre is
+    at 0.5, 0.5).
+    """
+    p = [float(x) for x in params]
+    names = COLMAP_MODELS_SUPPORTED.get(model)
+    if names is None:
+        raise _ColmapModelError(
+            f"camera model {model} not supported (use SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV or "
+            "FULL_OPENCV; undistort other models with COLMAP's image_undistorter first)")
+    if len(p) != len(names):
+        raise _ColmapModelError(f"wrong number of parameters for {model}: {len(p)}, expected {len(names)} "
+                                f"({', '.join(names)})")
+    if not all(math.isfinite(x) for x in p):
+        raise _ColmapModelError(f"camera parameters of {model} are not finite: {p}")
+    v = dict(zip(names, p))
+    dist = np.zeros(5)
+    fx = fy = v.get("f", 0.0)
+    fx, fy = v.get("fx", fx), v.get("fy", fy)
+    if model == "SIMPLE_RADIAL":
+        dist[0] = v["k"]
+    elif model == "RADIAL":
+        dist[:2] = (v["k1"], v["k2"])
+    elif model == "OPENCV":
+        dist[:4] = (v["k1"], v["k2"], v["p1"], v["p2"])
+    elif model == "FULL_OPENCV":
+        if v["k4"] or v["k5"] or v["k6"]:
+            raise _ColmapModelError("FULL_OPENCV with k4..k6 != 0 is not supported (rational model)")
+        dist[:] = (v["k1"], v["k2"], v["p1"], v["p2"], v["k3"])
+    K = np.array([[fx, 0, v["cx"] - 0.5], [0, fy, v["cy"] - 0.5], [0, 0, 1]])
+    return K, dist
+
+
+def _checked_qwxyz_to_rotmat(q, t=(0.0, 0.0, 0.0), *, where: str, tol: float = 1e-3) -> np.ndarray:
+    """Rotation of a COLMAP quaternion, refusing what COLMAP would silently turn into
+    garbage: a non-finite pose, a zero quaternion (scipy would raise a bare ValueError)
+    and one whose length is off 1 by more than ``tol`` (a wrong column order or a
+    corrupt file rather than rounding). Near-unit quaternions are normalised."""
+    q = np.asarray(q, dtype=np.float64)
+    if not (np.all(np.isfinite(q)) and np.all(np.isfinite(np.asarray(t, dtype=np.float64)))):
+        raise FormatError(f"{where}: pose is not finite (quaternion {q.tolist()}, translation {list(t)})")
+    n = float(np.linalg.norm(q))
+    if n < 1e-12:
+        raise FormatError(f"{where}: rotation quaternion (QW, QX, QY, QZ) is zero; expected unit length")
+    if abs(n - 1.0) > tol:
+        raise FormatError(f"{where}: rotation quaternion {q.tolist()} has length {n:.6g}, expected 1 "
+                          f"(within {tol:g}); is the column order QW QX QY QZ?")
+    return _qwxyz_to_rotmat(q / n)
+
+
 def write_colmap_text(
     directory,
     cameras: Sequence[Camera],
@@ -474,37 +551,10 @@ def read_colmap_text(directory) -> list[tuple[str, Camera]]:
             p = [float(x) for x in parts[4:]]
         except (ValueError, IndexError) as e:
             raise FormatError(f"{cams_path}:{lineno}: cannot parse camera line ({e})") from None
-        dist = np.zeros(5)
         try:
-            if model == "SIMPLE_PINHOLE":
-                f, cx, cy = p
-                fx = fy = f
-            elif model == "PINHOLE":
-                fx, fy, cx, cy = p
-            elif model == "SIMPLE_RADIAL":
-                f, cx, cy, k = p
-                fx = fy = f
-                dist[0] = k
-            elif model == "RADIAL":
-                f, cx, cy, k1, k2 = p
-                fx = fy = f
-                dist[:2] = (k1, k2)
-            elif model == "OPENCV":
-                fx, fy, cx, cy, k1, k2, p1, p2 = p
-                dist[:4] = (k1, k2, p1, p2)
-            elif model == "FULL_OPENCV":
-                fx, fy, cx, cy, k1, k2, p1, p2, k3, k4, k5, k6 = p
-                if k4 or k5 or k6:
-                    raise FormatError(f"{cams_path}:{lineno}: FULL_OPENCV with k4..k6 != 0 is not supported")
-                dist[:] = (k1, k2, p1, p2, k3)
-            else:
-                raise FormatError(
-                    f"{cams_path}:{lineno}: camera model {model} not supported "
-                    "(use SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV or FULL_OPENCV)"
-                )
-        except ValueError:
-            raise FormatError(f"{cams_path}:{lineno}: wrong number of parameters for {model}") from None
-        K = np.array([[fx, 0, cx - 0.5], [0, fy, cy - 0.5], [0, 0, 1]])
+            K, dist = colmap_intrinsics(model, p)
+        except _ColmapModelError as e:
+            raise FormatError(f"{cams_path}:{lineno}: {e}") from None
         intr[cid] = (K, dist, w, h)
     out: list[tuple[str, Camera]] = []
     lines = imgs_path.read_text().splitlines()
@@ -529,7 +579,7 @@ def read_colmap_text(directory) -> list[tuple[str, Camera]]:
         if cid not in intr:
             raise FormatError(f"{imgs_path}:{lineno}: image {name!r} refers to camera {cid}, not in cameras.txt")
         T = np.eye(4)
-        T[:3, :3] = _qwxyz_to_rotmat([qw, qx, qy, qz])
+        T[:3, :3] = _checked_qwxyz_to_rotmat([qw, qx, qy, qz], (tx, ty, tz), where=f"{imgs_path}:{lineno}: image {name!r}")
         T[:3, 3] = (tx, ty, tz)
         Tinv = np.eye(4)
         Tinv[:3, :3] = T[:3, :3].T
@@ -539,6 +589,68 @@ def read_colmap_text(directory) -> list[tuple[str, Camera]]:
         expect_points = True
         i += 1
     return out
+
+
+COLMAP_BINARY_FILES = ("cameras.bin", "images.bin")
+
+
+def colmap_model_kind(directory) -> str:
+    """``"binary"`` when ``directory`` holds ``cameras.bin`` or ``images.bin`` (COLMAP
+    reads ``.bin`` before ``.txt``), else ``"text"``."""
+    d = Path(directory)
+    return "binary" if any((d / b).is_file() for b in COLMAP_BINARY_FILES) else "text"
+
+
+def read_colmap_binary(directory) -> list[tuple[str, Camera]]:
+    """Read a binary COLMAP model through ``pycolmap.Reconstruction`` into
+    ``[(image_name, Camera), ...]`` (registered images only, sorted by image id).
+
+    Camera models are mapped by :func:`colmap_intrinsics`. pycolmap keeps quaternions as
+    stored (a zero one becomes the identity rotation), so each is checked here: zero,
+    non-unit or non-finite poses raise :class:`FormatError` naming ``images.bin`` and
+    the image.
+    """
+    d = Path(directory)
+    try:
+        import pycolmap
+    except ImportError:  # pragma: no cover - pycolmap is a dependency
+        raise FormatError(f"{d}: a binary COLMAP model needs pycolmap (pip install pycolmap), "
+                          "or convert it with `colmap model_converter --output_type TXT`") from None
+    try:
+        rec = pycolmap.Reconstruction(str(d))
+    except Exception as e:  # pycolmap raises ValueError/RuntimeError with its C++ message
+        raise FormatError(f"{d}: cannot read the binary COLMAP model ({str(e).strip()}); expected cameras.bin, "
+                          "images.bin and points3D.bin (COLMAP 4 also rigs.bin, frames.bin)") from None
+    intr: dict[int, tuple[np.ndarray, np.ndarray, int, int]] = {}
+    for cid, c in rec.cameras.items():
+        try:
+            K, dist = colmap_intrinsics(c.model.name, np.asarray(c.params))
+        except _ColmapModelError as e:
+            raise FormatError(f"{d / 'cameras.bin'}: camera {cid}: {e}") from None
+        intr[cid] = (K, dist, int(c.width), int(c.height))
+    out: list[tuple[str, Camera]] = []
+    for iid in sorted(rec.images):
+        img = rec.images[iid]
+        if not img.has_pose:
+            continue
+        cfw = img.cam_from_world()
+        x, y, z, w = (float(v) for v in np.asarray(cfw.rotation.quat))
+        t = [float(v) for v in np.asarray(cfw.translation)]
+        R = _checked_qwxyz_to_rotmat([w, x, y, z], t, where=f"{d / 'images.bin'}: image {img.name!r} (id {iid})")
+        T = np.eye(4)
+        T[:3, :3] = R.T
+        T[:3, 3] = -R.T @ np.asarray(t)
+        K, dist, wd, ht = intr[img.camera_id]
+        out.append((img.name, Camera(K=K, dist=dist, width=wd, height=ht, world_from_cam=T, name=img.name)))
+    return out
+
+
+def read_colmap_model(directory) -> list[tuple[str, Camera]]:
+    """Read a COLMAP model, binary (via pycolmap) when ``.bin`` files are present (they win
+    over ``.txt``, as in COLMAP), else text (:func:`read_colmap_text`)."""
+    if colmap_model_kind(directory) == "binary":
+        return read_colmap_binary(directory)
+    return read_colmap_text(directory)
 
 
 # --------------------------------------------------------------------------- OpenCV YAML
@@ -696,3 +808,48 @@ def nerfstudio_intrinsics(cam: Camera) -> dict:
         "p1": p1,
         "p2": p2,
     }
+
+
+def camera_from_nerfstudio(transform_matrix, *, fl_x: float, fl_y: float, cx: float, cy: float, w: int, h: int,
+                           k1: float = 0.0, k2: float = 0.0, k3: float = 0.0, p1: float = 0.0, p2: float = 0.0,
+                           name: str = "", rigid_tol: float = 1e-4) -> Camera:
+    """Inverse of :func:`nerfstudio_transform_matrix` and :func:`nerfstudio_intrinsics`.
+
+    Parameters
+    ----------
+    transform_matrix : (4, 4) or (3, 4) array
+        nerfstudio camera-to-world, OpenGL camera (x right, y up, z backward).
+    fl_x, fl_y, cx, cy : float
+        Pixels; the principal point in nerfstudio's (= COLMAP's) convention, top-left
+        pixel centre at (0.5, 0.5).
+    w, h : int
+        Image size in pixels.
+    k1, k2, k3, p1, p2 : float
+        nerfstudio ``OPENCV`` distortion (OpenCV's ``k1 k2 p1 p2 k3``).
+    rigid_tol : float
+        JSON files often carry 6–8 significant digits, so the rotation may be off
+        orthonormal by ~1e-7: within ``rigid_tol`` it is re-orthonormalised (nearest
+        rotation, SVD); beyond, or with a reflection or scale, :class:`InputError`.
+    """
+    M = np.asarray(transform_matrix, dtype=np.float64)
+    if M.shape == (3, 4):
+        M = np.vstack([M, [0.0, 0.0, 0.0, 1.0]])
+    if M.shape != (4, 4):
+        raise InputError(f"transform_matrix has shape {M.shape}, expected 4x4 (or 3x4)")
+    if not np.all(np.isfinite(M)):
+        raise InputError("transform_matrix contains NaN or Inf")
+    if not np.allclose(M[3], [0, 0, 0, 1], atol=1e-9):
+        raise InputError(f"transform_matrix last row is {M[3].tolist()}, expected [0, 0, 0, 1]")
+    R = M[:3, :3]
+    err = float(np.abs(R.T @ R - np.eye(3)).max())
+    det = float(np.linalg.det(R))
+    if err > rigid_tol or det <= 0:
+        raise InputError(f"transform_matrix is not rigid (max |RᵀR − I| = {err:.3g}, det = {det:.6g}; expected a "
+                         f"rotation within {rigid_tol:g} and det +1: no scale, shear or mirror)")
+    U, _, Vt = np.linalg.svd(R)
+    M = M.copy()
+    M[:3, :3] = U @ Vt
+    K = np.array([[fl_x, 0.0, cx - 0.5], [0.0, fl_y, cy - 0.5], [0.0, 0.0, 1.0]])
+    # _OPENGL_FLIP is its own inverse
+    return Camera(K=K, width=int(w), height=int(h), world_from_cam=M @ _OPENGL_FLIP,
+                  dist=[k1, k2, p1, p2, k3], name=name)

@@ -18,7 +18,7 @@ app = typer.Typer(
     name="opacityhull",
     help="Image-based 3D photography with opacity hulls: drive the rig, capture, build, render, relight.",
     no_args_is_help=True,
-    add_completion=False,
+    add_completion=True,  # --install-completion / --show-completion for bash, zsh, fish
     pretty_exceptions_enable=False,
 )
 
@@ -40,6 +40,8 @@ COMMAND_MODULES = (
     "opacityhull.reconstruct.commands",
     "opacityhull.render.commands",
     "opacityhull.relight.commands",
+    "opacityhull.export.commands",
+    "opacityhull.view.commands",
     "opacityhull.demo",
 )
 
@@ -66,8 +68,46 @@ def _main(
 _register_all()
 
 
+_BOOL_WORDS = {"true": True, "1": True, "yes": True, "on": True, "false": False, "0": False, "no": False,
+               "off": False}
+
+
+def normalize_argv(argv: list[str]) -> list[str]:
+    """``--json true`` / ``--json=false`` as well as plain ``--json``.
+
+    typer's help shows every flag as ``--json <bool>``, so users type a value after it;
+    click would then take ``true`` as an extra argument. A boolean word right after a
+    flag (or after ``=``) is folded into the flag: true keeps it, false drops it.
+    Only the flags listed here are rewritten, so no option's real value is touched."""
+    out: list[str] = []
+    i = 0
+    while i < len(argv):
+        a = argv[i]
+        name, eq, val = a.partition("=")
+        if name in _FOLDED_FLAGS and eq:
+            if val.lower() not in _BOOL_WORDS:
+                out.append(a)  # let click report it
+            elif _BOOL_WORDS[val.lower()]:
+                out.append(name)
+            i += 1
+            continue
+        if a in _FOLDED_FLAGS and i + 1 < len(argv) and argv[i + 1].lower() in _BOOL_WORDS:
+            if _BOOL_WORDS[argv[i + 1].lower()]:
+                out.append(a)
+            i += 2
+            continue
+        out.append(a)
+        i += 1
+    return out
+
+
+_FOLDED_FLAGS = {"--json"}
+
+
 def main() -> None:  # console-script entry point
-    app()
+    import sys
+
+    app(args=normalize_argv(sys.argv[1:]), prog_name="opacityhull")
 
 
 if __name__ == "__main__":

@@ -8,15 +8,17 @@ from __future__ import annotations
 
 import functools
 import json
+import os
 import sys
 from contextlib import contextmanager
 from typing import Any, Callable, Iterator
 
 import numpy as np
 
-from .errors import EXIT_CODES, OpacityHullError
+from .errors import EXIT_CODES, InputError, OpacityHullError, Terminated, write_error
 
-__all__ = ["cli_errors", "emit", "progress", "console", "ProgressCallback", "to_jsonable"]
+__all__ = ["cli_errors", "emit", "error_message", "writing_to", "progress", "console", "ProgressCallback",
+           "to_jsonable"]
 
 ProgressCallback = Callable[[int, int], None]
 
@@ -51,10 +53,62 @@ def emit(summary: dict, as_json: bool, human: Callable[[dict], None] | None = No
         sys.stdout.flush()
     elif human is not None:
         human(summary)
+        _stdout_hint()
     else:
         from rich.pretty import pprint
 
         pprint(to_jsonable(summary), console=console())
+        _stdout_hint()
+
+
+def _stdout_hint() -> None:
+    """Human text goes to stderr (stdout is for ``--json``); when stdout is redirected
+    (``session info > f``) say so, or the user finds an empty file and no reason."""
+    try:
+        redirected = not sys.stdout.isatty() and sys.stderr.isatty()
+    except (AttributeError, ValueError):
+        return
+    if redirected and os.environ.get("OPACITYHULL_NO_HINT") is None:
+        sys.stderr.write("note: the text above went to stderr; stdout is for --json (add --json to capture "
+                         "the result with > or |)\n")
+
+
+def error_message(exc: BaseException) -> str:
+    """The one-line message for ``exc``, escaped for rich: a message such as "at least
+    one [[rig.cameras]] entry is required" must reach the user with its brackets."""
+    from rich.markup import escape
+
+    return escape(str(exc) or type(exc).__name__)
+
+
+def _known_error(exc: BaseException) -> OpacityHullError | None:
+    """``exc`` as the error the user can act on, or None for a real bug.
+
+    A full or read-only disk (``OSError`` ENOSPC/EROFS/EACCES) is a :class:`WriteError`
+    naming the path; a missing file is bad input (exit 2), not corrupt data."""
+    if isinstance(exc, OpacityHullError):
+        return exc
+    if isinstance(exc, OSError):
+        err = write_error(exc)
+        if err is not None:
+            return err
+        if isinstance(exc, (FileNotFoundError, NotADirectoryError, IsADirectoryError, FileExistsError)):
+            name = exc.filename if exc.filename is not None else ""
+            return InputError(f"{name}: {exc.strerror or exc}".lstrip(": "))
+    return None
+
+
+@contextmanager
+def writing_to(path) -> Iterator[None]:
+    """Attribute a full or read-only disk met inside the block to ``path`` (the command's
+    ``--out``) when the failing call did not say which file it was writing."""
+    try:
+        yield
+    except OSError as e:
+        err = write_error(e, e.filename if e.filename is not None else path)
+        if err is None:
+            raise
+        raise err from None
 
 
 def cli_errors(fn):
@@ -66,8 +120,14 @@ def cli_errors(fn):
     def wrapper(*args, **kwargs):
         try:
             return fn(*args, **kwargs)
-        except OpacityHullError as e:
-            console().print(f"[bold red]error:[/] {e}", highlight=False, markup=True)
+        except (OpacityHullError, OSError) as e:
+            err = _known_error(e)
+            if err is None:
+                raise
+            console().print(f"[bold red]error:[/] {error_message(err)}", highlight=False, markup=True)
+            raise typer.Exit(code=err.exit_code) from None
+        except Terminated as e:
+            console().print(f"[yellow]{e}[/] (the same clean-up as Ctrl-C ran)")
             raise typer.Exit(code=e.exit_code) from None
         except KeyboardInterrupt:
             console().print("[yellow]interrupted[/]")

@@ -16,7 +16,8 @@ def register(app, groups) -> None:
         out: Path = typer.Option(Path("out/demo"), "--out", help="Folder for the session, model and pictures."),
         json_out: bool = typer.Option(False, "--json", help="Print a machine-readable summary."),
     ):
-        """Run capture → build → render → relight on the simulated rig and say where the pictures are."""
+        """Run capture → build → render → relight on the simulated rig, write the viewer bundle, and say where
+        the pictures are and how to open the model in a browser."""
         from .demo_runner import run_demo
 
         run_demo(out, as_json=json_out)

@@ -5,8 +5,9 @@ emulators, Mitsuba cameras) → build (calibration from the ChArUco phase, matti
 hull, surfels, opacity light field, reflectance; measured against the simulator's
 ground truth) → render (an orbit and a leave-one-out evaluation) → relight (the model
 under a shipped light probe, an orbit over it, and a comparison with Mitsuba's own
-render under the same probe). Each step reuses what an earlier run left in ``out``:
-the capture resumes, a finished model is not rebuilt.
+render under the same probe) → view (the WebGL2 viewer bundle in ``out/web`` and the
+command that serves it). Each step reuses what an earlier run left in ``out``: the
+capture resumes, a finished model is not rebuilt.
 """
 
 from __future__ import annotations
@@ -23,6 +24,42 @@ DEFAULT_PLAN = "builtin:demo"
 
 def _step(title: str) -> None:
     console().rule(f"[bold]{title}")
+
+
+VIEW_PORT = 8765
+
+
+def view_step(model, out_web, *, envmap: str | None = None, progress=None) -> dict:
+    """The viewer's part of the demo: write the static WebGL2 bundle of ``model`` to
+    ``out_web`` (an earlier bundle there is replaced) and say how to serve it.
+
+    Returns the bundle summary of :func:`opacityhull.view.bundle.write_bundle` plus
+    ``serve`` (the ``opacityhull view`` command, which serves the model on
+    127.0.0.1:8765) and ``serve_static`` (serving the written bundle with Python's
+    http.server).
+    """
+    import shlex
+
+    from .view.bundle import write_bundle
+
+    out_web = Path(out_web)
+    summary = write_bundle(model, out_web, envmap=envmap, progress=progress)
+    summary["serve"] = f"opacityhull view {shlex.quote(str(model))} --port {VIEW_PORT}"
+    summary["serve_static"] = (f"python3 -m http.server -b 127.0.0.1 -d "
+                               f"{shlex.quote(str(out_web))} {VIEW_PORT}")
+    summary["url"] = f"http://127.0.0.1:{VIEW_PORT}/"
+    return summary
+
+
+def print_view_summary(v: dict) -> None:
+    """The demo's closing lines (stderr): where the bundle is and the command that serves it."""
+    from rich.markup import escape
+
+    c = console()
+    c.print(f"viewer: {v['surfels']} surfels, {v['bytes'] / 1e6:.1f} MB bundle in [cyan]{escape(v['out'])}[/]. "
+            "Open it with", highlight=False)
+    c.print(f"  [bold]{escape(v['serve'])}[/]   (then {v['url']} in a browser; Ctrl-C stops)", highlight=False)
+    c.print(f"  or serve the written bundle: {v['serve_static']}", highlight=False, markup=False)
 
 
 def run_demo(out: Path, *, as_json: bool = False, rig: str = DEFAULT_RIG, plan: str = DEFAULT_PLAN,
@@ -47,7 +84,7 @@ def run_demo(out: Path, *, as_json: bool = False, rig: str = DEFAULT_RIG, plan: 
     summary: dict = {"out": str(out), "rig": rig, "plan": plan}
 
     # 1. capture -------------------------------------------------------------------
-    _step(f"1/4 capture {plan} on {rig}")
+    _step(f"1/5 capture {plan} on {rig}")
     t = time.monotonic()
     plan_obj = load_plan(plan)
     sim_rig = open_sim_rig(rig)
@@ -71,7 +108,7 @@ def run_demo(out: Path, *, as_json: bool = False, rig: str = DEFAULT_RIG, plan: 
     summary["capture"] = {"images": getattr(cap, "images", None), "session": str(session)}
 
     # 2. build ---------------------------------------------------------------------
-    _step("2/4 build the opacity hull")
+    _step("2/5 build the opacity hull")
     t = time.monotonic()
     if (model / "model.toml").is_file() and (model / "report.json").is_file():
         report = json.loads((model / "report.json").read_text())
@@ -94,7 +131,7 @@ def run_demo(out: Path, *, as_json: bool = False, rig: str = DEFAULT_RIG, plan: 
     }
 
     # 3. render --------------------------------------------------------------------
-    _step("3/4 render: orbit and leave-one-out")
+    _step("3/5 render: orbit and leave-one-out")
     t = time.monotonic()
     with progress("orbit") as cb:
         r = render_step(model, out / "render", frames=orbit_frames, progress=cb)
@@ -102,12 +139,20 @@ def run_demo(out: Path, *, as_json: bool = False, rig: str = DEFAULT_RIG, plan: 
     summary["render"] = r
 
     # 4. relight -------------------------------------------------------------------
-    _step(f"4/4 relight under the {probe} probe")
+    _step(f"4/5 relight under the {probe} probe")
     t = time.monotonic()
     with progress("relight") as cb:
         rl = relight_step(model, out / "relight", probe=probe, orbit=orbit_frames, progress=cb)
     seconds["relight"] = time.monotonic() - t
     summary["relight"] = rl
+
+    # 5. view ----------------------------------------------------------------------
+    _step("5/5 viewer bundle")
+    t = time.monotonic()
+    with progress("viewer bundle") as cb:
+        vw = view_step(model, out / "web", envmap=f"builtin:{probe}", progress=cb)
+    seconds["view"] = time.monotonic() - t
+    summary["view"] = vw
 
     seconds["total"] = time.monotonic() - t0
     summary["seconds"] = seconds
@@ -117,6 +162,7 @@ def run_demo(out: Path, *, as_json: bool = False, rig: str = DEFAULT_RIG, plan: 
         "leave-one-out photo | render | error": r.get("loo_sheet"),
         f"relit orbit under {probe}": rl.get("gif"),
         "relit vs Mitsuba": (rl.get("eval") or {}).get("sheet"),
+        "viewer bundle (WebGL2, open through a server)": vw.get("index"),
     }
     from .cliutil import to_jsonable
 
@@ -143,6 +189,7 @@ def run_demo(out: Path, *, as_json: bool = False, rig: str = DEFAULT_RIG, plan: 
             if path:
                 c.print(f"  {what}: [cyan]{path}[/]")
         c.print(f"  summary: [cyan]{out / 'demo.json'}[/]")
+        print_view_summary(s["view"])
 
     emit(summary, as_json, human)
     return summary

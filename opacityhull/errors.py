@@ -47,6 +47,31 @@ class CaptureInterrupted(OpacityHullError):
     exit_code = 5
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM or SIGHUP, raised like Ctrl-C so that the same clean-up runs (a capture
+    leaves the rig safe and the session resumable). The CLI exits 128 + ``signum``."""
+
+    def __init__(self, signum: int):
+        super().__init__(signum)
+        self.signum = int(signum)
+
+    @property
+    def signame(self) -> str:
+        import signal
+
+        try:
+            return signal.Signals(self.signum).name
+        except ValueError:
+            return f"signal {self.signum}"
+
+    @property
+    def exit_code(self) -> int:
+        return 128 + self.signum
+
+    def __str__(self) -> str:
+        return f"terminated by {self.signame}"
+
+
 #: Exit codes used by the CLI. 0 = success, 130 = interrupted by Ctrl-C.
 EXIT_CODES = {
     "ok": 0,
@@ -56,6 +81,8 @@ EXIT_CODES = {
     "data": 4,
     "incomplete": 5,
     "interrupted": 130,
+    "hangup": 129,
+    "terminated": 143,
 }
 
 
@@ -73,3 +100,77 @@ def check_shape(name: str, array, expected: tuple, *, dtype=None) -> None:
         raise ShapeError(f"{name} has shape {shape}, expected {want}")
     if dtype is not None and array.dtype != dtype:
         raise ShapeError(f"{name} has dtype {array.dtype}, expected {dtype}")
+
+
+class WriteError(InputError):
+    """An output could not be written: the disk is full, the file system read-only, or
+    permission is denied. Bad input in the sense that the user must pick another place
+    (or free space); what was already written stays intact."""
+
+
+#: errno values that mean "this place cannot take the output", with the words for them.
+WRITE_ERRNOS = {
+    28: "the disk is full (ENOSPC)",
+    122: "the disk quota is exceeded (EDQUOT)",
+    30: "the file system is read-only (EROFS)",
+    13: "permission denied (EACCES)",
+    1: "operation not permitted (EPERM)",
+}
+
+
+def _fs_problem(path) -> str | None:
+    """What is wrong with the file system holding ``path`` for writing, or None."""
+    import os
+    from pathlib import Path
+
+    p = Path(path)
+    for d in (p, *p.parents):
+        if d.exists():
+            break
+    else:
+        return None
+    try:
+        st = os.statvfs(d)
+    except OSError:
+        return None
+    if st.f_flag & getattr(os, "ST_RDONLY", 1):
+        return WRITE_ERRNOS[30]
+    if st.f_bavail * st.f_frsize < (1 << 20):  # < 1 MiB left: a write that failed ran out of room
+        return WRITE_ERRNOS[28]
+    if not os.access(d if d.is_dir() else d.parent, os.W_OK):
+        return WRITE_ERRNOS[13]
+    return None
+
+
+def write_error(exc: BaseException, path=None) -> WriteError | None:
+    """The :class:`WriteError` for ``exc`` raised while writing ``path``, or None.
+
+    ``OSError`` with ENOSPC/EDQUOT/EROFS/EACCES/EPERM becomes a message naming the path
+    and the cause. Other exceptions (codecs such as OpenEXR raise ``RuntimeError`` and
+    OpenCV returns False on a full disk) are attributed to the file system only when
+    ``path``'s file system is actually full, read-only or not writable.
+    """
+    if isinstance(exc, WriteError):
+        return exc
+    where = path if path is not None else getattr(exc, "filename", None)
+    why = None
+    if isinstance(exc, OSError) and exc.errno in WRITE_ERRNOS:
+        why = WRITE_ERRNOS[exc.errno]
+        where = where if where is not None else exc.filename
+    elif where is not None and not isinstance(exc, OSError) and \
+            (not isinstance(exc, OpacityHullError) or isinstance(exc, FormatError)):
+        # another OSError (EIO, ENOENT) is its own message, whatever the disk's state
+        why = _fs_problem(where)
+    if why is None:
+        return None
+    return WriteError(f"cannot write {where}: {why} — free space or choose another --out; "
+                      "files already written are intact")
+
+
+def check_writable(path, *, flag: str = "--out") -> None:
+    """Raise :class:`WriteError` now if ``path`` (or its nearest existing parent) is on a
+    read-only or full file system, or not writable — before hours of work are spent on
+    an output that cannot be saved. Creates nothing."""
+    why = _fs_problem(path)
+    if why is not None:
+        raise WriteError(f"{flag} {path}: cannot write there: {why} — free space or choose another {flag}")

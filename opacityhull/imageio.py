@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import FormatError, InputError, ShapeError
+from .errors import FormatError, InputError, ShapeError, write_error
 
 __all__ = [
     "HALF_MAX",
@@ -37,9 +37,15 @@ __all__ = [
     "fsync_dir",
     "write_exr_layers",
     "read_exr_layers",
+    "read_exr_header",
+    "REC709_CHROMATICITIES",
 ]
 
 HALF_MAX = 65504.0
+
+#: OpenEXR ``chromaticities`` attribute of linear Rec.709 / sRGB primaries with a D65
+#: white point: (red x, y, green x, y, blue x, y, white x, y).
+REC709_CHROMATICITIES = (0.64, 0.33, 0.30, 0.60, 0.15, 0.06, 0.3127, 0.3290)
 
 _CHANNEL_SETS = {1: "Y", 2: "YA", 3: "RGB", 4: "RGBA"}
 
@@ -75,19 +81,37 @@ class atomic_path:
         self.tmp = self.path.with_name(f".tmp-{os.getpid()}-{id(self):x}-{self.path.name}")
 
     def __enter__(self) -> Path:
-        self.path.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+        except OSError as e:
+            raise (write_error(e, self.path) or e) from None
         return self.tmp
 
     def __exit__(self, exc_type, exc, tb):
         if exc_type is not None:
-            self.tmp.unlink(missing_ok=True)
+            try:
+                self.tmp.unlink(missing_ok=True)
+            except OSError:
+                pass
+            # a full or read-only disk surfaces as OSError, OpenEXR's RuntimeError or
+            # OpenCV's False: name the path and the cause instead
+            if isinstance(exc, Exception):
+                err = write_error(exc, self.path)
+                if err is not None and err is not exc:
+                    raise err from None
             return False
         try:
             with open(self.tmp, "rb") as f:
                 os.fsync(f.fileno())
             os.replace(self.tmp, self.path)
-        except BaseException:
-            self.tmp.unlink(missing_ok=True)
+        except BaseException as e:
+            try:
+                self.tmp.unlink(missing_ok=True)
+            except OSError:
+                pass
+            err = write_error(e, self.path) if isinstance(e, Exception) else None
+            if err is not None:
+                raise err from None
             raise
         fsync_dir(self.path.parent)
         return False
@@ -135,7 +159,8 @@ def write_exr(path, image, *, half: bool = False, channels: str | None = None, h
     channels : str, optional
         Channel names, one letter each (default Y, YA, RGB, RGBA by channel count).
     header : dict, optional
-        Extra string attributes stored in the header.
+        Extra header attributes, typed by :func:`_exr_attribute` (str → string,
+        int → int, float → float, 3 numbers → v3f, ``chromaticities`` → its 8 floats).
     """
     import OpenEXR
 
@@ -160,10 +185,46 @@ def write_exr(path, image, *, half: bool = False, channels: str | None = None, h
     chans = {n: np.ascontiguousarray(data[:, :, i]) for i, n in enumerate(names)}
     hdr = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
     for k, v in (header or {}).items():
-        hdr[k] = str(v)
+        hdr[k] = _exr_attribute(k, v, path)
     with atomic_path(path) as tmp:
         with OpenEXR.File(hdr, chans) as f:
             f.write(str(tmp))
+
+
+def _exr_attribute(name: str, value, path):
+    """A header value as the OpenEXR package types it: str → string, bool/int → int,
+    float → float, ``chromaticities`` → a tuple of 8 floats, 3 numbers → v3f."""
+    if name == "chromaticities":
+        c = tuple(float(x) for x in np.asarray(value, np.float64).reshape(-1))
+        if len(c) != 8 or not all(np.isfinite(c)):
+            raise InputError(f"EXR attribute chromaticities for {path}: expected 8 finite numbers "
+                             f"(red, green, blue, white x y), got {value!r}")
+        return c
+    if isinstance(value, str):
+        return value
+    if isinstance(value, (bool, np.bool_, int, np.integer)):
+        return int(value)
+    if isinstance(value, (float, np.floating)):
+        return float(value)
+    a = np.asarray(value)
+    if a.shape == (3,) and np.issubdtype(a.dtype, np.number):
+        return np.ascontiguousarray(a, dtype=np.float32)  # v3f
+    return str(value)
+
+
+def read_exr_header(path) -> dict:
+    """The header attributes of an EXR file as the OpenEXR package returns them
+    (``chromaticities`` a tuple of 8 floats, v3f a (3,) float32 array, ...)."""
+    import OpenEXR
+
+    path = Path(path)
+    if not path.is_file():
+        raise FormatError(f"image {path} not found")
+    try:
+        with OpenEXR.File(str(path), header_only=True) as f:
+            return dict(f.header())
+    except Exception as e:
+        raise FormatError(f"{path}: not a readable EXR file ({e})") from None
 
 
 def read_exr(path, *, channels: str | None = None) -> np.ndarray:
@@ -225,7 +286,8 @@ def write_hdr(path, image) -> None:
     if not np.all(np.isfinite(a)) or np.any(a < 0):
         raise InputError(f"image for {path}: RGBE cannot store negative, NaN or Inf values")
     with atomic_path(path) as tmp:
-        if not cv2.imwrite(str(tmp), np.ascontiguousarray(a[:, :, ::-1])):
+        # on a full disk OpenCV may report success for an empty file
+        if not cv2.imwrite(str(tmp), np.ascontiguousarray(a[:, :, ::-1])) or tmp.stat().st_size == 0:
             raise FormatError(f"OpenCV could not write {path}")
 
 
@@ -260,7 +322,8 @@ def write_png(path, image, *, bits: int = 8, linear: bool = False) -> None:
     elif q.shape[2] == 2:
         raise ShapeError(f"image for {path}: PNG cannot store 2 channels (gray+alpha) through OpenCV")
     with atomic_path(path) as tmp:
-        if not cv2.imwrite(str(tmp), np.ascontiguousarray(q)):
+        # on a full disk OpenCV may report success for an empty file
+        if not cv2.imwrite(str(tmp), np.ascontiguousarray(q)) or tmp.stat().st_size == 0:
             raise FormatError(f"OpenCV could not write {path}")
 
 
@@ -321,11 +384,12 @@ def write_image(path, image, **kw) -> None:
 # --------------------------------------------------------------------------- layered EXR
 
 
-def write_exr_layers(path, layers: dict, *, half: bool = False) -> None:
+def write_exr_layers(path, layers: dict, *, half: bool = False, header: dict | None = None) -> None:
     """Write several same-sized images into one EXR as layers ``<name>.R``, ``.G``, ...
 
     ``layers`` maps a layer name (no dots) to an (H, W, C) array, C in 1..4. Used for a
     view's one-light-at-a-time images: one file per view, one layer per light.
+    ``header``: extra attributes, typed as in :func:`write_exr`.
     """
     import OpenEXR
 
@@ -349,6 +413,8 @@ def write_exr_layers(path, layers: dict, *, half: bool = False) -> None:
         for i, c in enumerate(_CHANNEL_SETS[a.shape[2]]):
             chans[f"{name}.{c}"] = np.ascontiguousarray(a[:, :, i])
     hdr = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    for k, v in (header or {}).items():
+        hdr[k] = _exr_attribute(k, v, path)
     with atomic_path(path) as tmp:
         with OpenEXR.File(hdr, chans) as f:
             f.write(str(tmp))

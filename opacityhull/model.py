@@ -15,10 +15,19 @@ Layout of a model folder::
     cameras/                COLMAP text model of all views; image NAME = view id; the
                             order of images.txt is the order of the views (bit index)
     views/<view id>.exr     opacity light field sample of that view: RGBA float32,
-                            straight (not premultiplied) colour, alpha from the matte
+                            alpha from the matte; colour premultiplied by alpha
+                            (OpenEXR's convention; format 1 stored straight colour),
+                            header ``chromaticities`` = Rec.709 primaries, D65 white
     reflectance/<view id>.exr   one layer per light sample (``<key>.R/G/B``): the
                             one-light-at-a-time radiance as observed over black
-                            backdrops, i.e. premultiplied by alpha
+                            backdrops, i.e. premultiplied by alpha; header attributes
+                            ``view``, ``tableAngleDeg``, ``chromaticities`` and per layer
+                            ``<key>.lightId`` (int), ``<key>.arrayAngleDeg`` (float),
+                            ``<key>.lightIntensity`` (float, calibrated relative output),
+                            ``<key>.lightOutputRGB`` (v3f, intensity × colour) and, when
+                            the model has a rig, ``<key>.lightDirection`` (v3f, unit,
+                            object frame at this view's table angle, towards the light)
+                            and ``<key>.lightPosition`` (v3f, metres, same frame)
     calibration/<camera>.yaml   rig cameras (OpenCV YAML, world_from_cam = rig_from_cam)
     report.json             metrics and timings of the build
     pictures/               contact sheets, overlays, plots
@@ -29,6 +38,7 @@ World frame = object frame (rig frame at table angle 0), metres.
 from __future__ import annotations
 
 import json
+import logging
 import time
 import tomllib
 from dataclasses import dataclass, field
@@ -42,8 +52,11 @@ from .camera import Camera, read_colmap_text, write_colmap_text
 from .errors import FormatError, InputError, ShapeError, check_shape
 from .riggeometry import RigGeometry, parse_view_id
 
+log = logging.getLogger(__name__)
+
 __all__ = [
     "MODEL_FORMAT",
+    "READABLE_FORMATS",
     "Surfels",
     "ViewInfo",
     "LightSample",
@@ -54,7 +67,15 @@ __all__ = [
     "light_key",
 ]
 
-MODEL_FORMAT = "opacityhull-model/1"
+MODEL_FORMAT = "opacityhull-model/2"
+#: Formats :meth:`OpacityHullModel.open` reads. 1: views store straight colour; 2: views
+#: store premultiplied colour with a chromaticities attribute, reflectance layers carry
+#: their light's metadata.
+READABLE_FORMATS = ("opacityhull-model/1", MODEL_FORMAT)
+
+#: Below this alpha a premultiplied view texel has no recoverable straight colour (0 is
+#: returned): ``premul / alpha`` would only amplify rounding.
+STRAIGHT_ALPHA_EPS = 1e-6
 
 
 def light_key(light_id: int, array_deg: float) -> str:
@@ -221,8 +242,8 @@ class OpacityHullModel:
         except tomllib.TOMLDecodeError as e:
             raise FormatError(f"{p}: invalid TOML ({e})") from None
         fmt = meta.get("model", {}).get("format")
-        if fmt != MODEL_FORMAT:
-            raise FormatError(f"{p}: model format {fmt!r}, expected {MODEL_FORMAT!r}")
+        if fmt not in READABLE_FORMATS:
+            raise FormatError(f"{p}: model format {fmt!r}, expected one of {', '.join(map(repr, READABLE_FORMATS))}")
         cams = dict(read_colmap_text(root / "cameras"))
         views = []
         for i, v in enumerate(meta.get("views", [])):
@@ -264,19 +285,40 @@ class OpacityHullModel:
         raise InputError(f"no view (camera {camera}, table {table_deg} deg) in model {self.root}")
 
     # ---- appearance
+    @property
+    def format(self) -> str:
+        return str(self.meta["model"]["format"])
+
+    @property
+    def views_premultiplied(self) -> bool:
+        """Whether ``views/*.exr`` store premultiplied colour (format 2 on)."""
+        return self.format != "opacityhull-model/1"
+
     def view_path(self, i: int) -> Path:
         return self.root / "views" / f"{self.views[i].id}.exr"
 
     def load_view_rgba(self, i: int) -> np.ndarray:
-        """(H, W, 4) float32 RGBA of view ``i``, straight alpha."""
+        """(H, W, 4) float32 RGBA of view ``i``, straight alpha. From a premultiplied
+        (format 2) file the colour is divided by alpha where alpha >
+        :data:`STRAIGHT_ALPHA_EPS` and is 0 elsewhere."""
         from .imageio import read_exr
 
-        return read_exr(self.view_path(i), channels="RGBA")
+        a = read_exr(self.view_path(i), channels="RGBA")
+        if self.views_premultiplied:
+            al = a[..., 3:4]
+            ok = al > STRAIGHT_ALPHA_EPS
+            a[..., :3] = np.where(ok, a[..., :3] / np.where(ok, al, 1.0), 0.0)
+        return a
 
     def load_views_premul(self, indices: Sequence[int] | None = None) -> list[np.ndarray]:
         """Premultiplied RGBA per view (list of (H, W, 4) float32; views may differ in size)."""
+        from .imageio import read_exr
+
         out = []
         for i in range(len(self.views)) if indices is None else indices:
+            if self.views_premultiplied:
+                out.append(read_exr(self.view_path(i), channels="RGBA"))
+                continue
             a = self.load_view_rgba(i)
             a[..., :3] *= a[..., 3:4]
             out.append(a)
@@ -312,6 +354,54 @@ class OpacityHullModel:
             raise FormatError(f"{self.root / 'model.toml'}: no [rig] table, light directions unknown")
         return g.light_direction_object(sample.light_id, self.views[i].table_deg, sample.array_deg)
 
+    def reflectance_metadata(self, i: int) -> dict[str, dict]:
+        """The per-layer light attributes stored in ``reflectance/<view>.exr`` (format 2):
+        ``{key: {"light_id", "array_deg", "intensity", "output_rgb", "direction",
+        "position_m"}}`` (direction and position only when the model has a rig; a
+        format 1 file gives ``{}`` entries)."""
+        from .imageio import read_exr_header
+
+        p = self.root / "reflectance" / f"{self.views[i].id}.exr"
+        h = read_exr_header(p)
+        names = {"lightId": "light_id", "arrayAngleDeg": "array_deg", "lightIntensity": "intensity",
+                 "lightOutputRGB": "output_rgb", "lightDirection": "direction", "lightPosition": "position_m"}
+        out = {}
+        for L in self.light_samples:
+            d = {}
+            for attr, name in names.items():
+                v = h.get(f"{L.key}.{attr}")
+                if v is not None:
+                    d[name] = np.asarray(v, np.float64) if np.ndim(v) else v
+            out[L.key] = d
+        return out
+
+
+def _light_header(view: ViewInfo, lights: Sequence[LightSample], geometry: RigGeometry | None) -> dict:
+    """Header attributes of a view's reflectance EXR: each layer's light (why: compositing
+    and relighting tools read a one-light image's light from its own file)."""
+    from .imageio import REC709_CHROMATICITIES
+
+    hdr = {"chromaticities": REC709_CHROMATICITIES, "view": view.id, "tableAngleDeg": float(view.table_deg),
+           "lightFrame": "object frame (rig frame at table angle 0, metres); directions point from the "
+                         "object origin towards the light"}
+    for L in lights:
+        hdr[f"{L.key}.lightId"] = int(L.light_id)
+        hdr[f"{L.key}.arrayAngleDeg"] = float(L.array_deg)
+        spec = None
+        if geometry is not None:
+            try:
+                spec = geometry.light(L.light_id)
+            except ValueError:
+                log.warning("light %d of sample %s is not in the rig geometry; its reflectance layer carries no "
+                            "direction", L.light_id, L.key)
+        if spec is None:
+            continue
+        hdr[f"{L.key}.lightIntensity"] = float(spec.intensity)
+        hdr[f"{L.key}.lightOutputRGB"] = float(spec.intensity) * np.asarray(spec.colour, np.float64)
+        hdr[f"{L.key}.lightDirection"] = geometry.light_direction_object(L.light_id, view.table_deg, L.array_deg)
+        hdr[f"{L.key}.lightPosition"] = geometry.light_position_object(L.light_id, view.table_deg, L.array_deg)
+    return hdr
+
 
 # --------------------------------------------------------------------------- writer
 
@@ -334,7 +424,8 @@ def write_model(
     ----------
     views : ViewInfo per view, in bit order.
     surfels : Surfels with ``n_views == len(views)``.
-    view_rgba : per-view (H, W, 4) straight RGBA, optional (written to ``views/``).
+    view_rgba : per-view (H, W, 4) straight RGBA, optional (written premultiplied to
+        ``views/``, with Rec.709 chromaticities).
     rig : rig geometry table (copied from the session).
     provenance : session path, options, timings.
     reflectance : ``{"lights": [LightSample...], "images": callable(view_index) -> {key: (H, W, 3)}}``.
@@ -342,7 +433,7 @@ def write_model(
 
     ``model.toml`` is written last, so a folder without it is an unfinished build.
     """
-    from .imageio import atomic_path, write_exr, write_exr_layers
+    from .imageio import REC709_CHROMATICITIES, atomic_path, write_exr, write_exr_layers
     from .session import toml_dumps
 
     root = Path(root)
@@ -357,7 +448,10 @@ def write_model(
     if view_rgba is not None:
         for v, img in zip(views, view_rgba):
             check_shape(f"view {v.id} RGBA", img, (v.camera.height, v.camera.width, 4))
-            write_exr(root / "views" / f"{v.id}.exr", img)
+            pre = np.array(img, dtype=np.float32)
+            pre[..., :3] *= pre[..., 3:4]
+            write_exr(root / "views" / f"{v.id}.exr", pre,
+                      header={"chromaticities": REC709_CHROMATICITIES, "view": v.id})
             done += 1
             if progress:
                 progress(done, total)
@@ -377,9 +471,15 @@ def write_model(
         meta["rig"] = rig
     if reflectance is not None:
         lights = list(reflectance["lights"])
+        geometry = None
+        if rig is not None:
+            geometry = RigGeometry.from_dict(rig, where="write_model rig")
+        else:
+            log.warning("write_model: reflectance without a rig geometry; its layers carry no light direction")
         for v in views:
             imgs = reflectance["images"](v.index)
-            write_exr_layers(root / "reflectance" / f"{v.id}.exr", {L.key: imgs[L.key] for L in lights})
+            write_exr_layers(root / "reflectance" / f"{v.id}.exr", {L.key: imgs[L.key] for L in lights},
+                             header=_light_header(v, lights, geometry))
             done += 1
             if progress:
                 progress(done, total)

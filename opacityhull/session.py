@@ -53,6 +53,10 @@ __all__ = [
     "SessionWriter",
     "sha256_file",
     "shot_key",
+    "check_manifest",
+    "require_manifest_ok",
+    "check_finite",
+    "read_manifest",
     "toml_dumps",
 ]
 
@@ -152,12 +156,51 @@ class ShotRecord:
 
     @classmethod
     def from_dict(cls, d: dict, where: str = "manifest") -> "ShotRecord":
+        if not isinstance(d, dict):
+            raise FormatError(f"{where}: record is a JSON {type(d).__name__}, expected an object")
         try:
             d = dict(d)
             d["sources"] = tuple(d.get("sources", ()))
-            return cls(**d)
+            rec = cls(**d)
         except TypeError as e:
             raise FormatError(f"{where}: record does not match the session format ({e})") from None
+        _check_record_types(rec, d.get("id"), where)
+        return rec
+
+
+def _is_num(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+
+#: Field → (accepts, what is expected), checked on every record read.
+_RECORD_TYPES = {
+    "id": (lambda v: isinstance(v, str) and bool(v), "a non-empty string"),
+    "shot": (lambda v: isinstance(v, str) and bool(v), "a non-empty string"),
+    "phase": (lambda v: v in PHASES, f"one of {', '.join(PHASES)}"),
+    "camera": (lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= 0, "an integer >= 0"),
+    "table_deg": (lambda v: _is_num(v) and np.isfinite(v), "a finite number (degrees)"),
+    "path": (lambda v: isinstance(v, str) and bool(v) and not v.startswith("/") and ".." not in v.split("/"),
+             "a relative path inside the session"),
+    "sha256": (lambda v: isinstance(v, str) and len(v) == 64 and all(c in "0123456789abcdef" for c in v),
+               "64 lowercase hex digits"),
+    "bytes": (lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= 0, "an integer >= 0"),
+    "exposure_s": (lambda v: v is None or (_is_num(v) and np.isfinite(v) and v > 0), "null or a number > 0 (seconds)"),
+    "lights_deg": (lambda v: v is None or (_is_num(v) and np.isfinite(v)), "null or a finite number (degrees)"),
+    "light": (lambda v: v is None or (isinstance(v, int) and not isinstance(v, bool)), "null or an integer"),
+    "pattern": (lambda v: v is None or (isinstance(v, int) and not isinstance(v, bool)), "null or an integer"),
+    "object_present": (lambda v: isinstance(v, bool), "true or false"),
+    "kind": (lambda v: v in ("raw", "hdr"), '"raw" or "hdr"'),
+    "sources": (lambda v: all(isinstance(x, str) for x in v), "a list of image ids"),
+    "extra": (lambda v: isinstance(v, dict), "an object"),
+}
+
+
+def _check_record_types(rec: "ShotRecord", rid, where: str) -> None:
+    for name, (ok, want) in _RECORD_TYPES.items():
+        v = getattr(rec, name)
+        if not ok(v):
+            who = f" {rid!r}" if isinstance(rid, str) else ""
+            raise FormatError(f"{where}: record{who}: {name} = {json.dumps(v, default=str)}, expected {want}")
 
 
 # --------------------------------------------------------------------------- TOML
@@ -252,9 +295,15 @@ class Session:
             self._by_shot.setdefault(r.shot, []).append(r)
 
     @classmethod
-    def open(cls, root) -> "Session":
+    def open_meta(cls, root) -> dict:
+        """``session.toml`` of ``root``, checked (folder exists, valid TOML, format)."""
         root = Path(root)
         toml_path = root / "session.toml"
+        if not root.exists():
+            # a path that is not there is a typo (bad input, exit 2), not corrupt data
+            raise InputError(f"{root}: no such session folder")
+        if not root.is_dir():
+            raise InputError(f"{root} is a file, expected a session folder")
         if not toml_path.is_file():
             raise FormatError(f"{root} is not a session: {toml_path} not found")
         try:
@@ -264,7 +313,15 @@ class Session:
         fmt = meta.get("session", {}).get("format")
         if fmt != SESSION_FORMAT:
             raise FormatError(f"{toml_path}: session format {fmt!r}, expected {SESSION_FORMAT!r}")
-        return cls(root, meta, list(read_manifest(root / "manifest.jsonl")))
+        return meta
+
+    @classmethod
+    def open(cls, root) -> "Session":
+        root = Path(root)
+        meta = cls.open_meta(root)
+        sess = cls(root, meta, list(read_manifest(root / "manifest.jsonl")))
+        sess.white_level  # checked now: a bad value must stop a build before its first step
+        return sess
 
     # ---- metadata
     @property
@@ -284,8 +341,14 @@ class Session:
 
     @property
     def white_level(self) -> float:
-        """Sensor value at saturation (``[session] white_level``; 1.0 when not recorded)."""
-        return float(self.meta.get("session", {}).get("white_level", 1.0))
+        """Sensor value at saturation (``[session] white_level``; 1.0 when not recorded).
+
+        Raises :class:`FormatError` naming the file and key unless it is a finite number > 0."""
+        v = self.meta.get("session", {}).get("white_level", 1.0)
+        if not _is_num(v) or not np.isfinite(v) or v <= 0:
+            raise FormatError(f"{self.root / 'session.toml'}: [session] white_level = {json.dumps(v, default=str)}, "
+                              "expected a finite number > 0 (the sensor value at saturation)")
+        return float(v)
 
     @property
     def charuco(self):
@@ -414,9 +477,11 @@ class Session:
         return d if d.is_dir() else None
 
 
-def read_manifest(path) -> Iterator[ShotRecord]:
+def read_manifest(path, *, problems: list[str] | None = None) -> Iterator[ShotRecord]:
     """Records of a ``manifest.jsonl``. A torn last line (crash mid-append) is skipped;
-    a corrupt line elsewhere raises :class:`FormatError` naming the line."""
+    a corrupt line elsewhere raises :class:`FormatError` naming the line — or, when a
+    ``problems`` list is given, is skipped and its message appended there (``session
+    verify`` reports every bad line instead of the first)."""
     path = Path(path)
     if not path.is_file():
         return iter(())
@@ -426,13 +491,77 @@ def read_manifest(path) -> Iterator[ShotRecord]:
         if not raw.strip():
             continue
         try:
-            d = json.loads(raw)
-        except json.JSONDecodeError:
-            if i >= len(lines) - 1:  # the last (unterminated) line: a torn append
-                continue
-            raise FormatError(f"{path}:{i}: not valid JSON") from None
-        out.append(ShotRecord.from_dict(d, where=f"{path}:{i}"))
+            try:
+                d = json.loads(raw)
+            except (json.JSONDecodeError, UnicodeDecodeError):
+                if i >= len(lines) - 1:  # the last (unterminated) line: a torn append
+                    continue
+                raise FormatError(f"{path}:{i}: not valid JSON") from None
+            out.append(ShotRecord.from_dict(d, where=f"{path}:{i}"))
+        except FormatError as e:
+            if problems is None:
+                raise
+            problems.append(str(e))
     return iter(out)
+
+
+def check_manifest(session: "Session", *, hash_files: bool = True,
+                   progress=None) -> list[str]:
+    """Problems of a session's manifest against its files, as messages (empty = OK).
+
+    Checks what ``build`` would otherwise trust: every listed image exists with the
+    recorded size and sha256 (``hash_files=False`` checks sizes only), and an image id
+    listed twice names the same file both times (a re-shoot on resume appends the same
+    id and path; two different files under one id is a corrupt or hand-edited
+    manifest). Messages name the manifest, the id and what differs.
+    """
+    manifest = session.root / "manifest.jsonl"
+    problems: list[str] = []
+    paths_by_id: dict[str, str] = {}
+    for r in read_manifest(manifest):
+        first = paths_by_id.setdefault(r.id, r.path)
+        if first != r.path:
+            problems.append(f"{manifest}: image id {r.id!r} is listed twice, for {first} and {r.path}")
+    recs = session.records
+    for k, r in enumerate(recs):
+        p = session.root / r.path
+        if not p.is_file():
+            problems.append(f"{manifest}: {r.id!r}: {r.path} is missing")
+        elif p.stat().st_size != r.bytes:
+            problems.append(f"{manifest}: {r.id!r}: {r.path} has {p.stat().st_size} bytes, the manifest says {r.bytes}")
+        elif hash_files and sha256_file(p) != r.sha256:
+            problems.append(f"{manifest}: {r.id!r}: {r.path} has sha256 {sha256_file(p)[:12]}..., the manifest says "
+                            f"{r.sha256[:12]}...")
+        if progress is not None:
+            progress(k + 1, len(recs))
+    return problems
+
+
+def require_manifest_ok(session: "Session", *, hash_files: bool = True, progress=None) -> None:
+    """Raise :class:`FormatError` listing :func:`check_manifest`'s problems (first five)."""
+    problems = check_manifest(session, hash_files=hash_files, progress=progress)
+    if problems:
+        more = f" (and {len(problems) - 5} more)" if len(problems) > 5 else ""
+        raise FormatError("; ".join(problems[:5]) + more + " — run `opacityhull session verify` and re-capture "
+                          "with --resume")
+
+
+def check_finite(image: np.ndarray, *, where: str) -> str | None:
+    """A note when ``image`` holds NaN or Inf values, else None.
+
+    ``where`` names the file or view. Use it where an image enters a computation that
+    would silently turn NaN into black (matting) or Inf into 0 (reflectance)."""
+    a = np.asarray(image)
+    if a.dtype.kind != "f":
+        return None
+    bad = ~np.isfinite(a)
+    if not bad.any():
+        return None
+    n_nan = int(np.isnan(a).sum())
+    n_inf = int(bad.sum()) - n_nan
+    px = int(bad.reshape(a.shape[0], a.shape[1], -1).any(axis=-1).sum()) if a.ndim >= 2 else int(bad.sum())
+    return (f"{where}: {px} pixel(s) are not finite ({n_nan} NaN, {n_inf} Inf values) — a broken sensor read or "
+            "a corrupt file")
 
 
 # --------------------------------------------------------------------------- writer

@@ -1,6 +1,6 @@
 """CLI commands of `opacityhull.acquire` (registered by :mod:`opacityhull.cli`).
 
-``capture``, ``session verify|info|hdr``, ``import colmap``.
+``capture``, ``session verify|info|hdr``, ``import colmap|nerfstudio``.
 """
 
 from __future__ import annotations
@@ -65,6 +65,11 @@ def rig_static(spec: str):
         raise ConfigError(f"{path}: invalid TOML ({e})") from None
     if "geometry" not in d:
         raise ConfigError(f"{path}: no [geometry] table")
+    # the whole rig TOML is checked as `rig check` and a real capture check it (devices
+    # against the geometry), so a dry run cannot bless a rig the capture would refuse
+    from ..rigs.config import load_rig_config
+
+    load_rig_config(path)
     return RigGeometry.from_dict(d["geometry"], where=f"{path}: geometry"), d.get("devices", {})
 
 
@@ -164,6 +169,8 @@ def register(app, groups) -> None:
             return
         if out is None:
             raise ConfigError("--out: a session folder is required (except with --dry-run)")
+        from rich.markup import escape
+
         from .runner import run_capture
 
         summary = {"complete": False, "images": 0, "session": str(out)}
@@ -174,7 +181,7 @@ def register(app, groups) -> None:
                     the_rig.open()
                     with progress(f"capture {the_plan.name}") as cb:
                         res = run_capture(the_rig, the_plan, out, resume=resume, progress=cb, rig_source=rig,
-                                          log=lambda m: console().print(f"[cyan]{m}", highlight=False))
+                                          log=lambda m: console().print(f"[cyan]{escape(m)}", highlight=False))
                 finally:
                     the_rig.close()
         except (OpacityHullError, KeyboardInterrupt) as e:
@@ -211,10 +218,11 @@ def register(app, groups) -> None:
         def human(r):
             c = console()
             c.print(f"{'OK' if r['ok'] else 'NOT OK'}: {r['images']} images; missing {len(r['missing'])}, "
-                    f"corrupt {len(r['corrupt'])}, unlisted {len(r['unlisted'])}", highlight=False)
-            for k in ("missing", "corrupt", "unlisted"):
-                for p in r[k][:10]:
-                    c.print(f"  {k}: {p}", highlight=False)
+                    f"corrupt {len(r['corrupt'])}, unlisted {len(r['unlisted'])}, invalid records "
+                    f"{len(r.get('invalid', []))}", highlight=False)
+            for k in ("missing", "corrupt", "unlisted", "invalid"):
+                for p in r.get(k, [])[:10]:
+                    c.print(f"  {k}: {p}", highlight=False, markup=False)
             for ph, n in r["per_phase"].items():
                 want = (r["planned_per_phase"] or {}).get(ph)
                 c.print(f"  {ph}: {n}" + (f" / {want} planned" if want is not None else ""), highlight=False)
@@ -270,16 +278,39 @@ def register(app, groups) -> None:
     @imp.command("colmap")
     @cli_errors
     def import_colmap_cmd(
-        model: Path = typer.Option(..., "--model", help="COLMAP text model folder (cameras.txt, images.txt)."),
+        model: Path = typer.Option(..., "--model", help="COLMAP model folder: binary (cameras.bin, images.bin, ...; "
+                                                        "wins, as in COLMAP) or text (cameras.txt, images.txt)."),
         images: Path = typer.Option(..., "--images", help="Folder of the images (PNG/JPG/EXR)."),
-        masks: Optional[Path] = typer.Option(None, "--masks", help="Folder of masks named like the images."),
-        out: Path = typer.Option(..., "--out", help="New session folder."),
+        masks: Optional[Path] = typer.Option(None, "--masks", help="Folder of masks named like the images "
+                                                                    "(default: the images' own alpha, if any)."),
+        out: Path = typer.Option(..., "--out", help="New session folder (absent after any failure)."),
+        allow_full_masks: bool = typer.Option(False, "--allow-full-masks", help="Keep masks without background "
+                                                                                "(close-ups) instead of refusing them."),
         json_out: bool = typer.Option(False, "--json", help="Print one JSON object on stdout."),
     ):
         """Turn a COLMAP-calibrated image set into a session that `build` accepts."""
         from .importers import import_colmap
 
         with progress("import", enabled=not json_out) as cb:
-            rep = import_colmap(model, images, out, masks_dir=masks, progress=cb)
+            rep = import_colmap(model, images, out, masks_dir=masks, allow_full_masks=allow_full_masks, progress=cb)
+        emit(rep, json_out, lambda r: console().print(
+            f"imported {r['images']} images ({r['masks']} masks) from a {r['model_format']} COLMAP model into "
+            f"{r['session']}", highlight=False))
+
+    @imp.command("nerfstudio")
+    @cli_errors
+    def import_nerfstudio_cmd(
+        transforms: Path = typer.Option(..., "--transforms", help="nerfstudio / instant-ngp / Blender "
+                                                                  "transforms.json (images relative to it)."),
+        out: Path = typer.Option(..., "--out", help="New session folder (absent after any failure)."),
+        allow_full_masks: bool = typer.Option(False, "--allow-full-masks", help="Keep masks without background "
+                                                                                "(close-ups) instead of refusing them."),
+        json_out: bool = typer.Option(False, "--json", help="Print one JSON object on stdout."),
+    ):
+        """Turn a nerfstudio transforms.json (RGBA images or mask_path mattes) into a session that `build` accepts."""
+        from .importers import import_nerfstudio
+
+        with progress("import", enabled=not json_out) as cb:
+            rep = import_nerfstudio(transforms, out, allow_full_masks=allow_full_masks, progress=cb)
         emit(rep, json_out, lambda r: console().print(
             f"imported {r['images']} images ({r['masks']} masks) into {r['session']}", highlight=False))

@@ -209,6 +209,16 @@ def hdr_session(root, *, phases: Sequence[str] | None = None, method: str = "aut
         raise InputError(f"--saturation must be in (0, 1], got {saturation}")
     root = Path(root)
     sess = Session.open(root)
+    if phases:
+        from ..session import PHASES
+
+        unknown = [p for p in phases if p not in PHASES]
+        if unknown:
+            raise InputError(f"--phase {unknown[0]!r}: not a phase; expected one of {', '.join(PHASES)}")
+        absent = [p for p in phases if p not in sess.phases()]
+        if absent:
+            raise InputError(f"--phase {absent[0]!r}: {root} has no images of that phase (it has "
+                             f"{', '.join(sorted(sess.phases())) or 'none'})")
     groups = _brackets(sess, set(phases) if phases else None)
     white = sess.white_level
     linear_of = {int(c.get("index", i)): bool(c.get("linear", True)) for i, c in enumerate(sess.camera_info)}

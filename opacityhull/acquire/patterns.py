@@ -6,8 +6,13 @@
   pixel, and drawing each channel from [0, 63] ∪ [192, 255] keeps that difference at
   least 129 of 255 per channel. Pattern j (1-based) has id ``2j - 1``, its complement
   ``2j``. "Backdrops off" is not a pattern: the displays are blanked.
-* Environment matting: natural-looking images (random-phase 1/f noise, whose
-  amplitude spectrum matches that of natural scenes) or images given by the plan.
+* Natural illumination (``[phases.natural]``, older name ``envmatte``): N images per
+  illumination domain — crops / rotations / mirrors of the shipped HDR probes, exposed
+  so the crop's mean is 0.4 of white and clipped to the display's range (a display
+  cannot show the sun), random-phase 1/f noise (whose amplitude spectrum matches that
+  of natural scenes), and images the plan points at. Each display is its own domain:
+  pattern ``first + i·N + k`` is image k on display i and black on every other display,
+  so one id shown "on every display" (what the runner does) lights one domain only.
 
 Every pattern exists once per display, at the display's pattern resolution
 (``geometry.displays[].resolution``), as uint8 ``(rows, cols, 3)`` drive values —
@@ -25,17 +30,19 @@ import numpy as np
 from ..errors import FormatError, InputError
 from ..riggeometry import RigGeometry
 from .plan import CapturePlan
-from .schedule import envmatte_first_id
+from .schedule import envmatte_first_id, natural_pattern_ids
 
 __all__ = [
     "Pattern",
     "random_pattern",
     "complement",
     "natural_image",
+    "probe_crop",
     "plan_patterns",
     "save_patterns",
     "check_saved_patterns",
     "pattern_path",
+    "natural_domain",
 ]
 
 
@@ -114,13 +121,65 @@ def natural_image(rng: np.random.Generator, *, width: int, height: int, beta: fl
 def _load_natural(path: str, width: int, height: int) -> np.ndarray:
     import cv2
 
-    q = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    q = cv2.imread(str(path), cv2.IMREAD_COLOR | cv2.IMREAD_ANYDEPTH)
     if q is None:
-        raise FormatError(f"envmatte image {path}: not a readable image")
+        raise FormatError(f"natural image {path}: not a readable image")
     if q.dtype != np.uint8:
-        q = np.clip(q / (65535.0 if q.dtype == np.uint16 else 1.0) * 255, 0, 255).astype(np.uint8)
+        scale = 65535.0 if q.dtype == np.uint16 else 1.0
+        q = np.clip(q.astype(np.float64) / scale * 255, 0, 255).round().astype(np.uint8)
     q = cv2.resize(q, (width, height), interpolation=cv2.INTER_AREA)
     return np.ascontiguousarray(q[:, :, ::-1])
+
+
+_PROBES: list | None = None
+
+
+def _probes() -> list:
+    global _PROBES
+    if _PROBES is None:
+        from ..data import PROBE_NAMES, probe_path
+        from ..imageio import read_hdr
+
+        _PROBES = [(name, np.asarray(read_hdr(probe_path(name)), dtype=np.float32)) for name in PROBE_NAMES]
+    return _PROBES
+
+
+def probe_crop(rng: np.random.Generator, *, width: int, height: int, mean: float = 0.4) -> tuple[np.ndarray, str]:
+    """A random crop of a shipped HDR probe as a display shows it, uint8 (height, width, 3).
+
+    Random probe, mirror, quarter rotation, crop scale (¼ … 0.9 of the probe) and
+    position; exposed so the crop's mean is ``mean`` of the display's white, then clipped
+    to [0, 1] and quantised (linear drive). Returns the image and a description.
+    """
+    import cv2
+
+    probes = _probes()
+    name, img = probes[int(rng.integers(len(probes)))]
+    mirror, rot = int(rng.integers(2)), int(rng.integers(4))
+    if mirror:
+        img = img[:, ::-1]
+    img = np.rot90(img, rot)
+    ph, pw = img.shape[:2]
+    s = rng.uniform(0.25, 0.9)
+    ch = max(int(ph * s), 2)
+    cw = min(max(int(ch * width / max(height, 1)), 2), pw)
+    y0, x0 = int(rng.integers(0, ph - ch + 1)), int(rng.integers(0, pw - cw + 1))
+    crop = cv2.resize(np.ascontiguousarray(img[y0:y0 + ch, x0:x0 + cw]), (width, height),
+                      interpolation=cv2.INTER_AREA).astype(np.float64)
+    crop = np.clip(crop / max(float(crop.mean()), 1e-12) * mean, 0.0, 1.0)
+    return (np.round(crop * 255).astype(np.uint8),
+            f"probe:{name}:mirror={mirror}:rot={rot * 90}:crop={x0},{y0},{cw}x{ch}")
+
+
+def _natural_image_for(e, k: int, d, domain_index: int) -> tuple[np.ndarray, str]:
+    w, h = d.resolution
+    src = e.image_sources()[k]
+    rng = _rng(e.seed, k, _display_key(d.name))
+    if src.startswith("user:"):
+        return _load_natural(src[5:], w, h), src
+    if src == "probes":
+        return probe_crop(rng, width=w, height=h)
+    return natural_image(rng, width=w, height=h), "noise:1/f"
 
 
 def plan_patterns(plan: CapturePlan, geometry: RigGeometry) -> dict[int, Pattern]:
@@ -139,19 +198,29 @@ def plan_patterns(plan: CapturePlan, geometry: RigGeometry) -> dict[int, Pattern
             out[2 * j] = Pattern(2 * j, "complement", "matting", comps, of=2 * j - 1, seed=m.seed)
     if plan.envmatte is not None and geometry.displays:
         e = plan.envmatte
-        first = envmatte_first_id(plan)
-        for k in range(e.count):
-            imgs = {}
-            for d in geometry.displays:
-                w, h = d.resolution
-                if isinstance(e.images, int):
-                    imgs[d.name] = natural_image(_rng(e.seed, k, _display_key(d.name)), width=w, height=h)
-                else:
-                    imgs[d.name] = _load_natural(e.images[k], w, h)
-            src = "" if isinstance(e.images, int) else str(e.images[k])
-            out[first + k] = Pattern(first + k, "natural", "envmatte", imgs,
-                                     seed=e.seed if isinstance(e.images, int) else None, source=src)
+        by_name = {d.name: d for d in geometry.displays}
+        for i, (dname, ids) in enumerate(natural_pattern_ids(plan, geometry).items()):
+            for k, pid in enumerate(ids):
+                img, src = _natural_image_for(e, k, by_name[dname], i)
+                imgs = {d.name: (img if d.name == dname else np.zeros((d.resolution[1], d.resolution[0], 3), np.uint8))
+                        for d in geometry.displays}
+                out[pid] = Pattern(pid, "natural", "envmatte", imgs,
+                                   seed=None if src.startswith("user:") else e.seed, source=f"{dname}:{src}")
     return out
+
+
+def natural_domain(session, pattern_id: int) -> str | None:
+    """The display a natural pattern of a session lights (the one display whose image is
+    not black), from its ``[patterns]`` source (``"<display>:..."``) or, for sessions
+    without it, the saved pattern images; None if it lights several (older envmatte)."""
+    entry = session.patterns.get(f"p{int(pattern_id):03d}", {})
+    files = entry.get("files", {})
+    src = str(entry.get("source", ""))
+    head = src.split(":", 1)[0]
+    if head in files:
+        return head
+    lit = [d for d in files if np.any(session.pattern_image(d, pattern_id) > 0)]
+    return lit[0] if len(lit) == 1 else None
 
 
 def pattern_path(display: str, pattern_id: int) -> str:

@@ -46,8 +46,12 @@ A plan is a TOML file (or a built-in, ``builtin:tiny`` / ``builtin:demo`` /
     lights = [0, 1, 2, 3]         # default: every light of the rig
     level = 255
 
-    [phases.envmatte]             # natural images shown on the displays
-    images = 2                    # generated (1/f noise), or a list of image paths
+    [phases.natural]              # natural images, one display at a time (alias: envmatte)
+    images = 200                  # N per display domain (a count), or a list of image paths
+    sources = ["probes", "noise"] # HDR probe crops/rotations, 1/f noise, "user" (user_images)
+    user_images = ["a.png"]       # with "user": shown first, the rest of N from the others
+    displays = ["back", "bottom"] # illumination domains (default: every display of the rig)
+    kernels = 25                  # K of the estimate; N >= K is required
     level = 0
     seed = 13
 
@@ -74,13 +78,19 @@ __all__ = [
     "LightfieldPhase",
     "ReflectancePhase",
     "EnvmattePhase",
+    "NaturalPhase",
+    "NATURAL_SOURCES",
     "Timing",
     "load_plan",
     "parse_plan",
 ]
 
 PLAN_PHASES = ("calibration", "matting", "lightfield", "reflectance", "envmatte")
-BUILTIN_PLANS = ("tiny", "demo", "paper")
+BUILTIN_PLANS = ("tiny", "demo", "paper", "natural")
+#: where the natural phase's images come from (see :func:`~opacityhull.acquire.patterns.plan_patterns`)
+NATURAL_SOURCES = ("probes", "noise", "user")
+#: ``[phases.natural]`` and its older name ``[phases.envmatte]`` are one phase
+PHASE_ALIASES = {"natural": "envmatte"}
 _BUILTIN_DIR = Path(__file__).with_name("plans")
 
 
@@ -244,16 +254,46 @@ class ReflectancePhase:
 
 
 @dataclass(frozen=True)
-class EnvmattePhase:
+class NaturalPhase:
+    """Natural images on the displays (Matusik, Loper & Pfister 2004), one display at a
+    time: each display in ``displays`` is its own illumination domain, shown N images
+    while every other display is black.
+
+    ``images`` is N (a count) or, for the older ``[phases.envmatte]`` form, a list of
+    image paths (then ``sources == ("user",)`` and N = their number). With a count, the
+    user images (if ``"user"`` is a source) come first and the rest alternate between
+    the other sources. ``displays`` None = every display of the rig, in rig order."""
+
     images: int | tuple[str, ...]
     level: int = 0
     seed: int = 0
     lights_deg: float | str = "table"
     exposures_s: tuple[float, ...] | None = None
+    sources: tuple[str, ...] = ("probes", "noise")
+    user_images: tuple[str, ...] = ()
+    displays: tuple[str, ...] | None = None
+    kernels: int = 25
 
     @property
     def count(self) -> int:
+        """N, images per display domain."""
         return self.images if isinstance(self.images, int) else len(self.images)
+
+    def image_sources(self) -> list[str]:
+        """Per image k < N: ``"user:<path>"``, ``"probes"`` or ``"noise"``."""
+        if not isinstance(self.images, int):
+            return [f"user:{p}" for p in self.images]
+        out = [f"user:{p}" for p in self.user_images] if "user" in self.sources else []
+        gen = [s for s in self.sources if s != "user"]
+        k = 0
+        while len(out) < self.images:
+            out.append(gen[k % len(gen)])
+            k += 1
+        return out
+
+
+#: the older name of the phase (same schedule, same session phase ``envmatte``)
+EnvmattePhase = NaturalPhase
 
 
 @dataclass(frozen=True)
@@ -273,13 +313,18 @@ class CapturePlan:
     matting: MattingPhase | None = None
     lightfield: LightfieldPhase | None = None
     reflectance: ReflectancePhase | None = None
-    envmatte: EnvmattePhase | None = None
+    envmatte: NaturalPhase | None = None
     source: str = ""
     raw: dict = field(default_factory=dict, compare=False, repr=False)
 
     @property
     def phases(self) -> tuple[str, ...]:
         return tuple(p for p in PLAN_PHASES if getattr(self, p) is not None)
+
+    @property
+    def natural(self) -> NaturalPhase | None:
+        """The natural-illumination phase (stored as ``envmatte``, its session phase name)."""
+        return self.envmatte
 
     def exposures(self, phase: str) -> tuple[float, ...]:
         ph = getattr(self, phase)
@@ -349,10 +394,19 @@ def parse_plan(d: Mapping[str, Any], *, where: str = "plan", source: str = "",
     timing = Timing(**timing_kw)
 
     phases = _table(where, d, "phases")
+    for alias, canon in PHASE_ALIASES.items():
+        if alias in phases:
+            if canon in phases:
+                raise ConfigError(f"{where}: [phases.{alias}] and [phases.{canon}] are the same phase; give one")
+            phases = {(canon if k == alias else k): v for k, v in phases.items()}
+            phase_name = {canon: alias}
+            break
+    else:
+        phase_name = {}
     unknown = sorted(set(phases) - set(PLAN_PHASES))
     if unknown:
         raise ConfigError(f"{where}: unknown phase(s) {['phases.' + u for u in unknown]}; "
-                          f"known phases: {list(PLAN_PHASES)}")
+                          f"known phases: {list(PLAN_PHASES) + list(PHASE_ALIASES)}")
     if not phases:
         raise ConfigError(f"{where}: no [phases.*] table; give at least one of {list(PLAN_PHASES)}")
     kw: dict[str, Any] = {}
@@ -425,26 +479,9 @@ def parse_plan(d: Mapping[str, Any], *, where: str = "plan", source: str = "",
             raise ConfigError(f"{w}.level: must be > 0 (one light at a time needs the light on)")
         kw["reflectance"] = ReflectancePhase(array_deg=arr, lights=lights, level=level, exposures_s=ph_exp(w, ph))
     if "envmatte" in phases:
-        ph = ph_table("envmatte")
-        w = f"{where}: [phases.envmatte]"
-        _check_keys(w, ph, {"images", "level", "seed", "lights_deg", "exposures_s"})
-        imgs = ph.get("images", 2)
-        if isinstance(imgs, list):
-            if not imgs or not all(isinstance(x, str) for x in imgs):
-                raise ConfigError(f"{w}.images: expected a count or a non-empty list of image paths, got {imgs!r}")
-            paths = []
-            for i, s in enumerate(imgs):
-                pth = Path(s)
-                if not pth.is_absolute() and base_dir is not None:
-                    pth = base_dir / pth
-                if not pth.is_file():
-                    raise ConfigError(f"{w}.images[{i}]: image {pth} not found")
-                paths.append(str(pth))
-            imgs = tuple(paths)
-        else:
-            imgs = _int(w, ph, "images", 2, lo=1, hi=1000)
-        kw["envmatte"] = EnvmattePhase(images=imgs, level=_level(w, ph, 0), seed=_int(w, ph, "seed", seed * 1000 + 2, lo=0),
-                                       lights_deg=_lights_deg(w, ph, "table"), exposures_s=ph_exp(w, ph))
+        kw["envmatte"] = _parse_natural(f"{where}: [phases.{phase_name.get('envmatte', 'envmatte')}]",
+                                        ph_table("envmatte"), seed=seed, base_dir=base_dir, exposures=ph_exp,
+                                        strict=phase_name.get("envmatte") == "natural")
 
     return CapturePlan(
         name=name,
@@ -459,6 +496,83 @@ def parse_plan(d: Mapping[str, Any], *, where: str = "plan", source: str = "",
         raw=_plain(d),
         **kw,
     )
+
+
+def _user_image(w: str, s: Any, base_dir: Path | None) -> str:
+    """A user image path, resolved against the plan's folder, that exists and is an
+    image OpenCV can decode (checked by its signature here, fully when shown)."""
+    import cv2
+
+    if not isinstance(s, str) or not s:
+        raise ConfigError(f"{w}: expected an image path, got {s!r}")
+    pth = Path(s)
+    if not pth.is_absolute() and base_dir is not None:
+        pth = base_dir / pth
+    if not pth.is_file():
+        raise ConfigError(f"{w}: image {pth} not found")
+    try:
+        ok = cv2.haveImageReader(str(pth))
+    except cv2.error:  # pragma: no cover - OpenCV refuses odd names
+        ok = False
+    if not ok:
+        raise ConfigError(f"{w}: {pth} is not an image OpenCV can read (expected PNG, JPEG, TIFF, EXR, HDR, ...)")
+    return str(pth)
+
+
+def _parse_natural(w: str, ph: Mapping, *, seed: int, base_dir: Path | None, exposures,
+                   strict: bool = True) -> NaturalPhase:
+    """``strict`` (``[phases.natural]``): N >= K always; the older ``[phases.envmatte]``
+    name only checks it when ``kernels`` is given (it was not made for estimation)."""
+    _check_keys(w, ph, {"images", "level", "seed", "lights_deg", "exposures_s", "sources", "user_images", "displays",
+                        "kernels"})
+    kernels = _int(w, ph, "kernels", 25, lo=1, hi=255)
+    imgs = ph.get("images", kernels if strict or "kernels" in ph else 2)
+    user: tuple[str, ...] = ()
+    if isinstance(imgs, list):
+        if not imgs:
+            raise ConfigError(f"{w}.images: expected a count or a non-empty list of image paths, got {imgs!r}")
+        if "sources" in ph or "user_images" in ph:
+            raise ConfigError(f"{w}: images is a list of paths; give a count with sources/user_images instead")
+        imgs = tuple(_user_image(f"{w}.images[{i}]", s, base_dir) for i, s in enumerate(imgs))
+        sources: tuple[str, ...] = ("user",)
+    else:
+        imgs = _int(w, ph, "images", 2, lo=1, hi=4000)
+        src = ph.get("sources", ["probes", "noise"])
+        if (not isinstance(src, list) or not src or not all(isinstance(x, str) for x in src)
+                or len(set(src)) != len(src)):
+            raise ConfigError(f"{w}.sources: expected a non-empty list of distinct names from "
+                              f"{list(NATURAL_SOURCES)}, got {src!r}")
+        bad = [x for x in src if x not in NATURAL_SOURCES]
+        if bad:
+            raise ConfigError(f"{w}.sources: unknown source(s) {bad}; expected names from {list(NATURAL_SOURCES)}")
+        sources = tuple(src)
+        ui = ph.get("user_images", [])
+        if not isinstance(ui, list):
+            raise ConfigError(f"{w}.user_images: expected a list of image paths, got {ui!r}")
+        if ui and "user" not in sources:
+            raise ConfigError(f"{w}.user_images: given but \"user\" is not in sources {list(sources)}")
+        if "user" in sources and not ui:
+            raise ConfigError(f"{w}.sources: \"user\" needs user_images = [paths]")
+        user = tuple(_user_image(f"{w}.user_images[{i}]", s, base_dir) for i, s in enumerate(ui))
+        if len(user) > imgs:
+            raise ConfigError(f"{w}: {len(user)} user_images but images = {imgs}; N must be >= the user images")
+        if len(user) < imgs and sources == ("user",):
+            raise ConfigError(f"{w}: images = {imgs} but only {len(user)} user_images and no other source; "
+                              f"add \"probes\" or \"noise\" to sources or lower images")
+    n = imgs if isinstance(imgs, int) else len(imgs)
+    if (strict or "kernels" in ph) and n < kernels:
+        raise ConfigError(f"{w}: images = {n} per display but kernels = {kernels}: the estimate needs N >= K "
+                          f"(the paper uses N = 200, K = 25); raise images or lower kernels")
+    disp = ph.get("displays")
+    if disp is not None:
+        if (disp != "all" and (not isinstance(disp, list) or not disp or not all(isinstance(x, str) and x for x in disp)
+                               or len(set(disp)) != len(disp))):
+            raise ConfigError(f"{w}.displays: expected \"all\" or a non-empty list of distinct display names, "
+                              f"got {disp!r}")
+        disp = None if disp == "all" else tuple(disp)
+    return NaturalPhase(images=imgs, level=_level(w, ph, 0), seed=_int(w, ph, "seed", seed * 1000 + 2, lo=0),
+                        lights_deg=_lights_deg(w, ph, "table"), exposures_s=exposures(w, ph), sources=sources,
+                        user_images=user, displays=disp, kernels=kernels)
 
 
 def _plain(d):
@@ -481,7 +595,7 @@ def load_plan(spec: str | Path) -> CapturePlan:
         return parse_plan(tomllib.loads(path.read_text()), where=s, source=s)
     path = Path(s)
     if not path.is_file():
-        raise ConfigError(f"--plan {s}: file not found (give a plan TOML or builtin:tiny|demo|paper)")
+        raise ConfigError(f"--plan {s}: file not found (give a plan TOML or builtin:" + "|".join(BUILTIN_PLANS) + ")")
     try:
         d = tomllib.loads(path.read_text())
     except tomllib.TOMLDecodeError as e:

@@ -35,7 +35,8 @@ from typing import Callable, Sequence
 import numpy as np
 
 from .. import __version__
-from ..errors import CaptureInterrupted, ConfigError, DeviceError, FormatError, InputError, OpacityHullError
+from ..errors import (CaptureInterrupted, ConfigError, DeviceError, FormatError, InputError, OpacityHullError,
+                      Terminated, write_error)
 from ..session import Session, SessionWriter, sha256_file, toml_dumps
 from .exr import write_capture_exr
 from .patterns import Pattern, check_saved_patterns, plan_patterns, save_patterns
@@ -106,16 +107,17 @@ def views_of(stages: Sequence[Stage]) -> list[tuple[int, float]]:
     return sorted({(s.camera, s.table_deg) for st in stages if st.scene == "object" for s in st.shots})
 
 
-def _caused_by_interrupt(e: BaseException) -> bool:
-    """A Ctrl-C that a library wrapped in another exception (Dr.Jit turns a
-    KeyboardInterrupt inside ``mi.render`` into a RuntimeError whose cause it is)."""
+def _caused_by_interrupt(e: BaseException) -> KeyboardInterrupt | None:
+    """A Ctrl-C (or a SIGTERM/SIGHUP as :class:`Terminated`) that a library wrapped in
+    another exception (Dr.Jit turns a KeyboardInterrupt inside ``mi.render`` into a
+    RuntimeError whose cause it is): the interrupt, to re-raise, or None."""
     seen = set()
     while e is not None and id(e) not in seen:
         if isinstance(e, KeyboardInterrupt):
-            return True
+            return e
         seen.add(id(e))
         e = e.__cause__ or e.__context__
-    return False
+    return None
 
 
 def _is_disk_full(e: BaseException) -> bool:
@@ -170,7 +172,13 @@ class _SessionLock:
     def acquire(self) -> None:
         import fcntl
 
-        f = open(self.path, "a+")
+        try:
+            f = open(self.path, "a+")
+        except OSError as e:  # a read-only or full disk: say so, naming the lock
+            err = write_error(e, self.path)
+            if err is None:
+                raise
+            raise err from None
         try:
             fcntl.flock(f.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError:
@@ -304,7 +312,8 @@ def run_capture(rig, plan: CapturePlan, out_dir, *, resume: bool = False, dry_ru
     ConfigError : the plan does not fit the rig, or differs from the resumed session's.
     DiskFull : too little free space to start, or the disk filled up (resumable).
     DeviceError : a device failed; the rig was left safe and the session is resumable.
-    KeyboardInterrupt : propagated after leaving the rig safe (resumable).
+    KeyboardInterrupt : propagated after leaving the rig safe (resumable); SIGTERM and
+        SIGHUP arrive as its subclass :class:`~opacityhull.errors.Terminated`.
     """
     t_start = time.monotonic()
     log = log or (lambda msg: None)
@@ -331,30 +340,32 @@ def run_capture(rig, plan: CapturePlan, out_dir, *, resume: bool = False, dry_ru
     done: set[str] = set()
     corrupt: set[str] = set()
     lock = _SessionLock(out)
-    if existing:
-        if not (out / "session.toml").is_file():
-            raise InputError(f"--out {out}: not empty and holds no session.toml; nothing to resume there")
-        lock.acquire()
+    with terminate_as_interrupt():
+        if existing:
+            if not (out / "session.toml").is_file():
+                raise InputError(f"--out {out}: not empty and holds no session.toml; nothing to resume there")
+            lock.acquire()
+            try:
+                done, corrupt = _verify_existing(out, plan, geometry, patterns, log, rig_source=rig_source)
+            except BaseException:
+                lock.release()
+                raise
+
         try:
-            done, corrupt = _verify_existing(out, plan, geometry, patterns, log)
-        except BaseException:
+            return _capture(rig, plan, out, stages=stages, planned=planned, patterns=patterns, done=done,
+                            corrupt=corrupt, existing=existing, lock=lock, progress=progress, rig_source=rig_source,
+                            fsync=fsync, log=log, t_start=t_start)
+        finally:
             lock.release()
-            raise
-
-    try:
-        return _capture(rig, plan, out, stages=stages, planned=planned, patterns=patterns, done=done,
-                        corrupt=corrupt, existing=existing, lock=lock, progress=progress, rig_source=rig_source,
-                        fsync=fsync, log=log, t_start=t_start)
-    finally:
-        lock.release()
 
 
-def _verify_existing(out: Path, plan, geometry, patterns, log) -> tuple[set[str], set[str]]:
+def _verify_existing(out: Path, plan, geometry, patterns, log, *, rig_source: str = "") -> tuple[set[str], set[str]]:
     """Ids of the listed images that are intact, and of those missing or corrupt."""
     done: set[str] = set()
     corrupt: set[str] = set()
     sess = Session.open(out)
     _check_resume_matches(sess, plan, geometry, out)
+    _check_resume_source(sess, rig_source, out)
     for r in sess.records:
         if r.kind != "raw":
             continue
@@ -448,8 +459,10 @@ def _capture(rig, plan, out: Path, *, stages, planned, patterns, done, corrupt, 
                             try:
                                 raw = cam.capture(exp)
                             except Exception as e:
-                                if _caused_by_interrupt(e):
-                                    raise KeyboardInterrupt from e
+                                ki = _caused_by_interrupt(e)
+                                if ki is not None:  # keep its kind: SIGTERM must still exit 143
+                                    raise (Terminated(ki.signum) if isinstance(ki, Terminated)
+                                           else KeyboardInterrupt()) from e
                                 raise
                             img = _check_image(raw, spec, cam)
                             fields = dict(exposure_s=exp, lights_deg=shot.lights_deg, light=shot.light,
@@ -500,6 +513,9 @@ def _capture(rig, plan, out: Path, *, stages, planned, patterns, done, corrupt, 
                           "fix the device and run again with --resume") from e
     except CaptureInterrupted as e:
         stopped = str(e)
+        raise
+    except Terminated as e:
+        stopped = f"terminated ({e.signame})"
         raise
     except KeyboardInterrupt:
         stopped = "interrupted (Ctrl-C)"
@@ -579,6 +595,69 @@ def _mismatch(sess: Session, plan: CapturePlan, geometry, out: Path) -> str | No
         return (f"--rig: its geometry differs from the rig recorded in {out / 'session.toml'}: {diff}; "
                 "resume on the same rig")
     return None
+
+
+def _check_resume_source(sess: Session, rig_source: str, out: Path) -> None:
+    """A simulated session resumed with another scene (``sim:builtin:glass`` on a
+    ``sim:builtin:diffuse`` session) would mix two objects in one session; the geometry
+    check cannot see it, the scene is only in ``rig_source``. A hardware rig TOML may
+    move between runs (``rig emulate`` writes a new runtime file each time), so for
+    those the geometry and plan checks are what holds."""
+    old = sess.source
+    if not old or not rig_source or old == rig_source:
+        return
+    if old.startswith("sim:") or rig_source.startswith("sim:"):
+        raise ConfigError(f"--rig {rig_source}: {out / 'session.toml'} was captured with rig_source = {old!r}; "
+                          "resume it with the same --rig, or capture into a new folder")
+
+
+class terminate_as_interrupt:
+    """While active (main thread only), SIGTERM and SIGHUP raise :class:`Terminated`, a
+    KeyboardInterrupt: a scheduler or systemd stopping the job gets what Ctrl-C gets —
+    ``rig.safe()`` (feed hold, lights off, displays blank), the lock removed, a resumable
+    session — and the exit code 128 + signal (143, 129). Ctrl-C itself is untouched, and
+    so is a signal already ignored (``nohup`` ignores SIGHUP)."""
+
+    SIGNALS = ("SIGTERM", "SIGHUP")
+
+    def __init__(self):
+        self._old: dict = {}
+
+    def _raise(self, signum, frame):
+        import signal as _signal
+
+        # one is enough: further signals during the clean-up are ignored until we leave
+        for name in self.SIGNALS:
+            sig = getattr(_signal, name, None)
+            if sig is not None:
+                _signal.signal(sig, _signal.SIG_IGN)
+        raise Terminated(signum)
+
+    def __enter__(self):
+        import signal as _signal
+        import threading
+
+        if threading.current_thread() is not threading.main_thread():
+            return self
+        for name in self.SIGNALS:
+            sig = getattr(_signal, name, None)
+            if sig is None:
+                continue
+            try:
+                if _signal.getsignal(sig) is _signal.SIG_IGN:
+                    continue  # `nohup opacityhull capture ...` asked to ignore hangups: keep it so
+                self._old[sig] = _signal.signal(sig, self._raise)
+            except ValueError:  # not the main interpreter
+                pass
+        return self
+
+    def __exit__(self, *exc):
+        import signal as _signal
+
+        for sig, h in self._old.items():
+            _signal.signal(sig, h)
+        self._old.clear()
+        return False
 
 
 def _check_resume_matches(sess: Session, plan: CapturePlan, geometry, out: Path) -> None:

@@ -33,6 +33,8 @@ __all__ = [
     "estimate",
     "move_time_s",
     "expected_counts",
+    "natural_displays",
+    "natural_pattern_ids",
 ]
 
 
@@ -203,17 +205,17 @@ def schedule(plan: CapturePlan, geometry: RigGeometry) -> list[Stage]:
                                                lights_on=(lid,)))
     if plan.envmatte is not None:
         ph = plan.envmatte
-        if not geometry.displays:
-            raise ConfigError(f"{plan.source or 'plan'}: [phases.envmatte] needs backdrop displays; the rig has none")
         need_lights("envmatte", ph.level)
         exps = plan.exposures("envmatte")
-        first = envmatte_first_id(plan)
+        ids = natural_pattern_ids(plan, geometry)
         for a in sweep(plan.table_deg):
             ld = _lights_at(ph.lights_deg, a) if (all_lights and ph.level) else None
-            for k in range(ph.count):
-                for c in cams:
-                    obj.append(PlannedShot("envmatte", c, a, exps, lights_deg=ld, level=ph.level,
-                                           lights_on=all_lights if ph.level else (), pattern=first + k))
+            # one illumination domain at a time: its N images, the other displays black
+            for dname, dids in ids.items():
+                for pid in dids:
+                    for c in cams:
+                        obj.append(PlannedShot("envmatte", c, a, exps, lights_deg=ld, level=ph.level,
+                                               lights_on=all_lights if ph.level else (), pattern=pid))
     if obj:
         stages.append(Stage("object", tuple(obj)))
     keys = [s.key for st in stages for s in st.shots]
@@ -223,8 +225,37 @@ def schedule(plan: CapturePlan, geometry: RigGeometry) -> list[Stage]:
 
 
 def envmatte_first_id(plan: CapturePlan) -> int:
-    """Pattern ids: matting 1..2K, then the envmatte images."""
+    """Pattern ids: matting 1..2K, then the natural (envmatte) images."""
     return (2 * plan.matting.patterns if plan.matting is not None else 0) + 1
+
+
+def natural_displays(plan: CapturePlan, geometry: RigGeometry) -> tuple[str, ...]:
+    """The illumination domains of the natural phase: its ``displays`` (checked against
+    the rig), or every display of the rig. A rig without displays is a ConfigError."""
+    ph = plan.envmatte
+    if ph is None:
+        return ()
+    names = tuple(d.name for d in geometry.displays)
+    where = f"{plan.source or 'plan'}: [phases.natural]"
+    if not names:
+        raise ConfigError(f"{where} needs backdrop displays to show the natural images; the rig has none "
+                          "(remove the phase or use a rig with displays)")
+    if ph.displays is None:
+        return names
+    bad = [d for d in ph.displays if d not in names]
+    if bad:
+        raise ConfigError(f"{where}.displays: {bad} not in the rig (its displays: {list(names)})")
+    return tuple(ph.displays)
+
+
+def natural_pattern_ids(plan: CapturePlan, geometry: RigGeometry) -> dict[str, tuple[int, ...]]:
+    """Pattern ids of the natural phase per illumination domain: display i of
+    :func:`natural_displays` shows image k (0-based) as id ``first + i * N + k``."""
+    ph = plan.envmatte
+    if ph is None:
+        return {}
+    first, n = envmatte_first_id(plan), ph.count
+    return {d: tuple(range(first + i * n, first + (i + 1) * n)) for i, d in enumerate(natural_displays(plan, geometry))}
 
 
 def expected_counts(stages: Sequence[Stage]) -> dict[str, int]:
@@ -374,7 +405,8 @@ def estimate(plan: CapturePlan, geometry: RigGeometry, rates: MotionRates | None
             est.seconds[p] = est.seconds.get(p, 0.0) + t
     est.operator_s = est.operator_steps * tm.operator_s
     if upload_patterns and geometry.displays:
-        n_pat = (2 * plan.matting.patterns if plan.matting else 0) + (plan.envmatte.count if plan.envmatte else 0)
+        n_pat = (2 * plan.matting.patterns if plan.matting else 0) + sum(
+            len(v) for v in natural_pattern_ids(plan, geometry).values())
         px = sum(d.resolution[0] * d.resolution[1] * 3 for d in geometry.displays)
         est.upload_s = n_pat * px / rates.serial_bytes_s
     return est

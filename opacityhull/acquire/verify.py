@@ -35,7 +35,9 @@ def verify_session(root, *, progress: Callable[[int, int], None] | None = None, 
 
     Returns
     -------
-    dict with ``ok`` (no missing, corrupt or unlisted file), ``images`` (listed images,
+    dict with ``ok`` (no missing, corrupt or unlisted file, every record valid),
+    ``invalid`` (messages naming each manifest line that does not parse as the session
+    format, and a bad ``white_level``), ``images`` (listed images,
     the last record of an id counting), ``missing``, ``corrupt``, ``unlisted`` (lists of
     paths relative to the session), ``per_phase`` (raw images listed per phase),
     ``planned_per_phase`` and ``complete`` (the plan's counts are all there; None for
@@ -43,7 +45,15 @@ def verify_session(root, *, progress: Callable[[int, int], None] | None = None, 
     and ``hdr`` (HDR merges listed).
     """
     root = Path(root)
-    sess = Session.open(root)
+    # every record must parse as the session format (a "table_deg": "ninety" would
+    # otherwise pass here and break build): read leniently, report each bad line
+    meta = Session.open_meta(root)
+    invalid: list[str] = []
+    sess = Session(root, meta, list(read_manifest(root / "manifest.jsonl", problems=invalid)))
+    try:
+        sess.white_level
+    except FormatError as e:
+        invalid.append(str(e))
     missing, corrupt = [], []
     listed: set[str] = set()
     recs = sess.records
@@ -73,9 +83,10 @@ def verify_session(root, *, progress: Callable[[int, int], None] | None = None, 
     complete = None
     if planned is not None:
         complete = all(per_phase.get(p, 0) == n for p, n in planned.items()) and set(per_phase) <= set(planned)
-    ok = not missing and not corrupt and not unlisted
+    ok = not missing and not corrupt and not unlisted and not invalid
     return {
         "ok": ok,
+        "invalid": invalid,
         "images": sum(1 for r in recs if r.kind == "raw"),
         "missing": missing,
         "corrupt": corrupt,

@@ -67,7 +67,7 @@ from ..camera import Camera, read_colmap_text, read_opencv_yaml
 from ..errors import ConfigError, FormatError, InputError
 from ..model import LightSample, Surfels, ViewInfo, light_key, write_model
 from ..riggeometry import RigGeometry, view_id
-from ..session import Session
+from ..session import Session, check_finite, require_manifest_ok
 from .hull import (EmptyHullError, HullGrid, carve_octree, hull_bounds, silhouette_from_alpha,
                    carve_robust, undistort_silhouette, view_rejections)
 from .matting import MattingOptions, backdrop_from_displays, solve_matte, straight_from_premul
@@ -79,7 +79,8 @@ __all__ = ["BuildConfig", "BuildReport", "build_model", "build_geometry", "choos
 
 CAMERA_SOURCES = ("auto", "groundtruth", "nominal")
 BACKDROP_SOURCES = ("auto", "object-absent", "geometry")
-STEPS = ("cameras", "matting", "silhouettes", "hull", "surfels", "visibility", "views", "reflectance", "write",
+STEPS = ("verify", "cameras", "matting", "silhouettes", "hull", "surfels", "visibility", "refine", "views",
+         "reflectance", "natural", "write",
          "pictures", "metrics")
 
 
@@ -104,6 +105,14 @@ class BuildConfig:
         (:func:`.matting.correct_photometric_drift`; reported per shot in
         ``report.json``): "auto" = "field" except for the simulated rig without a sensor
         drift model (identical by construction).
+    refine : move surfels inside the hull to photo-consistent depths
+        (:func:`.photo.refine_surfels`; off by default: +0.1 dB on the Middlebury rings at
+        ~70 s per build, see ``benchmarks/out/fidelity.md``).
+    natural, natural_kernels : estimate the natural-illumination reflectance field
+        (:mod:`.natural_field`, K box kernels per pixel) when the session has the
+        natural (``envmatte``) phase.
+    verify_checksums : check every manifest record's sha256 before building (sizes and
+        duplicate ids are always checked); the report says which was done.
     alpha_threshold : silhouette = alpha > threshold.
     matting : MattingOptions of the triangulation matting.
     dilate_base_px, dilate_rms_factor : silhouettes are dilated by a disc of radius
@@ -140,6 +149,10 @@ class BuildConfig:
     surfels_per_pixel: float = 1.0
     carve_tolerance: int | None = None
     matting_drift: Literal["auto", "none", "gain", "affine", "field"] = "auto"
+    verify_checksums: bool = True
+    refine: bool = False
+    natural: bool = True
+    natural_kernels: int = 25
     alpha_threshold: float = 0.5
     matting: MattingOptions = MattingOptions()
     dilate_base_px: float = 0.5
@@ -174,6 +187,8 @@ class BuildConfig:
             raise ConfigError(f"carve_tolerance must be None or an integer >= 0, got {self.carve_tolerance!r}")
         if self.matting_drift not in ("auto", "none", "gain", "affine", "field"):
             raise ConfigError(f"matting_drift must be auto, none, gain, affine or field, got {self.matting_drift!r}")
+        if not (isinstance(self.natural_kernels, int) and 1 <= self.natural_kernels <= 256):
+            raise ConfigError(f"natural_kernels must be an integer in [1, 256], got {self.natural_kernels!r}")
         if int(self.surfel_oversample) < 1:
             raise ConfigError(f"surfel_oversample must be >= 1, got {self.surfel_oversample}")
         if not (0.0 <= self.alpha_threshold < 1.0):
@@ -658,14 +673,15 @@ def _nullstep(name):
 
 def build_geometry(alphas: Sequence[np.ndarray], cameras: Sequence[Camera], rms_px: Sequence[float],
                    view_ids: Sequence[str], *, config: "BuildConfig", rig_session: bool = False,
-                   fallback_box=None, step=None, progress=None) -> Geometry:
+                   fallback_box=None, step=None, progress=None, images=None) -> Geometry:
     """Silhouettes → hull → surfels → visibility from per-view alphas and cameras.
 
     The build runs this once over all views; ``eval loo --holdout geometry`` runs it
     again without the held-out view. ``rms_px`` is each view's calibration RMS (the
     silhouette dilation), ``fallback_box`` a box for unbounded LPs (the rig volume),
     ``rig_session`` clips the hull at the table top. ``step`` is the build's step timer
-    (a context-manager factory taking the step name).
+    (a context-manager factory taking the step name). ``images``: per-view linear RGB
+    (callable ``i → (H, W, 3)`` or a sequence), needed by ``config.refine``.
     """
     step = step or _nullstep
     prog = progress or (lambda done, total: None)
@@ -755,6 +771,18 @@ def build_geometry(alphas: Sequence[np.ndarray], cameras: Sequence[Camera], rms_
         info["visible_views_per_surfel"] = float(vis.sum(1).mean()) if len(vis) else 0.0
         info["surfels_seen_by_no_view"] = int((~vis.any(1)).sum()) if len(vis) else 0
         prog(V, V)
+    if config.refine:
+        if images is None:
+            raise ConfigError("refine=True needs the views' images (build_geometry(images=...))")
+        with step("refine"):
+            from .photo import PhotoConfig, refine_surfels
+
+            imgs = [images(i) if callable(images) else images[i] for i in range(V)]
+            pos, nrm, rad, st = refine_surfels(sample.positions, sample.normals, sample.radii, vis, pin, imgs,
+                                               list(alphas), config=PhotoConfig())
+            vis = surfel_visibility(pos, nrm, rad, pin, depth_tol_m=config.depth_tol_m, facing_cos=config.facing_cos)
+            surfels = Surfels.from_bool(pos, nrm, rad, vis)
+            info["refine"] = {k: v for k, v in st.items() if np.ndim(v) == 0}
     return Geometry(sils=sils, pin=pin, dilations=dil, occ=occ, grid=grid, surfels=surfels, info=info, notes=notes)
 
 
@@ -782,10 +810,25 @@ def build_model(session_dir, out_dir, *, config: BuildConfig = BuildConfig(), gr
     """
     session = Session.open(session_dir)
     out = Path(out_dir)
+    timer0 = time.perf_counter()
+    # what build would otherwise trust: every listed image there, with its size and
+    # sha256, and no id naming two files (session.check_manifest)
+    require_manifest_ok(session, hash_files=config.verify_checksums)
+    verify_s = time.perf_counter() - timer0
     if ground_truth and session.groundtruth_dir is None:
         raise InputError(f"--ground-truth: {session.root} has no groundtruth/ folder (only simulated sessions do)")
     timer = _Timer(on_step)
-    notes: list[str] = []
+    timer.seconds["verify"] = verify_s
+    notes: list[str] = [] if config.verify_checksums else [
+        "manifest checksums were not verified (verify_checksums=False): sizes and ids only"]
+    nonfinite: list[str] = []
+
+    def finite(img, where):
+        n = check_finite(img, where=where)
+        if n and len(nonfinite) < 1000:
+            nonfinite.append(n)
+        return img
+
     prog = progress or (lambda done, total: None)
 
     # 1. cameras
@@ -817,6 +860,8 @@ def build_model(session_dir, out_dir, *, config: BuildConfig = BuildConfig(), gr
                 backdrop_sources.add("imported masks")
             else:
                 C, B, cc, bc, src = load_matting_pairs(session, c, a, cam, backdrops=config.backdrops)
+                finite(C, f"view {vids[i]} matting shots")
+                finite(B, f"view {vids[i]} backdrop shots")
                 backdrop_sources.add(src)
                 res = solve_matte(C, B, c_saturation=cc, b_saturation=bc, options=mopts)
                 alpha = res.alpha
@@ -835,22 +880,6 @@ def build_model(session_dir, out_dir, *, config: BuildConfig = BuildConfig(), gr
         notes.append("backdrops predicted from the display geometry (no object-absent captures): an "
                      "approximation without display falloff or blur")
 
-    # 3-6. silhouettes, hull, surfels, visibility
-    rig_session = _is_rig_session(session)
-    geo = None
-    try:
-        geo = session.geometry
-    except FormatError:
-        pass
-    fallback = _rig_volume(geo) if rig_session else None
-    rms_per_view = [cams.rms_px.get(c, 0.0) for c, _ in views]
-    g = build_geometry(alphas, cams.views, rms_per_view, vids, config=config, rig_session=rig_session,
-                       fallback_box=fallback, step=timer.step, progress=prog)
-    notes.extend(g.notes)
-    sils, pin, dilations, occ, grid, surfels, hull_info = g.sils, g.pin, g.dilations, g.occ, g.grid, g.surfels, g.info
-    dilations = {c: g.dilations[i] for i, (c, _) in enumerate(views)}
-    hull_info["dilate_px_per_camera"] = {str(k): v for k, v in sorted(dilations.items())}
-
     # 7. views: opacity light field samples (computed lazily while writing)
     view_infos = [ViewInfo(i, vids[i], c, float(a), cams.views[i]) for i, (c, a) in enumerate(views)]
     colour_shots = [_colour_shot(session, c, a) for c, a in views]
@@ -861,7 +890,7 @@ def build_model(session_dir, out_dir, *, config: BuildConfig = BuildConfig(), gr
 
     def view_rgba(i: int) -> np.ndarray:
         obj, bg = colour_shots[i]
-        Cimg = _rgb(session.load_radiance(obj))
+        Cimg = finite(_rgb(session.load_radiance(obj)), f"view {vids[i]} colour shot {obj}")
         a = alphas[i]
         if bg is not None:
             prem = Cimg - (1.0 - a)[..., None] * _rgb(session.load_radiance(bg))
@@ -871,6 +900,23 @@ def build_model(session_dir, out_dir, *, config: BuildConfig = BuildConfig(), gr
             prem = Cimg
         F = straight_from_premul(np.nan_to_num(prem, nan=0.0, posinf=0.0, neginf=0.0), a, eps=config.alpha_eps)
         return np.concatenate([np.maximum(F, 0.0), a[..., None]], axis=-1).astype(np.float32)
+
+    # 3-6. silhouettes, hull, surfels, visibility
+    rig_session = _is_rig_session(session)
+    geo = None
+    try:
+        geo = session.geometry
+    except FormatError:
+        pass
+    fallback = _rig_volume(geo) if rig_session else None
+    rms_per_view = [cams.rms_px.get(c, 0.0) for c, _ in views]
+    g = build_geometry(alphas, cams.views, rms_per_view, vids, config=config, rig_session=rig_session,
+                       fallback_box=fallback, step=timer.step, progress=prog,
+                       images=(lambda i: view_rgba(i)[..., :3]) if config.refine else None)
+    notes.extend(g.notes)
+    sils, pin, dilations, occ, grid, surfels, hull_info = g.sils, g.pin, g.dilations, g.occ, g.grid, g.surfels, g.info
+    dilations = {c: g.dilations[i] for i, (c, _) in enumerate(views)}
+    hull_info["dilate_px_per_camera"] = {str(k): v for k, v in sorted(dilations.items())}
 
     # 8. reflectance
     reflectance = None
@@ -924,7 +970,8 @@ def build_model(session_dir, out_dir, *, config: BuildConfig = BuildConfig(), gr
                     for L in lights:
                         shot = shots[L.key]
                         # radiance at full DMX level: a light dimmed to `level` emits level/255
-                        img = _rgb(session.load_radiance(shot)) * np.float32(255.0 / levels[shot])
+                        img = finite(_rgb(session.load_radiance(shot)), f"view {vids[i]} one-light shot {shot}"
+                                     ) * np.float32(255.0 / levels[shot])
                         outd[L.key] = np.where(mask, np.nan_to_num(img, nan=0.0, posinf=0.0, neginf=0.0), 0.0
                                                ).astype(np.float32)
                     return outd
@@ -932,6 +979,16 @@ def build_model(session_dir, out_dir, *, config: BuildConfig = BuildConfig(), gr
                 reflectance = {"lights": lights, "images": images}
             else:
                 notes.append("reflectance: no light sample present in every view; none attached")
+
+    # 8b. natural-illumination reflectance field (Matusik, Loper & Pfister 2004)
+    natural = None
+    with timer.step("natural"):
+        if config.natural and ("envmatte" in session.phases() or "natural" in session.phases()):
+            from .natural_field import estimate_session_natural
+
+            out.mkdir(parents=True, exist_ok=True)
+            natural = estimate_session_natural(session, views, cams.views, alphas, out,
+                                               n_kernels=config.natural_kernels, progress=prog)
 
     # 9. write
     report = BuildReport(model_dir=str(out), views=V, surfels=len(surfels), camera_source=cams.source,
@@ -943,8 +1000,16 @@ def build_model(session_dir, out_dir, *, config: BuildConfig = BuildConfig(), gr
                       "reflectance_units": "radiance at full DMX level (one-light images scaled by 255/level)",
                       "build_config": json.dumps(_jsonable(config.to_dict()), sort_keys=True)}
         rgba_iter = (view_rgba(i) for i in range(V))
+        extra = None
+        if natural is not None:
+            report.hull["natural"] = {k: v for k, v in natural.items() if k != "files"}
+            extra = {"natural": {"present": True, "format": "opacityhull.natural/1", "dir": "natural",
+                                 "n_kernels": int(natural["n_kernels"]),
+                                 "weights_dtype": str(natural.get("weights_dtype", "float16")),
+                                 "displays": {n: {"domain_hw": list(d["domain_hw"]), "images": int(d["images"])}
+                                              for n, d in natural["displays"].items()}}}
         write_model(out, views=view_infos, surfels=surfels, view_rgba=rgba_iter, rig=session.meta.get("rig"),
-                    provenance=provenance, reflectance=reflectance, progress=prog)
+                    provenance=provenance, reflectance=reflectance, extra_meta=extra, progress=prog)
         if cams.rig:
             from ..camera import write_opencv_yaml
 
@@ -989,6 +1054,11 @@ def build_model(session_dir, out_dir, *, config: BuildConfig = BuildConfig(), gr
         with timer.step("metrics"):
             metrics.update(_ground_truth_metrics(session, views, vids, alphas, occ, grid, cams, config, pin,
                                                  dilations))
+    if nonfinite:
+        notes.append(f"{len(nonfinite)} image(s) held NaN or Inf pixels, set to 0 (black) where used: "
+                     + "; ".join(nonfinite[:3]) + (" ..." if len(nonfinite) > 3 else ""))
+        metrics["nonfinite_images"] = len(nonfinite)
+    metrics["manifest_verified"] = "sha256" if config.verify_checksums else "sizes and ids only"
     report.metrics = metrics
     report.seconds = {k: round(v, 4) for k, v in timer.seconds.items()}
     report.seconds["total"] = round(sum(timer.seconds.values()), 4)

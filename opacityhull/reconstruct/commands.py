@@ -7,7 +7,7 @@ from typing import List, Optional
 
 import typer
 
-from ..cliutil import cli_errors, console, emit
+from ..cliutil import cli_errors, console, emit, writing_to
 from ..errors import ConfigError
 
 __all__ = ["register"]
@@ -26,6 +26,7 @@ def _parse_bounds(text: str | None):
 
 
 def _human(summary: dict) -> None:
+    from rich.markup import escape
     from rich.table import Table
 
     c = console()
@@ -49,8 +50,74 @@ def _human(summary: dict) -> None:
     if res:
         c.print(f"hull resolution {res['hull_res']}, oversample {res['oversample']}: {res['reason']}", markup=False)
     for n in summary.get("notes", []):
-        c.print(f"[yellow]note:[/] {n}")
+        c.print(f"[yellow]note:[/] {escape(str(n))}")
     c.print(f"pictures: {Path(summary['model']) / 'pictures'}")
+
+
+def check_build_paths(session: Path, out: Path) -> None:
+    """Reject ``build SESSION --out OUT`` before any work when OUT cannot be the model
+    folder: an existing file, the session folder itself, or a folder inside it (the model
+    would be written among the photographs), or a session path that is not there."""
+    from ..errors import InputError, check_writable
+
+    if not session.exists():
+        raise InputError(f"{session}: no such session folder")
+    if out.exists() and not out.is_dir():
+        raise InputError(f"--out {out}: is an existing file, expected a model folder (new, or an earlier model)")
+    s, o = session.resolve(), out.resolve()
+    if o == s:
+        raise InputError(f"--out {out}: is the session folder {session}; give a separate model folder")
+    if s in o.parents:
+        raise InputError(f"--out {out}: is inside the session folder {session}; give a folder outside it")
+    if o in s.parents:
+        raise InputError(f"--out {out}: contains the session folder {session}; the build would write over it")
+    for p in (o, *o.parents):
+        if p.exists():
+            if (p / "session.toml").is_file() or (p / "manifest.jsonl").is_file():
+                raise InputError(f"--out {out}: is inside another session folder {p}")
+            break
+    check_writable(out)
+
+
+def _parse_image_lists(args, flags) -> dict:
+    """``--object A B --backdrop C D`` (one flag, several files; or the flag repeated)
+    from the arguments click left over; anything else is an error naming it."""
+    from ..errors import InputError
+
+    lists = {f: [] for f in flags}
+    cur = None
+    for a in args:
+        if a in lists:
+            cur = a
+        elif a.startswith("--") and "=" in a and a.split("=", 1)[0] in lists:
+            cur = a.split("=", 1)[0]
+            lists[cur].append(Path(a.split("=", 1)[1]))
+        elif a.startswith("-") and len(a) > 1:
+            raise InputError(f"unknown option {a!r} (expected one of {', '.join(flags)}, --out, --over, --drift, "
+                             "--max-alpha-std, --json)")
+        elif cur is None:
+            raise InputError(f"{a!r}: give image files after {' or '.join(flags)}")
+        else:
+            lists[cur].append(Path(a))
+    for f in flags:
+        if not lists[f]:
+            raise InputError(f"{f} is required: {f} A.jpg B.jpg ...")
+    return lists
+
+
+def _human_matte(summary: dict) -> None:
+    c = console()
+    c.print(f"matte {summary['width']}x{summary['height']} from {summary['pairs']} pairs → {summary['out']}")
+    c.print(f"clear (alpha<0.05) {summary['clear_fraction']:.1%}, opaque (>0.95) {summary['opaque_fraction']:.1%}, "
+            f"fractional {summary['fractional_fraction']:.1%}, unknown {summary['unknown_fraction']:.2%}")
+    if summary["drift"]:
+        for k, s in enumerate(summary["drift"]["shots"]):
+            sh = s["shift_px"]
+            shift = "n/a" if sh is None else f"({sh[0]:+.2f}, {sh[1]:+.2f}) px" + (" applied" if s["shift_applied"]
+                                                                                 else "")
+            c.print(f"pair {k}: drift gain R,G,B = {', '.join(f'{g:.3f}' for g in s['gain'])}; registration {shift}")
+    for n in summary.get("notes", []):
+        c.print(f"[yellow]note:[/] {n}")
 
 
 def register(app, groups) -> None:
@@ -65,6 +132,10 @@ def register(app, groups) -> None:
                                                help="Voxels along the longest side of the hull's box (default: "
                                                     "from the photographs' pixel footprint, one surfel per "
                                                     "projected pixel)."),
+        matting_drift: str = typer.Option("auto", "--matting-drift",
+                                          help="Correct photometric drift and misregistration between backdrop and "
+                                               "object shots: auto (field, except on a drift-free simulated rig) | "
+                                               "none | gain | affine | field."),
         carve_tolerance: Optional[int] = typer.Option(None, "--carve-tolerance",
                                                       help="A voxel survives when at most this many views reject "
                                                            "it (imperfect masks). Default: 1 for imported sets "
@@ -104,7 +175,10 @@ def register(app, groups) -> None:
         from .build import BuildConfig, build_model
         from .matting import MattingOptions
 
-        cfg = BuildConfig(hull_res=hull_res, carve_tolerance=carve_tolerance, alpha_threshold=alpha_threshold, cameras=cameras, backdrops=backdrops,
+        check_build_paths(session, out)
+
+        cfg = BuildConfig(hull_res=hull_res, carve_tolerance=carve_tolerance, matting_drift=matting_drift,
+                          alpha_threshold=alpha_threshold, cameras=cameras, backdrops=backdrops,
                           exclude_views=tuple(exclude_view or ()), bounds_m=_parse_bounds(bounds),
                           surfel_oversample=oversample, matting=MattingOptions(max_alpha_std=max_alpha_std),
                           reflectance=not no_reflectance, pictures=not no_pictures,
@@ -112,19 +186,48 @@ def register(app, groups) -> None:
         with Progress(TextColumn("[bold]build: {task.description}"), BarColumn(), MofNCompleteColumn(),
                       TextColumn("elapsed"), TimeElapsedColumn(), TextColumn("eta"), TimeRemainingColumn(),
                       console=console(), transient=False) as bar:
-            # one bar for the whole build: its description names the step, its count and
-            # ETA are the step's (views matted, images calibrated, files written, ...)
-            task = bar.add_task("start", total=None)
+            # one bar line per step: its description names the step, its count and ETA
+            # are the step's (views matted, images calibrated, ...). A new task per step:
+            # rich's update() ignores total=None, so resetting one task left the previous
+            # step's "0/24" on every later step.
+            tasks = [bar.add_task("start", total=None)]
 
             def on_step(name: str) -> None:
-                bar.update(task, description=name, completed=0, total=None)
+                bar.remove_task(tasks[-1])
+                tasks.append(bar.add_task(name, total=None))
 
             def prog(done: int, total: int | None = None) -> None:
-                bar.update(task, completed=done, total=total)
+                bar.update(tasks[-1], completed=done, total=total)
 
-            report = build_model(session, out, config=cfg, ground_truth=ground_truth, progress=prog,
-                                 on_step=on_step)
-            bar.update(task, description="done")
+            with writing_to(out):
+                report = build_model(session, out, config=cfg, ground_truth=ground_truth, progress=prog,
+                                     on_step=on_step)
+            bar.update(tasks[-1], description="done")
         summary = report.summary()
         summary["notes"] = list(report.notes)
         emit(summary, as_json, _human)
+
+    @app.command("matte", context_settings={"allow_extra_args": True, "ignore_unknown_options": True})
+    @cli_errors
+    def matte(
+        ctx: typer.Context,
+        out: Path = typer.Option(..., "--out", help="Folder to write alpha.png, foreground_premul.png/.exr, "
+                                                     "composite.png and matte.json (created)."),
+        over: Optional[Path] = typer.Option(None, "--over", help="New background for composite.png."),
+        drift: str = typer.Option("field", "--drift",
+                                  help="Photometric drift correction of the backdrops: field (smooth per-channel "
+                                       "gain over the frame) | affine (3x3 + offset) | gain | none."),
+        max_alpha_std: float = typer.Option(0.05, "--max-alpha-std",
+                                            help="Pixels whose predicted alpha std exceeds this are filled from "
+                                                 "their neighbours."),
+        as_json: bool = typer.Option(False, "--json", help="Print one JSON object on stdout."),
+    ):
+        """Triangulation matting of your own shots: --object A.jpg B.jpg [...] --backdrop A.jpg
+        B.jpg [...] (pair k = object k in front of backdrop k, backdrop k alone; at least 2
+        pairs of the same view). JPEG/PNG are decoded from sRGB to linear."""
+        from .matte_files import matte_files
+
+        lists = _parse_image_lists(ctx.args, ("--object", "--backdrop"))
+        summary = matte_files(lists["--object"], lists["--backdrop"], out, over=over, drift=drift,
+                              max_alpha_std=max_alpha_std)
+        emit(summary, as_json, _human_matte)

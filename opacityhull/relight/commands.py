@@ -3,12 +3,15 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Optional
 
 import typer
+from rich.markup import escape
 
-from ..cliutil import cli_errors, console, emit, progress
+from ..cliutil import cli_errors, console, emit, progress, writing_to
+from ..errors import InputError, check_writable
 
 
 def _config(kernel: str, kernel_width: float, lower_hemisphere: str, near_light: bool, pca_rank: Optional[int]):
@@ -26,6 +29,18 @@ _YAW_HELP = ("Rotate the map about +Y by this many degrees after reading (ICT pr
 _FORMAT_HELP = "Layout of the map: latlong (equirectangular), angular (Debevec light probe) or mirror (mirror-ball image)."
 
 
+#: Fewer captured light directions than this and ``eval relight`` warns: the light
+#: basis is too coarse for an environment map (a judgement, not a measured threshold).
+FEW_LIGHTS = 8
+
+
+def _check_model(model: Path) -> None:
+    if not model.exists():
+        raise InputError(f"{model}: no such model folder")
+    if not model.is_dir():
+        raise InputError(f"{model} is a file, expected a model folder (from `opacityhull build`)")
+
+
 def register(app, groups) -> None:
     """Add ``relight`` to the root app and ``relight`` to the ``eval`` group."""
 
@@ -35,7 +50,9 @@ def register(app, groups) -> None:
         model: Path = typer.Argument(..., help="Model folder written by `opacityhull build` (with reflectance data)."),
         out: Path = typer.Option(..., "--out", help="Output folder (EXR + PNG per image, contact sheets, GIF, relight.json)."),
         envmap: Optional[str] = typer.Option(None, "--envmap", help=_ENVMAP_HELP),
-        yaw_deg: Optional[float] = typer.Option(None, "--yaw-deg", help=_YAW_HELP),
+        yaw_deg: Optional[float] = typer.Option(None, "--env-yaw-deg", help=_YAW_HELP),
+        yaw_deg_alias: Optional[float] = typer.Option(None, "--yaw-deg", hidden=True,
+                                                      help="Old name of --env-yaw-deg."),
         probe_format: str = typer.Option("latlong", "--probe-format", help=_FORMAT_HELP),
         flip_u: bool = typer.Option(False, "--flip-u", help="The lat-long map is stored mirrored left-right."),
         lights: Optional[str] = typer.Option(
@@ -63,14 +80,22 @@ def register(app, groups) -> None:
 
         from .envmap import default_yaw_deg
 
+        yaw_deg = yaw_deg if yaw_deg_alias is None else yaw_deg_alias
+        _check_model(model)
+        if orbit is not None and orbit < 1:
+            raise InputError(f"--orbit {orbit}: expected at least 1 frame")
+        if exposure is not None and not (math.isfinite(exposure) and exposure > 0):
+            raise InputError(f"--exposure {exposure}: expected a multiplier > 0 (omit it for automatic exposure)")
+        check_writable(out)
         cfg = _config(kernel, kernel_width, lower_hemisphere, near_light, pca_rank)
         v = parse_view_spec(view) if view else None
         if yaw_deg is None:
             yaw_deg = default_yaw_deg(envmap)
         with progress("relight", enabled=not json_out) as cb:
-            s = relight_model(model, out=out, envmap=envmap, yaw_deg=yaw_deg, probe_format=probe_format, flip_u=flip_u,
-                              lights=lights, view=v, orbit=orbit, config=cfg, exposure=exposure, write_views=not no_views,
-                              progress=cb)
+            with writing_to(out):
+                s = relight_model(model, out=out, envmap=envmap, yaw_deg=yaw_deg, probe_format=probe_format,
+                                  flip_u=flip_u, lights=lights, view=v, orbit=orbit, config=cfg, exposure=exposure,
+                                  write_views=not no_views, progress=cb)
 
         def human(s):
             c = console()
@@ -95,9 +120,13 @@ def register(app, groups) -> None:
     def eval_relight_cmd(
         model: Path = typer.Argument(..., help="Model folder built from a simulated session (with reflectance data)."),
         envmap: str = typer.Option(..., "--envmap", help=_ENVMAP_HELP),
-        yaw_deg: Optional[float] = typer.Option(None, "--yaw-deg", help=_YAW_HELP),
+        yaw_deg: Optional[float] = typer.Option(None, "--env-yaw-deg", help=_YAW_HELP),
+        yaw_deg_alias: Optional[float] = typer.Option(None, "--yaw-deg", hidden=True,
+                                                      help="Old name of --env-yaw-deg."),
         probe_format: str = typer.Option("latlong", "--probe-format", help=_FORMAT_HELP),
-        out: Optional[Path] = typer.Option(None, "--out", help="Folder for the contact sheet and per-view EXRs (default MODEL/eval_relight)."),
+        out: Optional[Path] = typer.Option(None, "--out", help="Folder for the contact sheet and per-view EXRs (default "
+                                           "./MODELNAME_eval_relight in the current folder: an evaluation never "
+                                           "writes into the model)."),
         spp: int = typer.Option(64, "--spp", help="Samples per pixel of Mitsuba's ground-truth render."),
         max_views: Optional[int] = typer.Option(None, "--max-views", help="Evaluate at most this many views (spread evenly)."),
         kernel: str = typer.Option("vmf", "--kernel", help="Light-cell partition: vmf, linear or voronoi."),
@@ -113,6 +142,15 @@ def register(app, groups) -> None:
         from .envmap import default_yaw_deg
         from .evaluate import eval_relight
 
+        yaw_deg = yaw_deg if yaw_deg_alias is None else yaw_deg_alias
+        _check_model(model)
+        if spp < 1:
+            raise InputError(f"--spp {spp}: expected at least 1 sample per pixel")
+        if max_views is not None and max_views < 1:
+            raise InputError(f"--max-views {max_views}: expected at least 1")
+        if out is None:
+            # not inside MODEL: a model is an input here (it may be shared or read-only)
+            out = Path(f"{model.resolve().name}_eval_relight")
         cfg = _config(kernel, kernel_width, lower_hemisphere, near_light, pca_rank)
         if yaw_deg is None:
             yaw_deg = default_yaw_deg(envmap)
@@ -120,10 +158,19 @@ def register(app, groups) -> None:
             s = eval_relight(model, envmap=envmap, yaw_deg=yaw_deg, probe_format=probe_format, out=out, spp=spp,
                              max_views=max_views, config=cfg, progress=cb)
 
+        n_lights = s.get("n_lights_captured")
+        if n_lights is not None and n_lights < FEW_LIGHTS:
+            s.setdefault("warnings", []).append(
+                f"only {n_lights} captured light direction(s): relighting sums one-light images, so an environment "
+                f"map is seen through {n_lights} cell(s) of the sphere — expect large errors (the tiny plan's 2 "
+                f"lights measured 58-82 %); capture with more lights (plan [phases.reflectance] lights/array_steps)")
+
         def human(s):
             c = console()
             c.print(f"relighting vs Mitsuba over {len(s['per_view'])} views: PSNR {s['psnr_mean']:.2f} dB, "
                     f"relative error {100 * s['rel_err_mean']:.2f} %")
             c.print(f"contact sheet (truth | relit | error): {s['sheet']}")
+            for w in s.get("warnings", []):
+                c.print(f"[yellow]warning:[/] {escape(w)}", highlight=False)
 
         emit(s, json_out, human)

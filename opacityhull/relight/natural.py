@@ -62,6 +62,9 @@ On-disk layout (:func:`save_field`, NPZ, ``format = "opacityhull.natural/1"``)::
     residual      float32 (P,)              ‖A w − b‖² / max(‖b‖², tiny) at the end
     n_images      int64 ()                  N used in the estimate
     meta          str                       JSON provenance (view id, display, K, rel_tol, …)
+    pixel_index   int32 (P,)   optional     for a field of some pixels of an image: the
+                                            row-major index of each pixel in ``image_hw``
+    image_hw      int64 (2,)   optional     (H, W) of that image
 
 so a pixel costs ``8 K + K C · (2|4) + 5`` bytes (K = 25, RGB, float16: 355 B). The
 capture phase will write one file per view and display as
@@ -100,6 +103,13 @@ __all__ = [
     "field_path",
     "transport_matrix",
     "load_field",
+    "scatter_pixels",
+    "display_directions",
+    "envmap_display_image",
+    "relight_view_natural",
+    "load_view_fields",
+    "relight_model_views_natural",
+    "display_hit_mask",
     "FORMAT",
 ]
 
@@ -168,6 +178,8 @@ class NaturalField:
     pixels_shape: tuple
     n_images: int
     meta: dict = dataclasses.field(default_factory=dict, compare=False)
+    pixel_index: np.ndarray | None = dataclasses.field(default=None, compare=False)
+    image_hw: tuple | None = None
 
     @property
     def n_pixels(self) -> int:
@@ -1000,6 +1012,9 @@ def save_field(path, field: NaturalField, *, weights_dtype: str = "float32") -> 
                   weights=w.astype(weights_dtype), n_kernels=field.n_kernels.astype(np.uint8),
                   residual=field.residual.astype(np.float32), n_images=np.array(field.n_images, np.int64),
                   meta=np.array(json.dumps(field.meta, sort_keys=True)))
+    if field.pixel_index is not None:
+        arrays["pixel_index"] = np.asarray(field.pixel_index, np.int32)
+        arrays["image_hw"] = np.array(field.image_hw, np.int64)
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as f:
             np.savez_compressed(f, **arrays)
@@ -1050,6 +1065,163 @@ def load_field(path) -> NaturalField:
         meta = json.loads(str(d["meta"])) if "meta" in d else {}
     except ValueError:
         raise FormatError(f"natural field {path}: meta is not JSON") from None
+    idx, ihw = None, None
+    if "pixel_index" in d:
+        idx = d["pixel_index"].astype(np.int64)
+        ihw = tuple(int(v) for v in d.get("image_hw", np.zeros(0)))
+        if len(ihw) != 2 or idx.shape != (P,) or (P and (idx.min() < 0 or idx.max() >= ihw[0] * ihw[1])):
+            raise FormatError(f"natural field {path}: pixel_index {idx.shape} / image_hw {ihw} inconsistent with "
+                              f"{P} pixels")
     return NaturalField(boxes=boxes, weights=w.astype(np.float32), n_kernels=n.astype(np.uint8),
                         residual=d["residual"].astype(np.float32), domain_hw=(H, W), pixels_shape=pshape,
-                        n_images=int(d["n_images"]), meta=meta)
+                        n_images=int(d["n_images"]), meta=meta, pixel_index=idx, image_hw=ihw)
+
+
+def scatter_pixels(field: NaturalField, values) -> np.ndarray:
+    """Per-pixel values (P, C) of a field with ``pixel_index`` into its image,
+    float32 (H, W, C), zero elsewhere."""
+    if field.pixel_index is None or field.image_hw is None:
+        raise InputError("scatter_pixels: the field has no pixel_index/image_hw (it covers a whole pixel grid)")
+    v = np.asarray(values).reshape(field.n_pixels, -1)
+    H, W = field.image_hw
+    out = np.zeros((H * W, v.shape[1]), np.float32)
+    out[np.asarray(field.pixel_index, np.int64)] = v
+    return out.reshape(H, W, v.shape[1])
+
+
+# --------------------------------------------------------------------------- environment maps
+
+
+def display_directions(display, table_deg: float, *, centre_m=(0.0, 0.0, 0.0), supersample: int = 1) -> np.ndarray:
+    """Unit directions (H_d, W_d, s², 3) in the *object* frame at ``table_deg`` from
+    ``centre_m`` (object frame) to ``supersample²`` points of every display pixel.
+
+    Pixel (x, y) has column x from the panel's left and row y from its top edge (the
+    pattern's layout, :meth:`DisplaySpec.frame`). A display fixed in the rig turns
+    against the object by ``-table_deg``; one on the turntable does not.
+    """
+    from ..camera import object_from_rig
+
+    W_d, H_d = (int(v) for v in display.resolution)
+    w, h = display.size_m
+    s = max(int(supersample), 1)
+    off = (np.arange(s) + 0.5) / s
+    xs = ((np.arange(W_d)[:, None] + off[None, :]) / W_d - 0.5) * w  # (W_d, s)
+    ys = (0.5 - (np.arange(H_d)[:, None] + off[None, :]) / H_d) * h  # (H_d, s)
+    X = np.broadcast_to(xs[None, :, None, :], (H_d, W_d, s, s))
+    Y = np.broadcast_to(ys[:, None, :, None], (H_d, W_d, s, s))
+    local = np.stack([X, Y, np.zeros_like(X), np.ones_like(X)], axis=-1).reshape(H_d, W_d, s * s, 4)
+    F = display.frame()
+    P = local @ F.T  # rig frame at table angle 0
+    if display.rotates_with_table:
+        obj = P[..., :3]  # it turns with the object: the rig frame at 0 is the object frame
+    else:
+        obj = (P @ object_from_rig(table_deg).T)[..., :3]
+    d = obj - np.asarray(centre_m, np.float64)
+    return d / np.linalg.norm(d, axis=-1, keepdims=True)
+
+
+def envmap_display_image(envmap, display, table_deg: float, *, centre_m=(0.0, 0.0, 0.0),
+                         supersample: int = 3) -> np.ndarray:
+    """The image a display would show so that it sends the object what ``envmap`` sends
+    from the display's solid angle: float64 (H_d, W_d, 3), in the envmap's radiance units.
+
+    The kernels' illumination is display *radiance* (a box mean of it), and a display
+    showing radiance E(d) along the direction d at which the object sees each of its
+    pixels delivers the same light as the environment over that solid angle (both are
+    radiance; the solid-angle weighting is the transport's, learnt by the estimate). The
+    environment is averaged over ``supersample²`` directions per display pixel.
+    Distant-light approximation: every point of the object sees a display pixel along
+    the same direction (from ``centre_m``).
+    """
+    d = display_directions(display, table_deg, centre_m=centre_m, supersample=supersample)
+    H_d, W_d, S, _ = d.shape
+    rad = np.asarray(envmap.lookup(d.reshape(-1, 3)), np.float64).reshape(H_d, W_d, S, -1)
+    return rad.mean(axis=2)[..., :3]
+
+
+def relight_view_natural(fields: dict, envmap, geometry, table_deg: float, *, centre_m=(0.0, 0.0, 0.0),
+                         supersample: int = 3) -> np.ndarray | None:
+    """The display-domain part of one relit view under an environment map: the sum over
+    illumination domains of :func:`relight_natural` under :func:`envmap_display_image`.
+
+    Parameters
+    ----------
+    fields : {display name: NaturalField} of one view (fields with ``pixel_index``).
+    envmap : :class:`~opacityhull.relight.envmap.EnvironmentMap`, object frame.
+    geometry : RigGeometry (the displays).
+    table_deg : the view's table angle.
+
+    Returns
+    -------
+    float32 (H, W, 3) premultiplied radiance to add to the light-array part, or None
+    when ``fields`` is empty.
+    """
+    out = None
+    for name, f in sorted(fields.items()):
+        L = envmap_display_image(envmap, geometry.display(name), table_deg, centre_m=centre_m,
+                                 supersample=supersample)
+        vals = relight_natural(f, L)
+        img = scatter_pixels(f, vals)[..., :3] if f.pixel_index is not None else vals.reshape(
+            tuple(f.pixels_shape) + (-1,))[..., :3]
+        out = img.astype(np.float32) if out is None else out + img
+    return out
+
+
+def load_view_fields(model_root, view_id: str) -> dict:
+    """``{display: NaturalField}`` of ``MODEL/natural/<view_id>/*.npz`` (empty if none)."""
+    d = Path(model_root) / "natural" / str(view_id)
+    if not d.is_dir():
+        return {}
+    return {p.stem: load_field(p) for p in sorted(d.glob("*.npz"))}
+
+
+def relight_model_views_natural(model, envmap, *, centre_m=None, supersample: int = 3) -> list:
+    """Display-domain parts of every captured view of ``model`` under ``envmap``:
+    a list (one per view, model order) of float32 (H, W, 3) premultiplied radiance, or
+    None for a view without natural fields. Add them to the light-array relit views
+    (``rgba[..., :3] += part``) before ULR blending (:func:`~opacityhull.render.render_image`).
+
+    ``centre_m`` (object frame): default the surfels' centroid (the point the display
+    directions are taken from)."""
+    if centre_m is None:
+        try:
+            from ..render.renderer import model_surfels
+
+            centre_m = model_surfels(model).positions.mean(axis=0)
+        except Exception:  # a model without surfels: the rig's aim point
+            g = model.geometry
+            centre_m = np.asarray(g.target_m if g is not None else (0.0, 0.0, 0.0), np.float64)
+    g = model.geometry
+    out = []
+    for v in model.views:
+        fields = load_view_fields(model.root, v.id)
+        if not fields:
+            out.append(None)
+            continue
+        if g is None:
+            raise FormatError(f"{model.root / 'model.toml'}: no [rig] table, the displays' geometry is unknown")
+        out.append(relight_view_natural(fields, envmap, g, v.table_deg, centre_m=centre_m, supersample=supersample))
+    return out
+
+
+def display_hit_mask(display, table_deg: float, directions, *, centre_m=(0.0, 0.0, 0.0)) -> np.ndarray:
+    """Which of ``directions`` (..., 3), object frame at ``table_deg``, from ``centre_m``
+    meet the display's rectangle: bool (...). The complement of
+    :func:`display_directions` — used to restrict an environment map to the solid angle
+    a display covers (the part of the lighting its field can reproduce)."""
+    from ..camera import object_from_rig
+
+    F = display.frame()
+    if not display.rotates_with_table:
+        F = object_from_rig(table_deg) @ F
+    Finv = np.linalg.inv(F)
+    d = np.asarray(directions, np.float64)
+    o = Finv[:3, :3] @ np.asarray(centre_m, np.float64) + Finv[:3, 3]
+    v = d @ Finv[:3, :3].T
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = -o[2] / v[..., 2]
+    x = o[0] + t * v[..., 0]
+    y = o[1] + t * v[..., 1]
+    w, h = display.size_m
+    return np.isfinite(t) & (t > 0) & (np.abs(x) <= w / 2) & (np.abs(y) <= h / 2)

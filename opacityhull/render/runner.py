@@ -14,13 +14,13 @@ import numpy as np
 from ..camera import Camera
 from ..errors import InputError
 from ..imageio import write_exr, write_png
-from ..model import OpacityHullModel
+from ..model import OpacityHullModel, Surfels
 from .background import EnvMap, fit_image, load_background
 from .cameras import (captured_view_camera, look_at_camera, mean_fov_y_deg, orbit_cameras, parse_look_at,
                       parse_view_spec, resize_camera, scene_target)
 from .renderer import RenderConfig, RenderResult, model_surfels, prepare_model_views, render_image
 
-__all__ = ["choose_cameras", "run_render", "run_loo", "run_demo_step", "write_frame"]
+__all__ = ["choose_cameras", "check_budget", "LodCuts", "run_render", "run_loo", "run_demo_step", "write_frame"]
 
 _SUFFIXES = (".png", ".exr")
 
@@ -89,14 +89,112 @@ def _animation(frames: list[np.ndarray], out_stem: Path, fps: float) -> dict:
     return out
 
 
+def check_budget(budget) -> int | None:
+    """``--budget``: None, or a whole number of splats ≥ 1 (else :class:`InputError`)."""
+    if budget is None:
+        return None
+    try:
+        ok = not isinstance(budget, bool) and float(budget).is_integer() and int(budget) >= 1
+    except (TypeError, ValueError, OverflowError):
+        ok = False
+    if not ok:
+        raise InputError(f"--budget {budget}: expected a whole number of splats >= 1")
+    return int(budget)
+
+
+class LodCuts:
+    """The sequential point tree of a model's surfels, cut per camera under a splat
+    budget (``render --budget``): the CPU twin of the viewer's level of detail.
+
+    Parameters
+    ----------
+    surfels : the model's surfels (Morton order, :func:`model_surfels`); the tree is
+        built on the first budgeted cut, once per model.
+    """
+
+    def __init__(self, surfels):
+        self.surfels = surfels
+        self.tree = None  # the PointTree, nodes in Morton order (not sequential)
+        self.ms_build = 0.0
+
+    def _build(self):
+        from dataclasses import replace
+
+        from .lod import build_point_tree
+        from .renderer import _part1by2, surfel_areas
+
+        t = time.perf_counter()
+        tree = build_point_tree(self.surfels, surfel_areas(self.surfels))
+        # the same tree with its nodes in Morton order (the cut does not depend on node
+        # order): a cut then comes out spatially sorted, and gathering it reads memory
+        # in order (in the tree's r_max order the gather cost as much as the render)
+        P = tree.positions.astype(np.float64)
+        lo = P.min(axis=0)
+        q = np.clip((P - lo) / (float((P.max(axis=0) - lo).max()) or 1.0) * 65535, 0, 65535).astype(np.uint64)
+        key = _part1by2(q[:, 0]) | (_part1by2(q[:, 1]) << np.uint64(1)) | (_part1by2(q[:, 2]) << np.uint64(2))
+        perm = np.argsort(key, kind="stable")
+        inv = np.empty_like(perm)
+        inv[perm] = np.arange(len(perm))
+        par = tree.parent[perm]
+        self.tree = replace(
+            tree, positions=tree.positions[perm], normals=tree.normals[perm], radii=tree.radii[perm],
+            areas=tree.areas[perm], visibility=np.ascontiguousarray(tree.visibility[perm]), r_min=tree.r_min[perm],
+            r_max=tree.r_max[perm], parent=np.where(par >= 0, inv[np.maximum(par, 0)], -1),
+            is_leaf=tree.is_leaf[perm], leaf_index=tree.leaf_index[perm])
+        self.ms_build = 1e3 * (time.perf_counter() - t)
+
+    def cut(self, camera: Camera, budget: int | None):
+        """(surfels to draw, τ) for ``camera`` under ``budget``.
+
+        With no budget, or a budget ≥ the surfel count, the model's own surfels are
+        returned unchanged (τ = 0), so the image is exactly the full render; otherwise
+        the finest view-dependent cut with at most ``budget`` nodes, in Morton order,
+        each node carrying the area of its subtree (the renderer's edge coverage).
+        """
+        from .lod import select_cut
+
+        budget = check_budget(budget)
+        if budget is None or budget >= len(self.surfels):
+            return self.surfels, 0.0
+        if self.tree is None:
+            self._build()
+        tree = self.tree
+        tau, mask = select_cut(tree, camera.centre_world, budget)
+        idx = np.flatnonzero(mask)
+        s = Surfels(tree.positions[idx], tree.normals[idx], tree.radii[idx], tree.visibility[idx], tree.n_views)
+        _seed_surfel_areas(s, tree.areas[idx])
+        return s, float(tau)
+
+
+def _seed_surfel_areas(surfels, areas) -> None:
+    """Hand the renderer a cut's areas (the nodes' summed subtree areas) instead of its
+    k-nearest-neighbour estimate, which costs more than the render of a cut (120 ms
+    for 15 k nodes). Same entry layout as ``renderer.surfel_areas`` stores; a test
+    checks the renderer picks it up. (Better: an ``areas=`` argument of render_image.)"""
+    import weakref
+
+    from . import renderer
+
+    cache = renderer._AREA_CACHE
+    key = id(surfels)
+    ref = weakref.ref(surfels, lambda _r, key=key: cache.pop(key, None))
+    cache[key] = (ref, np.ascontiguousarray(areas, dtype=np.float32))
+
+
 def run_render(model_path, out, *, view=None, look_at=None, orbit=None, width=None, height=None,
                config: RenderConfig = RenderConfig(), background: str | None = None, background_kind: str = "auto",
                env_yaw_deg: float = 0.0, exclude: Sequence[str] = (), fps: float = 12.0,
-               progress: Callable[[int, int], None] | None = None) -> dict:
-    """Render one frame or an orbit of a model folder to ``out`` (``.png`` or ``.exr``)."""
+               budget: int | None = None, progress: Callable[[int, int], None] | None = None) -> dict:
+    """Render one frame or an orbit of a model folder to ``out`` (``.png`` or ``.exr``).
+
+    ``budget``: at most this many splats per frame, from a view-dependent cut of the
+    sequential point tree (:mod:`opacityhull.render.lod`, the viewer's LOD); None draws
+    every surfel.
+    """
     out = Path(out)
     if out.suffix.lower() not in _SUFFIXES:
         raise InputError(f"--out {out}: expected a .png or .exr file name")
+    budget = check_budget(budget)
     model = OpacityHullModel.open(model_path)
     cams = choose_cameras(model, view=view, look_at=look_at, orbit=orbit, width=width, height=height)
     bg = load_background(background, yaw_deg=env_yaw_deg, kind=background_kind) if background is not None else None
@@ -109,11 +207,18 @@ def run_render(model_path, out, *, view=None, look_at=None, orbit=None, width=No
     pv = prepare_model_views(model)
     surfels = model_surfels(model)
     t_load = time.perf_counter() - t0
-    paths, frames, ms = [], [], []
+    paths, frames, ms, splats, taus = [], [], [], [], []
+    lod = LodCuts(surfels)
     anim_bg = bg if bg is not None else (0.18, 0.18, 0.18)
     for i, cam in enumerate(cams):
         t = time.perf_counter()
-        res = render_image(surfels, [v.camera for v in model.views], pv, cam, config=config, exclude_views=excl)
+        had_tree = lod.tree is not None
+        drawn, tau = lod.cut(cam, budget)
+        if lod.tree is not None and not had_tree:
+            t += lod.ms_build / 1e3  # the tree is built once per model, not per frame
+        splats.append(len(drawn))
+        taus.append(tau)
+        res = render_image(drawn, [v.camera for v in model.views], pv, cam, config=config, exclude_views=excl)
         ms.append(1e3 * (time.perf_counter() - t))
         p = out if orbit is None else out.with_name(f"{out.stem}_{i:03d}{out.suffix}")
         paths.append(str(write_frame(p, res, bg)))
@@ -133,6 +238,10 @@ def run_render(model_path, out, *, view=None, look_at=None, orbit=None, width=No
         "ms_first_frame": ms[0],
         "ms_load": 1e3 * t_load,
         "background": None if background is None else ("envmap" if isinstance(bg, EnvMap) else str(background)),
+        "budget": budget,
+        "splats_per_frame": splats,
+        "lod_tau": taus,
+        "ms_lod_tree": lod.ms_build,
     }
     if orbit is not None:
         summary.update(_animation(frames, out.with_name(out.stem), fps))

@@ -135,6 +135,15 @@ class DisplayController:
         problems: list[str] = []
         reconnects = 0
         attempt = 0
+        mark = self.transport.mark()
+        # one overall deadline: however many garbled frames a babbling line delivers, a
+        # command ends within timeout x attempts
+        with self.transport.exchange(self.timeout_s * (self.retries + 1), what):
+            return self._transact_loop(cmd, frame, seq, what, problems, mark)
+
+    def _transact_loop(self, cmd, frame, seq, what, problems, mark) -> bytes:
+        reconnects = 0
+        attempt = 0
         while attempt <= self.retries:
             try:
                 if not self.transport.is_open:
@@ -186,8 +195,9 @@ class DisplayController:
         self.last_error = problems[-1] if problems else "no reply"
         summary = "; ".join(dict.fromkeys(problems))
         raise DeviceTimeout(
-            f"{self.name}: no valid reply to {what} after {self.retries + 1} attempt(s) on {self.url} ({summary}) — "
-            "check the RS-232 cable, baud rate and that the display controller is powered"
+            f"{self.name}: no valid reply to {what} after {self.retries + 1} attempt(s) on {self.url} ({summary}); "
+            f"{self.transport.heard_since(mark)} — check the RS-232 cable, baud rate and that the display "
+            "controller is powered"
         )
 
     def _await_reply(self, seq: int, cmd: int) -> dp.Frame | dp.FrameError:
@@ -195,7 +205,7 @@ class DisplayController:
         to earlier commands and are skipped), or the first garbled frame."""
         deadline = time.monotonic() + self.timeout_s
         while True:
-            remaining = deadline - time.monotonic()
+            remaining = min(deadline, self.transport._clamp(deadline)) - time.monotonic()
             if remaining <= 0:
                 raise DeviceTimeout(f"{self.name}: no reply within {self.timeout_s:.1f} s on {self.url}")
             chunk = self.transport.read_until(bytes((dp.FLAG,)), timeout_s=remaining, what="reply frame")

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import List
 
 import typer
 
@@ -24,6 +25,10 @@ def register(app, groups) -> None:
                                                       "ptys (/dev/pts/N)."),
         time_scale: float = typer.Option(0.0, "--time-scale", min=0.0,
                                          help="Real seconds per physical second of motion (0 = instant, 1 = real)."),
+        fault: List[str] = typer.Option([], "--fault", help="DEVICE:KIND[:ARGS] (repeatable): inject a fault, e.g. "
+                                        "turntable:babble:5000, backdrops:garble:3, light_array:vanish:10; kinds: "
+                                        "drop, garble, truncate, late, delay, silent, babble, vanish "
+                                        "(docs/emulator-faults.md)."),
         json_out: bool = typer.Option(False, "--json", help="Print {config, devices} as one JSON line."),
     ):
         """Start an emulator for every `emulator:` device of a rig TOML and serve until Ctrl-C / SIGTERM.
@@ -42,6 +47,12 @@ def register(app, groups) -> None:
         cfg = load_rig_config(config)
         if not cfg.emulated():
             raise ConfigError(f"{config}: no device has an emulator:KIND URL — nothing to emulate")
+        faults: dict[str, list[str]] = {}
+        for f in fault:
+            dev, sep, spec = f.partition(":")
+            if not sep or not dev or not spec:
+                raise ConfigError(f"--fault {f!r}: expected DEVICE:KIND[:ARGS], e.g. turntable:babble:5000")
+            faults.setdefault(dev, []).append(spec)
         stop = threading.Event()
         received: list[int] = []
 
@@ -49,17 +60,19 @@ def register(app, groups) -> None:
             received.append(signum)
             stop.set()
 
-        old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+        old = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)}
         try:
-            with start_emulators(cfg, kind="tcp" if tcp else "pty", time_scale=time_scale) as emus:
+            with start_emulators(cfg, kind="tcp" if tcp else "pty", time_scale=time_scale, faults=faults) as emus:
                 emus.config.write(write_config)
                 summary = {"config": str(write_config), "devices": emus.devices(),
-                           "transport": "tcp" if tcp else "pty", "time_scale": time_scale}
+                           "transport": "tcp" if tcp else "pty", "time_scale": time_scale, "faults": faults}
 
-                def human(s):
-                    typer.echo(f"runtime config: {s['config']}")
+                def human(s):  # human text on stderr, like every command (stdout is for --json)
+                    typer.echo(f"runtime config: {s['config']}", err=True)
                     for name, url in s["devices"].items():
-                        typer.echo(f"  {name:24s} {url}")
+                        typer.echo(f"  {name:24s} {url}", err=True)
+                    for name, fl in s["faults"].items():
+                        typer.echo(f"  fault on {name}: {', '.join(fl)}", err=True)
                     typer.echo("serving; Ctrl-C or SIGTERM stops", err=True)
 
                 emit(summary, json_out, human)
@@ -96,7 +109,7 @@ def register(app, groups) -> None:
             for d in s["devices"]:
                 mark = "ok  " if d["ok"] else "FAIL"
                 ident = f"  [{d['identity']}]" if d["identity"] and d["identity"] not in d["detail"] else ""
-                typer.echo(f"{mark} {d['name']:24s} {d['detail']}{ident}")
+                typer.echo(f"{mark} {d['name']:24s} {d['detail']}{ident}", err=True)
 
         emit(summary, json_out, human)
         if not ok:

@@ -38,6 +38,7 @@ __all__ = [
     "load_rig_config",
     "parse_rig_config",
     "parse_emulator_url",
+    "emulator_url_faults",
     "EMULATOR_KINDS",
     "CAMERA_DRIVERS",
 ]
@@ -59,12 +60,32 @@ _CAMERA_OPTIONS = {
 
 
 def parse_emulator_url(url: str) -> tuple[str, str] | None:
-    """``"emulator:grbl#a"`` → ``("grbl", "a")``; None for other URLs."""
+    """``"emulator:grbl#a"`` → ``("grbl", "a")``; None for other URLs. A query of faults
+    (``emulator:grbl#a?fault=babble:5000``, see :func:`emulator_url_faults`) is not part
+    of the kind or the tag."""
     if not isinstance(url, str) or not url.startswith("emulator:"):
         return None
-    rest = url[len("emulator:"):]
+    rest = url[len("emulator:"):].partition("?")[0]
     kind, _, tag = rest.partition("#")
     return kind, tag
+
+
+def emulator_url_faults(url: str) -> list[str]:
+    """The ``fault=KIND[:ARGS]`` entries of an ``emulator:`` URL's query, in order
+    (``emulator:grbl?fault=garble:2&fault=delay:0.1`` → ``["garble:2", "delay:0.1"]``).
+    Raises :class:`ConfigError` for another query key."""
+    if not isinstance(url, str) or "?" not in url:
+        return []
+    out = []
+    for item in url.partition("?")[2].split("&"):
+        if not item:
+            continue
+        key, eq, val = item.partition("=")
+        if key != "fault" or not eq:
+            raise ConfigError(f"{url!r}: unknown query {item!r} (expected fault=KIND[:ARGS], see "
+                              "docs/emulator-faults.md)")
+        out.append(val)
+    return out
 
 
 # --------------------------------------------------------------------------- dataclasses
@@ -286,6 +307,13 @@ class _Ctx:
             if k != kind:
                 raise self.err(f"{key}.url", f"{u!r} emulates a {k} device, but this device is a {kind} "
                                              f"(use emulator:{kind})")
+            from .emulators.faults import parse_fault
+
+            try:
+                for f in emulator_url_faults(u):
+                    parse_fault(f)
+            except ConfigError as e:
+                raise self.err(f"{key}.url", str(e)) from None
         return u
 
 

@@ -148,6 +148,7 @@ class EnttecDmx:
             self._require_open()
             self._take_unsolicited()  # flush: a late reply must not answer this request
             self.transport.write(frame)
+            mark = self.transport.mark()
             deadline = time.monotonic() + self.timeout_s
             while True:
                 remaining = deadline - time.monotonic()
@@ -166,8 +167,8 @@ class EnttecDmx:
                     raise DeviceTimeout(
                         f"{self.name}: no {what} reply (label {reply_label}) within {self.timeout_s:.2f} s on "
                         f"{self.url}" + (f" (last bad bytes: {bad[0].data[:24]!r})" if bad else "") +
-                        " — is it an Enttec DMX USB Pro (an Open DMX USB has no processor and never answers), "
-                        "plugged in, and not used by another program?")
+                        f"; {self.transport.heard_since(mark)} — is it an Enttec DMX USB Pro (an Open DMX USB has "
+                        "no processor and never answers), plugged in, and not used by another program?")
 
     def get_widget_parameters(self, user_config_size: int = 0) -> ep.WidgetParameters:
         """Label 3: firmware version, break/MAB times, output rate."""

@@ -384,42 +384,48 @@ class GrblController:
             self.transport.write(data)
             self._line_dirty = True
             pushes: list = []
-            deadline = time.monotonic() + (self.timeout_s if timeout_s is None else float(timeout_s))
-            while True:
-                try:
-                    raw = self._readline(deadline, f"reply to {text!r}")
-                except DeviceTimeout as e:
-                    raise self._explain_timeout(e) from None
-                try:
-                    r = gp.parse_response(raw)
-                except ProtocolError:
-                    raise ProtocolError(
-                        f"{self.name}: garbled reply {raw!r} to {text!r} on {self.url} — check the baud rate "
-                        f"({self.baudrate}), the USB cable and the grounding of the stepper supply") from None
-                if isinstance(r, gp.Ok):
-                    self._line_dirty = False
-                    return pushes
-                if isinstance(r, gp.GrblError):
-                    self._line_dirty = False
-                    raise GrblCommandError(
-                        f"{self.name}: {text!r} rejected with error:{r.code} ({r.meaning}) — {r.hint}",
-                        code=r.code, meaning=r.meaning, line=text)
-                if isinstance(r, gp.Alarm):
-                    self._note(r)
-                    raise self._alarm_error(r, doing=f"sending {text!r}")
-                if isinstance(r, gp.Banner):
-                    self._note(r)
-                    raise GrblInterrupted(
-                        f"{self.name}: the controller reset while {text!r} was pending (got {r.text!r}) — the line "
-                        "was discarded and the position may be lost; check its power supply and reset wiring",
-                        state="reset")
-                if isinstance(r, gp.Status):
-                    self._note(r)
-                    self._status_stale = False
-                    self.discarded.append(raw.rstrip(b"\r\n"))
-                    continue
+            t_line = self.timeout_s if timeout_s is None else float(timeout_s)
+            deadline = time.monotonic() + t_line
+            with self.transport.exchange(t_line, f"reply to {text!r}"):
+                return self._await_ok(text, deadline, pushes)
+
+    def _await_ok(self, text: str, deadline: float, pushes: list) -> list:
+        """The rest of :meth:`send_line`: lines until its ``ok`` (inside its exchange)."""
+        while True:
+            try:
+                raw = self._readline(deadline, f"reply to {text!r}")
+            except DeviceTimeout as e:
+                raise self._explain_timeout(e) from None
+            try:
+                r = gp.parse_response(raw)
+            except ProtocolError:
+                raise ProtocolError(
+                    f"{self.name}: garbled reply {raw!r} to {text!r} on {self.url} — check the baud rate "
+                    f"({self.baudrate}), the USB cable and the grounding of the stepper supply") from None
+            if isinstance(r, gp.Ok):
+                self._line_dirty = False
+                return pushes
+            if isinstance(r, gp.GrblError):
+                self._line_dirty = False
+                raise GrblCommandError(
+                    f"{self.name}: {text!r} rejected with error:{r.code} ({r.meaning}) — {r.hint}",
+                    code=r.code, meaning=r.meaning, line=text)
+            if isinstance(r, gp.Alarm):
                 self._note(r)
-                pushes.append(r)
+                raise self._alarm_error(r, doing=f"sending {text!r}")
+            if isinstance(r, gp.Banner):
+                self._note(r)
+                raise GrblInterrupted(
+                    f"{self.name}: the controller reset while {text!r} was pending (got {r.text!r}) — the line "
+                    "was discarded and the position may be lost; check its power supply and reset wiring",
+                    state="reset")
+            if isinstance(r, gp.Status):
+                self._note(r)
+                self._status_stale = False
+                self.discarded.append(raw.rstrip(b"\r\n"))
+                continue
+            self._note(r)
+            pushes.append(r)
 
     def _alarm_error(self, a: gp.Alarm | None, *, doing: str = "", axis: str | None = None,
                      requery: bool = True) -> GrblAlarm:
@@ -492,6 +498,13 @@ class GrblController:
 
     # ------------------------------------------------------------------ commands
     def _handshake(self, *, reset: bool) -> None:
+        mark = self.transport.mark()
+        # one overall deadline: a port that keeps sending lines (a babbling device, a
+        # wrong baud rate) cannot keep the handshake going
+        with self.transport.exchange(self.boot_timeout_s + self.timeout_s, "GRBL handshake"):
+            self._handshake_once(reset=reset, mark=mark)
+
+    def _handshake_once(self, *, reset: bool, mark) -> None:
         if not reset:
             deadline = time.monotonic() + self.boot_timeout_s
             asked = 0
@@ -522,9 +535,9 @@ class GrblController:
                 raw = self._readline(deadline, "GRBL welcome banner after a soft reset")
             except DeviceTimeout:
                 raise DeviceTimeout(
-                    f"{self.name}: no answer to '?' nor a welcome banner after a soft reset on {self.url} — check "
-                    f"that the controller is powered, runs GRBL 1.1 at {self.baudrate} baud, and that no other "
-                    "program holds the port") from None
+                    f"{self.name}: no answer to '?' nor a welcome banner after a soft reset on {self.url}; "
+                    f"{self.transport.heard_since(mark)} — check that the controller is powered, runs GRBL 1.1 at "
+                    f"{self.baudrate} baud, and that no other program holds the port") from None
             try:
                 r = gp.parse_response(raw)
             except ProtocolError:

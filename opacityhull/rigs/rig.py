@@ -21,7 +21,7 @@ import warnings
 from contextlib import contextmanager
 from typing import Callable, Iterator, Sequence
 
-from ..errors import CaptureInterrupted, ConfigError, DeviceError
+from ..errors import CaptureInterrupted, ConfigError, DeviceError, Terminated
 from .config import AxisConfig, CameraConfig, RigConfig, load_rig_config, parse_emulator_url
 from .protocols import CameraDevice, DeviceInfo
 from .transport import DeviceGone
@@ -276,7 +276,9 @@ class HardwareRig:
                                       "switch the lights and displays off and stop the motors by hand")
                 warnings.warn(f"rig {self.name}: clean-up incomplete: {text}", RuntimeWarning, stacklevel=3)
             if pending and ok:
-                raise KeyboardInterrupt
+                if pending[0] == signal.SIGINT:
+                    raise KeyboardInterrupt
+                raise Terminated(pending[0])
 
     # ---- queries
     def check(self) -> list[DeviceInfo]:
@@ -345,15 +347,26 @@ def _sigint_deferred():
     if threading.current_thread() is not threading.main_thread():
         yield pending
         return
+    # SIGTERM/SIGHUP too: a capture turns them into an interrupt (acquire.runner), and
+    # one arriving mid-clean-up must not cut the lights-off short either
+    sigs = [s for s in (signal.SIGINT, getattr(signal, "SIGTERM", None), getattr(signal, "SIGHUP", None))
+            if s is not None]
+    old = {}
     try:
-        old = signal.signal(signal.SIGINT, lambda signum, frame: pending.append(signum))
+        for s in sigs:
+            if s != signal.SIGINT and signal.getsignal(s) is signal.SIG_IGN:
+                continue  # ignored on purpose (nohup): stays ignored
+            old[s] = signal.signal(s, lambda signum, frame: pending.append(signum))
     except ValueError:  # not the main interpreter
+        for s, h in old.items():
+            signal.signal(s, h)
         yield pending
         return
     try:
         yield pending
     finally:
-        signal.signal(signal.SIGINT, old)
+        for s, h in old.items():
+            signal.signal(s, h)
 
 
 def _safe_check(dev) -> DeviceInfo:

@@ -48,6 +48,10 @@ URL_SCHEMES = ("socket://", "loop://", "rfc2217://", "/dev/", "COM")
 #: Longest single wait inside a read loop; bounds how late a deadline is noticed.
 _POLL_S = 0.05
 
+#: Most bytes kept unread in the receive buffer. A babbling port (wrong baud rate)
+#: would otherwise grow it without bound, and every terminator search with it.
+_MAX_RXBUF = 1 << 16
+
 
 class DeviceTimeout(DeviceError):
     """The device did not answer (completely) within the timeout."""
@@ -109,6 +113,9 @@ class SerialTransport:
         self._rxbuf = bytearray()
         self.bytes_written = 0
         self.bytes_read = 0
+        self._deadline: float | None = None  # of the current exchange (see exchange())
+        self._deadline_what = ""
+        self._deadline_mark: tuple[int, float] = (0, 0.0)
 
     # ---- lifecycle
     @property
@@ -199,6 +206,33 @@ class SerialTransport:
             raise DeviceTimeout(f"{self.name}: wrote {n} of {len(data)} bytes to {self.url} — is the device hung?")
         self.bytes_written += len(data)
 
+    # ---- exchanges: one overall deadline
+    def exchange(self, timeout_s: float, what: str = "exchange") -> "_Exchange":
+        """``with transport.exchange(T, "reply to $I"):`` — every read inside ends by
+        ``T`` seconds from now, whatever its own timeout and however many lines arrive,
+        so no stream of bytes (a babbling device, a wrong baud rate) can hold a command
+        past it. Nested exchanges keep the earliest deadline."""
+        return _Exchange(self, float(timeout_s), what)
+
+    def _clamp(self, deadline: float) -> float:
+        d = self._deadline
+        return deadline if d is None else min(deadline, d)
+
+    def mark(self) -> tuple[int, float]:
+        """A point to measure :meth:`heard_since` from."""
+        return (self.bytes_read, time.monotonic())
+
+    def heard_since(self, mark: tuple[int, float]) -> str:
+        """How to read a failed exchange: bytes came that never parsed (a wrong baud
+        rate, a babbling device, noise on the line) — or not a single byte (silent:
+        power, cable, wrong port)."""
+        n = self.bytes_read - mark[0]
+        dt = time.monotonic() - mark[1]
+        if n > 0:
+            return (f"{n} byte(s) arrived in {dt:.2f} s but none formed a valid reply: garbled — check the baud "
+                    f"rate ({self.baudrate}), the cable and for electrical noise")
+        return f"not a single byte arrived in {dt:.2f} s: silent — is it powered, connected and on this port?"
+
     # ---- reading
     def _read_now(self) -> bytes:
         """Everything the OS has for us right now (non-blocking)."""
@@ -212,6 +246,8 @@ class SerialTransport:
         if chunk:
             self._rxbuf += chunk
             self.bytes_read += len(chunk)
+            if len(self._rxbuf) > _MAX_RXBUF:  # keep the newest: a reply ends the buffer
+                del self._rxbuf[: len(self._rxbuf) - _MAX_RXBUF]
         return chunk
 
     def _fill(self, deadline: float) -> bool:
@@ -228,10 +264,21 @@ class SerialTransport:
             time.sleep(min(wait, 0.002))
         return bool(self._read_now())
 
+    def _drain(self) -> None:
+        """Take in what is waiting — but not for ever: a device that sends as fast as we
+        read (a babbling port) would otherwise hold this loop as long as it babbles."""
+        end = self._clamp(time.monotonic() + _POLL_S)
+        got = 0
+        while True:
+            chunk = self._read_now()
+            got += len(chunk)
+            if not chunk or got >= _MAX_RXBUF or time.monotonic() >= end:
+                return
+
     def read_some(self, *, timeout_s: float | None = None) -> bytes:
         """Whatever arrives first (at least one byte), or ``b''`` when nothing came within the timeout."""
         t = self.timeout_s if timeout_s is None else timeout_s
-        deadline = time.monotonic() + t
+        deadline = self._clamp(time.monotonic() + t)
         while not self._rxbuf:
             self._fill(deadline)
             if self._rxbuf or time.monotonic() >= deadline:
@@ -244,7 +291,9 @@ class SerialTransport:
         """Bytes up to and including ``terminator``; raises :class:`DeviceTimeout` (with the
         partial data in the message) when it does not arrive in time."""
         t = self.timeout_s if timeout_s is None else timeout_s
-        deadline = time.monotonic() + t
+        start = time.monotonic()
+        deadline = self._clamp(start + t)
+        mark = self.mark()
         last_look = False
         while True:
             i = self._rxbuf.find(terminator)
@@ -254,10 +303,13 @@ class SerialTransport:
                 return out
             if last_look:
                 partial = bytes(self._rxbuf)
+                clamped = deadline < start + t
                 raise DeviceTimeout(
-                    f"{self.name}: no {what} within {t:.2f} s on {self.url}"
-                    + (f" (partial: {partial[:40]!r})" if partial else "")
-                    + " — is it powered, connected and set to the right baud rate?"
+                    f"{self.name}: no {what} within {deadline - start:.2f} s on {self.url}"
+                    + (f" (the overall deadline of {self._deadline_what})" if clamped else "")
+                    + (f" (partial: {partial[-40:]!r})" if partial else "")
+                    # over a whole exchange, every line that came and was refused counts
+                    + f" — {self.heard_since(self._deadline_mark if clamped else mark)}"
                 )
             if time.monotonic() >= deadline:
                 self._read_now()  # what arrived while we were busy still counts
@@ -267,7 +319,7 @@ class SerialTransport:
 
     def read_exact(self, n: int, *, timeout_s: float | None = None, what: str = "reply") -> bytes:
         t = self.timeout_s if timeout_s is None else timeout_s
-        deadline = time.monotonic() + t
+        deadline = self._clamp(time.monotonic() + t)
         while len(self._rxbuf) < n:
             if time.monotonic() >= deadline:
                 self._read_now()
@@ -288,16 +340,14 @@ class SerialTransport:
         Also how a vanished port is noticed without writing: a closed TCP peer or a
         hung-up pty raises :class:`DeviceGone` here.
         """
-        while self._read_now():
-            pass
+        self._drain()
         out = bytes(self._rxbuf)
         self._rxbuf.clear()
         return out
 
     def pending_lines(self, terminator: bytes = b"\n") -> list[bytes]:
         """Complete lines already received (no waiting); a partial line stays buffered."""
-        while self._read_now():
-            pass
+        self._drain()
         lines = []
         while True:
             i = self._rxbuf.find(terminator)
@@ -316,9 +366,31 @@ class SerialTransport:
         self.flush_input()
         self.write(data)
         t = self.timeout_s if timeout_s is None else timeout_s
-        deadline = time.monotonic() + t
-        while True:
-            remaining = max(0.0, deadline - time.monotonic())
-            line = self.read_until(terminator, timeout_s=remaining, what=what)
-            if accept is None or accept(line):
-                return line
+        with self.exchange(t, what):  # lines that accept() refuses cannot extend it
+            while True:
+                line = self.read_until(terminator, timeout_s=t, what=what)
+                if accept is None or accept(line):
+                    return line
+
+
+class _Exchange:
+    """Context manager of :meth:`SerialTransport.exchange`."""
+
+    def __init__(self, transport: SerialTransport, timeout_s: float, what: str):
+        self.t = transport
+        self.timeout_s = timeout_s
+        self.what = what
+        self._saved: tuple = (None, "")
+
+    def __enter__(self) -> "_Exchange":
+        t = self.t
+        self._saved = (t._deadline, t._deadline_what, t._deadline_mark)
+        d = time.monotonic() + self.timeout_s
+        if t._deadline is None or d < t._deadline:
+            t._deadline, t._deadline_what = d, f"{self.what} ({self.timeout_s:g} s)"
+            t._deadline_mark = t.mark()
+        return self
+
+    def __exit__(self, *exc):
+        self.t._deadline, self.t._deadline_what, self.t._deadline_mark = self._saved
+        return False

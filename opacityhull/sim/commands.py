@@ -7,6 +7,7 @@ from pathlib import Path
 from typing import Optional
 
 import typer
+from rich.markup import escape
 
 from ..cliutil import cli_errors, console, emit
 
@@ -161,7 +162,7 @@ def register(app, groups) -> None:
                                          f"{p['integrator']} d{p['max_depth']} {p['spp']} spp" for p in s["passes"])
                                or "none (nothing emits)")
                             + f"; mean radiance {s['mean_radiance']:.4g}" + (f" → {s['out']}" if s["out"] else ""),
-                            highlight=False)
+                            highlight=False, markup=False)
 
         emit(summary, json_out, human)
 
@@ -173,22 +174,36 @@ def register(app, groups) -> None:
                                                        "or groundtruth."),
         json_out: bool = typer.Option(False, "--json", help="Print the selection as one JSON line."),
     ):
-        """Say which effects the simulator renders for a scene in a capture phase, and why."""
-        from .effects import select_effects
+        """Say which effects the simulator renders for a scene in a capture phase, and why;
+        its expected cost relative to the full-effects reference, and the Mitsuba variant."""
+        from .effects import expected_cost, select_effects
         from .scenes import load_scene
+        from .variants import variant_report
 
         sc = load_scene(scene)
         cfg = select_effects(sc, phase)
-        summary = {"scene": sc.source, **cfg.to_json()}
+        summary = {"scene": sc.source, **cfg.to_json(), "expected_cost": expected_cost(sc, phase),
+                   "variant": variant_report()}
 
         def human(s):
             c = console()
-            c.print(f"[bold]{s['scene']}[/] — phase [bold]{s['phase']}[/]: {s['integrator']} "
+            c.print(f"[bold]{escape(str(s['scene']))}[/] — phase [bold]{s['phase']}[/]: {s['integrator']} "
                     f"(max_depth {s['max_depth']}), {s['spp']} spp ({s['sampler']}), "
                     f"emitters {s['emitters'] or 'none'}, shapes {s['shapes']}; promises {s['error_metric']} "
                     f"<= {s['error_bound']} against the full-effects reference")
+            ec = s["expected_cost"]
+            if ec.get("vs_reference") == 0:
+                c.print(f"  expected cost: nothing is rendered (provably black; {ec['measured']})", highlight=False)
+            elif ec.get("vs_reference") is not None:
+                c.print(f"  expected cost: {ec['vs_reference']:.2f}x the reference's time "
+                        f"({1.0 / ec['vs_reference']:.1f}x faster; {ec['measured']})", highlight=False)
+            else:
+                c.print(f"  expected cost: not measured ({ec['measured']})", highlight=False)
+            v = s["variant"]
+            c.print(f"  Mitsuba variant: {v['variant']}{' (GPU)' if v['gpu'] else ''} — {v['source']}",
+                    highlight=False)
             for r in s["reasons"]:
-                c.print(f"  • {r}", highlight=False)
+                c.print(f"  • {r}", highlight=False, markup=False)
 
         emit(summary, json_out, human)
 
@@ -204,5 +219,5 @@ def register(app, groups) -> None:
             items.append({"name": f"builtin:{n}", "description": s.description,
                           "effect_classes": sorted(s.effect_classes), "parts": [p.kind for p in s.parts]})
         emit({"scenes": items}, json_out,
-             lambda s: [console().print(f"[bold]{i['name']}[/]: {i['description']}", highlight=False)
+             lambda s: [console().print(f"[bold]{escape(i['name'])}[/]: {escape(i['description'])}", highlight=False)
                         for i in s["scenes"]])

@@ -45,7 +45,8 @@ from typing import Any, Mapping
 from ..errors import ConfigError
 from .scenes import SceneSpec
 
-__all__ = ["EffectConfig", "select_effects", "reference_effects", "backdrop_only_effects", "PHASES",
+__all__ = ["EffectConfig", "select_effects", "reference_effects", "backdrop_only_effects", "scene_kind", "expected_cost",
+           "MEASURED_COST", "BACKDROP_SPP", "PHASES",
            "ERROR_METRICS", "PHASE_EMITTERS"]
 
 #: Phases the simulator knows; the first five are capture phases of ``acquire``.
@@ -76,7 +77,15 @@ PHASE_EMITTERS = {
 }
 
 _INTEGRATORS = ("direct", "path", "aov")
-_OVERRIDABLE = ("integrator", "max_depth", "spp", "emitters", "shapes", "resolution_scale", "sampler")
+_OVERRIDABLE = ("integrator", "max_depth", "spp", "emitters", "shapes", "resolution_scale", "sampler", "crop",
+                "backdrop_spp")
+
+#: Samples per pixel of the backdrop-only shots (nothing on the table) of a selection:
+#: depth 1 is exact at any spp; the samples only anti-alias the panels' texel edges.
+#: Measured (matting, camera 2 of the default rig, 200x150, 256-spp reference): alpha
+#: error 0.0093 / 0.0106 / 0.0150 (sphere) and 0.0095 / 0.0104 / 0.0149 (cup) with the
+#: backdrops at 64 / 16 / 4 spp, bounds 0.025.
+BACKDROP_SPP = 16
 
 
 @dataclass(frozen=True)
@@ -107,6 +116,14 @@ class EffectConfig:
     skipped : tuple of str
         Emitter groups that may be switched on in this phase but provably add nothing
         to the image (exactly 0): they are not rendered.
+    backdrop_spp : int or None
+        Samples per pixel of the backdrop-only shots of this selection
+        (:func:`backdrop_only_effects`); None: ``spp``.
+    crop : bool
+        Render only the window of pixels whose camera rays can meet what stands on the
+        table (its projected bounding box plus the pixel filter's support); the rest of
+        the frame is exact without it — the backdrop-only render (displays) or black
+        (lights). The same estimator inside the window (:mod:`opacityhull.sim.render`).
     """
 
     integrator: str
@@ -121,6 +138,8 @@ class EffectConfig:
     error_metric: str = "rel_mae"
     error_bound: float = 0.05
     skipped: tuple[str, ...] = ()
+    crop: bool = True
+    backdrop_spp: int | None = None
 
     def key(self) -> tuple:
         """What determines the Mitsuba scene's structure and kernels (cache key)."""
@@ -139,6 +158,8 @@ class EffectConfig:
             "error_metric": self.error_metric,
             "error_bound": self.error_bound,
             "skipped": list(self.skipped),
+            "crop": self.crop,
+            "backdrop_spp": self.backdrop_spp,
             "reasons": list(self.reasons),
         }
 
@@ -165,9 +186,6 @@ def select_effects(scene: SceneSpec, phase: str, *, overrides: Mapping[str, Any]
         Unknown phase or override key, or an invalid override value.
     """
     _check_phase(phase)
-    classes = scene.effect_classes
-    transmissive = "transmissive" in classes
-    glossy = "glossy" in classes
     fine = scene.has_fibres
     board = scene.is_board or phase == "calibration"
     reasons: list[str] = []
@@ -182,7 +200,7 @@ def select_effects(scene: SceneSpec, phase: str, *, overrides: Mapping[str, Any]
             reasons.append("fibres thinner than a pixel: stratified sampling keeps their fractional coverage "
                            "within ~0.02 per covered pixel at 64 spp (256 spp halves it at 2.5x the time)")
         cfg = EffectConfig("aov", 1, spp, (), ("object",), 1.0, (), "stratified", phase, metric,
-                           0.04 if fine else 0.01)
+                           0.04 if fine else 0.01, crop=False)
         return _apply_overrides(replace(cfg, reasons=tuple(reasons)), overrides)
 
     # --- emitters and shapes
@@ -209,16 +227,7 @@ def select_effects(scene: SceneSpec, phase: str, *, overrides: Mapping[str, Any]
 
     # --- integrator, depth, samples: a table measured by benchmarks/sim_effects.py
     # (errors against path tracing at depth 16, 1024 spp; see _TABLE)
-    if phase == "calibration":
-        kind = "board"
-    elif board or not (transmissive or fine or glossy):
-        kind = "diffuse"  # a board captured outside calibration is diffuse paper
-    elif transmissive:
-        kind = "transmissive"
-    elif fine:
-        kind = "fibres"
-    else:
-        kind = "glossy"
+    kind = scene_kind(scene, phase)
     group = "calibration" if phase == "calibration" else ("backdrop" if phase in ("matting", "envmatte") else "lights")
     if phase == "matting" and kind == "fibres":
         row = _FIBRES_MATTING
@@ -227,9 +236,49 @@ def select_effects(scene: SceneSpec, phase: str, *, overrides: Mapping[str, Any]
     integrator, depth, spp, bound, why = row
     reasons.extend(why)
     reasons.append(f"stratified samples ({spp} = {int(round(spp ** 0.5))}x{int(round(spp ** 0.5))} per pixel)")
+    reasons.append("only the pixels whose rays can meet the " + ("board" if board else "object")
+                   + " are rendered (its projected bounding box + the box filter's 0.5 px support; pinhole: no "
+                   "depth of field); every other ray sees only the panels: the exact backdrop-only render (path "
+                   "depth 1) where they emit, exactly 0 under the lights")
+    if phase in ("matting", "envmatte"):
+        reasons.append(f"backdrop-only shots (nothing on the table): path depth 1, exact at any spp; "
+                       f"{BACKDROP_SPP} spp anti-alias the panels' texel edges (measured: the matte error rises "
+                       f"0.0093 -> 0.0106 from 64 spp, at a quarter of the samples)")
     cfg = EffectConfig(integrator, depth, spp, emitters, shapes, 1.0, tuple(reasons), "stratified", phase,
-                       metric, bound[phase] if isinstance(bound, dict) else bound, skipped)
+                       metric, bound[phase] if isinstance(bound, dict) else bound, skipped,
+                       backdrop_spp=min(BACKDROP_SPP, spp))
     return _apply_overrides(cfg, overrides)
+
+
+def scene_kind(scene: SceneSpec, phase: str) -> str:
+    """The row of the measured selection table a scene falls in: ``board`` (calibration),
+    ``diffuse``, ``transmissive``, ``fibres`` or ``glossy``."""
+    classes = scene.effect_classes
+    if phase == "calibration":
+        return "board"
+    if scene.is_board or not ({"transmissive", "glossy"} & classes or scene.has_fibres):
+        return "diffuse"  # a board captured outside calibration is diffuse paper
+    if "transmissive" in classes:
+        return "transmissive"
+    if scene.has_fibres:
+        return "fibres"
+    return "glossy"
+
+
+def expected_cost(scene: SceneSpec, phase: str) -> dict:
+    """Expected time of the selection relative to the full-effects reference for
+    ``phase``, as measured by ``benchmarks/sim_effects.py`` (:data:`MEASURED_COST`): the
+    built-in scene's own figure, else the worst figure among built-ins of the same
+    :func:`scene_kind`. Returns ``{"vs_reference": float | None, "measured": str}``."""
+    _check_phase(phase)
+    name = scene.source.split(":", 1)[1] if scene.source.startswith("builtin:") else None
+    if name is not None and (name, phase) in MEASURED_COST:
+        return {"vs_reference": MEASURED_COST[(name, phase)], "measured": f"{MEASURED_COST_SOURCE}, builtin:{name}"}
+    kind = scene_kind(scene, phase)
+    same = [v for (n, ph), v in MEASURED_COST.items() if ph == phase and _BUILTIN_KIND.get((n, ph)) == kind]
+    if not same:
+        return {"vs_reference": None, "measured": f"no built-in scene of kind {kind!r} measured in {phase}"}
+    return {"vs_reference": max(same), "measured": f"{MEASURED_COST_SOURCE}, worst built-in of kind {kind!r}"}
 
 
 def backdrop_only_effects(cfg: EffectConfig) -> EffectConfig:
@@ -240,16 +289,19 @@ def backdrop_only_effects(cfg: EffectConfig) -> EffectConfig:
     ray either hits an emitting panel (its radiance, depth 1) or something black, and no
     bounce can add anything, so ``path`` at ``max_depth`` 1 is *exact* — the same
     expected image as any deeper integrator — and the light array adds exactly nothing
-    (``skipped``). The samples per pixel and the sampler stay those of ``cfg``, so the
-    panel's pixel edges are anti-aliased like the backdrop around the object in the
-    object-present shot.
+    (``skipped``). The sampler stays that of ``cfg``; the samples per pixel are
+    ``cfg.backdrop_spp`` (at most ``cfg.spp``; the selections' :data:`BACKDROP_SPP`,
+    measured within the matting bounds) — they only anti-alias the panels' texel edges.
+    The reference (``backdrop_spp`` None) keeps its own spp.
     """
     if cfg.integrator == "aov":
         return cfg
     reasons = cfg.reasons + (
         "nothing on the table: only the emitting panels are seen (black everywhere else, nothing to bounce "
         "off) — path depth 1 is exact; the light array adds nothing and is not rendered",)
-    return replace(cfg, integrator="path", max_depth=1, emitters=tuple(e for e in cfg.emitters if e == "displays"),
+    spp = cfg.spp if cfg.backdrop_spp is None else min(cfg.spp, int(cfg.backdrop_spp))
+    return replace(cfg, integrator="path", max_depth=1, spp=spp, crop=False,
+                   emitters=tuple(e for e in cfg.emitters if e == "displays"),
                    shapes=("displays",), skipped=tuple(sorted(set(cfg.skipped) | {"light_array"})),
                    reasons=reasons)
 
@@ -304,9 +356,9 @@ def reference_effects(scene: SceneSpec, phase: str, *, spp: int = 512) -> Effect
         return replace(sel, spp=spp, reasons=("reference: aov at high spp",))
     # every emitter group of the phase, including those the selection proves black
     return replace(sel, integrator="path", max_depth=16, spp=spp, sampler="independent",
-                   emitters=PHASE_EMITTERS[phase], skipped=(),
+                   emitters=PHASE_EMITTERS[phase], skipped=(), crop=False, backdrop_spp=None,
                    reasons=("reference: path tracing, max_depth 16, high spp (independent samples), every emitter "
-                            "group of the phase",))
+                            "group of the phase, the whole frame",))
 
 
 def _apply_overrides(cfg: EffectConfig, overrides: Mapping[str, Any] | None) -> EffectConfig:
@@ -319,12 +371,14 @@ def _apply_overrides(cfg: EffectConfig, overrides: Mapping[str, Any] | None) -> 
     for k, v in overrides.items():
         if k == "integrator" and v not in _INTEGRATORS:
             raise ConfigError(f"effect overrides: integrator {v!r}; expected one of {list(_INTEGRATORS)}")
-        if k in ("max_depth", "spp") and (isinstance(v, bool) or not isinstance(v, int) or v < 1):
+        if k in ("max_depth", "spp", "backdrop_spp") and (isinstance(v, bool) or not isinstance(v, int) or v < 1):
             raise ConfigError(f"effect overrides: {k} must be a positive integer, got {v!r}")
         if k == "resolution_scale" and (isinstance(v, bool) or not isinstance(v, (int, float)) or not 0 < v <= 8):
             raise ConfigError(f"effect overrides: resolution_scale must be in (0, 8], got {v!r}")
         if k == "sampler" and v not in ("independent", "stratified"):
             raise ConfigError(f"effect overrides: sampler {v!r}; expected 'independent' or 'stratified'")
+        if k == "crop" and not isinstance(v, bool):
+            raise ConfigError(f"effect overrides: crop must be true or false, got {v!r}")
         if k in ("emitters", "shapes"):
             v = tuple(v)
         kw[k] = v
@@ -336,3 +390,73 @@ def _apply_overrides(cfg: EffectConfig, overrides: Mapping[str, Any] | None) -> 
         out = replace(out, sampler="independent",
                       reasons=out.reasons + (f"{out.spp} spp is not a square: independent samples",))
     return out
+
+
+#: Where :data:`MEASURED_COST` comes from.
+MEASURED_COST_SOURCE = "benchmarks/out/sim_effects.md (camera 2 of the default rig, 200x150, contended 2-core machine)"
+
+#: (built-in scene, phase) -> time of the selection / time of the reference (path depth
+#: 16, whole frame) at equal error where measured (the reference's spp interpolated to the
+#: selection's error), else at 256 spp; CPU seconds, one measurement each on a contended
+#: machine (single runs vary by up to ~2x). 0: nothing is rendered (provably black).
+#: ``.venv/bin/python benchmarks/sim_effects.py --ref-spp 256 --scales 1 --json``.
+MEASURED_COST: dict[tuple[str, str], float] = {
+    ('charuco', 'calibration'): 0.081,
+    ('charuco', 'groundtruth'): 0.103,
+    ('diffuse', 'envmatte'): 1.053,
+    ('diffuse', 'groundtruth'): 0.128,
+    ('diffuse', 'lightfield'): 0.757,
+    ('diffuse', 'matting'): 0.129,
+    ('diffuse', 'reflectance'): 0.398,
+    ('fuzzy', 'envmatte'): 0.907,
+    ('fuzzy', 'groundtruth'): 0.087,
+    ('fuzzy', 'lightfield'): 0.542,
+    ('fuzzy', 'matting'): 0.268,
+    ('fuzzy', 'reflectance'): 0.467,
+    ('glass', 'envmatte'): 1.789,
+    ('glass', 'groundtruth'): 0.112,
+    ('glass', 'lightfield'): 0.0,
+    ('glass', 'matting'): 0.583,
+    ('glass', 'reflectance'): 0.0,
+    ('glossy', 'envmatte'): 1.853,
+    ('glossy', 'groundtruth'): 0.148,
+    ('glossy', 'lightfield'): 0.44,
+    ('glossy', 'matting'): 0.809,
+    ('glossy', 'reflectance'): 0.317,
+    ('sphere', 'envmatte'): 1.378,
+    ('sphere', 'groundtruth'): 0.113,
+    ('sphere', 'lightfield'): 0.334,
+    ('sphere', 'matting'): 0.758,
+    ('sphere', 'reflectance'): 0.123,
+}
+
+#: (built-in scene, phase) -> scene_kind, for scenes that are not built-ins.
+_BUILTIN_KIND: dict[tuple[str, str], str] = {
+    ('charuco', 'calibration'): 'board',
+    ('charuco', 'groundtruth'): 'diffuse',
+    ('diffuse', 'envmatte'): 'diffuse',
+    ('diffuse', 'groundtruth'): 'diffuse',
+    ('diffuse', 'lightfield'): 'diffuse',
+    ('diffuse', 'matting'): 'diffuse',
+    ('diffuse', 'reflectance'): 'diffuse',
+    ('fuzzy', 'envmatte'): 'fibres',
+    ('fuzzy', 'groundtruth'): 'fibres',
+    ('fuzzy', 'lightfield'): 'fibres',
+    ('fuzzy', 'matting'): 'fibres',
+    ('fuzzy', 'reflectance'): 'fibres',
+    ('glass', 'envmatte'): 'transmissive',
+    ('glass', 'groundtruth'): 'transmissive',
+    ('glass', 'lightfield'): 'transmissive',
+    ('glass', 'matting'): 'transmissive',
+    ('glass', 'reflectance'): 'transmissive',
+    ('glossy', 'envmatte'): 'glossy',
+    ('glossy', 'groundtruth'): 'glossy',
+    ('glossy', 'lightfield'): 'glossy',
+    ('glossy', 'matting'): 'glossy',
+    ('glossy', 'reflectance'): 'glossy',
+    ('sphere', 'envmatte'): 'diffuse',
+    ('sphere', 'groundtruth'): 'diffuse',
+    ('sphere', 'lightfield'): 'diffuse',
+    ('sphere', 'matting'): 'diffuse',
+    ('sphere', 'reflectance'): 'diffuse',
+}

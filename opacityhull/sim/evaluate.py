@@ -21,7 +21,8 @@ reference's own Monte-Carlo noise is part of the measured error. Used by
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from typing import Callable, Sequence
 
 import numpy as np
 
@@ -46,6 +47,9 @@ class PhaseError:
     seconds_reference: float
     selected: EffectConfig
     reference: EffectConfig
+    #: (configuration, error, seconds) of further configurations measured against the
+    #: same reference images (``phase_error(also=...)``), e.g. the reference at low spp
+    also: tuple = field(default=())
 
     @property
     def within_bound(self) -> bool:
@@ -57,7 +61,9 @@ class PhaseError:
                 "seconds_reference": self.seconds_reference, "speedup": self.seconds_reference
                 / max(self.seconds_selected, 1e-9), "selected": self.selected.to_json(),
                 "reference": {"integrator": self.reference.integrator, "max_depth": self.reference.max_depth,
-                              "spp": self.reference.spp}}
+                              "spp": self.reference.spp},
+                "also": [{"integrator": c.integrator, "max_depth": c.max_depth, "spp": c.spp, "crop": c.crop,
+                          "error": e, "seconds": t} for c, e, t in self.also]}
 
 
 def eval_camera(width: int = 64, height: int = 48, *, elevation_deg: float = 30.0, distance_m: float = 0.6,
@@ -142,15 +148,19 @@ def rel_mae(a: np.ndarray, ref: np.ndarray, mask: np.ndarray) -> float:
     return float(d.sum() / s)
 
 
+_clock: Callable[[], float] = time.perf_counter
+
+
 def _timed(fn):
-    t0 = time.perf_counter()
+    t0 = _clock()
     out = fn()
-    return out, time.perf_counter() - t0
+    return out, _clock() - t0
 
 
 def phase_error(scene: SceneSpec, phase: str, *, geometry: RigGeometry, camera: Camera | None = None,
                 ref_spp: int = 256, seed: int = 0, table_deg: float = 20.0, renderer: SimRenderer | None = None,
-                warm: bool = False, selected: EffectConfig | None = None) -> PhaseError:
+                warm: bool = False, selected: EffectConfig | None = None,
+                also: Sequence[EffectConfig] = (), clock: Callable[[], float] | None = None) -> PhaseError:
     """Error of the effect selection for ``phase`` against the reference (see module doc).
 
     Parameters
@@ -162,7 +172,23 @@ def phase_error(scene: SceneSpec, phase: str, *, geometry: RigGeometry, camera: 
     ref_spp : reference samples per pixel (groundtruth: coverage reference uses 4× this).
     warm : render each configuration before timing (keeps JIT compilation out).
     selected : measure this configuration instead of the selection.
+    also : further configurations measured against the same reference images (warm
+        like the selection when ``warm``); their errors and times land in ``.also``.
+    clock : what the seconds are measured with (default wall time,
+        ``time.perf_counter``; ``time.process_time`` gives the CPU time of this process,
+        all of Mitsuba's threads — steadier on a machine shared with other jobs).
     """
+    global _clock
+    previous, _clock = _clock, (clock or time.perf_counter)
+    try:
+        return _phase_error(scene, phase, geometry=geometry, camera=camera, ref_spp=ref_spp, seed=seed,
+                            table_deg=table_deg, renderer=renderer, warm=warm, selected=selected, also=also)
+    finally:
+        _clock = previous
+
+
+def _phase_error(scene, phase, *, geometry, camera, ref_spp, seed, table_deg, renderer, warm, selected,
+                 also) -> PhaseError:
     from .groundtruth import render_ground_truth
 
     r = renderer or SimRenderer(scene, geometry)
@@ -176,13 +202,18 @@ def phase_error(scene: SceneSpec, phase: str, *, geometry: RigGeometry, camera: 
 
     if phase == "groundtruth":
         ref_a = render_ground_truth(scene, view, spp=4 * ref_spp, renderer=r, seed=seed + 7)["alpha"]
-        if warm:
-            render_ground_truth(scene, view, spp=sel.spp, renderer=r, seed=seed + 1)
-        sel_a, t_sel = _timed(lambda: render_ground_truth(scene, view, spp=sel.spp, renderer=r, seed=seed)["alpha"])
-        _, t_ref = _timed(lambda: render_ground_truth(scene, view, spp=4 * ref_spp, renderer=r, seed=seed + 3))
         mask = coverage_mask(ref_a)
-        err = float(np.abs(sel_a - ref_a)[mask].mean()) if mask.any() else 0.0
-        return PhaseError(scene.source, phase, sel.error_metric, err, sel.error_bound, t_sel, t_ref, sel, ref)
+
+        def gt_err(cfg, s0):
+            if warm:
+                render_ground_truth(scene, view, spp=cfg.spp, renderer=r, seed=s0 + 1)
+            a, t = _timed(lambda: render_ground_truth(scene, view, spp=cfg.spp, renderer=r, seed=s0)["alpha"])
+            return (float(np.abs(a - ref_a)[mask].mean()) if mask.any() else 0.0), t
+
+        err, t_sel = gt_err(sel, seed)
+        _, t_ref = _timed(lambda: render_ground_truth(scene, view, spp=4 * ref_spp, renderer=r, seed=seed + 3))
+        extra = tuple((c, *gt_err(c, seed + 50 + i)) for i, c in enumerate(also))
+        return PhaseError(scene.source, phase, sel.error_metric, err, sel.error_bound, t_sel, t_ref, sel, ref, extra)
 
     if phase == "calibration":
         boards = [p.charuco for p in scene.parts if p.kind == "board"]
@@ -219,8 +250,17 @@ def phase_error(scene: SceneSpec, phase: str, *, geometry: RigGeometry, camera: 
     mask = coverage_mask(cov)
 
     def run(cfg: EffectConfig, s0: int):
-        # no radiance cache: every render is timed and has its own noise
-        return [r.render(camera, st, effects=cfg, seed=s0 + k, use_cache=False) for k, st in enumerate(states)]
+        # As a capture runs: backdrop-only shots first, each state rendered once from an
+        # empty radiance cache, so the only reuse is what a capture reuses too — a
+        # cropped object shot takes its outside pixels from the backdrop shot of the
+        # same displays (sim/render.py, "Crop"). Every render is timed.
+        r.clear_radiance_cache()
+        order = sorted(range(len(states)), key=lambda k: states[k].content != "none")
+        out: list = [None] * len(states)
+        for k in order:
+            out[k] = r.render(camera, states[k], effects=cfg, seed=s0 + k, use_cache=True)
+        r.clear_radiance_cache()
+        return out
 
     if warm:  # the selection twice: the first launch of a cached kernel still costs extra
         run(sel, seed + 100)
@@ -228,12 +268,20 @@ def phase_error(scene: SceneSpec, phase: str, *, geometry: RigGeometry, camera: 
         run(ref, seed + 200)
     out_sel, t_sel = _timed(lambda: run(sel, seed))
     out_ref, t_ref = _timed(lambda: run(ref, seed + 1000))
-    if phase == "matting":
-        a_sel = triangulation_alpha(*out_sel)
-        a_ref = triangulation_alpha(*out_ref)
-        err = float(np.abs(a_sel - a_ref)[mask].mean()) if mask.any() else 0.0
-    elif phase == "calibration":
-        err = corner_error(out_sel[0], out_ref[0], charuco)
-    else:
-        err = rel_mae(out_sel[0], out_ref[0], mask)
-    return PhaseError(scene.source, phase, sel.error_metric, err, sel.error_bound, t_sel, t_ref, sel, ref)
+
+    def error(out) -> float:
+        if phase == "matting":
+            a_ref = triangulation_alpha(*out_ref)
+            return float(np.abs(triangulation_alpha(*out) - a_ref)[mask].mean()) if mask.any() else 0.0
+        if phase == "calibration":
+            return corner_error(out[0], out_ref[0], charuco)
+        return rel_mae(out[0], out_ref[0], mask)
+
+    extra = []
+    for i, c in enumerate(also):
+        if warm:
+            run(c, seed + 300 + i)
+        out_c, t_c = _timed(lambda c=c, i=i: run(c, seed + 2000 + 10 * i))
+        extra.append((c, error(out_c), t_c))
+    return PhaseError(scene.source, phase, sel.error_metric, error(out_sel), sel.error_bound, t_sel, t_ref, sel, ref,
+                      tuple(extra))

@@ -39,6 +39,23 @@ with the table empty only the emitting panels are visible (path depth 1, no ligh
 passes: :func:`~opacityhull.sim.effects.backdrop_only_effects`); point lights on an
 object made only of delta BSDFs show nothing.
 
+Crop. A camera ray that cannot meet what stands on the table sees only the display
+panels: their emission where they emit, else black (the panels are black absorbers and
+nothing else is in the scene). So a pass renders only the window of pixels whose rays
+can meet the object — its bounding box projected, plus the box filter's support (the
+pixel itself: radius 0.5, ``sample_border`` off; the pinhole sensor has no depth of
+field) and :data:`CROP_MARGIN_PX` — and takes every other pixel from the exact
+backdrop-only render of the same displays (path depth 1; reused from the radiance
+cache when the backdrop shot was taken, as the matting schedule does first), or 0 for a
+light pass. Inside the window it is the same estimator as a full render (the same
+integrator, sampler and spp per pixel); a pixel's value depends only on its own
+samples, so there is no seam. The window is rendered by a pinhole camera whose
+principal point is shifted by the window's offset (a crop of a pinhole image *is* a
+pinhole image), and its size is that of the object's bounding cylinder about the table
+axis seen by that camera (:func:`turntable_box`), the same at every table angle: Dr.Jit
+compiles one kernel per film size and offset, so a capture compiles one per camera and
+configuration, and none per angle. :func:`footprint_window`, :func:`crop_window`.
+
 Radiance cache. The rig is deterministic: the same camera, table and array angles,
 lights, patterns and content give the same radiance. The Monte-Carlo estimate of a pass
 is therefore kept (LRU, ``cache_mb``) and reused by later captures of the same physical
@@ -80,6 +97,13 @@ __all__ = [
     "nearest_resize",
     "DISPLAY_SETBACK_M",
     "NEAR_CLIP_M",
+    "footprint_window",
+    "crop_window",
+    "crop_camera",
+    "turntable_box",
+    "CROP_MARGIN_PX",
+    "CROP_STEPS",
+    "CROP_MAX_FRACTION",
 ]
 
 #: Panels are rendered this far behind their nominal plane (see module docstring).
@@ -90,6 +114,100 @@ DISPLAY_SETBACK_M = 0.0005
 NEAR_CLIP_M = 0.005
 
 _DIAG_FLIP_Y = np.diag([1.0, -1.0, 1.0, 1.0])
+
+#: Extra pixels around the projected bounding box, beyond the box filter's support
+#: (absorbs rounding; the pinhole sensor has no depth of field to add).
+CROP_MARGIN_PX = 1.0
+
+#: Crop sides are rounded up to multiples of 1/CROP_STEPS of the frame side (at least
+#: 8 px). Dr.Jit compiles a kernel per film size (~0.4 s); the size is already fixed
+#: per camera (SimRenderer.crop_for), the rounding only merges near-equal cameras.
+CROP_STEPS = 50
+
+#: A window covering more of the frame than this is rendered as the full frame: the
+#: backdrop render the crop needs would cost more than the pixels it saves.
+CROP_MAX_FRACTION = 0.6
+
+
+def footprint_window(camera: Camera, lo, hi, *, margin_px: float = CROP_MARGIN_PX) -> tuple[int, int, int, int] | None:
+    """Pixels whose camera rays can meet the axis-aligned box ``[lo, hi]``.
+
+    Parameters
+    ----------
+    camera : Camera
+        Pinhole camera (no distortion), posed in the frame of the box.
+    lo, hi : (3,) arrays
+        Box corners, metres.
+    margin_px : float
+        Pixels added on every side beyond the box filter's support.
+
+    Returns
+    -------
+    (x0, y0, x1, y1) : half-open pixel window, clipped to the frame; empty (x0 == x1 or
+    y0 == y1) when the box projects outside the frame. None when a box corner is not in
+    front of the near plane: the box may then cover any pixel (render the whole frame).
+
+    Notes
+    -----
+    The box is convex, so its projection lies in the hull of its projected corners
+    ``[umin, umax] x [vmin, vmax]``. Pixel ``i`` (OpenCV centres) integrates samples in
+    ``[i - 0.5, i + 0.5)`` with a box filter of radius 0.5, so it can see the box only if
+    ``umin - 0.5 < i < umax + 0.5``.
+    """
+    lo = np.asarray(lo, dtype=np.float64)
+    hi = np.asarray(hi, dtype=np.float64)
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    uv, z = camera.project(corners)
+    if not (np.all(z > NEAR_CLIP_M) and np.all(np.isfinite(uv))):
+        return None
+    pad = 0.5 + float(margin_px)
+    x0 = int(np.clip(math.floor(uv[:, 0].min() - pad), 0, camera.width))
+    x1 = int(np.clip(math.ceil(uv[:, 0].max() + pad), 0, camera.width))
+    y0 = int(np.clip(math.floor(uv[:, 1].min() - pad), 0, camera.height))
+    y1 = int(np.clip(math.ceil(uv[:, 1].max() + pad), 0, camera.height))
+    if x1 <= x0 or y1 <= y0:
+        return (0, 0, 0, 0)
+    return (x0, y0, x1, y1)
+
+
+def crop_window(window: tuple[int, int, int, int], width: int, height: int, *,
+                steps: int = CROP_STEPS, min_size: tuple[int, int] = (0, 0)) -> tuple[int, int, int, int]:
+    """The render window ``(x0, y0, w, h)`` for a footprint ``(x0, y0, x1, y1)``: each side
+    at least ``min_size``, rounded up to a multiple of ``max(8, ceil(side / steps))`` px
+    (at most the frame), kept centred on the footprint and inside the frame, so it
+    contains the footprint. An empty footprint gives ``(0, 0, 0, 0)``."""
+    x0, y0, x1, y1 = (int(v) for v in window)
+    if x1 <= x0 or y1 <= y0:
+        return (0, 0, 0, 0)
+
+    def side(a: int, b: int, n: int, least: int) -> tuple[int, int]:
+        q = max(8, -(-n // int(steps)))
+        size = min(n, -(-max(b - a, int(least)) // q) * q)
+        start = a - (size - (b - a)) // 2
+        return min(max(start, 0), n - size), size
+
+    cx, w = side(x0, x1, int(width), min_size[0])
+    cy, h = side(y0, y1, int(height), min_size[1])
+    return (cx, cy, w, h)
+
+
+def turntable_box(lo, hi) -> tuple[np.ndarray, np.ndarray]:
+    """A box containing the box ``[lo, hi]`` (object frame) at every table angle: the
+    bounding cylinder about the table axis (+Y through the origin), as a box."""
+    lo = np.asarray(lo, dtype=np.float64)
+    hi = np.asarray(hi, dtype=np.float64)
+    r = float(np.sqrt(max(lo[0] ** 2, hi[0] ** 2) + max(lo[2] ** 2, hi[2] ** 2)))
+    return np.array([-r, lo[1], -r]), np.array([r, hi[1], r])
+
+
+def crop_camera(camera: Camera, x0: int, y0: int, w: int, h: int) -> Camera:
+    """The pinhole camera whose image is pixels ``[x0, x0 + w) x [y0, y0 + h)`` of
+    ``camera``'s (principal point shifted by the offset; same pose and focal length)."""
+    K = np.array(camera.K, dtype=np.float64)
+    K[0, 2] -= x0
+    K[1, 2] -= y0
+    return Camera(K=K, width=int(w), height=int(h), world_from_cam=camera.world_from_cam, dist=camera.dist,
+                  name=f"{camera.name}[{x0}:{x0 + w},{y0}:{y0 + h}]")
 
 
 # --------------------------------------------------------------------------- state
@@ -453,6 +571,10 @@ class SimRenderer:
         self._radiance_bytes = 0
         self._radiance_lock = threading.Lock()
         self.cache_hits = 0
+        self._bounds: dict[tuple, tuple[np.ndarray, np.ndarray]] = {}
+        # rendered pixels against frame pixels over all passes (crop savings; benchmarks)
+        self.pixels_rendered = 0
+        self.pixels_framed = 0
 
     # ---- public
     @property
@@ -548,7 +670,7 @@ class SimRenderer:
             key = self._pass_key(rig_camera, state, p) if use_cache and self.cache_bytes > 0 else None
             img = self._cache_get(key)
             if img is None:
-                img = self._render_pass(rig_camera, state, p, parts, seed * 1009 + k)
+                img = self._render_pass(rig_camera, state, p, parts, seed * 1009 + k, use_cache=use_cache)
                 self._cache_put(key, img)
             out += img
         return out
@@ -556,10 +678,32 @@ class SimRenderer:
     def _select(self, phase: str) -> EffectConfig:
         return select_effects(self.scene, phase, overrides=self.overrides or None)
 
-    def _render_pass(self, rig_camera: Camera, state: SimState, p: RenderPass, parts, seed: int) -> np.ndarray:
+    def _render_pass(self, rig_camera: Camera, state: SimState, p: RenderPass, parts, seed: int, *,
+                     use_cache: bool = True) -> np.ndarray:
         cfg = p.effects
         cam = self._render_camera(rig_camera, cfg)
         view = RigGeometry.view_camera(cam, state.table_deg)
+        win = self.crop_for(cam, state, cfg, parts)
+        self.pixels_framed += cam.width * cam.height
+        if win is not None:
+            x0, y0, w, h = win
+            self.pixels_rendered += w * h
+            if p.group == "displays":
+                bp = RenderPass("displays", backdrop_only_effects(cfg))
+                bstate = replace(state, content="none", charuco=None)
+                key = self._pass_key(rig_camera, bstate, bp) if use_cache and self.cache_bytes > 0 else None
+                base = self._cache_get(key)
+                if base is None:
+                    base = self._render_pass(rig_camera, bstate, bp, (), seed + 7919, use_cache=use_cache)
+                    self._cache_put(key, base)
+                out = np.array(base, dtype=np.float32)  # cached passes are read-only
+            else:
+                out = np.zeros((cam.height, cam.width, 3), np.float32)  # black panels: exactly 0
+            if w == 0 or h == 0:
+                return out  # nothing on the table is in view
+            view = crop_camera(view, x0, y0, w, h)
+        else:
+            self.pixels_rendered += cam.width * cam.height
         if p.group == "displays":
             on = {n: img for n, img in state.displays_on().items() if self._has_display(n)}
             loaded = self._get(cfg, parts, state, cam, mode=("displays", tuple(sorted(on))))
@@ -567,9 +711,43 @@ class SimRenderer:
         else:
             loaded = self._get(cfg, parts, state, cam, mode=("light",))
             img = self._run(loaded, view, state, cfg, seed, light=p.light)
+        if win is not None:
+            out[y0:y0 + h, x0:x0 + w] = img
+            img = out
         if cam.size != rig_camera.size:
             img = _downsample(img, rig_camera.width, rig_camera.height)
         return img
+
+    def crop_for(self, rig_camera: Camera, state: SimState, cfg: EffectConfig, parts) -> tuple[int, int, int, int] | None:
+        """The window ``(x0, y0, w, h)`` a pass renders of ``rig_camera`` (rig frame) in
+        ``state``, or None for the whole frame: no crop asked for (``cfg.crop``),
+        supersampling (``resolution_scale`` != 1: the box-filtered downsampling would mix
+        the border), nothing on the table, a bounding box reaching behind the camera, or
+        a window over :data:`CROP_MAX_FRACTION` of the frame. ``w == 0`` means nothing on
+        the table is in view.
+
+        The window holds the footprint of the bounding box at this table angle; its
+        *size* is that of the footprint of :func:`turntable_box` seen by the rig camera —
+        the same at every table angle, so one camera compiles one kernel per
+        configuration, not one per angle."""
+        if not cfg.crop or abs(float(cfg.resolution_scale) - 1.0) > 1e-9 or not parts or state.content == "none":
+            return None
+        bkey = (state.content, repr(state.charuco) if state.content == "board" else None)
+        bounds = self._bounds.get(bkey)
+        if bounds is None:
+            from .scenes import parts_bounds
+
+            bounds = self._bounds[bkey] = parts_bounds(parts)
+        view = RigGeometry.view_camera(rig_camera, state.table_deg)
+        fp = footprint_window(view, *bounds)
+        if fp is None:
+            return None
+        fp_all = footprint_window(rig_camera, *turntable_box(*bounds))
+        least = (0, 0) if fp_all is None else (fp_all[2] - fp_all[0], fp_all[3] - fp_all[1])
+        win = crop_window(fp, view.width, view.height, min_size=least)
+        if win[2] * win[3] > CROP_MAX_FRACTION * view.width * view.height:
+            return None
+        return win
 
     def _pass_key(self, cam: Camera, state: SimState, p: RenderPass) -> tuple:
         e = p.effects
@@ -717,19 +895,43 @@ class SimRenderer:
     def _set_sensor(self, loaded: _Loaded, name: str, cam: Camera) -> None:
         mi = self.mi
         p = mitsuba_sensor_params(cam)
+        pre = f"{name}." if name else ""
         T = np.asarray(p["to_world"], dtype=np.float64)
-        loaded.assign(f"{name}.to_world", T.tobytes(), lambda: mi.AffineTransform4f(T))
+        loaded.assign(f"{pre}to_world", T.tobytes(), lambda: mi.AffineTransform4f(T))
         fov_x = math.degrees(2.0 * math.atan(cam.width / (2.0 * cam.fx)))
-        loaded.assign(f"{name}.x_fov", fov_x, lambda: fov_x)
+        loaded.assign(f"{pre}x_fov", fov_x, lambda: fov_x)
         for k in ("principal_point_offset_x", "principal_point_offset_y"):
-            loaded.assign(f"{name}.{k}", float(p[k]), lambda k=k: p[k])
+            loaded.assign(f"{pre}{k}", float(p[k]), lambda k=k: p[k])
+
+    def _crop_sensor(self, loaded: _Loaded, view: Camera, cfg: EffectConfig) -> _Loaded:
+        """A sensor of ``view``'s film size for renders of ``loaded``'s scene (one per size;
+        the caller holds ``loaded.lock``). Its pose and principal point are parameters,
+        so moving the window costs no kernel compilation."""
+        mi = self.mi
+        sensors = loaded.keys.setdefault("crop_sensors", {})
+        key = (view.width, view.height, cfg.sampler, cfg.spp)
+        s = sensors.get(key)
+        if s is None:
+            sensor = mi.load_dict(_sensor_dict(mi, view, cfg.sampler, cfg.spp))
+            params = mi.traverse(sensor)
+            params.keep([r"to_world", r"x_fov", r"principal_point_offset_.*"])
+            s = sensors[key] = _Loaded(sensor, params, {})
+        return s
 
     def _run(self, loaded: _Loaded, view: Camera, state: SimState, cfg: EffectConfig, seed: int, *,
              displays: Mapping[str, np.ndarray] | None = None, light: tuple[int, int] | None = None) -> np.ndarray:
         mi = self.mi
         with loaded.lock:
             params = loaded.params
-            self._set_sensor(loaded, "sensor", view)
+            film = loaded.scene.sensors()[0].film().crop_size()
+            if (int(film[0]), int(film[1])) == view.size:
+                self._set_sensor(loaded, "sensor", view)
+                sensor = 0
+            else:  # a crop window: its own sensor, the scene's stays as it is
+                cs = self._crop_sensor(loaded, view, cfg)
+                self._set_sensor(cs, "", view)
+                cs.params.update()
+                sensor = cs.scene
             for disp in self.geometry.displays:
                 k = loaded.keys["displays"].get(disp.name)
                 if k is None:
@@ -748,7 +950,7 @@ class SimRenderer:
                 loaded.assign("light.position", pos, lambda: mi.Point3f(*pos))
                 loaded.assign("light.intensity.value", rgb, lambda: mi.Color3f(*rgb))
             params.update()
-            img = mi.render(loaded.scene, params, seed=int(seed) & 0x7FFFFFFF, spp=int(cfg.spp))
+            img = mi.render(loaded.scene, params, sensor=sensor, seed=int(seed) & 0x7FFFFFFF, spp=int(cfg.spp))
             self.renders += 1
             return np.array(img, dtype=np.float32)[:, :, :3]
 

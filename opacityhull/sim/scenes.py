@@ -39,11 +39,12 @@ from typing import Any, Mapping
 import numpy as np
 
 from ..charuco import CharucoSpec
-from ..errors import ConfigError
+from ..errors import ConfigError, InputError
 from . import shapes as S
 
 __all__ = [
     "SceneSpec",
+    "parts_bounds",
     "MaterialSpec",
     "ObjectSpec",
     "TextureSpec",
@@ -289,23 +290,7 @@ class SceneSpec:
 
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
         """Axis-aligned bounds (lo, hi) of the object, metres, object frame."""
-        lo, hi = [], []
-        for p in self.parts:
-            if p.kind == "sphere":
-                lo.append(p.centre_m - p.radius_m)
-                hi.append(p.centre_m + p.radius_m)
-            elif p.kind == "disk":
-                lo.append(p.centre_m - np.array([p.radius_m, 0.0, p.radius_m]))
-                hi.append(p.centre_m + np.array([p.radius_m, 0.0, p.radius_m]))
-            elif p.kind == "curves":
-                P = p.fibres.points.reshape(-1, 3)
-                lo.append(P.min(0) - p.fibres.radius_m)
-                hi.append(P.max(0) + p.fibres.radius_m)
-            else:
-                m = p.triangle_mesh()
-                lo.append(m.vertices.min(0))
-                hi.append(m.vertices.max(0))
-        return np.min(lo, axis=0), np.max(hi, axis=0)
+        return parts_bounds(self.parts)
 
     def to_toml_dict(self) -> dict:
         """A TOML-ready copy with file paths made absolute (for ``groundtruth/scene.toml``)."""
@@ -320,6 +305,36 @@ class SceneSpec:
         d.setdefault("scene", {})["source"] = self.source
         return d
 
+
+
+def parts_bounds(parts) -> tuple[np.ndarray, np.ndarray]:
+    """Axis-aligned bounds (lo, hi) of ``parts`` (metres, object frame): exact for
+    spheres, disks and meshes, fibre polylines padded by their radius.
+
+    Raises
+    ------
+    InputError
+        No parts (nothing has bounds).
+    """
+    if not parts:
+        raise InputError("parts_bounds(): no parts")
+    lo, hi = [], []
+    for p in parts:
+        if p.kind == "sphere":
+            lo.append(p.centre_m - p.radius_m)
+            hi.append(p.centre_m + p.radius_m)
+        elif p.kind == "disk":
+            lo.append(p.centre_m - np.array([p.radius_m, 0.0, p.radius_m]))
+            hi.append(p.centre_m + np.array([p.radius_m, 0.0, p.radius_m]))
+        elif p.kind == "curves":
+            P = p.fibres.points.reshape(-1, 3)
+            lo.append(P.min(0) - p.fibres.radius_m)
+            hi.append(P.max(0) + p.fibres.radius_m)
+        else:
+            m = p.triangle_mesh()
+            lo.append(m.vertices.min(0))
+            hi.append(m.vertices.max(0))
+    return np.min(lo, axis=0), np.max(hi, axis=0)
 
 def _deepcopy(x):
     if isinstance(x, dict):

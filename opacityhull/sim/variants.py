@@ -1,4 +1,9 @@
-"""Choosing the Mitsuba variant: ``llvm_ad_rgb`` when it works here, else ``scalar_rgb``.
+"""Choosing the Mitsuba variant: ``cuda_ad_rgb`` where a GPU runs it, else
+``llvm_ad_rgb`` when it works here, else ``scalar_rgb``.
+
+The CUDA variant is probed first, in a child process like the LLVM one (without a GPU
+or driver it fails there — nothing changes here — and the verdict is cached); where it
+renders, it is used.
 
 A Dr.Jit LLVM backend linked against an old libLLVM (Debian's 14–16) *aborts the
 interpreter* the first time it compiles a kernel (``LLVM ERROR: Cannot select``), which
@@ -24,11 +29,13 @@ from pathlib import Path
 
 from ..errors import ConfigError
 
-__all__ = ["choose_variant", "probe_variant", "use_mitsuba", "ENV_VARIANT", "SUPPORTED_VARIANTS"]
+__all__ = ["choose_variant", "select_variant", "variant_report", "probe_variant", "use_mitsuba", "ENV_VARIANT",
+           "SUPPORTED_VARIANTS"]
 
 ENV_VARIANT = "OPACITYHULL_MITSUBA_VARIANT"
-SUPPORTED_VARIANTS = ("llvm_ad_rgb", "scalar_rgb")
-_PREFERRED = "llvm_ad_rgb"
+SUPPORTED_VARIANTS = ("cuda_ad_rgb", "llvm_ad_rgb", "scalar_rgb")
+#: Probed in this order; the first that renders is chosen. ``scalar_rgb`` always works.
+_PROBE_ORDER = ("cuda_ad_rgb", "llvm_ad_rgb")
 _FALLBACK = "scalar_rgb"
 
 _PROBE_SCRIPT = r"""
@@ -51,6 +58,7 @@ print("OK")
 
 _lock = threading.Lock()
 _chosen: str | None = None
+_report: dict | None = None
 
 
 def _cache_file() -> Path:
@@ -65,7 +73,8 @@ def _cache_key() -> str:
         mv, dv = version("mitsuba"), version("drjit")
     except Exception:  # pragma: no cover - metadata missing in odd installs
         mv = dv = "?"
-    return "|".join([mv, dv, sys.executable, os.environ.get("DRJIT_LIBLLVM_PATH", "")])
+    # "v2": the probe order gained cuda_ad_rgb; older files (LLVM only) are re-probed once
+    return "|".join(["v2", mv, dv, sys.executable, os.environ.get("DRJIT_LIBLLVM_PATH", "")])
 
 
 def probe_variant(variant: str, *, timeout_s: float = 120.0) -> bool:
@@ -86,23 +95,38 @@ def probe_variant(variant: str, *, timeout_s: float = 120.0) -> bool:
     return r.returncode == 0 and "OK" in r.stdout
 
 
+def select_variant(probe) -> tuple[str, dict[str, bool]]:
+    """The first variant of ``cuda_ad_rgb``, ``llvm_ad_rgb`` for which ``probe(variant)``
+    is true, else ``scalar_rgb``; and the probe verdicts taken (pure: ``probe`` is
+    :func:`probe_variant` in use, a fake in tests)."""
+    verdicts: dict[str, bool] = {}
+    for v in _PROBE_ORDER:
+        verdicts[v] = bool(probe(v))
+        if verdicts[v]:
+            return v, verdicts
+    return _FALLBACK, verdicts
+
+
 def choose_variant(*, refresh: bool = False) -> str:
-    """The Mitsuba variant this process should use (``llvm_ad_rgb`` or ``scalar_rgb``).
+    """The Mitsuba variant this process should use (``cuda_ad_rgb``, ``llvm_ad_rgb`` or
+    ``scalar_rgb``).
 
     Order: the ``OPACITYHULL_MITSUBA_VARIANT`` environment variable; the cached probe
-    result for this installation; a fresh probe of ``llvm_ad_rgb`` in a subprocess
-    (cached afterwards). ``refresh=True`` ignores the cache file.
+    result for this installation; fresh probes in a subprocess — ``cuda_ad_rgb``, then
+    ``llvm_ad_rgb`` (:func:`select_variant`; cached afterwards). ``refresh=True`` ignores
+    the cache file. :func:`variant_report` says how the choice was made.
 
     Raises
     ------
     ConfigError
         The environment variable names a variant that is not supported.
     """
-    global _chosen
+    global _chosen, _report
     env = os.environ.get(ENV_VARIANT, "").strip()
     if env:
         if env not in SUPPORTED_VARIANTS:
             raise ConfigError(f"{ENV_VARIANT}={env!r}: expected one of {list(SUPPORTED_VARIANTS)}")
+        _report = {"variant": env, "source": f"environment {ENV_VARIANT}", "probes": {}}
         return env
     with _lock:
         if _chosen is not None and not refresh:
@@ -114,19 +138,33 @@ def choose_variant(*, refresh: bool = False) -> str:
                 data = json.loads(path.read_text())
                 if data.get("key") == key and data.get("variant") in SUPPORTED_VARIANTS:
                     _chosen = data["variant"]
+                    _report = {"variant": _chosen, "source": f"cached probe {path}",
+                               "probes": dict(data.get("probes", {}))}
                     return _chosen
             except (OSError, ValueError):
                 pass
-        variant = _PREFERRED if probe_variant(_PREFERRED) else _FALLBACK
+        # look the probe up at call time: tests replace it with a fake
+        variant, verdicts = select_variant(lambda v: probe_variant(v))
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
             tmp = path.with_name(f".{path.name}.{os.getpid()}")
-            tmp.write_text(json.dumps({"key": key, "variant": variant}))
+            tmp.write_text(json.dumps({"key": key, "variant": variant, "probes": verdicts}))
             os.replace(tmp, path)
         except OSError:
             pass  # a read-only home only costs a probe per process
         _chosen = variant
+        _report = {"variant": variant, "source": "probed in a subprocess", "probes": verdicts}
         return variant
+
+
+def variant_report() -> dict:
+    """How :func:`choose_variant` chose: ``{"variant", "source", "probes"}`` (probes:
+    variant → rendered in the probe; a GPU shows as ``"cuda_ad_rgb": true``)."""
+    v = choose_variant()
+    rep = dict(_report) if _report is not None and _report.get("variant") == v else {
+        "variant": v, "source": "chosen earlier in this process", "probes": {}}
+    rep["gpu"] = v.startswith("cuda")
+    return rep
 
 
 def use_mitsuba(variant: str | None = None):

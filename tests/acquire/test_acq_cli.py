@@ -29,7 +29,8 @@ def _json(res):
 def _unopenable_rig(tmp_path) -> Path:
     """The example paper rig with every device on a port that does not exist."""
     text = EXAMPLE_RIG.read_text()
-    text = re.sub(r'url = "emulator:[a-z]+"', 'url = "/dev/ttyNOPE-opacityhull"', text)
+    # one port per device: the rig check (and now --dry-run) rejects devices sharing a port
+    text = re.sub(r'url = "emulator:([a-z]+)"', r'url = "/dev/ttyNOPE-opacityhull-\1"', text)
     p = tmp_path / "rig.toml"
     p.write_text(text)
     return p

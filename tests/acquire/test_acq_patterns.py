@@ -90,8 +90,44 @@ def test_envmatte_images_from_files(tmp_path):
 
     plan = parse_plan({"plan": {"name": "e"}, "phases": {"envmatte": {"images": ["n.png"]}}}, base_dir=tmp_path)
     pats = plan_patterns(plan, geo)
-    assert list(pats) == [1] and pats[1].kind == "natural"
-    img = pats[1].images["bottom"]
-    assert img.shape == (16, 16, 3)
-    want = cv2.resize(src, (16, 16), interpolation=cv2.INTER_AREA)[:, :, ::-1]
-    assert np.array_equal(img, want)
+    names = [d.name for d in geo.displays]
+    # one illumination domain per display: id 1 + i lights display i only, black elsewhere
+    assert list(pats) == list(range(1, len(names) + 1)) and all(p.kind == "natural" for p in pats.values())
+    for i, name in enumerate(names):
+        p = pats[1 + i]
+        assert p.source.startswith(f"{name}:user:")
+        for d in geo.displays:
+            img = p.images[d.name]
+            assert img.shape == (d.resolution[1], d.resolution[0], 3)
+            if d.name == name:
+                want = cv2.resize(src, d.resolution, interpolation=cv2.INTER_AREA)[:, :, ::-1]
+                assert np.array_equal(img, want)
+            else:
+                assert not img.any()
+
+
+def test_natural_sources_mix_probes_noise_and_user_images(tmp_path):
+    import cv2
+
+    from opacityhull.acquire.plan import parse_plan
+
+    src = (np.random.default_rng(2).random((20, 30, 3)) * 255).astype(np.uint8)
+    cv2.imwrite(str(tmp_path / "u.png"), src)
+    geo = RigGeometry.from_dict(GEOMETRY)
+    name = geo.displays[0].name
+    plan = parse_plan({"plan": {"name": "e"}, "phases": {"natural": {
+        "images": 6, "kernels": 4, "sources": ["user", "probes", "noise"], "user_images": ["u.png"],
+        "displays": [name]}}}, base_dir=tmp_path)
+    pats = plan_patterns(plan, geo)
+    assert sorted(pats) == list(range(1, 7))
+    kinds = [pats[k].source.split(":")[1] for k in sorted(pats)]
+    assert kinds == ["user", "probe", "noise", "probe", "noise", "probe"]
+    for k, p in pats.items():
+        img = p.images[name]
+        assert img.dtype == np.uint8 and img.any()
+        if kinds[k - 1] == "probe":
+            # exposed to a mean of 0.4 of white, then clipped: the mean can only drop
+            assert 0.1 < img.mean() / 255 <= 0.41
+    # deterministic from the plan seed
+    again = plan_patterns(plan, geo)
+    assert all(np.array_equal(pats[k].images[name], again[k].images[name]) for k in pats)

@@ -174,3 +174,78 @@ def test_table_steps_even_and_distinct(steps, start):
 def test_step_deg_not_dividing_360():
     p = _plan(lambda d: d["table"].update({"step_deg": 100.0}) or d["table"].pop("steps"))
     assert p.table_deg == (0.0, 100.0, 200.0, 300.0)
+
+
+# --------------------------------------------------------------------------- natural phase
+
+
+def _natural(ph: dict, **plan):
+    return parse_plan({"plan": {"name": "n", **plan}, "phases": {"natural": ph}}, where="n.toml")
+
+
+def test_natural_phase_is_envmatte_one_display_at_a_time():
+    from opacityhull.acquire.schedule import natural_pattern_ids
+
+    geo = RigGeometry.from_dict(GEOMETRY)
+    plan = _natural({"images": 4, "kernels": 3})
+    assert plan.natural is plan.envmatte and plan.phases == ("envmatte",) and plan.name == "n"
+    names = [d.name for d in geo.displays]
+    ids = natural_pattern_ids(plan, geo)
+    assert list(ids) == names and [len(v) for v in ids.values()] == [4] * len(names)
+    shots = [s for st_ in schedule(plan, geo) for s in st_.shots]
+    ncam = len(geo.cameras)
+    assert len(shots) == len(plan.table_deg) * len(names) * 4 * ncam
+    # the patterns of one domain are contiguous: one display's sweep, then the next
+    first = [s.pattern for s in shots if s.camera == 0]
+    assert first == sorted(first)
+    # the older name gives the same schedule
+    old = parse_plan({"plan": {"name": "n"}, "phases": {"envmatte": {"images": 4, "kernels": 3}}}, where="n.toml")
+    assert [s.key for st_ in schedule(old, geo) for s in st_.shots] == [s.key for s in shots]
+    # one display only
+    one = _natural({"images": 4, "kernels": 3, "displays": [names[-1]]})
+    assert list(natural_pattern_ids(one, geo)) == [names[-1]]
+    # the dry run prices it: one upload per id and display
+    est = estimate(one, geo, MotionRates())
+    assert est.images["envmatte"] == len(plan.table_deg) * 4 * ncam
+    px = sum(d["resolution"][0] * d["resolution"][1] * 3 for d in GEOMETRY["displays"])
+    assert est.upload_s == pytest.approx(4 * px / MotionRates().serial_bytes_s)
+
+
+@pytest.mark.parametrize("ph, match", [
+    ({"images": 10}, r"\[phases\.natural\].*images = 10.*kernels = 25.*N >= K"),
+    ({"images": 30, "kernels": 40}, r"kernels = 40"),
+    ({"images": 30, "sources": ["sky"]}, r"\[phases\.natural\]\.sources.*'sky'"),
+    ({"images": 30, "sources": ["user"]}, r"user_images"),
+    ({"images": 30, "user_images": ["x.png"]}, r"user_images.*not in sources"),
+    ({"images": 30, "displays": "back"}, r"\[phases\.natural\]\.displays"),
+    ({"images": 30, "resolution": 3}, r"unknown key"),
+])
+def test_bad_natural_phases_name_the_key(ph, match):
+    with pytest.raises(ConfigError, match=match) as e:
+        _natural(ph)
+    assert "n.toml" in str(e.value)
+
+
+def test_natural_user_image_that_is_not_an_image(tmp_path):
+    (tmp_path / "notes.png").write_text("not a picture")
+    with pytest.raises(ConfigError, match=r"user_images\[0\].*notes\.png.*not an image"):
+        parse_plan({"plan": {"name": "n"}, "phases": {"natural": {
+            "images": 30, "sources": ["user", "noise"], "user_images": ["notes.png"]}}},
+            where="n.toml", base_dir=tmp_path)
+    with pytest.raises(ConfigError, match=r"images\[0\].*missing\.png.*not found"):
+        parse_plan({"plan": {"name": "n"}, "phases": {"envmatte": {"images": ["missing.png"]}}},
+                   where="n.toml", base_dir=tmp_path)
+
+
+def test_natural_phase_on_a_rig_without_displays_or_unknown_display():
+    plan = _natural({"images": 25})
+    with pytest.raises(ConfigError, match=r"\[phases\.natural\] needs backdrop displays.*none"):
+        schedule(plan, RigGeometry.from_dict(dict(GEOMETRY, displays=[])))
+    with pytest.raises(ConfigError, match=r"\[phases\.natural\]\.displays: \['side'\] not in the rig"):
+        schedule(_natural({"images": 25, "displays": ["side"]}), RigGeometry.from_dict(GEOMETRY))
+
+
+def test_builtin_natural_plan():
+    plan = load_plan("builtin:natural")
+    assert plan.natural is not None and plan.natural.count >= plan.natural.kernels == 25
+    assert plan.matting is not None and plan.lightfield is not None

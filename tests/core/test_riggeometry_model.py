@@ -142,15 +142,104 @@ def test_model_roundtrip(tmp_path):
     for v, w in zip(m.views, views):
         np.testing.assert_allclose(v.camera.world_from_cam, w.camera.world_from_cam, atol=1e-9)
         np.testing.assert_allclose(v.camera.K, w.camera.K, atol=1e-9)
-    np.testing.assert_array_equal(m.load_view_rgba(2), rgba[2])
+    # format 2 stores premultiplied colour: straight colour comes back to float rounding
+    back = m.load_view_rgba(2)
+    np.testing.assert_array_equal(back[..., 3], rgba[2][..., 3])
+    np.testing.assert_allclose(back[..., :3], rgba[2][..., :3], rtol=1e-6, atol=0)
     premul = m.load_views_premul([1])[0]
-    np.testing.assert_allclose(premul[..., :3], rgba[1][..., :3] * rgba[1][..., 3:], rtol=1e-6)
+    np.testing.assert_array_equal(premul[..., :3], rgba[1][..., :3] * rgba[1][..., 3:])
     assert m.has_reflectance and [L.key for L in m.light_samples] == [L.key for L in lights]
     np.testing.assert_array_equal(m.load_reflectance(0)[lights[3].key], refl[0][lights[3].key])
     np.testing.assert_allclose(m.light_direction(2, lights[1]), g.light_direction_object(0, 90.0, 22.5))
     assert m.find_view(0, 90.0) == 2 and m.view_index("c1_t000.000") == 1
     with pytest.raises(InputError):
         m.find_view(5, 0.0)
+
+
+def _small_model(tmp_path, *, alpha_zero_corner=True):
+    g = RigGeometry.from_dict(GEOM)
+    cams = g.nominal_cameras()
+    views = [ViewInfo(i, view_id(c, a), c, a, g.view_camera(cams[c], a, view_id(c, a)))
+             for i, (c, a) in enumerate([(0, 0.0), (1, 135.0)])]
+    rng = np.random.default_rng(5)
+    rgba = [rng.random((48, 64, 4)).astype(np.float32) for _ in views]
+    if alpha_zero_corner:
+        for a in rgba:
+            a[:4, :4, 3] = 0.0  # straight colour there is undefined
+    lights = [LightSample(light_key(l, b), l, b) for l in (1, 3) for b in (0.0, 40.0)]
+    refl = {i: {L.key: rng.random((48, 64, 3)).astype(np.float32) for L in lights} for i in range(2)}
+    write_model(tmp_path / "m", views=views, surfels=_surfels(v=2), view_rgba=rgba, rig=g.to_dict(),
+                reflectance={"lights": lights, "images": lambda i: refl[i]})
+    return tmp_path / "m", g, views, rgba, lights
+
+
+def test_view_exr_is_premultiplied_with_chromaticities_read_by_openexr(tmp_path):
+    """The file itself, read with the OpenEXR package (not our reader): premultiplied
+    colour, alpha unchanged, Rec.709/D65 chromaticities."""
+    import OpenEXR
+
+    root, _, views, rgba, _ = _small_model(tmp_path)
+    with OpenEXR.File(str(root / "views" / f"{views[1].id}.exr"), separate_channels=True) as f:
+        ch = {k: np.asarray(v.pixels) for k, v in f.channels().items()}
+        chroma = f.header()["chromaticities"]
+    assert sorted(ch) == ["A", "B", "G", "R"] and ch["R"].dtype == np.float32
+    a = rgba[1]
+    np.testing.assert_array_equal(ch["A"], a[..., 3])
+    for i, c in enumerate("RGB"):
+        np.testing.assert_array_equal(ch[c], a[..., i] * a[..., 3])
+    assert np.all(ch["R"][:4, :4] == 0)
+    np.testing.assert_allclose(chroma, [0.64, 0.33, 0.30, 0.60, 0.15, 0.06, 0.3127, 0.3290], atol=1e-7)
+    # our reader gives straight colour back, 0 where alpha is 0
+    m = OpacityHullModel.open(root)
+    assert m.format == "opacityhull-model/2" and m.views_premultiplied
+    s = m.load_view_rgba(1)
+    assert np.all(s[:4, :4] == 0)
+    np.testing.assert_allclose(s[4:, 4:], a[4:, 4:], rtol=2e-6)
+
+
+def test_reflectance_layers_carry_their_light(tmp_path):
+    import OpenEXR
+
+    root, g, views, _, lights = _small_model(tmp_path)
+    m = OpacityHullModel.open(root)
+    with OpenEXR.File(str(root / "reflectance" / f"{views[1].id}.exr"), header_only=True) as f:
+        h = dict(f.header())  # the package empties its header dict when the file closes
+    assert h["view"] == views[1].id and h["tableAngleDeg"] == pytest.approx(135.0)
+    assert len(h["chromaticities"]) == 8
+    for L in lights:
+        d = np.asarray(h[f"{L.key}.lightDirection"])
+        assert d.dtype == np.float32 and d.shape == (3,)
+        # the direction relight uses for this view (table 135 deg): object frame, b - a matters
+        np.testing.assert_allclose(d, m.light_direction(1, L), atol=1e-6)
+        np.testing.assert_allclose(d, g.light_direction_object(L.light_id, 0.0, L.array_deg - 135.0), atol=1e-6)
+        np.testing.assert_allclose(np.asarray(h[f"{L.key}.lightPosition"]),
+                                   g.light_position_object(L.light_id, 135.0, L.array_deg), atol=1e-6)
+        assert h[f"{L.key}.lightId"] == L.light_id and h[f"{L.key}.arrayAngleDeg"] == L.array_deg
+        assert h[f"{L.key}.lightIntensity"] == pytest.approx(1.0)
+    meta = m.reflectance_metadata(0)
+    L = lights[3]
+    assert meta[L.key]["light_id"] == 3 and meta[L.key]["array_deg"] == 40.0
+    np.testing.assert_allclose(meta[L.key]["direction"], m.light_direction(0, L), atol=1e-6)
+    np.testing.assert_allclose(meta[L.key]["output_rgb"], [1.0, 1.0, 1.0])
+
+
+def test_format_1_model_still_opens_with_straight_views(tmp_path):
+    """A model written before format 2 (straight colour in views/) reads as before."""
+    import tomllib
+
+    from opacityhull.imageio import write_exr
+    from opacityhull.session import toml_dumps
+
+    root, _, views, rgba, _ = _small_model(tmp_path)
+    meta = tomllib.loads((root / "model.toml").read_text())
+    meta["model"]["format"] = "opacityhull-model/1"
+    (root / "model.toml").write_text(toml_dumps(meta))
+    for v, a in zip(views, rgba):
+        write_exr(root / "views" / f"{v.id}.exr", a)  # straight, as format 1 wrote them
+    m = OpacityHullModel.open(root)
+    assert not m.views_premultiplied
+    np.testing.assert_array_equal(m.load_view_rgba(0), rgba[0])  # exactly, straight colour at alpha 0 kept
+    np.testing.assert_array_equal(m.load_views_premul([0])[0][..., :3], rgba[0][..., :3] * rgba[0][..., 3:])
 
 
 def test_model_missing_light_named(tmp_path):
@@ -174,7 +263,7 @@ def test_model_open_errors(tmp_path):
     with pytest.raises(FormatError, match="model.toml not found"):
         OpacityHullModel.open(tmp_path)
     (tmp_path / "model.toml").write_text('[model]\nformat = "other/9"\n')
-    with pytest.raises(FormatError, match="expected 'opacityhull-model/1'"):
+    with pytest.raises(FormatError, match="'other/9', expected one of 'opacityhull-model/1', 'opacityhull-model/2'"):
         OpacityHullModel.open(tmp_path)
 
 

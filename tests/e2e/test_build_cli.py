@@ -62,7 +62,7 @@ def test_build_bad_input_exit_codes(session, tmp_path):
 
     runner = CliRunner()
     r = runner.invoke(app, ["build", str(tmp_path / "nothing"), "--out", str(tmp_path / "m")])
-    assert r.exit_code == 4 and "session.toml" in r.output.replace("\n", "")
+    assert r.exit_code == 2 and "no such session folder" in r.output.replace("\n", "")  # missing: bad input
     r = runner.invoke(app, ["build", str(session / "session"), "--out", str(tmp_path / "m"), "--bounds", "1,2,3"])
     assert r.exit_code == 2 and "--bounds" in r.output
     r = runner.invoke(app, ["build", str(session / "session"), "--out", str(tmp_path / "m"), "--cameras", "magic"])

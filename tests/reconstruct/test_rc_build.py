@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import json
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -167,11 +169,39 @@ def test_nan_images_do_not_reach_the_model(tmp_path):
         img[5:8, 10:14] = np.nan
         img[20, 20] = np.inf
         write_exr(p, img)
+    # the images were changed behind the manifest's back: size and checksum catch that
+    from opacityhull.errors import FormatError
+
+    with pytest.raises(FormatError, match="the manifest says"):
+        build_model(tmp_path / "s", tmp_path / "m0", config=CFG)
+    assert not (tmp_path / "m0" / "model.toml").exists()
+    _relist(tmp_path / "s")  # as if the camera itself had delivered the NaN/Inf pixels
     r = build_model(tmp_path / "s", tmp_path / "m", config=CFG, ground_truth=True)
     model = OpacityHullModel.open(tmp_path / "m")
     for i in range(len(model.views)):
         assert np.all(np.isfinite(model.load_view_rgba(i)))
     assert r.metrics["alpha_mae"] < 0.02
+    # and the build says so rather than silently painting them black
+    assert r.metrics["nonfinite_images"] >= 10
+    assert any("NaN or Inf" in n for n in r.notes)
+    assert r.metrics["manifest_verified"] == "sha256"
+
+
+def _relist(session_dir):
+    """Rewrite the manifest's bytes and sha256 to the files' current content."""
+    import hashlib
+    import json
+
+    m = session_dir / "manifest.jsonl"
+    out = []
+    for line in m.read_text().splitlines():
+        if not line.strip():
+            continue
+        rec = json.loads(line)
+        data = (session_dir / rec["path"]).read_bytes()
+        rec["bytes"], rec["sha256"] = len(data), hashlib.sha256(data).hexdigest()
+        out.append(json.dumps(rec))
+    m.write_text("\n".join(out) + "\n")
 
 
 def test_cameras_from_the_calibration_phase(tmp_path):

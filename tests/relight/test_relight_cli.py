@@ -72,7 +72,7 @@ def test_relight_bad_inputs_exit_nonzero_with_a_clear_message(sphere_model, tmp_
     r = run("relight", sphere_model, "--out", tmp_path / "o")
     assert r.exit_code == 2 and "--envmap" in r.text
     r = run("relight", tmp_path / "nope", "--lights", "0,1,0,1,1,1", "--out", tmp_path / "o")
-    assert r.exit_code == 4 and "not a model" in r.text
+    assert r.exit_code == 2 and "no such model folder" in r.text
     r = run("relight", sphere_model, "--lights", "0,1,0,1,1", "--out", tmp_path / "o")
     assert r.exit_code == 2 and "--lights" in r.text
     r = run("relight", sphere_model, "--lights", "0,1,0,1,1,1", "--view", "9,0", "--out", tmp_path / "o")

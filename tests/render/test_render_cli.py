@@ -87,7 +87,7 @@ def test_render_bad_input_exits_nonzero_with_a_message(sphere_dir, tmp_path, arg
 
 def test_render_missing_model_and_bad_output(tmp_path, sphere_dir):
     res = run("render", tmp_path / "nothing", "--out", tmp_path / "x.png")
-    assert res.exit_code == 4 and "is not a model" in res.flat
+    assert res.exit_code == 2 and "no such model folder" in res.flat  # a missing path is bad input
     res = run("render", sphere_dir[0], "--out", tmp_path / "x.jpg")
     assert res.exit_code == 2 and ".png or .exr" in res.flat
 

@@ -33,7 +33,9 @@ class Echo(EmulatedDevice):
 def echo(kind):
     dev = Echo()
     with EmulatorServer(dev, kind=kind) as srv:
-        t = SerialTransport(srv.url, name="echo-dev", timeout_s=0.3)
+        # generous: a reply that comes must never miss its read because the machine is
+        # loaded; tests that expect a timeout pass their own short one
+        t = SerialTransport(srv.url, name="echo-dev", timeout_s=10.0)
         t.open()
         yield srv, dev, t
         t.close()
@@ -51,29 +53,36 @@ def test_timeout_names_device_url_and_what_to_check(echo):
     srv, dev, t = echo
     t.write(b"mute\n")
     with pytest.raises(DeviceTimeout) as ei:
-        t.read_until(b"\n", what="answer to mute")
+        t.read_until(b"\n", what="answer to mute", timeout_s=0.3)
     msg = str(ei.value)
     assert "echo-dev" in msg and srv.url in msg and "answer to mute" in msg and "powered" in msg
 
 
-def test_partial_reply_is_quoted_in_the_timeout(echo):
+def _emulator_saw(dev, data: bytes) -> bool:
+    # the server appends to ``received`` and queues the replies under one hold of the
+    # lock, so once ``data`` is seen here its (undelayed) replies are already sent
+    with dev.lock:
+        return data in dev.received
+
+
+def test_partial_reply_is_quoted_in_the_timeout(echo, wait_for):
     srv, dev, t = echo
     dev.faults.truncate = 1
     t.write(b"hello\n")
+    wait_for(lambda: _emulator_saw(dev, b"hello\n"), what="the truncated reply sent")
     with pytest.raises(DeviceTimeout) as ei:
-        t.read_until(b"\n")
+        t.read_until(b"\n", timeout_s=0.3)
     assert "partial: b'got:h'" in str(ei.value)
 
 
 def test_query_flushes_a_late_reply_first(echo, wait_for):
+    """A reply nobody read (it came after its read timed out) must not answer the next
+    query. Ordered by state, not by racing a 0.1 s read against a 0.5 s delay."""
     srv, dev, t = echo
-    dev.faults.delay_s = 0.5
     t.write(b"first\n")
-    with pytest.raises(DeviceTimeout):
-        t.read_until(b"\n", timeout_s=0.1)
-    dev.faults.delay_s = 0.0
-    wait_for(lambda: srv.backlog == 0, what="late reply delivered")
+    wait_for(lambda: _emulator_saw(dev, b"first\n") and srv.backlog == 0, what="late reply delivered")
     assert t.query(b"second\n") == b"got:second\r\n"
+    assert t.read_some(timeout_s=0.05) == b""  # and "got:first" was discarded, not kept for later
 
 
 def test_read_exact_and_read_some(echo):
@@ -167,12 +176,15 @@ def test_late_reply_is_overtaken_but_delayed_replies_keep_order(kind, wait_for):
         t = SerialTransport(srv.url, timeout_s=2.0)
         with t:
             dev.faults.late, dev.faults.late_s = 1, 0.3
-            t.write(b"one\n")
-            t.write(b"two\n")
+            # one write: both lines reach the emulator in one receive(), so "two" is
+            # queued while "one" is late however slowly this thread runs
+            t.write(b"one\ntwo\n")
             assert t.read_until(b"\n") == b"got:two\r\n"  # overtook the late one
             assert t.read_until(b"\n") == b"got:one\r\n"
             dev.faults.delay_s = 0.2
             t.write(b"three\n")
+            # the delay must have applied to "three" before it is switched off
+            wait_for(lambda: _emulator_saw(dev, b"three\n"), what="three received")
             dev.faults.delay_s = 0.0
             t.write(b"four\n")
             assert t.read_until(b"\n") == b"got:three\r\n"  # one serial line: order kept

@@ -165,3 +165,43 @@ def test_non_square_spp_override_switches_to_independent_samples(scenes):
     cfg = select_effects(scenes["sphere"], "reflectance", overrides={"spp": 5})
     assert cfg.spp == 5 and cfg.sampler == "independent"
     assert select_effects(scenes["sphere"], "reflectance", overrides={"spp": 9}).sampler == "stratified"
+
+
+def test_cli_explain_reports_expected_cost_and_variant(monkeypatch):
+    from opacityhull.sim import variants as V
+
+    monkeypatch.setenv(V.ENV_VARIANT, "scalar_rgb")  # no probe; the report says where the choice came from
+    r = CliRunner().invoke(app, ["sim", "explain", "--scene", "builtin:diffuse", "--phase", "matting", "--json"])
+    assert r.exit_code == 0, r.output
+    d = json.loads(r.stdout.strip().splitlines()[-1])
+    assert d["variant"]["variant"] == "scalar_rgb" and d["variant"]["gpu"] is False
+    assert "environment" in d["variant"]["source"]
+    assert d["crop"] is True and d["backdrop_spp"] == 16
+    assert set(d["expected_cost"]) == {"vs_reference", "measured"}
+    if d["expected_cost"]["vs_reference"] is not None:
+        assert 0 < d["expected_cost"]["vs_reference"] < 1
+
+
+def test_measured_cost_table_matches_the_scene_kinds(scenes):
+    """Every measured (scene, phase) names a built-in whose kind is recorded correctly, so
+    a custom scene of the same kind inherits the right figure."""
+    from opacityhull.sim.effects import _BUILTIN_KIND, MEASURED_COST, expected_cost, scene_kind
+
+    for (name, phase), ratio in MEASURED_COST.items():
+        sc = load_scene(f"builtin:{name}")
+        assert _BUILTIN_KIND[(name, phase)] == scene_kind(sc, phase)
+        assert expected_cost(sc, phase)["vs_reference"] == ratio
+    assert scene_kind(scenes["glass"], "matting") == "transmissive"
+    assert scene_kind(scenes["glass"], "calibration") == "board"
+
+
+def test_backdrop_shots_use_fewer_samples_but_the_reference_keeps_its_own(scenes):
+    from opacityhull.sim.effects import BACKDROP_SPP, backdrop_only_effects
+
+    sel = select_effects(scenes["diffuse"], "matting")
+    b = backdrop_only_effects(sel)
+    assert (b.integrator, b.max_depth, b.spp, b.crop) == ("path", 1, BACKDROP_SPP, False)
+    ref = reference_effects(scenes["diffuse"], "matting", spp=256)
+    assert backdrop_only_effects(ref).spp == 256
+    low = select_effects(scenes["diffuse"], "matting", overrides={"spp": 4})
+    assert backdrop_only_effects(low).spp == 4  # never more than the shot itself

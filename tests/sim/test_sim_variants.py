@@ -18,7 +18,10 @@ def test_environment_overrides_without_probing(monkeypatch):
     monkeypatch.setenv(V.ENV_VARIANT, "scalar_rgb")
     monkeypatch.setattr(V, "probe_variant", lambda *a, **k: pytest.fail("must not probe"))
     assert V.choose_variant() == "scalar_rgb"
-    monkeypatch.setenv(V.ENV_VARIANT, "cuda_ad_rgb")
+    monkeypatch.setenv(V.ENV_VARIANT, "cuda_ad_rgb")  # forcing the GPU variant is allowed
+    assert V.choose_variant() == "cuda_ad_rgb"
+    assert V.variant_report()["source"].startswith("environment") and V.variant_report()["gpu"]
+    monkeypatch.setenv(V.ENV_VARIANT, "cuda_rgb_typo")
     with pytest.raises(ConfigError, match="OPACITYHULL_MITSUBA_VARIANT"):
         V.choose_variant()
 
@@ -36,14 +39,49 @@ def test_probe_result_is_cached_on_disk(monkeypatch, tmp_path):
 
     def fake_probe(variant, **kw):
         calls.append(variant)
-        return False  # as if libLLVM were missing
+        return False  # as if there were no GPU and libLLVM were missing
 
     monkeypatch.setattr(V, "probe_variant", fake_probe)
     monkeypatch.setattr(V, "_chosen", None)
     assert V.choose_variant(refresh=True) == "scalar_rgb"
-    assert calls == ["llvm_ad_rgb"]
+    assert calls == ["cuda_ad_rgb", "llvm_ad_rgb"]
     data = json.loads((tmp_path / "opacityhull" / "mitsuba-variant.json").read_text())
     assert data["variant"] == "scalar_rgb"
+    assert data["probes"] == {"cuda_ad_rgb": False, "llvm_ad_rgb": False}
     monkeypatch.setattr(V, "_chosen", None)
-    assert V.choose_variant() == "scalar_rgb" and calls == ["llvm_ad_rgb"]  # from the file, no new probe
+    assert V.choose_variant() == "scalar_rgb" and calls == ["cuda_ad_rgb", "llvm_ad_rgb"]  # from the file
+    assert V.variant_report()["probes"] == {"cuda_ad_rgb": False, "llvm_ad_rgb": False}
+    monkeypatch.setattr(V, "_chosen", None)
+
+
+@pytest.mark.parametrize("works,expected,probed", [
+    ({"cuda_ad_rgb", "llvm_ad_rgb"}, "cuda_ad_rgb", ["cuda_ad_rgb"]),   # a GPU: CUDA, LLVM never probed
+    ({"llvm_ad_rgb"}, "llvm_ad_rgb", ["cuda_ad_rgb", "llvm_ad_rgb"]),   # these machines
+    (set(), "scalar_rgb", ["cuda_ad_rgb", "llvm_ad_rgb"]),              # neither JIT backend
+    ({"cuda_ad_rgb"}, "cuda_ad_rgb", ["cuda_ad_rgb"]),                  # GPU, broken libLLVM
+])
+def test_selection_prefers_cuda_then_llvm_then_scalar(works, expected, probed):
+    """The selection logic with a fake probe result (no GPU here to run the variant)."""
+    calls = []
+
+    def probe(v):
+        calls.append(v)
+        return v in works
+
+    variant, verdicts = V.select_variant(probe)
+    assert variant == expected and calls == probed
+    assert verdicts == {v: v in works for v in probed}
+
+
+def test_a_gpu_found_by_the_probe_is_chosen_cached_and_reported(monkeypatch, tmp_path):
+    monkeypatch.delenv(V.ENV_VARIANT, raising=False)
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path))
+    monkeypatch.setattr(V, "probe_variant", lambda v, **kw: v == "cuda_ad_rgb")
+    monkeypatch.setattr(V, "_chosen", None)
+    assert V.choose_variant(refresh=True) == "cuda_ad_rgb"
+    rep = V.variant_report()
+    assert rep["gpu"] is True and rep["probes"] == {"cuda_ad_rgb": True}
+    monkeypatch.setattr(V, "_chosen", None)
+    monkeypatch.setattr(V, "probe_variant", lambda *a, **k: pytest.fail("cached: must not probe"))
+    assert V.choose_variant() == "cuda_ad_rgb"
     monkeypatch.setattr(V, "_chosen", None)

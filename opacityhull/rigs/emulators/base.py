@@ -22,7 +22,7 @@ import tty
 from dataclasses import dataclass, field
 from typing import Iterable
 
-__all__ = ["Reply", "Faults", "EmulatedDevice", "EmulatorServer"]
+__all__ = ["Reply", "Faults", "EmulatedDevice", "EmulatorServer", "noise"]
 
 
 @dataclass
@@ -56,6 +56,10 @@ class Faults:
         with ``match`` (``b"ok"``, ``b"<"``, ``b"\\x7e\\x03"`` ...); others pass untouched.
     delay_s : extra delay added to every reply while > 0.
     silent : when True, nothing is answered at all (device hung).
+    babble : while > 0, the device sends this many bytes per second of noise that never
+        parses in any of the rig's protocols (bytes 0x80-0xFD, never the frame flags
+        0x7E/0x7D, with a ``\r\n`` every 40 bytes), and its replies become noise of
+        the same length: a wrong baud rate or a babbling device.
     log : what fired, as ``(kind, original bytes)``.
     """
 
@@ -67,12 +71,16 @@ class Faults:
     match: bytes | None = None
     delay_s: float = 0.0
     silent: bool = False
+    babble: float = 0.0
     log: list = field(default_factory=list)
 
     def apply(self, reply: Reply) -> Reply | None:
         if self.silent:
             self.log.append(("silent", reply.data))
             return None
+        if self.babble > 0:  # a wrong baud rate: the real replies are noise too
+            self.log.append(("babble", reply.data))
+            return Reply(noise(len(reply.data), len(self.log)), reply.delay_s + self.delay_s, reply.independent)
         targeted = self.match is None or reply.data.startswith(self.match)
         if targeted and self.drop > 0:
             self.drop -= 1
@@ -96,6 +104,17 @@ class Faults:
             independent = True
             self.log.append(("late", reply.data))
         return Reply(data, delay, independent)
+
+
+_NOISE = bytes(range(0x80, 0xFE))
+
+
+def noise(n: int, offset: int = 0) -> bytes:
+    """``n`` bytes of :attr:`Faults.babble` noise (deterministic, starting at ``offset``)."""
+    out = bytearray()
+    for i in range(offset, offset + n):
+        out += b"\r\n" if i % 40 == 39 else _NOISE[(i * 37) % len(_NOISE)].to_bytes(1, "big")
+    return bytes(out)
 
 
 class EmulatedDevice:
@@ -161,6 +180,8 @@ class EmulatorServer:
         self._pending_lock = threading.Lock()
         self._gone = False
         self.connections = 0
+        self._babble_t: float | None = None
+        self._babble_sent = 0
 
     # ---- lifecycle
     def _open_endpoint(self) -> str:
@@ -285,6 +306,37 @@ class EmulatorServer:
                 self._seq += 1
                 heapq.heappush(self._pending, (due, self._seq, r2.data))
 
+    def _babble(self) -> None:
+        rate = self.device.faults.babble
+        now = time.monotonic()
+        if rate <= 0:
+            self._babble_t = None
+            return
+        if self._babble_t is None:
+            self._babble_t = now
+            return
+        n = int((now - self._babble_t) * rate)
+        if n <= 0:
+            return
+        self._babble_t += n / rate
+        # a babbling device does not wait for its reader: send only what the line takes
+        # now (a blocked write would stall the emulator, and a reconnect after it)
+        fd = self._master if self.kind == "pty" else (self._conn.fileno() if self._conn is not None else None)
+        if fd is None:
+            return
+        try:
+            _, w, _ = select.select([], [fd], [], 0)
+            if not w:
+                return
+            chunk = noise(min(n, 4096), self._babble_sent)
+            if self.kind == "pty":
+                sent = os.write(fd, chunk)
+            else:
+                sent = self._conn.send(chunk)
+        except (OSError, ValueError, AttributeError):
+            return
+        self._babble_sent += sent
+
     def _flush_due(self) -> None:
         now = time.monotonic()
         with self._pending_lock:
@@ -320,7 +372,7 @@ class EmulatorServer:
             if fd is None:
                 return
             with self._pending_lock:
-                timeout = 0.005 if self._pending else 0.02
+                timeout = 0.005 if self._pending or self.device.faults.babble > 0 else 0.02
             try:
                 r, _, _ = select.select([fd], [], [], timeout)
             except (OSError, ValueError):
@@ -359,3 +411,4 @@ class EmulatorServer:
             with self.device.lock:
                 self._queue(self.device.tick())
             self._flush_due()
+            self._babble()

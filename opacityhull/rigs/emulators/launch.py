@@ -19,7 +19,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from ...errors import ConfigError
-from ..config import RigConfig, parse_emulator_url
+from ..config import RigConfig, emulator_url_faults, parse_emulator_url
 from .base import EmulatedDevice, EmulatorServer
 
 __all__ = ["EmulatorSet", "start_emulators"]
@@ -86,7 +86,8 @@ def _make(kind: str, url: str, config: RigConfig, time_scale: float) -> Emulated
     raise ConfigError(f"{config.source}: unknown emulator kind {kind!r} in {url!r}")
 
 
-def start_emulators(config: RigConfig, *, kind: str = "pty", time_scale: float = 0.0) -> EmulatorSet:
+def start_emulators(config: RigConfig, *, kind: str = "pty", time_scale: float = 0.0,
+                    faults: dict[str, list[str]] | None = None) -> EmulatorSet:
     """Start one emulator per distinct ``emulator:KIND[#tag]`` URL of ``config``.
 
     Parameters
@@ -96,6 +97,10 @@ def start_emulators(config: RigConfig, *, kind: str = "pty", time_scale: float =
         Transport of the servers.
     time_scale : float
         Real seconds per physical second of motion/switching (0 = instant).
+    faults : dict device name → list of ``KIND[:ARGS]`` specs, optional
+        Faults to inject (:mod:`~opacityhull.rigs.emulators.faults`), in addition to
+        those in the URLs' ``?fault=`` queries. A device sharing its emulator with
+        another (``turntable`` and ``light_array.rotation`` on one GRBL) shares its faults.
 
     Returns
     -------
@@ -107,11 +112,22 @@ def start_emulators(config: RigConfig, *, kind: str = "pty", time_scale: float =
         raise ConfigError(f"emulator transport must be 'pty' or 'tcp', got {kind!r}")
     if time_scale < 0:
         raise ConfigError(f"time_scale must be >= 0, got {time_scale}")
+    from .faults import apply_fault, parse_fault
+
     emu = EmulatorSet(config=config)
     names_by_url: dict[str, list[str]] = {}
     for name, url in config.device_urls().items():
         if parse_emulator_url(url) is not None:
             names_by_url.setdefault(url, []).append(name)
+    specs: dict[str, list] = {u: [parse_fault(f, where=f"{config.source}: {u}") for f in emulator_url_faults(u)]
+                              for u in names_by_url}
+    for dev_name, fl in (faults or {}).items():
+        url = config.device_urls().get(dev_name)
+        if url is None or url not in names_by_url:
+            known = [n for u, ns in names_by_url.items() for n in ns]
+            raise ConfigError(f"--fault {dev_name}:...: no emulated device {dev_name!r} in {config.source} "
+                              f"(emulated: {', '.join(known) or 'none'})")
+        specs[url] += [parse_fault(f, where=f"--fault {dev_name}:{f}") for f in fl]
     try:
         for url, names in names_by_url.items():
             k, _tag = parse_emulator_url(url)
@@ -122,6 +138,8 @@ def start_emulators(config: RigConfig, *, kind: str = "pty", time_scale: float =
             emu.handles[url] = dev
             for n in names:
                 emu.by_device[n] = dev
+            for spec in specs[url]:
+                apply_fault(spec, dev, srv)
     except BaseException:
         emu.stop()
         raise

@@ -1,0 +1,196 @@
+"""Build step "natural": reflectance fields from natural illumination, per view and display.
+
+For every view (camera, table angle) and every illumination domain (a display that
+showed the natural phase's images while the others were black), the photographs
+``B`` (radiance, :meth:`Session.load_radiance`) of the pixels inside the matte
+(α > ``alpha_min``, default 0.5: see :func:`estimate_session_natural`) and the shown images ``L`` (display radiance: the uploaded 8-bit
+pattern as linear drive × the display's ``max_radiance``, what the sim emits and a
+linearised real display shows) go through :func:`opacityhull.relight.natural.estimate_natural`
+(K box kernels per pixel, NNLS weights). Each result is written as
+``MODEL/natural/<view_id>/<display>.npz`` (:func:`~opacityhull.relight.natural.save_field`,
+with ``pixel_index`` / ``image_hw`` locating the matte pixels in the view).
+
+The session phase is ``envmatte`` (the plan's ``[phases.natural]`` under its older
+name); which display a pattern lights is read from the session's ``[patterns]`` table
+(:func:`opacityhull.acquire.patterns.natural_domain`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import time
+from pathlib import Path
+from typing import Callable, Sequence
+
+import numpy as np
+
+from ..errors import FormatError, InputError
+from ..riggeometry import view_id
+
+log = logging.getLogger(__name__)
+
+__all__ = ["natural_shots", "estimate_view_natural", "estimate_session_natural", "SESSION_PHASE"]
+
+#: the session phase the natural images are recorded under
+SESSION_PHASE = "envmatte"
+
+
+def natural_shots(session, camera: int, table_deg: float) -> dict[str, list[tuple[int, str]]]:
+    """``{display: [(pattern id, shot key), ...]}`` of one view's natural shots, by
+    pattern id. Shots whose pattern lights several displays at once (an older envmatte
+    capture) cannot be split into domains and are skipped (logged)."""
+    from ..acquire.patterns import natural_domain
+
+    out: dict[str, list[tuple[int, str]]] = {}
+    seen: set[str] = set()
+    skipped = 0
+    cache = getattr(session, "_natural_domain_cache", None)
+    if cache is None:
+        cache = {}
+        try:
+            session._natural_domain_cache = cache
+        except AttributeError:  # pragma: no cover - a frozen session object
+            pass
+    for r in session.select(phase=SESSION_PHASE, camera=camera, table_deg=table_deg, kind=None):
+        if r.pattern is None or not r.object_present or r.shot in seen:
+            continue
+        seen.add(r.shot)
+        pid = int(r.pattern)
+        if pid not in cache:
+            cache[pid] = natural_domain(session, pid)
+        d = cache[pid]
+        if d is None:
+            skipped += 1
+            continue
+        out.setdefault(d, []).append((pid, r.shot))
+    if skipped:
+        log.warning("%s: %d natural shot(s) of view %s light several displays at once; not used",
+                    session.root, skipped, view_id(camera, table_deg))
+    return {d: sorted(v) for d, v in out.items()}
+
+
+def estimate_view_natural(session, shots: Sequence[tuple[int, str]], display: str, mask: np.ndarray, *,
+                          n_kernels: int = 25, rel_tol: float = 1e-8):
+    """One view and display: the field of the pixels where ``mask`` (H, W) is True.
+
+    Returns a :class:`~opacityhull.relight.natural.NaturalField` with ``pixel_index``.
+    """
+    from ..relight.natural import NaturalConfig, estimate_natural
+
+    spec = session.geometry.display(display)
+    mask = np.asarray(mask, bool)
+    idx = np.flatnonzero(mask.reshape(-1))
+    L = np.stack([session.pattern_image(display, pid)[..., :3].astype(np.float64) for pid, _ in shots])
+    L *= float(spec.max_radiance)
+    B = np.empty((len(shots), idx.size, 3))
+    for j, (_, shot) in enumerate(shots):
+        img = np.asarray(session.load_radiance(shot), np.float64)
+        if img.shape[:2] != mask.shape:
+            raise FormatError(f"{session.root}: shot {shot} is {img.shape[1]}x{img.shape[0]}, the matte "
+                              f"{mask.shape[1]}x{mask.shape[0]}")
+        B[j] = img.reshape(-1, img.shape[2])[idx, :3]
+    # A sensor's non-finite pixel (never expected from load_radiance) must not poison the solve.
+    B = np.nan_to_num(B, nan=0.0, posinf=0.0, neginf=0.0)
+    field = estimate_natural(L, B, config=NaturalConfig(n_kernels=n_kernels, rel_tol=rel_tol))
+    return dataclasses.replace(field, pixel_index=idx.astype(np.int32), image_hw=tuple(mask.shape))
+
+
+def estimate_session_natural(session, views: Sequence[tuple[int, float]], view_cameras, alphas: Sequence[np.ndarray],
+                             out_dir, *, n_kernels: int = 25, alpha_min: float = 0.5, rel_tol: float = 1e-8,
+                             weights_dtype: str = "float16",
+                             progress: Callable[[int, int], None] | None = None) -> dict:
+    """Estimate and write the natural-illumination field of every view and display.
+
+    Parameters
+    ----------
+    session : Session
+    views : [(camera index, table_deg)], the model's views, in model order.
+    view_cameras : the views' cameras (recorded only for consistency checks of size).
+    alphas : per view float (H, W) matte; pixels with α > ``alpha_min`` are estimated.
+        The photographs are the whole radiance reaching the camera, the backdrop seen
+        past the object included; where α is small that backdrop is all there is, and
+        relit it would add the environment itself to the view's premultiplied colour
+        (matte noise on the backdrop showed as a grid of environment pixels). So only
+        the object proper (default α > 0.5) gets a field; its fringe keeps the
+        light-array part only.
+    out_dir : path, the model folder; fields go to ``natural/<view_id>/<display>.npz``.
+    n_kernels : K (default 25, the paper's); a view/display with fewer images is an error.
+    weights_dtype : "float16" (the stored size, 355 B/px at K = 25) or "float32".
+    progress : callable(done, total) over (view, display) pairs.
+
+    Returns
+    -------
+    dict: ``present``, ``displays`` {name: {"domain_hw": [H_d, W_d], "images": N}},
+    ``n_kernels``, ``pixels``, ``kernels_mean``, ``residual_median``/``_p95``,
+    ``bytes``, ``seconds``, ``pixels_per_s``, ``files``.
+
+    Raises
+    ------
+    InputError
+        The session has no natural phase, a view has none of its shots, or N < K.
+    """
+    from ..relight.natural import field_path, save_field
+
+    t0 = time.perf_counter()
+    views = list(views)
+    if len(alphas) != len(views) or (view_cameras is not None and len(view_cameras) != len(views)):
+        raise InputError(f"estimate_session_natural: {len(views)} views, {len(alphas)} mattes, "
+                         f"{None if view_cameras is None else len(view_cameras)} cameras: they must match")
+    if SESSION_PHASE not in session.phases():
+        raise InputError(f"{session.root}: the session has no natural-illumination phase (no '{SESSION_PHASE}' "
+                         "images); capture it with a plan that has [phases.natural]")
+    per_view = [natural_shots(session, c, a) for c, a in views]
+    displays = sorted({d for pv in per_view for d in pv})
+    if not displays:
+        raise InputError(f"{session.root}: no natural shot lights a single display (an older envmatte capture "
+                         "showing one image on every display cannot be split into illumination domains)")
+    for (c, a), pv in zip(views, per_view):
+        missing = [d for d in displays if d not in pv]
+        if missing:
+            raise InputError(f"{session.root}: view {view_id(c, a)} has no natural shots on display(s) {missing}")
+        for d, shots in pv.items():
+            if len(shots) < n_kernels:
+                raise InputError(f"{session.root}: view {view_id(c, a)}, display {d!r}: {len(shots)} natural "
+                                 f"images but n_kernels={n_kernels}; the estimate needs N >= K")
+    out_dir = Path(out_dir)
+    total = len(views) * len(displays)
+    done = 0
+    pixels, nbytes, kern, res, files = 0, 0, [], [], []
+    info = {}
+    for i, ((c, a), pv) in enumerate(zip(views, per_view)):
+        vid = view_id(c, a)
+        mask = np.asarray(alphas[i]) > alpha_min
+        for d in displays:
+            f = estimate_view_natural(session, pv[d], d, mask, n_kernels=n_kernels, rel_tol=rel_tol)
+            f = dataclasses.replace(f, meta={"view_id": vid, "display": d, "n_kernels": n_kernels,
+                                             "alpha_min": alpha_min, "rel_tol": rel_tol,
+                                             "patterns": [p for p, _ in pv[d]], "session": str(session.root)})
+            path = save_field(field_path(out_dir, vid, d), f, weights_dtype=weights_dtype)
+            files.append(str(path.relative_to(out_dir)))
+            nbytes += path.stat().st_size
+            pixels += f.n_pixels
+            kern.append(f.n_kernels.astype(np.float64))
+            res.append(f.residual.astype(np.float64))
+            info.setdefault(d, {"domain_hw": list(f.domain_hw), "images": f.n_images})
+            done += 1
+            if progress:
+                progress(done, total)
+            log.info("natural %s/%s: %d px, %d images", vid, d, f.n_pixels, f.n_images)
+    secs = time.perf_counter() - t0
+    k_all = np.concatenate(kern) if kern else np.zeros(0)
+    r_all = np.concatenate(res) if res else np.zeros(0)
+    return {
+        "present": True,
+        "displays": info,
+        "n_kernels": int(n_kernels),
+        "weights_dtype": weights_dtype,
+        "pixels": int(pixels),
+        "kernels_mean": float(k_all.mean()) if k_all.size else 0.0,
+        "residual_median": float(np.median(r_all)) if r_all.size else 0.0,
+        "residual_p95": float(np.percentile(r_all, 95)) if r_all.size else 0.0,
+        "bytes": int(nbytes),
+        "seconds": secs,
+        "pixels_per_s": pixels / max(secs, 1e-9),
+        "files": files,
+    }

@@ -1,0 +1,70 @@
+"""Bad inputs of ``relight`` and ``eval relight``: refused before any image is relit or
+written."""
+
+from __future__ import annotations
+
+import pytest
+
+from badkit import Case, invoke, run_case
+
+OUT = "{T}/relit"
+
+CASES = [
+    Case("exposure-negative", ("relight", "{M}", "--out", OUT, "--envmap", "builtin:grace", "--exposure", "-1"), 2,
+         r"--exposure -1.0: expected a multiplier > 0", must_not_exist=(OUT,)),
+    Case("exposure-zero", ("relight", "{M}", "--out", OUT, "--envmap", "builtin:grace", "--exposure", "0"), 2,
+         r"--exposure 0.0: expected a multiplier > 0", must_not_exist=(OUT,)),
+    Case("exposure-nan", ("relight", "{M}", "--out", OUT, "--envmap", "builtin:grace", "--exposure", "nan"), 2,
+         r"--exposure nan", must_not_exist=(OUT,)),
+    Case("orbit-zero", ("relight", "{M}", "--out", OUT, "--envmap", "builtin:grace", "--orbit", "0"), 2,
+         r"--orbit 0: expected at least 1 frame", must_not_exist=(OUT,)),
+    Case("model-missing", ("relight", "{T}/nosuch", "--out", OUT, "--envmap", "builtin:grace"), 2,
+         r"nosuch: no such model folder", must_not_exist=(OUT,)),
+    Case("eval-spp-zero", ("eval", "relight", "{M}", "--envmap", "builtin:grace", "--spp", "0", "--out", OUT), 2,
+         r"--spp 0: expected at least 1 sample per pixel", must_not_exist=(OUT,)),
+    Case("eval-max-views-zero", ("eval", "relight", "{M}", "--envmap", "builtin:grace", "--max-views", "0",
+                                 "--out", OUT), 2, r"--max-views 0: expected at least 1", must_not_exist=(OUT,)),
+    Case("eval-model-missing", ("eval", "relight", "{T}/nosuch", "--envmap", "builtin:grace"), 2,
+         r"nosuch: no such model folder"),
+]
+
+
+@pytest.mark.parametrize("case", CASES, ids=[c.id for c in CASES])
+def test_bad_relight_input(case, relight_model_dir, tmp_path):
+    run_case(case, inputs={"M": relight_model_dir}, tmp_path=tmp_path)
+
+
+def test_eval_relight_default_out_is_outside_the_model_and_old_yaw_flag_works(relight_model_dir, tmp_path,
+                                                                              monkeypatch):
+    import opacityhull.relight.evaluate as ev
+
+    got = {}
+
+    def fake(model, **kw):
+        got.update(kw)
+        return {"per_view": [], "psnr_mean": 0.0, "rel_err_mean": 0.0, "sheet": ""}
+
+    monkeypatch.setattr(ev, "eval_relight", fake)
+    monkeypatch.chdir(tmp_path)
+    r = invoke(["eval", "relight", relight_model_dir, "--envmap", "builtin:grace", "--yaw-deg", "33", "--json"])
+    assert r.exit_code == 0, r.output
+    assert got["yaw_deg"] == 33.0
+    assert str(got["out"]) == f"{relight_model_dir.name}_eval_relight"  # in the current folder, not the model's
+    r = invoke(["eval", "relight", relight_model_dir, "--envmap", "builtin:grace", "--env-yaw-deg", "12", "--json"])
+    assert r.exit_code == 0 and got["yaw_deg"] == 12.0
+
+
+def test_eval_relight_warns_when_few_lights_were_captured(relight_model_dir, tmp_path, monkeypatch):
+    import json
+
+    import opacityhull.relight.evaluate as ev
+    from badkit import flat
+
+    def fake(model, **kw):
+        return {"per_view": [], "psnr_mean": 10.0, "rel_err_mean": 0.7, "sheet": "s.png", "n_lights_captured": 2}
+
+    monkeypatch.setattr(ev, "eval_relight", fake)
+    r = invoke(["eval", "relight", relight_model_dir, "--envmap", "builtin:grace", "--out", tmp_path / "e"])
+    assert r.exit_code == 0 and "warning: only 2 captured light direction(s)" in flat(r.stderr)
+    r = invoke(["eval", "relight", relight_model_dir, "--envmap", "builtin:grace", "--out", tmp_path / "e", "--json"])
+    assert "only 2 captured" in json.loads(r.stdout)["warnings"][0]

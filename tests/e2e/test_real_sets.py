@@ -1,0 +1,63 @@
+"""The pipeline on real photographs made by others: the Middlebury templeSR and dinoSR
+rings (vendored in tests/data/real, imperfect thresholded masks), through
+``import colmap`` → ``build`` (defaults) → ``eval loo`` with both holdouts.
+
+Thresholds come from measurement (see THRESHOLDS) with margins from the spread between
+views and configurations; they are well above the plain baseline (voxel carving +
+per-pixel ULR, hull rebuilt without the held-out view: 17.9 dB temple, 17.6 dB dino).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+DATA = Path(__file__).resolve().parents[1] / "data" / "real"
+
+pytestmark = pytest.mark.slow
+
+# measured with the defaults, every 4th view held out (4 views; see the closing note of
+# issue 11 and benchmarks/out/fidelity.md for every 2nd view)
+THRESHOLDS = {
+    "temple": {"geometry_psnr": 18.5, "blend_psnr": 19.0},
+    "dino": {"geometry_psnr": 18.5, "blend_psnr": 19.0},
+}
+
+
+@pytest.fixture(scope="module", params=["temple", "dino"])
+def real_model(request, tmp_path_factory):
+    from opacityhull.acquire.importers import import_colmap
+    from opacityhull.reconstruct.build import BuildConfig, build_model
+
+    name = request.param
+    src = DATA / f"{name}SR"
+    tmp = tmp_path_factory.mktemp(name)
+    import_colmap(src / "sparse", src / "images", tmp / "session", masks_dir=src / "masks")
+    report = build_model(tmp / "session", tmp / "model", config=BuildConfig(pictures=False))
+    return name, tmp, report
+
+
+def test_default_build_reaches_capture_resolution(real_model):
+    """No flag needed: the default grid puts one surfel per projected pixel."""
+    name, _, report = real_model
+    res = report.hull["resolution"]
+    assert res["surfel_spacing_m"] <= 1.01 * res["pixel_footprint_m"], res
+    assert res["reason"].startswith("auto")
+    assert report.hull["carve_tolerance"] == 1  # imported thresholded masks: robust carve
+    assert report.surfels > 300_000
+
+
+def test_real_loo_both_holdouts(real_model):
+    from opacityhull.reconstruct.holdout import run_loo_holdouts
+
+    name, tmp, _ = real_model
+    s = run_loo_holdouts(tmp / "model", views="every:4", holdout="both", out=tmp / "loo")
+    g, b = s["holdouts"]["geometry"], s["holdouts"]["blend"]
+    t = THRESHOLDS[name]
+    assert g["psnr_mean"] > t["geometry_psnr"], g
+    assert b["psnr_mean"] > t["blend_psnr"], b
+    # the honest holdout can only be harder: the held-out silhouette no longer carves
+    assert g["psnr_mean"] <= b["psnr_mean"] + 0.3
+    assert s["all"]["geometry"]["per_view"][0]["surfels"] > 0
+    assert (tmp / "loo" / "loo.json").is_file()
