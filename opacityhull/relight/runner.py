@@ -214,6 +214,16 @@ def relight_model(
         relit.append(R.relight_view(i, envmap=env, lights=light_list))
         if progress:
             progress(i + 1, total)
+    if env is not None and model.meta.get("natural", {}).get("present"):
+        # the display-domain field (refraction, high resolution) adds to the light-array
+        # field (everything else): the environment seen through the displays' solid angles
+        from .natural import relight_model_views_natural
+
+        t_nat = time.perf_counter()
+        for i, part in enumerate(relight_model_views_natural(model, env)):
+            if part is not None:
+                relit[i][..., :3] += part
+        summary["natural_field_s"] = time.perf_counter() - t_nat
     summary["relit_views_s"] = time.perf_counter() - t1
     summary["relit_views_per_s"] = n / max(summary["relit_views_s"], 1e-9)
     if config.pca_rank is not None and R.pca_stats:

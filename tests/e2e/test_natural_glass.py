@@ -62,6 +62,10 @@ level = 0
 [phases.lightfield]
 level = 255
 
+[phases.reflectance]
+array_steps = 1
+level = 255
+
 [phases.natural]
 images = 30
 kernels = 25
@@ -189,3 +193,22 @@ def test_c_new_viewpoint_under_an_envmap(glass):
     upside = ne.compare(nt.scatter_pixels(f, nt.relight_natural(f, shown[::-1, ::-1])), t0, m0)
     print("captured viewpoint", cap, "upside down", upside)
     assert cap["psnr"] >= 25 and cap["rel_err"] < 0.5 * upside["rel_err"], (cap, upside)
+
+
+def test_d_build_attaches_the_field_and_relight_uses_it(glass, tmp_path):
+    """`build` estimates the field itself (a [natural] table in model.toml, files under
+    natural/), and `relight` adds the display-domain part to the relit views: the glass,
+    exactly black under the light array alone (delta paths), is no longer black."""
+    from opacityhull.relight.runner import relight_model
+
+    sess, model, out, rep = glass
+    nat = model.meta.get("natural", {})
+    assert nat.get("present") and nat["n_kernels"] == 25 and "back" in nat["displays"]
+    assert (model.root / "natural" / model.views[0].id / "back.npz").is_file()
+    s = relight_model(model.root, out=tmp_path / "relit", envmap="builtin:uffizi")
+    assert "natural_field_s" in s
+    from opacityhull.imageio import read_exr
+
+    img = read_exr(tmp_path / "relit" / "views" / f"{model.views[0].id}.exr")
+    a = img[..., 3] > 0.5
+    assert a.sum() > 100 and float(img[..., :3][a].mean()) > 1e-3
