@@ -52,6 +52,7 @@ demo: venv
 	@$(VENV)/bin/opacityhull demo --out $(OUT)/demo
 
 test: venv
+	@$(VENV)/bin/ruff check opacityhull tests benchmarks
 	@OPENBLAS_NUM_THREADS=1 $(PY) -m pytest $(PYTEST_ARGS)
 
 test-fast: venv

@@ -64,7 +64,7 @@ def load_probes(names):
 
 def bench_throughput(tmp: Path, *, width: int, height: int, table_degs, orbit_frames: int, probe) -> dict:
     from opacityhull.model import OpacityHullModel
-    from opacityhull.relight.relit import Relighter, _get_kernel, relight_stack
+    from opacityhull.relight.relit import Relighter, relight_stack
     from opacityhull.relight.synthetic import write_sphere_model
 
     t_write, root = _t(write_sphere_model, tmp / "demo", width=width, height=height, table_degs=table_degs,

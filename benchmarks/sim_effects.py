@@ -79,7 +79,7 @@ def throughput(n: int, scales=(1.0, 2.0)) -> dict:
         for name, phase, st in cases:
             sc = load_scene(f"builtin:{name}")
             modes = {"crop": SimRenderer(sc, g), "full frame": SimRenderer(sc, g, overrides={"crop": False})}
-            t_first, t_obj, t_bg, frac = {}, {}, {}, {}
+            t_first, t_obj, t_bg = {}, {}, {}
             for mode, r in modes.items():
                 t0 = CLOCK()
                 if phase == "matting":

@@ -37,11 +37,10 @@ World frame = object frame (rig frame at table angle 0), metres.
 
 from __future__ import annotations
 
-import json
 import logging
 import time
 import tomllib
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
 
@@ -50,7 +49,7 @@ import numpy as np
 from . import __version__
 from .camera import Camera, read_colmap_text, write_colmap_text
 from .errors import FormatError, InputError, ShapeError, check_shape
-from .riggeometry import RigGeometry, parse_view_id
+from .riggeometry import RigGeometry
 
 log = logging.getLogger(__name__)
 

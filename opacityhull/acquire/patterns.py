@@ -30,7 +30,7 @@ import numpy as np
 from ..errors import FormatError, InputError
 from ..riggeometry import RigGeometry
 from .plan import CapturePlan
-from .schedule import envmatte_first_id, natural_pattern_ids
+from .schedule import natural_pattern_ids
 
 __all__ = [
     "Pattern",

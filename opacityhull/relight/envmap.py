@@ -29,6 +29,7 @@ from typing import Literal
 
 import numpy as np
 
+from ..envmap import direction_to_uv as _direction_to_uv
 from ..errors import FormatError, InputError, ShapeError
 
 __all__ = [
@@ -77,23 +78,9 @@ def latlong_solid_angles(height: int, width: int) -> np.ndarray:
 
 
 def direction_to_uv(directions) -> tuple[np.ndarray, np.ndarray]:
-    """Lat-long coordinates of directions: ``u ∈ [0, 1)`` (φ / 2π), ``v ∈ [0, 1]`` (θ / π).
-
-    Directions need not be normalised; a zero vector raises :class:`InputError`.
-    Exactly at a pole φ is undefined and set to 0 (every column is the same point).
-    """
-    d = np.asarray(directions, dtype=np.float64)
-    if d.shape[-1] != 3:
-        raise ShapeError(f"directions have shape {d.shape}, expected (..., 3)")
-    n = np.linalg.norm(d, axis=-1)
-    if np.any(~np.isfinite(n)) or np.any(n < 1e-12):
-        raise InputError("directions contain a zero, NaN or Inf vector")
-    d = d / n[..., None]
-    v = np.arccos(np.clip(d[..., 1], -1.0, 1.0)) / math.pi
-    u = np.arctan2(d[..., 0], -d[..., 2]) / (2.0 * math.pi)
-    u = u - np.floor(u)
-    u = np.where(u >= 1.0, 0.0, u)  # -0.0 / rounding can give exactly 1
-    return u, v
+    """Lat-long coordinates of directions (:func:`opacityhull.envmap.direction_to_uv`): a
+    zero, NaN or Inf vector raises :class:`InputError` (a light direction that is a bug)."""
+    return _direction_to_uv(directions, invalid="raise")
 
 
 def _bilinear_latlong(img: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:

@@ -11,7 +11,7 @@ from __future__ import annotations
 import json
 import math
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict
 from pathlib import Path
 from typing import Callable, Sequence
 
@@ -21,7 +21,7 @@ from ..camera import Camera
 from ..errors import InputError
 from ..imageio import atomic_path, write_exr, write_png
 from .basis import parse_lights
-from .envmap import EnvironmentMap, default_yaw_deg, load_envmap
+from .envmap import default_yaw_deg, load_envmap
 from .relit import Relighter, RelightConfig
 
 __all__ = [

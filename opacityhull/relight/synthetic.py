@@ -15,7 +15,7 @@ sees them.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
 
@@ -166,8 +166,8 @@ def write_sphere_model(root, *, scene: SphereScene = SphereScene(), width: int =
         n, h = hits_cache[vi]
         dirs = np.array([geom.light_direction_object(s.light_id, views[vi].table_deg, s.array_deg) for s in samples])
         irr = np.array([geom.light(s.light_id).intensity * np.asarray(geom.light(s.light_id).colour) for s in samples])
-        O = _one_light_images(n, h, scene.albedo(np.nan_to_num(n)), dirs, irr)
-        return {s.key: O[k] for k, s in enumerate(samples)}
+        olat = _one_light_images(n, h, scene.albedo(np.nan_to_num(n)), dirs, irr)
+        return {s.key: olat[k] for k, s in enumerate(samples)}
 
     root = Path(root)
     prov = {"generator": "opacityhull.relight.synthetic.write_sphere_model", "scene": "analytic:lambertian-sphere",

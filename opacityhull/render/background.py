@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from ..camera import Camera, rot_y
+from ..envmap import direction_to_uv, uv_to_direction
 from ..errors import InputError, ShapeError
 
 __all__ = ["EnvMap", "envmap_lookup", "direction_to_equirect", "equirect_to_direction", "resolve_background",
@@ -27,23 +28,14 @@ __all__ = ["EnvMap", "envmap_lookup", "direction_to_equirect", "equirect_to_dire
 
 
 def direction_to_equirect(directions) -> tuple[np.ndarray, np.ndarray]:
-    """(…, 3) directions → (u, v) in [0, 1) × [0, 1] (see module docstring)."""
-    d = np.asarray(directions, dtype=np.float64)
-    n = np.linalg.norm(d, axis=-1)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        y = np.clip(d[..., 1] / n, -1.0, 1.0)
-    u = np.arctan2(d[..., 0], -d[..., 2]) / (2.0 * math.pi)
-    u = u - np.floor(u)
-    v = np.arccos(np.nan_to_num(y, nan=0.0)) / math.pi
-    return u, v
+    """(…, 3) directions → (u, v) in [0, 1) × [0, 1]: :func:`opacityhull.envmap.direction_to_uv`
+    with degenerate rays mapped to the zenith (a background never stops a render)."""
+    return direction_to_uv(directions, invalid="zenith")
 
 
 def equirect_to_direction(u, v) -> np.ndarray:
     """Inverse of :func:`direction_to_equirect`: unit directions (…, 3)."""
-    phi = np.asarray(u, dtype=np.float64) * 2.0 * math.pi
-    theta = np.asarray(v, dtype=np.float64) * math.pi
-    s = np.sin(theta)
-    return np.stack([s * np.sin(phi), np.cos(theta), -s * np.cos(phi)], axis=-1)
+    return uv_to_direction(u, v)
 
 
 def envmap_lookup(image, directions, *, yaw_deg: float = 0.0) -> np.ndarray:

@@ -133,8 +133,6 @@ class DisplayController:
         seq = self._next_seq()
         frame = dp.encode_frame(seq, cmd, payload)
         problems: list[str] = []
-        reconnects = 0
-        attempt = 0
         mark = self.transport.mark()
         # one overall deadline: however many garbled frames a babbling line delivers, a
         # command ends within timeout x attempts

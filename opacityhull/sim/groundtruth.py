@@ -19,7 +19,6 @@ would go and currently only validates.
 from __future__ import annotations
 
 import json
-import math
 import tomllib
 from pathlib import Path
 from typing import Sequence
@@ -27,6 +26,7 @@ from typing import Sequence
 import numpy as np
 
 from ..camera import Camera, write_colmap_text, write_opencv_yaml
+from ..envmap import direction_to_uv, uv_to_direction
 from ..errors import InputError, ShapeError
 from ..imageio import atomic_path, write_exr
 from ..riggeometry import RigGeometry, view_id
@@ -56,22 +56,15 @@ def default_geometry() -> RigGeometry:
 
 
 def equirect_direction(u, v) -> np.ndarray:
-    """Unit direction (..., 3) seen by equirectangular coordinates ``u`` (columns, [0, 1)
-    from the left edge) and ``v`` (rows, [0, 1] from the top): +Y up, u = 0.5 → +Z,
-    u = 0.25 → +X, u = 0.75 → −X."""
-    phi = 2.0 * math.pi * np.asarray(u, dtype=np.float64)
-    theta = math.pi * np.asarray(v, dtype=np.float64)
-    return np.stack([np.sin(phi) * np.sin(theta), np.cos(theta), -np.cos(phi) * np.sin(theta)], axis=-1)
+    """Unit direction (…, 3) of equirectangular coordinates ``u`` (columns, [0, 1) from
+    the left edge) and ``v`` (rows, [0, 1] from the top): +Y up, u = 0.5 → +Z,
+    u = 0.25 → +X, u = 0.75 → −X (:func:`opacityhull.envmap.uv_to_direction`)."""
+    return uv_to_direction(u, v)
 
 
 def direction_to_equirect(d) -> tuple[np.ndarray, np.ndarray]:
-    """Inverse of :func:`equirect_direction`: (u, v) in [0, 1) × [0, 1] of directions (..., 3)."""
-    d = np.asarray(d, dtype=np.float64)
-    d = d / np.linalg.norm(d, axis=-1, keepdims=True)
-    theta = np.arccos(np.clip(d[..., 1], -1.0, 1.0))
-    phi = np.arctan2(d[..., 0], -d[..., 2])
-    u = (phi / (2.0 * math.pi)) % 1.0
-    return u, theta / math.pi
+    """Inverse of :func:`equirect_direction` (:func:`opacityhull.envmap.direction_to_uv`)."""
+    return direction_to_uv(d, invalid="raise")
 
 
 def envmap_for_mitsuba(envmap_rgb: np.ndarray) -> np.ndarray:

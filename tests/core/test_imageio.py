@@ -1,6 +1,5 @@
 """Image IO round trips, half-float clamping, sRGB, atomic writes."""
 
-import os
 import warnings
 
 import numpy as np

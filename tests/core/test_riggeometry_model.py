@@ -132,7 +132,7 @@ def test_model_roundtrip(tmp_path):
              for i, (c, a) in enumerate([(0, 0.0), (1, 0.0), (0, 90.0)])]
     rng = np.random.default_rng(3)
     rgba = [rng.random((48, 64, 4)).astype(np.float32) for _ in views]
-    lights = [LightSample(light_key(l, b), l, b) for l in range(2) for b in (0.0, 22.5)]
+    lights = [LightSample(light_key(lt, b), lt, b) for lt in range(2) for b in (0.0, 22.5)]
     refl = {i: {L.key: rng.random((48, 64, 3)).astype(np.float32) for L in lights} for i in range(3)}
     s = _surfels(v=3)
     write_model(tmp_path / "m", views=views, surfels=s, view_rgba=rgba, rig=g.to_dict(),
@@ -166,7 +166,7 @@ def _small_model(tmp_path, *, alpha_zero_corner=True):
     if alpha_zero_corner:
         for a in rgba:
             a[:4, :4, 3] = 0.0  # straight colour there is undefined
-    lights = [LightSample(light_key(l, b), l, b) for l in (1, 3) for b in (0.0, 40.0)]
+    lights = [LightSample(light_key(lt, b), lt, b) for lt in (1, 3) for b in (0.0, 40.0)]
     refl = {i: {L.key: rng.random((48, 64, 3)).astype(np.float32) for L in lights} for i in range(2)}
     write_model(tmp_path / "m", views=views, surfels=_surfels(v=2), view_rgba=rgba, rig=g.to_dict(),
                 reflectance={"lights": lights, "images": lambda i: refl[i]})

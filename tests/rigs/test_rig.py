@@ -122,7 +122,7 @@ def test_safe_on_exception(emus, exc, wait_for):
 
 
 def test_safe_attempts_every_step_when_one_device_is_gone(emus, wait_for):
-    g, dmx, disp = emus.by_device["turntable"], emus.by_device["light_array"], emus.by_device["backdrops"]
+    g, dmx = emus.by_device["turntable"], emus.by_device["light_array"]
     with open_rig(emus.config) as rig:
         rig.backdrops.reconnect_attempts = 0
         with pytest.raises(DeviceError, match=r"could not make the rig safe \(backdrops: blank: .*backdrops") as ei:
