@@ -17,7 +17,8 @@ import numpy as np
 from ..camera import Camera
 from . import kernels as K
 
-__all__ = ["ulr_weights_ref", "bilinear_ref", "shade_ref", "splat_setup_ref", "rasterize_ref", "render_image_ref"]
+__all__ = ["ulr_weights_ref", "bilinear_ref", "shade_ref", "splat_setup_ref", "rasterize_ref", "render_image_ref",
+           "rasterize_geometry_ref", "deferred_shade_reference"]
 
 
 def _ulr_row(s_sorted: list[float], k: int) -> list[float]:
@@ -238,10 +239,12 @@ def rasterize_ref(records, draw, height: int, width: int, cutoff: float) -> tupl
 
 
 def render_image_ref(surfels, view_cameras, view_rgba_premul, camera: Camera, *, config=None,
-                     exclude_views: Sequence[int] = ()):
+                     exclude_views: Sequence[int] = (), return_margin: bool = False):
     """The whole of :func:`opacityhull.render.render_image` from the references
-    (distortion-free desired cameras only). Returns (rgba straight, depth, weight)."""
-    from .renderer import RenderConfig, coverage_from, normalise, surfel_areas
+    (distortion-free desired cameras only). Returns (rgba straight, depth, weight), and
+    with ``return_margin`` (pixel shading) also the (H, W) bool map of pixels whose
+    winning surfel is clear of the runner-up by more than the kernels' exp-table error."""
+    from .renderer import RenderConfig, coverage_from, normalise, straight_from_premul, surfel_areas
 
     cfg = config or RenderConfig()
     if camera.has_distortion:
@@ -249,6 +252,27 @@ def render_image_ref(surfels, view_cameras, view_rgba_premul, camera: Camera, *,
     valid, rec = splat_setup_ref(surfels.positions, surfels.normals, surfels.radii, surfel_areas(surfels), camera,
                                  sigma_radius=cfg.sigma_radius, filter_var=cfg.filter, cutoff=cfg.cutoff_sigma,
                                  eps_z=cfg.epsilon_z, cull_backfaces=cfg.backface_cull)
+    if cfg.shading == "pixel":
+        from .deferred import close_gbuffer
+
+        geo, winner, best, second = rasterize_geometry_ref(rec, np.flatnonzero(valid), camera.height, camera.width,
+                                                           cfg.cutoff_sigma)
+        wsum = geo[..., 0]
+        has = wsum > 0
+        depth = np.where(has, geo[..., 1] / np.where(has, wsum, 1.0), np.inf).astype(np.float32)
+        cov = coverage_from(geo[..., 2], wsum, cfg)
+        if cfg.close_holes:
+            depth, cov, winner = close_gbuffer(depth, wsum, cov, winner)
+        premul = deferred_shade_reference(depth, cov, winner, camera, surfels.visible_bool(), view_cameras,
+                                          view_rgba_premul, normals=surfels.normals, k=cfg.k,
+                                          exclude_views=exclude_views, min_coverage=cfg.min_coverage,
+                                          min_view_cos=cfg.min_view_cos)
+        if cfg.coverage_clip:
+            a = premul[..., 3]
+            clipped = np.minimum(a, cov)
+            premul = premul * np.where(a > clipped, clipped / np.where(a > 0, a, 1.0), 1.0)[..., None]
+        out = (straight_from_premul(premul.astype(np.float32)), depth, wsum)
+        return out + (best > second * (1 + 1e-4),) if return_margin else out
     Wd = ulr_weights_ref(surfels.positions, surfels.visible_bool(), view_cameras, camera.centre_world, k=cfg.k,
                          exclude_views=exclude_views)
     rgba = shade_ref(surfels.positions, Wd, view_cameras, view_rgba_premul)
@@ -258,3 +282,96 @@ def render_image_ref(surfels, view_cameras, view_rgba_premul, camera: Camera, *,
     cov = coverage_from(accum[..., 6], accum[..., 4], cfg)
     out, depth = normalise(accum[..., :4], accum[..., 4], accum[..., 5], cov)
     return out, depth, accum[..., 4]
+
+
+def rasterize_geometry_ref(records, draw, height: int, width: int, cutoff: float):
+    """Geometry-only ε-z-buffered splatting (twin of
+    :func:`opacityhull.render.deferred.rasterize_geometry`): Σw, Σw·z, Σw·area from
+    :func:`rasterize_ref`, and per pixel the surfel with the largest weight ``W exp(−q/2)``
+    among the front-surface fragments (first in ``draw`` order on ties).
+
+    Returns (geo (H, W, 3) float32, winner (H, W) int64 (−1: none), best (H, W) and
+    second-best (H, W) weights, so callers can tell near-ties).
+    """
+    accum, zlim = rasterize_ref(records, draw, height, width, cutoff)
+    rec = np.asarray(records, dtype=np.float32)
+    c2 = float(cutoff) ** 2
+    winner = np.full((height, width), -1, np.int64)
+    best = np.zeros((height, width))
+    second = np.zeros((height, width))
+    for i in draw:
+        sp = rec[i]
+        for y in range(int(sp[K.S_BY0]), int(sp[K.S_BY1]) + 1):
+            for x in range(int(sp[K.S_BX0]), int(sp[K.S_BX1]) + 1):
+                dx, dy = x - float(sp[K.S_X]), y - float(sp[K.S_Y])
+                q = float(sp[K.S_A]) * dx * dx + 2 * float(sp[K.S_B]) * dx * dy + float(sp[K.S_C]) * dy * dy
+                if q > c2:
+                    continue
+                z0, dev = float(sp[K.S_Z]), float(sp[K.S_ZDEV])
+                z = np.float32(min(max(z0 + float(sp[K.S_DZX]) * dx + float(sp[K.S_DZY]) * dy, z0 - dev), z0 + dev))
+                if z > zlim[y, x]:
+                    continue
+                w = float(sp[K.S_W]) * math.exp(-0.5 * q)
+                if w > best[y, x]:
+                    second[y, x] = best[y, x]
+                    best[y, x] = w
+                    winner[y, x] = i
+                elif w > second[y, x]:
+                    second[y, x] = w
+    return accum[..., 4:7].copy(), winner, best, second
+
+
+def deferred_shade_reference(depth, coverage, winner, camera: Camera, visible_bool, view_cameras: Sequence[Camera],
+                             view_rgba_premul: Sequence[np.ndarray], *, normals=None, k: int = 4,
+                             exclude_views: Sequence[int] = (), min_coverage: float = 0.5,
+                             min_view_cos: float = -1.0, fallback: bool = False) -> np.ndarray:
+    """Per-pixel ULR shading, one pixel at a time from independent parts (twin of
+    :func:`opacityhull.render.deferred.deferred_shade`).
+
+    A pixel is shaded when its coverage ≥ ``min_coverage``, its winner ≥ 0 and its depth
+    is finite and > 0: X = centre + t·d on the pixel ray d (``Camera.pixel_rays``) with
+    t = depth / (d · forward), so that X's camera-frame z is the depth; the winner's
+    visibility row chooses the candidate views (:func:`ulr_weights_ref`), minus those
+    with ``cos∠(n, C_v − X) ≤ min_view_cos`` (n the winner's normal) unless that leaves
+    no allowed view, and the premultiplied RGBA is :func:`shade_ref`. With ``fallback``, a winner
+    no allowed view sees first takes every allowed view with ``n · (C_v − X) > 0`` (all
+    allowed views when n is unusable). Others are 0.
+
+    Parameters: depth, coverage (H, W); winner (H, W) int; camera the (pinhole) frame;
+    visible_bool (N, V); normals (N, 3) (needed when ``min_view_cos > −1``). Returns
+    (H, W, 4) float64 premultiplied RGBA.
+    """
+    depth = np.asarray(depth, np.float64)
+    H, W = depth.shape
+    win = np.asarray(winner)
+    out = np.zeros((H, W, 4))
+    with np.errstate(invalid="ignore"):
+        shade = (np.asarray(coverage) >= np.float32(min_coverage)) & (win >= 0) & np.isfinite(depth) & (depth > 0)
+    ys, xs = np.nonzero(shade)
+    if ys.size == 0:
+        return out
+    origin, d = camera.pixel_rays(np.stack([xs, ys], axis=1).astype(np.float64))
+    t = depth[ys, xs] / (d @ camera.forward_world)
+    X = origin + d * t[:, None]
+    vis = np.asarray(visible_bool, bool)[win[ys, xs]].copy()
+    centres = np.stack([c.centre_world for c in view_cameras])
+    if normals is not None:
+        n = np.asarray(normals, np.float64)[win[ys, xs]]
+        nn = np.linalg.norm(n, axis=1)
+        usable = (nn > 1e-12) & np.isfinite(nn)
+    allowed = np.ones(len(view_cameras), bool)
+    allowed[list(int(v) for v in exclude_views)] = False
+    if fallback:
+        for j in np.flatnonzero(~(vis & allowed).any(axis=1)):
+            front = ((centres - X[j]) @ n[j] > 0) if usable[j] else np.ones(len(view_cameras), bool)
+            vis[j] |= allowed & front
+    if min_view_cos > -1.0:
+        for j in np.flatnonzero(usable):
+            e = centres - X[j]
+            cos = (e @ n[j]) / (np.linalg.norm(e, axis=1) * nn[j])
+            keep = vis[j] & (cos > min_view_cos)
+            if (keep & allowed).any():
+                vis[j] = keep
+    Wd = ulr_weights_ref(X, vis, view_cameras, camera.centre_world, k=k, exclude_views=exclude_views)
+    out[ys, xs] = shade_ref(X, Wd, view_cameras, view_rgba_premul)
+    return out

@@ -17,6 +17,11 @@ Pipeline of :func:`render_image` (every step a numba kernel with a NumPy twin in
 Only the first visible surface is rendered: the opacity light field's alpha already
 holds the total coverage along each ray (the matte saw all layers at once), so the
 splatted RGBA is composited directly over the background.
+
+That is ``shading="surfel"``. With ``shading="pixel"`` (the default) step 2 is skipped
+and step 3 rasterises geometry only (depth, coverage, winning surfel); each covered
+pixel is then shaded at its back-projected surface point by
+:mod:`opacityhull.render.deferred`, colour and alpha from the blended mattes.
 """
 
 from __future__ import annotations
@@ -224,7 +229,7 @@ def render_image(
         :class:`PreparedViews` built once by :func:`prepare_views` (reuse it across frames).
     camera : the desired camera. With lens distortion, the frame is rendered through a
         distortion-free camera covering the same field of view and remapped.
-    config : :class:`RenderConfig`.
+    config : :class:`RenderConfig` (``config.shading``: per-pixel or per-surfel ULR).
     exclude_views : views not used for blending (leave-one-out); they still count for
         nothing else, since visibility and geometry come from the model.
     progress : callable(done, total) over the 3 stages.
@@ -258,6 +263,10 @@ def render_image(
     t_setup = time.perf_counter()
     if progress:
         progress(1, 3)
+
+    if config.shading == "pixel":
+        return _render_deferred(surfels, pv, allowed, camera, pin, grid, cam_row, C, splat, valid, config,
+                                exclude_views, progress, (t0, t_prep, t_setup))
 
     # the kernel bounds each block of surfels itself (K.ULR_BLOCK): no per-frame scan order
     order, s_lb = np.arange(pv.n_views, dtype=np.int64), np.zeros(pv.n_views)
@@ -302,6 +311,7 @@ def render_image(
         "threads": threads,
         "excluded_views": [int(v) for v in exclude_views],
         "nonfinite_texels": pv.nonfinite_texels,
+        "shading": "surfel",
         "ms": {
             "prepare": 1e3 * (t_prep - t0),
             "setup": 1e3 * (t_setup - t_prep),
@@ -312,6 +322,75 @@ def render_image(
         },
     }
     return RenderResult(rgba_img, depth, np.ascontiguousarray(wsum), cov, camera, config, stats)
+
+
+def _render_deferred(surfels, pv, allowed, camera, pin, grid, cam_row, C, splat, valid, config, exclude_views,
+                     progress, times) -> RenderResult:
+    """The rest of :func:`render_image` with ``shading="pixel"``: geometry-only EWA pass
+    (depth, coverage, winning surfel), then per-pixel ULR shading (:mod:`.deferred`).
+    Every valid splat is geometry, whether or not a view sees it: visibility is decided
+    per pixel from the winner's bits."""
+    from . import deferred as D
+
+    t0, t_prep, t_setup = times
+    H, W = pin.height, pin.width
+    threads = config.n_threads
+    scratch = K.SCRATCH
+    draw = np.flatnonzero(valid).astype(np.int64)
+    geo, winner = D.geometry_frame(splat, draw, H, W, float(config.cutoff_sigma), int(config.band_rows),
+                                   threads=threads, scratch=scratch)
+    wsum = geo[..., 0].copy()
+    has = wsum > 0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        depth = np.where(has, geo[..., 1] / np.where(has, wsum, 1.0), np.inf).astype(np.float32)
+    cov = coverage_from(geo[..., 2], wsum, config)
+    if config.close_holes:
+        depth, cov, winner = D.close_gbuffer(depth, wsum, cov, winner)
+    t_raster = time.perf_counter()
+    if progress:
+        progress(2, 3)
+    premul, n_shaded = D.deferred_shade(depth, cov, winner, cam_row, C, surfels.visibility, surfels.normals, pv,
+                                        allowed, k=int(config.k), min_coverage=float(config.min_coverage),
+                                        min_view_cos=float(config.min_view_cos),
+                                        fallback=bool(config.fallback_views), threads=threads)
+    if config.coverage_clip:
+        a = premul[..., 3]
+        clipped = np.minimum(a, cov)
+        scale = np.where(a > clipped, clipped / np.where(a > 0, a, 1.0), 1.0).astype(np.float32)
+        premul *= scale[..., None]
+    t_shade = time.perf_counter()
+    if grid is not None:
+        premul = _remap(premul, grid)
+        wsum = _remap(np.ascontiguousarray(wsum), grid)
+        cov = _remap(cov, grid)
+        depth = _remap(depth, grid, nearest=True, border=float("inf"))
+    rgba_img = straight_from_premul(premul)
+    t_end = time.perf_counter()
+    if progress:
+        progress(3, 3)
+    stats = {
+        "surfels": len(surfels),
+        "splats_setup": int(valid.sum()),
+        "splats_drawn": int(draw.size),
+        "pixels_covered": int((cov >= config.min_coverage).sum()),
+        "pixels_shaded": n_shaded,
+        "width": camera.width,
+        "height": camera.height,
+        "k": int(config.k),
+        "threads": threads,
+        "excluded_views": [int(v) for v in exclude_views],
+        "nonfinite_texels": pv.nonfinite_texels,
+        "shading": "pixel",
+        "ms": {
+            "prepare": 1e3 * (t_prep - t0),
+            "setup": 1e3 * (t_setup - t_prep),
+            "raster": 1e3 * (t_raster - t_setup),
+            "shade": 1e3 * (t_shade - t_raster),
+            "finish": 1e3 * (t_end - t_shade),
+            "total": 1e3 * (t_end - t0),
+        },
+    }
+    return RenderResult(rgba_img, depth, np.ascontiguousarray(wsum, dtype=np.float32), cov, camera, config, stats)
 
 
 def straight_from_premul(premul: np.ndarray) -> np.ndarray:

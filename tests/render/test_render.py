@@ -12,7 +12,7 @@ import scipy.ndimage as ndi
 from opacityhull.camera import Camera, look_at_world_from_cam
 from opacityhull.errors import InputError, ShapeError
 from opacityhull.model import Surfels
-from opacityhull.render.background import (EnvMap, composite_over, direction_to_equirect, envmap_lookup,
+from opacityhull.render.background import (EnvMap, direction_to_equirect, envmap_lookup,
                                            equirect_to_direction, load_background)
 from opacityhull.render.cameras import (captured_view_camera, look_at_camera, orbit_cameras, parse_look_at,
                                         parse_view_spec, resize_camera, scene_target)
@@ -33,7 +33,8 @@ def sphere64():
 def interior_psnr(photo, render, erode=2):
     inner = ndi.binary_erosion(photo[..., 3] > 0.999, iterations=erode)
     d = (_display(photo) - _display(render))[inner]
-    return 10 * math.log10(1.0 / float(np.mean(d**2)))
+    mse = float(np.mean(d**2))
+    return math.inf if mse == 0 else 10 * math.log10(1.0 / mse)
 
 
 def shifted(cam: Camera, dx: float) -> Camera:
@@ -50,12 +51,17 @@ def test_captured_view_reproduces_its_photograph(sphere64):
     32.6 / 21.9 dB) must fail them, and does."""
     m, pv = sphere64
     photo = m.view_rgba[4]
-    r = render_image(m.surfels, m.cameras, pv, m.cameras[4])
+    surfel = RenderConfig(shading="surfel")
+    r = render_image(m.surfels, m.cameras, pv, m.cameras[4], config=surfel)
     met = loo_metrics(photo, r.rgba)
     assert interior_psnr(photo, r.rgba) > 35.5
     assert met["psnr"] > 23.5 and met["ssim"] > 0.97 and met["alpha_mae"] < 0.04
-    bad = render_image(m.surfels, m.cameras, pv, shifted(m.cameras[4], 0.5))  # half a pixel off
+    bad = render_image(m.surfels, m.cameras, pv, shifted(m.cameras[4], 0.5), config=surfel)  # half a pixel off
     assert interior_psnr(photo, bad.rgba) < 35.5 and loo_metrics(photo, bad.rgba)["psnr"] < 23.5  # measured 32.6, 21.9
+    # per-pixel shading has no resampling filter: the interior is the photograph itself
+    # (tests/render/test_deferred.py has the silhouette)
+    px = render_image(m.surfels, m.cameras, pv, m.cameras[4], config=RenderConfig(shading="pixel"))
+    assert interior_psnr(photo, px.rgba) > 60 and loo_metrics(photo, px.rgba)["psnr"] > met["psnr"]
 
 
 @pytest.mark.parametrize("fuzzy", [False, True])
@@ -91,10 +97,16 @@ def test_leaving_a_view_out_degrades_gracefully_and_uses_neighbours(sphere64):
     assert r.stats["excluded_views"] == [4]
 
 
-def test_excluding_every_view_draws_nothing(sphere64):
+@pytest.mark.parametrize("shading", ["surfel", "pixel"])
+def test_excluding_every_view_draws_nothing(sphere64, shading):
     m, pv = sphere64
-    r = render_image(m.surfels, m.cameras, pv, m.cameras[0], exclude_views=range(len(m.cameras)))
-    assert r.stats["splats_drawn"] == 0 and np.all(r.rgba == 0) and np.all(np.isinf(r.depth))
+    r = render_image(m.surfels, m.cameras, pv, m.cameras[0], exclude_views=range(len(m.cameras)),
+                     config=RenderConfig(shading=shading))
+    assert np.all(r.rgba == 0)
+    if shading == "surfel":
+        assert r.stats["splats_drawn"] == 0 and np.all(np.isinf(r.depth))
+    else:  # the hull is still geometry (depth), but no pixel is shaded
+        assert r.stats["pixels_shaded"] == 0 and np.isfinite(r.depth).any()
 
 
 def test_depth_is_the_sphere(sphere64):
