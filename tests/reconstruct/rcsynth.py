@@ -21,6 +21,11 @@ from opacityhull.imageio import read_png, write_exr, write_png
 from opacityhull.riggeometry import RigGeometry, view_id
 from opacityhull.session import SessionWriter, shot_key
 
+# the ray caster is shared with the paper-scale session writer (one copy of the scene)
+from opacityhull.acquire.synthetic import pixel_rays as _rays
+from opacityhull.acquire.synthetic import sphere_albedo as _albedo
+from opacityhull.acquire.synthetic import sphere_hit_t as _sphere_t
+
 CORE_R = 0.04
 HALO_R = 0.055
 CENTRE = np.array([0.0, 0.06, 0.0])
@@ -43,15 +48,6 @@ def rig_dict(n_cams=3, width=64, height=48, *, fov_y_deg=20.0, distance_m=0.8, e
              "size_m": [1.0, 0.56], "resolution": [32, 18], "rotates_with_table": False, "max_radiance": 1.0},
         ],
     }
-
-
-def _sphere_t(o, d, c, r):
-    oc = o - c
-    b = d @ oc
-    cc = oc @ oc - r * r
-    disc = b * b - cc
-    t = -b - np.sqrt(np.maximum(disc, 0.0))
-    return np.where((disc >= 0) & (t > 0), t, np.inf)
 
 
 def _display_radiance(o, d, table_deg, geo: RigGeometry, patterns: dict | None):
@@ -83,12 +79,6 @@ def _display_radiance(o, d, table_deg, geo: RigGeometry, patterns: dict | None):
         out[hit] = disp.max_radiance * pat[row, col]
         best[hit] = t[hit]
     return out
-
-
-def _albedo(n):
-    """A smooth colour pattern on the sphere (object-frame normal)."""
-    return np.stack([0.35 + 0.25 * np.sin(5 * n[:, 0]), 0.35 + 0.25 * np.cos(4 * n[:, 1]),
-                     0.3 + 0.2 * np.sin(3 * n[:, 2] + 1)], axis=1)
 
 
 def render_view(cam: Camera, table_deg: float, geo: RigGeometry, *, kind="sphere", patterns=None,
@@ -269,13 +259,3 @@ def make_session(root, *, kind="sphere", n_cams=3, n_angles=6, width=64, height=
     write_ply(gt / "object.ply", V, F)
     return {"geometry": geo, "views": views, "alpha": true_alpha, "view_cameras": vcams, "rig_cameras": rig_cams,
             "patterns": pats}
-
-
-def _rays(cam, ss):
-    H, W = cam.height, cam.width
-    offs = (np.arange(ss) + 0.5) / ss - 0.5
-    v, u = np.mgrid[0:H, 0:W].astype(np.float64)
-    uu, vv = np.broadcast_arrays(u[..., None, None] + offs[None, None, None, :],
-                                 v[..., None, None] + offs[None, None, :, None])
-    uu, vv = uu.reshape(-1), vv.reshape(-1)
-    return cam.pixel_rays(np.stack([uu, vv], 1))
