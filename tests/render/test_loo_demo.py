@@ -73,13 +73,17 @@ def loo(model_dir: Path, **cfg):
 
 @pytest.mark.timeout(2400)
 def test_loo_demo_plan_builtin_diffuse(tmp_path):
-    """Measured: PSNR 25.05 dB, SSIM 0.904, alpha MAE 0.028 over the 48 views (seed 12:
+    """Measured (pixel shading, crop-rendered captures, whose mattes no longer carry
+    background specks into the metric's mask): PSNR 24.32 dB, SSIM 0.891, alpha MAE
+    0.025; surfel shading 23.75 / 0.871 / 0.032; k = 1 23.04 dB; the CI plan 20.69 dB.
+    Margins as before (about 10x the seed spread). Former simulator, surfel shading:
+    PSNR 25.05 dB, SSIM 0.904, alpha MAE 0.028 over the 48 views (seed 12:
     25.11 dB, 0.906, 0.028); nearest view only (k = 1) 24.15 dB; the CI plan's 18 views
     21.93 dB."""
     model = build("diffuse", PLAN, alpha_threshold=0.5)
     m, pv, s = loo(model)
     assert len(s["per_view"]) == 48
-    assert s["psnr_mean"] > 24.35 and s["ssim_mean"] > 0.884 and s["alpha_mae"] < 0.038
+    assert s["psnr_mean"] > 23.8 and s["ssim_mean"] > 0.875 and s["alpha_mae"] < 0.035
     nearest = leave_one_out(m, prepared=pv, config=RenderConfig(k=1))
     assert s["psnr_mean"] > nearest["psnr_mean"] + 0.5
     ci = loo(build("diffuse", simcache.CI_PLAN, alpha_threshold=0.5))[2]
@@ -91,7 +95,9 @@ def test_loo_demo_plan_builtin_diffuse(tmp_path):
 def test_loo_demo_plan_builtin_fuzzy_cli(tmp_path):
     """Through the CLI (`eval loo --json`), on a conservative hull (silhouette = alpha >
     0.05, as in the opacity-hull paper: the fibres' fringe has alpha < 0.5 and the
-    default hull cuts it off). Measured: PSNR 23.25 dB, SSIM 0.725, alpha MAE 0.071 over
+    default hull cuts it off). Measured (pixel shading, crop-rendered captures): PSNR
+    22.73 dB, SSIM 0.705, alpha MAE 0.081; surfel 22.51 / 0.675 / 0.083; k = 1 21.62 dB.
+    Former simulator, surfel shading: PSNR 23.25 dB, SSIM 0.725, alpha MAE 0.071 over
     the 48 views; nearest view only 22.52 dB."""
     model = build("fuzzy", PLAN, alpha_threshold=0.05)
     p = subprocess.run([sys.executable, "-m", "opacityhull.cli", "eval", "loo", str(model), "--out",
@@ -99,7 +105,7 @@ def test_loo_demo_plan_builtin_fuzzy_cli(tmp_path):
     assert p.returncode == 0, p.stderr[-2000:]
     s = json.loads(p.stdout.strip().splitlines()[-1])
     assert len(s["views"]) == 48 and len(s["per_view"]) == 48 and Path(s["sheet"]).is_file()
-    assert s["psnr_mean"] > 22.55 and s["ssim_mean"] > 0.705 and s["alpha_mae"] < 0.081
+    assert s["psnr_mean"] > 22.25 and s["ssim_mean"] > 0.69 and s["alpha_mae"] < 0.09
     m = OpacityHullModel.open(model)
     nearest = leave_one_out(m, prepared=prepare_model_views(m), config=RenderConfig(k=1))
     assert s["psnr_mean"] > nearest["psnr_mean"] + 0.4

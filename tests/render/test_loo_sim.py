@@ -41,14 +41,19 @@ def diffuse_model():
 
 @pytest.mark.timeout(1800)
 def test_loo_builtin_diffuse(diffuse_model, tmp_path):
-    """Measured: PSNR 21.9 dB, SSIM 0.83, alpha MAE 0.049 (18 views); without edge
+    """Measured (pixel shading, crop-rendered captures): PSNR 20.69 dB, SSIM 0.780, alpha
+    MAE 0.054; surfel shading 20.68 / 0.770 / 0.058; nearest view only 19.76 dB. The
+    crop-rendered simulator no longer leaves matting specks in the background, which
+    had put ~1,000 easy near-zero pixels per view into the metric's mask: the same
+    build and renderer score 21.93 dB on a capture by the former simulator. Before that
+    (surfel shading): PSNR 21.9 dB, SSIM 0.83, alpha MAE 0.049 (18 views); without edge
     coverage 21.0 dB, with the textbook prefilter H = I 19.5 dB, with the former
     default prefilter 0.25 px² 21.6 dB, nearest view only (k = 1) 21.2 dB."""
     m = OpacityHullModel.open(diffuse_model)
     pv = prepare_model_views(m)
     s = leave_one_out(m, prepared=pv, sheet_path=tmp_path / "sheet.png")
     assert len(s["per_view"]) == 18
-    assert s["psnr_mean"] > 20.9 and s["ssim_mean"] > 0.80 and s["alpha_mae"] < 0.065
+    assert s["psnr_mean"] > 20.2 and s["ssim_mean"] > 0.76 and s["alpha_mae"] < 0.065
     # blending must beat the colour of the nearest remaining photograph alone
     nearest = leave_one_out(m, prepared=pv, config=RenderConfig(k=1))
     assert s["psnr_mean"] > nearest["psnr_mean"] + 0.2
