@@ -90,9 +90,13 @@ def geometry_without(model: OpacityHullModel, *, config: BuildConfig | None = No
         c = cfg
         if c.carve_tolerance is not None and c.carve_tolerance > max(0, len(keep) - 2):
             c = replace(c, carve_tolerance=max(0, len(keep) - 2))
+        images = None
+        if c.refine:  # the photo-consistency cost never sees the held-out photograph
+            def images(q, keep=keep):
+                return model.load_view_rgba(keep[q])[..., :3]
         g = build_geometry([alphas[j] for j in keep], [cams[j] for j in keep], [rms[j] for j in keep],
                            [model.views[j].id for j in keep], config=c, rig_session=rig_session,
-                           fallback_box=fallback)
+                           fallback_box=fallback, images=images)
         s = g.surfels
         vis = np.zeros((len(s), V), bool)
         vis[:, keep] = s.visible_bool()

@@ -68,3 +68,25 @@ def test_real_loo_both_holdouts(real_model):
     # the interior is what geometry can explain; the band is where the silhouettes decide
     assert b["psnr_interior_mean"] > b["psnr_band_mean"] + 3.0
     assert (tmp / "loo" / "loo.json").is_file()
+
+
+def test_geometry_holdout_of_a_refined_build(tmp_path):
+    """A build with photo-consistent refinement is held out with refinement too, and the
+    held-out photograph never enters the photo-consistency cost (it is not loaded)."""
+    from opacityhull.acquire.importers import import_colmap
+    from opacityhull.model import OpacityHullModel
+    from opacityhull.reconstruct.build import BuildConfig, build_model
+    from opacityhull.reconstruct.holdout import build_config_of, geometry_without
+
+    src = DATA / "templeSR"
+    import_colmap(src / "sparse", src / "images", tmp_path / "s", masks_dir=src / "masks")
+    rep = build_model(tmp_path / "s", tmp_path / "m", config=BuildConfig(hull_res=64, refine=True, pictures=False))
+    assert rep.hull["refine"]["n_surfels"] == rep.surfels
+    model = OpacityHullModel.open(tmp_path / "m")
+    assert build_config_of(model)[0].refine
+    loaded = []
+    orig = model.load_view_rgba
+    model.load_view_rgba = lambda i: (loaded.append(i), orig(i))[1]
+    s = geometry_without(model)(3)
+    assert len(s) > 1000 and not s.visible_bool()[:, 3].any()
+    assert loaded.count(3) == 1  # its alpha is read once up front (then dropped), never its colour
