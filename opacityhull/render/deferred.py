@@ -107,13 +107,7 @@ def rasterize_geometry(splat, lists, counts, height, width, cutoff, band_h, lut,
                 cdy = C * dy * dy
                 zrow = z0 + dzy * dy
                 for x in range(xa, xb + 1):
-                    dx = x - x0
-                    q = (A * dx + tt) * dx + cdy
-                    z = np.float32(min(max(zrow + dzx * dx, zlo), zhi))
-                    f = min(q, c2) * lut_scale
-                    j = int(f)
-                    f -= j
-                    w = w0 * np.float32(lut[j] + f * (lut[j + 1] - lut[j]))
+                    q, z, w = K._ewa_weight(A, tt, cdy, x - x0, zrow, dzx, zlo, zhi, c2, lut, lut_scale, w0)
                     w = w if (q <= c2 and z <= zlim[y, x]) else zero32
                     geo[y, x, 0] += w
                     geo[y, x, 1] += w * z

@@ -690,6 +690,20 @@ def _splat_geometry(splat, i):
             np.float64(splat[i, S_DZY]), z0 - dev, z0 + dev, int(splat[i, S_BX0]), int(splat[i, S_BX1]))
 
 
+@njit(cache=True, inline="always")
+def _ewa_weight(A, tt, cdy, dx, zrow, dzx, zlo, zhi, c2, lut, lut_scale, w0):
+    """A splat's Mahalanobis distance q, clamped depth z and (unmasked) weight at one
+    pixel of a row: shared by the colour rasteriser and the deferred geometry pass, so
+    both draw exactly the same footprint."""
+    q = (A * dx + tt) * dx + cdy
+    z = np.float32(min(max(zrow + dzx * dx, zlo), zhi))
+    f = min(q, c2) * lut_scale
+    j = int(f)
+    f -= j
+    w = w0 * np.float32(lut[j] + f * (lut[j + 1] - lut[j]))
+    return q, z, w
+
+
 @njit(cache=True, nogil=True, error_model="numpy", fastmath={"contract"})
 def rasterize(splat, lists, counts, height, width, cutoff, band_h, lut, accum, zlim, b0, stride):
     """Two-pass ε-z-buffer splatting of binned splat records.
@@ -752,13 +766,7 @@ def rasterize(splat, lists, counts, height, width, cutoff, band_h, lut, accum, z
                 cdy = C * dy * dy
                 zrow = z0 + dzy * dy
                 for x in range(xa, xb + 1):
-                    dx = x - x0
-                    q = (A * dx + tt) * dx + cdy
-                    z = np.float32(min(max(zrow + dzx * dx, zlo), zhi))
-                    f = min(q, c2) * lut_scale
-                    j = int(f)
-                    f -= j
-                    w = w0 * np.float32(lut[j] + f * (lut[j + 1] - lut[j]))
+                    q, z, w = _ewa_weight(A, tt, cdy, x - x0, zrow, dzx, zlo, zhi, c2, lut, lut_scale, w0)
                     w = w if (q <= c2 and z <= zlim[y, x]) else zero32
                     accum[y, x, 0] += w * r0
                     accum[y, x, 1] += w * r1
