@@ -1,6 +1,6 @@
-"""Driver of the plasma-display controller (implements :class:`~opacityhull.rigs.protocols.Backdrops`).
+"""Driver of the plasma-display controller (implements :class:`~opacityhull.rigs.interfaces.Backdrops`).
 
-Transport: :class:`~opacityhull.rigs.transport.SerialTransport`; wire protocol:
+Transport: any :class:`~opacityhull.rigs.transport.Transport` (``from_url``: a serial one); wire protocol:
 :mod:`opacityhull.rigs.display_protocol` (documented in ``docs/display-protocol.md``).
 This module holds the device logic: one command at a time, each answered by ACK or
 NAK; timeouts, garbled or truncated replies and ``NAK bad frame``/``NAK busy`` resend
@@ -11,6 +11,7 @@ before the error names the device and says what to check.
 
 from __future__ import annotations
 
+import logging
 import time
 from typing import Callable, Mapping
 
@@ -18,8 +19,10 @@ import numpy as np
 
 from ..errors import ConfigError, DeviceError, InputError
 from . import display_protocol as dp
-from .protocols import DeviceInfo
-from .transport import DeviceGone, DeviceTimeout, ProtocolError, SerialTransport
+from .interfaces import DeviceInfo
+from .transport import DeviceGone, DeviceTimeout, ProtocolError, SerialTransport, Transport
+
+log = logging.getLogger(__name__)
 
 __all__ = ["DisplayController", "DisplayNak"]
 
@@ -32,20 +35,32 @@ class DisplayNak(ProtocolError):
         self.reason = reason
 
 
+def _check_display_options(name: str, outputs: Mapping[str, int], chunk_bytes: int) -> None:
+    if not outputs:
+        raise ConfigError(f"{name}: at least one display output is required")
+    for disp, idx in outputs.items():
+        if isinstance(idx, bool) or not isinstance(idx, int) or not 0 <= idx < dp.ALL_OUTPUTS:
+            raise ConfigError(f"{name}: output index of display {disp!r} must be an integer in 0..254, got {idx!r}")
+    if len(set(outputs.values())) != len(outputs):
+        raise ConfigError(f"{name}: two displays share one controller output: {dict(outputs)}")
+    if not 1 <= chunk_bytes <= dp.MAX_CHUNK:
+        raise ConfigError(f"{name}: chunk_bytes must be 1..{dp.MAX_CHUNK}, got {chunk_bytes}")
+
+
 class DisplayController:
     """The display controller behind the backdrops.
 
     Parameters
     ----------
-    url : str
-        Serial URL (``/dev/ttyUSB1``, ``socket://host:port``, a pty path).
+    transport : Transport
+        The byte transport (:meth:`from_url` builds a serial one on ``/dev/ttyUSB1``,
+        ``socket://host:port`` or a pty path).
     outputs : mapping display name → controller output index
         E.g. ``{"bottom": 0, "back": 1}`` (names as in ``geometry.displays``).
-    name : str
-        Device name used in messages.
+    name : str, optional
+        Device name used in messages (default: the transport's).
     timeout_s : float
         Per reply.
-    baudrate : int
     retries : int
         Resends of one frame after a timeout, a garbled reply or a retryable NAK.
     chunk_bytes : int
@@ -56,19 +71,14 @@ class DisplayController:
     No I/O happens in ``__init__``; the port opens in :meth:`open` (or on first use).
     """
 
-    def __init__(self, url: str, *, outputs: Mapping[str, int], name: str = "backdrops", timeout_s: float = 2.0,
-                 baudrate: int = 115200, retries: int = 3, chunk_bytes: int = 512, reconnect_attempts: int = 2,
+    def __init__(self, transport: Transport, *, outputs: Mapping[str, int], name: str | None = None,
+                 timeout_s: float = 2.0, retries: int = 3, chunk_bytes: int = 512, reconnect_attempts: int = 2,
                  reconnect_delay_s: float = 0.2):
-        if not outputs:
-            raise ConfigError(f"{name}: at least one display output is required")
-        for disp, idx in outputs.items():
-            if isinstance(idx, bool) or not isinstance(idx, int) or not 0 <= idx < dp.ALL_OUTPUTS:
-                raise ConfigError(f"{name}: output index of display {disp!r} must be an integer in 0..254, got {idx!r}")
-        if len(set(outputs.values())) != len(outputs):
-            raise ConfigError(f"{name}: two displays share one controller output: {dict(outputs)}")
-        if not 1 <= chunk_bytes <= dp.MAX_CHUNK:
-            raise ConfigError(f"{name}: chunk_bytes must be 1..{dp.MAX_CHUNK}, got {chunk_bytes}")
-        self.url = url
+        if not isinstance(transport, Transport):
+            raise ConfigError(f"{name or 'backdrops'}: expected a Transport, got {type(transport).__name__} "
+                              f"(use DisplayController.from_url({transport!r}, ...) for a serial URL)")
+        name = transport.name if name is None else name
+        _check_display_options(name, outputs, chunk_bytes)
         self.name = name
         self.outputs = dict(outputs)
         self.timeout_s = float(timeout_s)
@@ -76,12 +86,26 @@ class DisplayController:
         self.chunk_bytes = int(chunk_bytes)
         self.reconnect_attempts = int(reconnect_attempts)
         self.reconnect_delay_s = float(reconnect_delay_s)
-        self.transport = SerialTransport(url, name=name, baudrate=baudrate, timeout_s=timeout_s,
-                                         write_timeout_s=timeout_s)
+        self.transport = transport
         self._decoder = dp.FrameDecoder()
         self._seq = 0
         self.stats = {"frames": 0, "resends": 0, "reconnects": 0, "naks": 0}
         self.last_error: str | None = None
+
+    @classmethod
+    def from_url(cls, url: str, *, outputs: Mapping[str, int], name: str = "backdrops", timeout_s: float = 2.0,
+                 baudrate: int = 115200, retries: int = 3, chunk_bytes: int = 512, reconnect_attempts: int = 2,
+                 reconnect_delay_s: float = 0.2) -> "DisplayController":
+        """A controller on a serial URL; ``timeout_s`` bounds every reply and every write."""
+        _check_display_options(name, outputs, chunk_bytes)
+        transport = SerialTransport(url, name=name, baudrate=baudrate, timeout_s=timeout_s, write_timeout_s=timeout_s)
+        return cls(transport, outputs=outputs, name=name, timeout_s=timeout_s, retries=retries,
+                   chunk_bytes=chunk_bytes, reconnect_attempts=reconnect_attempts,
+                   reconnect_delay_s=reconnect_delay_s)
+
+    @property
+    def url(self) -> str:
+        return self.transport.url
 
     # ---- lifecycle
     def open(self) -> "DisplayController":
@@ -116,6 +140,7 @@ class DisplayController:
             try:
                 self.open()
                 self.stats["reconnects"] += 1
+                log.info("%s: reconnected to %s (attempt %d)", self.name, self.url, i + 1)
                 return
             except DeviceGone as e:
                 last = e
@@ -143,6 +168,9 @@ class DisplayController:
         reconnects = 0
         attempt = 0
         while attempt <= self.retries:
+            if problems:
+                log.info("%s: %s: resending (attempt %d of %d) after %s", self.name, what, attempt + 1,
+                         self.retries + 1, problems[-1])
             try:
                 if not self.transport.is_open:
                     self.open()

@@ -1,4 +1,4 @@
-"""Camera drivers implementing :class:`~opacityhull.rigs.protocols.CameraDevice`.
+"""Camera drivers implementing :class:`~opacityhull.rigs.interfaces.CameraDevice`.
 
 * :class:`OpenCVCamera` — UVC webcams and machine-vision cameras that OpenCV's
   ``VideoCapture`` can open (a ``/dev/videoN`` index or path; any video file or image
@@ -14,6 +14,7 @@ Both return linear float32 RGB (H, W, 3). Both open lazily: no I/O in ``__init__
 from __future__ import annotations
 
 import fnmatch
+import logging
 import os
 import re
 import subprocess
@@ -26,8 +27,10 @@ import numpy as np
 
 from ..errors import ConfigError, DeviceError, FormatError, InputError
 from ..imageio import read_image, srgb_decode
-from .protocols import CameraInfo, DeviceInfo
+from .interfaces import CameraInfo, DeviceInfo
 from .transport import DeviceGone, DeviceTimeout
+
+log = logging.getLogger(__name__)
 
 __all__ = ["OpenCVCamera", "DirectoryCamera", "expand_braces"]
 
@@ -170,7 +173,7 @@ class OpenCVCamera:
                 "and readable by this user (group 'video')?"
             )
         if self.fourcc:
-            cap.set(cv2.CAP_PROP_FOURCC, cv2.VideoWriter_fourcc(*self.fourcc))
+            cap.set(cv2.CAP_PROP_FOURCC, cv2.VideoWriter.fourcc(*self.fourcc))
         cap.set(cv2.CAP_PROP_FRAME_WIDTH, self.width)
         cap.set(cv2.CAP_PROP_FRAME_HEIGHT, self.height)
         cap.set(cv2.CAP_PROP_BUFFERSIZE, 1)  # fewer stale frames after an exposure change
@@ -194,11 +197,17 @@ class OpenCVCamera:
     def backend_name(self) -> str:
         return self._cap.getBackendName() if self._cap is not None else ""
 
+    def _require_cap(self):
+        cap = self._cap
+        if cap is None:
+            raise DeviceGone(f"camera {self.name}: {self._where()} is not open — call open() first")
+        return cap
+
     # ---- exposure
     def _set_exposure(self, exposure_s: float) -> None:
         import cv2
 
-        cap = self._cap
+        cap = self._require_cap()
         be = cap.getBackendName().upper()
         if be == "V4L2":
             cap.set(cv2.CAP_PROP_AUTO_EXPOSURE, 1)  # V4L2_EXPOSURE_MANUAL
@@ -224,7 +233,7 @@ class OpenCVCamera:
     # ---- frames
     def _read_frame(self) -> np.ndarray:
         """One frame with a hard timeout (a wedged UVC driver can block ``read`` forever)."""
-        cap = self._cap
+        cap = self._require_cap()
         box: dict = {}
 
         def work():

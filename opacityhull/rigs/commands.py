@@ -3,12 +3,15 @@
 
 from __future__ import annotations
 
+import logging
 from pathlib import Path
 from typing import List
 
 import typer
 
 from ..cliutil import cli_errors, emit
+
+log = logging.getLogger(__name__)
 
 
 def register(app, groups) -> None:

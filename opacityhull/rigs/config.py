@@ -19,15 +19,17 @@ The schema is documented in the notes shared by the rig engineers (RIGTOML) and 
 from __future__ import annotations
 
 import copy
-import math
-import tomllib
+import logging
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Mapping
 
 from ..errors import ConfigError
 from ..riggeometry import RigGeometry
+from ..tomlio import TomlContext, read_toml
 from .transport import check_url
+
+log = logging.getLogger(__name__)
 
 __all__ = [
     "AxisConfig",
@@ -246,52 +248,12 @@ class RigConfig:
 # --------------------------------------------------------------------------- parsing helpers
 
 
-class _Ctx:
+class _Ctx(TomlContext):
+    """The shared typed getters (errors are ConfigError naming the file and key), plus
+    device URLs."""
+
     def __init__(self, source: str):
-        self.source = source
-
-    def err(self, key: str, msg: str) -> ConfigError:
-        return ConfigError(f"{self.source}: {key}: {msg}")
-
-    def table(self, key: str, v) -> dict:
-        if not isinstance(v, dict):
-            raise self.err(key, f"expected a table, got {type(v).__name__} {v!r}")
-        return v
-
-    def keys(self, key: str, d: Mapping, allowed: set[str]) -> None:
-        unknown = sorted(set(d) - allowed)
-        if unknown:
-            raise self.err(key, f"unknown key(s) {unknown}; allowed: {sorted(allowed)}")
-
-    def num(self, key: str, d: Mapping, name: str, default=None, *, positive=False, nonneg=False) -> float:
-        if name not in d:
-            if default is None:
-                raise self.err(key, f"missing key {name!r}")
-            return float(default)
-        v = d[name]
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-            raise self.err(f"{key}.{name}", f"expected a number, got {v!r}")
-        if positive and v <= 0:
-            raise self.err(f"{key}.{name}", f"must be > 0, got {v}")
-        if nonneg and v < 0:
-            raise self.err(f"{key}.{name}", f"must be >= 0, got {v}")
-        return float(v)
-
-    def int_(self, key: str, d: Mapping, name: str, default: int, lo: int, hi: int) -> int:
-        v = d.get(name, default)
-        if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= hi:
-            raise self.err(f"{key}.{name}", f"expected an integer in {lo}..{hi}, got {v!r}")
-        return int(v)
-
-    def str_(self, key: str, d: Mapping, name: str, default: str | None = None) -> str:
-        if name not in d:
-            if default is None:
-                raise self.err(key, f"missing key {name!r}")
-            return default
-        v = d[name]
-        if not isinstance(v, str):
-            raise self.err(f"{key}.{name}", f"expected a string, got {v!r}")
-        return v
+        super().__init__(source, error=ConfigError)
 
     def url(self, key: str, d: Mapping, kind: str) -> str:
         if "url" not in d:
@@ -354,12 +316,7 @@ def load_rig_config(path) -> RigConfig:
     path = Path(path)
     if not path.is_file():
         raise ConfigError(f"rig config {path} not found")
-    try:
-        data = tomllib.loads(path.read_text())
-    except tomllib.TOMLDecodeError as e:
-        raise ConfigError(f"{path}: invalid TOML ({e})") from None
-    except UnicodeDecodeError as e:
-        raise ConfigError(f"{path}: not a text file ({e})") from None
+    data = read_toml(path, error=ConfigError, what="rig TOML")
     return parse_rig_config(data, source=str(path), base_dir=path.parent)
 
 
@@ -529,7 +486,8 @@ def parse_rig_config(data: Mapping[str, Any], *, source: str = "<rig config>", b
 
     # ---- ports shared between devices
     kinds: dict[str, tuple[str, str]] = {}  # url -> (kind, key)
-    entries = [(turntable.url, "grbl", turntable.key, turntable)]
+    entries: list[tuple[str, str, str, AxisConfig | LightArrayConfig | BackdropsConfig]] = [
+        (turntable.url, "grbl", turntable.key, turntable)]
     if light_array is not None:
         entries.append((light_array.url, "enttec", light_array.key, light_array))
         if light_array.rotation is not None:

@@ -32,6 +32,7 @@ Integers are big-endian. Pattern ids are u16 in ``0..0xFFFE``; ``0xFFFF`` means 
 
 from __future__ import annotations
 
+import logging
 import struct
 import zlib
 from dataclasses import dataclass
@@ -40,6 +41,8 @@ from typing import Iterator
 import numpy as np
 
 from ..errors import InputError, ShapeError
+
+log = logging.getLogger(__name__)
 
 __all__ = [
     "FLAG", "ESC", "MAX_PAYLOAD", "MAX_CHUNK", "NO_PATTERN", "ALL_OUTPUTS",

@@ -23,10 +23,13 @@ indistinguishable from a frame; noise without a 0x7E byte can never hide a valid
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 
 from ..errors import InputError
 from .transport import ProtocolError
+
+log = logging.getLogger(__name__)
 
 __all__ = [
     "START",
@@ -247,7 +250,7 @@ class FrameParser:
         """Bytes buffered for an incomplete frame."""
         return len(self._buf)
 
-    def _reject(self, reason: str, data: bytes) -> None:
+    def _reject(self, reason: str, data: bytes | bytearray) -> None:
         self.bad_count += 1
         if len(self.bad) < self._max_bad:
             self.bad.append(BadFrame(reason, bytes(data)))

@@ -21,6 +21,7 @@ offending bytes; every encoder validates its inputs and raises
 
 from __future__ import annotations
 
+import logging
 import math
 import numbers
 import re
@@ -29,6 +30,8 @@ from typing import Mapping
 
 from ..errors import InputError
 from .transport import ProtocolError
+
+log = logging.getLogger(__name__)
 
 __all__ = [
     "AXES",
@@ -285,12 +288,16 @@ class Status:
     def position(self, wco: Mapping[str, float] | None = None, *, work: bool = True) -> dict:
         """Work (default) or machine position per axis, using this report's WCO or ``wco``."""
         off = self.wco if self.wco is not None else (wco or {})
+        if self.mpos is None and self.wpos is None:
+            raise ProtocolError(f"GRBL status {self.raw!r} has neither MPos nor WPos")
         if work:
             if self.wpos is not None:
                 return dict(self.wpos)
+            assert self.mpos is not None
             return {a: v - off.get(a, 0.0) for a, v in self.mpos.items()}
         if self.mpos is not None:
             return dict(self.mpos)
+        assert self.wpos is not None
         return {a: v + off.get(a, 0.0) for a, v in self.wpos.items()}
 
 

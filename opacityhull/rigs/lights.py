@@ -12,6 +12,7 @@ and remembers the first failure, which the next :meth:`~EnttecDmx.send_dmx` rais
 
 from __future__ import annotations
 
+import logging
 import math
 import threading
 import time
@@ -19,10 +20,21 @@ from typing import Mapping
 
 from ..errors import ConfigError, DeviceError, InputError
 from . import enttec_protocol as ep
-from .protocols import DeviceInfo, RotaryAxis
-from .transport import DeviceGone, DeviceTimeout, SerialTransport
+from .interfaces import DeviceInfo, RotaryAxis
+from .transport import DeviceGone, DeviceTimeout, SerialTransport, Transport
+
+log = logging.getLogger(__name__)
 
 __all__ = ["EnttecDmx", "DmxLightArray"]
+
+
+def _check_dmx_options(name: str, timeout_s: float, universe_size: int) -> None:
+    if isinstance(universe_size, bool) or not isinstance(universe_size, int) \
+            or not ep.MIN_DMX_CHANNELS <= universe_size <= ep.DMX_CHANNELS:
+        raise ConfigError(f"{name}: universe_size = {universe_size!r}, expected an integer "
+                          f"{ep.MIN_DMX_CHANNELS}..{ep.DMX_CHANNELS}")
+    if not (isinstance(timeout_s, (int, float)) and math.isfinite(timeout_s) and timeout_s > 0):
+        raise ConfigError(f"{name}: timeout_s = {timeout_s!r}, expected a number > 0")
 
 
 class EnttecDmx:
@@ -30,29 +42,27 @@ class EnttecDmx:
 
     Parameters
     ----------
-    url : serial URL of the widget's virtual COM port (its baud rate is a dummy value).
-    name : device name in messages.
-    timeout_s : per reply (labels 3, 10) and per write.
+    transport : the byte transport (:meth:`from_url` builds a serial one on the widget's
+        virtual COM port; its baud rate is a dummy value).
+    name : device name in messages (default: the transport's).
+    timeout_s : per reply (labels 3, 10).
     universe_size : channels sent in every packet (24..512); unused channels are 0.
     verify_on_open : :meth:`open` asks for the widget parameters, so a wrong port or an
         Open DMX (no processor, never answers) fails at once.
     """
 
-    def __init__(self, url: str, *, name: str = "dmx", timeout_s: float = 2.0, universe_size: int = 512,
-                 baudrate: int = 57600, verify_on_open: bool = True):
-        if isinstance(universe_size, bool) or not isinstance(universe_size, int) \
-                or not ep.MIN_DMX_CHANNELS <= universe_size <= ep.DMX_CHANNELS:
-            raise ConfigError(f"{name}: universe_size = {universe_size!r}, expected an integer "
-                              f"{ep.MIN_DMX_CHANNELS}..{ep.DMX_CHANNELS}")
-        if not (isinstance(timeout_s, (int, float)) and math.isfinite(timeout_s) and timeout_s > 0):
-            raise ConfigError(f"{name}: timeout_s = {timeout_s!r}, expected a number > 0")
-        self.url = url
+    def __init__(self, transport: Transport, *, name: str | None = None, timeout_s: float = 2.0,
+                 universe_size: int = 512, verify_on_open: bool = True):
+        if not isinstance(transport, Transport):
+            raise ConfigError(f"{name or 'dmx'}: expected a Transport, got {type(transport).__name__} "
+                              f"(use EnttecDmx.from_url({transport!r}, ...) for a serial URL)")
+        name = transport.name if name is None else name
+        _check_dmx_options(name, timeout_s, universe_size)
         self.name = name
         self.timeout_s = float(timeout_s)
         self.universe_size = universe_size
         self.verify_on_open = verify_on_open
-        self.transport = SerialTransport(url, name=name, baudrate=baudrate, timeout_s=self.timeout_s,
-                                         write_timeout_s=self.timeout_s)
+        self.transport = transport
         self.lock = threading.RLock()
         self._parser = ep.FrameParser()
         self._last: bytes | None = None
@@ -64,7 +74,21 @@ class EnttecDmx:
         self.parameters: ep.WidgetParameters | None = None
         self.serial_number: str | None = None
 
+    @classmethod
+    def from_url(cls, url: str, *, name: str = "dmx", timeout_s: float = 2.0, universe_size: int = 512,
+                 baudrate: int = 57600, verify_on_open: bool = True) -> "EnttecDmx":
+        """A widget on a serial URL; ``timeout_s`` bounds every reply and every write."""
+        _check_dmx_options(name, timeout_s, universe_size)
+        transport = SerialTransport(url, name=name, baudrate=baudrate, timeout_s=float(timeout_s),
+                                    write_timeout_s=float(timeout_s))
+        return cls(transport, name=name, timeout_s=timeout_s, universe_size=universe_size,
+                   verify_on_open=verify_on_open)
+
     # ------------------------------------------------------------------ lifecycle
+    @property
+    def url(self) -> str:
+        return self.transport.url
+
     @property
     def is_open(self) -> bool:
         return self.transport.is_open
@@ -208,6 +232,7 @@ class EnttecDmx:
                             self._take_unsolicited()
                             self.transport.write(ep.encode_send_dmx(self._last))
                 except DeviceError as e:
+                    log.warning("%s: keepalive stopped: %s", self.name, e)
                     self.keepalive_error = e
                     return
 
@@ -248,7 +273,7 @@ class EnttecDmx:
 class DmxLightArray:
     """The overhead light array: lights on DMX channels of one widget, plus its rotation.
 
-    Implements :class:`~opacityhull.rigs.protocols.LightArray`.
+    Implements :class:`~opacityhull.rigs.interfaces.LightArray`.
 
     Parameters
     ----------

@@ -45,6 +45,7 @@ not take it.
 
 from __future__ import annotations
 
+import logging
 import math
 import numbers
 import threading
@@ -53,8 +54,10 @@ from collections import deque
 
 from ..errors import ConfigError, DeviceError, InputError
 from . import grbl_protocol as gp
-from .protocols import DeviceInfo
-from .transport import DeviceGone, DeviceTimeout, ProtocolError, SerialTransport
+from .interfaces import DeviceInfo
+from .transport import DeviceGone, DeviceTimeout, ProtocolError, SerialTransport, Transport
+
+log = logging.getLogger(__name__)
 
 __all__ = [
     "GrblController",
@@ -120,9 +123,9 @@ class GrblController:
 
     Parameters
     ----------
-    url : serial URL (``/dev/ttyUSB0``, ``socket://host:port``, a pty path).
-    name : device name in messages.
-    baudrate : GRBL 1.1 uses 115200.
+    transport : the byte transport (a :class:`~opacityhull.rigs.transport.SerialTransport`
+        from :meth:`from_url`, or the in-memory one of :mod:`opacityhull.rigs.testing`).
+    name : device name in messages (default: the transport's).
     timeout_s : per reply (a move adds its travel time on top).
     poll_s : interval between ``?`` polls while waiting for a move.
     boot_timeout_s : how long :meth:`open` keeps asking ``?`` for a first answer (an
@@ -132,18 +135,19 @@ class GrblController:
     No I/O happens in ``__init__``. Use as a context manager or :meth:`open`/:meth:`close`.
     """
 
-    def __init__(self, url: str, *, name: str = "grbl", baudrate: int = 115200, timeout_s: float = 2.0,
+    def __init__(self, transport: Transport, *, name: str | None = None, timeout_s: float = 2.0,
                  poll_s: float = 0.02, boot_timeout_s: float | None = None):
+        if not isinstance(transport, Transport):
+            raise ConfigError(f"{name or 'grbl'}: expected a Transport, got {type(transport).__name__} "
+                              f"(use GrblController.from_url({transport!r}, ...) for a serial URL)")
+        name = transport.name if name is None else name
         if not (isinstance(timeout_s, (int, float)) and timeout_s > 0 and math.isfinite(timeout_s)):
             raise ConfigError(f"{name}: timeout_s must be a number > 0, got {timeout_s!r}")
-        self.url = url
         self.name = name
-        self.baudrate = int(baudrate)
         self.timeout_s = float(timeout_s)
         self.poll_s = float(poll_s)
         self.boot_timeout_s = max(1.0, 1.5 * self.timeout_s) if boot_timeout_s is None else float(boot_timeout_s)
-        self.transport = SerialTransport(url, name=name, baudrate=self.baudrate, timeout_s=self.timeout_s,
-                                         write_timeout_s=self.timeout_s)
+        self.transport = transport
         self.lock = threading.RLock()
         self._axes: dict[str, GrblAxis] = {}
         self._line_dirty = False
@@ -162,7 +166,26 @@ class GrblController:
         self.discarded: deque = deque(maxlen=64)  # late replies and garbage skipped, for diagnosis
         self.last_stop_error: Exception | None = None
 
+    @classmethod
+    def from_url(cls, url: str, *, name: str = "grbl", baudrate: int = 115200, timeout_s: float = 2.0,
+                 poll_s: float = 0.02, boot_timeout_s: float | None = None) -> "GrblController":
+        """A controller on a serial URL (``/dev/ttyUSB0``, ``socket://host:port``, a pty
+        path); GRBL 1.1 talks at 115200 baud."""
+        if not (isinstance(timeout_s, (int, float)) and timeout_s > 0 and math.isfinite(timeout_s)):
+            raise ConfigError(f"{name}: timeout_s must be a number > 0, got {timeout_s!r}")
+        transport = SerialTransport(url, name=name, baudrate=int(baudrate), timeout_s=float(timeout_s),
+                                    write_timeout_s=float(timeout_s))
+        return cls(transport, name=name, timeout_s=timeout_s, poll_s=poll_s, boot_timeout_s=boot_timeout_s)
+
     # ------------------------------------------------------------------ lifecycle
+    @property
+    def url(self) -> str:
+        return self.transport.url
+
+    @property
+    def baudrate(self) -> int:
+        return self.transport.baudrate
+
     @property
     def is_open(self) -> bool:
         return self.transport.is_open
@@ -176,6 +199,12 @@ class GrblController:
     def single_axis_homing(self) -> bool:
         """The firmware was built with ``$HX`` single-axis homing (``[OPT:]`` has ``H``)."""
         return "H" in self.options
+
+    def stop_time_s(self) -> float:
+        """Longest time any axis on this controller needs to decelerate from full speed
+        (at most 5 s; 0.5 s with no axis): how long a feed hold takes to reach ``Hold:0``."""
+        axes = self._axes.values()
+        return min(5.0, max([a.max_rate_deg_s / (a.accel_deg_s2 or 10.0) for a in axes] or [0.5]))
 
     def _register(self, axis: "GrblAxis") -> None:
         if axis.axis in self._axes and self._axes[axis.axis] is not axis:
@@ -257,7 +286,6 @@ class GrblController:
         for attempt in range(max_attempts):
             self.close()
             if url is not None:
-                self.url = url
                 self.transport.url = url
             try:
                 return self.open(unlock=unlock)
@@ -281,10 +309,12 @@ class GrblController:
 
     def _note(self, r) -> None:
         if isinstance(r, gp.Alarm):
+            log.warning("%s: ALARM:%s (%s)", self.name, r.code, r.meaning)
             self.last_alarm = r
             self.alarm_seq += 1
             self.halted = self.halted or r.critical
         elif isinstance(r, gp.Banner):
+            log.info("%s: controller reset (banner %r)", self.name, r.text)
             self.resets_seen += 1
             self.halted = False
             self.version = r.version
@@ -326,6 +356,7 @@ class GrblController:
 
     def _resync(self) -> None:
         """Send ``$G`` and discard everything before its ``[GC:...]`` + ``ok``."""
+        log.debug("%s: resynchronising the line stream with $G", self.name)
         self.transport.write(gp.parser_state())
         deadline = time.monotonic() + self.timeout_s
         seen_gc = False
@@ -458,11 +489,11 @@ class GrblController:
             if self.halted:  # GRBL does not answer '?' in a critical alarm: do not wait for nothing
                 raise self._alarm_error(self.last_alarm, requery=False)
             deadline = time.monotonic() + (self.timeout_s if timeout_s is None else float(timeout_s))
-            n = 2 if self._status_stale else 1
-            st = None
-            for _ in range(n):
+            if self._status_stale:  # an earlier '?' may still be answered: ask twice, keep the second
                 self.transport.write(gp.STATUS_QUERY)
-                st = self._read_status(deadline)
+                self._read_status(deadline)
+            self.transport.write(gp.STATUS_QUERY)
+            st = self._read_status(deadline)
             self._status_stale = False
             return st
 
@@ -856,6 +887,7 @@ class GrblAxis:
                 c.send_line(line)
             except (DeviceTimeout, ProtocolError) as e:
                 # Did the line arrive? Ask where the axis is before anything is re-sent.
+                log.info("%s: %s: no valid reply to %r (%s); asking the position", self.name, doing, line, e)
                 st = c.status()
                 self._check_interrupts(st, mark, doing)
                 pos = self._pos(st)

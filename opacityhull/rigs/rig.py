@@ -1,4 +1,4 @@
-"""A hardware rig: the drivers of one rig TOML bundled as a :class:`~opacityhull.rigs.protocols.Rig`.
+"""A hardware rig: the drivers of one rig TOML bundled as a :class:`~opacityhull.rigs.interfaces.Rig`.
 
 :func:`open_rig` builds the drivers from a :class:`~opacityhull.rigs.config.RigConfig`
 (one GRBL controller per distinct URL, shared by the axes on it) and opens them;
@@ -13,18 +13,28 @@ timeouts and no reconnects, and never raises for a device failure — it is what
 
 from __future__ import annotations
 
+import logging
 import signal
 import sys
 import threading
 import time
 import warnings
 from contextlib import contextmanager
-from typing import Callable, Iterator, Sequence
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, Callable, Iterator, Sequence
 
 from ..errors import CaptureInterrupted, ConfigError, DeviceError, Terminated
 from .config import AxisConfig, CameraConfig, RigConfig, load_rig_config, parse_emulator_url
-from .protocols import CameraDevice, DeviceInfo
+from .backdrops import DisplayController
+from .interfaces import Backdrops, CameraDevice, DeviceInfo, LightArray, Port, RotaryAxis, Turntable
+from .lights import DmxLightArray, EnttecDmx
+from .motion import GrblAxis, GrblController, GrblInterrupted
 from .transport import DeviceGone
+
+if TYPE_CHECKING:  # cameras.py imports the image codecs: only when a camera is built
+    from .cameras import DirectoryCamera, OpenCVCamera
+
+log = logging.getLogger(__name__)
 
 __all__ = ["HardwareRig", "open_rig", "build_rig", "check_rig_config", "OperatorActionRequired", "OPERATOR_PROMPTS",
            "SIM_CAMERA_DETAIL"]
@@ -56,7 +66,7 @@ def _board_text(details: dict) -> str:
 
 
 class HardwareRig:
-    """Devices plus geometry, implementing :class:`~opacityhull.rigs.protocols.Rig`.
+    """Devices plus geometry, implementing :class:`~opacityhull.rigs.interfaces.Rig`.
 
     Parameters
     ----------
@@ -65,10 +75,9 @@ class HardwareRig:
     light_array : LightArray, optional
     backdrops : Backdrops, optional
     cameras : sequence of CameraDevice, in ``geometry.cameras`` order
-    ports : sequence of objects with ``open()``/``close()`` (and ``name``), optional
-        The transports to open and close (GRBL controllers, DMX interface, display
-        controller). Default: found on the devices (``controller``, ``dmx`` attributes
-        and the backdrops themselves), each once.
+    ports : sequence of Port
+        The connections to open, close and reconnect (GRBL controllers, DMX widget,
+        display controller), each once, in opening order (:func:`build_rig` lists them).
     interactive : bool, optional
         Whether :meth:`operator` may prompt on the terminal; default: stdin is a tty.
     assume_ready : bool
@@ -83,8 +92,8 @@ class HardwareRig:
         hold has decelerated to ``Hold:0``).
     """
 
-    def __init__(self, config: RigConfig, *, turntable, light_array=None, backdrops=None,
-                 cameras: Sequence[CameraDevice] = (), ports: Sequence | None = None,
+    def __init__(self, config: RigConfig, *, turntable: Turntable, light_array: LightArray | None = None,
+                 backdrops: Backdrops | None = None, cameras: Sequence[CameraDevice] = (), ports: Sequence[Port] = (),
                  interactive: bool | None = None, assume_ready: bool = False, reconnect_attempts: int = 3,
                  reconnect_delay_s: float = 0.5, input_fn: Callable[[str], str] | None = None,
                  clear_hold: bool = True):
@@ -100,35 +109,27 @@ class HardwareRig:
         self.reconnect_delay_s = float(reconnect_delay_s)
         self._input = input_fn
         self.clear_hold = bool(clear_hold)
-        self._ports = list(ports) if ports is not None else self._find_ports()
+        self._ports: list[Port] = []
+        for p in ports:
+            if not isinstance(p, Port):
+                raise ConfigError(f"rig {config.name}: ports: {type(p).__name__} is not a Port (name, url, is_open, "
+                                  "open(), close())")
+            if all(p is not q for q in self._ports):
+                self._ports.append(p)
         self._open = False
         self.safe_errors: list[tuple[str, str]] = []  # (step, error) of the last safe() exit
         self.operator_log: list[tuple[str, dict]] = []
-
-    def _find_ports(self) -> list:
-        found: list = []
-
-        def add(obj):
-            if obj is not None and hasattr(obj, "open") and hasattr(obj, "close") and all(obj is not p for p in found):
-                found.append(obj)
-
-        add(getattr(self.turntable, "controller", None))
-        if self.light_array is not None:
-            add(getattr(getattr(self.light_array, "rotation", None), "controller", None))
-            add(getattr(self.light_array, "dmx", None))
-        add(self.backdrops)
-        return found
 
     @property
     def name(self) -> str:
         return self.config.name
 
     @property
-    def ports(self) -> list:
+    def ports(self) -> list[Port]:
         return list(self._ports)
 
     # ---- lifecycle
-    def _open_port(self, port, attempts: int) -> None:
+    def _open_port(self, port: Port, attempts: int) -> None:
         last: Exception | None = None
         for i in range(max(1, attempts)):
             if i:
@@ -136,22 +137,20 @@ class HardwareRig:
             try:
                 try:
                     port.open()
-                except DeviceError as e:
+                except GrblInterrupted as e:
                     # A feed hold left by an earlier safe() exit: GRBL keeps its position through
                     # a soft reset from Hold:0, and the reset clears the hold.
-                    if not (self.clear_hold and getattr(e, "state", None) == "Hold"):
+                    if not (self.clear_hold and e.state == "Hold" and isinstance(port, GrblController)):
                         raise
                     # A reset during Hold:1 (still decelerating) would lose the position: give
                     # the slowest axis on this controller time to stop first.
-                    axes = getattr(port, "axes", {}).values()
-                    time.sleep(min(5.0, max([a.max_rate_deg_s / (a.accel_deg_s2 or 10.0) for a in axes] or [0.5]))
-                               + 0.1)
+                    log.info("%s: clearing a feed hold left by an earlier run (soft reset)", port.name)
+                    time.sleep(port.stop_time_s() + 0.1)
                     port.open(reset=True)
                 return
             except DeviceGone as e:
                 last = e
-        name = getattr(port, "name", type(port).__name__)
-        raise DeviceGone(f"{name}: could not open {getattr(port, 'url', '')} after {max(1, attempts)} attempt(s) "
+        raise DeviceGone(f"{port.name}: could not open {port.url} after {max(1, attempts)} attempt(s) "
                          f"({last})") from None
 
     def open(self) -> "HardwareRig":
@@ -168,8 +167,8 @@ class HardwareRig:
             for p in reversed(opened):
                 try:
                     p.close()
-                except Exception:
-                    pass
+                except Exception as e:  # the error that stopped open() is the one to report
+                    log.warning("%s: close after a failed open failed: %s", p.name, e)
             raise
         self._open = True
         return self
@@ -179,15 +178,15 @@ class HardwareRig:
         for p in reversed(self._ports):
             try:
                 p.close()
-            except Exception:  # a dead port must not keep the others open
-                pass
+            except Exception as e:  # a dead port must not keep the others open
+                log.warning("%s: close failed: %s", p.name, e)
         for c in self.cameras:
-            close = getattr(c, "close", None)
+            close = getattr(c, "close", None)  # optional: CameraDevice has no close()
             if close is not None:
                 try:
                     close()
-                except Exception:
-                    pass
+                except Exception as e:
+                    log.warning("%s: close failed: %s", c.name, e)
         self._open = False
 
     def __enter__(self) -> "HardwareRig":
@@ -206,23 +205,23 @@ class HardwareRig:
         if delay_s is not None:
             self.reconnect_delay_s = float(delay_s)
         try:
-            ports = self._ports if device is None else [p for p in self._ports if getattr(p, "name", None) == device]
+            ports = self._ports if device is None else [p for p in self._ports if p.name == device]
             if not ports:
-                names = [getattr(p, "name", "?") for p in self._ports]
+                names = [p.name for p in self._ports]
                 raise ConfigError(f"rig {self.name}: no port named {device!r} (ports: {names})")
             for p in ports:
                 try:
                     p.close()
-                except Exception:
-                    pass
+                except Exception as e:  # it is being re-opened: the open below reports what matters
+                    log.debug("%s: close before reconnect failed: %s", p.name, e)
                 self._open_port(p, n)
         finally:
             self.reconnect_delay_s = old_delay
 
     # ---- safety
-    def _axes(self) -> list:
-        axes = [self.turntable]
-        rot = getattr(self.light_array, "rotation", None) if self.light_array is not None else None
+    def _axes(self) -> list[RotaryAxis]:
+        axes: list[RotaryAxis] = [self.turntable]
+        rot = self.light_array.rotation if self.light_array is not None else None
         if rot is not None and rot is not self.turntable:
             axes.append(rot)
         return axes
@@ -232,24 +231,26 @@ class HardwareRig:
         attempted even if another fails; returns the failures as ``(step, error)``."""
         failures: list[tuple[str, str]] = []
 
-        def step(label: str, fn):
+        def step(label: str, fn: Callable[[], object]) -> None:
             try:
                 fn()
             except BaseException as e:  # noqa: BLE001 - a Ctrl-C inside one step must not skip the others
                 failures.append((label, f"{type(e).__name__}: {e}"))
 
         for ax in self._axes():
-            step(f"{getattr(ax, 'name', 'axis')}: feed hold", ax.stop)
+            step(f"{ax.name}: feed hold", ax.stop)
         if self.light_array is not None:
             step(f"{self.light_array.name}: all off", self.light_array.all_off)
-            err = getattr(self.light_array, "last_error", None)
+            err = self.light_array.last_error
             if err:
                 failures.append((f"{self.light_array.name}: all off", str(err)))
         if self.backdrops is not None:
             step(f"{self.backdrops.name}: blank", self.backdrops.blank)
-            err = getattr(self.backdrops, "last_error", None)
+            err = self.backdrops.last_error
             if err:
                 failures.append((f"{self.backdrops.name}: blank", str(err)))
+        for label, error in failures:
+            log.warning("rig %s: make safe: %s: %s", self.name, label, error)
         return failures
 
     @contextmanager
@@ -284,20 +285,20 @@ class HardwareRig:
     def check(self) -> list[DeviceInfo]:
         """One :class:`DeviceInfo` per device (axes, lights, backdrops, cameras); never raises."""
         out = []
-        for dev in [*self._axes(), self.light_array, self.backdrops]:
-            if dev is None:
-                continue
+        devices: list[RotaryAxis | LightArray | Backdrops] = list(self._axes())
+        devices += [d for d in (self.light_array, self.backdrops) if d is not None]
+        for dev in devices:
             out.append(_safe_check(dev))
         for i, cam in enumerate(self.cameras):
             cfg = self.config.cameras[i] if i < len(self.config.cameras) else None
             out.append(_camera_check(cam, cfg))
         return out
 
-    def describe(self) -> dict:
+    def describe(self) -> dict[str, Any]:
         """The rig TOML content (``rig``, ``devices``, ``geometry``) to record in a session."""
         return self.config.to_dict()
 
-    def operator(self, action: str, **details) -> None:
+    def operator(self, action: str, **details: Any) -> None:
         """Ask the operator to do ``action`` and wait for Enter.
 
         Non-interactive (stdin is not a terminal, or ``interactive=False``): with
@@ -326,10 +327,6 @@ class HardwareRig:
             read("Press Enter when done (Ctrl-C to stop)... ")
         except EOFError:
             raise OperatorActionRequired(f"rig {self.name}: stdin closed while waiting for: {text}") from None
-
-    def ground_truth(self, root, views) -> None:
-        """Hardware knows nothing exactly: nothing is written."""
-        return None
 
 
 def _stdin_is_tty() -> bool:
@@ -393,22 +390,6 @@ def _camera_check(cam, cfg: CameraConfig | None) -> DeviceInfo:
 # --------------------------------------------------------------------------- building drivers
 
 
-def _grbl_classes():
-    try:
-        from .motion import GrblAxis, GrblController
-    except ImportError as e:  # pragma: no cover - only while the motion drivers are missing
-        raise DeviceError(f"GRBL motion drivers are not available ({e})") from None
-    return GrblController, GrblAxis
-
-
-def _dmx_classes():
-    try:
-        from .lights import DmxLightArray, EnttecDmx
-    except ImportError as e:  # pragma: no cover
-        raise DeviceError(f"DMX light drivers are not available ({e})") from None
-    return EnttecDmx, DmxLightArray
-
-
 def _check_runnable_url(url: str, key: str, source: str) -> None:
     if parse_emulator_url(url) is not None:
         raise ConfigError(
@@ -418,54 +399,67 @@ def _check_runnable_url(url: str, key: str, source: str) -> None:
         )
 
 
-def _build_devices(config: RigConfig, *, timeout_s: float | None = None):
-    """Driver objects (no I/O) for the serial devices: (turntable, light_array, backdrops, ports)."""
-    from .backdrops import DisplayController
+@dataclass(frozen=True, kw_only=True)
+class _Devices:
+    """The serial drivers of a config (no I/O yet) and the port each device talks through."""
 
-    GrblController, GrblAxis = _grbl_classes()
-    controllers: dict[str, object] = {}
-    ports: list = []
+    turntable: GrblAxis
+    light_array: DmxLightArray | None
+    backdrops: DisplayController | None
+    ports: list[Port]
+    #: (device, the port it talks through), in check order
+    checks: list[tuple[GrblAxis | DmxLightArray | DisplayController, Port]]
 
-    def controller(ax: AxisConfig):
+
+def _build_devices(config: RigConfig, *, timeout_s: float | None = None) -> _Devices:
+    """Driver objects (no I/O) for the serial devices of ``config``."""
+    controllers: dict[str, GrblController] = {}
+    ports: list[Port] = []
+    checks: list[tuple[GrblAxis | DmxLightArray | DisplayController, Port]] = []
+
+    def controller(ax: AxisConfig) -> GrblController:
         if ax.url not in controllers:
             _check_runnable_url(ax.url, ax.key, config.source)
             names = [a.name for a in config.grbl_ports()[ax.url]]
-            c = GrblController(ax.url, name="+".join(names) if len(names) > 1 else ax.name, baudrate=ax.baudrate,
-                               timeout_s=ax.timeout_s if timeout_s is None else timeout_s)
+            c = GrblController.from_url(ax.url, name="+".join(names) if len(names) > 1 else ax.name,
+                                        baudrate=ax.baudrate, timeout_s=ax.timeout_s if timeout_s is None else timeout_s)
             controllers[ax.url] = c
             ports.append(c)
         return controllers[ax.url]
 
-    def axis(ax: AxisConfig):
-        return GrblAxis(controller(ax), axis=ax.axis, steps_per_deg=ax.steps_per_deg,
-                        max_rate_deg_s=ax.max_rate_deg_s, accel_deg_s2=ax.accel_deg_s2,
-                        backlash_deg=ax.backlash_deg, soft_limits_deg=ax.soft_limits_deg, name=ax.name)
+    def axis(ax: AxisConfig) -> GrblAxis:
+        a = GrblAxis(controller(ax), axis=ax.axis, steps_per_deg=ax.steps_per_deg,
+                     max_rate_deg_s=ax.max_rate_deg_s, accel_deg_s2=ax.accel_deg_s2,
+                     backlash_deg=ax.backlash_deg, soft_limits_deg=ax.soft_limits_deg, name=ax.name)
+        checks.append((a, a.controller))
+        return a
 
     turntable = axis(config.turntable)
     light_array = None
     if config.light_array is not None:
         la = config.light_array
-        EnttecDmx, DmxLightArray = _dmx_classes()
         _check_runnable_url(la.url, la.key, config.source)
-        dmx = EnttecDmx(la.url, name=f"{la.name}.dmx", timeout_s=la.timeout_s if timeout_s is None else timeout_s,
-                        baudrate=la.baudrate)
+        dmx = EnttecDmx.from_url(la.url, name=f"{la.name}.dmx",
+                                 timeout_s=la.timeout_s if timeout_s is None else timeout_s, baudrate=la.baudrate)
         ports.append(dmx)
         rotation = axis(la.rotation) if la.rotation is not None else None
         light_array = DmxLightArray(dmx, channels=la.channel_map, rotation=rotation, name=la.name)
+        checks.append((light_array, dmx))
     backdrops = None
     if config.backdrops is not None:
         bd = config.backdrops
         _check_runnable_url(bd.url, bd.key, config.source)
         quick = timeout_s is not None
-        backdrops = DisplayController(bd.url, outputs=bd.output_map, name=bd.name,
-                                      timeout_s=bd.timeout_s if timeout_s is None else timeout_s,
-                                      baudrate=bd.baudrate, retries=0 if quick else bd.retries,
-                                      chunk_bytes=bd.chunk_bytes, reconnect_attempts=0 if quick else 2)
+        backdrops = DisplayController.from_url(bd.url, outputs=bd.output_map, name=bd.name,
+                                               timeout_s=bd.timeout_s if timeout_s is None else timeout_s,
+                                               baudrate=bd.baudrate, retries=0 if quick else bd.retries,
+                                               chunk_bytes=bd.chunk_bytes, reconnect_attempts=0 if quick else 2)
         ports.append(backdrops)
-    return turntable, light_array, backdrops, ports
+        checks.append((backdrops, backdrops))
+    return _Devices(turntable=turntable, light_array=light_array, backdrops=backdrops, ports=ports, checks=checks)
 
 
-def _build_camera(c: CameraConfig, source: str) -> CameraDevice:
+def _build_camera(c: CameraConfig, source: str) -> OpenCVCamera | DirectoryCamera:
     from .cameras import DirectoryCamera, OpenCVCamera
 
     opts = dict(c.options)
@@ -494,9 +488,9 @@ def build_rig(config_or_path, *, cameras: Sequence[CameraDevice] | None = None, 
             raise ConfigError(f"{config.source}: devices.cameras: no [[devices.cameras]] entries — add one per "
                               f"geometry camera {geo_names}, or pass cameras= to open_rig")
         cams = [_build_camera(c, config.source) for c in config.cameras]
-    turntable, light_array, backdrops, ports = _build_devices(config)
-    return HardwareRig(config, turntable=turntable, light_array=light_array, backdrops=backdrops, cameras=cams,
-                       ports=ports, **rig_kwargs)
+    d = _build_devices(config)
+    return HardwareRig(config, turntable=d.turntable, light_array=d.light_array, backdrops=d.backdrops, cameras=cams,
+                       ports=d.ports, **rig_kwargs)
 
 
 def open_rig(config_or_path, *, cameras: Sequence[CameraDevice] | None = None, **rig_kwargs) -> HardwareRig:
@@ -538,35 +532,27 @@ def check_rig_config(config_or_path, *, timeout_s: float = 1.0) -> list[DeviceIn
         raise ConfigError(
             f"{config.source}: {', '.join(emulated)} have emulator:KIND URLs, which only `opacityhull rig emulate "
             f"--config {config.source} --write-config RUNTIME.toml` can serve; check RUNTIME.toml instead")
-    turntable, light_array, backdrops, ports = _build_devices(config, timeout_s=timeout_s)
-    port_ok: dict[int, DeviceInfo | None] = {}
-    for p in ports:
+    d = _build_devices(config, timeout_s=timeout_s)
+    port_failed: dict[int, DeviceInfo | None] = {}
+    for p in d.ports:
         try:
             p.open()
-            port_ok[id(p)] = None
+            port_failed[id(p)] = None
         except (DeviceError, OSError) as e:
-            port_ok[id(p)] = DeviceInfo(getattr(p, "name", "?"), False, str(e))
+            port_failed[id(p)] = DeviceInfo(p.name, False, str(e))
     try:
-        devices = [turntable]
-        if light_array is not None:
-            if getattr(light_array, "rotation", None) is not None:
-                devices.append(light_array.rotation)
-            devices.append(light_array)
-        if backdrops is not None:
-            devices.append(backdrops)
-        for dev in devices:
-            port = getattr(dev, "controller", None) or getattr(dev, "dmx", None) or dev
-            failed = port_ok.get(id(port))
+        for dev, port in d.checks:
+            failed = port_failed.get(id(port))
             if failed is not None:
                 out.append(DeviceInfo(dev.name, False, failed.detail))
             else:
                 out.append(_safe_check(dev))
     finally:
-        for p in ports:
+        for p in d.ports:
             try:
                 p.close()
-            except Exception:
-                pass
+            except Exception as e:  # the report is what matters here; a close failure must not hide it
+                log.debug("%s: close failed: %s", p.name, e)
     for c in config.cameras:
         if c.driver == "sim":
             out.append(DeviceInfo(c.name, True, SIM_CAMERA_DETAIL, identity="sim"))
@@ -576,8 +562,7 @@ def check_rig_config(config_or_path, *, timeout_s: float = 1.0) -> list[DeviceIn
         except (ConfigError, DeviceError) as e:
             out.append(DeviceInfo(c.name, False, str(e)))
             continue
-        if hasattr(cam, "timeout_s"):
-            cam.timeout_s = min(cam.timeout_s, max(timeout_s, 2.0))
+        cam.timeout_s = min(cam.timeout_s, max(timeout_s, 2.0))
         out.append(_camera_check(cam, c))
         close = getattr(cam, "close", None)
         if close is not None:

@@ -1,4 +1,9 @@
-"""Byte transport for every serial device: pyserial ``serial_for_url`` with timeouts.
+"""Byte transport for every serial device: :class:`Transport` (buffering, deadlines,
+DEBUG logging of every byte) and :class:`SerialTransport` (pyserial ``serial_for_url``).
+
+Drivers take a :class:`Transport` in their constructor (``from_url`` builds a
+:class:`SerialTransport`), so a test can hand them the in-memory transport of
+:mod:`opacityhull.rigs.testing` and check every byte they exchange.
 
 A URL is a device path (``/dev/ttyUSB0``, a pty slave such as ``/dev/pts/5``),
 ``socket://host:port`` or ``loop://``. No I/O happens in ``__init__``; :meth:`open`
@@ -6,7 +11,7 @@ opens the port (exclusively where the platform supports it). Every read and writ
 a timeout, and every failure becomes a :class:`~opacityhull.errors.DeviceError`
 subclass whose message names the device and the URL and says what to check.
 
-pyserial facts this module is built around (PITFALLS.md): a read that times out
+pyserial facts this module is built around (docs/pitfalls.md, "pyserial"): a read that times out
 returns ``b''`` or a partial line and never raises; ``readline`` splits on ``\\n``
 only; late replies stay in the input buffer (so :meth:`query` flushes first); when the
 other end of a pty goes away, reads raise ``OSError(EIO)``; a TCP peer that closed
@@ -20,21 +25,25 @@ handler otherwise reads a TCP stream one byte per system call).
 
 from __future__ import annotations
 
+import logging
 import select
 import socket
 import time
-from typing import Callable
+from typing import Any, Callable
 
 from ..errors import ConfigError, DeviceError
 
 try:  # termios.error is not an OSError; a hung-up pty raises it from tcdrain()
     import termios
 
-    _PORT_ERRORS: tuple = (OSError, termios.error)
+    _PORT_ERRORS: tuple[type[BaseException], ...] = (OSError, termios.error)
 except ImportError:  # pragma: no cover - Windows
     _PORT_ERRORS = (OSError,)
 
+log = logging.getLogger(__name__)
+
 __all__ = [
+    "Transport",
     "DeviceTimeout",
     "DeviceGone",
     "ProtocolError",
@@ -77,21 +86,28 @@ def check_url(url: str, *, where: str = "url") -> str:
     )
 
 
-class SerialTransport:
-    """A serial port with timeouts on every operation.
+class Transport:
+    """Bytes to and from one device, with a timeout on every operation.
+
+    The base class holds everything a driver relies on — the receive buffer, the
+    overall deadline of an exchange (:meth:`exchange`), terminator and length reads,
+    the garbled/silent diagnosis (:meth:`heard_since`), DEBUG logging of every byte —
+    over five primitives a subclass provides: :meth:`_open_raw`, :meth:`_close_raw`,
+    :meth:`_write_raw`, :meth:`_read_raw` (non-blocking) and :meth:`_wait_raw`.
+    :class:`SerialTransport` implements them over pyserial; the in-memory transport
+    of :mod:`opacityhull.rigs.testing` implements them over a script of expected bytes.
 
     Parameters
     ----------
     url : str
-        Device path, ``socket://host:port`` or ``loop://``.
+        Where the device is (named in every message).
     name : str
-        Device name used in error messages (``turntable``).
+        Device name used in messages and logs (``turntable``).
     baudrate : int
+        Named in the "garbled" diagnosis.
     timeout_s : float
         Default read timeout for :meth:`read_until` / :meth:`read_exact`.
     write_timeout_s : float
-    exclusive : bool
-        Request exclusive access (POSIX ports only; ignored for sockets).
 
     Notes
     -----
@@ -101,15 +117,12 @@ class SerialTransport:
     """
 
     def __init__(self, url: str, *, name: str = "device", baudrate: int = 115200, timeout_s: float = 2.0,
-                 write_timeout_s: float = 2.0, exclusive: bool = True):
+                 write_timeout_s: float = 2.0):
         self.url = url
         self.name = name
-        self.baudrate = baudrate
+        self.baudrate = int(baudrate)
         self.timeout_s = float(timeout_s)
         self.write_timeout_s = float(write_timeout_s)
-        self.exclusive = exclusive
-        self._port = None
-        self._fd: int | None = None
         self._rxbuf = bytearray()
         self.bytes_written = 0
         self.bytes_read = 0
@@ -117,56 +130,42 @@ class SerialTransport:
         self._deadline_what = ""
         self._deadline_mark: tuple[int, float] = (0, 0.0)
 
-    # ---- lifecycle
+    # ---- primitives (subclasses)
     @property
     def is_open(self) -> bool:
-        port = self._port
-        return port is not None and port.is_open
+        raise NotImplementedError
 
-    def open(self) -> "SerialTransport":
-        import serial
+    def _open_raw(self) -> None:
+        """Open the device; :class:`DeviceGone` naming it when it is not there."""
+        raise NotImplementedError
 
+    def _close_raw(self) -> None:
+        """Close the device; never raises."""
+        raise NotImplementedError
+
+    def _write_raw(self, data: bytes) -> None:
+        """Write all of ``data``; :class:`DeviceTimeout` / :class:`DeviceGone`."""
+        raise NotImplementedError
+
+    def _read_raw(self) -> bytes:
+        """Everything available now, without waiting (``b''`` if nothing); :class:`DeviceGone`."""
+        raise NotImplementedError
+
+    def _wait_raw(self, wait_s: float) -> None:
+        """Wait at most ``wait_s`` seconds for bytes to become readable."""
+        raise NotImplementedError
+
+    # ---- lifecycle
+    def open(self) -> "Transport":
         if self.is_open:
             return self
-        kw = dict(baudrate=self.baudrate, timeout=0, write_timeout=self.write_timeout_s)
-        if self.exclusive and self.url.startswith("/dev/"):
-            kw["exclusive"] = True
-        try:
-            port = serial.serial_for_url(self.url, **kw)
-        except (serial.SerialException, OSError, ValueError) as e:
-            raise DeviceGone(
-                f"{self.name}: cannot open {self.url} ({e}) — is it plugged in, powered, and not in use by "
-                "another program?"
-            ) from None
-        try:
-            self._fd = port.fileno()
-        except Exception:  # loop:// and rfc2217:// have no descriptor: poll instead
-            self._fd = None
-        self._port = port
+        self._open_raw()
         self._rxbuf.clear()
+        log.debug("%s: opened %s", self.name, self.url)
         return self
 
     def close(self) -> None:
-        port, self._port = self._port, None
-        self._fd = None
-        if port is None:
-            return
-        try:
-            sock = getattr(port, "_socket", None) if self.url.startswith("socket://") else None
-            if sock is not None:
-                # pyserial's socket close() sleeps 0.3 s "for quick reconnects"; a rig with
-                # three TCP devices would pay it on every close and reconnect attempt.
-                try:
-                    sock.shutdown(socket.SHUT_RDWR)
-                except OSError:
-                    pass
-                sock.close()
-                port._socket = None
-                port.is_open = False
-            else:
-                port.close()
-        except Exception:  # closing a dead port must never mask the real error
-            pass
+        self._close_raw()
 
     def __enter__(self):
         return self.open()
@@ -175,35 +174,23 @@ class SerialTransport:
         self.close()
         return False
 
-    def _require_open(self):
-        port = self._port
-        if port is None or not port.is_open:
-            raise DeviceGone(f"{self.name}: port {self.url} is not open — call open() first (or reconnect)")
-        return port
-
-    def _gone(self, e: Exception) -> DeviceGone:
+    def _gone(self, e: BaseException) -> DeviceGone:
         self.close()
+        log.debug("%s: lost %s (%s)", self.name, self.url, e)
         return DeviceGone(f"{self.name}: lost the connection on {self.url} ({e}) — was it unplugged or powered off?")
+
+    def _not_open(self) -> DeviceGone:
+        return DeviceGone(f"{self.name}: port {self.url} is not open — call open() first (or reconnect)")
 
     # ---- writing
     def write(self, data: bytes) -> None:
         """Write all of ``data``; :class:`DeviceTimeout` if it does not leave within the write timeout,
         :class:`DeviceGone` if the port is dead."""
-        import serial
-
-        port = self._require_open()
-        try:
-            n = port.write(data)
-            port.flush()
-        except serial.SerialTimeoutException:
-            raise DeviceTimeout(
-                f"{self.name}: write of {len(data)} bytes to {self.url} did not finish within "
-                f"{self.write_timeout_s} s — is flow control stuck or the device hung?"
-            ) from None
-        except (serial.SerialException, *_PORT_ERRORS) as e:
-            raise self._gone(e) from None
-        if n is not None and n != len(data):
-            raise DeviceTimeout(f"{self.name}: wrote {n} of {len(data)} bytes to {self.url} — is the device hung?")
+        if not self.is_open:
+            raise self._not_open()
+        if log.isEnabledFor(logging.DEBUG):
+            log.debug("%s > %r", self.name, bytes(data))
+        self._write_raw(data)
         self.bytes_written += len(data)
 
     # ---- exchanges: one overall deadline
@@ -236,14 +223,12 @@ class SerialTransport:
     # ---- reading
     def _read_now(self) -> bytes:
         """Everything the OS has for us right now (non-blocking)."""
-        import serial
-
-        port = self._require_open()
-        try:
-            chunk = port.read(65536)
-        except (serial.SerialException, *_PORT_ERRORS) as e:
-            raise self._gone(e) from None
+        if not self.is_open:
+            raise self._not_open()
+        chunk = self._read_raw()
         if chunk:
+            if log.isEnabledFor(logging.DEBUG):
+                log.debug("%s < %r", self.name, chunk)
             self._rxbuf += chunk
             self.bytes_read += len(chunk)
             if len(self._rxbuf) > _MAX_RXBUF:  # keep the newest: a reply ends the buffer
@@ -254,14 +239,7 @@ class SerialTransport:
         """Wait (at most until ``deadline``, in slices of ``_POLL_S``) for bytes; True if some came."""
         if self._read_now():
             return True
-        wait = min(_POLL_S, max(0.0, deadline - time.monotonic()))
-        if self._fd is not None:
-            try:
-                select.select([self._fd], [], [], wait)
-            except (OSError, ValueError) as e:
-                raise self._gone(e) from None
-        else:
-            time.sleep(min(wait, 0.002))
+        self._wait_raw(min(_POLL_S, max(0.0, deadline - time.monotonic())))
         return bool(self._read_now())
 
     def _drain(self) -> None:
@@ -358,7 +336,10 @@ class SerialTransport:
 
     def flush_input(self) -> bytes:
         """Discard (and return) late replies waiting in the input buffer."""
-        return self.read_available()
+        out = self.read_available()
+        if out:
+            log.debug("%s: discarded %d late byte(s)", self.name, len(out))
+        return out
 
     def query(self, data: bytes, *, terminator: bytes = b"\n", timeout_s: float | None = None,
               what: str = "reply", accept: Callable[[bytes], bool] | None = None) -> bytes:
@@ -373,14 +354,119 @@ class SerialTransport:
                     return line
 
 
-class _Exchange:
-    """Context manager of :meth:`SerialTransport.exchange`."""
+class SerialTransport(Transport):
+    """A serial port (pyserial ``serial_for_url``) with timeouts on every operation.
 
-    def __init__(self, transport: SerialTransport, timeout_s: float, what: str):
+    Parameters
+    ----------
+    url : str
+        Device path, ``socket://host:port`` or ``loop://``.
+    name : str
+        Device name used in error messages (``turntable``).
+    baudrate : int
+    timeout_s : float
+        Default read timeout for :meth:`read_until` / :meth:`read_exact`.
+    write_timeout_s : float
+    exclusive : bool
+        Request exclusive access (POSIX ports only; ignored for sockets).
+    """
+
+    def __init__(self, url: str, *, name: str = "device", baudrate: int = 115200, timeout_s: float = 2.0,
+                 write_timeout_s: float = 2.0, exclusive: bool = True):
+        super().__init__(url, name=name, baudrate=baudrate, timeout_s=timeout_s, write_timeout_s=write_timeout_s)
+        self.exclusive = exclusive
+        self._port: Any = None
+        self._fd: int | None = None
+
+    @property
+    def is_open(self) -> bool:
+        port = self._port
+        return port is not None and port.is_open
+
+    def _open_raw(self) -> None:
+        import serial
+
+        kw: dict[str, Any] = dict(baudrate=self.baudrate, timeout=0, write_timeout=self.write_timeout_s)
+        if self.exclusive and self.url.startswith("/dev/"):
+            kw["exclusive"] = True
+        try:
+            port = serial.serial_for_url(self.url, **kw)
+        except (serial.SerialException, OSError, ValueError) as e:
+            raise DeviceGone(
+                f"{self.name}: cannot open {self.url} ({e}) — is it plugged in, powered, and not in use by "
+                "another program?"
+            ) from None
+        try:
+            self._fd = port.fileno()
+        except Exception:  # loop:// and rfc2217:// have no descriptor: poll instead
+            self._fd = None
+        self._port = port
+
+    def _close_raw(self) -> None:
+        port, self._port = self._port, None
+        self._fd = None
+        if port is None:
+            return
+        try:
+            sock = getattr(port, "_socket", None) if self.url.startswith("socket://") else None
+            if sock is not None:
+                # pyserial's socket close() sleeps 0.3 s "for quick reconnects"; a rig with
+                # three TCP devices would pay it on every close and reconnect attempt.
+                try:
+                    sock.shutdown(socket.SHUT_RDWR)
+                except OSError:
+                    pass  # the peer may already be gone; close() below still frees the socket
+                sock.close()
+                port._socket = None
+                port.is_open = False
+            else:
+                port.close()
+        except Exception as e:  # closing a dead port must never mask the real error
+            log.debug("%s: error while closing %s: %s", self.name, self.url, e)
+
+    def _write_raw(self, data: bytes) -> None:
+        import serial
+
+        port = self._port
+        try:
+            n = port.write(data)
+            port.flush()
+        except serial.SerialTimeoutException:
+            raise DeviceTimeout(
+                f"{self.name}: write of {len(data)} bytes to {self.url} did not finish within "
+                f"{self.write_timeout_s} s — is flow control stuck or the device hung?"
+            ) from None
+        except (serial.SerialException, *_PORT_ERRORS) as e:
+            raise self._gone(e) from None
+        if n is not None and n != len(data):
+            raise DeviceTimeout(f"{self.name}: wrote {n} of {len(data)} bytes to {self.url} — is the device hung?")
+
+    def _read_raw(self) -> bytes:
+        import serial
+
+        try:
+            return self._port.read(65536)
+        except (serial.SerialException, *_PORT_ERRORS) as e:
+            raise self._gone(e) from None
+
+    def _wait_raw(self, wait_s: float) -> None:
+        if self._fd is not None:
+            try:
+                select.select([self._fd], [], [], wait_s)
+            except (OSError, ValueError) as e:
+                raise self._gone(e) from None
+        else:
+            time.sleep(min(wait_s, 0.002))
+
+
+class _Exchange:
+    """Context manager of :meth:`Transport.exchange`."""
+
+    def __init__(self, transport: Transport, timeout_s: float, what: str):
         self.t = transport
         self.timeout_s = timeout_s
         self.what = what
-        self._saved: tuple = (None, "")
+        self._saved: tuple[float | None, str, tuple[int, float]] = (None, "", (0, 0.0))
 
     def __enter__(self) -> "_Exchange":
         t = self.t

@@ -64,7 +64,7 @@ def grbl(kind):
         emu = GrblEmulator(**(emu_kw or {}))
         srv = EmulatorServer(emu, kind=kind)
         srv.start()
-        ctl = GrblController(srv.url, name="grbl", timeout_s=timeout_s, boot_timeout_s=boot_timeout_s, **ctl_kw)
+        ctl = GrblController.from_url(srv.url, name="grbl", timeout_s=timeout_s, boot_timeout_s=boot_timeout_s, **ctl_kw)
         made.append((srv, ctl))
         tt = GrblAxis(ctl, axis="X", steps_per_deg=80.0, max_rate_deg_s=30.0, accel_deg_s2=60.0, name="turntable")
         la = GrblAxis(ctl, axis="Y", steps_per_deg=80.0, max_rate_deg_s=30.0, accel_deg_s2=60.0,
@@ -90,7 +90,7 @@ def enttec(kind):
         emu = EnttecEmulator(**(emu_kw or {}))
         srv = EmulatorServer(emu, kind=kind)
         srv.start()
-        dmx = EnttecDmx(srv.url, name="dmx", timeout_s=timeout_s)
+        dmx = EnttecDmx.from_url(srv.url, name="dmx", timeout_s=timeout_s)
         made.append((srv, dmx))
         arr = DmxLightArray(dmx, channels=channels or {0: 1, 1: 2, 2: 3, 3: 4}, rotation=rotation,
                             name="light_array")

@@ -10,7 +10,7 @@ import pytest
 from opacityhull.errors import DeviceError, InputError
 from opacityhull.imageio import read_png, srgb_decode, write_exr, write_png
 from opacityhull.rigs.cameras import DirectoryCamera, OpenCVCamera, expand_braces
-from opacityhull.rigs.protocols import CameraDevice
+from opacityhull.rigs.interfaces import CameraDevice
 from opacityhull.rigs.transport import DeviceGone, DeviceTimeout
 
 cv2 = pytest.importorskip("cv2")

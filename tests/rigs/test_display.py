@@ -8,7 +8,7 @@ from opacityhull.rigs import display_protocol as dp
 from opacityhull.rigs.backdrops import DisplayController, DisplayNak
 from opacityhull.rigs.emulators.base import EmulatorServer
 from opacityhull.rigs.emulators.display import DisplayEmulator
-from opacityhull.rigs.protocols import Backdrops
+from opacityhull.rigs.interfaces import Backdrops
 from opacityhull.rigs.transport import DeviceGone, DeviceTimeout
 
 OUTPUTS = {"bottom": 0, "back": 1}
@@ -28,7 +28,7 @@ def emu():
 @pytest.fixture
 def ctl(emu):
     e, srv = emu
-    c = DisplayController(srv.url, outputs=OUTPUTS, timeout_s=0.3, retries=3, chunk_bytes=256,
+    c = DisplayController.from_url(srv.url, outputs=OUTPUTS, timeout_s=0.3, retries=3, chunk_bytes=256,
                           reconnect_attempts=1, reconnect_delay_s=0.01)
     with c:
         yield c
@@ -137,7 +137,7 @@ def test_late_replies_do_not_confuse_later_commands(emu, ctl):
 def test_silent_controller_times_out_naming_device(emu):
     e, srv = emu
     e.faults.silent = True
-    c = DisplayController(srv.url, outputs=OUTPUTS, timeout_s=0.1, retries=2, name="backdrops")
+    c = DisplayController.from_url(srv.url, outputs=OUTPUTS, timeout_s=0.1, retries=2, name="backdrops")
     with c:
         with pytest.raises(DeviceTimeout, match=r"backdrops: no valid reply to POWER back on after 3 attempt\(s\) on .*no reply within 0.1 s") as ei:
             c.show("back", 1)
@@ -163,7 +163,7 @@ def test_unplug_mid_upload_then_replug(tmp_path):
                 srv.vanish()
 
     e.on_command = pull_plug
-    c = DisplayController(srv.url, outputs=OUTPUTS, timeout_s=0.3, retries=1, chunk_bytes=256,
+    c = DisplayController.from_url(srv.url, outputs=OUTPUTS, timeout_s=0.3, retries=1, chunk_bytes=256,
                           reconnect_attempts=2, reconnect_delay_s=0.01)
     img = pattern(7)
     try:
@@ -213,10 +213,10 @@ def test_config_errors_and_bad_output(emu):
     from opacityhull.errors import ConfigError
 
     with pytest.raises(ConfigError, match="share one controller output"):
-        DisplayController(srv.url, outputs={"a": 0, "b": 0})
+        DisplayController.from_url(srv.url, outputs={"a": 0, "b": 0})
     with pytest.raises(ConfigError, match="chunk_bytes"):
-        DisplayController(srv.url, outputs={"a": 0}, chunk_bytes=4096)
-    c = DisplayController(srv.url, outputs={"bottom": 0, "side": 5}, timeout_s=0.3)
+        DisplayController.from_url(srv.url, outputs={"a": 0}, chunk_bytes=4096)
+    c = DisplayController.from_url(srv.url, outputs={"bottom": 0, "side": 5}, timeout_s=0.3)
     with c:
         with pytest.raises(InputError, match="no display named 'top'"):
             c.show("top", 1)
@@ -238,7 +238,7 @@ def test_check_reports_identity_and_state(emu, ctl):
 
 
 def test_missing_port_is_device_gone():
-    c = DisplayController("/dev/does-not-exist-42", outputs=OUTPUTS, reconnect_attempts=0)
+    c = DisplayController.from_url("/dev/does-not-exist-42", outputs=OUTPUTS, reconnect_attempts=0)
     with pytest.raises(DeviceGone, match="backdrops: cannot open /dev/does-not-exist-42"):
         c.open()
     with pytest.raises(DeviceGone):

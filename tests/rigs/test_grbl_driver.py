@@ -14,7 +14,7 @@ from opacityhull.errors import ConfigError, DeviceError, InputError
 from opacityhull.rigs import grbl_protocol as gp
 from opacityhull.rigs.motion import (GrblAlarm, GrblAxis, GrblCommandError, GrblController, GrblInterrupted,
                                      move_duration_s)
-from opacityhull.rigs.protocols import RotaryAxis
+from opacityhull.rigs.interfaces import RotaryAxis
 from opacityhull.rigs.transport import DeviceGone, DeviceTimeout, ProtocolError
 
 
@@ -149,7 +149,7 @@ def test_two_axes_on_one_controller_and_config_errors(grbl):
     g = grbl()
     with pytest.raises(ConfigError, match="axis X .* already used by 'turntable'"):
         GrblAxis(g.ctl, axis="X", steps_per_deg=80, max_rate_deg_s=30, name="other")
-    c = GrblController("loop://", name="c")
+    c = GrblController.from_url("loop://", name="c")
     for kw, key in [({"axis": "Q"}, "axis"), ({"steps_per_deg": 0}, "steps_per_deg"),
                     ({"max_rate_deg_s": math.nan}, "max_rate_deg_s"), ({"accel_deg_s2": -1}, "accel_deg_s2"),
                     ({"backlash_deg": 90}, "backlash_deg"), ({"soft_limits_deg": (5, 1)}, "soft_limits_deg"),

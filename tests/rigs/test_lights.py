@@ -11,7 +11,7 @@ from opacityhull.errors import ConfigError, InputError
 from opacityhull.rigs import enttec_protocol as ep
 from opacityhull.rigs.emulators.enttec import EnttecEmulator
 from opacityhull.rigs.lights import DmxLightArray, EnttecDmx
-from opacityhull.rigs.protocols import LightArray
+from opacityhull.rigs.interfaces import LightArray
 from opacityhull.rigs.transport import DeviceGone, DeviceTimeout
 
 
@@ -165,23 +165,23 @@ def test_rotation_is_a_grbl_axis_on_the_shared_controller(enttec, grbl):
     ({0: 5, 1: 5}, "lights 0 and 1 are both on DMX channel 5"),
 ])
 def test_channel_map_errors_name_the_key(channels, match):
-    dmx = EnttecDmx("loop://", name="dmx")
+    dmx = EnttecDmx.from_url("loop://", name="dmx")
     with pytest.raises(ConfigError, match=match):
         DmxLightArray(dmx, channels=channels, name="light_array")
 
 
 def test_toml_string_keys_are_light_ids():
-    arr = DmxLightArray(EnttecDmx("loop://"), channels={"3": 4, "1": 2})
+    arr = DmxLightArray(EnttecDmx.from_url("loop://"), channels={"3": 4, "1": 2})
     assert arr.light_ids == (1, 3) and arr.channels == {1: 2, 3: 4}
 
 
 def test_driver_config_errors():
     with pytest.raises(ConfigError, match="universe_size = 10"):
-        EnttecDmx("loop://", universe_size=10)
+        EnttecDmx.from_url("loop://", universe_size=10)
     with pytest.raises(ConfigError, match="timeout_s"):
-        EnttecDmx("loop://", timeout_s=0)
+        EnttecDmx.from_url("loop://", timeout_s=0)
     with pytest.raises(InputError, match="513 DMX channels given"):
-        EnttecDmx("loop://").send_dmx(bytes(513))
+        EnttecDmx.from_url("loop://").send_dmx(bytes(513))
 
 
 # ---------------------------------------------------------------------------- emulator alone

@@ -18,7 +18,7 @@ from opacityhull.rigs.emulators.display import DisplayEmulator
 from opacityhull.rigs.emulators.enttec import EnttecEmulator
 from opacityhull.rigs.emulators.grbl import GrblEmulator
 from opacityhull.rigs.emulators.launch import start_emulators
-from opacityhull.rigs.protocols import Rig
+from opacityhull.rigs.interfaces import GroundTruthSource, Port, Rig
 from opacityhull.rigs.rig import HardwareRig, OperatorActionRequired, build_rig, check_rig_config, open_rig
 from opacityhull.rigs.transport import DeviceGone
 
@@ -73,7 +73,7 @@ def test_tagged_emulators_are_separate_controllers(tmp_path):
         with open_rig(e.config) as rig:
             rig.turntable.move_to(20.0)
             rig.light_array.rotation.move_to(-35.0)
-            assert len(rig.ports) == 4
+            assert len(rig.ports) == 4 and all(isinstance(p, Port) for p in rig.ports)
         assert (a.position_deg("X"), b.position_deg("X")) == (20.0, -35.0)
 
 
@@ -97,7 +97,8 @@ def test_open_rig_drives_every_device(cfg, emus, wait_for):
         assert infos[0].state["position_deg"] == pytest.approx(30.0)
         assert rig.describe() == emus.config.to_dict()
         assert rig.describe()["devices"]["turntable"]["url"] == emus.config.turntable.url
-        assert rig.ground_truth(cfg.source, [(0, 0.0)]) is None
+        # hardware knows nothing exactly: ground truth is not part of its contract
+        assert isinstance(rig, Rig) and not isinstance(rig, GroundTruthSource)
 
 
 @pytest.mark.parametrize("exc", [RuntimeError, KeyboardInterrupt])
@@ -228,7 +229,7 @@ def test_open_fails_naming_the_missing_device_and_closes_the_rest(tmp_path, cfg)
         rig = build_rig(missing, reconnect_attempts=2, reconnect_delay_s=0.01)
         with pytest.raises(DeviceGone, match=r"backdrops: could not open /dev/nonexistent-display after 2 attempt"):
             rig.open()
-        assert not any(getattr(p, "is_open", False) for p in rig.ports)
+        assert not any(p.is_open for p in rig.ports)
 
 
 def test_cameras_from_config_or_injected(tmp_path):
@@ -283,3 +284,22 @@ def test_check_rig_config_reports_cameras(tmp_path, cfg):
     assert infos["cam1"].ok and infos["cam1"].detail == "simulated: checked by sim"
     assert not infos["cam2"].ok and "does not exist" in infos["cam2"].detail
     assert infos["cam3"].ok and infos["turntable"].ok and infos["backdrops"].ok
+
+
+def test_a_capture_on_a_hardware_rig_writes_no_ground_truth(tmp_path):
+    """Ground truth is not part of the hardware contract: the runner asks only rigs that
+    are a GroundTruthSource (the lab rig around the same HardwareRig is one)."""
+    from opacityhull.acquire.plan import parse_plan
+    from opacityhull.acquire.runner import run_capture
+    from opacityhull.rigs.testing import LabRig
+
+    plan = parse_plan({"plan": {"name": "hw-tiny", "seed": 5}, "table": {"steps": 2},
+                       "exposures": {"default_s": [0.5]}, "phases": {"lightfield": {"level": 200}}}, where="hw-tiny")
+    with LabRig() as lab:
+        assert isinstance(lab, GroundTruthSource) and not isinstance(lab.hw, GroundTruthSource)
+        res = run_capture(lab.hw, plan, tmp_path / "hw", rig_source="lab")
+        assert res.complete and res.images == 6 and not (tmp_path / "hw" / "groundtruth").exists()
+        res = run_capture(lab, plan, tmp_path / "lab", rig_source="lab")
+        assert res.complete and (tmp_path / "lab" / "groundtruth" / "views.json").is_file()
+        assert len(lab.ground_truth_calls) == 1
+        assert sorted(map(tuple, lab.ground_truth_calls[0])) == [(c, a) for c in range(3) for a in (0.0, 180.0)]

@@ -13,6 +13,7 @@ socket closes: the driver sees EOF) and come back (:meth:`EmulatorServer.reappea
 from __future__ import annotations
 
 import heapq
+import logging
 import os
 import select
 import socket
@@ -21,6 +22,8 @@ import time
 import tty
 from dataclasses import dataclass, field
 from typing import Iterable
+
+log = logging.getLogger(__name__)
 
 __all__ = ["Reply", "Faults", "EmulatedDevice", "EmulatorServer", "noise"]
 
@@ -263,16 +266,16 @@ class EmulatorServer:
             if fd is not None:
                 try:
                     os.close(fd)
-                except OSError:
-                    pass
+                except OSError as e:  # already closed by the other side: nothing left to free
+                    log.debug("%s: closing %s: %s", self.device.name, attr, e)
                 setattr(self, attr, None)
         for attr in ("_conn", "_lsock"):
             s = getattr(self, attr)
             if s is not None:
                 try:
                     s.close()
-                except OSError:
-                    pass
+                except OSError as e:
+                    log.debug("%s: closing %s: %s", self.device.name, attr, e)
                 setattr(self, attr, None)
 
     # ---- I/O loop
@@ -285,8 +288,8 @@ class EmulatorServer:
                     view = view[n:]
             elif self.kind == "tcp" and self._conn is not None:
                 self._conn.sendall(data)
-        except OSError:
-            pass
+        except OSError as e:  # the client went away: its replies have nowhere to go, as on a real line
+            log.debug("%s: reply of %d byte(s) dropped: %s", self.device.name, len(data), e)
 
     def _queue(self, replies: Iterable[Reply]) -> None:
         now = time.monotonic()
@@ -329,10 +332,13 @@ class EmulatorServer:
             if not w:
                 return
             chunk = noise(min(n, 4096), self._babble_sent)
+            conn = self._conn
             if self.kind == "pty":
                 sent = os.write(fd, chunk)
+            elif conn is not None:
+                sent = conn.send(chunk)
             else:
-                sent = self._conn.send(chunk)
+                return
         except (OSError, ValueError, AttributeError):
             return
         self._babble_sent += sent
@@ -397,8 +403,8 @@ class EmulatorServer:
                         try:
                             if self._conn is not None:
                                 self._conn.close()
-                        except OSError:
-                            pass
+                        except OSError as e:
+                            log.debug("%s: closing the client socket: %s", self.device.name, e)
                         self._conn = None
                         with self._pending_lock:
                             self._pending.clear()

@@ -18,6 +18,7 @@ Faults, on top of the reply faults of :class:`~opacityhull.rigs.emulators.base.F
 
 from __future__ import annotations
 
+import logging
 import struct
 from typing import Callable, Iterable
 
@@ -25,6 +26,8 @@ import numpy as np
 
 from .. import display_protocol as dp
 from .base import EmulatedDevice, Reply
+
+log = logging.getLogger(__name__)
 
 __all__ = ["DisplayEmulator"]
 

@@ -14,8 +14,12 @@ is hung: it neither answers nor updates its output.
 
 from __future__ import annotations
 
+import logging
+
 from .. import enttec_protocol as ep
 from .base import EmulatedDevice, Reply
+
+log = logging.getLogger(__name__)
 
 __all__ = ["EnttecEmulator"]
 

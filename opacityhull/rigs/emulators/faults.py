@@ -9,10 +9,13 @@ available to anyone testing their own rig software against the emulators.
 
 from __future__ import annotations
 
+import logging
 import threading
 from dataclasses import dataclass
 
 from ...errors import ConfigError
+
+log = logging.getLogger(__name__)
 
 __all__ = ["FaultSpec", "FAULT_KINDS", "parse_fault", "apply_fault"]
 

@@ -44,12 +44,15 @@ the server's ``vanish()``.
 
 from __future__ import annotations
 
+import logging
 import math
 import re
 from dataclasses import dataclass, field
 
 from ..grbl_protocol import AXES, format_number
 from .base import EmulatedDevice, Reply
+
+log = logging.getLogger(__name__)
 
 __all__ = ["GrblEmulator"]
 
@@ -738,6 +741,7 @@ class GrblEmulator(EmulatedDevice):
                         self._alarm(2, now)
                         return []
             if jog:
+                assert feed is not None  # a jog without F was refused above (error:22)
                 rate = feed * scale / 60.0
                 kind = "jog"
             elif motion == 0:

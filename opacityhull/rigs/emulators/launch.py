@@ -16,11 +16,14 @@ that speak TCP; ``opacityhull rig emulate --tcp`` uses it.
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass, field
 
 from ...errors import ConfigError
 from ..config import RigConfig, emulator_url_faults, parse_emulator_url
 from .base import EmulatedDevice, EmulatorServer
+
+log = logging.getLogger(__name__)
 
 __all__ = ["EmulatorSet", "start_emulators"]
 
@@ -55,8 +58,8 @@ class EmulatorSet:
         for srv in self.servers.values():
             try:
                 srv.stop()
-            except Exception:
-                pass
+            except Exception as e:  # stop the others all the same
+                log.warning("emulator %s: stop failed: %s", srv.url, e)
 
     def __enter__(self) -> "EmulatorSet":
         return self
@@ -130,7 +133,9 @@ def start_emulators(config: RigConfig, *, kind: str = "pty", time_scale: float =
         specs[url] += [parse_fault(f, where=f"--fault {dev_name}:{f}") for f in fl]
     try:
         for url, names in names_by_url.items():
-            k, _tag = parse_emulator_url(url)
+            parsed = parse_emulator_url(url)
+            assert parsed is not None  # names_by_url holds emulator URLs only
+            k, _tag = parsed
             dev = _make(k, url, config, time_scale)
             srv = EmulatorServer(dev, kind=kind)
             emu.servers[url] = srv

@@ -1,19 +1,24 @@
-"""Device protocols the pipeline depends on.
+"""Device interfaces (``typing.Protocol``) the pipeline depends on.
 
 ``acquire`` types its rig against these and never against a concrete driver or
 ``sim``. Hardware drivers (``rigs``) and the simulated rig (``sim``) both implement
-them. All angles are in degrees, times in seconds.
+them. All angles are in degrees, times in seconds. (The wire protocols are the
+``*_protocol`` modules; this module is about Python interfaces only.)
 """
 
 from __future__ import annotations
 
+import logging
 from contextlib import AbstractContextManager
 from dataclasses import dataclass, field
-from typing import Mapping, Protocol, Sequence, runtime_checkable
+from pathlib import Path
+from typing import Any, Mapping, Protocol, Sequence, runtime_checkable
 
 import numpy as np
 
 from ..riggeometry import RigGeometry
+
+log = logging.getLogger(__name__)
 
 __all__ = [
     "DeviceInfo",
@@ -24,6 +29,8 @@ __all__ = [
     "CameraDevice",
     "CameraInfo",
     "Rig",
+    "GroundTruthSource",
+    "Port",
 ]
 
 
@@ -46,15 +53,19 @@ class RotaryAxis(Protocol):
 
     def move_to(self, angle_deg: float, *, timeout_s: float | None = None) -> float:
         """Absolute move; blocks until idle at the target; returns the reached angle."""
+        ...
 
     def position_deg(self) -> float:
         """Current angle from the controller's status report."""
+        ...
 
     def home(self) -> None:
         """Run the homing cycle (angle 0 afterwards)."""
+        ...
 
     def stop(self) -> None:
         """Feed hold: stop motion now (safe to call at any time, never raises on a dead port)."""
+        ...
 
     def check(self) -> DeviceInfo: ...
 
@@ -74,15 +85,25 @@ class LightArray(Protocol):
 
     def set_levels(self, levels: Mapping[int, int]) -> None:
         """Set the given lights (id → 0..255) and switch every other light off."""
+        ...
 
     def all_off(self) -> None:
         """Every light off (never raises on a dead port; used by ``Rig.safe``)."""
+        ...
 
     def levels(self) -> dict[int, int]:
         """Last levels sent, per light id."""
+        ...
 
     @property
-    def rotation(self) -> RotaryAxis: ...
+    def rotation(self) -> RotaryAxis | None:
+        """The array's rotation axis (None: the array is fixed)."""
+        ...
+
+    @property
+    def last_error(self) -> Exception | None:
+        """What the last :meth:`all_off` swallowed (None: it went through)."""
+        ...
 
     def check(self) -> DeviceInfo: ...
 
@@ -96,17 +117,27 @@ class Backdrops(Protocol):
     @property
     def displays(self) -> Sequence[str]: ...
 
-    def upload(self, display: str, pattern_id: int, image_rgb8: np.ndarray) -> None:
-        """Store pattern ``pattern_id`` (uint8 (rows, cols, 3)) in the display controller."""
+    def upload(self, display: str, pattern_id: int, image_rgb8: np.ndarray) -> object:
+        """Store pattern ``pattern_id`` (uint8 (rows, cols, 3)) in the display controller
+        (the hardware driver returns whether bytes were sent)."""
+        ...
 
     def show(self, display: str, pattern_id: int) -> None:
         """Show a stored pattern (powers the panel on)."""
+        ...
 
     def blank(self, display: str | None = None) -> None:
         """Show black on one display or all (never raises on a dead port)."""
+        ...
 
     def shown(self) -> dict[str, int | None]:
         """Pattern id shown per display (None = blank)."""
+        ...
+
+    @property
+    def last_error(self) -> str | None:
+        """What the last :meth:`blank` swallowed (None: it went through)."""
+        ...
 
     def check(self) -> DeviceInfo: ...
 
@@ -147,24 +178,55 @@ class Rig(Protocol):
     backdrops: Backdrops | None
     cameras: Sequence[CameraDevice]
 
-    def open(self) -> None: ...
+    def open(self) -> object: ...
 
     def close(self) -> None: ...
 
-    def safe(self) -> AbstractContextManager: ...
+    def safe(self) -> AbstractContextManager[Any]: ...
 
     def check(self) -> list[DeviceInfo]: ...
 
-    def describe(self) -> dict:
+    def describe(self) -> dict[str, Any]:
         """The rig TOML content (geometry and devices) to record in a session."""
+        ...
 
-    def operator(self, action: str, **details) -> None:
+    def operator(self, action: str, **details: Any) -> None:
         """A manual step between phases, asked of the operator on a hardware rig (and
         waited for) or performed by a simulated rig. Actions: ``"place_board"``
         (details: ``charuco`` = :class:`~opacityhull.charuco.CharucoSpec`),
         ``"remove_board"``, ``"remove_object"``, ``"place_object"``."""
+        ...
 
-    def ground_truth(self, root, views: Sequence[tuple[int, float]]) -> None:
+
+@runtime_checkable
+class GroundTruthSource(Protocol):
+    """A rig that knows the truth about what it captured (simulated rigs; not hardware).
+
+    A capture calls :meth:`ground_truth` only on rigs that have it (``isinstance(rig,
+    GroundTruthSource)``); a hardware :class:`Rig` does not.
+    """
+
+    def ground_truth(self, root: Path, views: Sequence[tuple[int, float]]) -> object:
         """Write what the rig knows exactly about the given views (camera index, table
-        angle) under ``root / "groundtruth"``. Simulated rigs write true cameras,
-        coverage alpha, the object mesh and light positions; hardware rigs do nothing."""
+        angle) under ``root / "groundtruth"``: true cameras, coverage alpha, the object
+        mesh and light positions."""
+        ...
+
+
+@runtime_checkable
+class Port(Protocol):
+    """One connection a rig opens and closes: a GRBL controller, a DMX widget, the
+    display controller. :class:`~opacityhull.rigs.rig.HardwareRig` opens, closes and
+    reconnects its ports through this and nothing else."""
+
+    name: str
+
+    @property
+    def url(self) -> str: ...
+
+    @property
+    def is_open(self) -> bool: ...
+
+    def open(self) -> object: ...
+
+    def close(self) -> None: ...
