@@ -1,0 +1,210 @@
+"""Step 1 of the calibration: ChArUco corners in linear images, and which views can be used.
+
+Linear float images are tone-mapped to 8 bit (luminance / high percentile, sRGB
+encoding) and searched with OpenCV 5's ``CharucoDetector.detectBoard`` →
+``board.matchImagePoints``. Views with too few corners, or whose corners are (nearly)
+collinear on the board or in the image, are dropped with the reason recorded (collinear
+corners make ``cv2.calibrateCamera`` assert).
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+
+from ...charuco import CharucoSpec
+from ...errors import ShapeError
+from ...riggeometry import view_id
+from .config import CalibrationConfig
+
+__all__ = ["CharucoObservation", "tonemap_for_detection", "detect_charuco", "screen_observation"]
+
+
+@dataclass(frozen=True)
+class CharucoObservation:
+    """Detected ChArUco corners of one view (camera ``camera`` at ``table_deg``).
+
+    Attributes
+    ----------
+    camera : int
+        Physical camera index.
+    table_deg : float
+        Turntable angle in degrees.
+    ids : (N,) int array
+        ChArUco corner ids.
+    image_points : (N, 2) float array
+        Corner positions in pixels (OpenCV convention: top-left pixel centre = (0, 0)).
+    object_points : (N, 3) float array
+        The same corners in the board frame, metres (z = 0).
+    """
+
+    camera: int
+    table_deg: float
+    ids: np.ndarray
+    image_points: np.ndarray
+    object_points: np.ndarray
+
+    def __post_init__(self):
+        ids = np.asarray(self.ids, dtype=np.int32).ravel()
+        ip = np.asarray(self.image_points, dtype=np.float64).reshape(-1, 2)
+        op = np.asarray(self.object_points, dtype=np.float64).reshape(-1, 3)
+        if not (ids.shape[0] == ip.shape[0] == op.shape[0]):
+            raise ShapeError(
+                f"observation {self.view}: {ids.shape[0]} ids, {ip.shape[0]} image points and "
+                f"{op.shape[0]} object points; expected the same count"
+            )
+        object.__setattr__(self, "camera", int(self.camera))
+        object.__setattr__(self, "table_deg", float(self.table_deg))
+        object.__setattr__(self, "ids", ids)
+        object.__setattr__(self, "image_points", ip)
+        object.__setattr__(self, "object_points", op)
+
+    @property
+    def view(self) -> str:
+        return view_id(self.camera, self.table_deg)
+
+    def __len__(self) -> int:
+        return int(self.ids.shape[0])
+
+
+def tonemap_for_detection(image, *, percentile: float = 99.5) -> np.ndarray:
+    """Linear float image → 8-bit sRGB-encoded luminance for the marker detector.
+
+    Parameters
+    ----------
+    image : (H, W) or (H, W, C) array
+        Linear values (C = 1..4; the first three channels are Rec.709 RGB, a fourth
+        channel (alpha) is ignored). NaN counts as black, +Inf as white.
+    percentile : float
+        Luminance percentile mapped to white (robust against specular highlights).
+
+    Returns
+    -------
+    (H, W) uint8 array.
+    """
+    from ...imageio import srgb_encode
+
+    a = np.asarray(image, dtype=np.float32)
+    if a.ndim == 3:
+        if a.shape[2] >= 3:
+            lum = 0.2126 * a[..., 0] + 0.7152 * a[..., 1] + 0.0722 * a[..., 2]
+        elif a.shape[2] in (1, 2):
+            lum = a[..., 0]
+        else:
+            raise ShapeError(f"image has shape {a.shape}, expected (H, W) or (H, W, 1..4)")
+    elif a.ndim == 2:
+        lum = a
+    else:
+        raise ShapeError(f"image has shape {a.shape}, expected (H, W) or (H, W, 1..4)")
+    finite = np.isfinite(lum)
+    scale = float(np.percentile(lum[finite], percentile)) if finite.any() else 0.0
+    if not scale > 0:
+        scale = float(lum[finite].max()) if finite.any() else 0.0
+    if not scale > 0:  # nothing positive and finite: only +Inf shows
+        return np.where(np.isposinf(lum), 255, 0).astype(np.uint8)
+    v = np.where(finite, lum / scale, np.where(np.isposinf(lum), 1.0, 0.0))
+    return np.round(srgb_encode(v) * 255.0).astype(np.uint8)
+
+
+@functools.lru_cache(maxsize=8)
+def _detector(spec: CharucoSpec):
+    import cv2
+
+    board = spec.board()
+    return board, cv2.aruco.CharucoDetector(board)
+
+
+def detect_charuco(image, *, charuco: CharucoSpec, camera: int = 0, table_deg: float = 0.0,
+                   percentile: float = 99.5, upscale: Sequence[int] = (1, 2, 3),
+                   max_upscaled_px: int = 2048) -> CharucoObservation:
+    """Detect the ChArUco corners of ``charuco`` in one image.
+
+    Parameters
+    ----------
+    image : (H, W) or (H, W, C) array
+        Linear float image (or already 8-bit: uint8 images are used as they are).
+    charuco : CharucoSpec
+        The board.
+    camera, table_deg : the view the image belongs to (copied into the result).
+    percentile : tone-mapping white point, see :func:`tonemap_for_detection`.
+    upscale : sequence of int
+        Resolution factors tried in turn (bicubic) until every corner of the board is
+        found; the factor finding the most corners wins. Markers of a few pixels per bit
+        (small boards, low-resolution cameras, grazing views) are found only on an
+        upscaled image. Factors whose image would exceed ``max_upscaled_px`` on its long
+        side are skipped.
+
+    Returns
+    -------
+    CharucoObservation
+        Corner positions in the original image's pixels; possibly zero corners.
+    """
+    import cv2
+
+    a = np.asarray(image)
+    if a.dtype == np.uint8:
+        gray = a if a.ndim == 2 else (a[..., :3].mean(axis=2).round().astype(np.uint8) if a.shape[2] >= 3 else a[..., 0])
+    else:
+        gray = tonemap_for_detection(a, percentile=percentile)
+    gray = np.ascontiguousarray(gray)
+    board, det = _detector(charuco)
+    n_total = (charuco.squares_x - 1) * (charuco.squares_y - 1)
+    best = (None, None, 1)
+    for f in upscale:
+        f = int(f)
+        if f < 1 or (f > 1 and max(gray.shape) * f > max_upscaled_px):
+            continue
+        g = gray if f == 1 else cv2.resize(gray, None, fx=f, fy=f, interpolation=cv2.INTER_CUBIC)
+        corners, ids, _, _ = det.detectBoard(g)
+        n = 0 if ids is None or corners is None else len(ids)
+        if n > (0 if best[1] is None else len(best[1])):
+            best = (corners, ids, f)
+        if n >= n_total:
+            break
+    corners, ids, f = best
+    if ids is None or corners is None or len(ids) == 0:
+        return CharucoObservation(camera, table_deg, np.zeros(0, np.int32), np.zeros((0, 2)), np.zeros((0, 3)))
+    # OpenCV's stub types detectedCorners as a sequence of arrays; the C++ takes the one
+    # (N, 1, 2) array detectBoard returns for ChArUco corners.
+    obj, img = board.matchImagePoints(corners, ids)  # pyright: ignore[reportCallIssue, reportArgumentType]
+    # cv2.resize maps pixel centres as x_up = (x + 0.5) f − 0.5.
+    img = (np.asarray(img, dtype=np.float64).reshape(-1, 2) + 0.5) / f - 0.5
+    return CharucoObservation(camera, table_deg, ids.ravel(), img, np.asarray(obj).reshape(-1, 3))
+
+
+def _minor_std(points2: np.ndarray) -> float:
+    """Standard deviation along the minor principal axis of a 2-D point set."""
+    if points2.shape[0] < 2:
+        return 0.0
+    c = np.cov(points2.T)
+    return float(math.sqrt(max(np.linalg.eigvalsh(c)[0], 0.0)))
+
+
+def screen_observation(obs: CharucoObservation, *, charuco: CharucoSpec,
+                       config: CalibrationConfig = CalibrationConfig()) -> str | None:
+    """Why ``obs`` cannot be used for calibration, or None when it can.
+
+    Checks the corner count, finiteness, collinearity on the board (minor-axis spread
+    of the object points, in squares) and in the image (board seen edge-on).
+    """
+    n = len(obs)
+    if n == 0:
+        return "no ChArUco corners detected"
+    if n < config.min_corners:
+        return f"only {n} corners detected (min_corners={config.min_corners})"
+    if not (np.all(np.isfinite(obs.image_points)) and np.all(np.isfinite(obs.object_points))):
+        return "non-finite corner coordinates"
+    spread = _minor_std(obs.object_points[:, :2]) / charuco.square_m
+    if spread < config.min_spread_squares:
+        return (f"corners (nearly) collinear on the board: minor-axis spread {spread:.3f} squares "
+                f"< min_spread_squares={config.min_spread_squares}")
+    ispread = _minor_std(obs.image_points)
+    if ispread < config.min_image_spread_px:
+        return (f"corners (nearly) collinear in the image (board seen edge-on): minor-axis spread "
+                f"{ispread:.2f} px < min_image_spread_px={config.min_image_spread_px}")
+    return None
+
