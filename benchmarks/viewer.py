@@ -64,7 +64,18 @@ def browser_psnr(model_dir, bundle_dir, drv, views=(2, 13)) -> list:
     from opacityhull.view.browser import canvas_rgb, wait_ready
     from opacityhull.view.server import BundleServer
 
+    from opacityhull.model import Surfels
+    from opacityhull.render.renderer import prepare_model_views, render_image
+    from opacityhull.view.bundle import read_bundle
+
     model = OpacityHullModel.open(model_dir)
+    _, pos, rec = read_bundle(bundle_dir)
+    lf = rec["r_min"] == 0
+    vis = rec["vis"][lf].view(np.uint8).reshape(int(lf.sum()), -1)[:, : model.surfels.visibility.shape[1]]
+    dec = Surfels(positions=pos[lf], normals=rec["nrm"][lf], radii=rec["radius"][lf], visibility=vis,
+                  n_views=len(model.views))
+    cams = [v.camera for v in model.views]
+    pv = prepare_model_views(model)
     out = []
     with BundleServer(bundle_dir) as srv:
         drv.get(srv.url)
@@ -75,7 +86,10 @@ def browser_psnr(model_dir, bundle_dir, drv, views=(2, 13)) -> list:
             cpu = render_model(model, model.views[v].camera, config=RenderConfig(threads=1))
             pre = cpu.rgba[..., :3] * cpu.rgba[..., 3:4]
             mask = cpu.rgba[..., 3] > 0.01
-            out.append({"view": v, "psnr_db": float(10 * np.log10(1 / np.mean((gpu - pre)[mask] ** 2)))})
+            same = render_image(dec, cams, pv, cams[v], config=RenderConfig(threads=1, shading="surfel"))
+            spre = same.rgba[..., :3] * same.rgba[..., 3:4]
+            out.append({"view": v, "psnr_db": float(10 * np.log10(1 / np.mean((gpu - pre)[mask] ** 2))),
+                        "psnr_db_same_surfels": float(10 * np.log10(1 / np.mean((gpu - spre)[mask] ** 2)))})
     return out
 
 
@@ -111,32 +125,74 @@ def lod_table(m, fracs=(1 / 16, 1 / 4, 1)) -> list:
     return rows
 
 
-def octree_bits(m, factors=(1.0, 1.2)) -> dict:
-    """Bits per surfel of the octree position code (zlib over the byte codes and the
-    per-cell counts) with leaf cells of ``factor`` × the surfel spacing."""
+def octree_bits(positions, normals, *, factor: float = 1.0, offset_bits: int = 3) -> dict:
+    """Bits per surfel of the bundle's position code: the octree byte codes and the per-cell
+    counts (deflated separately) with leaf cells of ``factor`` × the median nearest-neighbour
+    spacing, and the ``offset_bits`` normal offsets (deflated)."""
     import zlib
 
-    from opacityhull.view.octree_code import decode_positions, encode_positions
+    from opacityhull.view.octree_code import (apply_offsets, decode_positions, encode_offsets, encode_positions,
+                                              median_spacing, pack)
 
-    P = m.surfels.positions.astype(np.float64)
+    P = np.asarray(positions, np.float64)
     n = len(P)
-    spacing = float(np.sqrt(4 * np.pi * m.scene.radius**2 / n))
-    out = {"surfels": n}
-    for f in factors:
-        oc = encode_positions(P, cell_m=f * spacing)
-        cells = len(oc.counts) if len(oc.counts) else n
-        err = float(np.linalg.norm(decode_positions(oc) - P[oc.order], axis=1).max())
-        out[f"cell_{f:g}_spacing"] = {
-            "depth": oc.depth, "cells_per_surfel": cells / n,
-            "bits_per_surfel_codes": 8 * len(zlib.compress(oc.codes.tobytes(), 9)) / n,
-            "bits_per_surfel_total": oc.bits_per_point(), "max_error_over_spacing": err / spacing}
+    spacing = median_spacing(P)
+    oc = encode_positions(P, cell_m=factor * spacing)
+    _, cz, nz = pack(oc)
+    h = oc.size / 2**oc.depth
+    C = decode_positions(oc)
+    out = {"surfels": n, "cell_over_spacing": factor, "depth": oc.depth, "cells_per_surfel": len(oc.counts) / n
+           if len(oc.counts) else 1.0, "bits_codes": 8 * len(cz) / n, "bits_counts": 8 * len(nz) / n}
+    Q = C
+    if offset_bits:
+        No = np.asarray(normals, np.float32)[oc.order]
+        q = encode_offsets(P[oc.order], C, No, h, offset_bits)
+        out["bits_offsets"] = 8 * len(zlib.compress(q.tobytes(), 9)) / n
+        Q = apply_offsets(C, No, q, h, offset_bits)
+    else:
+        out["bits_offsets"] = 0.0
+    out["offset_bits"] = offset_bits
+    out["bits_total"] = out["bits_codes"] + out["bits_counts"] + out["bits_offsets"]
+    out["max_error_over_spacing"] = float(np.linalg.norm(Q - P[oc.order], axis=1).max() / spacing)
+    out["_decoded"] = (oc.order, Q)
     return out
+
+
+def coding_tradeoff(m, settings=((1.0, 0), (1.0, 3), (0.5, 3))) -> list:
+    """Position code bits against the CPU picture of the decoded surfels vs the exact model
+    (captured camera 4, pixel and surfel shading, PSNR over the mask union)."""
+    import dataclasses
+
+    from opacityhull.render.config import RenderConfig
+    from opacityhull.render.renderer import render_image
+    from opacityhull.render.views import prepare_views
+
+    cams = [v.camera for v in m.views]
+    pv = prepare_views(cams, m.views_premul())
+    cam = m.views[4].camera
+    rows = []
+    for f, b in settings:
+        o = octree_bits(m.surfels.positions, m.surfels.normals, factor=f, offset_bits=b)
+        order, Q = o.pop("_decoded")
+        P2 = np.empty_like(Q)
+        P2[order] = Q
+        dec = dataclasses.replace(m.surfels, positions=P2.astype(np.float32))
+        for shading in ("pixel", "surfel"):
+            cfg = RenderConfig(threads=1, shading=shading)
+            full = render_image(m.surfels, cams, pv, cam, config=cfg)
+            r = render_image(dec, cams, pv, cam, config=cfg)
+            sel = (full.rgba[..., 3] > 0.01) | (r.rgba[..., 3] > 0.01)
+            d = (r.rgba[..., :3] * r.rgba[..., 3:] - full.rgba[..., :3] * full.rgba[..., 3:])[sel]
+            o[f"psnr_db_{shading}"] = float(10 * np.log10(1 / np.mean(d**2)))
+        rows.append(o)
+    return rows
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="50 k and 500 k surfels only")
     ap.add_argument("--json", action="store_true", help="print the results as one JSON object on stdout")
+    ap.add_argument("--models", nargs="*", default=[], help="model folders whose position-code bits to measure")
     args = ap.parse_args(argv)
 
     from opacityhull.export.sh import fit_sh
@@ -160,6 +216,9 @@ def main(argv=None) -> int:
             s = write_bundle(root, tmp / f"b{n}")
             row = {"surfels": n, "views": s["views"], "bundle_bytes": s["bytes"],
                    "bytes_per_surfel": s["bytes_per_surfel"], "bytes_per_view": s["bytes_per_view"],
+                   "octree_coded_fraction": s["octree_coded_surfels"] / n,
+                   "position_bits_octree": s["position_bits_per_coded_surfel"],
+                   "position_bits_offsets": s["position_offset_bits_per_coded_surfel"],
                    "bundle_write_s": time.perf_counter() - t, "model_s": model_s}
             if drv is not None:
                 row.update(browser_timings(tmp / f"b{n}", drv))
@@ -171,7 +230,15 @@ def main(argv=None) -> int:
                 fit = fit_sh(m.surfels, [v.camera for v in m.views], m.view_rgba, degree=3)
                 res["sh_fit_rms"] = {str(k): v for k, v in fit.rms.items()}
                 res["lod"] = lod_table(m)
-            res.setdefault("octree_code", []).append(octree_bits(m))
+                res["coding_tradeoff"] = coding_tradeoff(m)
+        for path in args.models:
+            from opacityhull.model import OpacityHullModel
+
+            mm = OpacityHullModel.open(path)
+            o = octree_bits(mm.surfels.positions, mm.surfels.normals)
+            o.pop("_decoded")
+            res.setdefault("octree_code", []).append({"model": str(path), **o})
+            print(f"{path}: {o}", file=sys.stderr)
     finally:
         if drv is not None:
             close_browser(drv)
@@ -189,16 +256,28 @@ def main(argv=None) -> int:
                      f"| {r.get('frame_ms', float('nan')):.0f} | {r.get('frame_ms_budget_1_16', float('nan')):.0f} |")
     if "cpu_vs_browser" in res:
         lines += ["", "CPU renderer vs browser (captured cameras, inside the mask): " +
-                  ", ".join(f"view {p['view']} {p['psnr_db']:.1f} dB" for p in res["cpu_vs_browser"])]
+                  ", ".join(f"view {p['view']} {p['psnr_db']:.1f} dB vs the exact model, "
+                            f"{p['psnr_db_same_surfels']:.1f} dB vs the bundle's decoded surfels"
+                            for p in res["cpu_vs_browser"])]
     lines += ["", "SH fit RMS (sRGB, all observations) by degree: " +
               ", ".join(f"{k}: {v:.4f}" for k, v in res["sh_fit_rms"].items()),
-              "", "Octree position code (zlib), bits per surfel: " + "; ".join(
-                  f"{o['surfels']}: " + ", ".join(f"cell {k.split('_')[1]}x spacing {v['bits_per_surfel_total']:.2f} "
-                                                  f"(codes {v['bits_per_surfel_codes']:.2f}, max error "
-                                                  f"{v['max_error_over_spacing']:.2f} spacing, "
-                                                  f"{v['cells_per_surfel']:.2f} cells/surfel)"
-                                                  for k, v in o.items() if k != "surfels")
-                  for o in res["octree_code"]),
+              "", "Bundle position code (octree byte codes + counts, deflated; cell = median spacing; "
+              "plus 3-bit normal offsets), bits per surfel:", "",
+              "| positions of | surfels | octree + counts | offsets | total | max error (spacing) |",
+              "|---|---|---|---|---|---|"]
+    for r in res["sizes"]:
+        lines.append(f"| sphere bundle | {r['surfels']} | {r['position_bits_octree']:.2f} | "
+                     f"{r['position_bits_offsets']:.2f} | {r['position_bits_octree'] + r['position_bits_offsets']:.2f} | |")
+    for o in res.get("octree_code", []):
+        lines.append(f"| {o['model']} | {o['surfels']} | {o['bits_codes'] + o['bits_counts']:.2f} | "
+                     f"{o['bits_offsets']:.2f} | {o['bits_total']:.2f} | {o['max_error_over_spacing']:.2f} |")
+    lines += ["", "Coding trade-off (50 k sphere, CPU, camera 4: decoded vs exact positions):", "",
+              "| cell / spacing | offset bits | bits/surfel | PSNR pixel shading | PSNR surfel shading |",
+              "|---|---|---|---|---|"]
+    for o in res["coding_tradeoff"]:
+        lines.append(f"| {o['cell_over_spacing']:g} | {o['offset_bits']} | {o['bits_total']:.2f} | "
+                     f"{o['psnr_db_pixel']:.1f} | {o['psnr_db_surfel']:.1f} |")
+    lines += [
               "", "| LOD budget | splats | PSNR vs full (dB) | cut ms | CPU render ms |", "|---|---|---|---|---|"]
     for r in res["lod"]:
         lines.append(f"| {r['budget_fraction']:.4g} | {r['splats']} | {r['psnr_db']:.1f} | {r['cut_ms']:.1f} | {r['render_ms']:.0f} |")

@@ -38,8 +38,8 @@ def sh_basis(dirs: np.ndarray, degree: int) -> np.ndarray:
     cols = [np.full_like(x, SH_C0)]
     if degree >= 1:
         cols += [-_C1 * y, _C1 * z, -_C1 * x]
+    xx, yy, zz, xy, yz, xz = x * x, y * y, z * z, x * y, y * z, x * z  # shared by degrees 2 and 3
     if degree >= 2:
-        xx, yy, zz, xy, yz, xz = x * x, y * y, z * z, x * y, y * z, x * z
         cols += [_C2[0] * xy, _C2[1] * yz, _C2[2] * (2 * zz - xx - yy), _C2[3] * xz, _C2[4] * (xx - yy)]
     if degree >= 3:
         cols += [_C3[0] * y * (3 * xx - yy), _C3[1] * xy * z, _C3[2] * y * (4 * zz - xx - yy),

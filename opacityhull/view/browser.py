@@ -48,7 +48,7 @@ def open_browser():
         opts.add_argument(f)
     opts.add_argument(f"--user-data-dir={profile}")
     drv = webdriver.Chrome(service=Service(d), options=opts)
-    drv._opacityhull_profile = profile
+    setattr(drv, "_opacityhull_profile", profile)  # removed by close_browser
     return drv
 
 
@@ -76,4 +76,6 @@ def canvas_rgb(drv) -> np.ndarray:
     url = drv.execute_script("return document.getElementById('canvas').toDataURL('image/png');")
     raw = base64.b64decode(url.split(",", 1)[1])
     img = cv2.imdecode(np.frombuffer(raw, np.uint8), cv2.IMREAD_COLOR)
+    if img is None:
+        raise RuntimeError("the viewer canvas did not give a decodable PNG")
     return img[:, :, ::-1].copy()

@@ -15,6 +15,20 @@ surfels are its leaves, coarser discs stand for subtrees, each with its error in
 full budget (τ = 0) exactly the leaves are drawn, i.e. the model itself. Chunks grow in
 size, and since the order is coarse first, the first chunk already is a complete coarse
 cut: the page draws it at once and refines as chunks arrive.
+
+Format 2 — positions from the octree code (Botsch, Wiratanaya & Kobbelt 2002):
+
+* ``surfels_NNN.bin``: float chunks — inner nodes and the few leaves with r_max above the
+  leaves' ``LEAF_QUANTILE`` (``leaves.r_max_max``), in r_max order; per chunk ``count``
+  float32×3 positions, then ``count`` attribute records (:func:`record_bytes`: normal,
+  radius, area, r_min, r_max, visibility words).
+* ``positions.oct``: deflated breadth-first byte codes of the other leaves' cells;
+  ``counts.oct``: deflated uint8 points per leaf cell (absent when all are 1);
+  ``offsets.oct``: deflated uint8 bin per point of the offset along its normal.
+* ``leaves.bin``: those leaves' attribute records, in the code's decoded order; they are
+  records ``n_float …`` of the page's buffers.
+
+:func:`read_bundle` reads it back (the reference for the page's decoder).
 """
 
 from __future__ import annotations
@@ -23,6 +37,7 @@ import json
 import logging
 import os
 import shutil
+import zlib
 from importlib import resources
 from pathlib import Path
 
@@ -30,22 +45,32 @@ import numpy as np
 
 from ..errors import InputError
 from ..model import OpacityHullModel
+from .octree_code import decode_positions, encode_offsets, encode_positions, median_spacing, pack
 
 log = logging.getLogger(__name__)
 
-__all__ = ["VIEWER_FORMAT", "MAX_VIEWS", "write_bundle", "record_bytes"]
+__all__ = ["VIEWER_FORMAT", "MAX_VIEWS", "write_bundle", "record_bytes", "read_bundle"]
 
-VIEWER_FORMAT = "opacityhull-viewer/1"
+VIEWER_FORMAT = "opacityhull-viewer/2"
 MAX_VIEWS = 256
 """Visibility bits per surfel the shader reads (two uvec4 attributes)."""
 
 STATIC_FILES = ("index.html", "viewer.js")
 
 
+LEAF_QUANTILE = 0.999
+"""Leaves with r_max above this quantile of the leaves' r_max keep float positions (see ``_write``)."""
+
+
 def record_bytes(n_views: int) -> tuple[int, int]:
-    """(visibility words, bytes per node record) for ``n_views`` views."""
+    """(visibility words, bytes per node attribute record) for ``n_views`` views."""
     words = 4 if n_views <= 128 else 8
-    return words, 40 + 4 * words
+    return words, 28 + 4 * words
+
+
+def _attr_dtype(words: int) -> np.dtype:
+    return np.dtype([("nrm", "<f4", 3), ("radius", "<f4"), ("area", "<f4"), ("r_min", "<f4"), ("r_max", "<f4"),
+                     ("vis", "<u4", words)])
 
 
 def _chunk_sizes(n: int, first: int) -> list[int]:
@@ -71,7 +96,7 @@ def _static_dir() -> Path:
 
 def write_bundle(model_dir, out, *, k: int = 4, background=(0.0, 0.0, 0.0), first_chunk: int | None = None,
                  envmap: str | None = None, env_yaw_deg: float | None = None, overwrite: bool = True,
-                 progress=None) -> dict:
+                 position_cell_m: float | None = None, offset_bits: int = 3, progress=None) -> dict:
     """Write the viewer bundle of a model folder.
 
     Parameters
@@ -86,6 +111,10 @@ def write_bundle(model_dir, out, *, k: int = 4, background=(0.0, 0.0, 0.0), firs
     first_chunk : nodes in the first (coarse) chunk; default max(4096, M/256) of the M
         nodes of the point tree (later chunks double in size).
         Later chunks double in size.
+    position_cell_m : leaf cell edge (m) of the octree position code; default the surfels'
+        median nearest-neighbour spacing (the seed's balance of sampling and quantisation).
+    offset_bits : bits of the per-leaf offset along the normal that refines the octree cell
+        centre (Botsch et al. 2002, §5 "offset attributes"); 0 stores cell centres only.
     progress : callable(done, total) or None.
 
     Returns
@@ -98,6 +127,10 @@ def write_bundle(model_dir, out, *, k: int = 4, background=(0.0, 0.0, 0.0), firs
 
     if not 1 <= int(k) <= 8:
         raise InputError(f"--k {k}: the viewer supports k in [1, 8]")
+    if position_cell_m is not None and not (np.isfinite(position_cell_m) and position_cell_m > 0):
+        raise InputError(f"--position-cell-m {position_cell_m!r}: expected a finite cell edge > 0 (metres)")
+    if not 0 <= int(offset_bits) <= 8:
+        raise InputError(f"--offset-bits {offset_bits!r}: expected 0..8")
     bg = np.asarray(background, float).reshape(-1)
     if bg.shape != (3,) or not np.all(np.isfinite(bg)):
         raise InputError(f"background {background!r}: expected three finite numbers")
@@ -115,7 +148,11 @@ def write_bundle(model_dir, out, *, k: int = 4, background=(0.0, 0.0, 0.0), firs
         from ..render.background import load_background
 
         yaw = default_yaw_deg(envmap) if env_yaw_deg is None else float(env_yaw_deg)
+        from ..render.background import EnvMap
+
         env = load_background(str(resolve_envmap_path(envmap)), yaw_deg=yaw, kind="envmap")
+        if not isinstance(env, EnvMap):  # kind="envmap" always gives one; the check narrows the type
+            raise InputError(f"--envmap {envmap}: not an equirectangular environment map")
         img = env.image
         if not np.all(np.isfinite(img)) or (img < 0).any():
             raise InputError(f"--envmap {envmap}: the map has non-finite or negative texels")
@@ -130,8 +167,9 @@ def write_bundle(model_dir, out, *, k: int = 4, background=(0.0, 0.0, 0.0), firs
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir()
     try:
-        summary = _write(tmp, model, s, V, N, k, bg, first_chunk, progress, srgb_encode, RenderConfig(),
-                         ALPHA_MIN, coverage_full, surfel_areas)
+        summary = _write(tmp, model, s, V, k, bg, first_chunk, progress, srgb_encode, RenderConfig(),
+                         ALPHA_MIN, coverage_full, surfel_areas, position_cell_m,
+                         int(offset_bits))
         if env is not None:
             summary["envmap"] = _write_envmap(tmp, env, str(envmap))
     except BaseException:
@@ -158,8 +196,8 @@ def _write_envmap(tmp: Path, env, spec: str) -> dict:
     return meta
 
 
-def _write(tmp, model, s, V, N, k, bg, first_chunk, progress, srgb_encode, cfg, alpha_min, coverage_full,
-           surfel_areas) -> dict:
+def _write(tmp, model, s, V, k, bg, first_chunk, progress, srgb_encode, cfg, alpha_min, coverage_full,
+           surfel_areas, position_cell_m, offset_bits) -> dict:
     from .lod import build_point_tree
 
     words, rec = record_bytes(V)
@@ -176,9 +214,7 @@ def _write(tmp, model, s, V, N, k, bg, first_chunk, progress, srgb_encode, cfg, 
     # visibility: packed bytes (LSB first) → little-endian uint32 words, view v = word v//32, bit v%32
     vis8 = np.zeros((M, 4 * words), np.uint8)
     vis8[:, : tree.visibility.shape[1]] = tree.visibility
-    recs = np.zeros(M, dtype=[("pos", "<f4", 3), ("nrm", "<f4", 3), ("radius", "<f4"), ("area", "<f4"),
-                              ("r_min", "<f4"), ("r_max", "<f4"), ("vis", "<u4", words)])
-    recs["pos"] = tree.positions
+    recs = np.zeros(M, dtype=_attr_dtype(words))
     recs["nrm"] = tree.normals
     recs["radius"] = tree.radii
     recs["area"] = tree.areas
@@ -190,17 +226,69 @@ def _write(tmp, model, s, V, N, k, bg, first_chunk, progress, srgb_encode, cfg, 
     pos_err = np.unique(tree.r_min[tree.r_min > 0])
     ts = np.r_[0.0, np.geomspace(pos_err[0], pos_err[-1] * 1.01, 64)] if pos_err.size else np.zeros(1)
     counts = [int(np.count_nonzero((tree.r_min <= t) & (t < tree.r_max))) for t in ts]
-    N = M
-    sizes = _chunk_sizes(N, first_chunk or max(4096, N // 256))
-    total_steps = V + len(sizes)
+    # Leaves with r_max ≤ t_leaf get octree-coded positions and come last, in the code's
+    # decoded order. Everything else (inner nodes, and the few leaves whose parent is much
+    # coarser) keeps float positions, sorted by r_max: any prefix of that stream is a
+    # complete cut for t ≥ max(its r_max_last, t_leaf).
+    leaf = tree.is_leaf
+    finite_rmax = tree.r_max[leaf & np.isfinite(tree.r_max)]
+    t_leaf = float(np.quantile(finite_rmax, LEAF_QUANTILE)) if finite_rmax.size else 0.0
+    coded = leaf & (tree.r_max <= t_leaf)
+    float_idx = np.flatnonzero(~coded)  # already in r_max order (the tree is sorted)
+    coded_idx = np.flatnonzero(coded)
+    n_float, n_coded = len(float_idx), len(coded_idx)
+    sizes = _chunk_sizes(n_float, first_chunk or max(4096, M // 256))
+    n_pos_steps = 1 if n_coded else 0
+    total_steps = V + len(sizes) + n_pos_steps
     chunks, done, first = [], 0, 0
+    P32 = tree.positions.astype("<f4")
     for ci, n in enumerate(sizes):
         name = f"surfels_{ci:03d}.bin"
-        data = recs[first: first + n].tobytes()
+        sel = float_idx[first: first + n]
+        data = P32[sel].tobytes() + recs[sel].tobytes()
         (tmp / name).write_bytes(data)
         chunks.append({"file": name, "first": first, "count": n, "bytes": len(data),
-                       "r_max_last": min(float(tree.r_max[first + n - 1]), 3e38)})  # JSON has no Infinity
+                       "r_max_last": min(float(tree.r_max[sel[-1]]), 3e38)})  # JSON has no Infinity
         first += n
+        done += 1
+        if progress:
+            progress(done, total_steps)
+    leaves_meta, pos_meta = None, None
+    if n_coded:
+        P = tree.positions[coded_idx].astype(np.float64)
+        cell = position_cell_m if position_cell_m is not None else median_spacing(P)
+        oc = None
+        for _ in range(8):  # a cell holds at most 255 points (one count byte): refine until it does
+            try:
+                oc = encode_positions(P, cell_m=cell)
+                break
+            except InputError:
+                cell *= 0.5
+        assert oc is not None
+        head, codes_z, counts_z = pack(oc)
+        (tmp / "positions.oct").write_bytes(codes_z)
+        if counts_z:
+            (tmp / "counts.oct").write_bytes(counts_z)
+        sel = coded_idx[oc.order]
+        h = oc.size / 2**oc.depth
+        off_z = b""
+        if offset_bits:
+            q = encode_offsets(tree.positions[sel], decode_positions(oc), recs["nrm"][sel], h, offset_bits)
+            off_z = zlib.compress(q.tobytes(), 9)
+            (tmp / "offsets.oct").write_bytes(off_z)
+        data = recs[sel].tobytes()
+        (tmp / "leaves.bin").write_bytes(data)
+        leaves_meta = {"file": "leaves.bin", "first": n_float, "count": n_coded, "bytes": len(data),
+                       "r_max_max": t_leaf}
+        pos_bits = 8.0 * (len(codes_z) + len(counts_z)) / n_coded
+        pos_meta = {**head, "cell_m": float(h), "codes_file": "positions.oct",
+                    "codes_bytes": len(codes_z), "counts_file": "counts.oct" if counts_z else None,
+                    "counts_bytes": len(counts_z), "bits_per_point": pos_bits,
+                    "offset_bits": offset_bits, "offsets_file": "offsets.oct" if off_z else None,
+                    "offsets_bytes": len(off_z), "offset_bits_per_point": 8.0 * len(off_z) / n_coded,
+                    "encoding": "Botsch et al. 2002 breadth-first octree byte codes (bit c = child octant "
+                                "x + 2y + 4z), deflate (zlib); counts: uint8 points per leaf cell, deflate; "
+                                "offsets: uint8 bin of λ in [-√3/2, √3/2] cell edges along the normal, deflate"}
         done += 1
         if progress:
             progress(done, total_steps)
@@ -242,11 +330,14 @@ def _write(tmp, model, s, V, N, k, bg, first_chunk, progress, srgb_encode, cfg, 
         "model": str(model.root),
         "n_surfels": int(tree.is_leaf.sum()),
         "n_nodes": M,
+        "n_float": n_float,
         "lod": {"t": [float(t) for t in ts], "splats": counts},
         "n_views": V,
         "vis_words": words,
         "record_bytes": rec,
         "chunks": chunks,
+        "leaves": leaves_meta,
+        "positions": pos_meta,
         "views": {"file": "views.bin", "layer_width": Wp, "layer_height": Hp, "bytes": Wp * Hp * 4 * V,
                   "encoding": "rgba8: sRGB-encoded premultiplied colour, linear alpha", "layers": layers},
         "bounds": {"min": lo.tolist(), "max": hi.tolist(), "centre": centre.tolist(),
@@ -261,6 +352,55 @@ def _write(tmp, model, s, V, N, k, bg, first_chunk, progress, srgb_encode, cfg, 
         shutil.copyfile(_static_dir() / name, tmp / name)
     total = sum(p.stat().st_size for p in tmp.iterdir())
     model_bytes = sum(c["bytes"] for c in chunks)
+    if pos_meta is not None and leaves_meta is not None:
+        model_bytes += leaves_meta["bytes"] + pos_meta["codes_bytes"] + pos_meta["counts_bytes"] + pos_meta["offsets_bytes"]
     n_leaves = int(tree.is_leaf.sum())
     return {"surfels": n_leaves, "nodes": M, "views": V, "chunks": len(chunks), "bytes": total,
-            "bytes_per_surfel": model_bytes / n_leaves, "bytes_per_node": rec, "bytes_per_view": Wp * Hp * 4}
+            "bytes_per_surfel": model_bytes / n_leaves, "bytes_per_node": rec, "bytes_per_view": Wp * Hp * 4,
+            "octree_coded_surfels": n_coded, "float_nodes": n_float,
+            "position_bits_per_coded_surfel": pos_meta["bits_per_point"] if pos_meta else None,
+            "position_offset_bits_per_coded_surfel": pos_meta["offset_bits_per_point"] if pos_meta else None,
+            "position_cell_m": pos_meta["cell_m"] if pos_meta else None}
+
+
+def read_bundle(bundle_dir) -> tuple[dict, np.ndarray, np.ndarray]:
+    """(manifest, positions (M, 3) float64, attribute records (M,)) of a bundle, in the page's
+    load order: the float chunks, then the octree-coded leaves (positions decoded by
+    :func:`opacityhull.view.octree_code.decode_positions`, the reference for the page's decoder).
+    """
+    from ..errors import FormatError
+    from .octree_code import apply_offsets, unpack
+
+    root = Path(bundle_dir)
+    try:
+        man = json.loads((root / "manifest.json").read_text())
+    except (OSError, ValueError) as e:
+        raise FormatError(f"{root}/manifest.json: not a viewer bundle ({e})") from e
+    if man.get("format") != VIEWER_FORMAT:
+        raise FormatError(f"{root}/manifest.json: format {man.get('format')!r}, expected {VIEWER_FORMAT!r}")
+    dt = _attr_dtype(int(man["vis_words"]))
+    pos, att = [], []
+    for c in man["chunks"]:
+        raw = (root / c["file"]).read_bytes()
+        n = int(c["count"])
+        if len(raw) != n * (12 + dt.itemsize):
+            raise FormatError(f"{root}/{c['file']}: {len(raw)} bytes, expected {n * (12 + dt.itemsize)}")
+        pos.append(np.frombuffer(raw[: 12 * n], "<f4").reshape(n, 3).astype(np.float64))
+        att.append(np.frombuffer(raw[12 * n:], dt))
+    if man.get("leaves"):
+        L, H = man["leaves"], man["positions"]
+        codes = (root / H["codes_file"]).read_bytes()
+        counts = (root / H["counts_file"]).read_bytes() if H.get("counts_file") else b""
+        P = decode_positions(unpack(H, codes, counts, what=f"{root}/{H['codes_file']}"))
+        A = np.frombuffer((root / L["file"]).read_bytes(), dt)
+        if len(P) != L["count"] or len(A) != L["count"]:
+            raise FormatError(f"{root}: {len(P)} decoded positions and {len(A)} leaf records, expected {L['count']}")
+        if H.get("offsets_file"):
+            try:
+                q = np.frombuffer(zlib.decompress((root / H["offsets_file"]).read_bytes()), np.uint8)
+            except zlib.error as e:
+                raise FormatError(f"{root}/{H['offsets_file']}: not a deflate stream ({e})") from e
+            P = apply_offsets(P, A["nrm"], q, H["cell_m"], int(H["offset_bits"]))
+        pos.append(P)
+        att.append(A)
+    return man, np.concatenate(pos), np.concatenate(att)

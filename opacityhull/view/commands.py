@@ -27,6 +27,11 @@ def _parse_bg(text: str):
     return tuple(vals)
 
 
+def _bits(s: dict) -> str:
+    b, o = s.get("position_bits_per_coded_surfel"), s.get("position_offset_bits_per_coded_surfel")
+    return "float32" if b is None else f"octree {b:.2f} + offsets {o:.2f} bits/surfel"
+
+
 def register(app, groups) -> None:
     @app.command("view")
     @cli_errors
@@ -43,6 +48,11 @@ def register(app, groups) -> None:
                                              "uffizi wells)."),
         env_yaw_deg: Optional[float] = typer.Option(None, "--env-yaw-deg", help="Its rotation about +Y (default 180 "
                                                     "for builtin: probes, else 0); the page has a slider."),
+        position_cell_m: Optional[float] = typer.Option(None, "--position-cell-m", help="Leaf cell edge (m) of the "
+                                                        "octree position code (default: the surfels' median spacing; "
+                                                        "smaller is more exact and costs more bits)."),
+        offset_bits: int = typer.Option(3, "--offset-bits", help="Bits of the per-surfel offset along the normal "
+                                        "that refines the octree cell centre (0-8; 0: cell centres)."),
         json_out: bool = typer.Option(False, "--json", help="Print a JSON summary (bundle path, bytes, URL) on stdout."),
     ):
         """Open a model in the browser: write a WebGL2 bundle (ULR-blended EWA splats) and serve it on 127.0.0.1."""
@@ -60,11 +70,11 @@ def register(app, groups) -> None:
         try:
             with progress("writing viewer bundle", enabled=not json_out) as cb:
                 summary = write_bundle(model, target, k=k, background=bg, envmap=envmap, env_yaw_deg=env_yaw_deg,
-                                       progress=cb)
+                                       position_cell_m=position_cell_m, offset_bits=offset_bits, progress=cb)
             if not serve:
                 emit(summary, json_out, lambda s: console().print(
                     f"wrote viewer bundle {s['out']} ({s['bytes'] / 1e6:.1f} MB, {s['surfels']} surfels, "
-                    f"{s['views']} views); serve it with any static web server, e.g. "
+                    f"{s['views']} views; positions {_bits(s)}); serve it with any static web server, e.g. "
                     f"python -m http.server -b 127.0.0.1 -d {s['out']} 8765"))
                 return
             from .server import BundleServer

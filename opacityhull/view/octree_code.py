@@ -22,7 +22,8 @@ import numpy as np
 
 from ..errors import FormatError, InputError
 
-__all__ = ["OctreeCode", "encode_positions", "decode_positions", "depth_for_spacing"]
+__all__ = ["OctreeCode", "encode_positions", "decode_positions", "depth_for_spacing", "median_spacing",
+           "pack", "unpack", "encode_offsets", "apply_offsets", "OFFSET_RANGE"]
 
 
 @dataclass(frozen=True)
@@ -84,6 +85,7 @@ def encode_positions(positions, depth: int | None = None, *, cell_m: float | Non
         if not (np.isfinite(cell_m) and cell_m > 0):
             raise InputError(f"encode_positions: cell_m {cell_m!r}, expected > 0")
         depth = max(1, int(np.ceil(np.log2(span * (1 + 1e-9) / cell_m))))
+    assert depth is not None
     if not 1 <= int(depth) <= 21:
         raise InputError(f"encode_positions: depth {depth}, expected 1..21")
     D = int(depth)
@@ -137,3 +139,79 @@ def decode_positions(oc: OctreeCode) -> np.ndarray:
             raise FormatError(f"octree counts: {len(oc.counts)} for {len(centres)} leaf cells")
         centres = np.repeat(centres, oc.counts.astype(np.int64), axis=0)
     return centres
+
+
+def median_spacing(positions) -> float:
+    """Median distance (m) from each point to its nearest other point (the surfel spacing)."""
+    from scipy.spatial import cKDTree  # pyright: ignore[reportAttributeAccessIssue]  # scipy's stubs omit it
+
+    P = np.asarray(positions, np.float64)
+    if len(P) < 2:
+        return 1.0
+    d, _ = cKDTree(P).query(P, 2)
+    d = d[:, 1][d[:, 1] > 0]
+    return float(np.median(d)) if d.size else 1.0
+
+
+def pack(oc: OctreeCode) -> tuple[dict, bytes, bytes]:
+    """(header, zlib(byte codes), zlib(counts)) as stored in a viewer bundle.
+
+    The streams are deflated separately (zlib format, what the browser's
+    ``DecompressionStream("deflate")`` reads): the byte codes compress to the seed's regime,
+    the counts (mostly 1) to a fraction of a bit per cell. ``counts`` is empty when every
+    leaf cell holds one point.
+    """
+    n_cells = len(oc.counts) if len(oc.counts) else len(oc.order)
+    head = {"origin": [float(x) for x in oc.origin], "size": float(oc.size), "depth": int(oc.depth),
+            "n_codes": int(len(oc.codes)), "n_cells": int(n_cells), "n_points": int(len(oc.order))}
+    counts = zlib.compress(oc.counts.tobytes(), 9) if len(oc.counts) else b""
+    return head, zlib.compress(oc.codes.tobytes(), 9), counts
+
+
+def unpack(head: dict, codes_z: bytes, counts_z: bytes, *, what: str = "positions") -> OctreeCode:
+    """Inverse of :func:`pack` (``order`` is the identity: attributes are stored decoded-order)."""
+    try:
+        codes = np.frombuffer(zlib.decompress(codes_z), np.uint8)
+        counts = np.frombuffer(zlib.decompress(counts_z), np.uint8) if counts_z else np.zeros(0, np.uint8)
+        origin = np.asarray(head["origin"], np.float64).reshape(3)
+        size, depth, n = float(head["size"]), int(head["depth"]), int(head["n_points"])
+    except (zlib.error, KeyError, TypeError, ValueError) as e:
+        raise FormatError(f"{what}: octree stream or header unreadable ({e})") from e
+    if len(codes) != int(head.get("n_codes", len(codes))):
+        raise FormatError(f"{what}: {len(codes)} byte codes, header says {head.get('n_codes')}")
+    if len(counts) and int(counts.astype(np.int64).sum()) != n:
+        raise FormatError(f"{what}: counts sum to {int(counts.astype(np.int64).sum())}, header says {n} points")
+    return OctreeCode(origin, size, depth, codes, counts, np.arange(n, dtype=np.int64))
+
+
+OFFSET_RANGE = float(np.sqrt(3.0) / 2.0)
+"""|λ| bound of a normal offset in cell edges: a point lies within half a cell diagonal of its centre."""
+
+
+def encode_offsets(positions, centres, normals, cell_m: float, bits: int) -> np.ndarray:
+    """Botsch et al.'s offset attributes: per point the signed distance λ·h of the point from
+    its cell centre along its normal, λ ∈ [−√3/2, √3/2] quantised to ``bits`` bits (uniform
+    bins). Returns (N,) uint8 bin indices. ``centres`` are the decoded cell centres and
+    ``normals`` the normals the decoder will use (both in decoded order)."""
+    if not 1 <= int(bits) <= 8:
+        raise InputError(f"offset bits {bits}, expected 1..8")
+    P, C, n = (np.asarray(a, np.float64) for a in (positions, centres, normals))
+    nn = np.linalg.norm(n, axis=1)
+    lam = np.where(nn > 1e-12, np.sum((P - C) * n, axis=1) / np.maximum(nn, 1e-30), 0.0) / cell_m
+    step = 2 * OFFSET_RANGE / 2**bits
+    return np.clip(np.floor((lam + OFFSET_RANGE) / step), 0, 2**bits - 1).astype(np.uint8)
+
+
+def apply_offsets(centres, normals, q, cell_m: float, bits: int) -> np.ndarray:
+    """Inverse of :func:`encode_offsets`: centres moved to their bin's centre along the unit normal."""
+    C, n = np.asarray(centres, np.float64), np.asarray(normals, np.float64)
+    q = np.asarray(q)
+    if q.shape != (len(C),):
+        raise FormatError(f"octree offsets: {q.shape[0] if q.ndim else 0} for {len(C)} points")
+    if len(q) and int(q.max()) >= 2**bits:
+        raise FormatError(f"octree offsets: bin {int(q.max())} out of range for {bits} bits")
+    nn = np.linalg.norm(n, axis=1, keepdims=True)
+    u = np.where(nn > 1e-12, n / np.maximum(nn, 1e-30), 0.0)
+    step = 2 * OFFSET_RANGE / 2**bits
+    lam = (q.astype(np.float64) + 0.5) * step - OFFSET_RANGE
+    return C + (lam * cell_m)[:, None] * u

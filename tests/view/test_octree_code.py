@@ -56,3 +56,48 @@ def test_corrupt_streams():
         encode_positions(np.array([[0.0, np.nan, 0.0]]), 4)
     with pytest.raises(InputError, match="exactly one"):
         encode_positions(np.zeros((3, 3)))
+
+
+@settings(max_examples=25, deadline=None)
+@given(n=st.integers(1, 300), depth=st.integers(1, 10), bits=st.integers(1, 8), seed=st.integers(0, 10_000))
+def test_pack_and_offsets_roundtrip(n, depth, bits, seed):
+    """pack → unpack → decode gives the same centres; the normal offset refines each point
+    along its normal to within half a bin (reference: the exact signed distance)."""
+    from opacityhull.view.octree_code import OFFSET_RANGE, apply_offsets, encode_offsets, pack, unpack
+
+    rng = np.random.default_rng(seed)
+    P = rng.uniform(-1, 1, (n, 3))
+    nrm = rng.normal(size=(n, 3))
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    nrm[0] = 0.0  # a surfel without a normal keeps its cell centre
+    oc = encode_positions(P, depth)
+    head, cz, nz = pack(oc)
+    C = decode_positions(unpack(head, cz, nz))
+    np.testing.assert_array_equal(C, decode_positions(oc))
+    h = oc.size / 2**depth
+    Po, No = P[oc.order], nrm[oc.order]
+    q = encode_offsets(Po, C, No, h, bits)
+    Q = apply_offsets(C, No, q, h, bits)
+    lam_true = np.sum((Po - C) * No, axis=1)
+    lam_got = np.sum((Q - C) * No, axis=1)
+    has_n = np.linalg.norm(No, axis=1) > 0
+    assert np.all(np.abs(lam_true - lam_got)[has_n] <= OFFSET_RANGE / 2**bits * h * (1 + 1e-9) + 1e-12)
+    np.testing.assert_array_equal(Q[~has_n], C[~has_n])
+    # the point moved only along its normal
+    np.testing.assert_allclose(np.cross(Q - C, No), 0.0, atol=1e-12)
+
+
+def test_unpack_rejects_corrupt_streams():
+    from opacityhull.view.octree_code import apply_offsets, pack, unpack
+
+    oc = encode_positions(np.random.default_rng(2).random((200, 3)), 3)
+    head, cz, nz = pack(oc)
+    assert len(nz)  # 200 points in 8³ cells: some share
+    with pytest.raises(FormatError, match="unreadable"):
+        unpack(head, cz[:-4], nz)
+    with pytest.raises(FormatError, match="counts sum"):
+        unpack({**head, "n_points": 199}, cz, nz)
+    with pytest.raises(FormatError, match="byte codes"):
+        unpack({**head, "n_codes": head["n_codes"] + 1}, cz, nz)
+    with pytest.raises(FormatError, match="out of range"):
+        apply_offsets(np.zeros((2, 3)), np.ones((2, 3)), np.array([0, 8]), 1.0, 3)

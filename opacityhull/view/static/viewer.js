@@ -37,6 +37,107 @@ async function fetchBytes(url, expected, what) {
   return buf;
 }
 
+// Streams url through DecompressionStream("deflate") (zlib), handing each inflated piece to
+// onChunk as it arrives: the octree code is decoded level by level while it downloads.
+async function fetchInflate(url, expected, what, onChunk) {
+  let r;
+  try {
+    r = await fetch(url);
+  } catch (err) {
+    throw new Error(`Could not load ${what} (${url}): ${err.message}. Is the viewer's server still running?`);
+  }
+  if (!r.ok) {
+    throw new Error(`Could not load ${what} (${url}): HTTP ${r.status} ${r.statusText}. ` +
+      `The bundle is incomplete; write it again with "opacityhull view MODEL --out DIR".`);
+  }
+  let n = 0;
+  const count = new TransformStream({ transform(chunk, ctl) { n += chunk.byteLength; ctl.enqueue(chunk); } });
+  const reader = r.body.pipeThrough(count).pipeThrough(new DecompressionStream("deflate")).getReader();
+  try {
+    for (;;) { const { done, value } = await reader.read(); if (done) break; onChunk(value); }
+  } catch (err) {
+    if (err.bundleError) throw err;
+    throw new Error(`${what} (${url}) could not be inflated (${err.message}): the file is truncated or corrupt; write the bundle again.`);
+  }
+  if (expected !== undefined && n !== expected) {
+    throw new Error(`${what} (${url}) has ${n} bytes, expected ${expected}: the file is truncated or from another bundle; write the bundle again.`);
+  }
+}
+
+// Octree position code (Botsch, Wiratanaya & Kobbelt 2002), decoded breadth-first as bytes
+// arrive: level l needs one byte code per occupied cell of level l-1; bit c of a code marks
+// child octant c = x + 2y + 4z. After `depth` levels the occupied leaf cells are the points
+// (cell centres, in Morton order), each repeated by its count. Mirrors
+// opacityhull/view/octree_code.decode_positions.
+class OctreeDecoder {
+  constructor(head, what, onLevel) {
+    this.h = head; this.what = what; this.onLevel = onLevel || (() => {});
+    this.cells = new Int32Array(3);  // the root cell (0, 0, 0)
+    this.level = 0; this.buf = new Uint8Array(0); this.used = 0; this.total = 0;
+    this.levels = [1];
+  }
+  fail(msg) { const e = new Error(`${this.what}: ${msg}; write the bundle again.`); e.bundleError = true; throw e; }
+  push(bytes) {
+    this.total += bytes.length;
+    const rest = this.buf.subarray(this.used);
+    const b = new Uint8Array(rest.length + bytes.length);
+    b.set(rest); b.set(bytes, rest.length);
+    this.buf = b; this.used = 0;
+    while (this.level < this.h.depth && this.buf.length - this.used >= this.cells.length / 3) this._expand();
+    if (this.level === this.h.depth && this.buf.length > this.used) this.fail(`${this.total - this.h.n_codes} byte codes too many`);
+  }
+  _expand() {
+    const n = this.cells.length / 3, codes = this.buf.subarray(this.used, this.used + n);
+    let m = 0;
+    for (let i = 0; i < n; i++) {
+      let c = codes[i];
+      if (c === 0) this.fail(`zero byte code at level ${this.level}`);
+      while (c) { m += c & 1; c >>= 1; }
+    }
+    const out = new Int32Array(3 * m), cur = this.cells;
+    let j = 0;
+    for (let i = 0; i < n; i++) {
+      const c = codes[i], x = 2 * cur[3 * i], y = 2 * cur[3 * i + 1], z = 2 * cur[3 * i + 2];
+      for (let o = 0; o < 8; o++) if ((c >> o) & 1) { out[j++] = x + (o & 1); out[j++] = y + ((o >> 1) & 1); out[j++] = z + ((o >> 2) & 1); }
+    }
+    this.used += n; this.cells = out; this.level++;
+    this.levels.push(m);
+    this.onLevel(this.level, m);
+  }
+  // counts: Uint8Array per leaf cell, or null (one point per cell). off: null, or Botsch's
+  // offset attributes {q: Uint8Array bin per point, nrm: Float32Array, stride (floats per
+  // record, normal first), bits}: the centre moves (q + 0.5) * step - sqrt(3)/2 cell edges
+  // along the unit normal (as octree_code.apply_offsets)
+  finish(counts, off) {
+    if (this.level < this.h.depth) this.fail(`the code stream ends at level ${this.level} of ${this.h.depth}`);
+    const L = this.cells.length / 3;
+    if (L !== this.h.n_cells) this.fail(`${L} leaf cells, the manifest says ${this.h.n_cells}`);
+    const hs = this.h.size / 2 ** this.h.depth, o = this.h.origin;
+    const n = this.h.n_points, P = new Float32Array(3 * n);
+    if (counts && counts.length !== L) this.fail(`${counts.length} counts for ${L} leaf cells`);
+    if (off && off.q.length !== n) this.fail(`${off.q.length} normal offsets for ${n} points`);
+    const R = Math.sqrt(3) / 2, step = off ? 2 * R / 2 ** off.bits : 0;
+    let j = 0;
+    for (let i = 0; i < L; i++) {
+      const k = counts ? counts[i] : 1;
+      if (j + k > n) this.fail(`the counts hold more than ${n} points`);
+      const x = o[0] + (this.cells[3 * i] + 0.5) * hs, y = o[1] + (this.cells[3 * i + 1] + 0.5) * hs, z = o[2] + (this.cells[3 * i + 2] + 0.5) * hs;
+      for (let r = 0; r < k; r++) {
+        let ox = 0, oy = 0, oz = 0;
+        if (off) {
+          const b = j * off.stride, nx = off.nrm[b], ny = off.nrm[b + 1], nz = off.nrm[b + 2];
+          const nn = Math.hypot(nx, ny, nz);
+          if (off.q[j] >= 2 ** off.bits) this.fail(`normal offset bin ${off.q[j]} out of range`);
+          if (nn > 1e-12) { const d = ((off.q[j] + 0.5) * step - R) * hs / nn; ox = d * nx; oy = d * ny; oz = d * nz; }
+        }
+        P[3 * j] = x + ox; P[3 * j + 1] = y + oy; P[3 * j + 2] = z + oz; j++;
+      }
+    }
+    if (j !== n) this.fail(`${j} points decoded, the manifest says ${n}`);
+    return P;
+  }
+}
+
 const VS = (words, shade) => `#version 300 es
 precision highp float; precision highp int; precision highp sampler2D; precision highp sampler2DArray;
 #define KMAX ${KMAX}
@@ -300,6 +401,11 @@ class Viewer {
     this.depthProg = compile(gl, VS(words, false), FS(false), "depth pass");
     this.shadeProg = compile(gl, VS(words, true), FS(true), "accumulation pass");
     this.resolveProg = compile(gl, RESOLVE_VS, RESOLVE_FS, "resolve");
+    // positions (float32 x 3 per node: the float chunks' own, the leaves' from the octree code)
+    // and the other attributes in a second buffer
+    this.posVbo = gl.createBuffer();
+    gl.bindBuffer(gl.ARRAY_BUFFER, this.posVbo);
+    gl.bufferData(gl.ARRAY_BUFFER, manifest.n_nodes * 12, gl.STATIC_DRAW);
     this.vbo = gl.createBuffer();
     gl.bindBuffer(gl.ARRAY_BUFFER, this.vbo);
     gl.bufferData(gl.ARRAY_BUFFER, manifest.n_nodes * manifest.record_bytes, gl.STATIC_DRAW);
@@ -326,11 +432,14 @@ class Viewer {
     const vao = gl.createVertexArray();
     gl.bindVertexArray(vao);
     gl.bindBuffer(gl.ARRAY_BUFFER, this.vbo);
-    const f = (name, size, off) => { const l = gl.getAttribLocation(prog, name); if (l >= 0) { gl.enableVertexAttribArray(l); gl.vertexAttribPointer(l, size, gl.FLOAT, false, rec, off); } };
+    const f = (name, size, off) => { const l = gl.getAttribLocation(prog, name); if (l >= 0) { gl.enableVertexAttribArray(l); gl.vertexAttribPointer(l, size, gl.FLOAT, false, name === "a_pos" ? 12 : rec, off); } };
     const u = (name, off) => { const l = gl.getAttribLocation(prog, name); if (l >= 0) { gl.enableVertexAttribArray(l); gl.vertexAttribIPointer(l, 4, gl.UNSIGNED_INT, rec, off); } };
-    f("a_pos", 3, 0); f("a_nrm", 3, 12); f("a_radius", 1, 24); f("a_area", 1, 28);
-    f("a_rmin", 1, 32); f("a_rmax", 1, 36);
-    u("a_vis0", 40); if (this.words > 4) u("a_vis1", 56);
+    f("a_nrm", 3, 0); f("a_radius", 1, 12); f("a_area", 1, 16);
+    f("a_rmin", 1, 20); f("a_rmax", 1, 24);
+    u("a_vis0", 28); if (this.words > 4) u("a_vis1", 44);
+    gl.bindBuffer(gl.ARRAY_BUFFER, this.posVbo);
+    f("a_pos", 3, 0);
+    gl.bindBuffer(gl.ARRAY_BUFFER, this.vbo);
     gl.bindVertexArray(null);
     return vao;
   }
@@ -399,12 +508,29 @@ class Viewer {
     this.envYawDeg = e.yaw_deg;
   }
 
+  // a float chunk: count positions (float32 x 3), then count attribute records
   uploadChunk(c, buf) {
-    const gl = this.gl;
+    const gl = this.gl, n = c.count;
+    gl.bindBuffer(gl.ARRAY_BUFFER, this.posVbo);
+    gl.bufferSubData(gl.ARRAY_BUFFER, c.first * 12, new Uint8Array(buf, 0, 12 * n));
     gl.bindBuffer(gl.ARRAY_BUFFER, this.vbo);
-    gl.bufferSubData(gl.ARRAY_BUFFER, c.first * this.man.record_bytes, new Uint8Array(buf));
+    gl.bufferSubData(gl.ARRAY_BUFFER, c.first * this.man.record_bytes, new Uint8Array(buf, 12 * n));
     this.loaded = Math.max(this.loaded, c.first + c.count);
-    this.rLast = this.loaded >= this.man.n_nodes ? 0 : c.r_max_last;
+    // leaves still to come have r_max <= leaves.r_max_max: cuts above it are complete
+    const pending = this.man.leaves ? this.man.leaves.r_max_max : 0;
+    this.rLast = this.loaded >= this.man.n_nodes ? 0 : Math.max(this.loaded >= this.man.n_float ? 0 : c.r_max_last, pending);
+  }
+
+  // the octree-coded leaves: decoded positions (Float32Array, 3 per leaf) and their records
+  uploadLeaves(P, buf) {
+    const gl = this.gl, L = this.man.leaves;
+    gl.bindBuffer(gl.ARRAY_BUFFER, this.posVbo);
+    gl.bufferSubData(gl.ARRAY_BUFFER, L.first * 12, P);
+    gl.bindBuffer(gl.ARRAY_BUFFER, this.vbo);
+    gl.bufferSubData(gl.ARRAY_BUFFER, L.first * this.man.record_bytes, new Uint8Array(buf));
+    this.leafPositions = P;
+    this.loaded = this.man.n_nodes;
+    this.rLast = 0;
   }
 
   _targets(W, H) {
@@ -563,7 +689,7 @@ async function main() {
       `Write one with "opacityhull view MODEL --out DIR".`);
   }
   api.timings = { manifest: performance.now() };
-  if (man.format !== "opacityhull-viewer/1") throw new Error(`manifest.json: format ${JSON.stringify(man.format)}, expected "opacityhull-viewer/1"`);
+  if (man.format !== "opacityhull-viewer/2") throw new Error(`manifest.json: format ${JSON.stringify(man.format)}, expected "opacityhull-viewer/2" (write the bundle again with this version)`);
   const viewer = new Viewer($("canvas"), man);
   api.timings.gl_setup = performance.now();
   api.viewer = viewer;
@@ -571,7 +697,8 @@ async function main() {
   const sel = $("view");
   man.views.layers.forEach((v, i) => { const o = document.createElement("option"); o.value = i; o.textContent = `${i}: ${v.id}`; sel.appendChild(o); });
   viewer.setView(0);
-  const total = man.views.bytes + man.chunks.reduce((a, c) => a + c.bytes, 0);
+  const L = man.leaves, H = man.positions;
+  const total = man.views.bytes + man.chunks.reduce((a, c) => a + c.bytes, 0) + (L ? L.bytes + H.codes_bytes + H.counts_bytes + H.offsets_bytes : 0);
   let got = 0;
   const report = () => { progress.textContent = `loading ${(100 * got / total).toFixed(0)} % — ${viewer.loaded} / ${man.n_nodes} nodes`; };
   report();
@@ -613,6 +740,35 @@ async function main() {
       requestAnimationFrame(frame);
     } else dirty = true;
   }
+  if (L) {  // the octree-coded leaves: positions decoded level by level while they download
+    const t0 = performance.now();
+    const what = `the octree position code (${H.codes_file})`;
+    const dec = new OctreeDecoder(H, what, (l, m) => { progress.textContent = `positions: octree level ${l} / ${H.depth}, ${m} cells`; });
+    const leavesP = fetchBytes(L.file, L.bytes, "the octree-coded leaves' records");
+    leavesP.catch(() => {});
+    await fetchInflate(H.codes_file, H.codes_bytes, what, (b) => dec.push(b));
+    const inflateAll = async (file, bytes, what) => {
+      const parts = [];
+      await fetchInflate(file, bytes, what, (b) => parts.push(b));
+      const out = new Uint8Array(parts.reduce((a, b) => a + b.length, 0));
+      let o = 0; for (const b of parts) { out.set(b, o); o += b.length; }
+      return out;
+    };
+    const counts = H.counts_file ? await inflateAll(H.counts_file, H.counts_bytes, `the octree cell counts (${H.counts_file})`) : null;
+    const leafBuf = await leavesP;
+    let off = null;
+    if (H.offsets_file) {
+      const q = await inflateAll(H.offsets_file, H.offsets_bytes, `the octree normal offsets (${H.offsets_file})`);
+      off = { q, nrm: new Float32Array(leafBuf), stride: man.record_bytes / 4, bits: H.offset_bits };
+    }
+    const P = dec.finish(counts, off);
+    api.octree = { levels: dec.levels, decode_ms: performance.now() - t0 };
+    got += H.codes_bytes + H.counts_bytes + H.offsets_bytes; report();
+    viewer.uploadLeaves(P, leafBuf);
+    got += L.bytes; report();
+    api.timings.leaves = performance.now();
+    dirty = true;
+  }
   progress.textContent = `${man.n_surfels} surfels, ${man.n_views} views`;
   // controls
   sel.onchange = () => { viewer.setView(+sel.value); dirty = true; };
@@ -649,6 +805,8 @@ window.opacityhull = {
   },
   setEnvYaw(deg) { this.viewer.envYawDeg = deg; return this.viewer.draw(); },
   orbit(dAz, dEl, zoom = 1) { this.viewer.orbit(dAz, dEl, zoom); return this.viewer.draw(); },
+  // the leaves' positions as decoded from the octree code (flat x y z list, float32 values)
+  leafPositions() { const P = this.viewer.leafPositions; return P ? Array.from(P) : null; },
   // the float accumulators of the last frame, rows top to bottom: [att0 (w*rgba), att1 (w, w*area, 0, 0)]
   accumulators() {
     const v = this.viewer, gl = v.gl, W = v.fbW, H = v.fbH, out = [];
