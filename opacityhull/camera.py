@@ -852,4 +852,4 @@ def camera_from_nerfstudio(transform_matrix, *, fl_x: float, fl_y: float, cx: fl
     K = np.array([[fl_x, 0.0, cx - 0.5], [0.0, fl_y, cy - 0.5], [0.0, 0.0, 1.0]])
     # _OPENGL_FLIP is its own inverse
     return Camera(K=K, width=int(w), height=int(h), world_from_cam=M @ _OPENGL_FLIP,
-                  dist=[k1, k2, p1, p2, k3], name=name)
+                  dist=np.array([k1, k2, p1, p2, k3]), name=name)

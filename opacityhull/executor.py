@@ -106,7 +106,10 @@ def set_numba_threads(n: int | None) -> None:
     try:
         import numba
 
-        numba.set_num_threads(max(1, min(int(n), numba.config.NUMBA_NUM_THREADS)))
+        from numba.core import config as numba_config
+
+        # NUMBA_NUM_THREADS is set at import from the environment (not a declared attribute)
+        numba.set_num_threads(max(1, min(int(n), int(getattr(numba_config, "NUMBA_NUM_THREADS", n)))))
     except Exception as e:  # numba missing or its pool already fixed: only slower, never wrong
         log.debug("could not set numba threads to %s: %s", n, e)
 
@@ -253,6 +256,7 @@ class DaskExecutor(Executor):
             raise InputError(f"--scheduler {address}: dask.distributed is not installed ({e}); "
                              "pip install 'dask[distributed]'") from e
         self.scheduler = address
+        self.client: Any = None
         try:
             self.client = Client(address, timeout=f"{float(timeout_s)}s", set_as_default=False)
         except (OSError, TimeoutError) as e:
@@ -263,7 +267,8 @@ class DaskExecutor(Executor):
                                     .get("workers", {}).values()))
         if numba_threads is not None:
             try:
-                self.client.register_plugin(NumbaThreads(numba_threads), name="opacityhull-numba-threads")
+                if NumbaThreads is not None:
+                    self.client.register_plugin(NumbaThreads(numba_threads), name="opacityhull-numba-threads")
             except Exception as e:  # an old worker without plugin support: slower, never wrong
                 log.warning("--scheduler %s: could not limit numba threads in the workers: %s", address, e)
 
@@ -353,7 +358,7 @@ def open_executor(scheduler: str = "serial", *, workers: int | None = None, time
         return _PoolExecutor(spec.kind, workers=workers, retries=retries, numba_threads=numba_threads)
     if not (timeout_s > 0):
         raise InputError(f"--scheduler-timeout {timeout_s}: expected a positive number of seconds")
-    return DaskExecutor(spec.address, timeout_s=timeout_s, numba_threads=numba_threads)
+    return DaskExecutor(str(spec.address), timeout_s=timeout_s, numba_threads=numba_threads)
 
 
 # ---- module-level tasks (importable in workers) used by the tests and benchmarks

@@ -13,6 +13,7 @@ crash leaves either the old file or the new one, never a torn one.
 
 from __future__ import annotations
 
+import logging
 import os
 import warnings
 from pathlib import Path
@@ -20,6 +21,8 @@ from pathlib import Path
 import numpy as np
 
 from .errors import FormatError, InputError, ShapeError, write_error
+
+log = logging.getLogger(__name__)
 
 __all__ = [
     "HALF_MAX",
@@ -58,12 +61,13 @@ def fsync_dir(directory) -> None:
     """fsync a directory so a rename into it survives a power cut (no-op where unsupported)."""
     try:
         fd = os.open(str(directory), os.O_RDONLY)
-    except OSError:
+    except OSError as e:  # some filesystems cannot open a folder: the rename itself stands
+        log.debug("fsync %s: cannot open the folder (%s)", directory, e)
         return
     try:
         os.fsync(fd)
-    except OSError:
-        pass
+    except OSError as e:  # EINVAL on filesystems without directory fsync
+        log.debug("fsync %s: %s", directory, e)
     finally:
         os.close(fd)
 
@@ -91,8 +95,8 @@ class atomic_path:
         if exc_type is not None:
             try:
                 self.tmp.unlink(missing_ok=True)
-            except OSError:
-                pass
+            except OSError as e:  # the error being raised is the one to report
+                log.warning("could not remove the temporary file %s: %s", self.tmp, e)
             # a full or read-only disk surfaces as OSError, OpenEXR's RuntimeError or
             # OpenCV's False: name the path and the cause instead
             if isinstance(exc, Exception):
@@ -107,8 +111,8 @@ class atomic_path:
         except BaseException as e:
             try:
                 self.tmp.unlink(missing_ok=True)
-            except OSError:
-                pass
+            except OSError as e2:  # the error being raised is the one to report
+                log.warning("could not remove the temporary file %s: %s", self.tmp, e2)
             err = write_error(e, self.path) if isinstance(e, Exception) else None
             if err is not None:
                 raise err from None
@@ -162,8 +166,6 @@ def write_exr(path, image, *, half: bool = False, channels: str | None = None, h
         Extra header attributes, typed by :func:`_exr_attribute` (str → string,
         int → int, float → float, 3 numbers → v3f, ``chromaticities`` → its 8 floats).
     """
-    import OpenEXR
-
     path = Path(path)
     a = _as_hwc(f"image for {path}", image)
     names = channels or _CHANNEL_SETS[a.shape[2]]
@@ -183,6 +185,28 @@ def write_exr(path, image, *, half: bool = False, channels: str | None = None, h
     else:
         data = a.astype(np.float32)
     chans = {n: np.ascontiguousarray(data[:, :, i]) for i, n in enumerate(names)}
+    _write_exr_channels(path, chans, header)
+
+
+def _read_exr_channels(path: Path) -> dict[str, np.ndarray]:
+    """Every channel of the EXR at ``path`` by name; :class:`FormatError` naming the file
+    when it is missing or unreadable."""
+    import OpenEXR
+
+    if not path.is_file():
+        raise FormatError(f"image {path} not found")
+    try:
+        with OpenEXR.File(str(path), separate_channels=True) as f:
+            return {k: np.asarray(v.pixels) for k, v in f.channels().items()}
+    except Exception as e:  # OpenEXR raises bare exceptions on truncated files; re-raised, named
+        raise FormatError(f"{path}: not a readable EXR file ({e})") from None
+
+
+def _write_exr_channels(path, chans: dict, header) -> None:
+    """Write named float channels as a ZIP-compressed scanline EXR, atomically, with the
+    extra ``header`` attributes (checked by :func:`_exr_attribute`)."""
+    import OpenEXR
+
     hdr = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
     for k, v in (header or {}).items():
         hdr[k] = _exr_attribute(k, v, path)
@@ -234,16 +258,8 @@ def read_exr(path, *, channels: str | None = None) -> np.ndarray:
     order when present, else Y (and A), else all channels sorted by name. Half data
     are widened to float32.
     """
-    import OpenEXR
-
     path = Path(path)
-    if not path.is_file():
-        raise FormatError(f"image {path} not found")
-    try:
-        with OpenEXR.File(str(path), separate_channels=True) as f:
-            ch = {k: np.asarray(v.pixels) for k, v in f.channels().items()}
-    except Exception as e:  # OpenEXR raises bare exceptions on truncated files
-        raise FormatError(f"{path}: not a readable EXR file ({e})") from None
+    ch = _read_exr_channels(path)
     if channels:
         missing = [c for c in channels if c not in ch]
         if missing:
@@ -391,8 +407,6 @@ def write_exr_layers(path, layers: dict, *, half: bool = False, header: dict | N
     view's one-light-at-a-time images: one file per view, one layer per light.
     ``header``: extra attributes, typed as in :func:`write_exr`.
     """
-    import OpenEXR
-
     path = Path(path)
     if not layers:
         raise InputError(f"no layers to write to {path}")
@@ -412,26 +426,13 @@ def write_exr_layers(path, layers: dict, *, half: bool = False, header: dict | N
             a = a.astype(np.float32)
         for i, c in enumerate(_CHANNEL_SETS[a.shape[2]]):
             chans[f"{name}.{c}"] = np.ascontiguousarray(a[:, :, i])
-    hdr = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
-    for k, v in (header or {}).items():
-        hdr[k] = _exr_attribute(k, v, path)
-    with atomic_path(path) as tmp:
-        with OpenEXR.File(hdr, chans) as f:
-            f.write(str(tmp))
+    _write_exr_channels(path, chans, header)
 
 
 def read_exr_layers(path) -> dict:
     """Inverse of :func:`write_exr_layers`: ``{layer: (H, W, C) float32}``."""
-    import OpenEXR
-
     path = Path(path)
-    if not path.is_file():
-        raise FormatError(f"image {path} not found")
-    try:
-        with OpenEXR.File(str(path), separate_channels=True) as f:
-            ch = {k: np.asarray(v.pixels) for k, v in f.channels().items()}
-    except Exception as e:
-        raise FormatError(f"{path}: not a readable EXR file ({e})") from None
+    ch = _read_exr_channels(path)
     groups: dict[str, dict[str, np.ndarray]] = {}
     for k, v in ch.items():
         layer, _, c = k.rpartition(".")

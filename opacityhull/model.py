@@ -39,7 +39,6 @@ from __future__ import annotations
 
 import logging
 import time
-import tomllib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
@@ -50,6 +49,7 @@ from . import __version__
 from .camera import Camera, read_colmap_text, write_colmap_text
 from .errors import FormatError, InputError, ShapeError, check_shape
 from .riggeometry import RigGeometry
+from .tomlio import read_toml
 
 log = logging.getLogger(__name__)
 
@@ -97,6 +97,11 @@ class Surfels:
     radii : (N,) float32, metres; discs of this radius cover the surface without holes.
     visibility : (N, ceil(V / 8)) uint8, packed bits (view v → byte v // 8, bit v % 8).
     n_views : V.
+    depth_m : (N,) float32 ≥ 0 or None, metres: the photo-consistent surface lies this far
+        inside the hull along −normal (:func:`opacityhull.reconstruct.photo.refine_surfels`).
+        The surfels themselves stay on the hull, whose outline and opacity are exact in
+        every captured view; the renderer fetches colour at ``positions − depth_m·normals``
+        (the "shading surface"), which is where the views' colours agree.
     """
 
     positions: np.ndarray
@@ -104,6 +109,7 @@ class Surfels:
     radii: np.ndarray
     visibility: np.ndarray
     n_views: int
+    depth_m: np.ndarray | None = None
 
     def __post_init__(self):
         self.positions = np.ascontiguousarray(self.positions, dtype=np.float32)
@@ -118,6 +124,18 @@ class Surfels:
         if self.visibility.ndim == 2 and self.visibility.shape[1] == self.n_views and self.n_views != nb:
             raise ShapeError("visibility looks unpacked (N, V); use Surfels.from_bool()")
         check_shape("visibility", self.visibility, (n, nb))
+        if self.depth_m is not None:
+            self.depth_m = np.ascontiguousarray(self.depth_m, dtype=np.float32).reshape(-1)
+            check_shape("depth_m", self.depth_m, (n,))
+            if not (np.isfinite(self.depth_m).all() and (self.depth_m >= 0).all()):
+                raise ShapeError("depth_m must be finite and >= 0 (metres inside the hull along -normal)")
+
+    def shading_positions(self) -> np.ndarray:
+        """(N, 3) float32 points where colour is fetched: on the photo-consistent surface
+        when ``depth_m`` is set, else the surfel centres."""
+        if self.depth_m is None:
+            return self.positions
+        return np.ascontiguousarray(self.positions - self.depth_m[:, None] * self.normals, dtype=np.float32)
 
     def __len__(self) -> int:
         return self.positions.shape[0]
@@ -139,7 +157,8 @@ class Surfels:
         return (self.visibility[:, view // 8] >> (view % 8)) & 1 == 1
 
     def subset(self, mask) -> "Surfels":
-        return Surfels(self.positions[mask], self.normals[mask], self.radii[mask], self.visibility[mask], self.n_views)
+        return Surfels(self.positions[mask], self.normals[mask], self.radii[mask], self.visibility[mask], self.n_views,
+                       None if self.depth_m is None else self.depth_m[mask])
 
 
 def pack_visibility(visible_bool: np.ndarray) -> np.ndarray:
@@ -158,7 +177,11 @@ def write_surfels_ply(path, surfels: Surfels) -> None:
 
     nb = surfels.visibility.shape[1]
     dtype = [(k, "f4") for k in ("x", "y", "z", "nx", "ny", "nz", "radius")] + [(f"vis_{i:03d}", "u1") for i in range(nb)]
+    if surfels.depth_m is not None:
+        dtype.append(("depth", "f4"))
     arr = np.empty(len(surfels), dtype=dtype)
+    if surfels.depth_m is not None:
+        arr["depth"] = surfels.depth_m
     for i, k in enumerate("xyz"):
         arr[k] = surfels.positions[:, i]
         arr["n" + k] = surfels.normals[:, i]
@@ -195,7 +218,12 @@ def read_surfels_ply(path) -> Surfels:
     pos = np.stack([v["x"], v["y"], v["z"]], axis=1)
     nrm = np.stack([v["nx"], v["ny"], v["nz"]], axis=1)
     vis = np.stack([v[c] for c in vis_cols], axis=1) if vis_cols else np.zeros((len(v), 0), np.uint8)
-    return Surfels(pos, nrm, v["radius"], vis, n_views)
+    depth = None
+    if "depth" in names:
+        depth = np.asarray(v["depth"], np.float32)
+        if not (np.isfinite(depth).all() and (depth >= 0).all()):
+            raise FormatError(f"{path}: vertex property 'depth' must be finite and >= 0 (metres inside the hull)")
+    return Surfels(pos, nrm, v["radius"], vis, n_views, depth)
 
 
 # --------------------------------------------------------------------------- views
@@ -236,10 +264,7 @@ class OpacityHullModel:
         p = root / "model.toml"
         if not p.is_file():
             raise FormatError(f"{root} is not a model: {p} not found")
-        try:
-            meta = tomllib.loads(p.read_text())
-        except tomllib.TOMLDecodeError as e:
-            raise FormatError(f"{p}: invalid TOML ({e})") from None
+        meta = read_toml(p, error=FormatError, what="model.toml")
         fmt = meta.get("model", {}).get("format")
         if fmt not in READABLE_FORMATS:
             raise FormatError(f"{p}: model format {fmt!r}, expected one of {', '.join(map(repr, READABLE_FORMATS))}")
@@ -393,7 +418,7 @@ def _light_header(view: ViewInfo, lights: Sequence[LightSample], geometry: RigGe
             except ValueError:
                 log.warning("light %d of sample %s is not in the rig geometry; its reflectance layer carries no "
                             "direction", L.light_id, L.key)
-        if spec is None:
+        if spec is None or geometry is None:
             continue
         hdr[f"{L.key}.lightIntensity"] = float(spec.intensity)
         hdr[f"{L.key}.lightOutputRGB"] = float(spec.intensity) * np.asarray(spec.colour, np.float64)

@@ -245,7 +245,8 @@ class RigGeometry:
                 pos = r * np.array([math.cos(el) * math.sin(az), math.sin(el), math.cos(el) * math.cos(az)])
             if np.linalg.norm(pos) < 1e-9:
                 raise ConfigError(f"{w}: light at the origin has no direction")
-            colour = tuple(float(x) for x in _vec(f"{w}.colour", L.get("colour", [1.0, 1.0, 1.0])))
+            cr, cg, cb = (float(x) for x in _vec(f"{w}.colour", L.get("colour", [1.0, 1.0, 1.0])))
+            colour = (cr, cg, cb)
             lights.append(LightSpec(id=lid, position_m=pos, intensity=_num(w, L, "intensity", 1.0, lo=0.0), colour=colour))
         displays = []
         dnames = set()

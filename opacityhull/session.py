@@ -32,9 +32,9 @@ from __future__ import annotations
 
 import hashlib
 import json
+import logging
 import os
 import time
-import tomllib
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Iterator
@@ -47,6 +47,9 @@ if TYPE_CHECKING:
 from . import __version__
 from .errors import FormatError, InputError
 from .riggeometry import RigGeometry, view_id
+from .tomlio import read_toml
+
+log = logging.getLogger(__name__)
 
 __all__ = [
     "SESSION_FORMAT",
@@ -64,7 +67,9 @@ __all__ = [
 ]
 
 SESSION_FORMAT = "opacityhull-session/1"
-PHASES = ("calibration", "matting", "lightfield", "reflectance", "envmatte", "mask")
+#: "natural" and "envmatte" both hold natural-illumination images (the runner records the
+#: plan's [phases.natural] as "envmatte"; readers accept either)
+PHASES = ("calibration", "matting", "lightfield", "reflectance", "envmatte", "natural", "mask")
 
 
 def sha256_file(path, chunk: int = 1 << 20) -> str:
@@ -102,7 +107,7 @@ def shot_key(
         leaf.append(f"l{int(light)}")
     if pattern is not None:
         leaf.append(f"p{int(pattern):03d}")
-    elif phase in ("matting", "envmatte"):
+    elif phase in ("matting", "envmatte", "natural"):
         leaf.append("off")
     if not object_present:
         leaf.append("bg")
@@ -309,10 +314,7 @@ class Session:
             raise InputError(f"{root} is a file, expected a session folder")
         if not toml_path.is_file():
             raise FormatError(f"{root} is not a session: {toml_path} not found")
-        try:
-            meta = tomllib.loads(toml_path.read_text())
-        except tomllib.TOMLDecodeError as e:
-            raise FormatError(f"{toml_path}: invalid TOML ({e})") from None
+        meta = read_toml(toml_path, error=FormatError, what="session.toml")
         fmt = meta.get("session", {}).get("format")
         if fmt != SESSION_FORMAT:
             raise FormatError(f"{toml_path}: session format {fmt!r}, expected {SESSION_FORMAT!r}")
@@ -378,7 +380,7 @@ class Session:
         return (self.root / "groundtruth").is_dir()
 
     # ---- records
-    def select(self, *, phase=None, camera=None, table_deg=None, kind="raw", **eq) -> list[ShotRecord]:
+    def select(self, *, phase=None, camera=None, table_deg=None, kind: str | None = "raw", **eq) -> list[ShotRecord]:
         """Records matching every given attribute (``kind=None`` for any kind)."""
         out = []
         for r in self.records:
@@ -421,29 +423,53 @@ class Session:
         channel reaches ``saturation`` x white level in more than 0.1 % of pixels (or
         the shortest one), divided by ``gain * exposure_s``.
         """
+        return self.load_radiance_clip(shot, saturation=saturation)[0]
+
+    def load_radiance_clip(self, shot: str, *, saturation: float = 0.98) -> tuple[np.ndarray, float]:
+        """:meth:`load_radiance` and the radiance at which that image's pixels clip:
+        ``saturation * white_level / (gain * exposure_s)`` of the bracket chosen, inf for
+        an HDR merge. One bracket choice for every reader, so a clip level always
+        belongs to the image returned with it."""
         recs = self._by_shot.get(shot)
         if not recs:
             raise FormatError(f"{self.root}: no image for shot {shot!r} in the manifest")
         hdr = [r for r in recs if r.kind == "hdr"]
-        cam_gain = self._gain(recs[0].camera)
         if hdr:
-            return self.load_image(hdr[-1])
+            return self.load_image(hdr[-1]), float("inf")
         raws = sorted((r for r in recs if r.kind == "raw"), key=lambda r: r.exposure_s or 0.0)
+        if not raws:
+            raise FormatError(f"{self.root}: shot {shot!r} has no raw or HDR image")
         white = self.white_level
-        chosen, img = None, None
+        cam_gain = self.gain(recs[0].camera)
+        chosen, img = raws[0], None
         for r in reversed(raws):
             im = self.load_image(r)
             if np.mean(np.any(im[..., :3] >= saturation * white, axis=-1)) <= 1e-3 or r is raws[0]:
                 chosen, img = r, im
                 break
+        if img is None:  # pragma: no cover - the loop always stops at raws[0]
+            img = self.load_image(chosen)
         exp = chosen.exposure_s or 1.0
-        return (img / np.float32(cam_gain * exp)).astype(np.float32)
+        return (img / np.float32(cam_gain * exp)).astype(np.float32), float(saturation * white / (cam_gain * exp))
+
+    def gain(self, camera: int) -> float:
+        """Camera ``camera``'s gain from the rig geometry (1.0 without a rig or camera),
+        parsed once per session rather than once per image."""
+        cache = self.__dict__.setdefault("_gains", {})
+        if camera not in cache:
+            cache[camera] = self._gain(camera)
+        return cache[camera]
 
     def _gain(self, camera: int) -> float:
-        try:
-            return float(self.geometry.cameras[camera].gain)
-        except (IndexError, FormatError):
+        if "rig" not in self.meta:  # an imported session: values are radiance already
+            log.debug("%s: no [rig] table; camera %d gain 1.0", self.root / "session.toml", camera)
             return 1.0
+        cams = self.geometry.cameras  # a corrupt [rig] table raises FormatError naming the key
+        if not 0 <= int(camera) < len(cams):
+            log.warning("%s: camera %d is not among the rig's %d cameras; gain 1.0", self.root / "session.toml",
+                        camera, len(cams))
+            return 1.0
+        return float(cams[int(camera)].gain)
 
     def pattern_image(self, display: str, pattern: int) -> np.ndarray:
         """The uploaded pattern (rows, cols, 3) as display drive values in [0, 1]."""
@@ -689,8 +715,8 @@ class SessionWriter:
             try:
                 self._manifest.truncate(start)
                 self._manifest.seek(start)
-            except OSError:
-                pass
+            except OSError as e2:  # the write error is the one to report; verify notes the torn line
+                log.warning("%s: could not cut the partial record (%s)", self.root / "manifest.jsonl", e2)
             raise
         self._ids.add(rec.id)
         return rec

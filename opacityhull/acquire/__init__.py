@@ -1,6 +1,6 @@
 """Capture: plans, sessions on disk (manifest, resume), HDR merge, imports.
 
-Depends only on the device protocols (:mod:`opacityhull.rigs.protocols`) and the
+Depends only on the device protocols (:mod:`opacityhull.rigs.interfaces`) and the
 session format (:mod:`opacityhull.session`); never on a concrete driver or on ``sim``.
 
 * :mod:`.plan` — capture plans (TOML → frozen dataclasses; ``builtin:tiny|demo|paper``)

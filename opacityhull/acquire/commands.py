@@ -5,9 +5,9 @@
 
 from __future__ import annotations
 
+import logging
 import os
 import sys
-import tomllib
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Optional
@@ -16,12 +16,15 @@ import typer
 
 from ..cliutil import cli_errors, console, emit, progress
 from ..errors import CaptureInterrupted, ConfigError, OpacityHullError
+from ..tomlio import read_toml
 
 __all__ = ["register", "resolve_rig", "rig_static"]
 
+log = logging.getLogger(__name__)
+
 
 def resolve_rig(spec: str, *, assume_ready: bool = False):
-    """The :class:`~opacityhull.rigs.protocols.Rig` named by ``--rig``, opened: a rig
+    """The :class:`~opacityhull.rigs.interfaces.Rig` named by ``--rig``, opened: a rig
     TOML path (hardware, or emulators started by ``opacityhull rig emulate``), or
     ``sim:SCENE[@RIG.toml][?opts]`` for the simulated rig. ``assume_ready`` lets a
     hardware rig run without a terminal, taking every manual step as done."""
@@ -59,10 +62,7 @@ def rig_static(spec: str):
     path = Path(spec)
     if not path.is_file():
         raise ConfigError(f"--rig {spec}: no such rig TOML (give a path, or sim:SCENE for the simulated rig)")
-    try:
-        d = tomllib.loads(path.read_text())
-    except tomllib.TOMLDecodeError as e:
-        raise ConfigError(f"{path}: invalid TOML ({e})") from None
+    d = read_toml(path, error=ConfigError, what="rig TOML")
     if "geometry" not in d:
         raise ConfigError(f"{path}: no [geometry] table")
     # the whole rig TOML is checked as `rig check` and a real capture check it (devices
@@ -111,29 +111,34 @@ def _stdout_to_stderr():
     libc = None
     try:
         libc = ctypes.CDLL(None)
-    except OSError:
-        pass
+    except OSError as e:  # C-level buffers then stay unflushed: output order may mix, nothing is lost
+        log.debug("no libc for fflush: %s", e)
     os.dup2(2, 1)
     try:
         yield
     finally:
         try:
             sys.stdout.flush()
-        except ValueError:
-            pass
+        except ValueError:  # sys.stdout was closed inside the block: nothing left to flush
+            log.debug("stdout closed before the fd was restored")
         if libc is not None:
             libc.fflush(None)
         os.dup2(saved, 1)
         os.close(saved)
 
 
-def _manifest_count(out: Path) -> int:
+def _manifest_count(out: Path) -> int | None:
+    """Raw images recorded in ``out`` so far; None (JSON null: unknown) when the session
+    cannot be read — the error being reported already says why, and 0 would be a lie."""
     from ..session import Session
 
+    if not (out / "session.toml").is_file():
+        return 0  # stopped before the session was started: nothing recorded
     try:
         return sum(1 for r in Session.open(out).records if r.kind == "raw")
-    except Exception:
-        return 0
+    except (OpacityHullError, OSError) as e:
+        log.warning("%s: cannot count the recorded images: %s", out, e)
+        return None
 
 
 def register(app, groups) -> None:

@@ -11,15 +11,17 @@ from __future__ import annotations
 
 import warnings
 from pathlib import Path
+from typing import Literal, get_args
 
 import numpy as np
 
 from ..errors import ConfigError, ShapeError
 from ..imageio import HALF_MAX, HalfOverflowWarning, atomic_path
 
-__all__ = ["COMPRESSIONS", "write_capture_exr"]
+__all__ = ["COMPRESSIONS", "ExrCompression", "write_capture_exr"]
 
-COMPRESSIONS = ("none", "rle", "zip", "zips", "piz", "zstd")
+ExrCompression = Literal["none", "rle", "zip", "zips", "piz", "zstd"]
+COMPRESSIONS: tuple[ExrCompression, ...] = get_args(ExrCompression)
 _NAMES = {"none": "NO_COMPRESSION", "rle": "RLE_COMPRESSION", "zip": "ZIP_COMPRESSION", "zips": "ZIPS_COMPRESSION",
           "piz": "PIZ_COMPRESSION", "zstd": "ZSTD_COMPRESSION"}
 

@@ -25,7 +25,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from ..errors import InputError, ShapeError
+from ..errors import FormatError, InputError, ShapeError
 from ..session import Session, SessionWriter, ShotRecord, sha256_file
 
 __all__ = ["merge_linear", "merge_linear_reference", "recover_response", "merge_debevec", "hdr_session"]
@@ -179,7 +179,14 @@ def _brackets(sess: Session, phases) -> dict[str, list[ShotRecord]]:
         if r.kind != "raw" or r.exposure_s is None or (phases and r.phase not in phases):
             continue
         out.setdefault(r.shot, []).append(r)
-    return {k: sorted(v, key=lambda r: r.exposure_s) for k, v in out.items() if len(v) >= 2}
+    return {k: sorted(v, key=_exposure_s) for k, v in out.items() if len(v) >= 2}
+
+
+def _exposure_s(r: ShotRecord) -> float:
+    """A raw record's exposure; :func:`_brackets` keeps only records that have one."""
+    if r.exposure_s is None:
+        raise FormatError(f"record {r.id}: raw image without exposure_s")
+    return float(r.exposure_s)
 
 
 def hdr_session(root, *, phases: Sequence[str] | None = None, method: str = "auto", saturation: float = 0.98,
@@ -227,12 +234,7 @@ def hdr_session(root, *, phases: Sequence[str] | None = None, method: str = "aut
     methods = {c: (("linear" if linear_of.get(c, True) else "debevec") if method == "auto" else method) for c in cams}
     responses: dict[int, np.ndarray] = {}
     resp_files = {}
-    geom_gain = {}
-    for c in cams:
-        try:
-            geom_gain[c] = float(sess.geometry.cameras[c].gain)
-        except Exception:
-            geom_gain[c] = 1.0
+    geom_gain = {c: sess.gain(c) for c in cams}  # a corrupt [rig] table is a FormatError, not gain 1
 
     def up_to_date(shot, recs) -> bool:
         h = existing.get(shot)
@@ -248,8 +250,8 @@ def hdr_session(root, *, phases: Sequence[str] | None = None, method: str = "aut
         if methods[c] != "debevec" or not any(recs[0].camera == c for _, recs in todo):
             continue
         cand = [recs for _, recs in sorted(groups.items()) if recs[0].camera == c]
-        times = [r.exposure_s for r in cand[0]]
-        cand = [recs for recs in cand if [r.exposure_s for r in recs] == times]
+        times = [_exposure_s(r) for r in cand[0]]
+        cand = [recs for recs in cand if [_exposure_s(r) for r in recs] == times]
         step = max(1, len(cand) // response_shots)
         chosen = cand[::step][:response_shots]
         responses[c] = recover_response([[sess.load_image(r) for r in recs] for recs in chosen], times,
@@ -266,7 +268,7 @@ def hdr_session(root, *, phases: Sequence[str] | None = None, method: str = "aut
     with SessionWriter(root).resume() as w:
         for k, (shot, recs) in enumerate(todo):
             imgs = [sess.load_image(r)[..., :3] for r in recs]
-            times = [r.exposure_s for r in recs]
+            times = [_exposure_s(r) for r in recs]
             c = recs[0].camera
             extra = {"method": methods[c], "saturation": saturation, "sources_sha256": [r.sha256 for r in recs]}
             if methods[c] == "linear":

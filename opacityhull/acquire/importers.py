@@ -71,7 +71,7 @@ import numpy as np
 from .. import __version__
 from ..camera import Camera, camera_from_nerfstudio, colmap_model_kind, read_colmap_model, write_colmap_text
 from ..errors import FormatError, InputError, OpacityHullError
-from ..imageio import read_exr, read_png
+from ..imageio import fsync_dir, read_exr, read_png
 from ..riggeometry import view_id
 from ..session import SessionWriter, shot_key
 
@@ -224,14 +224,7 @@ def _staged(out: Path) -> Iterator[Path]:
         if out.exists():
             out.rmdir()  # empty (checked above); rename() would replace it too, but not on every OS
         os.rename(tmp, out)
-        try:
-            fd = os.open(parent, os.O_RDONLY)
-            try:
-                os.fsync(fd)
-            finally:
-                os.close(fd)
-        except OSError:
-            pass
+        fsync_dir(parent)
     except BaseException as e:
         shutil.rmtree(tmp, ignore_errors=True)
         if isinstance(e, Exception):

@@ -62,13 +62,16 @@ calibration phase has its own list.
 from __future__ import annotations
 
 import math
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping
+from typing import TYPE_CHECKING, Any, Mapping, cast
 
 from ..charuco import CharucoSpec
 from ..errors import ConfigError
+from ..tomlio import read_toml
+
+if TYPE_CHECKING:
+    from .exr import ExrCompression
 
 __all__ = [
     "BUILTIN_PLANS",
@@ -204,7 +207,7 @@ def _lights_deg(where: str, d: Mapping, default) -> float | str:
 # --------------------------------------------------------------------------- dataclasses
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class Timing:
     """Declared per-image and per-step costs used by estimates (seconds)."""
 
@@ -213,7 +216,7 @@ class Timing:
     operator_s: float = 30.0
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class CalibrationPhase:
     table_deg: tuple[float, ...]
     charuco: CharucoSpec
@@ -222,7 +225,7 @@ class CalibrationPhase:
     exposures_s: tuple[float, ...] | None = None
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class MattingPhase:
     patterns: int
     object_absent: bool = True
@@ -238,14 +241,14 @@ class MattingPhase:
         return tuple(range(1, 2 * self.patterns + 1))
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class LightfieldPhase:
     level: int = 255
     lights_deg: float | str = "table"
     exposures_s: tuple[float, ...] | None = None
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class ReflectancePhase:
     array_deg: tuple[float, ...]
     lights: tuple[int, ...] | int | None = None  # ids, a count (evenly spread), None = every light
@@ -253,7 +256,7 @@ class ReflectancePhase:
     exposures_s: tuple[float, ...] | None = None
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class NaturalPhase:
     """Natural images on the displays (Matusik, Loper & Pfister 2004), one display at a
     time: each display in ``displays`` is its own illumination domain, shown N images
@@ -296,7 +299,7 @@ class NaturalPhase:
 EnvmattePhase = NaturalPhase
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class CapturePlan:
     """A parsed capture plan. ``raw`` is the TOML table it came from (recorded in the
     session as ``[plan]``); ``source`` says where it was read from."""
@@ -307,7 +310,7 @@ class CapturePlan:
     default_exposures_s: tuple[float, ...]
     cameras: tuple[int, ...] | int | None = None  # indices, a count (evenly spread), None = all
     half_float: bool = False
-    exr_compression: str = "rle"
+    exr_compression: ExrCompression = "rle"
     timing: Timing = Timing()
     calibration: CalibrationPhase | None = None
     matting: MattingPhase | None = None
@@ -430,7 +433,7 @@ def parse_plan(d: Mapping[str, Any], *, where: str = "plan", source: str = "",
         except TypeError as err:
             raise ConfigError(f"{w}.charuco: {err}") from None
         ld = _lights_deg(w, ph, 0.0)
-        if ld == "table":
+        if isinstance(ld, str):  # "table": the array follows the table, meaningless for calibration
             raise ConfigError(f"{w}.lights_deg: must be a number for calibration")
         kw["calibration"] = CalibrationPhase(table_deg=angles, charuco=spec, level=_level(w, ph, 255),
                                              lights_deg=ld, exposures_s=ph_exp(w, ph))
@@ -490,7 +493,7 @@ def parse_plan(d: Mapping[str, Any], *, where: str = "plan", source: str = "",
         default_exposures_s=default_exp,
         cameras=cams,
         half_float=_bool(f"{where}: [plan]", p, "half_float", False),
-        exr_compression=compression,
+        exr_compression=cast("ExrCompression", compression),  # checked against COMPRESSIONS above
         timing=timing,
         source=source,
         raw=_plain(d),
@@ -592,12 +595,9 @@ def load_plan(spec: str | Path) -> CapturePlan:
             raise ConfigError(f"--plan {s}: no built-in plan {name!r}; built-ins: "
                               + ", ".join(f"builtin:{n}" for n in BUILTIN_PLANS))
         path = _BUILTIN_DIR / f"{name}.toml"
-        return parse_plan(tomllib.loads(path.read_text()), where=s, source=s)
+        return parse_plan(read_toml(path, error=ConfigError, what="built-in plan"), where=s, source=s)
     path = Path(s)
     if not path.is_file():
         raise ConfigError(f"--plan {s}: file not found (give a plan TOML or builtin:" + "|".join(BUILTIN_PLANS) + ")")
-    try:
-        d = tomllib.loads(path.read_text())
-    except tomllib.TOMLDecodeError as e:
-        raise ConfigError(f"{path}: invalid TOML ({e})") from None
+    d = read_toml(path, error=ConfigError, what="plan TOML")
     return parse_plan(d, where=str(path), source=str(path.resolve()), base_dir=path.parent)

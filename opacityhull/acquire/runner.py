@@ -1,7 +1,7 @@
 """The capture runner: executes a plan on a rig into a session folder, resumably.
 
 ``run_capture(rig, plan, out_dir)`` depends only on the device protocols
-(:mod:`opacityhull.rigs.protocols`): the rig may be hardware, emulated or simulated.
+(:mod:`opacityhull.rigs.interfaces`): the rig may be hardware, emulated or simulated.
 
 Guarantees
 ----------
@@ -30,13 +30,14 @@ import time
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
 from .. import __version__
 from ..errors import (CaptureInterrupted, ConfigError, DeviceError, FormatError, InputError, OpacityHullError,
                       Terminated, write_error)
+from ..rigs.interfaces import GroundTruthSource
 from ..session import Session, SessionWriter, sha256_file, toml_dumps
 from .exr import write_capture_exr
 from .patterns import Pattern, check_saved_patterns, plan_patterns, save_patterns
@@ -107,7 +108,7 @@ def views_of(stages: Sequence[Stage]) -> list[tuple[int, float]]:
     return sorted({(s.camera, s.table_deg) for st in stages if st.scene == "object" for s in st.shots})
 
 
-def _caused_by_interrupt(e: BaseException) -> KeyboardInterrupt | None:
+def _caused_by_interrupt(e: BaseException | None) -> KeyboardInterrupt | None:
     """A Ctrl-C (or a SIGTERM/SIGHUP as :class:`Terminated`) that a library wrapped in
     another exception (Dr.Jit turns a KeyboardInterrupt inside ``mi.render`` into a
     RuntimeError whose cause it is): the interrupt, to re-raise, or None."""
@@ -126,7 +127,7 @@ def _is_disk_full(e: BaseException) -> bool:
     return any(t in str(e) for t in _DISK_FULL_TEXT)
 
 
-def _strip_none(v):
+def _strip_none(v) -> Any:
     if isinstance(v, dict):
         return {str(k): _strip_none(x) for k, x in v.items() if x is not None}
     if isinstance(v, (list, tuple)):
@@ -205,21 +206,184 @@ class _SessionLock:
 # --------------------------------------------------------------------------- the rig, driven
 
 
+class _PatternSlots:
+    """The display controller's pattern store, used as a least-recently-used cache.
+
+    A controller stores a fixed number of patterns (``slots=M`` in its IDENTIFY reply: 64
+    on the OHDC-2) while a natural-illumination phase shows N images on every display (N =
+    200 in the paper), so uploading every pattern up front cannot work. A pattern is
+    uploaded when it is first shown; when the store is full, the least recently shown one
+    that the current shot does not need is deleted first (patterns the controller held
+    before this run, e.g. another session's, go before any of ours). The driver's
+    ``upload`` skips a stored pattern whose size and CRC-32 match, so a resume or a
+    re-check after a manual step costs one PATTERN_INFO per slot, not a re-upload.
+
+    A controller that does not report its capacity is filled until it answers
+    STORAGE_FULL, then evicted one pattern at a time.
+
+    Identical images share one slot: every natural pattern is black on the displays it
+    does not light, and each display has its own slot per pattern id (:func:`device_pattern_id`),
+    so without sharing a two-display natural phase would upload N black images and
+    re-upload them at every table angle once the store cycles. A pattern whose bytes a
+    slot checked this run already holds is shown from that slot.
+    """
+
+    def __init__(self, backdrops, patterns: dict[int, Pattern], displays: Sequence[str], log,
+                 capacity: int | None = None):
+        from collections import OrderedDict
+
+        self.bd = backdrops
+        self.patterns = patterns
+        self.displays = list(displays)
+        self.log = log
+        self.capacity = capacity if capacity is not None else _controller_slots(backdrops)
+        self.stored: OrderedDict[int, None] = OrderedDict()  # on the controller, least recently shown first
+        self.verified: set[int] = set()  # content checked (or sent) since the last forget()
+        self.by_content: dict[bytes, int] = {}  # image digest -> a verified slot holding it
+        self.showing: dict[str, int] = {}  # display -> slot it shows now (never evicted for the next)
+        self.uploads = 0
+        self.evictions = 0
+        self._synced = False
+
+    def forget(self) -> None:
+        """After a manual step or a device error the controller may have been power-cycled:
+        re-read what it stores and re-check each pattern before showing it again."""
+        self.verified.clear()
+        self.by_content.clear()
+        self.showing.clear()
+        self._synced = False
+
+    def _sync(self) -> None:
+        stored = getattr(self.bd, "stored", None)  # optional: not in the Backdrops protocol
+        listed: Any = stored() if callable(stored) else list(self.stored)
+        ids = [int(x) for x in listed]
+        fresh = [x for x in ids if x not in self.stored]
+        order = fresh + [x for x in self.stored if x in set(ids)]
+        self.stored.clear()
+        for x in order:
+            self.stored[x] = None
+        self._synced = True
+
+    def _evict_one(self, keep: set[int]) -> bool:
+        delete = getattr(self.bd, "delete", None)
+        if not callable(delete):
+            return False
+        victim = next((x for x in self.stored if x not in keep), None)
+        if victim is None:
+            return False
+        try:
+            delete(victim)
+        except DeviceError as e:
+            from ..rigs import display_protocol as dp
+
+            if getattr(e, "reason", None) != dp.NAK_NO_PATTERN:  # already gone is what we wanted
+                raise
+        del self.stored[victim]
+        self.verified.discard(victim)
+        self.by_content = {k: v for k, v in self.by_content.items() if v != victim}
+        self.showing = {k: v for k, v in self.showing.items() if v != victim}
+        self.evictions += 1
+        return True
+
+    def ensure(self, display: str, slot: int, image: np.ndarray, keep: set[int]) -> None:
+        """Make ``slot`` hold ``image`` on the controller, evicting outside ``keep`` if full."""
+        from ..rigs import display_protocol as dp
+
+        if not self._synced:
+            self._sync()
+        keep = keep | {v for k, v in self.showing.items() if k != display}  # what the other displays show
+        if slot in self.verified:
+            self.stored.move_to_end(slot)
+            return
+        if slot not in self.stored and self.capacity is not None:
+            while len(self.stored) >= self.capacity:
+                if not self._evict_one(keep):
+                    raise ConfigError(
+                        f"backdrops {getattr(self.bd, 'name', '?')}: the controller stores {self.capacity} "
+                        f"patterns and none can be deleted to make room for pattern {slot} (one shot needs "
+                        f"{len(keep)}, or the device has no DELETE)")
+        while True:
+            try:
+                sent = self.bd.upload(display, slot, image)
+                break
+            except DeviceError as e:
+                if getattr(e, "reason", None) == dp.NAK_STORAGE_FULL and self._evict_one(keep | {slot}):
+                    continue
+                raise
+        if sent is not False:
+            self.uploads += 1
+        self.stored[slot] = None
+        self.stored.move_to_end(slot)
+        self.verified.add(slot)
+        self.by_content.setdefault(_image_digest(image), slot)
+
+    def show(self, display: str, index: int, pattern_id: int, *, keep: set[int]) -> int:
+        """Show session pattern ``pattern_id`` on ``display`` (rig display ``index``);
+        returns the slot shown (its own, or one already holding the same image)."""
+        from ..rigs import display_protocol as dp
+
+        image = self.patterns[pattern_id].images[display]
+        for attempt in range(2):
+            if not self._synced:
+                self._sync()
+            own = device_pattern_id(pattern_id, index)
+            alias = self.by_content.get(_image_digest(image))
+            slot = alias if alias is not None and alias in self.verified else own
+            self.ensure(display, slot, image, keep)
+            try:
+                self.bd.show(display, slot)
+            except DeviceError as e:
+                if attempt or getattr(e, "reason", None) != dp.NAK_NO_PATTERN:
+                    raise
+                # lost since it was checked (a power cycle between shots): upload it again, once
+                self.log(f"backdrops: pattern {slot} vanished from the controller; uploading it again")
+                self.forget()
+                continue
+            self.showing[display] = slot
+            return slot
+        raise AssertionError("unreachable")  # pragma: no cover
+
+
+def _image_digest(image: np.ndarray) -> bytes:
+    import hashlib
+
+    a = np.ascontiguousarray(image)
+    return hashlib.sha256(repr((a.shape, a.dtype.str)).encode() + a.tobytes()).digest()
+
+
+def _controller_slots(backdrops) -> int | None:
+    """The controller's pattern capacity from its IDENTIFY reply (``...;slots=M;...``), or
+    None when it does not say."""
+    import re
+
+    n = getattr(backdrops, "slots", None)
+    if isinstance(n, int) and not isinstance(n, bool) and n > 0:
+        return n
+    ident = getattr(backdrops, "identity", None)
+    if not callable(ident):
+        return None
+    m = re.search(r"(?:^|;)slots=(\d+)(?:;|$)", str(ident()))
+    return int(m.group(1)) if m and int(m.group(1)) > 0 else None
+
+
 class _RigDriver:
     """Issues device commands only when the state changes; forgets the state after an error."""
 
-    def __init__(self, rig, log: Callable[[str], None] | None):
+    def __init__(self, rig, log: Callable[[str], None] | None, slots: "_PatternSlots | None" = None):
         self.rig = rig
         self.log = log or (lambda msg: None)
         self.table: float | None = None
         self.array: float | None = None
         self.levels: dict | None = None
         self.shown: dict[str, int | None] = {}
-        self.scene = {"board": None, "object": None}
+        self.scene: dict[str, bool | None] = {"board": None, "object": None}
+        self.slots = slots
 
     def forget(self):
         self.table = self.array = self.levels = None
         self.shown = {}
+        if self.slots is not None:
+            self.slots.forget()
 
     def operator(self, action: str, **details):
         self.log(f"operator: {action}")
@@ -246,6 +410,9 @@ class _RigDriver:
         rig = self.rig
         la = rig.light_array
         if la is not None and shot.lights_deg is not None and self.array != shot.lights_deg:
+            if la.rotation is None:
+                raise ConfigError(f"the plan asks for the light array at {shot.lights_deg} deg, but this rig's "
+                                  "light array has no rotation axis (check [light_array] rotation in the rig config)")
             la.rotation.move_to(shot.lights_deg)
             self.array = shot.lights_deg
         if self.table != shot.table_deg:
@@ -262,14 +429,26 @@ class _RigDriver:
         bd = rig.backdrops
         if bd is not None:
             for i, name in enumerate(n_displays):
-                want = None if shot.pattern is None else device_pattern_id(shot.pattern, i)
+                pid = shot.pattern
+                want = None if pid is None else device_pattern_id(pid, i)
                 if name in self.shown and self.shown[name] == want:
                     continue
-                if want is None:
+                if want is None or pid is None:
                     bd.blank(name)
-                else:
+                    if self.slots is not None:
+                        self.slots.showing.pop(name, None)
+                elif self.slots is None:
                     bd.show(name, want)
+                else:
+                    self.slots.show(name, i, pid, keep=self._wanted(shot, n_displays))
                 self.shown[name] = want
+
+    @staticmethod
+    def _wanted(shot: PlannedShot, n_displays: Sequence[str]) -> set[int]:
+        """Slots this shot shows: none of them may be evicted to make room for another."""
+        if shot.pattern is None:
+            return set()
+        return {device_pattern_id(shot.pattern, i) for i in range(len(n_displays))}
 
 
 # --------------------------------------------------------------------------- main entry
@@ -282,7 +461,7 @@ def run_capture(rig, plan: CapturePlan, out_dir, *, resume: bool = False, dry_ru
 
     Parameters
     ----------
-    rig : :class:`~opacityhull.rigs.protocols.Rig`
+    rig : :class:`~opacityhull.rigs.interfaces.Rig`
         Already opened by the caller (the runner neither opens nor closes it).
     plan : CapturePlan
     out_dir : path
@@ -442,8 +621,8 @@ def _capture(rig, plan, out: Path, *, stages, planned, patterns, done, corrupt, 
             # The board may still be on the table when resuming a plan with calibration.
             drv.scene["board"] = None if (existing and plan.calibration is not None) else False
             with writer:
-                if any(pend for _, pend in todo):
-                    _upload_patterns(rig, patterns, displays, log)
+                if any(pend for _, pend in todo) and patterns:
+                    drv.slots = _pattern_slots(rig, patterns, displays, log)
                 for st, pend in todo:
                     if not pend:
                         continue
@@ -497,8 +676,11 @@ def _capture(rig, plan, out: Path, *, stages, planned, patterns, done, corrupt, 
                             if progress is not None:
                                 progress(result.images, n_planned)
                         phase_t[shot.phase] = phase_t.get(shot.phase, 0.0) + time.monotonic() - t0
+            if drv.slots is not None:
+                log(f"backdrop patterns: {drv.slots.uploads} uploaded, {drv.slots.evictions} deleted to make room")
             result.complete = result.images == n_planned
-            if result.complete and (taken or not (out / "groundtruth").is_dir()):
+            if result.complete and isinstance(rig, GroundTruthSource) and \
+                    (taken or not (out / "groundtruth").is_dir()):
                 try:
                     rig.ground_truth(out, views_of(stages))
                 except (OpacityHullError, KeyboardInterrupt):
@@ -711,17 +893,17 @@ def _session_meta(rig, cam_info, plan, geometry, stages, patterns, rig_source) -
     return _strip_none(meta)
 
 
-def _upload_patterns(rig, patterns: dict[int, Pattern], displays: list[str], log) -> None:
-    """Upload every pattern once per run (the controller may have been power-cycled
-    since the last one; the driver skips identical stored patterns)."""
+def _pattern_slots(rig, patterns: dict[int, Pattern], displays: list[str], log) -> _PatternSlots:
+    """The run's pattern cache: patterns are uploaded as they are first shown (the
+    controller may have been power-cycled since the last run; the driver skips identical
+    stored patterns)."""
     bd = rig.backdrops
-    if patterns and bd is None:
+    if bd is None:
         raise ConfigError("the plan shows backdrop patterns but the rig has no backdrops device")
-    if patterns:
-        log(f"uploading {len(patterns)} pattern(s) to {len(displays)} display(s)")
-    for pid, p in sorted(patterns.items()):
-        for i, d in enumerate(displays):
-            bd.upload(d, device_pattern_id(pid, i), p.images[d])
+    slots = _PatternSlots(bd, patterns, displays, log)
+    log(f"{len(patterns)} pattern(s) on {len(displays)} display(s), uploaded as shown "
+        f"(controller capacity: {slots.capacity if slots.capacity is not None else 'not reported'} slots)")
+    return slots
 
 
 def _check_image(img, spec, cam) -> np.ndarray:

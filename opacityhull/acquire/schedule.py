@@ -270,7 +270,7 @@ def expected_counts(stages: Sequence[Stage]) -> dict[str, int]:
 # --------------------------------------------------------------------------- estimates
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class MotionRates:
     """Declared (or measured) speeds of the rig's motions."""
 

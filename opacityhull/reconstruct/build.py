@@ -49,17 +49,27 @@ Steps (each timed into ``report.json``):
 An empty silhouette in any view makes the hull empty; the build stops with an error
 naming the views (exclude them with ``BuildConfig.exclude_views``) rather than writing
 an empty model.
+
+**Steps on disk.** Cameras, matting (per view), geometry (3-6), the natural field,
+write and pictures each leave their product in ``MODEL/build/`` with an entry in
+``MODEL/build/manifest.json`` (the digest of the inputs: image sha256s, sizes and
+mtimes, the upstream products; and the parameters that shape it). ``build --resume``
+(``build_model(resume=True)``) reuses every step whose entry still matches and each
+view already matted, and ``report.json``'s ``steps`` says which were reused. The
+products are a cache of this build, not an interchange format (pickles for cameras and
+geometry): ``MODEL/build/`` can be deleted once the model is finished.
 """
 
 from __future__ import annotations
 
 import json
+import logging
 import math
 import time
 from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import Callable, Literal, Sequence
+from typing import Any, Callable, Iterator, Literal, Sequence, cast
 
 import numpy as np
 
@@ -70,14 +80,22 @@ from ..riggeometry import RigGeometry, view_id
 from ..session import Session, check_finite, require_manifest_ok
 from .hull import (EmptyHullError, HullGrid, carve_octree, hull_bounds, silhouette_from_alpha,
                    carve_robust, undistort_silhouette, view_rejections)
-from .matting import MattingOptions, backdrop_from_displays, solve_matte, straight_from_premul
+from .matting import MattingOptions, straight_from_premul
+from .matte_step import (_jsonable, _load_matte, _rgb, _stored_matte, load_matting_pairs,
+                         matte_for_build, store_matte)
 from .surfels import sample_hull_surfels
 from .visibility import surfel_visibility
 
+log = logging.getLogger(__name__)
+
 __all__ = ["BuildConfig", "BuildReport", "build_model", "build_geometry", "choose_resolution", "Geometry",
-           "Resolution", "pixel_footprint_m", "view_list", "load_matting_pairs", "resolve_cameras"]
+           "Resolution", "pixel_footprint_m", "view_list", "load_matting_pairs", "resolve_cameras",
+           "matte_for_build", "store_matte", "step_cameras", "step_matting", "step_geometry", "step_reflectance",
+           "Mattes", "BUILD_DIR"]
 
 CAMERA_SOURCES = ("auto", "groundtruth", "nominal")
+DriftMode = Literal["auto", "none", "gain", "affine", "field"]
+DRIFT_MODES: tuple[DriftMode, ...] = ("auto", "none", "gain", "affine", "field")
 BACKDROP_SOURCES = ("auto", "object-absent", "geometry")
 STEPS = ("verify", "cameras", "matting", "silhouettes", "hull", "surfels", "visibility", "refine", "views",
          "reflectance", "natural", "write",
@@ -105,9 +123,13 @@ class BuildConfig:
         (:func:`.matting.correct_photometric_drift`; reported per shot in
         ``report.json``): "auto" = "field" except for the simulated rig without a sensor
         drift model (identical by construction).
-    refine : move surfels inside the hull to photo-consistent depths
-        (:func:`.photo.refine_surfels`; off by default: +0.1 dB on the Middlebury rings at
-        ~70 s per build, see ``benchmarks/out/fidelity.md``).
+    refine : photo-consistent depth inside the hull (:func:`.photo.refine_surfels`).
+        "shading" (default): the surfels stay on the hull, whose outline and opacity
+        are exact in every view, and carry the refined depth (``Surfels.depth_m``, the
+        ``depth`` property of ``surfels.ply``) at which the renderer fetches colour.
+        "surfels": the surfels themselves move there (their outline shrinks; measured
+        +0.1 dB on the Middlebury rings). "none": hull only. ``True``/``False`` mean
+        "surfels"/"none". Figures: ``benchmarks/out/fidelity.md``.
     natural, natural_kernels : estimate the natural-illumination reflectance field
         (:mod:`.natural_field`, K box kernels per pixel) when the session has the
         natural (``envmatte``) phase.
@@ -148,9 +170,9 @@ class BuildConfig:
     max_hull_res: int = 640
     surfels_per_pixel: float = 1.0
     carve_tolerance: int | None = None
-    matting_drift: Literal["auto", "none", "gain", "affine", "field"] = "auto"
+    matting_drift: DriftMode = "auto"
     verify_checksums: bool = True
-    refine: bool = False
+    refine: Literal["shading", "surfels", "none"] | bool = "shading"
     natural: bool = True
     natural_kernels: int = 25
     alpha_threshold: float = 0.5
@@ -176,6 +198,10 @@ class BuildConfig:
     ground_truth_dilate_px: int = 3
 
     def __post_init__(self):
+        if isinstance(self.refine, bool):
+            object.__setattr__(self, "refine", "surfels" if self.refine else "none")
+        if self.refine not in ("shading", "surfels", "none"):
+            raise ConfigError(f"refine must be 'shading', 'surfels' or 'none', got {self.refine!r}")
         if self.hull_res is not None and not (4 <= int(self.hull_res) <= 2048):
             raise ConfigError(f"hull_res must be in [4, 2048], got {self.hull_res}")
         if not (8 <= int(self.max_hull_res) <= 2048):
@@ -185,7 +211,7 @@ class BuildConfig:
         if self.carve_tolerance is not None and not (isinstance(self.carve_tolerance, int)
                                                      and self.carve_tolerance >= 0):
             raise ConfigError(f"carve_tolerance must be None or an integer >= 0, got {self.carve_tolerance!r}")
-        if self.matting_drift not in ("auto", "none", "gain", "affine", "field"):
+        if self.matting_drift not in DRIFT_MODES:
             raise ConfigError(f"matting_drift must be auto, none, gain, affine or field, got {self.matting_drift!r}")
         if not (isinstance(self.natural_kernels, int) and 1 <= self.natural_kernels <= 256):
             raise ConfigError(f"natural_kernels must be an integer in [1, 256], got {self.natural_kernels!r}")
@@ -225,6 +251,9 @@ class BuildReport:
     hull: dict = field(default_factory=dict)
     notes: list = field(default_factory=list)
     pictures: list = field(default_factory=list)
+    #: step name -> "ran" | "reused" | "reused k of n views" (``build --resume``)
+    steps: dict = field(default_factory=dict)
+    scheduler: str = "serial"
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -235,7 +264,8 @@ class BuildReport:
                 "metrics": dict(self.metrics), "model": self.model_dir, "camera_source": self.camera_source,
                 "backdrop_source": self.backdrop_source, "resolution": self.hull.get("resolution"),
                 "carve_tolerance": self.hull.get("carve_tolerance"),
-                "views_disagreeing_with_hull": self.hull.get("views_disagreeing_with_hull", [])}
+                "views_disagreeing_with_hull": self.hull.get("views_disagreeing_with_hull", []),
+                "steps": dict(self.steps), "scheduler": self.scheduler}
 
 
 # --------------------------------------------------------------------------- helpers
@@ -291,10 +321,11 @@ def _read_yaml_number(path: Path, key: str) -> float | None:
 @dataclass
 class _Cameras:
     views: list[Camera]
-    rig: list[Camera] | None
+    #: rig cameras by index, None for a camera that could not be calibrated
+    rig: Sequence[Camera | None] | None
     rms_px: dict[int, float]
     source: str
-    calibration: object = None
+    calibration: Any = None  # the CalibrationResult when calibrated here
     #: the views these cameras belong to (``views`` minus those of uncalibrated cameras)
     kept: list | None = None
     #: camera index → why it was left out (its views dropped)
@@ -394,117 +425,6 @@ def resolve_cameras(session: Session, views: Sequence[tuple[int, float]], *, sou
         "--cameras groundtruth|nominal")
 
 
-def _rgb(img: np.ndarray) -> np.ndarray:
-    img = np.asarray(img, dtype=np.float32)
-    if img.shape[2] == 1 or img.shape[2] == 2:
-        return np.repeat(img[..., :1], 3, axis=2)
-    return img[..., :3]
-
-
-def _camera_gain(session: Session, camera: int) -> float:
-    """The camera's gain from the rig geometry (as :meth:`Session.load_radiance` uses),
-    parsed once per session rather than per image."""
-    cache = session.__dict__.setdefault("_rc_gains", {})
-    if not cache:
-        try:
-            cache.update({i: float(c.gain) for i, c in enumerate(session.geometry.cameras)})
-        except FormatError:
-            cache[-1] = 1.0
-    return cache.get(camera, 1.0)
-
-
-def _load_with_clip(session: Session, shot: str, *, saturation: float = 0.98) -> tuple[np.ndarray, float]:
-    """Radiance (H, W, 3) of a shot and the radiance at which its pixels clip (inf for an
-    HDR merge). The bracket is chosen exactly as :meth:`Session.load_radiance` does (the
-    HDR merge, else the longest exposure with at most 0.1 % of pixels at
-    ``saturation`` × white level, else the shortest), so the clip level belongs to the
-    image used."""
-    recs = session.select(kind=None, shot=shot)
-    if not recs:
-        raise FormatError(f"{session.root}: no image for shot {shot!r} in the manifest")
-    hdr = [r for r in recs if r.kind == "hdr"]
-    if hdr:
-        return _rgb(session.load_image(hdr[-1])), float("inf")
-    raws = sorted((r for r in recs if r.kind == "raw"), key=lambda r: r.exposure_s or 0.0)
-    white = session.white_level
-    gain = _camera_gain(session, recs[0].camera)
-    for r in reversed(raws):
-        im = session.load_image(r)
-        if np.mean(np.any(im[..., :3] >= saturation * white, axis=-1)) <= 1e-3 or r is raws[0]:
-            exp = r.exposure_s or 1.0
-            return _rgb(im / np.float32(gain * exp)), float(saturation * white / (gain * exp))
-    raise FormatError(f"{session.root}: shot {shot!r} has no raw or HDR image")  # pragma: no cover
-
-
-def load_matting_pairs(session: Session, camera: int, table_deg: float, view_cam: Camera | None = None, *,
-                       backdrops: str = "auto"):
-    """(C, B, c_clip, b_clip, source) of one view: observations (K, H, W, 3), backdrops,
-    clip levels (K,), and where the backdrops came from.
-
-    ``backdrops``: "auto" (object-absent captures when at least two patterns have them,
-    else the display geometry), "object-absent" (error without them) or "geometry"
-    (predict them even when captures exist: for comparisons)."""
-    recs = session.select(phase="matting", camera=camera, table_deg=table_deg, kind=None)
-    with_obj: dict = {}
-    without: dict = {}
-    for r in recs:
-        (with_obj if r.object_present else without).setdefault(r.pattern, r.shot)
-    if not with_obj:
-        raise FormatError(f"{session.root}: no matting images of view {view_id(camera, table_deg)}")
-    C, B, cc, bc = [], [], [], []
-    paired = [p for p in sorted(with_obj, key=lambda x: -1 if x is None else x) if p in without]
-    if backdrops == "object-absent" and len(paired) < 2:
-        raise FormatError(f"{session.root}: view {view_id(camera, table_deg)} has {len(paired)} backdrop pattern(s) "
-                          "shot with the object absent; triangulation matting needs at least 2")
-    if len(paired) >= 2 and backdrops != "geometry":
-        for p in paired:
-            c_img, c_clip = _load_with_clip(session, with_obj[p])
-            b_img, b_clip = _load_with_clip(session, without[p])
-            C.append(c_img)
-            B.append(b_img)
-            cc.append(c_clip)
-            bc.append(b_clip)
-        source = "object-absent captures"
-    else:
-        if view_cam is None:
-            raise InputError("backdrops from display geometry need the view's camera")
-        geo = session.geometry
-        if not geo.displays:
-            raise FormatError(f"{session.root}: view {view_id(camera, table_deg)} has no object-absent backdrop "
-                              "shots and the rig has no displays to predict them from; object-absent backdrops "
-                              "are required")
-        for p in sorted(with_obj, key=lambda x: -1 if x is None else x):
-            c_img, c_clip = _load_with_clip(session, with_obj[p])
-            pats = {}
-            if p is not None:
-                for d in geo.displays:
-                    f = session.root / "patterns" / d.name / f"p{int(p):03d}.png"
-                    if f.is_file():
-                        pats[d.name] = session.pattern_image(d.name, p)
-            cam = view_cam
-            if (cam.width, cam.height) != (c_img.shape[1], c_img.shape[0]):
-                raise FormatError(f"view {view_id(camera, table_deg)}: image is {c_img.shape[1]}x{c_img.shape[0]}, "
-                                  f"camera is {cam.width}x{cam.height}")
-            B.append(backdrop_from_displays(cam, table_deg, geo, pats))
-            C.append(c_img)
-            cc.append(c_clip)
-            bc.append(float("inf"))
-        source = "display geometry" + (" (no object-absent captures)" if backdrops == "auto" else " (requested)")
-    shapes = {x.shape for x in C + B}
-    if len(shapes) != 1:
-        raise FormatError(f"view {view_id(camera, table_deg)}: matting images differ in size {sorted(shapes)}")
-    return np.stack(C), np.stack(B), np.array(cc, np.float32), np.array(bc, np.float32), source
-
-
-def _mask_alpha(session: Session, camera: int, table_deg: float) -> np.ndarray:
-    recs = session.select(phase="mask", camera=camera, table_deg=table_deg, kind=None)
-    if not recs:
-        raise FormatError(f"{session.root}: no mask image of view {view_id(camera, table_deg)}")
-    m = session.load_image(recs[-1])
-    a = m[..., 3] if m.shape[2] == 4 else m[..., 0]
-    return np.clip(np.nan_to_num(a, nan=0.0), 0.0, 1.0).astype(np.float32)
-
-
 def _colour_shot(session: Session, camera: int, table_deg: float) -> tuple[str | None, str | None]:
     """(object shot, object-absent shot) giving the view's colour."""
     lf = session.select(phase="lightfield", camera=camera, table_deg=table_deg, kind=None)
@@ -529,10 +449,9 @@ def _plan_reflectance_level(session: Session):
 
 
 def _camera_names(session: Session) -> dict[int, str]:
-    try:
-        return {i: c.name for i, c in enumerate(session.geometry.cameras)}
-    except FormatError:
+    if "rig" not in session.meta:  # an imported session: no rig, no camera names
         return {}
+    return {i: c.name for i, c in enumerate(session.geometry.cameras)}
 
 
 def _rig_volume(geo: RigGeometry | None) -> tuple[np.ndarray, np.ndarray] | None:
@@ -729,10 +648,12 @@ def build_geometry(alphas: Sequence[np.ndarray], cameras: Sequence[Camera], rms_
         grid = HullGrid.from_bounds(lo_p, hi_p, res.hull_res)
         strong = None
         if tol > 0:
-            occ, ostats, strong = carve_robust(sils, pin, grid, tolerance=tol, root_cell=config.root_cell,
-                                               return_stats=True)
+            # return_stats=True: (occupancy, stats, strong silhouettes)
+            occ, ostats, strong = cast("tuple[np.ndarray, Any, Any]", carve_robust(
+                sils, pin, grid, tolerance=tol, root_cell=config.root_cell, return_stats=True))
         else:
-            occ, ostats = carve_octree(sils, pin, grid, root_cell=config.root_cell, return_stats=True)
+            occ, ostats = cast("tuple[np.ndarray, Any]", carve_octree(sils, pin, grid, root_cell=config.root_cell,
+                                                                      return_stats=True))
         n_occ = int(occ.sum())
         if n_occ == 0:
             raise EmptyHullError("the visual hull is empty: the silhouettes have no common volume "
@@ -765,25 +686,411 @@ def build_geometry(alphas: Sequence[np.ndarray], cameras: Sequence[Camera], rms_
                          f"{res.pixel_footprint_m * 1e3:.2f} mm (--hull-res {res.hull_res}): drop --hull-res "
                          "for full capture resolution")
     with step("visibility"):
-        vis = surfel_visibility(sample.positions, sample.normals, sample.radii, pin, depth_tol_m=config.depth_tol_m,
-                                facing_cos=config.facing_cos)
+        vis = cast(np.ndarray, surfel_visibility(sample.positions, sample.normals, sample.radii, pin,
+                                                 depth_tol_m=config.depth_tol_m, facing_cos=config.facing_cos))
         surfels = Surfels.from_bool(sample.positions, sample.normals, sample.radii, vis)
         info["visible_views_per_surfel"] = float(vis.sum(1).mean()) if len(vis) else 0.0
         info["surfels_seen_by_no_view"] = int((~vis.any(1)).sum()) if len(vis) else 0
         prog(V, V)
-    if config.refine:
+    if config.refine != "none":
         if images is None:
-            raise ConfigError("refine=True needs the views' images (build_geometry(images=...))")
+            raise ConfigError(f"refine={config.refine!r} needs the views' images (build_geometry(images=...))")
         with step("refine"):
             from .photo import PhotoConfig, refine_surfels
 
             imgs = [images(i) if callable(images) else images[i] for i in range(V)]
+            move = config.refine == "surfels"
+            # shading depth only: coverage comes from the hull, so nothing needs restoring
             pos, nrm, rad, st = refine_surfels(sample.positions, sample.normals, sample.radii, vis, pin, imgs,
-                                               list(alphas), config=PhotoConfig())
-            vis = surfel_visibility(pos, nrm, rad, pin, depth_tol_m=config.depth_tol_m, facing_cos=config.facing_cos)
-            surfels = Surfels.from_bool(pos, nrm, rad, vis)
-            info["refine"] = {k: v for k, v in st.items() if np.ndim(v) == 0}
+                                               list(alphas), config=PhotoConfig(keep_coverage=move))
+            if move:
+                vis = cast(np.ndarray, surfel_visibility(pos, nrm, rad, pin, depth_tol_m=config.depth_tol_m,
+                                                         facing_cos=config.facing_cos))
+                surfels = Surfels.from_bool(pos, nrm, rad, vis)
+            else:
+                surfels.depth_m = np.ascontiguousarray(st["depth_m"], np.float32)
+            info["refine"] = {"mode": config.refine, **{k: v for k, v in st.items() if np.ndim(v) == 0}}
     return Geometry(sils=sils, pin=pin, dilations=dil, occ=occ, grid=grid, surfels=surfels, info=info, notes=notes)
+
+
+# --------------------------------------------------------------------------- steps on disk
+
+#: the build's own products, inside the model folder (reused by ``build --resume``)
+BUILD_DIR = "build"
+BUILD_FORMAT = "opacityhull.build/1"
+
+#: BuildConfig fields that do not change a step's product (everything else does: a
+#: step is stale when any other field differs, which errs on the side of redoing)
+_NOT_GEOMETRY = ("reflectance", "pictures", "natural", "natural_kernels", "verify_checksums",
+                 "ground_truth_dilate_px", "alpha_eps")
+
+
+def _digest(obj) -> str:
+    """SHA-256 of a JSON-able structure (sorted keys): the identity of a step's inputs."""
+    import hashlib
+
+    return hashlib.sha256(json.dumps(_jsonable(obj), sort_keys=True, default=repr).encode()).hexdigest()
+
+
+def _camera_digest(cam: Camera) -> str:
+    import hashlib
+
+    h = hashlib.sha256()
+    for a in (cam.K, cam.dist, cam.world_from_cam):
+        h.update(np.ascontiguousarray(a, np.float64).tobytes())
+    h.update(f"{cam.width}x{cam.height}".encode())
+    return h.hexdigest()
+
+
+def _records_digest(session: Session, recs) -> list:
+    """What identifies the images a step read: manifest id, sha256 and size, and the
+    file's size and mtime (a file replaced behind the manifest's back is stale too)."""
+    out = []
+    for r in recs:
+        try:
+            st = (session.root / r.path).stat()
+            fs = [st.st_size, st.st_mtime_ns]
+        except OSError:
+            fs = None
+        out.append([r.id, r.sha256, r.bytes, fs])
+    return out
+
+
+def _files_digest(root: Path) -> list:
+    if not root.is_dir():
+        return []
+    out = []
+    for p in sorted(root.rglob("*")):
+        if p.is_file():
+            st = p.stat()
+            out.append([str(p.relative_to(root)), st.st_size, st.st_mtime_ns])
+    return out
+
+
+class _StepStore:
+    """The build's step manifest (``MODEL/build/manifest.json``): per finished step, the
+    digest of its inputs (images' sha256/mtimes, upstream steps) and parameters, and its
+    outputs. With ``resume`` a step whose key and outputs are still there is reused."""
+
+    def __init__(self, model_dir: Path, *, resume: bool):
+        self.model_dir = model_dir
+        self.dir = model_dir / BUILD_DIR
+        self.path = self.dir / "manifest.json"
+        self.resume = resume
+        self.steps: dict = {}
+        #: step name -> "ran" | "reused" | "reused k of n views" (the report's ``steps``)
+        self.status: dict[str, str] = {}
+        if resume and self.path.is_file():
+            try:
+                d = json.loads(self.path.read_text())
+            except (OSError, ValueError) as e:
+                raise FormatError(f"{self.path}: unreadable build manifest ({e}); delete {self.dir} or build "
+                                  "without --resume") from None
+            if not isinstance(d, dict) or d.get("format") != BUILD_FORMAT or not isinstance(d.get("steps"), dict):
+                raise FormatError(f"{self.path}: not an {BUILD_FORMAT} manifest (format "
+                                  f"{d.get('format') if isinstance(d, dict) else d!r}); delete {self.dir} or build "
+                                  "without --resume")
+            self.steps = dict(d["steps"])
+
+    def fresh(self, name: str, key: str) -> bool:
+        e = self.steps.get(name)
+        return bool(self.resume and isinstance(e, dict) and e.get("key") == key
+                    and all((self.model_dir / o).exists() for o in e.get("outputs", [])))
+
+    def record(self, name: str, key: str, *, inputs: dict, params: dict, outputs: Sequence[str],
+               seconds: float, status: str = "ran") -> None:
+        from ..imageio import atomic_path
+
+        self.steps[name] = {"key": key, "inputs": inputs, "params": params, "outputs": list(outputs),
+                            "seconds": round(float(seconds), 4)}
+        self.status[name] = status
+        self.dir.mkdir(parents=True, exist_ok=True)
+        with atomic_path(self.path) as tmp:
+            tmp.write_text(json.dumps(_jsonable({"format": BUILD_FORMAT, "steps": self.steps}), indent=1) + "\n")
+
+    def reuse(self, name: str, status: str = "reused") -> None:
+        self.status[name] = status
+
+    def save(self, rel: str, obj) -> str:
+        import pickle
+
+        from ..imageio import atomic_path
+
+        # streamed: a hull grid and silhouettes of hundreds of views are not copied into
+        # one bytes object first
+        with atomic_path(self.model_dir / rel) as tmp:
+            with open(tmp, "wb") as f:
+                pickle.dump(obj, f, protocol=pickle.HIGHEST_PROTOCOL)
+        return rel
+
+    def load(self, rel: str):
+        """The pickled product, or None when it cannot be read back (then the step runs)."""
+        import pickle
+
+        try:
+            with open(self.model_dir / rel, "rb") as f:
+                return pickle.load(f)
+        except (OSError, pickle.UnpicklingError, EOFError, AttributeError, ImportError, TypeError) as e:
+            log.warning("%s: cannot reuse (%s); the step runs again", self.model_dir / rel, e)
+            return None
+
+
+@dataclass(frozen=True, kw_only=True)
+class Mattes:
+    """The matting step's product: alphas in view order, per-view stats, where the
+    backdrops came from, NaN/Inf notes, and the step key."""
+
+    alphas: list
+    stats: list
+    sources: set
+    nonfinite: list
+    key: str
+    #: SHA-256 over the alphas' bytes: what the later steps depend on (a re-matted view
+    #: whose alpha came out the same leaves them fresh)
+    content: str
+    use_masks: bool
+    drift_mode: str
+
+
+class _LazyViews(Sequence):
+    """``[view_rgba(i) for i in range(n)]`` computed on access: the writer streams the
+    views one at a time instead of holding them all."""
+
+    def __init__(self, fn: Callable[[int], np.ndarray], n: int):
+        self.fn, self.n = fn, int(n)
+
+    def __len__(self) -> int:
+        return self.n
+
+    def __getitem__(self, i):  # int only: the writer iterates
+        if isinstance(i, slice):
+            raise TypeError("_LazyViews does not slice")
+        if not -self.n <= i < self.n:
+            raise IndexError(i)
+        return self.fn(i % self.n)
+
+    def __iter__(self) -> Iterator[np.ndarray]:
+        return (self.fn(i) for i in range(self.n))
+
+
+def step_cameras(session: Session, config: BuildConfig, store: _StepStore, *, progress=None):
+    """Step 1: (views kept, cameras, key, notes). Inputs: the calibration phase's images,
+    ``calibration/``, ``cameras/``, the rig table and the view list."""
+    params = {"cameras": config.cameras, "drop_uncalibrated_cameras": config.drop_uncalibrated_cameras,
+              "exclude_views": list(config.exclude_views)}
+    phases = session.phases()
+    inputs = {"calibration_images": _digest(_records_digest(session, session.select(phase="calibration", kind=None))
+                                            if "calibration" in phases else []),
+              "calibration_dir": _digest(_files_digest(session.root / "calibration")),
+              "cameras_dir": _digest(_files_digest(session.root / "cameras")),
+              "groundtruth_cameras": _digest(_files_digest(session.root / "groundtruth" / "cameras")
+                                             if config.cameras == "groundtruth" else []),
+              "rig": _digest(session.meta.get("rig")),
+              "views": _digest({ph: session.views(ph) for ph in ("lightfield", "matting", "mask") if ph in phases})}
+    key = _digest({"inputs": inputs, "params": params})
+    rel = f"{BUILD_DIR}/cameras.pkl"
+    got = store.load(rel) if store.fresh("cameras", key) else None
+    if got is not None:
+        views, cams = got
+        store.reuse("cameras")
+    else:
+        t = time.perf_counter()
+        views = view_list(session, exclude=config.exclude_views)
+        cams = resolve_cameras(session, views, source=config.cameras, progress=progress,
+                               drop_uncalibrated=config.drop_uncalibrated_cameras)
+        store.save(rel, (views, cams))
+        store.record("cameras", key, inputs=inputs, params=params, outputs=[rel], seconds=time.perf_counter() - t)
+    notes = []
+    if cams.kept is not None and len(cams.kept) < len(views):
+        names = _camera_names(session)
+        for c, why in cams.dropped_cameras.items():
+            n = sum(1 for cc, _ in views if cc == c)
+            notes.append(f"camera {names.get(c, c)} could not be calibrated ({why}): its {n} view(s) were left "
+                         "out of the model")
+        views = cams.kept
+    return list(views), cams, key, notes
+
+
+def step_matting(session: Session, views, cams: _Cameras, config: BuildConfig, store: _StepStore, *,
+                 executor=None, progress=None) -> Mattes:
+    """Step 2: one alpha per view (triangulation matting, or the imported mask), each
+    written to ``build/mattes/<view>.npy`` with its own key as it finishes, so a build
+    killed mid-way keeps the views already matted. Views run through ``executor``
+    (:mod:`opacityhull.executor`; local schedulers get this Session, process and Dask
+    workers open the session from its path)."""
+    from ..executor import SerialExecutor
+    from .perview import BuildMatteTask, build_matte, run_build_matte
+
+    ex = executor or SerialExecutor()
+    phases = session.phases()
+    use_masks = "mask" in phases and "matting" not in phases
+    drift_mode = _drift_mode(session, config)
+    mopts = replace(config.matting, drift=drift_mode)
+    params = {"matting": asdict(mopts), "backdrops": config.backdrops, "use_masks": use_masks}
+    patterns = _digest(_files_digest(session.root / "patterns")) if config.backdrops != "object-absent" else ""
+    mdir = store.model_dir / BUILD_DIR / "mattes"
+    vids = [view_id(c, a) for c, a in views]
+    tasks, keys, metas, alphas = [], [], {}, {}
+    for i, ((c, a), cam) in enumerate(zip(views, cams.views)):
+        recs = session.select(phase="mask" if use_masks else "matting", camera=c, table_deg=a, kind=None)
+        k = _digest({"images": _records_digest(session, recs), "camera": _camera_digest(cam), "patterns": patterns,
+                     "params": params})
+        keys.append(k)
+        path = mdir / f"{vids[i]}.npy"
+        got = _stored_matte(path, k, (cam.height, cam.width)) if store.resume else None
+        if got is not None:
+            alphas[i], metas[i] = got
+            continue
+        tasks.append((i, BuildMatteTask(session_dir=str(session.root), camera=c, table_deg=a, view_camera=cam,
+                                        use_masks=use_masks, backdrops=config.backdrops, matting=mopts,
+                                        alpha_path=str(path), key=k)))
+    key = _digest(keys)
+    t = time.perf_counter()
+    if tasks:
+        mdir.mkdir(parents=True, exist_ok=True)
+        if ex.scheduler in ("serial", "threads"):
+            # in this process: the Session already open, not its path
+            from functools import partial
+
+            fn = partial(run_build_matte, session)
+        else:
+            fn = build_matte
+        done = ex.map(fn, [tk for _, tk in tasks], progress=progress)
+        for (i, _), meta in zip(tasks, done):
+            metas[i] = meta
+    for i, cam in enumerate(cams.views):
+        if i not in alphas:
+            alphas[i] = _load_matte(mdir / f"{vids[i]}.npy", (cam.height, cam.width))
+    reused = len(views) - len(tasks)
+    status = "ran" if reused == 0 else ("reused" if not tasks else f"reused {reused} of {len(views)} views")
+    store.record("matting", key, inputs={"views": dict(zip(vids, keys))}, params=params,
+                 outputs=[f"{BUILD_DIR}/mattes/{v}.npy" for v in vids], seconds=time.perf_counter() - t,
+                 status=status)
+    ordered = [metas[i] for i in range(len(views))]
+    content = _digest([m["sha256"] for m in ordered])
+    return Mattes(alphas=[alphas[i] for i in range(len(views))], content=content, stats=[m["stats"] for m in ordered if m.get("stats")],
+                  sources={m["source"] for m in ordered}, nonfinite=[n for m in ordered for n in m.get("nonfinite", [])],
+                  key=key, use_masks=use_masks, drift_mode=drift_mode)
+
+
+def step_geometry(session: Session, views, cams: _Cameras, mattes: Mattes, cameras_key: str, config: BuildConfig,
+                  store: _StepStore, *, colour=None, step=None, progress=None) -> tuple[Geometry, str]:
+    """Steps 3-6 (silhouettes, hull, surfels, visibility, refine): :func:`build_geometry`
+    over the mattes, stored as ``build/geometry.pkl``."""
+    vids = [view_id(c, a) for c, a in views]
+    rig_session = _is_rig_session(session)
+    # imported sessions have no [rig] table; a corrupt one is a FormatError, not "no rig"
+    geo = session.geometry if "rig" in session.meta else None
+    fallback = _rig_volume(geo) if rig_session else None
+    rms_per_view = [cams.rms_px.get(c, 0.0) for c, _ in views]
+    params = {k: v for k, v in config.to_dict().items() if k not in _NOT_GEOMETRY}
+    inputs = {"mattes": mattes.content, "cameras": cameras_key, "rig_session": rig_session,
+              "colour": (_digest([_records_digest(session, session.select(shot=s, kind=None)) for s, _ in colour])
+                         if config.refine != "none" and colour else "")}
+    key = _digest({"inputs": inputs, "params": params})
+    rel = f"{BUILD_DIR}/geometry.pkl"
+    g = store.load(rel) if store.fresh("geometry", key) else None
+    if isinstance(g, Geometry):
+        store.reuse("geometry")
+        return g, key
+    t = time.perf_counter()
+    images: Callable[[int], np.ndarray] | None = None
+    if config.refine != "none":
+        shots = list(colour or [])
+
+        def view_rgb(i: int) -> np.ndarray:
+            return _view_rgba(session, shots[i], mattes.alphas[i], use_masks=mattes.use_masks,
+                              alpha_eps=config.alpha_eps)[..., :3]
+
+        images = view_rgb
+    g = build_geometry(mattes.alphas, cams.views, rms_per_view, vids, config=config, rig_session=rig_session,
+                       fallback_box=fallback, step=step, progress=progress, images=images)
+    store.save(rel, g)
+    store.record("geometry", key, inputs=inputs, params=params, outputs=[rel], seconds=time.perf_counter() - t)
+    return g, key
+
+
+def _view_rgba(session: Session, shots: tuple, alpha: np.ndarray, *, use_masks: bool, alpha_eps: float,
+               finite=None) -> np.ndarray:
+    """Step 7 for one view: straight RGBA from its colour shot (minus the object-absent
+    one) and its alpha."""
+    finite = finite or (lambda img, where: img)
+    obj, bg = shots
+    Cimg = finite(_rgb(session.load_radiance(obj)), f"view colour shot {obj}")
+    if bg is not None:
+        prem = Cimg - (1.0 - alpha)[..., None] * _rgb(session.load_radiance(bg))
+    elif use_masks:
+        prem = Cimg * alpha[..., None]  # external images: colour seen through the mask
+    else:
+        prem = Cimg
+    F = straight_from_premul(np.nan_to_num(prem, nan=0.0, posinf=0.0, neginf=0.0), alpha, eps=alpha_eps)
+    return np.concatenate([np.maximum(F, 0.0), alpha[..., None]], axis=-1).astype(np.float32)
+
+
+def step_reflectance(session: Session, views, vids, alphas, config: BuildConfig, notes: list, finite) -> tuple:
+    """Step 8: which one-light images go into the model, and a lazy per-view loader of
+    them (read while writing, one view at a time). Returns (reflectance or None, digest
+    of the images used)."""
+    refl = session.select(phase="reflectance", kind=None) if config.reflectance else []
+    if not refl:
+        return None, ""
+    per_view: dict[tuple, dict[str, str]] = {}
+    samples: dict[str, LightSample] = {}
+    levels: dict[str, float] = {}
+    plan_level = _plan_reflectance_level(session)
+    unknown_level = 0
+    for r in refl:
+        if not r.object_present or r.light is None:
+            continue
+        arr = float(r.lights_deg or 0.0)
+        key = light_key(r.light, arr)
+        samples.setdefault(key, LightSample(key, int(r.light), arr))
+        per_view.setdefault((r.camera, round(r.table_deg % 360.0, 6)), {}).setdefault(key, r.shot)
+        lv = (r.extra or {}).get("level", plan_level)
+        if lv is None:
+            unknown_level += 1
+            lv = 255
+        try:
+            lv = float(lv)
+        except (TypeError, ValueError):
+            lv = float("nan")
+        if not (0 < lv <= 255):
+            raise FormatError(f"{session.root}: reflectance shot {r.shot} was taken at DMX level {lv!r}; "
+                              "expected 1..255 (the one-light image is normalised to full level)")
+        levels.setdefault(r.shot, lv)
+    if unknown_level:
+        notes.append(f"reflectance: {unknown_level} one-light image(s) record no DMX level; taken as full "
+                     "level (255)")
+    if any(v != 255 for v in levels.values()):
+        notes.append("reflectance: one-light images taken below full DMX level were scaled by 255/level "
+                     "(the model stores radiance at full level)")
+    common = set(samples)
+    for c, a in views:
+        common &= set(per_view.get((c, round(a % 360.0, 6)), {}))
+    dropped = set(samples) - common
+    if dropped:
+        notes.append(f"reflectance: {len(dropped)} light sample(s) missing in some views were left out")
+    if not common:
+        notes.append("reflectance: no light sample present in every view; none attached")
+        return None, ""
+    lights = [samples[k] for k in sorted(common, key=lambda k: (samples[k].array_deg, samples[k].light_id))]
+
+    def images(i: int) -> dict[str, np.ndarray]:
+        c, a = views[i]
+        shots = per_view[(c, round(a % 360.0, 6))]
+        mask = (alphas[i] > config.alpha_eps)[..., None]
+        outd = {}
+        for L in lights:
+            shot = shots[L.key]
+            # radiance at full DMX level: a light dimmed to `level` emits level/255
+            img = finite(_rgb(session.load_radiance(shot)), f"view {vids[i]} one-light shot {shot}"
+                         ) * np.float32(255.0 / levels[shot])
+            outd[L.key] = np.where(mask, np.nan_to_num(img, nan=0.0, posinf=0.0, neginf=0.0), 0.0
+                                   ).astype(np.float32)
+        return outd
+
+    used = [r for r in refl if r.shot in levels]
+    return {"lights": lights, "images": images}, _digest([_records_digest(session, used), levels])
 
 
 # --------------------------------------------------------------------------- runner
@@ -791,24 +1098,38 @@ def build_geometry(alphas: Sequence[np.ndarray], cameras: Sequence[Camera], rms_
 
 def build_model(session_dir, out_dir, *, config: BuildConfig = BuildConfig(), ground_truth: bool = False,
                 progress: Callable[[int, int], None] | None = None,
-                on_step: Callable[[str], None] | None = None) -> BuildReport:
+                on_step: Callable[[str], None] | None = None, resume: bool = False,
+                executor=None) -> BuildReport:
     """Build the opacity-hull model of a session (see the module docstring).
+
+    The build is a chain of steps (:func:`step_cameras`, :func:`step_matting`,
+    :func:`step_geometry`, :func:`step_reflectance`, natural field, write, pictures,
+    metrics). Each step's product and a manifest entry (its inputs' digests: image
+    sha256s and mtimes, upstream step keys, and its parameters) go to ``out_dir/build/``.
+    With ``resume`` a step whose key matches and whose outputs are there is reused, and
+    the matting step reuses each view matted before; ``BuildReport.steps`` says what was
+    reused. ``model.toml`` is still written last, and removed first when the model is
+    rewritten, so an interrupted build never looks finished.
 
     Parameters
     ----------
-    session_dir : session folder.
+    session_dir : session folder, or an open :class:`~opacityhull.session.Session`.
     out_dir : model folder (created; files in it are overwritten).
     config : BuildConfig.
     ground_truth : compare with ``groundtruth/`` (simulated sessions) and put the
         metrics in the report.
     progress : callable(done, total) within the current step.
     on_step : callable(step name) when a step starts (CLI progress descriptions).
+    resume : reuse the products of an earlier build into ``out_dir`` whose inputs and
+        parameters are unchanged (``build --resume``).
+    executor : :class:`opacityhull.executor.Executor` for the per-view steps (matting);
+        default serial. Every scheduler gives the same model bit for bit.
 
     Returns
     -------
     BuildReport (also written to ``out_dir/report.json``).
     """
-    session = Session.open(session_dir)
+    session = session_dir if isinstance(session_dir, Session) else Session.open(session_dir)
     out = Path(out_dir)
     timer0 = time.perf_counter()
     # what build would otherwise trust: every listed image there, with its size and
@@ -819,6 +1140,7 @@ def build_model(session_dir, out_dir, *, config: BuildConfig = BuildConfig(), gr
         raise InputError(f"--ground-truth: {session.root} has no groundtruth/ folder (only simulated sessions do)")
     timer = _Timer(on_step)
     timer.seconds["verify"] = verify_s
+    store = _StepStore(out, resume=resume)
     notes: list[str] = [] if config.verify_checksums else [
         "manifest checksums were not verified (verify_checksums=False): sizes and ids only"]
     nonfinite: list[str] = []
@@ -831,56 +1153,21 @@ def build_model(session_dir, out_dir, *, config: BuildConfig = BuildConfig(), gr
 
     prog = progress or (lambda done, total: None)
 
-    # 1. cameras
     with timer.step("cameras"):
-        views = view_list(session, exclude=config.exclude_views)
-        cams = resolve_cameras(session, views, source=config.cameras, progress=prog,
-                               drop_uncalibrated=config.drop_uncalibrated_cameras)
-        if cams.kept is not None and len(cams.kept) < len(views):
-            names = _camera_names(session)
-            for c, why in cams.dropped_cameras.items():
-                n = sum(1 for cc, _ in views if cc == c)
-                notes.append(f"camera {names.get(c, c)} could not be calibrated ({why}): its {n} view(s) were left "
-                             "out of the model")
-            views = cams.kept
-        vids = [view_id(c, a) for c, a in views]
+        views, cams, cameras_key, cam_notes = step_cameras(session, config, store, progress=prog)
+        notes.extend(cam_notes)
+    vids = [view_id(c, a) for c, a in views]
     V = len(views)
 
-    # 2. matting (or imported masks)
-    alphas: list[np.ndarray] = []
-    matte_stats = []
-    backdrop_sources = set()
     with timer.step("matting"):
-        use_masks = "mask" in session.phases() and "matting" not in session.phases()
-        drift_mode = _drift_mode(session, config)
-        mopts = replace(config.matting, drift=drift_mode)
-        for i, ((c, a), cam) in enumerate(zip(views, cams.views)):
-            if use_masks:
-                alpha = _mask_alpha(session, c, a)
-                backdrop_sources.add("imported masks")
-            else:
-                C, B, cc, bc, src = load_matting_pairs(session, c, a, cam, backdrops=config.backdrops)
-                finite(C, f"view {vids[i]} matting shots")
-                finite(B, f"view {vids[i]} backdrop shots")
-                backdrop_sources.add(src)
-                res = solve_matte(C, B, c_saturation=cc, b_saturation=bc, options=mopts)
-                alpha = res.alpha
-                matte_stats.append({"view": vids[i], "unknown_frac": float(res.unknown.mean()),
-                                    "saturated_frac": float(res.saturated.mean()),
-                                    "invalid_frac": float(res.invalid.mean()), "noise_sigma": res.noise_sigma,
-                                    "K": int(C.shape[0]),
-                                    "drift": res.drift.to_dict() if res.drift is not None else None})
-            if alpha.shape != (cam.height, cam.width):
-                raise FormatError(f"view {vids[i]}: alpha is {alpha.shape[1]}x{alpha.shape[0]}, camera is "
-                                  f"{cam.width}x{cam.height}")
-            alphas.append(alpha)
-            prog(i + 1, V)
-    backdrop_source = ", ".join(sorted(backdrop_sources))
-    if any("display geometry" in s for s in backdrop_sources):
+        mattes = step_matting(session, views, cams, config, store, executor=executor, progress=prog)
+    alphas = mattes.alphas
+    nonfinite.extend(mattes.nonfinite[:1000])
+    backdrop_source = ", ".join(sorted(mattes.sources))
+    if any("display geometry" in s for s in mattes.sources):
         notes.append("backdrops predicted from the display geometry (no object-absent captures): an "
                      "approximation without display falloff or blur")
 
-    # 7. views: opacity light field samples (computed lazily while writing)
     view_infos = [ViewInfo(i, vids[i], c, float(a), cams.views[i]) for i, (c, a) in enumerate(views)]
     colour_shots = [_colour_shot(session, c, a) for c, a in views]
     missing_colour = [vids[i] for i, (s, _) in enumerate(colour_shots) if s is None]
@@ -889,153 +1176,116 @@ def build_model(session_dir, out_dir, *, config: BuildConfig = BuildConfig(), gr
                           f"{missing_colour[:5]}: nothing to colour the model with")
 
     def view_rgba(i: int) -> np.ndarray:
-        obj, bg = colour_shots[i]
-        Cimg = finite(_rgb(session.load_radiance(obj)), f"view {vids[i]} colour shot {obj}")
-        a = alphas[i]
-        if bg is not None:
-            prem = Cimg - (1.0 - a)[..., None] * _rgb(session.load_radiance(bg))
-        elif use_masks:
-            prem = Cimg * a[..., None]  # external images: colour seen through the mask
-        else:
-            prem = Cimg
-        F = straight_from_premul(np.nan_to_num(prem, nan=0.0, posinf=0.0, neginf=0.0), a, eps=config.alpha_eps)
-        return np.concatenate([np.maximum(F, 0.0), a[..., None]], axis=-1).astype(np.float32)
+        return _view_rgba(session, colour_shots[i], alphas[i], use_masks=mattes.use_masks,
+                          alpha_eps=config.alpha_eps,
+                          finite=lambda img, where: finite(img, f"view {vids[i]} {where.removeprefix('view ')}"))
 
-    # 3-6. silhouettes, hull, surfels, visibility
-    rig_session = _is_rig_session(session)
-    geo = None
-    try:
-        geo = session.geometry
-    except FormatError:
-        pass
-    fallback = _rig_volume(geo) if rig_session else None
-    rms_per_view = [cams.rms_px.get(c, 0.0) for c, _ in views]
-    g = build_geometry(alphas, cams.views, rms_per_view, vids, config=config, rig_session=rig_session,
-                       fallback_box=fallback, step=timer.step, progress=prog,
-                       images=(lambda i: view_rgba(i)[..., :3]) if config.refine else None)
+    g, geometry_key = step_geometry(session, views, cams, mattes, cameras_key, config, store, colour=colour_shots,
+                                    step=timer.step, progress=prog)
     notes.extend(g.notes)
-    sils, pin, dilations, occ, grid, surfels, hull_info = g.sils, g.pin, g.dilations, g.occ, g.grid, g.surfels, g.info
+    sils, pin, occ, grid, surfels = g.sils, g.pin, g.occ, g.grid, g.surfels
+    hull_info = dict(g.info)
     dilations = {c: g.dilations[i] for i, (c, _) in enumerate(views)}
     hull_info["dilate_px_per_camera"] = {str(k): v for k, v in sorted(dilations.items())}
 
-    # 8. reflectance
-    reflectance = None
     with timer.step("reflectance"):
-        refl = session.select(phase="reflectance", kind=None) if config.reflectance else []
-        if refl:
-            per_view: dict[tuple, dict[str, str]] = {}
-            samples: dict[str, LightSample] = {}
-            levels: dict[str, float] = {}
-            plan_level = _plan_reflectance_level(session)
-            unknown_level = 0
-            for r in refl:
-                if not r.object_present or r.light is None:
-                    continue
-                arr = float(r.lights_deg or 0.0)
-                key = light_key(r.light, arr)
-                samples.setdefault(key, LightSample(key, int(r.light), arr))
-                per_view.setdefault((r.camera, round(r.table_deg % 360.0, 6)), {}).setdefault(key, r.shot)
-                lv = (r.extra or {}).get("level", plan_level)
-                if lv is None:
-                    unknown_level += 1
-                    lv = 255
-                try:
-                    lv = float(lv)
-                except (TypeError, ValueError):
-                    lv = float("nan")
-                if not (0 < lv <= 255):
-                    raise FormatError(f"{session.root}: reflectance shot {r.shot} was taken at DMX level {lv!r}; "
-                                      "expected 1..255 (the one-light image is normalised to full level)")
-                levels.setdefault(r.shot, lv)
-            if unknown_level:
-                notes.append(f"reflectance: {unknown_level} one-light image(s) record no DMX level; taken as full "
-                             "level (255)")
-            if any(v != 255 for v in levels.values()):
-                notes.append("reflectance: one-light images taken below full DMX level were scaled by 255/level "
-                             "(the model stores radiance at full level)")
-            common = set(samples)
-            for c, a in views:
-                common &= set(per_view.get((c, round(a % 360.0, 6)), {}))
-            dropped = set(samples) - common
-            if dropped:
-                notes.append(f"reflectance: {len(dropped)} light sample(s) missing in some views were left out")
-            if common:
-                lights = [samples[k] for k in sorted(common, key=lambda k: (samples[k].array_deg, samples[k].light_id))]
-
-                def images(i: int) -> dict[str, np.ndarray]:
-                    c, a = views[i]
-                    shots = per_view[(c, round(a % 360.0, 6))]
-                    mask = (alphas[i] > config.alpha_eps)[..., None]
-                    outd = {}
-                    for L in lights:
-                        shot = shots[L.key]
-                        # radiance at full DMX level: a light dimmed to `level` emits level/255
-                        img = finite(_rgb(session.load_radiance(shot)), f"view {vids[i]} one-light shot {shot}"
-                                     ) * np.float32(255.0 / levels[shot])
-                        outd[L.key] = np.where(mask, np.nan_to_num(img, nan=0.0, posinf=0.0, neginf=0.0), 0.0
-                                               ).astype(np.float32)
-                    return outd
-
-                reflectance = {"lights": lights, "images": images}
-            else:
-                notes.append("reflectance: no light sample present in every view; none attached")
+        reflectance, refl_digest = step_reflectance(session, views, vids, alphas, config, notes, finite)
 
     # 8b. natural-illumination reflectance field (Matusik, Loper & Pfister 2004)
     natural = None
+    natural_key = ""
     with timer.step("natural"):
         if config.natural and ("envmatte" in session.phases() or "natural" in session.phases()):
             from .natural_field import estimate_session_natural
 
-            out.mkdir(parents=True, exist_ok=True)
-            natural = estimate_session_natural(session, views, cams.views, alphas, out,
-                                               n_kernels=config.natural_kernels, progress=prog)
+            nat_recs = [r for ph in ("envmatte", "natural") if ph in session.phases()
+                        for r in session.select(phase=ph, kind=None)]
+            nat_in = {"images": _digest(_records_digest(session, nat_recs)), "mattes": mattes.content,
+                      "cameras": cameras_key}
+            nat_p = {"n_kernels": config.natural_kernels}
+            natural_key = _digest({"inputs": nat_in, "params": nat_p})
+            rel = f"{BUILD_DIR}/natural.pkl"
+            natural = store.load(rel) if store.fresh("natural", natural_key) else None
+            if natural is not None:
+                store.reuse("natural")
+            else:
+                t = time.perf_counter()
+                out.mkdir(parents=True, exist_ok=True)
+                natural = estimate_session_natural(session, views, cams.views, alphas, out,
+                                                   n_kernels=config.natural_kernels, progress=prog)
+                store.save(rel, natural)
+                store.record("natural", natural_key, inputs=nat_in, params=nat_p, outputs=[rel, "natural"],
+                             seconds=time.perf_counter() - t)
 
-    # 9. write
     report = BuildReport(model_dir=str(out), views=V, surfels=len(surfels), camera_source=cams.source,
                          backdrop_source=backdrop_source, hull=hull_info, notes=notes)
+    provenance = {"session": str(session.root.resolve()), "rig_source": session.source,
+                  "camera_source": cams.source, "backdrop_source": backdrop_source,
+                  "reflectance_units": "radiance at full DMX level (one-light images scaled by 255/level)",
+                  "build_config": json.dumps(_jsonable(config.to_dict()), sort_keys=True)}
+    write_in = {"geometry": geometry_key, "mattes": mattes.content, "cameras": cameras_key, "natural": natural_key,
+                "colour": _digest([_records_digest(session, session.select(shot=s, kind=None))
+                                   for pair in colour_shots for s in pair if s is not None]),
+                "reflectance": refl_digest, "provenance": _digest(provenance)}
+    write_key = _digest({"inputs": write_in})
     with timer.step("write"):
-        out.mkdir(parents=True, exist_ok=True)
-        provenance = {"session": str(session.root.resolve()), "rig_source": session.source,
-                      "camera_source": cams.source, "backdrop_source": backdrop_source,
-                      "reflectance_units": "radiance at full DMX level (one-light images scaled by 255/level)",
-                      "build_config": json.dumps(_jsonable(config.to_dict()), sort_keys=True)}
-        rgba_iter = (view_rgba(i) for i in range(V))
-        extra = None
-        if natural is not None:
-            report.hull["natural"] = {k: v for k, v in natural.items() if k != "files"}
-            extra = {"natural": {"present": True, "format": "opacityhull.natural/1", "dir": "natural",
-                                 "n_kernels": int(natural["n_kernels"]),
-                                 "weights_dtype": str(natural.get("weights_dtype", "float16")),
-                                 "displays": {n: {"domain_hw": list(d["domain_hw"]), "images": int(d["images"])}
-                                              for n, d in natural["displays"].items()}}}
-        write_model(out, views=view_infos, surfels=surfels, view_rgba=rgba_iter, rig=session.meta.get("rig"),
-                    provenance=provenance, reflectance=reflectance, extra_meta=extra, progress=prog)
-        if cams.rig:
-            from ..camera import write_opencv_yaml
+        if store.fresh("write", write_key) and (out / "model.toml").is_file():
+            store.reuse("write")
+        else:
+            t = time.perf_counter()
+            out.mkdir(parents=True, exist_ok=True)
+            # an earlier model's model.toml would make a half-rewritten folder look finished
+            (out / "model.toml").unlink(missing_ok=True)
+            extra = None
+            if natural is not None:
+                extra = {"natural": {"present": True, "format": "opacityhull.natural/1", "dir": "natural",
+                                     "n_kernels": int(natural["n_kernels"]),
+                                     "weights_dtype": str(natural.get("weights_dtype", "float16")),
+                                     "displays": {n: {"domain_hw": list(d["domain_hw"]), "images": int(d["images"])}
+                                                  for n, d in natural["displays"].items()}}}
+            outputs = ["model.toml"]
+            if cams.rig:
+                from ..camera import write_opencv_yaml
 
-            for i, rc in enumerate(cams.rig):
-                if rc is None:
-                    continue
-                extra = {"reproj_rms_px": cams.rms_px[i]} if i in cams.rms_px else None
-                name = session.geometry.cameras[i].name if i < len(session.geometry.cameras) else f"cam{i}"
-                write_opencv_yaml(out / "calibration" / f"{name}.yaml", rc.with_name(name), extra=extra)
+                for i, rc in enumerate(cams.rig):
+                    if rc is None:
+                        continue
+                    yx = {"reproj_rms_px": cams.rms_px[i]} if i in cams.rms_px else None
+                    name = session.geometry.cameras[i].name if i < len(session.geometry.cameras) else f"cam{i}"
+                    write_opencv_yaml(out / "calibration" / f"{name}.yaml", rc.with_name(name), extra=yx)
+                    outputs.append(f"calibration/{name}.yaml")
+            write_model(out, views=view_infos, surfels=surfels, view_rgba=_LazyViews(view_rgba, V),
+                        rig=session.meta.get("rig"), provenance=provenance, reflectance=reflectance,
+                        extra_meta=extra, progress=prog)
+            store.record("write", write_key, inputs=write_in, params={}, outputs=outputs,
+                         seconds=time.perf_counter() - t)
+    if natural is not None:
+        report.hull["natural"] = {k: v for k, v in natural.items() if k != "files"}
 
-    # 10. pictures
     with timer.step("pictures"):
         if config.pictures:
-            report.pictures = _pictures(out, session, views, vids, alphas, sils, pin, surfels, cams, colour_shots)
+            pic_key = _digest({"write": write_key})
+            prev = store.steps.get("pictures", {})
+            if store.fresh("pictures", pic_key):
+                report.pictures = list(prev.get("outputs", []))
+                store.reuse("pictures")
+            else:
+                t = time.perf_counter()
+                report.pictures = _pictures(out, session, views, vids, alphas, sils, pin, surfels, cams,
+                                            colour_shots)
+                store.record("pictures", pic_key, inputs={"write": write_key}, params={},
+                             outputs=report.pictures, seconds=time.perf_counter() - t)
 
-    # 11. metrics
     metrics: dict = {}
     if cams.calibration is not None:
-        metrics["reproj_rms_px"] = float(cams.calibration.rms_px)
         cal = cams.calibration
+        metrics["reproj_rms_px"] = float(cal.rms_px)
         metrics["reproj_rms_px_per_camera"] = {cal.rig_cameras[c].name: float(cal.reproj_rms_px[c])
                                                for c in cal.camera_indices}
         if cams.dropped_cameras:
             metrics["uncalibrated_cameras"] = {cal.rig_cameras[c].name: why for c, why in cams.dropped_cameras.items()}
-    if matte_stats:
-        drift = _drift_summary(matte_stats, drift_mode)
+    if mattes.stats:
+        drift = _drift_summary(mattes.stats, mattes.drift_mode)
         report.hull["matting_drift"] = drift
         metrics["matting_drift_mode"] = drift["mode"]
         if drift["mode"] != "none":
@@ -1047,9 +1297,9 @@ def build_model(session_dir, out_dir, *, config: BuildConfig = BuildConfig(), gr
                              "were resampled")
         else:
             notes.append(f"matting: photometric drift not corrected ({drift['why']})")
-        metrics["matting_unknown_frac"] = float(np.mean([m["unknown_frac"] for m in matte_stats]))
-        metrics["matting_saturated_frac"] = float(np.mean([m["saturated_frac"] for m in matte_stats]))
-        metrics["matting_backdrops_K"] = int(np.median([m["K"] for m in matte_stats]))
+        metrics["matting_unknown_frac"] = float(np.mean([m["unknown_frac"] for m in mattes.stats]))
+        metrics["matting_saturated_frac"] = float(np.mean([m["saturated_frac"] for m in mattes.stats]))
+        metrics["matting_backdrops_K"] = int(np.median([m["K"] for m in mattes.stats]))
     if ground_truth:
         with timer.step("metrics"):
             metrics.update(_ground_truth_metrics(session, views, vids, alphas, occ, grid, cams, config, pin,
@@ -1062,18 +1312,14 @@ def build_model(session_dir, out_dir, *, config: BuildConfig = BuildConfig(), gr
     report.metrics = metrics
     report.seconds = {k: round(v, 4) for k, v in timer.seconds.items()}
     report.seconds["total"] = round(sum(timer.seconds.values()), 4)
+    report.steps = dict(store.status)
+    report.scheduler = getattr(executor, "scheduler", "serial")
     from ..imageio import atomic_path
     from ..cliutil import to_jsonable
 
     with atomic_path(out / "report.json") as tmp:
         tmp.write_text(json.dumps(to_jsonable(report.to_dict()), indent=2) + "\n")
     return report
-
-
-def _jsonable(d):
-    from ..cliutil import to_jsonable
-
-    return to_jsonable(d)
 
 
 def _pictures(out: Path, session, views, vids, alphas, sils, pin, surfels, cams, colour_shots) -> list[str]:

@@ -46,6 +46,9 @@ def _human(summary: dict) -> None:
             m.add_row(k, f"{v:.4g}" if isinstance(v, float) else str(v))
         c.print(m)
     c.print(f"cameras: {summary['camera_source']}; backdrops: {summary['backdrop_source']}")
+    reused = {k: v for k, v in (summary.get("steps") or {}).items() if v != "ran"}
+    if reused:
+        c.print("resumed: " + ", ".join(f"{k} {v}" for k, v in reused.items()), markup=False)
     res = summary.get("resolution") or {}
     if res:
         c.print(f"hull resolution {res['hull_res']}, oversample {res['oversample']}: {res['reason']}", markup=False)
@@ -143,7 +146,9 @@ def register(app, groups) -> None:
         ground_truth: bool = typer.Option(False, "--ground-truth",
                                           help="Compare with the simulator's groundtruth/ (alpha MAE, hull IoU, "
                                                "pose errors) and report the metrics."),
-        alpha_threshold: float = typer.Option(0.5, "--alpha-threshold", help="Silhouette = alpha > threshold."),
+        alpha_threshold: Optional[float] = typer.Option(None, "--alpha-threshold",
+                                                        help="Silhouette = alpha > threshold (default: "
+                                                             "BuildConfig.alpha_threshold)."),
         cameras: str = typer.Option("auto", "--cameras",
                                     help="auto (calibration phase → calibration/ → cameras/), or for debugging "
                                          "only: groundtruth | nominal."),
@@ -155,16 +160,30 @@ def register(app, groups) -> None:
         bounds: Optional[str] = typer.Option(None, "--bounds",
                                              help="Hull box x0,y0,z0,x1,y1,z1 in metres (object frame); "
                                                   "default: from the silhouettes."),
-        oversample: int = typer.Option(1, "--oversample", help="Surfel rays per voxel column per axis."),
-        max_alpha_std: float = typer.Option(0.05, "--max-alpha-std",
-                                            help="Matting: pixels whose predicted alpha std exceeds this are "
-                                                 "filled from their neighbours."),
+        oversample: Optional[int] = typer.Option(None, "--oversample",
+                                                 help="Surfel rays per voxel column per axis (default: "
+                                                      "BuildConfig.surfel_oversample)."),
+        max_alpha_std: Optional[float] = typer.Option(None, "--max-alpha-std",
+                                                      help="Matting: pixels whose predicted alpha std exceeds this "
+                                                           "are filled from their neighbours (default: "
+                                                           "MattingOptions.max_alpha_std)."),
         require_all_cameras: bool = typer.Option(False, "--require-all-cameras",
                                                  help="With a calibration phase: fail when a camera cannot be "
                                                       "calibrated (default: leave it and its views out, with a "
                                                       "note)."),
         no_reflectance: bool = typer.Option(False, "--no-reflectance", help="Do not attach one-light images."),
         no_pictures: bool = typer.Option(False, "--no-pictures", help="Skip the PNG pictures."),
+        resume: bool = typer.Option(False, "--resume",
+                                    help="Reuse the steps of an earlier (or interrupted) build into --out whose "
+                                         "inputs and options are unchanged (OUT/build/manifest.json); the report "
+                                         "says which steps were reused."),
+        scheduler: str = typer.Option("serial", "--scheduler",
+                                      help="Where the per-view steps run: serial | threads | processes | "
+                                           "tcp://HOST:PORT (a dask scheduler; see docs/distributed.md)."),
+        scheduler_timeout: float = typer.Option(10.0, "--scheduler-timeout",
+                                                help="Seconds to wait for a tcp:// scheduler to answer."),
+        workers: Optional[int] = typer.Option(None, "--workers",
+                                              help="threads/processes: pool size (default: the cores)."),
         as_json: bool = typer.Option(False, "--json", help="Print one JSON object on stdout."),
     ):
         """Build the opacity hull of a session: cameras, matting, visual hull, surfels,
@@ -172,15 +191,23 @@ def register(app, groups) -> None:
         from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn,
                                    TimeRemainingColumn)
 
-        from .build import BuildConfig, build_model
+        from ..executor import open_executor, parse_scheduler
+        from .build import DRIFT_MODES, BuildConfig, build_model
         from .matting import MattingOptions
 
+        parse_scheduler(scheduler)
         check_build_paths(session, out)
 
+        if matting_drift not in DRIFT_MODES:
+            raise ConfigError(f"--matting-drift {matting_drift!r}: expected one of {', '.join(DRIFT_MODES)}")
+        # options left out keep the config dataclasses' defaults (one place for them)
+        d, dm = BuildConfig(), MattingOptions()
+        matting = MattingOptions(max_alpha_std=dm.max_alpha_std if max_alpha_std is None else max_alpha_std)
         cfg = BuildConfig(hull_res=hull_res, carve_tolerance=carve_tolerance, matting_drift=matting_drift,
-                          alpha_threshold=alpha_threshold, cameras=cameras, backdrops=backdrops,
-                          exclude_views=tuple(exclude_view or ()), bounds_m=_parse_bounds(bounds),
-                          surfel_oversample=oversample, matting=MattingOptions(max_alpha_std=max_alpha_std),
+                          cameras=cameras, backdrops=backdrops,
+                          alpha_threshold=d.alpha_threshold if alpha_threshold is None else alpha_threshold,
+                          surfel_oversample=d.surfel_oversample if oversample is None else oversample,
+                          exclude_views=tuple(exclude_view or ()), bounds_m=_parse_bounds(bounds), matting=matting,
                           reflectance=not no_reflectance, pictures=not no_pictures,
                           drop_uncalibrated_cameras=not require_all_cameras)
         with Progress(TextColumn("[bold]build: {task.description}"), BarColumn(), MofNCompleteColumn(),
@@ -199,9 +226,9 @@ def register(app, groups) -> None:
             def prog(done: int, total: int | None = None) -> None:
                 bar.update(tasks[-1], completed=done, total=total)
 
-            with writing_to(out):
+            with open_executor(scheduler, workers=workers, timeout_s=scheduler_timeout) as ex, writing_to(out):
                 report = build_model(session, out, config=cfg, ground_truth=ground_truth, progress=prog,
-                                     on_step=on_step)
+                                     on_step=on_step, resume=resume, executor=ex)
             bar.update(tasks[-1], description="done")
         summary = report.summary()
         summary["notes"] = list(report.notes)
@@ -217,9 +244,10 @@ def register(app, groups) -> None:
         drift: str = typer.Option("field", "--drift",
                                   help="Photometric drift correction of the backdrops: field (smooth per-channel "
                                        "gain over the frame) | affine (3x3 + offset) | gain | none."),
-        max_alpha_std: float = typer.Option(0.05, "--max-alpha-std",
-                                            help="Pixels whose predicted alpha std exceeds this are filled from "
-                                                 "their neighbours."),
+        max_alpha_std: Optional[float] = typer.Option(None, "--max-alpha-std",
+                                                      help="Pixels whose predicted alpha std exceeds this are "
+                                                           "filled from their neighbours (default: "
+                                                           "MattingOptions.max_alpha_std)."),
         as_json: bool = typer.Option(False, "--json", help="Print one JSON object on stdout."),
     ):
         """Triangulation matting of your own shots: --object A.jpg B.jpg [...] --backdrop A.jpg

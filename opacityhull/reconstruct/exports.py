@@ -12,7 +12,7 @@ from __future__ import annotations
 import json
 import os
 from pathlib import Path
-from typing import Sequence
+from typing import Any, Sequence
 
 import numpy as np
 
@@ -181,7 +181,7 @@ def export_nerfstudio(cameras: Sequence[Camera], image_paths: Sequence, out_path
     base = out.parent.resolve() if out.parent.exists() else out.parent.absolute()
     frames = []
     for i, (cam, img) in enumerate(zip(cameras, image_paths)):
-        fr = {"file_path": _rel_posix(img, base)}
+        fr: dict[str, Any] = {"file_path": _rel_posix(img, base)}
         intr = nerfstudio_intrinsics(cam)
         intr.pop("camera_model", None)
         fr.update({k: (float(v) if k not in ("w", "h") else int(v)) for k, v in intr.items()})

@@ -15,8 +15,9 @@ from __future__ import annotations
 import json
 import logging
 from dataclasses import fields, replace
+from functools import lru_cache
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Literal
 
 import numpy as np
 
@@ -25,7 +26,7 @@ from ..model import OpacityHullModel, Surfels
 from .build import BuildConfig, build_geometry
 from .matting import MattingOptions
 
-__all__ = ["build_config_of", "geometry_without", "run_loo_holdouts"]
+__all__ = ["build_config_of", "geometry_without", "rebuild_without", "run_loo_holdouts"]
 
 log = logging.getLogger(__name__)
 
@@ -90,10 +91,12 @@ def geometry_without(model: OpacityHullModel, *, config: BuildConfig | None = No
         c = cfg
         if c.carve_tolerance is not None and c.carve_tolerance > max(0, len(keep) - 2):
             c = replace(c, carve_tolerance=max(0, len(keep) - 2))
-        images = None
-        if c.refine:  # the photo-consistency cost never sees the held-out photograph
-            def images(q, keep=keep):
+        images: Callable[[int], np.ndarray] | None = None
+        if c.refine != "none":  # the photo-consistency cost never sees the held-out photograph
+            def kept_rgb(q: int, keep=keep) -> np.ndarray:
                 return model.load_view_rgba(keep[q])[..., :3]
+
+            images = kept_rgb
         g = build_geometry([alphas[j] for j in keep], [cams[j] for j in keep], [rms[j] for j in keep],
                            [model.views[j].id for j in keep], config=c, rig_session=rig_session,
                            fallback_box=fallback, images=images)
@@ -101,17 +104,61 @@ def geometry_without(model: OpacityHullModel, *, config: BuildConfig | None = No
         vis = np.zeros((len(s), V), bool)
         vis[:, keep] = s.visible_bool()
         log.info("holdout %s: %d surfels rebuilt from %d views", model.views[i].id, len(s), len(keep))
-        return Surfels.from_bool(s.positions, s.normals, s.radii, vis)
+        out = Surfels.from_bool(s.positions, s.normals, s.radii, vis)
+        out.depth_m = s.depth_m
+        return out
 
     return rebuild
 
 
+@lru_cache(maxsize=2)
+def _rebuilder(root: str, mtime_ns: int) -> Callable[[int], Surfels]:
+    # one model (its alphas loaded once) per worker process, re-read if rewritten
+    return geometry_without(OpacityHullModel.open(root))
+
+
+def rebuild_without(item: tuple) -> Surfels:
+    """``(model folder, i)`` → the model's surfels rebuilt without view ``i``
+    (:func:`geometry_without`): the per-view task of ``eval loo --holdout geometry
+    --scheduler ...``. Workers open the model from its path (a folder they all see)."""
+    root, i = item
+    try:
+        m = (Path(root) / "model.toml").stat().st_mtime_ns
+    except OSError:
+        m = -1  # OpacityHullModel.open names the problem
+    return _rebuilder(str(root), m)(int(i))
+
+
+class _Prefetched:
+    """``i → Surfels`` for the views of ``order``, rebuilt ``batch`` at a time through
+    ``executor`` and dropped once handed out: memory holds one batch of rebuilt
+    geometries, not one per view."""
+
+    def __init__(self, executor, root: Path, order, *, batch: int):
+        self.ex, self.root, self.order = executor, str(root), list(order)
+        self.batch = max(1, int(batch))
+        self.cache: dict[int, Surfels] = {}
+
+    def __call__(self, i: int) -> Surfels:
+        if i not in self.cache:
+            k = self.order.index(i) if i in self.order else None
+            todo = [i] if k is None else [j for j in self.order[k:k + self.batch] if j not in self.cache]
+            for j, s in zip(todo, self.ex.map(rebuild_without, [(self.root, j) for j in todo])):
+                self.cache[j] = s
+        return self.cache.pop(i)
+
+
 def run_loo_holdouts(model_path, *, views=None, config=None, holdout: str = "both", out=None,
-                     progress=None) -> dict:
+                     progress=None, executor=None) -> dict:
     """``eval loo`` with ``--holdout blend|geometry|both``: the render stage's
     leave-one-out (:func:`opacityhull.render.evaluate.leave_one_out`) with the geometry
     rebuilt here. ``both`` reports both; the top-level figures are the geometry
-    holdout's (the honest one). Writes ``loo.json`` and the contact sheets to ``out``."""
+    holdout's (the honest one). Writes ``loo.json`` and the contact sheets to ``out``.
+
+    ``executor`` (:mod:`opacityhull.executor`, default serial): the geometry rebuilds,
+    the costly part, run there two per worker ahead of the renders; the figures are
+    the same as serial (each rebuild is the same deterministic function of the model).
+    ``rebuild_ms`` then measures the wait for a rebuild, not its cost."""
     from ..cliutil import to_jsonable
     from ..imageio import atomic_path
     from ..render.evaluate import leave_one_out, select_views
@@ -127,9 +174,15 @@ def run_loo_holdouts(model_path, *, views=None, config=None, holdout: str = "bot
     out = Path(out) if out is not None else Path(model_path) / "pictures"
     pv = prepare_model_views(model)
     results = {}
-    kinds = ["blend", "geometry"] if holdout == "both" else [holdout]
+    kinds: list[Literal["blend", "geometry"]] = (["blend", "geometry"] if holdout == "both"
+                                                 else ["geometry" if holdout == "geometry" else "blend"])
     for kind in kinds:
-        gw = geometry_without(model) if kind == "geometry" else None
+        gw = None
+        if kind == "geometry":
+            if executor is not None and executor.scheduler != "serial":
+                gw = _Prefetched(executor, model.root, idx, batch=2 * executor.n_workers)
+            else:
+                gw = geometry_without(model)
         sheet = out / ("loo_sheet.png" if len(kinds) == 1 else f"loo_sheet_{kind}.png")
         results[kind] = leave_one_out(model, views=idx, config=config, sheet_path=sheet, prepared=pv,
                                       progress=progress, holdout=kind, geometry_without=gw)

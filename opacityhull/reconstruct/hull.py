@@ -40,6 +40,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Literal, overload
 
 import numpy as np
 from numba import njit, prange
@@ -112,7 +113,8 @@ class HullGrid:
         h = float(ext.max()) / int(resolution)
         shape = np.maximum(1, np.ceil(ext / h - 1e-9).astype(int))
         centre = 0.5 * (lo + hi)
-        return cls(centre - 0.5 * shape * h, h, tuple(int(s) for s in shape))
+        nx, ny, nz = (int(s) for s in shape)
+        return cls(centre - 0.5 * shape * h, h, (nx, ny, nz))
 
     @property
     def hi(self) -> np.ndarray:
@@ -292,7 +294,7 @@ def hull_bounds(silhouettes, cameras, *, margin_px: float = 1.0, fallback=None,
                 if n > 0:
                     A.append(-a[:3] / n)
                     b.append(a[3] / n)
-        bounds = [(None, None)] * 3 if fb_lo is None else list(zip(fb_lo, fb_hi))
+        bounds = [(None, None)] * 3 if fb_lo is None or fb_hi is None else list(zip(fb_lo, fb_hi))
         lo, hi = np.empty(3), np.empty(3)
         for ax in range(3):
             for sign, out in ((1.0, lo), (-1.0, hi)):
@@ -630,7 +632,9 @@ def enclosed_holes(silhouette) -> np.ndarray:
     see-through gap shows in several neighbouring views."""
     from scipy import ndimage
 
-    return ndimage.binary_fill_holes(np.asarray(silhouette, dtype=bool))
+    filled = ndimage.binary_fill_holes(np.asarray(silhouette, dtype=bool))
+    assert filled is not None  # it returns None only when given output=
+    return filled
 
 
 def carve_robust(silhouettes, cameras, grid: HullGrid, *, tolerance: int = 1, root_cell: int = 32,
@@ -653,8 +657,17 @@ def carve_robust(silhouettes, cameras, grid: HullGrid, *, tolerance: int = 1, ro
     return (occ, st, strong) if return_stats else (occ, strong)
 
 
+@overload
 def carve_octree(silhouettes, cameras, grid: HullGrid, *, root_cell: int = 32,
-                 return_stats: bool = False, tolerance: int = 0):
+                 return_stats: Literal[False] = False, tolerance: int = 0) -> np.ndarray: ...
+@overload
+def carve_octree(silhouettes, cameras, grid: HullGrid, *, root_cell: int = 32,
+                 return_stats: Literal[True], tolerance: int = 0) -> tuple[np.ndarray, OctreeStats]: ...
+@overload
+def carve_octree(silhouettes, cameras, grid: HullGrid, *, root_cell: int = 32,
+                 return_stats: bool = False, tolerance: int = 0) -> np.ndarray | tuple[np.ndarray, OctreeStats]: ...
+def carve_octree(silhouettes, cameras, grid: HullGrid, *, root_cell: int = 32,
+                 return_stats: bool = False, tolerance: int = 0) -> np.ndarray | tuple[np.ndarray, OctreeStats]:
     """Octree visual-hull carve (numba, parallel over root cells); see the module docstring.
 
     Parameters

@@ -20,6 +20,7 @@ import json
 import logging
 import time
 from pathlib import Path
+from typing import Any, cast
 
 import numpy as np
 
@@ -63,7 +64,7 @@ def matte_stats(alpha) -> dict:
 
 
 def matte_files(object_paths, backdrop_paths, out_dir, *, over=None, drift: str = "field",
-                max_alpha_std: float = 0.05) -> dict:
+                max_alpha_std: float | None = None) -> dict:
     """Matte K (object, backdrop) image pairs and write the results to ``out_dir``.
 
     Parameters
@@ -72,7 +73,7 @@ def matte_files(object_paths, backdrop_paths, out_dir, *, over=None, drift: str 
     out_dir : folder to write (created).
     over : optional path of a new background; resized (area) to the shots' size if it differs.
     drift : "none" | "gain" | "affine" | "field" (see :class:`.matting.MattingOptions`).
-    max_alpha_std : see :class:`.matting.MattingOptions`.
+    max_alpha_std : see :class:`.matting.MattingOptions` (None: its default).
 
     Returns
     -------
@@ -90,7 +91,9 @@ def matte_files(object_paths, backdrop_paths, out_dir, *, over=None, drift: str 
                          "(object k, backdrop k), the counts must match")
     if len(obj) < 2:
         raise InputError(f"triangulation matting needs at least 2 (object, backdrop) pairs, got {len(obj)}")
-    opts = MattingOptions(max_alpha_std=max_alpha_std, drift=drift)
+    # MattingOptions checks drift against DriftMode (ConfigError naming the value)
+    opts = MattingOptions(drift=cast(Any, drift),
+                          max_alpha_std=MattingOptions().max_alpha_std if max_alpha_std is None else max_alpha_std)
     C = [load_rgb(p, "--object") for p in obj]
     B = [load_rgb(p, "--backdrop") for p in back]
     ref_shape = C[0].shape

@@ -160,7 +160,7 @@ class DriftOptions:
             raise InputError(f"drift tukey_c must be > 0, got {self.tukey_c}")
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class MattingOptions:
     """Options of :func:`solve_matte`.
 
@@ -946,7 +946,8 @@ def object_support(alpha, *, seed: float = 0.9, low: float = 0.1, margin_px: int
     a = np.nan_to_num(np.asarray(alpha, dtype=np.float32), nan=1.0)
     if a.ndim != 2:
         raise ShapeError(f"alpha has shape {a.shape}, expected (H, W)")
-    n, lab = cv2.connectedComponents((a > low).astype(np.uint8), connectivity=8)
+    n, lab_cv = cv2.connectedComponents((a > low).astype(np.uint8), connectivity=8)
+    lab = np.asarray(lab_cv, np.int64)  # cv2's stubs type the labels as MatLike
     keep = np.zeros(n, bool)
     keep[np.unique(lab[a > seed])] = True
     keep[0] = False

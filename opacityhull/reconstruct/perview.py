@@ -23,7 +23,8 @@ from .matting import MattingOptions, solve_matte
 
 log = logging.getLogger(__name__)
 
-__all__ = ["ViewTask", "matte_view", "matte_view_result", "matte_view_checksum", "view_tasks"]
+__all__ = ["ViewTask", "matte_view", "matte_view_result", "matte_view_checksum", "view_tasks", "BuildMatteTask",
+           "build_matte", "run_build_matte"]
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -87,7 +88,7 @@ def matte_view_result(task: ViewTask) -> dict:
     """Matte of one view with what ``build`` reports about it: ``alpha`` (H, W) float32,
     ``unknown_frac``, ``saturated_frac``, ``invalid_frac``, ``noise_sigma``, ``K`` and the
     backdrop ``source``."""
-    from .build import load_matting_pairs
+    from .matte_step import load_matting_pairs
 
     s = _open(task.session_dir)
     cam = task.view_camera
@@ -126,3 +127,43 @@ def matte_view_checksum(task: ViewTask) -> dict:
 
     a = np.ascontiguousarray(matte_view(ViewTask(**{**task.__dict__, "out_dir": None})))
     return {"view": task.view, "sha256": hashlib.sha256(a.tobytes()).hexdigest(), "shape": list(a.shape)}
+
+
+@dataclass(frozen=True, kw_only=True)
+class BuildMatteTask:
+    """One view of ``build``'s matting step (:func:`.build.step_matting`).
+
+    session_dir : session folder (a path every worker can read).
+    camera, table_deg : the view; view_camera : its camera as the build resolved it.
+    use_masks : the view's alpha is the imported mask (no matting).
+    backdrops, matting : as ``BuildConfig.backdrops`` and the drift-resolved MattingOptions.
+    alpha_path : where the alpha goes (``MODEL/build/mattes/<view>.npy``, a path the
+        workers can write); key : the step key written beside it.
+    """
+
+    session_dir: str
+    camera: int
+    table_deg: float
+    view_camera: Camera
+    use_masks: bool
+    backdrops: str
+    matting: MattingOptions
+    alpha_path: str
+    key: str
+
+
+def run_build_matte(session: Session, task: BuildMatteTask) -> dict:
+    """Matte ``task``'s view of ``session``, store it (:func:`.matte_step.store_matte`) and
+    return its small sidecar dict (source, stats, NaN notes, key, SHA-256) — never the
+    pixels."""
+    from .matte_step import matte_for_build, store_matte
+
+    alpha, meta = matte_for_build(session, task.camera, task.table_deg, task.view_camera, use_masks=task.use_masks,
+                                  backdrops=task.backdrops, matting=task.matting)
+    return store_matte(Path(task.alpha_path), alpha, {**meta, "key": task.key})
+
+
+def build_matte(task: BuildMatteTask) -> dict:
+    """:func:`run_build_matte` in a worker process: the session is opened from its path
+    (once per worker process, re-read when its manifest changes)."""
+    return run_build_matte(_open(task.session_dir), task)

@@ -27,7 +27,7 @@ normal for the depth at which the views agree:
    view, where even the most frontal view sees the surface grazing (there the hull is
    exact).
 4. **regularisation** — each surfel takes the median depth of the confident (and rim)
-   surfels among its ``neighbours`` nearest (``scipy.spatial.cKDTree``), provided at least
+   surfels among its ``neighbours`` nearest (``scipy.spatial.KDTree``), provided at least
    ``min_support`` of them are; otherwise depth 0. This removes isolated wrong matches and
    fills small gaps. Then ``smooth_iters`` passes of the k-neighbour mean taper the steps
    left between moved and unmoved surfels: the renderer's ε-z-buffer shows a depth step
@@ -501,7 +501,9 @@ def _rim(positions, normals, views, cameras, sils, rim_px, rim_cos):
             continue
         s = sils[v, : cam.height, : cam.width]
         # distance of silhouette pixels to the nearest non-silhouette pixel (the boundary)
-        inner = distance_transform_edt(np.pad(s, 1, constant_values=False))[1:-1, 1:-1]
+        edt = distance_transform_edt(np.pad(s, 1, constant_values=False))
+        assert isinstance(edt, np.ndarray)  # distances only: no indices or out= requested
+        inner = edt[1:-1, 1:-1]
         uv, z = cam.project(positions[sel])
         x = np.floor(uv[:, 0] + 0.5)
         y = np.floor(uv[:, 1] + 0.5)
@@ -539,13 +541,13 @@ def _clamp_into_hull(pos, nrm, depth, sils, cameras, clamped):
 def _grown_radii(points, radii, k, factor):
     """Radii grown to ``factor`` × the distance to the k-th nearest neighbour: moved surfels
     spread apart where the surface is deeper than the hull, and the discs must still meet."""
-    from scipy.spatial import cKDTree
+    from scipy.spatial import KDTree  # (cKDTree is untyped: no stub for the C module)
 
     n = points.shape[0]
     if k < 1 or factor <= 0 or n < 2:
         return radii.copy()
     kk = min(int(k), n - 1)
-    d, _ = cKDTree(points).query(points, k=kk + 1)
+    d, _ = KDTree(points).query(points, k=kk + 1)
     return np.maximum(radii, factor * d[:, -1])
 
 
@@ -590,13 +592,13 @@ def _restore_coverage(cov_h, pos, nrm, new, new_n, new_r, depth, cameras, *, ite
 
 
 def _pca_normals(points, hull_normals, k):
-    from scipy.spatial import cKDTree
+    from scipy.spatial import KDTree  # (cKDTree is untyped: no stub for the C module)
 
     n = points.shape[0]
     if n < 3:
         return hull_normals.copy()
     k = min(max(int(k), 3), n)
-    _, nb = cKDTree(points).query(points, k=k)
+    _, nb = KDTree(points).query(points, k=k)
     q = points[nb] - points[nb].mean(axis=1, keepdims=True)
     cov = np.einsum("nki,nkj->nij", q, q)
     w, vec = np.linalg.eigh(cov)
@@ -687,9 +689,9 @@ def refine_surfels(positions, normals, radii, visibility, cameras, images, alpha
     k = min(int(config.neighbours), N)
     nb = None
     if k > 1:
-        from scipy.spatial import cKDTree
+        from scipy.spatial import KDTree  # (cKDTree is untyped: no stub for the C module)
 
-        _, nb = cKDTree(pos).query(pos, k=k)
+        _, nb = KDTree(pos).query(pos, k=k)
         nd = np.where(anchor[nb], depth_raw[nb], np.nan)
         support = anchor[nb].mean(axis=1)
         with np.errstate(all="ignore"):

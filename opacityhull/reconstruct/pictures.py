@@ -12,25 +12,14 @@
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 from typing import Sequence
 
 import numpy as np
 
-from ..imageio import srgb_encode, write_png
+from ..pictures import contact_sheet, encoded_to_u8, to_srgb8, write_sheet
 
 __all__ = ["matte_contact_sheet", "hull_overlays", "reprojection_histogram", "surfel_mask"]
-
-
-def _label(img8: np.ndarray, text: str) -> np.ndarray:
-    import cv2
-
-    out = np.ascontiguousarray(img8)
-    scale = max(0.3, min(0.5, out.shape[1] / 400.0))
-    cv2.putText(out, text, (3, 12), cv2.FONT_HERSHEY_SIMPLEX, scale, (0, 0, 0), 2, cv2.LINE_AA)
-    cv2.putText(out, text, (3, 12), cv2.FONT_HERSHEY_SIMPLEX, scale, (255, 255, 0), 1, cv2.LINE_AA)
-    return out
 
 
 def _resize(img: np.ndarray, h: int) -> np.ndarray:
@@ -40,35 +29,18 @@ def _resize(img: np.ndarray, h: int) -> np.ndarray:
     return cv2.resize(img, (w, h), interpolation=cv2.INTER_AREA)
 
 
-def _grid(tiles: list[np.ndarray], cols: int) -> np.ndarray:
-    h = max(t.shape[0] for t in tiles)
-    w = max(t.shape[1] for t in tiles)
-    rows = math.ceil(len(tiles) / cols)
-    sheet = np.full((rows * (h + 2), cols * (w + 2), 3), 40, np.uint8)
-    for i, t in enumerate(tiles):
-        r, c = divmod(i, cols)
-        sheet[r * (h + 2) : r * (h + 2) + t.shape[0], c * (w + 2) : c * (w + 2) + t.shape[1]] = t
-    return sheet
-
-
-def _write_rgb8(path, rgb8: np.ndarray) -> Path:
-    write_png(path, rgb8.astype(np.float32) / 255.0, linear=True)
-    return Path(path)
-
-
 def matte_contact_sheet(alphas: Sequence[np.ndarray], names: Sequence[str], out_path, *, thumb_h: int = 120,
                         max_views: int = 48) -> Path:
     """Grid of alpha mattes (white = opaque) labelled with view ids; PNG at ``out_path``."""
     idx = np.linspace(0, len(alphas) - 1, min(len(alphas), max_views)).round().astype(int) if len(alphas) else []
-    tiles = []
+    tiles, labels = [], []
     for i in dict.fromkeys(idx):
         a = np.clip(np.nan_to_num(np.asarray(alphas[i], dtype=np.float32)), 0, 1)
-        g = (a * 255).round().astype(np.uint8)
-        t = _resize(np.repeat(g[..., None], 3, axis=2), thumb_h)
-        tiles.append(_label(t, names[i]))
+        tiles.append(_resize(encoded_to_u8(a), thumb_h))  # alpha is data: shown as is, not sRGB-encoded
+        labels.append(str(names[i]))
     if not tiles:
-        tiles = [np.zeros((thumb_h, thumb_h, 3), np.uint8)]
-    return _write_rgb8(out_path, _grid(tiles, cols=min(8, len(tiles))))
+        tiles, labels = [np.zeros((thumb_h, thumb_h, 3), np.uint8)], ["no views"]
+    return write_sheet(out_path, contact_sheet(tiles, columns=min(8, len(tiles)), labels=labels, background=40))
 
 
 def surfel_mask(positions, radii, camera) -> np.ndarray:
@@ -102,20 +74,20 @@ def hull_overlays(images: Sequence[np.ndarray], silhouettes: Sequence[np.ndarray
     in green and the splatted-surfel outline in red, one tile per given view."""
     import cv2
 
-    tiles = []
+    tiles, labels = [], []
     for img, sil, sm, name in zip(images, silhouettes, surfel_masks, names):
         rgb = np.nan_to_num(np.asarray(img, dtype=np.float32)[..., :3], nan=0.0, posinf=0.0, neginf=0.0)
         scale = float(np.percentile(rgb, 99))
         scale = scale if scale > 0 else 1.0
-        base = (srgb_encode(rgb / scale) * 255).round().astype(np.uint8)
-        base = np.ascontiguousarray(base)
+        base = np.ascontiguousarray(to_srgb8(rgb / scale))
         for mask, colour in ((sil, (0, 255, 0)), (sm, (255, 0, 0))):
             cs, _ = cv2.findContours(np.asarray(mask, dtype=np.uint8), cv2.RETR_LIST, cv2.CHAIN_APPROX_NONE)
             cv2.drawContours(base, cs, -1, colour, 1)
-        tiles.append(_label(_resize(base, thumb_h), name))
+        tiles.append(_resize(base, thumb_h))
+        labels.append(str(name))
     if not tiles:
-        tiles = [np.zeros((thumb_h, thumb_h, 3), np.uint8)]
-    return _write_rgb8(out_path, _grid(tiles, cols=min(4, len(tiles))))
+        tiles, labels = [np.zeros((thumb_h, thumb_h, 3), np.uint8)], ["no views"]
+    return write_sheet(out_path, contact_sheet(tiles, columns=min(4, len(tiles)), labels=labels, background=40))
 
 
 def reprojection_histogram(out_path, *, residuals_px=None, rms_per_camera: dict | None = None) -> Path | None:

@@ -95,7 +95,7 @@ __all__ = [
 KINDS = ("vmf", "linear", "voronoi")
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class KernelConfig:
     """How new lighting is filtered onto the captured light directions.
 
@@ -390,7 +390,12 @@ def integrate_envmap(env: EnvironmentMap | None, light_dirs, *, config: KernelCo
     L = np.asarray(light_dirs, np.float64)
     if L.ndim != 2 or L.shape[1] != 3:
         raise ShapeError(f"light directions have shape {L.shape}, expected (K, 3)")
-    dirs, power = prepared if prepared is not None else _prepare_map(env, config)
+    if prepared is not None:
+        dirs, power = prepared
+    elif env is not None:
+        dirs, power = _prepare_map(env, config)
+    else:
+        raise InputError("integrate_envmap: give an environment map or prepared=prepare_envmap(env)")
     U, group, count = unique_directions(L)
     out = np.zeros((len(U), 3))
     sigma = _sigma(U, config)
@@ -448,6 +453,7 @@ def integrate_envmap_reference(env: EnvironmentMap, light_dirs, *, config: Kerne
                 k = int(np.argmax(L @ w))
                 out[k] += env.radiance[r, c] * sa[r] * frac
             elif config.kind == "linear":
+                assert tri is not None  # built above for "linear"
                 out += np.outer(_linear_weights_slow(tri, w), env.radiance[r, c] * sa[r] * frac)
             else:
                 e = np.array([math.exp((float(L[k] @ w) - 1.0) / sigma**2) for k in range(len(L))])
@@ -467,6 +473,9 @@ def _linear_weights_slow(tri: Triangulation, w: np.ndarray) -> np.ndarray:
             m = x.min()
             if best is None or m > best[0]:
                 best = (m, face, x)
+    if best is None:
+        raise InputError(f"direction {w.tolist()} lies in no facet of the light triangulation (not enclosing "
+                         "the origin?)")
     _, face, x = best
     x = np.clip(x, 0, None)
     x = x / x.sum()

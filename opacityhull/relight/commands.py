@@ -15,11 +15,26 @@ from ..errors import InputError, check_writable
 
 
 def _config(kernel: str, kernel_width: float, lower_hemisphere: str, near_light: bool, pca_rank: Optional[int]):
+    from typing import Any, cast
+
     from .basis import KernelConfig
     from .relit import RelightConfig
 
-    return RelightConfig(kernel=KernelConfig(kind=kernel, width=kernel_width, lower_hemisphere=lower_hemisphere),
+    # the flags arrive as plain strings; KernelConfig.__post_init__ checks them (ConfigError naming the value)
+    kind, lower = cast(Any, kernel), cast(Any, lower_hemisphere)
+    return RelightConfig(kernel=KernelConfig(kind=kind, width=kernel_width, lower_hemisphere=lower),
                          near_light=near_light, pca_rank=pca_rank)
+
+
+def _probe_format(value: str):
+    """``--probe-format`` checked and typed (the runners take only the Literal)."""
+    from typing import cast
+
+    from .envmap import PROBE_FORMATS, ProbeFormat
+
+    if value not in PROBE_FORMATS:
+        raise InputError(f"--probe-format {value!r}: expected one of {', '.join(PROBE_FORMATS)}")
+    return cast(ProbeFormat, value)
 
 
 _ENVMAP_HELP = ("Environment map: equirectangular .exr or Radiance .hdr (+Y up, centre column along +Z), or "
@@ -61,6 +76,7 @@ def register(app, groups) -> None:
                  "irradiance), or 'point:x,y,z,r,g,b' (position in metres, RGB intensity). Adds to --envmap."),
         view: Optional[str] = typer.Option(None, "--view", help="Also render camera CAM at table angle DEG: 'CAM,DEG'."),
         orbit: Optional[int] = typer.Option(None, "--orbit", help="Also render an orbit of N frames (PNGs + GIF)."),
+        fps: float = typer.Option(12.0, "--fps", help="Frame rate of the orbit GIF (> 0; GIF stores 1/100 s delays)."),
         kernel: str = typer.Option("vmf", "--kernel",
                                    help="Light-cell partition: vmf (smooth, default), linear (barycentric on the "
                                         "lights' triangulation) or voronoi (nearest light)."),
@@ -76,26 +92,32 @@ def register(app, groups) -> None:
     ):
         """Relight a captured model under an environment map or lights: every captured view is relit as a weighted
         sum of its one-light images, then (--view/--orbit) blended onto the surfels with ULR over the environment."""
+        from .basis import parse_lights
+        from .envmap import default_yaw_deg, load_envmap
         from .runner import parse_view_spec, relight_model
-
-        from .envmap import default_yaw_deg
 
         yaw_deg = yaw_deg if yaw_deg_alias is None else yaw_deg_alias
         _check_model(model)
         if orbit is not None and orbit < 1:
             raise InputError(f"--orbit {orbit}: expected at least 1 frame")
+        if not (math.isfinite(fps) and fps > 0):
+            raise InputError(f"--fps {fps}: expected a frame rate > 0")
         if exposure is not None and not (math.isfinite(exposure) and exposure > 0):
             raise InputError(f"--exposure {exposure}: expected a multiplier > 0 (omit it for automatic exposure)")
         check_writable(out)
         cfg = _config(kernel, kernel_width, lower_hemisphere, near_light, pca_rank)
         v = parse_view_spec(view) if view else None
-        if yaw_deg is None:
-            yaw_deg = default_yaw_deg(envmap)
+        if envmap is None and not lights:
+            raise InputError("give --envmap X.exr|X.hdr or --lights 'dx,dy,dz,r,g,b;...'")
+        env = None
+        if envmap is not None:
+            env = load_envmap(envmap, yaw_deg=default_yaw_deg(envmap) if yaw_deg is None else yaw_deg,
+                              probe_format=_probe_format(probe_format), flip_u=flip_u)
+        light_arrays = parse_lights(lights) if lights else None
         with progress("relight", enabled=not json_out) as cb:
             with writing_to(out):
-                s = relight_model(model, out=out, envmap=envmap, yaw_deg=yaw_deg, probe_format=probe_format,
-                                  flip_u=flip_u, lights=lights, view=v, orbit=orbit, config=cfg, exposure=exposure,
-                                  write_views=not no_views, progress=cb)
+                s = relight_model(model, out=out, envmap=env, lights=light_arrays, view=v, orbit=orbit, fps=fps,
+                                  config=cfg, exposure=exposure, write_views=not no_views, progress=cb)
 
         def human(s):
             c = console()
@@ -139,7 +161,7 @@ def register(app, groups) -> None:
         """Relit captured views of a simulated model against Mitsuba's direct render of the same object under the
         same environment map from the same cameras: PSNR and relative error inside the mask, and a contact sheet
         (truth | relit | error)."""
-        from .envmap import default_yaw_deg
+        from .envmap import default_yaw_deg, load_envmap
         from .evaluate import eval_relight
 
         yaw_deg = yaw_deg if yaw_deg_alias is None else yaw_deg_alias
@@ -152,11 +174,10 @@ def register(app, groups) -> None:
             # not inside MODEL: a model is an input here (it may be shared or read-only)
             out = Path(f"{model.resolve().name}_eval_relight")
         cfg = _config(kernel, kernel_width, lower_hemisphere, near_light, pca_rank)
-        if yaw_deg is None:
-            yaw_deg = default_yaw_deg(envmap)
+        env = load_envmap(envmap, yaw_deg=default_yaw_deg(envmap) if yaw_deg is None else yaw_deg,
+                          probe_format=_probe_format(probe_format))
         with progress("eval relight", enabled=not json_out) as cb:
-            s = eval_relight(model, envmap=envmap, yaw_deg=yaw_deg, probe_format=probe_format, out=out, spp=spp,
-                             max_views=max_views, config=cfg, progress=cb)
+            s = eval_relight(model, envmap=env, out=out, spp=spp, max_views=max_views, config=cfg, progress=cb)
 
         n_lights = s.get("n_lights_captured")
         if n_lights is not None and n_lights < FEW_LIGHTS:

@@ -22,6 +22,7 @@ they need ``yaw_deg=180``.
 
 from __future__ import annotations
 
+import logging
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -31,6 +32,8 @@ import numpy as np
 
 from ..envmap import direction_to_uv as _direction_to_uv
 from ..errors import FormatError, InputError, ShapeError
+
+log = logging.getLogger(__name__)
 
 __all__ = [
     "EnvironmentMap",
@@ -226,12 +229,14 @@ def validate_radiance(radiance: np.ndarray, where: str) -> None:
 
 
 def _exr_is_half(path: Path) -> bool:
+    """Whether the EXR stores half floats; only chooses the wording of the Inf error."""
     import OpenEXR
 
     try:
         with OpenEXR.File(str(path), separate_channels=True) as f:
             return any(np.asarray(c.pixels).dtype == np.float16 for c in f.channels().values())
-    except Exception:
+    except (OSError, RuntimeError, ValueError) as e:  # OpenEXR's bare RuntimeError on odd files
+        log.debug("%s: cannot read the channel types (%s); Inf reported without the half-float hint", path, e)
         return False
 
 
@@ -348,7 +353,7 @@ def mirrorball_to_latlong(img: np.ndarray, *, width: int | None = None, supersam
     return _supersampled_inverse_map(H, W, fetch, ss=supersample)
 
 
-def downsample_latlong(radiance: np.ndarray, factor: int, *, dtype=np.float32) -> np.ndarray:
+def downsample_latlong(radiance: np.ndarray, factor: int, *, dtype: type[np.floating] = np.float32) -> np.ndarray:
     """Area-weighted box downsampling by an integer ``factor`` in both axes.
 
     Each coarse texel is the solid-angle-weighted mean of its fine texels, so
@@ -421,7 +426,7 @@ def load_envmap(
 
     path = resolve_envmap_path(path)
     if probe_format not in PROBE_FORMATS:
-        raise InputError(f"--probe-format must be one of {PROBE_FORMATS}, got {probe_format!r}")
+        raise InputError(f"environment map {path}: probe format {probe_format!r}, expected one of {PROBE_FORMATS}")
     suffix = path.suffix.lower()
     if suffix not in (".exr", ".hdr", ".pic"):
         raise InputError(f"environment map {path}: expected an .exr or .hdr file, got {suffix!r}")

@@ -5,7 +5,14 @@ direct render of the same object on the rig (displays present but dark, no light
 array) at table angle a, seen by the view's camera, under the same environment map in
 the object frame (:func:`opacityhull.sim.groundtruth.render_under_envmap`). The
 scene comes from the model's provenance: ``[provenance] session`` → the session's
-``[session] rig_source = "sim:<scene spec>"``. The analytic sphere of
+``[session] rig_source = "sim:<scene spec>"``. A model with a natural-illumination
+field (``[natural] present``, a glass) is relit as ``relight`` relights it — the
+light-array part plus the display-domain part — and its truth adds, to that render,
+Mitsuba's render of each field's display showing the environment map over the
+display's solid angle as the object centre sees it (as two 8-bit layers rendered and
+summed, so a bright probe's dim part is not lost to quantisation:
+:func:`~opacityhull.relight.natural_eval.render_envmap_on_displays`), the same mapping
+relight uses (:func:`~opacityhull.relight.natural.envmap_display_image`). The analytic sphere of
 :mod:`.synthetic` (provenance ``scene = "analytic:lambertian-sphere"``) is evaluated
 against its exact quadrature instead, so the command can be exercised without Mitsuba.
 
@@ -20,18 +27,18 @@ measures relighting, not the matte, and no background leaks in:
 
 from __future__ import annotations
 
-import math
 import time
 from pathlib import Path
-from typing import Callable, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 
 from ..errors import FormatError, InputError
-from ..imageio import write_exr, write_png
-from .envmap import EnvironmentMap, default_yaw_deg, load_envmap
+from ..imageio import write_exr
+from ..pictures import auto_exposure, contact_sheet, to_srgb8, write_sheet
+from .envmap import EnvironmentMap
+from .metrics import relight_metrics
 from .relit import Relighter, RelightConfig
-from .runner import auto_exposure, contact_sheet
 
 __all__ = ["relight_metrics", "find_scene", "eval_relight", "MASK_ALPHA"]
 
@@ -39,30 +46,7 @@ __all__ = ["relight_metrics", "find_scene", "eval_relight", "MASK_ALPHA"]
 MASK_ALPHA = 0.99
 
 
-def relight_metrics(relit_rgb: np.ndarray, truth_rgb: np.ndarray, mask: np.ndarray) -> dict:
-    """PSNR (dB) and relative L2 error of ``relit_rgb`` against ``truth_rgb`` (H, W, 3)
-    over ``mask`` (H, W) bool. NaN metrics when the mask is empty; PSNR is +inf for an
-    exact match and NaN for an all-zero truth."""
-    m = np.asarray(mask, bool)
-    n = int(m.sum())
-    if n == 0:
-        return {"pixels": 0, "psnr": float("nan"), "rel_err": float("nan"), "mse": float("nan")}
-    a = np.asarray(relit_rgb, np.float64)[m]
-    b = np.asarray(truth_rgb, np.float64)[m]
-    mse = float(np.mean((a - b) ** 2))
-    nb = float(np.linalg.norm(b))
-    peak = float(b.max())
-    rel = float(np.linalg.norm(a - b) / nb) if nb > 0 else (0.0 if mse == 0 else float("inf"))
-    if peak <= 0:
-        psnr = float("nan")
-    elif mse == 0:
-        psnr = float("inf")
-    else:
-        psnr = 10 * math.log10(peak**2 / mse)
-    return {"pixels": n, "psnr": psnr, "rel_err": rel, "mse": mse, "peak": peak}
-
-
-def find_scene(model) -> tuple[str, object]:
+def find_scene(model) -> tuple[str, Any]:
     """The ground-truth source of a model: ``("sim", (scene spec str, session))`` or
     ``("analytic", provenance dict)``. Raises :class:`InputError` saying why a model
     cannot be evaluated (not simulated, session gone)."""
@@ -121,13 +105,13 @@ def _truth_renderer(model, kind, ref, *, spp: int) -> Callable:
         scene = SphereScene(centre_m=tuple(sph.get("centre_m", (0, 0.1, 0))), radius_m=float(sph.get("radius_m", 0.08)),
                             albedo_rgb=tuple(sph.get("albedo_rgb", (0.75, 0.55, 0.35))), texture=float(sph.get("texture", 0.3)))
 
-        def truth(i, env):
+        def analytic_truth(i, env):
             from .synthetic import sphere_hits
 
             _, h = sphere_hits(model.views[i].camera, scene, ss=2)
             return sphere_groundtruth(model.views[i].camera, scene, env, upper_only=True), h.mean(axis=2)
 
-        return truth
+        return analytic_truth
     try:
         from ..sim.groundtruth import render_under_envmap
         from ..sim.scenes import load_scene
@@ -155,6 +139,8 @@ def _truth_renderer(model, kind, ref, *, spp: int) -> Callable:
     def truth(i, env):
         v = model.views[i]
         cam = true_cams.get(v.id, v.camera)
+        if cam is None:
+            raise FormatError(f"{model.root}: view {v.id} has no camera to render its truth from")
         # a writable copy: Mitsuba's Bitmap refuses read-only arrays
         img = np.asarray(render_under_envmap(scene, cam, np.array(env.radiance), spp=spp, rig=geom,
                                              table_deg=v.table_deg, renderer=renderer), np.float32)
@@ -163,20 +149,51 @@ def _truth_renderer(model, kind, ref, *, spp: int) -> Callable:
     return truth
 
 
+def _natural_eval(model, kind, ref) -> dict | None:
+    """For a simulated model with a natural-illumination field: callables adding the
+    display-domain part to a relit view and the display-lit render to its truth."""
+    nat = model.meta.get("natural", {}) or {}
+    if kind != "sim" or not nat.get("present"):
+        return None
+    from .natural import natural_centre_m
+    from .natural_eval import natural_part_of_view, render_envmap_on_displays
+
+    spec, sess = ref
+    if sess is not None:
+        from .natural_eval import sim_rig_for_session
+
+        rig = sim_rig_for_session(sess)
+    else:
+        from ..sim.simrig import open_sim_rig
+
+        rig = open_sim_rig(str((model.meta.get("provenance", {}) or {}).get("rig_source")), open=False)
+    displays = sorted(nat.get("displays", {}) or {})
+    centre = natural_centre_m(model)
+
+    def part(i, env):
+        return natural_part_of_view(model, i, env, centre_m=centre)
+
+    def truth(i, env):
+        v = model.views[i]
+        return render_envmap_on_displays(rig, v.camera_index, v.table_deg, env, displays, centre_m=centre, seed=11)
+
+    info = {"displays": displays, "centre_m": [float(x) for x in centre],
+            "truth": "mitsuba: each field's display showing the map over its solid angle (two 8-bit layers, summed)"}
+    return {"part": part, "truth": truth, "info": info}
+
+
 def _pick(n: int, k: int | None) -> list[int]:
     if k is None or k >= n:
         return list(range(n))
     if k < 1:
-        raise InputError(f"--max-views {k}: need at least 1")
+        raise InputError(f"eval relight: max_views {k}, need at least 1")
     return sorted({int(round(x)) for x in np.linspace(0, n - 1, k)})
 
 
 def eval_relight(
     model_path,
     *,
-    envmap,
-    yaw_deg: float | None = None,
-    probe_format: str = "latlong",
+    envmap: EnvironmentMap,
     out=None,
     spp: int = 64,
     max_views: int | None = None,
@@ -186,7 +203,7 @@ def eval_relight(
     progress: Callable[[int, int], None] | None = None,
 ) -> dict:
     """Relight the captured views of a simulated (or analytic) model and compare them
-    with the ground truth. Returns ``{"psnr_mean", "rel_err_mean", "per_view", ...}``
+    with the ground truth under ``envmap`` (:func:`~.envmap.load_envmap`). Returns ``{"psnr_mean", "rel_err_mean", "per_view", ...}``
     and writes ``out/eval_relight.png`` (rows: truth | relit | error ×4) and
     ``out/eval_relight.json``."""
     import json
@@ -197,23 +214,29 @@ def eval_relight(
 
     t0 = time.perf_counter()
     model = OpacityHullModel.open(model_path)
-    if isinstance(envmap, EnvironmentMap):
-        env = envmap
-    else:
-        yaw = default_yaw_deg(envmap) if yaw_deg is None else yaw_deg
-        env = load_envmap(envmap, yaw_deg=yaw, probe_format=probe_format)
+    if not isinstance(envmap, EnvironmentMap):
+        raise InputError(f"eval relight: envmap {type(envmap).__name__}, expected an EnvironmentMap (load_envmap)")
+    env = envmap
     kind, ref = find_scene(model)
     truth_fn = _truth_renderer(model, kind, ref, spp=spp)
     R = Relighter(model, config=config)
     idx = list(views) if views is not None else _pick(len(model.views), max_views)
+    natural = _natural_eval(model, kind, ref)
     out = Path(out) if out is not None else model.root / "eval_relight"
     per_view, rows = [], []
     t_relight = t_truth = 0.0
     for n, i in enumerate(idx):
         ta = time.perf_counter()
         rgba = R.relight_view(i, envmap=env)
+        part = natural["part"](i, env) if natural is not None else None
+        if part is not None:
+            rgba[..., :3] += part
         tb = time.perf_counter()
         truth, cover = truth_fn(i, env)
+        truth_disp = None
+        if natural is not None:
+            truth_disp = natural["truth"](i, env) * cover[..., None]
+            truth = truth + truth_disp
         tc = time.perf_counter()
         t_relight += tb - ta
         t_truth += tc - tb
@@ -224,6 +247,15 @@ def eval_relight(
         mask = cover >= MASK_ALPHA
         m = relight_metrics(rgba[..., :3], truth, mask)
         m.update({"view": model.views[i].id, "index": i})
+        if truth_disp is not None:
+            # the two halves apart: the field against the display-lit truth alone, and how
+            # much of the truth comes from outside the fields' solid angles (light the
+            # display field cannot carry; for a glass the light-array part is black)
+            d = relight_metrics(part if part is not None else np.zeros_like(truth_disp), truth_disp, mask)
+            n_all = float(np.linalg.norm(truth[mask])) if mask.any() else 0.0
+            n_out = float(np.linalg.norm((truth - truth_disp)[mask])) if mask.any() else 0.0
+            m["display_part"] = {"psnr": d["psnr"], "rel_err": d["rel_err"]}
+            m["truth_outside_fields"] = n_out / n_all if n_all > 0 else float("nan")
         if i in R.pca_stats:
             m["pca"] = R.pca_stats[i]
         per_view.append(m)
@@ -245,6 +277,11 @@ def eval_relight(
         "rel_err_max": float(np.max([p["rel_err"] for p in good])),
         "per_view": per_view,
         "n_lights_captured": len(R.lights),
+        "natural": None if natural is None else dict(
+            natural["info"],
+            display_part_psnr_mean=float(np.mean([p["display_part"]["psnr"] for p in good])),
+            display_part_rel_err_mean=float(np.mean([p["display_part"]["rel_err"] for p in good])),
+            truth_outside_fields_mean=float(np.mean([p["truth_outside_fields"] for p in good]))),
         "config": {"kernel": R.config.kernel.kind, "width": R.config.kernel.width,
                    "lower_hemisphere": R.config.kernel.lower_hemisphere, "near_light": R.near_light,
                    "pca_rank": R.config.pca_rank},
@@ -258,9 +295,12 @@ def eval_relight(
         exposure = auto_exposure(ref_img[0], ref_img[2].astype(np.float32))
         for (truth, rgba, mask), p in zip(rows, per_view):
             err = np.abs(rgba[..., :3] - truth) * mask[..., None]
-            tiles += [np.clip(truth * exposure, 0, 1), np.clip(rgba[..., :3] * exposure, 0, 1), np.clip(4 * err * exposure, 0, 1)]
-            labels += [f"{p['view']} truth", "relit", f"err x4 {100 * p['rel_err']:.1f}%"]
-        write_png(out / "eval_relight.png", contact_sheet(tiles[: 3 * 24], columns=3, labels=labels[: 3 * 24]))
+            tiles += [to_srgb8(truth, exposure=exposure), to_srgb8(rgba[..., :3], exposure=exposure),
+                      to_srgb8(err, exposure=4 * exposure)]
+            labels += [str(p["view"]), "", f"rel. err {100 * p['rel_err']:.1f}%"]
+        write_sheet(out / "eval_relight.png", contact_sheet(tiles[: 3 * 24], columns=3, labels=labels[: 3 * 24],
+                                                            headers=["truth", "relit", "|relit - truth| x4"],
+                                                            min_width=160))
         summary["sheet"] = str(out / "eval_relight.png")
         with atomic_path(out / "eval_relight.json") as tmp:
             tmp.write_text(json.dumps(to_jsonable(summary), indent=2))

@@ -98,6 +98,7 @@ __all__ = [
     "estimate_natural",
     "estimate_natural_reference",
     "relight_natural",
+    "natural_centre_m",
     "relight_natural_reference",
     "save_field",
     "field_path",
@@ -1007,7 +1008,7 @@ def save_field(path, field: NaturalField, *, weights_dtype: str = "float32") -> 
         if big.any():
             log.warning("%s: %d weights beyond float16 range clamped to ±65504", path, int(big.sum()))
         w = np.clip(w, -65504, 65504)
-    arrays = dict(format=np.array(FORMAT), domain_hw=np.array(field.domain_hw, np.int64),
+    arrays: dict[str, np.ndarray] = dict(format=np.array(FORMAT), domain_hw=np.array(field.domain_hw, np.int64),
                   pixels_shape=np.array(field.pixels_shape, np.int64), boxes=field.boxes.astype(np.uint16),
                   weights=w.astype(weights_dtype), n_kernels=field.n_kernels.astype(np.uint8),
                   residual=field.residual.astype(np.float32), n_images=np.array(field.n_images, np.int64),
@@ -1017,7 +1018,8 @@ def save_field(path, field: NaturalField, *, weights_dtype: str = "float32") -> 
         arrays["image_hw"] = np.array(field.image_hw, np.int64)
     with atomic_path(path) as tmp:
         with open(tmp, "wb") as f:
-            np.savez_compressed(f, **arrays)
+            # numpy's stub binds **kwds to the allow_pickle parameter's type
+            np.savez_compressed(f, **arrays)  # pyright: ignore[reportArgumentType]
             f.flush()
             import os
 
@@ -1176,6 +1178,23 @@ def load_view_fields(model_root, view_id: str) -> dict:
     return {p.stem: load_field(p) for p in sorted(d.glob("*.npz"))}
 
 
+def natural_centre_m(model) -> np.ndarray:
+    """The point the display directions are taken from (object frame, metres): the
+    surfels' centroid, or the rig's aim point for a model whose surfels are missing or
+    empty (a corrupt or partial model; its views can still be relit)."""
+    try:
+        from ..render.renderer import model_surfels
+
+        pos = np.asarray(model_surfels(model).positions, np.float64)
+    except (OSError, KeyError, ValueError) as e:  # FormatError/InputError are ValueErrors
+        log.warning("%s: no surfels (%s); display directions from the rig's aim point", model.root, e)
+        pos = np.zeros((0, 3))
+    if pos.size and np.all(np.isfinite(pos)):
+        return pos.mean(axis=0)
+    g = model.geometry
+    return np.asarray(g.target_m if g is not None else (0.0, 0.0, 0.0), np.float64)
+
+
 def relight_model_views_natural(model, envmap, *, centre_m=None, supersample: int = 3) -> list:
     """Display-domain parts of every captured view of ``model`` under ``envmap``:
     a list (one per view, model order) of float32 (H, W, 3) premultiplied radiance, or
@@ -1185,13 +1204,7 @@ def relight_model_views_natural(model, envmap, *, centre_m=None, supersample: in
     ``centre_m`` (object frame): default the surfels' centroid (the point the display
     directions are taken from)."""
     if centre_m is None:
-        try:
-            from ..render.renderer import model_surfels
-
-            centre_m = model_surfels(model).positions.mean(axis=0)
-        except Exception:  # a model without surfels: the rig's aim point
-            g = model.geometry
-            centre_m = np.asarray(g.target_m if g is not None else (0.0, 0.0, 0.0), np.float64)
+        centre_m = natural_centre_m(model)
     g = model.geometry
     out = []
     for v in model.views:

@@ -297,7 +297,7 @@ def compress_reflectance_reference(stack, rank: int) -> np.ndarray:
 # --------------------------------------------------------------------------- model
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, kw_only=True)
 class RelightConfig:
     """Options of model relighting.
 

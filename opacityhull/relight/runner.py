@@ -20,8 +20,8 @@ import numpy as np
 from ..camera import Camera
 from ..errors import InputError
 from ..imageio import atomic_path, write_exr, write_png
-from .basis import parse_lights
-from .envmap import default_yaw_deg, load_envmap
+from ..pictures import auto_exposure, contact_sheet, to_srgb8, write_animation, write_sheet
+from .envmap import EnvironmentMap, default_yaw_deg, load_envmap
 from .relit import Relighter, RelightConfig
 
 __all__ = [
@@ -29,8 +29,8 @@ __all__ = [
     "orbit_cameras",
     "parse_view_spec",
     "auto_exposure",
-    "contact_sheet",
     "write_gif",
+    "builtin_envmap",
     "relight_model",
 ]
 
@@ -68,108 +68,35 @@ def orbit_cameras(model, n: int) -> list[Camera]:
 # --------------------------------------------------------------------------- pictures
 
 
-def auto_exposure(rgb_premul: np.ndarray, alpha: np.ndarray, *, key: float = 0.18) -> float:
-    """Exposure multiplier mapping the log-average luminance of the object (alpha >
-    0.5) to ``key`` (Reinhard's key value); 1 when the object is black or absent."""
-    lum = np.asarray(rgb_premul[..., :3], np.float64) @ [0.2126, 0.7152, 0.0722]
-    m = alpha > 0.5
-    if not m.any():
-        return 1.0
-    a = np.clip(alpha[m], 1e-6, None)
-    L = lum[m] / a
-    L = L[L > 0]
-    if L.size == 0:
-        return 1.0
-    return float(key / math.exp(np.mean(np.log(L + 1e-12))))
-
-
-def contact_sheet(images: Sequence[np.ndarray], *, columns: int | None = None, labels: Sequence[str] | None = None,
-                  gap: int = 2, min_width: int = 160) -> np.ndarray:
-    """Tile (H, W, 3) float images (possibly different sizes) into one sheet, each
-    with an optional label; display-ready values in [0, 1] are expected. Tiles
-    narrower than ``min_width`` are enlarged by an integer factor (nearest) so the
-    labels stay readable."""
-    import cv2
-
-    n = len(images)
-    f = max(1, int(math.ceil(min_width / max(1, max(im.shape[1] for im in images)))))
-    if f > 1:
-        images = [np.repeat(np.repeat(np.asarray(im), f, axis=0), f, axis=1) for im in images]
-    if n == 0:
-        raise InputError("contact sheet of no images")
-    cols = columns or int(math.ceil(math.sqrt(n)))
-    rows = int(math.ceil(n / cols))
-    h = max(im.shape[0] for im in images)
-    w = max(im.shape[1] for im in images)
-    sheet = np.ones((rows * (h + gap) + gap, cols * (w + gap) + gap, 3), np.float32) * 0.25
-    for i, im in enumerate(images):
-        r, c = divmod(i, cols)
-        y, x = gap + r * (h + gap), gap + c * (w + gap)
-        tile = np.clip(np.asarray(im[..., :3], np.float32), 0, 1).copy()
-        if labels is not None and labels[i]:
-            # OpenCV draws text on 8-bit images only: draw into a mask and paint the
-            # label white on a dark band so it reads on any tile
-            text = str(labels[i])
-            scale = 0.4
-            (tw, th), base = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, scale, 1)
-            if tw > tile.shape[1] - 4:
-                scale *= (tile.shape[1] - 4) / tw
-                (tw, th), base = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, scale, 1)
-            band = min(tile.shape[0], th + base + 4)
-            tile[:band] *= 0.35
-            mask = np.zeros(tile.shape[:2], np.uint8)
-            cv2.putText(mask, text, (2, th + 2), cv2.FONT_HERSHEY_SIMPLEX, scale, 255, 1, cv2.LINE_AA)
-            m = mask.astype(np.float32)[..., None] / 255.0
-            tile[:] = tile * (1 - m) + m
-        sheet[y : y + tile.shape[0], x : x + tile.shape[1]] = tile
-    return sheet
-
-
 def _display(rgb: np.ndarray, exposure: float) -> np.ndarray:
     """Linear → display-linear in [0, 1] (sRGB encoding happens in write_png)."""
     return np.clip(np.asarray(rgb[..., :3], np.float32) * np.float32(exposure), 0, 1)
 
 
-def write_gif(path, frames_linear: Sequence[np.ndarray], *, fps: float = 12.0) -> None:
-    """Animated GIF of display-linear frames in [0, 1] (sRGB-encoded, looping)."""
-    import imageio.v2 as iio
-
-    from ..imageio import srgb_encode
-
-    frames = [np.round(srgb_encode(f) * 255).astype(np.uint8) for f in frames_linear]
-    path = Path(path)
-    with atomic_path(path) as tmp:
-        iio.mimsave(str(tmp), frames, format="GIF", duration=1.0 / fps, loop=0)
+def write_gif(path, frames_linear: Sequence[np.ndarray], *, fps: float = 12.0) -> Path:
+    """Animated GIF of display-linear frames in [0, 1] (sRGB-encoded, looping) at
+    ``fps`` (:func:`opacityhull.pictures.write_animation`)."""
+    return write_animation(path, [to_srgb8(f) for f in frames_linear], fps=fps)
 
 
 # --------------------------------------------------------------------------- runner
 
 
-def _load_lighting(envmap_path, yaw_deg, probe_format, flip_u, lights_spec):
-    env = None
-    lights = None
-    if envmap_path is None and not lights_spec:
-        raise InputError("give --envmap X.exr|X.hdr or --lights 'dx,dy,dz,r,g,b;...'")
-    if envmap_path is not None:
-        if yaw_deg is None:
-            yaw_deg = default_yaw_deg(envmap_path)
-        env = load_envmap(envmap_path, yaw_deg=yaw_deg, probe_format=probe_format, flip_u=flip_u)
-    if lights_spec:
-        lights = parse_lights(lights_spec)
-    return env, lights
+def builtin_envmap(probe: str) -> EnvironmentMap:
+    """The shipped light probe ``probe`` (``builtin:<probe>``) with its default yaw."""
+    spec = f"builtin:{probe}"
+    return load_envmap(spec, yaw_deg=default_yaw_deg(spec))
 
 
 def relight_model(
     model_path,
     *,
     out,
-    envmap: str | Path | None = None,
-    yaw_deg: float | None = None,
-    probe_format: str = "latlong",
-    flip_u: bool = False,
-    lights: str | None = None,
+    envmap: EnvironmentMap | None = None,
+    lights: tuple[np.ndarray, np.ndarray] | None = None,
     view: tuple[int, float] | None = None,
     orbit: int | None = None,
+    fps: float = 12.0,
     config: RelightConfig = RelightConfig(),
     exposure: float | None = None,
     write_views: bool = True,
@@ -178,10 +105,14 @@ def relight_model(
 ) -> dict:
     """Relight a model and write the pictures.
 
+    ``envmap`` (:func:`~.envmap.load_envmap`) and/or ``lights`` ((M, 3) unit directions
+    towards the lights and (M, 3) RGB irradiance, :func:`~.basis.parse_lights`) give the
+    new lighting; at least one is required.
+
     Writes ``out/views/<view id>.exr`` (relit premultiplied RGBA of every captured
     view) and ``.png`` (over the environment), ``out/views.png`` (contact sheet);
     with ``view`` ``out/view_<id>.exr|png``; with ``orbit`` ``out/orbit/frame_NNN.exr|png``,
-    ``out/orbit.gif`` and ``out/orbit.png``; and ``out/relight.json`` (the summary,
+    ``out/orbit.gif`` (at ``fps``) and ``out/orbit.png``; and ``out/relight.json`` (the summary,
     also returned).
     """
     from ..model import OpacityHullModel
@@ -190,7 +121,14 @@ def relight_model(
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     model = OpacityHullModel.open(model_path)
-    env, light_list = _load_lighting(envmap, yaw_deg, probe_format, flip_u, lights)
+    if envmap is None and lights is None:
+        raise InputError("relight: no lighting given (an environment map, lights, or both)")
+    if lights is not None:
+        d, e = (np.asarray(x, np.float64) for x in lights)
+        if d.ndim != 2 or d.shape[1:] != (3,) or e.shape != d.shape or not np.isfinite(np.r_[d, e]).all():
+            raise InputError(f"relight: lights of shapes {d.shape} and {e.shape}, expected two finite (M, 3) arrays")
+        lights = (d, e)
+    env, light_list = envmap, lights
     R = Relighter(model, config=config)
     n = len(model.views)
     n_frames = (1 if view is not None else 0) + (orbit or 0)
@@ -252,7 +190,8 @@ def relight_model(
             write_png(out / "views" / f"{vid}.png", _display(over, exposure))
             tiles.append(_display(over, exposure))
             labels.append(vid)
-        write_png(out / "views.png", contact_sheet(tiles[:64], labels=labels[:64]))
+        write_sheet(out / "views.png", contact_sheet([to_srgb8(t) for t in tiles[:64]], labels=labels[:64],
+                                                     min_width=160))
         summary["views_dir"] = str(out / "views")
         summary["views_sheet"] = str(out / "views.png")
 
@@ -291,9 +230,10 @@ def relight_model(
                 if progress:
                     progress(done, total)
             orbit_s = time.perf_counter() - t3
-            write_gif(out / "orbit.gif", frames)
+            write_gif(out / "orbit.gif", frames, fps=fps)
             step = max(1, len(frames) // 16)
-            write_png(out / "orbit.png", contact_sheet(frames[::step], labels=[f"{k * step}" for k in range(len(frames[::step]))]))
+            write_sheet(out / "orbit.png", contact_sheet([to_srgb8(f) for f in frames[::step]], min_width=160,
+                                                         labels=[f"{k * step}" for k in range(len(frames[::step]))]))
             summary["orbit"] = {"frames": orbit, "dir": str(out / "orbit"), "gif": str(out / "orbit.gif"),
                                 "sheet": str(out / "orbit.png"), "render_s": orbit_s,
                                 "total_s": orbit_s + summary["relit_views_s"]}
@@ -322,7 +262,7 @@ def demo_step(model_dir, out_dir, *, probe: str = "grace", orbit: int = 24, eval
     views with Mitsuba's render. Returns ``{"gif", "sheet", "views_sheet", "eval"...}``
     with the paths to show the user."""
     out = Path(out_dir)
-    s = relight_model(model_dir, out=out, envmap=f"builtin:{probe}", orbit=orbit, progress=progress)
+    s = relight_model(model_dir, out=out, envmap=builtin_envmap(probe), orbit=orbit, progress=progress)
     res = {"probe": probe, "out": str(out), "gif": s["orbit"]["gif"], "sheet": s["orbit"]["sheet"],
            "views_sheet": s.get("views_sheet"), "relit_views_per_s": s["relit_views_per_s"],
            "orbit_s": s["orbit"]["total_s"]}
@@ -330,7 +270,7 @@ def demo_step(model_dir, out_dir, *, probe: str = "grace", orbit: int = 24, eval
         from .evaluate import eval_relight
 
         try:
-            e = eval_relight(model_dir, envmap=f"builtin:{probe}", out=out / "eval", max_views=eval_views, spp=32)
+            e = eval_relight(model_dir, envmap=builtin_envmap(probe), out=out / "eval", max_views=eval_views, spp=32)
             res["eval"] = {"rel_err_mean": e["rel_err_mean"], "psnr_mean": e["psnr_mean"], "sheet": e["sheet"]}
         except InputError as err:  # not a simulated model: nothing to compare with
             res["eval"] = {"skipped": str(err)}

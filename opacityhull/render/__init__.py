@@ -13,6 +13,15 @@ Imports are lazy: numba kernels load (or compile) on first use.
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # what the lazy __getattr__ below resolves, for type checkers
+    from .background import EnvMap, composite_over, envmap_lookup
+    from .config import RenderConfig
+    from .renderer import (RenderResult, UlrWeights, prepare_model_views, render_image, render_model,
+                           spatially_sorted, ulr_weights)
+    from .views import PreparedViews, prepare_views
+
 _EXPORTS = {
     "RenderConfig": ".config",
     "RenderResult": ".renderer",

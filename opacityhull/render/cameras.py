@@ -26,6 +26,7 @@ def resize_camera(cam: Camera, width: int | None = None, height: int | None = No
     if w is not None and w <= 0 or h is not None and h <= 0:
         raise InputError(f"--width/--height must be positive, got {width}x{height}")
     if h is None:
+        assert w is not None  # both None returned above
         h = max(1, int(round(cam.height * w / cam.width)))
     if w is None:
         w = max(1, int(round(cam.width * h / cam.height)))

@@ -40,6 +40,26 @@ MAX_RENDER_PIXELS = 8192 * 8192
 BACKGROUND_KINDS = ("auto", "image", "envmap")
 
 
+_SCHEDULER_HELP = ("Where per-view work runs: serial | threads | processes | tcp://HOST:PORT (a dask scheduler; "
+                   "see docs/distributed.md).")
+
+
+def _check_scheduler(scheduler: str, timeout_s: float, *, what: str) -> None:
+    """``render --scheduler``: the value is checked and a tcp:// scheduler must answer
+    (named error within ``timeout_s``). Frames are rendered in this process: only
+    ``serial`` is accepted until the render runner takes an executor, never silently
+    ignored."""
+    from ..executor import open_executor, parse_scheduler
+
+    spec = parse_scheduler(scheduler)
+    if spec.kind == "serial":
+        return
+    with open_executor(scheduler, timeout_s=timeout_s):
+        pass
+    raise InputError(f"--scheduler {scheduler}: {what} renders its frames in this process; distributing orbit "
+                     "frames is not available yet (use --scheduler serial)")
+
+
 def open_model_arg(model: Path):
     """The model folder argument, opened; a path that is not there is bad input (exit 2)."""
     from ..errors import InputError
@@ -66,7 +86,10 @@ def check_render_args(model: Path, *, width=None, height=None, orbit=None, fps=1
     if budget is not None:
         from .runner import check_budget
 
-        check_budget(budget)
+        try:
+            check_budget(budget)
+        except InputError:
+            raise InputError(f"--budget {budget}: expected a whole number of splats >= 1") from None
     if orbit is not None and orbit < 1:
         raise InputError(f"--orbit {orbit}: expected at least 1 frame")
     if not (math.isfinite(fps) and fps > 0):
@@ -126,10 +149,15 @@ def register(app, groups) -> None:
         budget: Optional[int] = typer.Option(None, "--budget", help="Draw at most N splats per frame: the finest "
                                              "view-dependent cut of the sequential point tree (the viewer's level "
                                              "of detail). Default: every surfel."),
+        scheduler: str = typer.Option("serial", "--scheduler", help=_SCHEDULER_HELP),
+        scheduler_timeout: float = typer.Option(10.0, "--scheduler-timeout",
+                                                help="Seconds to wait for a tcp:// scheduler to answer."),
         json_out: bool = typer.Option(False, "--json", help="Print a JSON summary (frames, paths, ms per frame) on stdout."),
     ):
         """Render a model from a captured view, a look-at camera, or an orbit (ULR-blended EWA surfel splatting)."""
         from .runner import run_render
+
+        _check_scheduler(scheduler, scheduler_timeout, what="render")
 
         if yaw_deg_alias is not None:
             env_yaw_deg = yaw_deg_alias
@@ -137,10 +165,19 @@ def register(app, groups) -> None:
         check_render_args(model, width=width, height=height, orbit=orbit, fps=fps, background_kind=background_kind,
                           exclude=exclude, out=out, budget=budget)
 
+        from .cameras import parse_look_at, parse_view_spec
+
+        given = [n for n, v in (("--view", view), ("--look-at", look_at), ("--orbit", orbit)) if v is not None]
+        if len(given) > 1:
+            raise InputError(f"give only one of --view, --look-at, --orbit (got {', '.join(given)})")
+        if out.suffix.lower() not in (".png", ".exr"):
+            raise InputError(f"--out {out}: expected a .png or .exr file name")
+        view_t = parse_view_spec(view) if view is not None else None
+        look_t = parse_look_at(look_at) if look_at is not None else None
         cfg = _config(k, filter_var, epsilon_z, cutoff, sigma_radius, shading)
         n = orbit if orbit is not None else 1
         with progress("rendering", n, enabled=n > 1) as cb, writing_to(out):
-            summary = run_render(model, out, view=view, look_at=look_at, orbit=orbit, width=width, height=height,
+            summary = run_render(model, out, view=view_t, look_at=look_t, orbit=orbit, width=width, height=height,
                                  config=cfg, background=background, background_kind=background_kind,
                                  env_yaw_deg=env_yaw_deg, exclude=exclude, fps=fps, budget=budget, progress=cb)
 
@@ -174,6 +211,11 @@ def register(app, groups) -> None:
         holdout: str = typer.Option("blend", "--holdout",
                                     help="blend: leave the view out of the ULR blend only | geometry: also rebuild "
                                          "hull, surfels and visibility without it (honest, slower) | both."),
+        scheduler: str = typer.Option("serial", "--scheduler",
+                                      help=_SCHEDULER_HELP + " With --holdout geometry|both the geometry rebuilds "
+                                           "(the costly part) run there; the renders run here."),
+        scheduler_timeout: float = typer.Option(10.0, "--scheduler-timeout",
+                                                help="Seconds to wait for a tcp:// scheduler to answer."),
         json_out: bool = typer.Option(False, "--json", help="Print {views, psnr_mean, ssim_mean, alpha_mae, per_view} on stdout."),
     ):
         """Leave-one-out: render each chosen captured view without blending it, compare with its photograph
@@ -188,14 +230,22 @@ def register(app, groups) -> None:
         cfg = _config(k, filter_var, epsilon_z, cutoff, sigma_radius, shading)
         if holdout not in ("blend", "geometry", "both"):
             raise InputError(f"--holdout {holdout!r}: expected blend, geometry or both")
-        with progress("leave-one-out", None) as cb:
+        from ..executor import open_executor, parse_scheduler
+
+        if parse_scheduler(scheduler).kind != "serial" and holdout == "blend":
+            raise InputError(f"--scheduler {scheduler}: with --holdout blend there is no per-view rebuild to "
+                             "distribute (the renders run in this process); use --holdout geometry|both, or "
+                             "--scheduler serial")
+        with open_executor(scheduler, timeout_s=scheduler_timeout) as ex, progress("leave-one-out", None) as cb:
             if holdout == "blend":
                 summary = run_loo(model, views=views, config=cfg, out=out, progress=cb)
             else:
                 # the CLI composes stages: the geometry holdout rebuilds the hull (reconstruct)
                 from ..reconstruct.holdout import run_loo_holdouts
 
-                summary = run_loo_holdouts(model, views=views, config=cfg, holdout=holdout, out=out, progress=cb)
+                summary = run_loo_holdouts(model, views=views, config=cfg, holdout=holdout, out=out, progress=cb,
+                                           executor=ex)
+            summary["scheduler"] = ex.scheduler
 
         def human(s):
             c = console()

@@ -22,7 +22,7 @@ from __future__ import annotations
 import math
 import time
 from pathlib import Path
-from typing import Callable, Literal, Sequence
+from typing import Callable, Literal, Sequence, cast
 
 import numpy as np
 
@@ -105,7 +105,8 @@ def loo_metrics(photo_rgba: np.ndarray, render_rgba: np.ndarray, *, alpha_thresh
     win = min(7, min(p.shape[:2]) // 2 * 2 - 1)
     smap = None
     if win >= 3:
-        _, smap = structural_similarity(dp, dr, channel_axis=2, data_range=1.0, full=True, win_size=win)
+        _, smap = cast(tuple[float, np.ndarray], structural_similarity(dp, dr, channel_axis=2, data_range=1.0,
+                                                                        full=True, win_size=win))
         smap = smap.mean(axis=2) if smap.ndim == 3 else smap
     psnr, ssim = _psnr_ssim(dp, dr, mask, smap)
     pa = np.clip(p[..., 3], 0, 1)
@@ -169,44 +170,28 @@ def select_views(model: OpacityHullModel, spec: str | Sequence | None) -> list[i
     return sorted(set(out), key=out.index)
 
 
-def _heat(err: np.ndarray, scale: float) -> np.ndarray:
-    import matplotlib
-
-    return matplotlib.colormaps["inferno"](np.clip(err * scale, 0, 1))[..., :3].astype(np.float32)
-
-
 def contact_sheet(rows: Sequence[tuple[str, np.ndarray, np.ndarray, str]], path, *, error_scale: float = 4.0,
                   background=(0.5, 0.5, 0.5), max_width: int = 1800) -> Path:
     """Write a PNG with one row per view: photograph | rendering | error, colour over a
-    grey backdrop; the error panel is mean |Δ| of the displayed colour plus |Δα|, times
-    ``error_scale``, in the inferno colour map. ``rows`` are (label, photo, render, note)."""
-    import cv2
+    grey backdrop; the error panel is mean |Δ| of the displayed colour plus |Δα| in the
+    inferno colour map, saturating at ``1 / error_scale`` (the colour bar says so).
+    ``rows`` are (label, photo, render, note); rows wider than ``max_width`` px shrink."""
+    from ..pictures import ColorBar, contact_sheet as sheet, encoded_to_u8, heat, write_sheet
 
-    from ..imageio import write_png
-
-    tiles = []
+    tiles, labels = [], []
     bg = srgb_encode(np.asarray(background, np.float32))
     for label, photo, render, note in rows:
         ap, ar = np.clip(photo[..., 3:4], 0, 1), np.clip(render[..., 3:4], 0, 1)
         dp = srgb_encode(np.clip(photo[..., :3], 0, 1)) * ap + bg * (1 - ap)
         dr = srgb_encode(np.clip(render[..., :3], 0, 1)) * ar + bg * (1 - ar)
         err = np.abs(_display(photo) - _display(render)).mean(axis=2) + np.abs(ap[..., 0] - ar[..., 0])
-        row = np.concatenate([dp, dr, _heat(err, error_scale)], axis=1)
-        scale = min(1.0, max_width / row.shape[1])
-        if scale < 1:
-            row = cv2.resize(row, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
-        if row.shape[0] < 96:  # small views: enlarge for legibility
-            f = int(math.ceil(96 / row.shape[0]))
-            row = cv2.resize(row, None, fx=f, fy=f, interpolation=cv2.INTER_NEAREST)
-        row = np.ascontiguousarray(np.round(np.clip(row, 0, 1) * 255).astype(np.uint8))
-        cv2.putText(row, f"{label}  {note}", (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.4, (255, 255, 255), 1, cv2.LINE_AA)
-        tiles.append(row.astype(np.float32) / 255.0)
-    width = max(t.shape[1] for t in tiles)
-    tiles = [np.pad(t, ((0, 2), (0, width - t.shape[1]), (0, 0))) for t in tiles]
-    sheet = np.concatenate(tiles, axis=0)
-    path = Path(path)
-    write_png(path, sheet, linear=True)
-    return path
+        tiles += [encoded_to_u8(dp), encoded_to_u8(dr), heat(err, vmin=0.0, vmax=1.0 / error_scale)]
+        labels += [f"{label}  {note}", "", ""]
+    img = sheet(tiles, columns=3, labels=labels, headers=["photo", "render", f"error x{error_scale:g}"],
+                colorbar=ColorBar(cmap="inferno", vmin=0.0, vmax=1.0 / error_scale,
+                                  label="mean |d sRGB| + |d alpha|"),
+                min_width=128, max_width=max(1, max_width // 3))
+    return write_sheet(path, img)
 
 
 def leave_one_out(
@@ -250,7 +235,7 @@ def leave_one_out(
     build_ms = []
     for j, i in enumerate(idx):
         use = surfels
-        if holdout == "geometry":
+        if holdout == "geometry" and geometry_without is not None:  # checked above: not None here
             t0 = time.perf_counter()
             use = geometry_without(i)
             build_ms.append(1e3 * (time.perf_counter() - t0))

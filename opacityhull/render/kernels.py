@@ -44,7 +44,7 @@ import threading
 import numpy as np
 from numba import njit
 
-from .config import KMAX  # largest supported k
+from .config import KMAX, default_threads  # KMAX: largest supported k
 
 S_ONEHOT = 1e-14
 """``1 − cos θ`` below which a view's ray is taken to coincide with the desired ray
@@ -831,15 +831,6 @@ def resolve(accum, coverage_full, edge_coverage, alpha_min, out_rgba, out_depth,
 # --------------------------------------------------------------------------- threads
 
 _POOL = None
-
-
-def default_threads() -> int:
-    import os
-
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except AttributeError:  # not on Linux
-        return max(1, os.cpu_count() or 1)
 
 
 def _pool():

@@ -95,13 +95,13 @@ def build_point_tree(surfels: Surfels, areas: np.ndarray | None = None, *, depth
     code = _part1by2(q[:, 0]) | (_part1by2(q[:, 1]) << np.uint64(1)) | (_part1by2(q[:, 2]) << np.uint64(2))
     order = np.argsort(code, kind="stable")
     # node storage (appended level by level); leaves first
-    pos = [P[order]]
-    nrm = [surfels.normals.astype(np.float64)[order]]
-    rad = [surfels.radii.astype(np.float64)[order]]
-    area = [A[order]]
-    vis = [surfels.visibility[order]]
-    err = [np.zeros(N)]
-    leaf_idx = [order.astype(np.int64)]
+    pos: list[np.ndarray] = [P[order]]
+    nrm: list[np.ndarray] = [surfels.normals.astype(np.float64)[order]]
+    rad: list[np.ndarray] = [surfels.radii.astype(np.float64)[order]]
+    area: list[np.ndarray] = [A[order]]
+    vis: list[np.ndarray] = [surfels.visibility[order]]
+    err: list[np.ndarray] = [np.zeros(N)]
+    leaf_idx: list[np.ndarray] = [order.astype(np.int64)]
     n_nodes = N
     parent_chunks = []  # (child node ids, parent node ids)
     cur = np.arange(N)  # node ids of the current frontier, in Morton order
@@ -168,9 +168,9 @@ def build_point_tree(surfels: Surfels, areas: np.ndarray | None = None, *, depth
         pos.append(rp[None])
         nrm.append(rn[None])
         rad.append(np.sqrt([np.sum(cur_rad**2)]))
-        area.append([cur_area.sum()])
+        area.append(np.array([cur_area.sum()]))
         vis.append(np.bitwise_or.reduce(cur_vis, axis=0)[None])
-        err.append([np.max(np.linalg.norm(cur_pos - rp, axis=1) + np.maximum(cur_rad, cur_err))])
+        err.append(np.array([np.max(np.linalg.norm(cur_pos - rp, axis=1) + np.maximum(cur_rad, cur_err))]))
         leaf_idx.append(np.array([-1]))
         parent_chunks.append((cur, np.full(len(cur), n_nodes)))
         n_nodes += 1

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import math
 import time
+import weakref
 from dataclasses import dataclass, field
 from typing import Callable, Sequence
 
@@ -346,6 +347,9 @@ def _render_deferred(surfels, pv, allowed, camera, pin, grid, cam_row, C, splat,
     cov = coverage_from(geo[..., 2], wsum, config)
     if config.close_holes:
         depth, cov, winner = D.close_gbuffer(depth, wsum, cov, winner)
+    refined = config.shading_surface == "refined" and surfels.depth_m is not None
+    if refined:
+        depth = _shading_depth(surfels, cam_row, W, H, depth, config, threads, scratch)
     t_raster = time.perf_counter()
     if progress:
         progress(2, 3)
@@ -381,6 +385,7 @@ def _render_deferred(surfels, pv, allowed, camera, pin, grid, cam_row, C, splat,
         "excluded_views": [int(v) for v in exclude_views],
         "nonfinite_texels": pv.nonfinite_texels,
         "shading": "pixel",
+        "shading_surface": "refined" if refined else "hull",
         "ms": {
             "prepare": 1e3 * (t_prep - t0),
             "setup": 1e3 * (t_setup - t_prep),
@@ -391,6 +396,39 @@ def _render_deferred(surfels, pv, allowed, camera, pin, grid, cam_row, C, splat,
         },
     }
     return RenderResult(rgba_img, depth, np.ascontiguousarray(wsum, dtype=np.float32), cov, camera, config, stats)
+
+
+def _shading_depth(surfels: Surfels, cam_row, W: int, H: int, hull_depth: np.ndarray, config: RenderConfig,
+                   threads: int, scratch) -> np.ndarray:
+    """Per-pixel depth of the photo-consistent surface: a second geometry-only EWA pass of
+    the surfels displaced to ``positions − depth_m·normals``. Pixels it leaves empty keep
+    the hull's depth; a displaced point is never in front of the hull (it lies inside it),
+    so where the pass reports a nearer depth (a rim splat spreading past the hull's
+    outline) the hull's depth is kept too. The coverage and winner of the hull pass are
+    left alone: opacity and visibility stay the hull's."""
+    from . import deferred as D
+
+    N = len(surfels)
+    shade_at = surfels.shading_positions()
+    splat = scratch.get("splat_shade", (N, K.SPLAT_FIELDS), np.float32)
+    valid = scratch.get("valid_shade", (N,), np.bool_)
+    K.parallel_for(K.splat_setup, N, (shade_at, surfels.normals, surfels.radii, surfel_areas(surfels), cam_row, W, H,
+                                      float(config.sigma_radius), float(config.filter), float(config.cutoff_sigma),
+                                      float(config.epsilon_z), bool(config.backface_cull), splat, valid),
+                   threads=threads)
+    draw = np.flatnonzero(valid).astype(np.int64)
+    # no scratch here: the hull pass's winner may still live in the scratch buffers
+    geo, winner = D.geometry_frame(splat, draw, H, W, float(config.cutoff_sigma), int(config.band_rows),
+                                   threads=threads)
+    wsum = geo[..., 0]
+    has = wsum > 0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        dr = np.where(has, geo[..., 1] / np.where(has, wsum, 1.0), np.inf).astype(np.float32)
+    if config.close_holes:
+        cov = coverage_from(geo[..., 2], wsum, config)
+        dr, _, _ = D.close_gbuffer(dr, wsum.copy(), cov, winner)
+    use = np.isfinite(dr) & np.isfinite(hull_depth) & (dr >= hull_depth)
+    return np.where(use, dr, hull_depth).astype(np.float32)
 
 
 def straight_from_premul(premul: np.ndarray) -> np.ndarray:
@@ -440,7 +478,7 @@ _AREA_CACHE: dict = {}
 def surfel_areas(surfels: Surfels, *, neighbours: int = 12) -> np.ndarray:
     """(N,) float32 surface area represented by each surfel (m²), for edge coverage.
 
-    From the k nearest neighbours (SciPy cKDTree): the j-th neighbour at distance r_j
+    From the k nearest neighbours (SciPy KDTree): the j-th neighbour at distance r_j
     means about j surfels per π r_j², so A ≈ mean over j of π r_j² / j; the estimate is
     then averaged over each surfel's neighbourhood, which removes the banding a regular
     lattice gives single-k estimates. Cached per Surfels object (a model is opened once,
@@ -452,7 +490,7 @@ def surfel_areas(surfels: Surfels, *, neighbours: int = 12) -> np.ndarray:
     hit = _AREA_CACHE.get(key)
     if hit is not None and hit[0]() is surfels and hit[1].shape[0] == len(surfels):
         return hit[1]
-    from scipy.spatial import cKDTree
+    from scipy.spatial import KDTree  # (cKDTree is untyped: no stub for the C module)
 
     N = len(surfels)
     P = np.asarray(surfels.positions, dtype=np.float64)
@@ -461,7 +499,7 @@ def surfel_areas(surfels: Surfels, *, neighbours: int = 12) -> np.ndarray:
     n_ok = int(fin.sum())
     if n_ok >= 2:
         k = min(neighbours, n_ok - 1)
-        tree = cKDTree(P[fin])
+        tree = KDTree(P[fin])
         d, nb = tree.query(P[fin], k=k + 1)
         j = np.arange(1, k + 1)
         a = np.pi * np.mean(d[:, 1:] ** 2 / j, axis=1)
@@ -503,11 +541,15 @@ def spatially_sorted(surfels: Surfels, *, bits: int = 16) -> Surfels:
 
 def model_surfels(model: OpacityHullModel) -> Surfels:
     """The model's surfels in Morton order (computed once per opened model)."""
-    cached = getattr(model, "_render_sorted_surfels", None)
+    cached = _SORTED_SURFELS.get(model)
     if cached is None:
         cached = spatially_sorted(model.surfels)
-        model._render_sorted_surfels = cached
+        _SORTED_SURFELS[model] = cached
     return cached
+
+
+# weak keys: the sorted copy lives exactly as long as the opened model
+_SORTED_SURFELS: weakref.WeakKeyDictionary[OpacityHullModel, Surfels] = weakref.WeakKeyDictionary()
 
 
 def render_model(

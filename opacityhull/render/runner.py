@@ -4,6 +4,7 @@ GIF (and an MP4 when an ffmpeg writer is available), and JSON-ready summaries.""
 
 from __future__ import annotations
 
+import logging
 import shutil
 import time
 from pathlib import Path
@@ -16,36 +17,43 @@ from ..errors import InputError
 from ..imageio import write_exr, write_png
 from ..model import OpacityHullModel, Surfels
 from .background import EnvMap, fit_image, load_background
-from .cameras import (captured_view_camera, look_at_camera, mean_fov_y_deg, orbit_cameras, parse_look_at,
-                      parse_view_spec, resize_camera, scene_target)
+from .cameras import (captured_view_camera, look_at_camera, mean_fov_y_deg, orbit_cameras, resize_camera,
+                      scene_target)
 from .renderer import RenderConfig, RenderResult, model_surfels, prepare_model_views, render_image
 
 __all__ = ["choose_cameras", "check_budget", "LodCuts", "run_render", "run_loo", "run_demo_step", "write_frame"]
 
 _SUFFIXES = (".png", ".exr")
 
+log = logging.getLogger(__name__)
 
-def choose_cameras(model: OpacityHullModel, *, view: str | None = None, look_at: str | None = None,
+
+LookAt = tuple[np.ndarray, np.ndarray, "float | None"]
+"""(eye, target, vertical field of view in degrees or None): :func:`.cameras.parse_look_at`."""
+
+
+def choose_cameras(model: OpacityHullModel, *, view: tuple[int, float] | None = None, look_at: LookAt | None = None,
                    orbit: int | None = None, width: int | None = None, height: int | None = None) -> list[Camera]:
-    """Cameras from the CLI options (at most one of view / look_at / orbit; default: the
-    first captured view)."""
-    given = [n for n, v in (("--view", view), ("--look-at", look_at), ("--orbit", orbit)) if v is not None]
+    """The cameras to render: captured camera ``view = (camera index, table_deg)``, a
+    ``look_at`` camera, or an ``orbit`` of that many frames (at most one of them;
+    default: the first captured view), at ``width`` x ``height`` px when given."""
+    given = [n for n, v in (("view", view), ("look_at", look_at), ("orbit", orbit)) if v is not None]
     if len(given) > 1:
-        raise InputError(f"give only one of --view, --look-at, --orbit (got {', '.join(given)})")
+        raise InputError(f"cameras: give only one of view, look_at, orbit (got {', '.join(given)})")
     cams = [v.camera for v in model.views]
     if orbit is not None:
         fallback = model_surfels(model).positions.mean(axis=0)
         return orbit_cameras(cams, int(orbit), width=width, height=height, target=scene_target(cams, fallback))
     if look_at is not None:
-        eye, target, fov = parse_look_at(look_at)
+        eye, target, fov = look_at
         ref = cams[0]
         w = int(width) if width else ref.width
         h = int(height) if height else (ref.height if not width else max(1, round(ref.height * w / ref.width)))
         return [look_at_camera(eye, target, fov_y_deg=fov if fov is not None else mean_fov_y_deg(cams), width=w,
                                height=h)]
     if view is not None:
-        c, a = parse_view_spec(view)
-        cam = captured_view_camera(model.views, c, a)
+        c, a = view
+        cam = captured_view_camera(model.views, int(c), float(a))
     else:
         cam = cams[0]
     return [resize_camera(cam, width, height)]
@@ -66,31 +74,21 @@ def write_frame(path: Path, result: RenderResult, background) -> Path:
 
 
 def _animation(frames: list[np.ndarray], out_stem: Path, fps: float) -> dict:
-    import imageio.v2 as iio
+    from ..pictures import to_srgb8, write_animation
 
-    from ..imageio import srgb_encode
-
-    out = {}
-    u8 = [np.round(srgb_encode(f) * 255).astype(np.uint8) for f in frames]
-    gif = out_stem.with_suffix(".gif")
-    tmp = gif.with_name(f".tmp-{gif.name}")
-    iio.mimsave(tmp, u8, duration=1000.0 / fps, loop=0)
-    tmp.replace(gif)
-    out["gif"] = str(gif)
+    u8 = [to_srgb8(f) for f in frames]
+    out = {"gif": str(write_animation(out_stem.with_suffix(".gif"), u8, fps=fps))}
     if shutil.which("ffmpeg"):
         try:
-            mp4 = out_stem.with_suffix(".mp4")
-            tmp = mp4.with_name(f".tmp-{mp4.name}")
-            iio.mimsave(tmp, u8, fps=fps, format="FFMPEG")
-            tmp.replace(mp4)
-            out["mp4"] = str(mp4)
-        except Exception as e:  # the optional writer plugin may be missing
+            out["mp4"] = str(write_animation(out_stem.with_suffix(".mp4"), u8, fps=fps))
+        except InputError as e:  # the optional ffmpeg writer plugin is missing: the GIF stands
+            log.warning("%s: %s", out_stem.with_suffix(".mp4"), e)
             out["mp4_error"] = str(e)
     return out
 
 
 def check_budget(budget) -> int | None:
-    """``--budget``: None, or a whole number of splats ≥ 1 (else :class:`InputError`)."""
+    """A splat budget: None, or a whole number of splats ≥ 1 (else :class:`InputError`)."""
     if budget is None:
         return None
     try:
@@ -98,7 +96,7 @@ def check_budget(budget) -> int | None:
     except (TypeError, ValueError, OverflowError):
         ok = False
     if not ok:
-        raise InputError(f"--budget {budget}: expected a whole number of splats >= 1")
+        raise InputError(f"splat budget {budget!r}: expected a whole number of splats >= 1")
     return int(budget)
 
 
@@ -159,6 +157,7 @@ class LodCuts:
         if self.tree is None:
             self._build()
         tree = self.tree
+        assert tree is not None  # _build sets it
         tau, mask = select_cut(tree, camera.centre_world, budget)
         idx = np.flatnonzero(mask)
         s = Surfels(tree.positions[idx], tree.normals[idx], tree.radii[idx], tree.visibility[idx], tree.n_views)
@@ -181,7 +180,8 @@ def _seed_surfel_areas(surfels, areas) -> None:
     cache[key] = (ref, np.ascontiguousarray(areas, dtype=np.float32))
 
 
-def run_render(model_path, out, *, view=None, look_at=None, orbit=None, width=None, height=None,
+def run_render(model_path, out, *, view: tuple[int, float] | None = None, look_at: LookAt | None = None,
+               orbit: int | None = None, width: int | None = None, height: int | None = None,
                config: RenderConfig = RenderConfig(), background: str | None = None, background_kind: str = "auto",
                env_yaw_deg: float = 0.0, exclude: Sequence[str] = (), fps: float = 12.0,
                budget: int | None = None, progress: Callable[[int, int], None] | None = None) -> dict:
@@ -193,7 +193,7 @@ def run_render(model_path, out, *, view=None, look_at=None, orbit=None, width=No
     """
     out = Path(out)
     if out.suffix.lower() not in _SUFFIXES:
-        raise InputError(f"--out {out}: expected a .png or .exr file name")
+        raise InputError(f"render output {out}: expected a .png or .exr file name")
     budget = check_budget(budget)
     model = OpacityHullModel.open(model_path)
     cams = choose_cameras(model, view=view, look_at=look_at, orbit=orbit, width=width, height=height)

@@ -70,7 +70,7 @@ def test_build_progress_starts_each_step_with_its_own_count(monkeypatch, session
             return {"model": str(tmp_path / "m"), "views": 6, "surfels": 0, "seconds": {}, "metrics": {},
                     "camera_source": "x", "backdrop_source": "y"}
 
-    def fake_build(session, out, *, config, ground_truth, progress, on_step):
+    def fake_build(session, out, *, config, ground_truth, progress, on_step, **_):
         on_step("matting")
         for i in range(6):
             progress(i + 1, 6)

@@ -199,13 +199,13 @@ def test_d_build_attaches_the_field_and_relight_uses_it(glass, tmp_path):
     """`build` estimates the field itself (a [natural] table in model.toml, files under
     natural/), and `relight` adds the display-domain part to the relit views: the glass,
     exactly black under the light array alone (delta paths), is no longer black."""
-    from opacityhull.relight.runner import relight_model
+    from opacityhull.relight.runner import builtin_envmap, relight_model
 
     sess, model, out, rep = glass
     nat = model.meta.get("natural", {})
     assert nat.get("present") and nat["n_kernels"] == 25 and "back" in nat["displays"]
     assert (model.root / "natural" / model.views[0].id / "back.npz").is_file()
-    s = relight_model(model.root, out=tmp_path / "relit", envmap="builtin:uffizi")
+    s = relight_model(model.root, out=tmp_path / "relit", envmap=builtin_envmap("uffizi"))
     assert "natural_field_s" in s
     from opacityhull.imageio import read_exr
 

@@ -188,7 +188,7 @@ def test_bad_files_and_options(tmp_path):
     write_exr(tmp_path / "square.exr", np.ones((8, 8, 3), np.float32))
     with pytest.raises(InputError, match="2:1"):
         load_envmap(tmp_path / "square.exr")
-    with pytest.raises(InputError, match="probe-format"):
+    with pytest.raises(InputError, match="probe format .cube., expected one of"):
         load_envmap(tmp_path / "square.exr", probe_format="cube")
     (tmp_path / "x.png").write_bytes(b"")
     with pytest.raises(InputError, match=r"\.exr or \.hdr"):

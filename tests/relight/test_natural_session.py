@@ -172,3 +172,82 @@ def test_envmap_relighting_constant_and_sided(fake, tmp_path):
     # the back panel's top six rows are >= 20 deg above the horizon, its bottom row below it; the
     # bottom panel's centre is well below it (its far corners are within ~2 deg of the horizon)
     assert below[4:12, 4:12].min() > 0.99 and back[:6].max() < 0.01 and back[-1].min() > 0.5
+
+
+def test_records_labelled_natural_give_the_same_field(fake, tmp_path):
+    """session.PHASES has both names; a session whose records say "natural" (not the
+    runner's "envmatte") is estimated exactly as the same session labelled "envmatte"."""
+    import copy
+    import dataclasses
+
+    from opacityhull.session import PHASES, _RECORD_TYPES
+
+    assert "natural" in PHASES and "envmatte" in PHASES
+    check, _ = _RECORD_TYPES["phase"]
+    assert check("natural") and not check("naturals")
+    assert shot_key("natural", 0, 0.0, pattern=None).endswith("/off")
+    sess, geo = fake
+    relabelled = copy.copy(sess)
+    relabelled.records = [dataclasses.replace(r, phase="natural") for r in sess.records]
+    alpha = sess.mask.astype(np.float32)
+    a = estimate_session_natural(sess, [(0, 0.0)], None, [alpha], tmp_path / "a", n_kernels=13,
+                                 weights_dtype="float32")
+    b = estimate_session_natural(relabelled, [(0, 0.0)], None, [alpha], tmp_path / "b", n_kernels=13,
+                                 weights_dtype="float32")
+    assert a["pixels"] == b["pixels"] > 0 and a["displays"] == b["displays"]
+    fa, fb = nt.load_view_fields(tmp_path / "a", "c0_t000.000"), nt.load_view_fields(tmp_path / "b", "c0_t000.000")
+    for d in fa:
+        assert np.array_equal(fa[d].weights, fb[d].weights) and np.array_equal(fa[d].boxes, fb[d].boxes)
+
+
+def test_natural_mask_fills_enclosed_low_alpha_only():
+    """A glass's low-α interior inside its opaque-looking rim gets a field; a gap open to
+    the background and the background itself do not."""
+    from opacityhull.reconstruct.natural_field import natural_mask
+
+    a = np.zeros((12, 14))
+    a[2:10, 2:8] = 0.9   # a ring: rim at 0.9, interior at 0.1 (clear glass)
+    a[4:8, 4:6] = 0.1
+    a[2:10, 9:13] = 0.9  # a "U" whose gap (col 10..11, rows 2..7) opens to the top edge of the region
+    a[2:8, 10:12] = 0.05
+    m = natural_mask(a)
+    assert m[4:8, 4:6].all()                      # enclosed: filled
+    assert not m[2:8, 10:12].any()                # open to the background: left out
+    assert not m[0, :].any() and not m[:, 0].any()
+    assert np.array_equal(natural_mask(a, fill_holes=False), a > 0.5)
+    assert not natural_mask(np.zeros((5, 5))).any() and natural_mask(np.ones((5, 5))).all()
+    assert not natural_mask(np.full((4, 4), np.nan)).any()  # NaN is not > alpha_min
+
+
+def test_envmap_display_layers_reconstruct_the_display_image():
+    """The layers the eval truth renders sum (as emitted radiance x to_env) to the image
+    relight feeds the field, to 1/2 of 255^-2 of the peak; one 8-bit layer loses the dim
+    part of a map with a bright lamp in the display's solid angle."""
+    from opacityhull.relight.natural_eval import envmap_display_layers
+
+    geo = RigGeometry.from_dict(GEO)
+    back = geo.display("back")
+    centre = (0.0, 0.1, 0.0)
+    rad = np.full((32, 64, 3), 0.02, np.float32)
+    env = EnvironmentMap(rad, source="flat")
+    towards = nt.display_directions(back, 0.0, centre_m=centre).reshape(-1, 3).mean(axis=0)
+    lamp = env.directions() @ (towards / np.linalg.norm(towards)) > np.cos(np.radians(8))
+    assert lamp.any()
+    rad[lamp] = 50.0  # a lamp in the back display's solid angle
+    env = EnvironmentMap(rad, source="lamp")
+    L = nt.envmap_display_image(env, back, 0.0, centre_m=centre)
+    assert L.max() > 1000 * L.min() > 0  # dim part below 1/255 of the peak
+
+    def emitted(layers):
+        return sum(p.astype(np.float64) / 255 * back.max_radiance * k for p, k in layers)
+
+    two = envmap_display_layers(env, back, 0.0, centre_m=centre)
+    one = envmap_display_layers(env, back, 0.0, centre_m=centre, layers=1)
+    assert len(two) == 2 and all(p.dtype == np.uint8 for p, _ in two)
+    assert np.abs(emitted(two) - L).max() <= 0.5 * L.max() / 255**2 + 1e-12
+    dim = L < L.max() / 255
+    assert np.abs(emitted(one) - L)[dim].max() > 0.5 * L[dim].max()  # 8 bits alone flatten it
+    black = EnvironmentMap(np.zeros((8, 16, 3), np.float32), source="black")
+    assert envmap_display_layers(black, back, 0.0, centre_m=centre) == []
+    with pytest.raises(InputError):
+        envmap_display_layers(env, back, 0.0, centre_m=centre, layers=0)

@@ -54,10 +54,14 @@ def test_relight_with_lights_and_pca(sphere_model, tmp_path):
 
 def test_relight_orbit_and_view_render_through_ulr(sphere_model, probes_dir, tmp_path):
     r = run("relight", sphere_model, "--envmap", probes_dir / "pisa.hdr", "--yaw-deg", 180, "--orbit", 3,
-            "--view", "1,45", "--out", tmp_path / "o", "--json", "--no-views")
+            "--view", "1,45", "--out", tmp_path / "o", "--json", "--no-views", "--fps", 5)
     assert r.exit_code == 0, r.output
     s = json.loads(r.stdout.strip().splitlines()[-1])
-    assert s["orbit"]["frames"] == 3 and (tmp_path / "o" / "orbit.gif").stat().st_size > 0
+    assert s["orbit"]["frames"] == 3
+    from PIL import Image
+
+    with Image.open(tmp_path / "o" / "orbit.gif") as gif:  # 5 fps: 200 ms a frame, not 0 (the old bug)
+        assert gif.n_frames == 3 and gif.info["duration"] == 200
     f = read_exr(tmp_path / "o" / "orbit" / "frame_001.exr")
     assert f.shape == (32, 40, 4) and f[..., 3].max() > 0.9  # the sphere is in frame
     assert (tmp_path / "o" / "view_c1_t045.000.png").is_file()

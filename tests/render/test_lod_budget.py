@@ -36,10 +36,10 @@ def test_view_lod_is_the_render_lod():
 def test_budget_at_or_above_the_model_is_the_model_exactly(sphere_dir, tmp_path):
     root, m = sphere_dir
     n = len(m.surfels)
-    full = run_render(root, tmp_path / "full.exr", view="1,30")
+    full = run_render(root, tmp_path / "full.exr", view=(1, 30.0))
     assert full["budget"] is None and full["splats_per_frame"] == [n]
     for b in (n, 10 * n):
-        s = run_render(root, tmp_path / f"b{b}.exr", view="1,30", budget=b)
+        s = run_render(root, tmp_path / f"b{b}.exr", view=(1, 30.0), budget=b)
         assert s["splats_per_frame"] == [n] and s["lod_tau"] == [0.0]
         np.testing.assert_array_equal(read_exr(tmp_path / f"b{b}.exr"), read_exr(tmp_path / "full.exr"))
 
@@ -109,7 +109,7 @@ def test_cut_carries_subtree_areas_to_the_renderer(sphere_dir):
 
 def test_budget_one_draws_the_root(sphere_dir, tmp_path):
     root, _ = sphere_dir
-    s = run_render(root, tmp_path / "one.exr", view="0,0", budget=1)
+    s = run_render(root, tmp_path / "one.exr", view=(0, 0.0), budget=1)
     assert s["splats_per_frame"] == [1]
     img = read_exr(tmp_path / "one.exr")
     assert np.all(np.isfinite(img)) and img[..., 3].max() > 0
@@ -139,7 +139,7 @@ def test_select_cut_respects_any_budget(n, seed, budget, eye_scale):
 
 @pytest.mark.parametrize("bad", [0, -3, 2.5, float("nan"), "many", True])
 def test_check_budget_rejects(bad):
-    with pytest.raises(InputError, match="--budget"):
+    with pytest.raises(InputError, match="splat budget"):
         check_budget(bad)
 
 

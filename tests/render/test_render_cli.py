@@ -49,6 +49,10 @@ def test_render_orbit_writes_frames_and_gif(sphere_dir, tmp_path):
     assert s["frames"] == 4 and len(s["paths"]) == 4 and s["ms_per_frame"] > 0
     frames = iio.mimread(s["gif"])
     assert len(frames) == 4 and frames[0].shape[:2] == (48, 64)
+    from PIL import Image
+
+    with Image.open(s["gif"]) as gif:  # default --fps 12: 8 cs (GIF's unit) a frame
+        assert gif.info["duration"] == 80
     first = read_png(tmp_path / "orb_000.png")
     assert first.shape == (48, 64, 3)  # composited over the background: no alpha
     assert not np.allclose(read_png(tmp_path / "orb_000.png"), read_png(tmp_path / "orb_002.png"))
@@ -64,7 +68,9 @@ def test_render_look_at_over_environment_map(sphere_dir, tmp_path):
     from opacityhull.render.background import EnvMap
     from opacityhull.render.runner import choose_cameras
 
-    cam = choose_cameras(OpacityHullModel.open(root), look_at="0,0.3,0.5,0,0.1,0,30")[0]
+    from opacityhull.render.cameras import parse_look_at
+
+    cam = choose_cameras(OpacityHullModel.open(root), look_at=parse_look_at("0,0.3,0.5,0,0.1,0,30"))[0]
     bg = EnvMap.from_file("/work/shared/data/probes/grace.hdr", yaw_deg=180).render(cam)
     np.testing.assert_allclose(img[0], bg[0], rtol=1e-5)  # the top row is all environment
     assert np.abs(img[24, 32] - bg[24, 32]).max() > 0.05  # the object covers the centre

@@ -1,0 +1,36 @@
+"""Image metrics of relighting: relit against true radiance inside a mask.
+
+A leaf module so that the evaluation (:mod:`.evaluate`) and the natural-illumination
+evaluation (:mod:`.natural_eval`) share it without importing each other.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+__all__ = ["relight_metrics"]
+
+
+def relight_metrics(relit_rgb: np.ndarray, truth_rgb: np.ndarray, mask: np.ndarray) -> dict:
+    """PSNR (dB) and relative L2 error of ``relit_rgb`` against ``truth_rgb`` (H, W, 3)
+    over ``mask`` (H, W) bool. NaN metrics when the mask is empty; PSNR is +inf for an
+    exact match and NaN for an all-zero truth."""
+    m = np.asarray(mask, bool)
+    n = int(m.sum())
+    if n == 0:
+        return {"pixels": 0, "psnr": float("nan"), "rel_err": float("nan"), "mse": float("nan")}
+    a = np.asarray(relit_rgb, np.float64)[m]
+    b = np.asarray(truth_rgb, np.float64)[m]
+    mse = float(np.mean((a - b) ** 2))
+    nb = float(np.linalg.norm(b))
+    peak = float(b.max())
+    rel = float(np.linalg.norm(a - b) / nb) if nb > 0 else (0.0 if mse == 0 else float("inf"))
+    if peak <= 0:
+        psnr = float("nan")
+    elif mse == 0:
+        psnr = float("inf")
+    else:
+        psnr = 10 * math.log10(peak**2 / mse)
+    return {"pixels": n, "psnr": psnr, "rel_err": rel, "mse": mse, "peak": peak}
