@@ -184,6 +184,10 @@ def register(app, groups) -> None:
         cfg = select_effects(sc, phase)
         summary = {"scene": sc.source, **cfg.to_json(), "expected_cost": expected_cost(sc, phase),
                    "variant": variant_report()}
+        if phase == "matting":
+            # what a displays-on shot gets when the capture does not declare its phase
+            und = select_effects(sc, phase, declared=False)
+            summary["undeclared"] = {"integrator": und.integrator, "max_depth": und.max_depth, "spp": und.spp}
 
         def human(s):
             c = console()
@@ -199,6 +203,10 @@ def register(app, groups) -> None:
                         f"({1.0 / ec['vs_reference']:.1f}x faster; {ec['measured']})", highlight=False)
             else:
                 c.print(f"  expected cost: not measured ({ec['measured']})", highlight=False)
+            if "undeclared" in s:
+                u = s["undeclared"]
+                c.print(f"  a shot whose capture does not declare the phase (it may be envmatte): {u['integrator']} "
+                        f"(max_depth {u['max_depth']}), {u['spp']} spp", highlight=False)
             v = s["variant"]
             c.print(f"  Mitsuba variant: {v['variant']}{' (GPU)' if v['gpu'] else ''} — {v['source']}",
                     highlight=False)
@@ -218,6 +226,8 @@ def register(app, groups) -> None:
             s = load_scene(f"builtin:{n}")
             items.append({"name": f"builtin:{n}", "description": s.description,
                           "effect_classes": sorted(s.effect_classes), "parts": [p.kind for p in s.parts]})
-        emit({"scenes": items}, json_out,
-             lambda s: [console().print(f"[bold]{escape(i['name'])}[/]: {escape(i['description'])}", highlight=False)
-                        for i in s["scenes"]])
+        def human(s: dict) -> None:
+            for i in s["scenes"]:
+                console().print(f"[bold]{escape(i['name'])}[/]: {escape(i['description'])}", highlight=False)
+
+        emit({"scenes": items}, json_out, human)

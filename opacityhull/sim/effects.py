@@ -39,6 +39,7 @@ Each selection states the error it promises against a full-effects reference
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, replace
 from typing import Any, Mapping
 
@@ -46,6 +47,7 @@ from ..errors import ConfigError
 from .scenes import SceneSpec
 
 __all__ = ["EffectConfig", "select_effects", "reference_effects", "backdrop_only_effects", "scene_kind", "expected_cost",
+           "cheapest_within", "MATTING_CANDIDATES", "MATTING_MARGIN", "Candidate",
            "MEASURED_COST", "BACKDROP_SPP", "PHASES",
            "ERROR_METRICS", "PHASE_EMITTERS"]
 
@@ -169,7 +171,8 @@ def _check_phase(phase: str) -> None:
         raise ConfigError(f"phase {phase!r}: expected one of {list(PHASES)}")
 
 
-def select_effects(scene: SceneSpec, phase: str, *, overrides: Mapping[str, Any] | None = None) -> EffectConfig:
+def select_effects(scene: SceneSpec, phase: str, *, overrides: Mapping[str, Any] | None = None,
+                   declared: bool = True) -> EffectConfig:
     """Choose the cheapest rendering that is faithful for ``scene`` in ``phase``.
 
     Parameters
@@ -179,6 +182,12 @@ def select_effects(scene: SceneSpec, phase: str, *, overrides: Mapping[str, Any]
     overrides : mapping, optional
         Force fields (``integrator``, ``max_depth``, ``spp``, ``emitters``, ``shapes``,
         ``resolution_scale``, ``sampler``); each override is recorded in ``reasons``.
+    declared : bool
+        Matting only: the capture declared its phase (``SimState.phase``). A displays-on,
+        lights-off shot whose phase is not declared may be an envmatte shot — the rig
+        state is the same — so it is rendered with the matting integrator at the
+        envmatte selection's spp (within both bounds, measured); a declared matting
+        shot gets the cheapest measured matting candidate (:data:`MATTING_CANDIDATES`).
 
     Raises
     ------
@@ -235,6 +244,23 @@ def select_effects(scene: SceneSpec, phase: str, *, overrides: Mapping[str, Any]
         row = _TABLE[(kind, group)]
     integrator, depth, spp, bound, why = row
     reasons.extend(why)
+    bound = bound[phase] if isinstance(bound, dict) else bound
+    if phase == "matting" and kind in MATTING_CANDIDATES:
+        env_spp = _TABLE[(kind, "backdrop")][2]
+        if declared:
+            c = cheapest_within(MATTING_CANDIDATES[kind], bound)
+            integrator, depth, spp = c.integrator, c.max_depth, c.spp
+            reasons.append(
+                f"matting: the cheapest measured candidate inside the crop whose alpha error is within "
+                f"{MATTING_MARGIN:g} x the bound {bound:g} — {c.integrator} d{c.max_depth} {c.spp} spp, measured "
+                f"{c.error:.4f} at {c.seconds:.3f} s per object + backdrop shot pair (candidates: "
+                + ", ".join(f"{k.integrator} d{k.max_depth} {k.spp}: {k.error:.4f}, {k.seconds:.3f} s"
+                            for k in MATTING_CANDIDATES[kind]) + f"; {MATTING_SOURCE})")
+        else:
+            spp = max(spp, env_spp)
+            reasons.append(f"the capture did not declare its phase: an envmatte shot looks the same to the rig "
+                           f"(displays on, lights off), so the envmatte selection's {env_spp} spp keep it within "
+                           "the envmatte bound too (benchmarks/sim_effects.py: 'envmatte (captured as matting)')")
     reasons.append(f"stratified samples ({spp} = {int(round(spp ** 0.5))}x{int(round(spp ** 0.5))} per pixel)")
     reasons.append("only the pixels whose rays can meet the " + ("board" if board else "object")
                    + " are rendered (its projected bounding box + the box filter's 0.5 px support; pinhole: no "
@@ -245,8 +271,7 @@ def select_effects(scene: SceneSpec, phase: str, *, overrides: Mapping[str, Any]
                        f"{BACKDROP_SPP} spp anti-alias the panels' texel edges (measured: the matte error rises "
                        f"0.0093 -> 0.0106 from 64 spp, at a quarter of the samples)")
     cfg = EffectConfig(integrator, depth, spp, emitters, shapes, 1.0, tuple(reasons), "stratified", phase,
-                       metric, bound[phase] if isinstance(bound, dict) else bound, skipped,
-                       backdrop_spp=min(BACKDROP_SPP, spp))
+                       metric, bound, skipped, backdrop_spp=min(BACKDROP_SPP, spp))
     return _apply_overrides(cfg, overrides)
 
 
@@ -346,6 +371,87 @@ _FIBRES_MATTING = ("direct", 2, 64, 0.05, (
     "sub-pixel fibres: 64 spp resolve their fractional coverage"))
 
 
+@dataclass(frozen=True)
+class Candidate:
+    """One measured way of rendering a phase: integrator, depth, spp, the measured error
+    on what the phase consumes and the measured seconds (see :data:`MATTING_CANDIDATES`)."""
+
+    integrator: str
+    max_depth: int
+    spp: int
+    error: float
+    seconds: float
+
+
+def cheapest_within(candidates, bound: float, *, margin: float | None = None) -> Candidate:
+    """The cheapest candidate (least measured ``seconds``; fewer spp on a tie) whose
+    measured ``error`` is at most ``margin * bound``; the margin (default
+    :data:`MATTING_MARGIN`) leaves room for the Monte-Carlo spread of a single
+    measurement and for other cameras and seeds. Raises ConfigError if none qualifies or
+    the arguments are not finite and positive."""
+    margin = MATTING_MARGIN if margin is None else float(margin)
+    if not (math.isfinite(bound) and bound > 0 and math.isfinite(margin) and 0 < margin <= 1):
+        raise ConfigError(f"cheapest_within: bound {bound!r} must be > 0 and margin {margin!r} in (0, 1]")
+    ok = [c for c in candidates if math.isfinite(c.error) and math.isfinite(c.seconds)
+          and c.error <= margin * bound]
+    if not ok:
+        raise ConfigError(f"cheapest_within: no candidate within {margin:g} x bound {bound:g} "
+                          f"(errors: {[round(c.error, 4) for c in candidates]})")
+    return min(ok, key=lambda c: (c.seconds, c.spp))
+
+
+#: Safety factor of :func:`cheapest_within`: a candidate qualifies if its measured error
+#: is at most this fraction of the bound — two seeds of the same measurement differ by up
+#: to ~10 %.
+MATTING_MARGIN = 0.85
+
+#: Where :data:`MATTING_CANDIDATES` comes from.
+MATTING_SOURCE = ("benchmarks/sim_effects.py --quick (its matting candidates, 2 rounds): error = the worst of "
+                  "camera 2 of the default rig (200x150) and the 64x48 test camera (evaluate.eval_camera; it measures "
+                  "1.3-1.9x the error of the rig camera), table 20 deg, 256-spp reference, mean of 2 seeds; seconds = "
+                  "median CPU time of an object + backdrop shot pair of the rig camera, candidates measured "
+                  "alternately, contended 2-core machine (path d2 and direct d2 are within that noise of each other)")
+#: kind -> matting candidates measured inside the crop (:data:`MATTING_SOURCE`): the worst
+#: error and the slowest object + backdrop shot pair among the built-in scenes of that
+#: kind (diffuse: builtin:diffuse and builtin:sphere) and the two cameras. The selection for a declared
+#: matting shot is ``cheapest_within(MATTING_CANDIDATES[kind], bound)``; regenerate with
+#: ``.venv/bin/python benchmarks/sim_effects.py --matting-candidates`` (its ``table``).
+MATTING_CANDIDATES: dict[str, tuple[Candidate, ...]] = {
+    "diffuse": (
+        Candidate("direct", 2, 16, 0.0260, 0.151),
+        Candidate("direct", 2, 25, 0.0236, 0.176),
+        Candidate("direct", 2, 36, 0.0196, 0.222),
+        Candidate("direct", 2, 49, 0.0178, 0.234),
+        Candidate("direct", 2, 64, 0.0175, 0.240),
+        Candidate("path", 2, 16, 0.0261, 0.149),
+        Candidate("path", 2, 36, 0.0194, 0.188),
+    ),
+    "transmissive": (
+        Candidate("path", 8, 16, 0.0483, 0.158),
+        Candidate("path", 8, 25, 0.0390, 0.194),
+        Candidate("path", 8, 36, 0.0341, 0.219),
+        Candidate("path", 8, 49, 0.0322, 0.234),
+        Candidate("path", 8, 64, 0.0310, 0.266),
+    ),
+    "glossy": (
+        Candidate("path", 3, 16, 0.0312, 0.193),
+        Candidate("path", 3, 25, 0.0286, 0.218),
+        Candidate("path", 3, 36, 0.0251, 0.273),
+        Candidate("path", 3, 49, 0.0231, 0.307),
+        Candidate("path", 3, 64, 0.0219, 0.326),
+    ),
+    "fibres": (
+        Candidate("direct", 2, 16, 0.0668, 0.261),
+        Candidate("direct", 2, 25, 0.0552, 0.319),
+        Candidate("direct", 2, 36, 0.0486, 0.392),
+        Candidate("direct", 2, 49, 0.0419, 0.471),
+        Candidate("direct", 2, 64, 0.0381, 0.570),
+        Candidate("path", 2, 16, 0.0670, 0.235),
+        Candidate("path", 2, 36, 0.0494, 0.396),
+    ),
+}
+
+
 def reference_effects(scene: SceneSpec, phase: str, *, spp: int = 512) -> EffectConfig:
     """The full-effects reference for ``phase``: ``path`` tracing, ``max_depth`` 16,
     ``spp`` samples, every emitter group the phase switches on (:data:`PHASE_EMITTERS`,
@@ -380,6 +486,8 @@ def _apply_overrides(cfg: EffectConfig, overrides: Mapping[str, Any] | None) -> 
         if k == "crop" and not isinstance(v, bool):
             raise ConfigError(f"effect overrides: crop must be true or false, got {v!r}")
         if k in ("emitters", "shapes"):
+            if isinstance(v, str) or not isinstance(v, (list, tuple)):
+                raise ConfigError(f"effect overrides: {k} must be a list of names, got {v!r}")
             v = tuple(v)
         kw[k] = v
     if kw.get("integrator") == "direct" and "max_depth" not in kw:
@@ -393,41 +501,43 @@ def _apply_overrides(cfg: EffectConfig, overrides: Mapping[str, Any] | None) -> 
 
 
 #: Where :data:`MEASURED_COST` comes from.
-MEASURED_COST_SOURCE = "benchmarks/out/sim_effects.md (camera 2 of the default rig, 200x150, contended 2-core machine)"
+MEASURED_COST_SOURCE = ("benchmarks/out/sim_effects.md (quick: 256-spp reference, camera 2 of the default rig, "
+                        "200x150, contended 2-core machine; matting: the declared selection)")
 
 #: (built-in scene, phase) -> time of the selection / time of the reference (path depth
 #: 16, whole frame) at equal error where measured (the reference's spp interpolated to the
 #: selection's error), else at 256 spp; CPU seconds, one measurement each on a contended
 #: machine (single runs vary by up to ~2x). 0: nothing is rendered (provably black).
-#: ``.venv/bin/python benchmarks/sim_effects.py --ref-spp 256 --scales 1 --json``.
+#: ``.venv/bin/python benchmarks/sim_effects.py --quick --json`` (the matting rows re-measured
+#: with ``--phases matting`` after the candidates table changed, merged with ``--merge``).
 MEASURED_COST: dict[tuple[str, str], float] = {
-    ('charuco', 'calibration'): 0.081,
-    ('charuco', 'groundtruth'): 0.103,
-    ('diffuse', 'envmatte'): 1.053,
+    ('charuco', 'calibration'): 0.062,
+    ('charuco', 'groundtruth'): 0.133,
+    ('diffuse', 'envmatte'): 0.241,
     ('diffuse', 'groundtruth'): 0.128,
-    ('diffuse', 'lightfield'): 0.757,
-    ('diffuse', 'matting'): 0.129,
-    ('diffuse', 'reflectance'): 0.398,
-    ('fuzzy', 'envmatte'): 0.907,
-    ('fuzzy', 'groundtruth'): 0.087,
-    ('fuzzy', 'lightfield'): 0.542,
-    ('fuzzy', 'matting'): 0.268,
-    ('fuzzy', 'reflectance'): 0.467,
-    ('glass', 'envmatte'): 1.789,
-    ('glass', 'groundtruth'): 0.112,
+    ('diffuse', 'lightfield'): 1.291,
+    ('diffuse', 'matting'): 0.558,
+    ('diffuse', 'reflectance'): 0.565,
+    ('fuzzy', 'envmatte'): 0.568,
+    ('fuzzy', 'groundtruth'): 0.067,
+    ('fuzzy', 'lightfield'): 0.612,
+    ('fuzzy', 'matting'): 0.449,
+    ('fuzzy', 'reflectance'): 0.598,
+    ('glass', 'envmatte'): 0.516,
+    ('glass', 'groundtruth'): 0.113,
     ('glass', 'lightfield'): 0.0,
-    ('glass', 'matting'): 0.583,
+    ('glass', 'matting'): 0.391,
     ('glass', 'reflectance'): 0.0,
-    ('glossy', 'envmatte'): 1.853,
-    ('glossy', 'groundtruth'): 0.148,
-    ('glossy', 'lightfield'): 0.44,
-    ('glossy', 'matting'): 0.809,
-    ('glossy', 'reflectance'): 0.317,
-    ('sphere', 'envmatte'): 1.378,
-    ('sphere', 'groundtruth'): 0.113,
-    ('sphere', 'lightfield'): 0.334,
-    ('sphere', 'matting'): 0.758,
-    ('sphere', 'reflectance'): 0.123,
+    ('glossy', 'envmatte'): 0.573,
+    ('glossy', 'groundtruth'): 0.127,
+    ('glossy', 'lightfield'): 1.094,
+    ('glossy', 'matting'): 0.524,
+    ('glossy', 'reflectance'): 0.58,
+    ('sphere', 'envmatte'): 0.345,
+    ('sphere', 'groundtruth'): 0.129,
+    ('sphere', 'lightfield'): 0.864,
+    ('sphere', 'matting'): 0.788,
+    ('sphere', 'reflectance'): 0.205,
 }
 
 #: (built-in scene, phase) -> scene_kind, for scenes that are not built-ins.

@@ -96,7 +96,7 @@ def _renderer(scene: SceneSpec, geometry: RigGeometry | None, renderer: SimRende
         return hit[1]
     if len(_SHARED) >= 4:
         _SHARED.pop(next(iter(_SHARED)))
-    r = SimRenderer(scene, geometry)
+    r = SimRenderer(scene, geometry or default_geometry())
     _SHARED[id(scene)] = (scene, r)  # holding the scene keeps its id from being reused
     return r
 

@@ -74,7 +74,7 @@ import threading
 from collections import OrderedDict
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Mapping, Sequence
+from typing import Any, Literal, Mapping, Sequence, overload
 
 import numpy as np
 
@@ -225,6 +225,11 @@ class SimState:
     displays : display name -> shown pattern, uint8 (rows, cols, 3), or None (blank/off).
     content : "object" (the scene's object), "board" (the ChArUco board) or "none".
     charuco : the board placed when ``content == "board"``.
+    phase : the capture phase, if the capture declared it (``SimRig.note_phase``), else
+        None. Only "matting" and "envmatte" change anything: a displays-on shot of a
+        declared phase gets that phase's selection; an undeclared one the matting
+        integrator at the samples that keep both phases' bounds
+        (``select_effects(declared=False)``).
     """
 
     table_deg: float = 0.0
@@ -233,6 +238,7 @@ class SimState:
     displays: Mapping[str, np.ndarray | None] = field(default_factory=dict)
     content: str = "object"
     charuco: CharucoSpec | None = None
+    phase: str | None = None
 
     def lights_on(self) -> dict[int, int]:
         return {int(k): int(v) for k, v in self.light_levels.items() if int(v) > 0}
@@ -245,8 +251,9 @@ class SimState:
 def phase_for_state(state: SimState) -> str:
     """The capture phase a rig state belongs to (the simulator cannot be told; it infers).
 
-    Board on the table → calibration; displays emitting and no light → matting (an
-    envmatte capture looks the same to the rig; the matting selection stays within the
+    Board on the table → calibration; displays emitting and no light → matting, or
+    envmatte if the capture declared it (``state.phase``; undeclared, an envmatte capture
+    looks the same to the rig, and the undeclared matting selection stays within the
     envmatte error bounds, see ``benchmarks/sim_effects.py``); lights on → reflectance for
     a single light, lightfield for several or lights plus displays; nothing on → matting
     (the image is black anyway and nothing is rendered).
@@ -255,7 +262,7 @@ def phase_for_state(state: SimState) -> str:
         return "calibration"
     lights = state.lights_on()
     if not lights:
-        return "matting"
+        return "envmatte" if state.phase == "envmatte" else "matting"
     if len(lights) == 1 and not state.displays_on():
         return "reflectance"
     return "lightfield"
@@ -378,7 +385,7 @@ def bsdf_dict(mi, mat: MaterialSpec) -> dict:
             out["distribution"] = "ggx"
         return out
     if t in ("conductor", "roughconductor"):
-        out = {"type": t}
+        out: dict[str, Any] = {"type": t}
         if "specular" in p:
             out["material"] = "none"
             out["specular_reflectance"] = {"type": "rgb", "value": list(p["specular"])}
@@ -410,21 +417,25 @@ def part_dicts(mi, parts: Sequence[Part]) -> dict:
     out = {}
     for i, p in enumerate(parts):
         key = f"obj_{i}"
+        if p.kind == "board":
+            out[key] = board_dict(mi, p.need(p.charuco, "charuco"))
+            continue
+        mat = p.need(p.material, "material")
         if p.kind == "mesh":
-            out[key] = {"type": "ply", "filename": _mesh_file(p.mesh), "face_normals": False,
-                        "bsdf": bsdf_dict(mi, p.material)}
+            out[key] = {"type": "ply", "filename": _mesh_file(p.need(p.mesh, "mesh")), "face_normals": False,
+                        "bsdf": bsdf_dict(mi, mat)}
         elif p.kind == "sphere":
-            out[key] = {"type": "sphere", "center": [float(v) for v in p.centre_m], "radius": float(p.radius_m),
-                        "bsdf": bsdf_dict(mi, p.material)}
+            out[key] = {"type": "sphere", "center": [float(v) for v in p.need(p.centre_m, "centre_m")],
+                        "radius": float(p.need(p.radius_m, "radius_m")), "bsdf": bsdf_dict(mi, mat)}
         elif p.kind == "disk":
             T = np.eye(4)
-            T[:3, :3] = np.array([[1.0, 0, 0], [0, 0, 1.0], [0, -1.0, 0]]) * float(p.radius_m)  # local +z -> +Y
-            T[:3, 3] = p.centre_m
-            out[key] = {"type": "disk", "to_world": mi.ScalarTransform4f(T), "bsdf": bsdf_dict(mi, p.material)}
+            # local +z -> +Y
+            T[:3, :3] = np.array([[1.0, 0, 0], [0, 0, 1.0], [0, -1.0, 0]]) * float(p.need(p.radius_m, "radius_m"))
+            T[:3, 3] = p.need(p.centre_m, "centre_m")
+            out[key] = {"type": "disk", "to_world": mi.ScalarTransform4f(T), "bsdf": bsdf_dict(mi, mat)}
         elif p.kind == "curves":
-            out[key] = {"type": "linearcurve", "filename": _curves_file(p.fibres), "bsdf": bsdf_dict(mi, p.material)}
-        elif p.kind == "board":
-            out[key] = board_dict(mi, p.charuco)
+            out[key] = {"type": "linearcurve", "filename": _curves_file(p.need(p.fibres, "fibres")),
+                        "bsdf": bsdf_dict(mi, mat)}
         else:
             raise InputError(f"part {p.name!r}: unknown kind {p.kind!r}")
     return out
@@ -509,8 +520,10 @@ def _camera_key(cam: Camera) -> tuple:
 
 @dataclass
 class _Loaded:
-    scene: object
-    params: object
+    # mi.Scene / mi.SceneParameters (or a sensor and its parameters); Any because the
+    # Mitsuba module's types depend on the variant chosen at run time
+    scene: Any
+    params: Any
     keys: dict
     lock: threading.Lock = field(default_factory=threading.Lock)
     last: dict = field(default_factory=dict)  # parameter name -> signature of the value last set
@@ -590,7 +603,7 @@ class SimRenderer:
         (:func:`phase_for_state`), listing every emitter group switched on that is not
         provably black. What is actually rendered, pass by pass: :meth:`passes_for`."""
         phase = "calibration" if state.content == "board" else phase_for_state(state)
-        cfg = select_effects(self.scene, phase, overrides=self.overrides or None)
+        cfg = self._select(phase, declared=state.phase == phase)
         if state.content == "none":
             return backdrop_only_effects(cfg)
         # whatever is switched on is in the picture, even where the phase would not use it
@@ -629,7 +642,10 @@ class SimRenderer:
         elif state.content == "board":
             cfg_d = cfg_l = self._select("calibration")
         else:
-            cfg_d = self._select("matting")
+            # a declared envmatte shot gets its own selection; every other displays pass
+            # the matting one (at both phases' samples unless matting was declared)
+            cfg_d = (self._select("envmatte") if state.phase == "envmatte"
+                     else self._select("matting", declared=state.phase == "matting"))
             cfg_l = self._select("reflectance" if len(lights) == 1 else "lightfield")
         if state.content == "none":
             cfg_d, cfg_l = backdrop_only_effects(cfg_d), None
@@ -675,8 +691,8 @@ class SimRenderer:
             out += img
         return out
 
-    def _select(self, phase: str) -> EffectConfig:
-        return select_effects(self.scene, phase, overrides=self.overrides or None)
+    def _select(self, phase: str, *, declared: bool = True) -> EffectConfig:
+        return select_effects(self.scene, phase, overrides=self.overrides or None, declared=declared)
 
     def _render_pass(self, rig_camera: Camera, state: SimState, p: RenderPass, parts, seed: int, *,
                      use_cache: bool = True) -> np.ndarray:
@@ -685,8 +701,8 @@ class SimRenderer:
         view = RigGeometry.view_camera(cam, state.table_deg)
         win = self.crop_for(cam, state, cfg, parts)
         self.pixels_framed += cam.width * cam.height
+        x0, y0, w, h = win if win is not None else (0, 0, cam.width, cam.height)
         if win is not None:
-            x0, y0, w, h = win
             self.pixels_rendered += w * h
             if p.group == "displays":
                 bp = RenderPass("displays", backdrop_only_effects(cfg))
@@ -795,9 +811,22 @@ class SimRenderer:
             self._radiance.clear()
             self._radiance_bytes = 0
 
+    @overload
     def render_rgba(self, camera_object: Camera, parts: Sequence[Part], *, extra: Mapping | None = None,
                     integrator: dict, spp: int, sampler: str = "stratified", seed: int = 0,
-                    key: tuple = (), with_shape_names: bool = False, updates: Mapping | None = None):
+                    key: tuple = (), with_shape_names: Literal[False] = False,
+                    updates: Mapping | None = None) -> np.ndarray: ...
+
+    @overload
+    def render_rgba(self, camera_object: Camera, parts: Sequence[Part], *, extra: Mapping | None = None,
+                    integrator: dict, spp: int, sampler: str = "stratified", seed: int = 0,
+                    key: tuple = (), with_shape_names: Literal[True],
+                    updates: Mapping | None = None) -> tuple[np.ndarray, dict[int, str]]: ...
+
+    def render_rgba(self, camera_object: Camera, parts: Sequence[Part], *, extra: Mapping | None = None,
+                    integrator: dict, spp: int, sampler: str = "stratified", seed: int = 0,
+                    key: tuple = (), with_shape_names: bool = False,
+                    updates: Mapping | None = None) -> np.ndarray | tuple[np.ndarray, dict[int, str]]:
         """Low-level: render ``parts`` (plus ``extra`` Mitsuba dict entries) from a camera
         posed in the object frame with the given integrator; returns the raw film
         channels (H, W, C) — and, with ``with_shape_names``, the map from aov
@@ -828,7 +857,9 @@ class SimRenderer:
             for k, v in (updates or {}).items():
                 loaded.assign(k, _signature(v), lambda v=v: v)
             loaded.params.update()
-            img = mi.render(loaded.scene, loaded.params, seed=int(seed) & 0x7FFFFFFF, spp=int(spp))
+            # the stubs type seed as mi.UInt32; Mitsuba converts a Python int
+            img = mi.render(loaded.scene, loaded.params, seed=int(seed) & 0x7FFFFFFF,  # pyright: ignore[reportArgumentType]
+                            spp=int(spp))
             self.renders += 1
             out = np.array(img, dtype=np.float32)
             if with_shape_names:
@@ -902,7 +933,8 @@ class SimRenderer:
         p = mitsuba_sensor_params(cam)
         pre = f"{name}." if name else ""
         T = np.asarray(p["to_world"], dtype=np.float64)
-        loaded.assign(f"{pre}to_world", T.tobytes(), lambda: mi.AffineTransform4f(T))
+        # the stubs lack the constructor from a (4, 4) array that Mitsuba has
+        loaded.assign(f"{pre}to_world", T.tobytes(), lambda: mi.AffineTransform4f(T))  # pyright: ignore[reportCallIssue, reportArgumentType]
         fov_x = math.degrees(2.0 * math.atan(cam.width / (2.0 * cam.fx)))
         loaded.assign(f"{pre}x_fov", fov_x, lambda: fov_x)
         for k in ("principal_point_offset_x", "principal_point_offset_y"):
@@ -955,7 +987,9 @@ class SimRenderer:
                 loaded.assign("light.position", pos, lambda: mi.Point3f(*pos))
                 loaded.assign("light.intensity.value", rgb, lambda: mi.Color3f(*rgb))
             params.update()
-            img = mi.render(loaded.scene, params, sensor=sensor, seed=int(seed) & 0x7FFFFFFF, spp=int(cfg.spp))
+            # the stubs type seed as mi.UInt32; Mitsuba converts a Python int
+            img = mi.render(loaded.scene, params, sensor=sensor, seed=int(seed) & 0x7FFFFFFF,  # pyright: ignore[reportArgumentType]
+                            spp=int(cfg.spp))
             self.renders += 1
             return np.array(img, dtype=np.float32)[:, :, :3]
 

@@ -34,7 +34,7 @@ import math
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Mapping, TypeVar
 
 import numpy as np
 
@@ -57,6 +57,8 @@ __all__ = [
     "SHAPE_KEYS",
     "DATA_DIR",
 ]
+
+_T = TypeVar("_T")
 
 DATA_DIR = Path(__file__).parent / "data"
 _SCENES_DIR = DATA_DIR / "scenes"
@@ -202,26 +204,35 @@ class Part:
     fibres: S.Fibres | None = None
     charuco: CharucoSpec | None = None
 
+    def need(self, value: _T | None, what: str) -> _T:
+        """``value`` (a field of this part that its ``kind`` requires), or a ConfigError
+        naming the part and the missing field."""
+        if value is None:
+            raise ConfigError(f"part {self.name!r} (kind {self.kind!r}): {what} is missing")
+        return value
+
     def triangle_mesh(self) -> S.TriMesh:
         """This part as triangles (spheres tessellated, fibres as thin tubes, the board as
         two triangles), object frame."""
         if self.kind == "mesh":
-            return self.mesh
+            return self.need(self.mesh, "mesh")
         if self.kind == "sphere":
-            return S.uv_sphere_mesh(radius_m=self.radius_m, centre_m=self.centre_m, segments=128, rings=64)
+            return S.uv_sphere_mesh(radius_m=self.need(self.radius_m, "radius_m"),
+                                    centre_m=self.need(self.centre_m, "centre_m"), segments=128, rings=64)
         if self.kind == "curves":
-            return S.tube_mesh(self.fibres)
+            return S.tube_mesh(self.need(self.fibres, "fibres"))
         if self.kind == "disk":
             n = 128
             t = np.linspace(0.0, 2 * np.pi, n, endpoint=False)
             V = np.concatenate([[[0.0, 0.0, 0.0]], np.stack([np.sin(t), np.zeros(n), np.cos(t)], 1)])
-            V = V * self.radius_m + self.centre_m
+            V = V * self.need(self.radius_m, "radius_m") + self.need(self.centre_m, "centre_m")
             F = np.array([[0, i + 1, (i + 1) % n + 1] for i in range(n)], dtype=np.int32)
             N = np.tile([0.0, 1.0, 0.0], (n + 1, 1))
             return S.TriMesh(V, F, N, np.zeros((n + 1, 2)))
         if self.kind == "board":
-            w, h = self.charuco.size_m
-            T = self.charuco.object_from_board()
+            charuco = self.need(self.charuco, "charuco")
+            w, h = charuco.size_m
+            T = charuco.object_from_board()
             local = np.array([[0, 0, 0, 1], [w, 0, 0, 1], [w, h, 0, 1], [0, h, 0, 1]], dtype=np.float64)
             V = (T @ local.T).T[:, :3]
             F = np.array([[0, 2, 1], [0, 3, 2]], dtype=np.int32)  # normal = -board z = +Y
@@ -294,7 +305,7 @@ class SceneSpec:
 
     def to_toml_dict(self) -> dict:
         """A TOML-ready copy with file paths made absolute (for ``groundtruth/scene.toml``)."""
-        d = _deepcopy(self.raw)
+        d: dict = _deepcopy(self.raw)
         for o in d.get("objects", []):
             if "file" in o and self.base_dir is not None and not Path(o["file"]).is_absolute():
                 o["file"] = str((self.base_dir / o["file"]).resolve())
@@ -336,7 +347,7 @@ def parts_bounds(parts) -> tuple[np.ndarray, np.ndarray]:
             hi.append(m.vertices.max(0))
     return np.min(lo, axis=0), np.max(hi, axis=0)
 
-def _deepcopy(x):
+def _deepcopy(x: Any) -> Any:
     if isinstance(x, dict):
         return {k: _deepcopy(v) for k, v in x.items()}
     if isinstance(x, list):
@@ -397,7 +408,7 @@ def _rgb(where: str, v) -> tuple[float, float, float]:
         raise ConfigError(f"{where}: expected a number or [r, g, b], got {v!r}") from None
     if a.shape != (3,) or not np.all(np.isfinite(a)) or np.any(a < 0):
         raise ConfigError(f"{where}: expected a number or [r, g, b] of finite values >= 0, got {v!r}")
-    return tuple(float(x) for x in a)
+    return (float(a[0]), float(a[1]), float(a[2]))
 
 
 def _number(where: str, v, *, lo=None, hi=None, integer=False):
@@ -566,7 +577,7 @@ def _build_part_uncached(scene: SceneSpec, o: ObjectSpec) -> Part:
     p = o.params
     mat = scene.material(o.material) if o.material is not None else None
 
-    def num(k, default, **kw):
+    def num(k, default, **kw) -> Any:  # an int where integer=True: typed Any for both uses
         return _number(f"{where}.{k}", p[k], **kw) if k in p else default
 
     if o.shape == "sphere":

@@ -29,7 +29,7 @@ import threading
 import tomllib
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Iterator, Sequence
+from typing import TYPE_CHECKING, Iterator, Sequence, cast
 from urllib.parse import parse_qsl
 
 import numpy as np
@@ -37,10 +37,15 @@ import numpy as np
 from ..charuco import CharucoSpec
 from ..errors import ConfigError, DeviceError, InputError
 from ..riggeometry import CameraSpec, RigGeometry
-from ..rigs.protocols import CameraInfo, DeviceInfo
+from ..rigs.interfaces import CameraInfo, DeviceInfo
 from .render import SimRenderer, SimState
 from .scenes import DATA_DIR, SceneSpec, builtin_names, load_scene
 from .sensor import SensorModel
+
+if TYPE_CHECKING:
+    from ..rigs.emulators.display import DisplayEmulator
+    from ..rigs.emulators.enttec import EnttecEmulator
+    from ..rigs.emulators.grbl import GrblEmulator
 
 __all__ = ["SimRig", "SimCamera", "open_sim_rig", "sim_rig_config", "parse_sim_spec", "DEFAULT_RIG_TOML",
            "OPERATOR_ACTIONS"]
@@ -141,7 +146,7 @@ def sim_rig_config(spec: str | None = None, *, rig_toml: str | Path | None = Non
         if rig_toml is None:
             rig_toml = rig_from_spec
     if scale is None:
-        scale = opts.get("scale", 1.0)
+        scale = float(opts["scale"]) if "scale" in opts else 1.0
     path = Path(rig_toml) if rig_toml is not None else DEFAULT_RIG_TOML
     if not path.is_file():
         raise ConfigError(f"rig TOML {path} not found")
@@ -273,11 +278,12 @@ class SimRig:
         self.board_present = False
         self.charuco: CharucoSpec | None = None
         self.operator_log: list[tuple[str, dict]] = []
+        self.phase: str | None = None  # the capture phase declared by note_phase (None: undeclared)
 
     # ---- lifecycle
     @property
     def variant(self) -> str:
-        return self.renderer.mi.variant()
+        return str(self.renderer.mi.variant())
 
     @property
     def is_open(self) -> bool:
@@ -379,7 +385,7 @@ class SimRig:
         sent = getattr(dmx, "last_sent", None)
         if sent is None:
             return True
-        dev = emu.by_device[self.config.light_array.name]
+        dev = cast("EnttecEmulator", emu.by_device[self.config.light_array.name])
         deadline = time.monotonic() + timeout_s
         while True:
             got = dev.levels()
@@ -399,19 +405,19 @@ class SimRig:
             raise DeviceError(f"simulated rig {self.source}: not open — the emulators are not running")
         cfg = self.config
         by = emu.by_device
-        table = by[cfg.turntable.name].position_deg(cfg.turntable.axis)
+        table = cast("GrblEmulator", by[cfg.turntable.name]).position_deg(cfg.turntable.axis)
         array = 0.0
         levels: dict[int, int] = {}
         if cfg.light_array is not None:
             rot = cfg.light_array.rotation
             if rot is not None:
-                array = by[rot.name].position_deg(rot.axis)
-            universe = by[cfg.light_array.name].levels()
+                array = cast("GrblEmulator", by[rot.name]).position_deg(rot.axis)
+            universe = cast("EnttecEmulator", by[cfg.light_array.name]).levels()
             for lid, ch in cfg.light_array.channel_map.items():
                 levels[int(lid)] = int(universe[ch - 1]) if ch - 1 < len(universe) else 0
         displays: dict[str, np.ndarray | None] = {}
         if cfg.backdrops is not None:
-            dev = by[cfg.backdrops.name]
+            dev = cast("DisplayEmulator", by[cfg.backdrops.name])
             for name, out in cfg.backdrops.output_map.items():
                 pid = dev.shown(out) if dev.powered(out) else None
                 displays[name] = dev.pattern(pid) if pid is not None else None
@@ -422,7 +428,21 @@ class SimRig:
         else:
             content = "none"
         return SimState(table_deg=float(table), array_deg=float(array), light_levels=levels, displays=displays,
-                        content=content, charuco=self.charuco)
+                        content=content, charuco=self.charuco, phase=self.phase)
+
+    def note_phase(self, phase: str | None) -> None:
+        """Declare the capture phase of the shots that follow (None: undeclared).
+
+        The rig state cannot tell a matting shot from an envmatte one (displays on,
+        lights off), so undeclared shots are rendered with samples that keep both phases'
+        error bounds; a declared ``matting`` shot gets the cheaper matting selection
+        (:func:`~opacityhull.sim.effects.select_effects`, ``declared``). A capture runner
+        calls this before the shots of each phase."""
+        from .effects import PHASES
+
+        if phase is not None and phase not in PHASES:
+            raise InputError(f"note_phase: phase {phase!r}; expected one of {list(PHASES)} or None")
+        self.phase = phase
 
     # ---- operator and ground truth
     def operator(self, action: str, **details) -> None:

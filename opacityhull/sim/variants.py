@@ -137,10 +137,10 @@ def choose_variant(*, refresh: bool = False) -> str:
             try:
                 data = json.loads(path.read_text())
                 if data.get("key") == key and data.get("variant") in SUPPORTED_VARIANTS:
-                    _chosen = data["variant"]
-                    _report = {"variant": _chosen, "source": f"cached probe {path}",
+                    chosen = _chosen = str(data["variant"])
+                    _report = {"variant": chosen, "source": f"cached probe {path}",
                                "probes": dict(data.get("probes", {}))}
-                    return _chosen
+                    return chosen
             except (OSError, ValueError):
                 pass
         # look the probe up at call time: tests replace it with a fake

@@ -154,8 +154,8 @@ def _constant(g, rgb):
             for d in g.displays}
 
 
-@pytest.mark.parametrize("patterns", ["constant", "cells"])
-def test_cropped_matting_matches_the_full_render_at_the_crop_border(diffuse_renderer, patterns):
+@pytest.mark.parametrize("patterns,declared", [("constant", True), ("cells", True), ("cells", False)])
+def test_cropped_matting_matches_the_full_render_at_the_crop_border(diffuse_renderer, patterns, declared):
     """Triangulation alpha from cropped shots against full-frame shots (the same estimator,
     independent seeds) on the two pixel rings either side of the window's border.
 
@@ -165,17 +165,20 @@ def test_cropped_matting_matches_the_full_render_at_the_crop_border(diffuse_rend
     alpha noisy in *any* render, so against the truth there (coverage 0: the aov ground
     truth shows the object does not reach the ring) the ring's mean error is held to the
     bound and to that of the full render. Outside the window the composite is exactly
-    the backdrop shot (alpha exactly 0)."""
+    the backdrop shot (alpha exactly 0). Both the declared matting selection (its
+    measured candidate's spp) and the undeclared one (the envmatte-safe spp)."""
     r = diffuse_renderer
     g = r.geometry
     cam = g.nominal_cameras()[2]
-    sel = select_effects(r.scene, "matting")
+    sel = select_effects(r.scene, "matting", declared=declared)
+    phase = "matting" if declared else None
     full = replace(sel, crop=False)
     if patterns == "constant":
         p1, p2 = _constant(g, (255, 0, 200)), _constant(g, (0, 255, 55))
     else:
         p1, p2 = _patterns(g, 3)
-    s1, s2 = SimState(table_deg=35.0, displays=p1), SimState(table_deg=35.0, displays=p2)
+    s1, s2 = SimState(table_deg=35.0, displays=p1, phase=phase), SimState(table_deg=35.0, displays=p2, phase=phase)
+    assert r.passes_for(s1)[0].effects.spp == sel.spp
     x0, y0, w, h = _window(r, cam, s1, sel)
     assert 0 < w * h < 0.5 * cam.width * cam.height
     r.clear_radiance_cache()

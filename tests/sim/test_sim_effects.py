@@ -6,6 +6,8 @@ import json
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from typer.testing import CliRunner
 
 from opacityhull.cli import app
@@ -177,6 +179,8 @@ def test_cli_explain_reports_expected_cost_and_variant(monkeypatch):
     assert d["variant"]["variant"] == "scalar_rgb" and d["variant"]["gpu"] is False
     assert "environment" in d["variant"]["source"]
     assert d["crop"] is True and d["backdrop_spp"] == 16
+    # what a shot of an undeclared phase gets (it may be envmatte): more samples
+    assert d["undeclared"]["spp"] == 64 and d["undeclared"]["spp"] > d["spp"]
     assert set(d["expected_cost"]) == {"vs_reference", "measured"}
     if d["expected_cost"]["vs_reference"] is not None:
         assert 0 < d["expected_cost"]["vs_reference"] < 1
@@ -205,3 +209,100 @@ def test_backdrop_shots_use_fewer_samples_but_the_reference_keeps_its_own(scenes
     assert backdrop_only_effects(ref).spp == 256
     low = select_effects(scenes["diffuse"], "matting", overrides={"spp": 4})
     assert backdrop_only_effects(low).spp == 4  # never more than the shot itself
+
+
+# --------------------------------------------------------------------------- matting candidates
+
+
+def _cands(rows):
+    from opacityhull.sim.effects import Candidate
+
+    return tuple(Candidate("direct", 2, s, e, t) for s, e, t in rows)
+
+
+def test_cheapest_within_takes_the_fastest_candidate_inside_the_margin():
+    from opacityhull.sim.effects import cheapest_within
+
+    c = _cands([(16, 0.030, 0.10), (25, 0.024, 0.12), (36, 0.020, 0.15), (64, 0.015, 0.25)])
+    assert cheapest_within(c, 0.025, margin=1.0).spp == 25  # 16 is faster but over the bound
+    assert cheapest_within(c, 0.025, margin=0.85).spp == 36  # 25 is within the bound, not the margin
+    assert cheapest_within(c, 0.025, margin=0.6).spp == 64
+    # a slower candidate with fewer samples does not win; on equal time the fewer samples win
+    c2 = _cands([(16, 0.010, 0.30), (36, 0.010, 0.20), (49, 0.010, 0.20)])
+    assert cheapest_within(c2, 0.025).spp == 36
+
+
+@pytest.mark.parametrize("bound,margin,needle", [
+    (0.025, 0.5, "no candidate within 0.5 x bound 0.025"),
+    (0.0, 0.8, "bound 0.0 must be > 0"),
+    (float("nan"), 0.8, "must be > 0"),
+    (0.025, 1.5, "margin 1.5 in"),
+])
+def test_cheapest_within_hard_cases_raise_naming_the_values(bound, margin, needle):
+    from opacityhull.sim.effects import cheapest_within
+
+    c = _cands([(16, 0.030, 0.10), (64, 0.020, 0.25), (36, float("nan"), 0.01)])
+    with pytest.raises(ConfigError, match=needle.replace(".", r"\.").replace("(", r"\(")):
+        cheapest_within(c, bound, margin=margin)
+
+
+@settings(max_examples=60, deadline=None)
+@given(rows=st.lists(st.tuples(st.sampled_from([4, 9, 16, 25, 36, 49, 64]),
+                               st.floats(0.0, 0.1), st.floats(0.01, 1.0)), min_size=1, max_size=8),
+       bound=st.floats(0.005, 0.1), margin=st.floats(0.1, 1.0))
+def test_cheapest_within_equals_a_brute_force_oracle(rows, bound, margin):
+    from opacityhull.sim.effects import cheapest_within
+
+    c = _cands(rows)
+    ok = sorted((k for k in c if k.error <= margin * bound), key=lambda k: (k.seconds, k.spp))
+    if not ok:
+        with pytest.raises(ConfigError):
+            cheapest_within(c, bound, margin=margin)
+        return
+    got = cheapest_within(c, bound, margin=margin)
+    assert (got.seconds, got.spp) == (ok[0].seconds, ok[0].spp) and got.error <= margin * bound
+
+
+def test_declared_matting_takes_the_measured_candidate_and_undeclared_keeps_both_bounds(scenes):
+    from opacityhull.sim.effects import MATTING_CANDIDATES, MATTING_MARGIN, cheapest_within, scene_kind
+
+    for name in ("diffuse", "sphere", "glass", "glossy", "fuzzy"):
+        sc = scenes[name]
+        sel = select_effects(sc, "matting")
+        und = select_effects(sc, "matting", declared=False)
+        env = select_effects(sc, "envmatte")
+        c = cheapest_within(MATTING_CANDIDATES[scene_kind(sc, "matting")], sel.error_bound)
+        assert (sel.integrator, sel.max_depth, sel.spp) == (c.integrator, c.max_depth, c.spp)
+        assert c.error <= MATTING_MARGIN * sel.error_bound
+        assert any(f"{c.spp} spp, measured {c.error:.4f}" in r for r in sel.reasons)
+        # an undeclared displays shot may be an envmatte shot: the envmatte selection's samples
+        assert und.spp >= env.spp and und.spp >= sel.spp
+        # undeclared: the matting row's integrator (fibres: direct lighting, else the envmatte one)
+        assert (und.integrator, und.max_depth) == (("direct", 2) if name == "fuzzy" else (env.integrator, env.max_depth))
+        assert any("did not declare its phase" in r for r in und.reasons)
+        assert sel.backdrop_spp == und.backdrop_spp  # the backdrop shots are shared
+    # what a capture got before phases were declared (2026-12-01 selections): 64 spp
+    assert {select_effects(scenes[n], "matting", declared=False).spp
+            for n in ("diffuse", "sphere", "glass", "glossy", "fuzzy")} == {64}
+    # every declared selection is cheaper (fewer samples) than the undeclared one
+    assert all(select_effects(scenes[n], "matting").spp < 64 for n in ("diffuse", "sphere", "glass", "glossy"))
+
+
+def test_declared_phase_picks_the_displays_selection():
+    from opacityhull.sim.groundtruth import default_geometry
+    from opacityhull.sim.render import SimRenderer
+
+    r = SimRenderer(load_scene("builtin:fuzzy"), default_geometry())
+    pat = np.full((4, 4, 3), 200, np.uint8)
+    mat, und, env = (select_effects(r.scene, "matting"), select_effects(r.scene, "matting", declared=False),
+                     select_effects(r.scene, "envmatte"))
+    for phase, want in ((None, und), ("matting", mat), ("envmatte", env), ("lightfield", und)):
+        st_ = SimState(displays={"back": pat}, phase=phase)
+        (p,) = r.passes_for(st_)
+        assert (p.effects.integrator, p.effects.max_depth, p.effects.spp) == (want.integrator, want.max_depth,
+                                                                              want.spp), phase
+        e = r.effects_for(st_)
+        assert (e.integrator, e.spp) == (want.integrator, want.spp), phase
+    assert phase_for_state(SimState(displays={"back": pat}, phase="envmatte")) == "envmatte"
+    # lights on: the declared phase does not turn a lightfield shot into an envmatte one
+    assert phase_for_state(SimState(displays={"back": pat}, light_levels={1: 255}, phase="envmatte")) == "lightfield"

@@ -12,7 +12,7 @@ from opacityhull.camera import read_colmap_text, read_opencv_yaml
 from opacityhull.errors import ConfigError, InputError
 from opacityhull.imageio import read_exr
 from opacityhull.riggeometry import RigGeometry, view_id
-from opacityhull.rigs.protocols import CameraDevice, Rig
+from opacityhull.rigs.interfaces import CameraDevice, Rig
 from opacityhull.sim.evaluate import detect_corners
 from opacityhull.sim.groundtruth import render_ground_truth
 from opacityhull.sim.render import SimState
@@ -161,6 +161,31 @@ def test_pattern_shown_appears_behind_the_object(safe_rig):
     assert np.all(cam.capture(1.0) == 0.0)
     rig.backdrops.blank()
     assert np.all(cam.capture(1.0) == 0.0)
+
+
+def test_declared_phase_reaches_the_renderer(safe_rig):
+    """note_phase: a declared matting shot gets the cheaper matting selection, an
+    undeclared one (the default) the samples that keep the envmatte bound too."""
+    from opacityhull.sim.effects import select_effects
+
+    rig = safe_rig
+    cam = rig.cameras[1]
+    d = rig.geometry.display("back")
+    rig.backdrops.upload("back", 5, np.full((d.resolution[1], d.resolution[0], 3), 200, np.uint8))
+    rig.backdrops.show("back", 5)
+    try:
+        assert rig.phase is None and rig.state().phase is None
+        cam.capture(1.0)
+        assert cam.last_passes[0].effects.spp == select_effects(rig.scene, "matting", declared=False).spp
+        rig.note_phase("matting")
+        assert rig.state().phase == "matting"
+        cam.capture(1.0)
+        assert cam.last_passes[0].effects.spp == select_effects(rig.scene, "matting").spp < 64
+        with pytest.raises(InputError, match="note_phase: phase 'mating'"):
+            rig.note_phase("mating")
+        assert rig.phase == "matting"  # a refused phase changes nothing
+    finally:
+        rig.note_phase(None)
 
 
 def test_board_placed_by_the_operator_is_detected(safe_rig):
