@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import List, Optional
+from typing import List, Literal, Optional, cast
 
 import typer
 
@@ -143,6 +143,11 @@ def register(app, groups) -> None:
                                                       help="A voxel survives when at most this many views reject "
                                                            "it (imperfect masks). Default: 1 for imported sets "
                                                            "of 8+ views, 0 for rig sessions."),
+        refine: Optional[str] = typer.Option(None, "--refine",
+                                             help="Photo-consistent depth inside the hull: shading (surfels stay "
+                                                  "on the hull and carry the depth the renderer shades at) | "
+                                                  "surfels (move the surfels there) | none. Default: "
+                                                  "BuildConfig.refine (shading)."),
         ground_truth: bool = typer.Option(False, "--ground-truth",
                                           help="Compare with the simulator's groundtruth/ (alpha MAE, hull IoU, "
                                                "pose errors) and report the metrics."),
@@ -200,6 +205,8 @@ def register(app, groups) -> None:
 
         if matting_drift not in DRIFT_MODES:
             raise ConfigError(f"--matting-drift {matting_drift!r}: expected one of {', '.join(DRIFT_MODES)}")
+        if refine is not None and refine not in ("shading", "surfels", "none"):
+            raise ConfigError(f"--refine {refine!r}: expected shading, surfels or none")
         # options left out keep the config dataclasses' defaults (one place for them)
         d, dm = BuildConfig(), MattingOptions()
         matting = MattingOptions(max_alpha_std=dm.max_alpha_std if max_alpha_std is None else max_alpha_std)
@@ -209,7 +216,8 @@ def register(app, groups) -> None:
                           surfel_oversample=d.surfel_oversample if oversample is None else oversample,
                           exclude_views=tuple(exclude_view or ()), bounds_m=_parse_bounds(bounds), matting=matting,
                           reflectance=not no_reflectance, pictures=not no_pictures,
-                          drop_uncalibrated_cameras=not require_all_cameras)
+                          drop_uncalibrated_cameras=not require_all_cameras,
+                          refine=d.refine if refine is None else cast(Literal["shading", "surfels", "none"], refine))
         with Progress(TextColumn("[bold]build: {task.description}"), BarColumn(), MofNCompleteColumn(),
                       TextColumn("elapsed"), TimeElapsedColumn(), TextColumn("eta"), TimeRemainingColumn(),
                       console=console(), transient=False) as bar:

@@ -44,22 +44,6 @@ _SCHEDULER_HELP = ("Where per-view work runs: serial | threads | processes | tcp
                    "see docs/distributed.md).")
 
 
-def _check_scheduler(scheduler: str, timeout_s: float, *, what: str) -> None:
-    """``render --scheduler``: the value is checked and a tcp:// scheduler must answer
-    (named error within ``timeout_s``). Frames are rendered in this process: only
-    ``serial`` is accepted until the render runner takes an executor, never silently
-    ignored."""
-    from ..executor import open_executor, parse_scheduler
-
-    spec = parse_scheduler(scheduler)
-    if spec.kind == "serial":
-        return
-    with open_executor(scheduler, timeout_s=timeout_s):
-        pass
-    raise InputError(f"--scheduler {scheduler}: {what} renders its frames in this process; distributing orbit "
-                     "frames is not available yet (use --scheduler serial)")
-
-
 def open_model_arg(model: Path):
     """The model folder argument, opened; a path that is not there is bad input (exit 2)."""
     from ..errors import InputError
@@ -155,9 +139,10 @@ def register(app, groups) -> None:
         json_out: bool = typer.Option(False, "--json", help="Print a JSON summary (frames, paths, ms per frame) on stdout."),
     ):
         """Render a model from a captured view, a look-at camera, or an orbit (ULR-blended EWA surfel splatting)."""
+        from ..executor import open_executor, parse_scheduler
         from .runner import run_render
 
-        _check_scheduler(scheduler, scheduler_timeout, what="render")
+        serial = parse_scheduler(scheduler).kind == "serial"
 
         if yaw_deg_alias is not None:
             env_yaw_deg = yaw_deg_alias
@@ -176,10 +161,14 @@ def register(app, groups) -> None:
         look_t = parse_look_at(look_at) if look_at is not None else None
         cfg = _config(k, filter_var, epsilon_z, cutoff, sigma_radius, shading)
         n = orbit if orbit is not None else 1
-        with progress("rendering", n, enabled=n > 1) as cb, writing_to(out):
-            summary = run_render(model, out, view=view_t, look_at=look_t, orbit=orbit, width=width, height=height,
-                                 config=cfg, background=background, background_kind=background_kind,
-                                 env_yaw_deg=env_yaw_deg, exclude=exclude, fps=fps, budget=budget, progress=cb)
+        # the frames render on the scheduler's workers (each opens the model from its path
+        # and writes its frames beside --out); serial renders here, with no executor at all
+        with open_executor(scheduler, timeout_s=scheduler_timeout) as ex, \
+                progress("rendering", n, enabled=n > 1) as cb, writing_to(out):
+            summary = run_render(model, out, view=view_t, look_at=look_t, orbit=orbit,
+                                 width=width, height=height, config=cfg, background=background,
+                                 background_kind=background_kind, env_yaw_deg=env_yaw_deg, exclude=exclude, fps=fps,
+                                 budget=budget, progress=cb, executor=None if serial else ex)
 
         def human(s):
             c = console()

@@ -21,7 +21,7 @@ from .cameras import (captured_view_camera, look_at_camera, mean_fov_y_deg, orbi
                       scene_target)
 from .renderer import RenderConfig, RenderResult, model_surfels, prepare_model_views, render_image
 
-__all__ = ["choose_cameras", "check_budget", "LodCuts", "run_render", "run_loo", "run_demo_step", "write_frame"]
+__all__ = ["choose_cameras", "check_budget", "LodCuts", "render_frames", "run_render", "run_loo", "run_demo_step", "write_frame"]
 
 _SUFFIXES = (".png", ".exr")
 
@@ -73,10 +73,10 @@ def write_frame(path: Path, result: RenderResult, background) -> Path:
     return path
 
 
-def _animation(frames: list[np.ndarray], out_stem: Path, fps: float) -> dict:
-    from ..pictures import to_srgb8, write_animation
+def _animation(u8: list[np.ndarray], out_stem: Path, fps: float) -> dict:
+    """Write the orbit's 8-bit sRGB frames as a GIF (and an MP4 when ffmpeg is there)."""
+    from ..pictures import write_animation
 
-    u8 = [to_srgb8(f) for f in frames]
     out = {"gif": str(write_animation(out_stem.with_suffix(".gif"), u8, fps=fps))}
     if shutil.which("ffmpeg"):
         try:
@@ -180,16 +180,129 @@ def _seed_surfel_areas(surfels, areas) -> None:
     cache[key] = (ref, np.ascontiguousarray(areas, dtype=np.float32))
 
 
+class _FrameState:
+    """One opened model with its packed views, sorted surfels and LOD tree: what a
+    worker keeps between :func:`render_frames` tasks."""
+
+    def __init__(self, model_path, model: OpacityHullModel | None = None):
+        import threading
+
+        t0 = time.perf_counter()
+        self.model = OpacityHullModel.open(model_path) if model is None else model
+        self.pv = prepare_model_views(self.model)
+        self.surfels = model_surfels(self.model)
+        self.view_cameras = [v.camera for v in self.model.views]
+        self.lod = LodCuts(self.surfels)
+        self.ms_load = 1e3 * (time.perf_counter() - t0)
+        # threads of one worker share this state; building the LOD tree twice is only waste,
+        # but the cut reads the tree while the first builder replaces it
+        self.lock = threading.Lock()
+
+
+def _state_key(model_path) -> tuple[str, int]:
+    p = Path(model_path).resolve()
+    try:
+        mtime = (p / "model.toml").stat().st_mtime_ns
+    except OSError:
+        mtime = -1  # OpacityHullModel.open names the missing file
+    return str(p), mtime
+
+
+# one model per worker process: a rebuilt model (new model.toml mtime) replaces the old one
+_STATE: dict = {}
+_STATE_LOCK = None
+
+
+def _worker_state(model_path) -> tuple[_FrameState, bool]:
+    """The cached state of ``model_path`` in this process, and whether it was loaded now."""
+    global _STATE_LOCK
+    import threading
+
+    if _STATE_LOCK is None:
+        _STATE_LOCK = threading.Lock()
+    key = _state_key(model_path)
+    with _STATE_LOCK:
+        st = _STATE.get(key)
+        if st is not None:
+            return st, False
+        _STATE.clear()
+        st = _FrameState(model_path)
+        _STATE[key] = st
+        return st, True
+
+
+def _render_chunk(st: _FrameState, cams: Sequence[Camera], *, config: RenderConfig, exclude: Sequence[int],
+                  budget: int | None, paths: Sequence[str], background, anim_background,
+                  progress: Callable[[int, int], None] | None = None) -> dict:
+    """Render ``cams`` with an opened state, write frame i to ``paths[i]``; the GIF frame
+    (8-bit sRGB over ``anim_background``) when that is given."""
+    from ..pictures import to_srgb8
+
+    ms, splats, taus, gif = [], [], [], []
+    ms_tree = 0.0
+    for i, (cam, path) in enumerate(zip(cams, paths)):
+        t = time.perf_counter()
+        with st.lock:
+            had_tree = st.lod.tree is not None
+            drawn, tau = st.lod.cut(cam, budget)
+            if st.lod.tree is not None and not had_tree:
+                ms_tree = st.lod.ms_build
+                t += ms_tree / 1e3  # the tree is built once per model, not per frame
+        splats.append(len(drawn))
+        taus.append(tau)
+        res = render_image(drawn, st.view_cameras, st.pv, cam, config=config, exclude_views=list(exclude))
+        ms.append(1e3 * (time.perf_counter() - t))
+        write_frame(Path(path), res, background)
+        if anim_background is not None:
+            gif.append(to_srgb8(res.over(anim_background)))
+        if progress:
+            progress(i + 1, len(cams))
+    return {"ms": ms, "splats": splats, "taus": taus, "gif": gif, "ms_lod_tree": ms_tree}
+
+
+def render_frames(task: tuple) -> dict:
+    """One executor task of ``render --scheduler``: render and write a chunk of frames.
+
+    ``task = (model_path, cameras, config, exclude, budget, paths, background,
+    anim_background)``: the model folder (a path the worker can read), the cameras,
+    the :class:`RenderConfig`, view indices not to blend, the splat budget (or None),
+    one output path per camera (the worker writes them), the background passed to
+    :func:`write_frame` (None, a colour, an image fitted to the camera or an
+    :class:`EnvMap`) and the GIF's background colour (None: no GIF frames).
+
+    The model is opened once per worker process and kept (keyed on the model folder
+    and ``model.toml``'s mtime), so an orbit's later chunks only render.
+
+    Returns
+    -------
+    dict with ``ms`` (per frame), ``splats``, ``taus``, ``gif`` (uint8 H x W x 3 frames),
+    ``ms_load`` (0 when the model was already open here) and ``ms_lod_tree``.
+    """
+    model_path, cams, config, exclude, budget, paths, background, anim_background = task
+    st, loaded = _worker_state(model_path)
+    out = _render_chunk(st, cams, config=config, exclude=exclude, budget=budget, paths=paths,
+                        background=background, anim_background=anim_background)
+    out["ms_load"] = st.ms_load if loaded else 0.0
+    return out
+
+
 def run_render(model_path, out, *, view: tuple[int, float] | None = None, look_at: LookAt | None = None,
                orbit: int | None = None, width: int | None = None, height: int | None = None,
                config: RenderConfig = RenderConfig(), background: str | None = None, background_kind: str = "auto",
                env_yaw_deg: float = 0.0, exclude: Sequence[str] = (), fps: float = 12.0,
-               budget: int | None = None, progress: Callable[[int, int], None] | None = None) -> dict:
+               budget: int | None = None, progress: Callable[[int, int], None] | None = None,
+               executor=None) -> dict:
     """Render one frame or an orbit of a model folder to ``out`` (``.png`` or ``.exr``).
 
     ``budget``: at most this many splats per frame, from a view-dependent cut of the
     sequential point tree (:mod:`opacityhull.render.lod`, the viewer's LOD); None draws
     every surfel.
+
+    ``executor``: an :class:`opacityhull.executor.Executor` (``render --scheduler``) to
+    render the frames on, in chunks of consecutive frames (:func:`render_frames`): each
+    worker opens the model from ``model_path`` and writes its frames to ``out``'s
+    folder, so both must be at a path the workers see; the GIF is written here. None
+    renders here. The frames are the same bit for bit either way (tested).
     """
     out = Path(out)
     if out.suffix.lower() not in _SUFFIXES:
@@ -203,29 +316,30 @@ def run_render(model_path, out, *, view: tuple[int, float] | None = None, look_a
     excl = []
     for e in exclude:
         excl.append(int(e) if str(e).isdigit() else model.view_index(str(e)))
-    t0 = time.perf_counter()
-    pv = prepare_model_views(model)
-    surfels = model_surfels(model)
-    t_load = time.perf_counter() - t0
-    paths, frames, ms, splats, taus = [], [], [], [], []
-    lod = LodCuts(surfels)
-    anim_bg = bg if bg is not None else (0.18, 0.18, 0.18)
-    for i, cam in enumerate(cams):
-        t = time.perf_counter()
-        had_tree = lod.tree is not None
-        drawn, tau = lod.cut(cam, budget)
-        if lod.tree is not None and not had_tree:
-            t += lod.ms_build / 1e3  # the tree is built once per model, not per frame
-        splats.append(len(drawn))
-        taus.append(tau)
-        res = render_image(drawn, [v.camera for v in model.views], pv, cam, config=config, exclude_views=excl)
-        ms.append(1e3 * (time.perf_counter() - t))
-        p = out if orbit is None else out.with_name(f"{out.stem}_{i:03d}{out.suffix}")
-        paths.append(str(write_frame(p, res, bg)))
-        if orbit is not None:
-            frames.append(res.over(anim_bg))
-        if progress:
-            progress(i + 1, len(cams))
+    n_surfels = len(model.surfels)
+    paths = [str(out if orbit is None else out.with_name(f"{out.stem}_{i:03d}{out.suffix}")) for i in range(len(cams))]
+    anim_bg = None if orbit is None else (bg if bg is not None else (0.18, 0.18, 0.18))
+    if executor is None:
+        st = _FrameState(model_path, model)
+        parts = [_render_chunk(st, cams, config=config, exclude=excl, budget=budget, paths=paths, background=bg,
+                               anim_background=anim_bg, progress=progress)]
+        t_load_ms = st.ms_load
+        scheduler = "serial"
+    else:
+        del model
+        # about two chunks per worker slot: few tasks (each ships the cameras and the
+        # background), yet a slow worker does not hold up the whole orbit
+        per = max(1, -(-len(cams) // max(1, 2 * int(getattr(executor, "n_workers", 1)))))
+        tasks = [(str(Path(model_path).resolve()), cams[i:i + per], config, excl, budget,
+                  [str(Path(p).resolve()) for p in paths[i:i + per]], bg, anim_bg)
+                 for i in range(0, len(cams), per)]
+        prog = None if progress is None else (lambda done, total: progress(min(done * per, len(cams)), len(cams)))
+        parts = executor.map(render_frames, tasks, progress=prog)
+        t_load_ms = max(p["ms_load"] for p in parts)
+        scheduler = executor.scheduler
+    ms = [x for p in parts for x in p["ms"]]
+    splats = [x for p in parts for x in p["splats"]]
+    taus = [x for p in parts for x in p["taus"]]
     summary = {
         "model": str(model_path),
         "frames": len(cams),
@@ -233,18 +347,19 @@ def run_render(model_path, out, *, view: tuple[int, float] | None = None, look_a
         "width": cams[0].width,
         "height": cams[0].height,
         "k": config.k,
-        "surfels": len(surfels),
+        "surfels": n_surfels,
         "ms_per_frame": float(np.mean(ms)),
         "ms_first_frame": ms[0],
-        "ms_load": 1e3 * t_load,
+        "ms_load": t_load_ms,
         "background": None if background is None else ("envmap" if isinstance(bg, EnvMap) else str(background)),
         "budget": budget,
         "splats_per_frame": splats,
         "lod_tau": taus,
-        "ms_lod_tree": lod.ms_build,
+        "ms_lod_tree": max(p["ms_lod_tree"] for p in parts),
+        "scheduler": scheduler,
     }
     if orbit is not None:
-        summary.update(_animation(frames, out.with_name(out.stem), fps))
+        summary.update(_animation([g for p in parts for g in p["gif"]], out.with_name(out.stem), fps))
     return summary
 
 

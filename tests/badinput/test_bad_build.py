@@ -45,6 +45,8 @@ CASES = [
          setup=_set_white_level("0"), must_not_exist=("{T}/m/model.toml",)),
     Case("bounds-not-numbers", ("build", "{S}", "--out", "{T}/m", "--bounds", "a,b"), 2,
          r"--bounds 'a,b': expected six numbers", must_not_exist=("{T}/m",)),
+    Case("refine-unknown", ("build", "{S}", "--out", "{T}/m", "--refine", "deep"), 2,
+         r"--refine 'deep': expected shading, surfels or none", must_not_exist=("{T}/m",)),
 ]
 
 
