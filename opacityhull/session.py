@@ -54,6 +54,8 @@ log = logging.getLogger(__name__)
 __all__ = [
     "SESSION_FORMAT",
     "PHASES",
+    "PHASE_ALIASES",
+    "phase_names",
     "ShotRecord",
     "Session",
     "SessionWriter",
@@ -70,6 +72,19 @@ SESSION_FORMAT = "opacityhull-session/1"
 #: "natural" and "envmatte" both hold natural-illumination images (the runner records the
 #: plan's [phases.natural] as "envmatte"; readers accept either)
 PHASES = ("calibration", "matting", "lightfield", "reflectance", "envmatte", "natural", "mask")
+#: phase names that hold the same images (a selection by one name matches the other)
+PHASE_ALIASES = {"natural": ("natural", "envmatte"), "envmatte": ("envmatte", "natural")}
+
+
+def phase_names(phases) -> set[str]:
+    """The recorded phase names a user's phase selection matches.
+
+    ``natural`` and ``envmatte`` select each other (:data:`PHASE_ALIASES`): a plan's
+    ``[phases.natural]`` is recorded as ``envmatte`` by the runner, so ``--phase natural``
+    must find those images. Unknown names pass through unchanged (callers validate them
+    against :data:`PHASES`).
+    """
+    return {q for p in phases for q in PHASE_ALIASES.get(p, (p,))}
 
 
 def sha256_file(path, chunk: int = 1 << 20) -> str:

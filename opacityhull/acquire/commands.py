@@ -20,6 +20,20 @@ from ..tomlio import read_toml
 
 __all__ = ["register", "resolve_rig", "rig_static"]
 
+# options every ``import`` subcommand takes alike
+_IMPORT_OUT = typer.Option(..., "--out", help="New session folder (absent after any failure).")
+_ALLOW_FULL_MASKS = typer.Option(False, "--allow-full-masks", help="Keep masks without background "
+                                                                    "(close-ups) instead of refusing them.")
+
+
+def _run_import(run, json_out: bool, source) -> None:
+    """``run(progress_callback)`` under a progress bar, then its report: JSON, or one line
+    naming the counts, ``source(report)`` and the new session."""
+    with progress("import", enabled=not json_out) as cb:
+        rep = run(cb)
+    emit(rep, json_out, lambda r: console().print(
+        f"imported {r['images']} images ({r['masks']} masks){source(r)} into {r['session']}", highlight=False))
+
 log = logging.getLogger(__name__)
 
 
@@ -288,34 +302,28 @@ def register(app, groups) -> None:
         images: Path = typer.Option(..., "--images", help="Folder of the images (PNG/JPG/EXR)."),
         masks: Optional[Path] = typer.Option(None, "--masks", help="Folder of masks named like the images "
                                                                     "(default: the images' own alpha, if any)."),
-        out: Path = typer.Option(..., "--out", help="New session folder (absent after any failure)."),
-        allow_full_masks: bool = typer.Option(False, "--allow-full-masks", help="Keep masks without background "
-                                                                                "(close-ups) instead of refusing them."),
+        out: Path = _IMPORT_OUT,
+        allow_full_masks: bool = _ALLOW_FULL_MASKS,
         json_out: bool = typer.Option(False, "--json", help="Print one JSON object on stdout."),
     ):
         """Turn a COLMAP-calibrated image set into a session that `build` accepts."""
         from .importers import import_colmap
 
-        with progress("import", enabled=not json_out) as cb:
-            rep = import_colmap(model, images, out, masks_dir=masks, allow_full_masks=allow_full_masks, progress=cb)
-        emit(rep, json_out, lambda r: console().print(
-            f"imported {r['images']} images ({r['masks']} masks) from a {r['model_format']} COLMAP model into "
-            f"{r['session']}", highlight=False))
+        _run_import(lambda cb: import_colmap(model, images, out, masks_dir=masks, allow_full_masks=allow_full_masks,
+                                             progress=cb),
+                    json_out, lambda r: f" from a {r['model_format']} COLMAP model")
 
     @imp.command("nerfstudio")
     @cli_errors
     def import_nerfstudio_cmd(
         transforms: Path = typer.Option(..., "--transforms", help="nerfstudio / instant-ngp / Blender "
                                                                   "transforms.json (images relative to it)."),
-        out: Path = typer.Option(..., "--out", help="New session folder (absent after any failure)."),
-        allow_full_masks: bool = typer.Option(False, "--allow-full-masks", help="Keep masks without background "
-                                                                                "(close-ups) instead of refusing them."),
+        out: Path = _IMPORT_OUT,
+        allow_full_masks: bool = _ALLOW_FULL_MASKS,
         json_out: bool = typer.Option(False, "--json", help="Print one JSON object on stdout."),
     ):
         """Turn a nerfstudio transforms.json (RGBA images or mask_path mattes) into a session that `build` accepts."""
         from .importers import import_nerfstudio
 
-        with progress("import", enabled=not json_out) as cb:
-            rep = import_nerfstudio(transforms, out, allow_full_masks=allow_full_masks, progress=cb)
-        emit(rep, json_out, lambda r: console().print(
-            f"imported {r['images']} images ({r['masks']} masks) into {r['session']}", highlight=False))
+        _run_import(lambda cb: import_nerfstudio(transforms, out, allow_full_masks=allow_full_masks, progress=cb),
+                    json_out, lambda r: "")

@@ -217,16 +217,17 @@ def hdr_session(root, *, phases: Sequence[str] | None = None, method: str = "aut
     root = Path(root)
     sess = Session.open(root)
     if phases:
-        from ..session import PHASES
+        from ..session import PHASES, phase_names
 
         unknown = [p for p in phases if p not in PHASES]
         if unknown:
             raise InputError(f"--phase {unknown[0]!r}: not a phase; expected one of {', '.join(PHASES)}")
-        absent = [p for p in phases if p not in sess.phases()]
+        have = set(sess.phases())
+        absent = [p for p in phases if not phase_names([p]) & have]
         if absent:
             raise InputError(f"--phase {absent[0]!r}: {root} has no images of that phase (it has "
-                             f"{', '.join(sorted(sess.phases())) or 'none'})")
-    groups = _brackets(sess, set(phases) if phases else None)
+                             f"{', '.join(sorted(have)) or 'none'})")
+    groups = _brackets(sess, phase_names(phases) if phases else None)
     white = sess.white_level
     linear_of = {int(c.get("index", i)): bool(c.get("linear", True)) for i, c in enumerate(sess.camera_info)}
     existing = {r.shot: r for r in sess.records if r.kind == "hdr"}

@@ -501,21 +501,11 @@ def import_nerfstudio(transforms, out, *, allow_full_masks: bool = False,
         w, h = num["w"], num["h"]
         if w != int(w) or h != int(h) or w <= 0 or h <= 0:
             raise FormatError(f"{where}: image size w={w}, h={h} must be positive integers")
-        if "fl_x" in num:
-            fx = num["fl_x"]
-        elif "camera_angle_x" in num:
-            if not 0 < num["camera_angle_x"] < math.pi:
-                raise FormatError(f"{where}: camera_angle_x = {num['camera_angle_x']} rad, expected in (0, pi)")
-            fx = 0.5 * w / math.tan(0.5 * num["camera_angle_x"])
-        else:
+        fx = _nerf_focal_px(num, "x", w, where)
+        if fx is None:
             raise FormatError(f"{where}: missing key 'fl_x' (or 'camera_angle_x'), in the frame or at the top level")
-        if "fl_y" in num:
-            fy = num["fl_y"]
-        elif "camera_angle_y" in num:
-            if not 0 < num["camera_angle_y"] < math.pi:
-                raise FormatError(f"{where}: camera_angle_y = {num['camera_angle_y']} rad, expected in (0, pi)")
-            fy = 0.5 * h / math.tan(0.5 * num["camera_angle_y"])
-        else:
+        fy = _nerf_focal_px(num, "y", h, where)
+        if fy is None:
             fy = fx
         if num.get("k4", 0.0) != 0.0:
             raise FormatError(f"{where}: k4 = {num['k4']} (nerfstudio's r^8 radial term) is not representable in "
@@ -543,3 +533,16 @@ def import_nerfstudio(transforms, out, *, allow_full_masks: bool = False,
                          allow_full_masks=allow_full_masks, progress=progress)
     rep["applied_transform_undone"] = A is not None
     return rep
+
+
+def _nerf_focal_px(num: dict, axis: str, size_px: float, where: str) -> float | None:
+    """``fl_{axis}``, else the focal length from ``camera_angle_{axis}`` (the full field of
+    view in radians, over ``size_px``); None if the frame gives neither."""
+    if f"fl_{axis}" in num:
+        return num[f"fl_{axis}"]
+    angle = num.get(f"camera_angle_{axis}")
+    if angle is None:
+        return None
+    if not 0 < angle < math.pi:
+        raise FormatError(f"{where}: camera_angle_{axis} = {angle} rad, expected in (0, pi)")
+    return 0.5 * size_px / math.tan(0.5 * angle)

@@ -18,6 +18,11 @@ Guarantees
   :class:`DiskFull` (resumable).
 * Everything runs inside ``rig.safe()``: lights off, backdrops blank and the axes held
   on any exit, Ctrl-C included.
+* Encoding, hashing and fsync overlap the next exposure: exposed images wait in a
+  bounded queue (``queue_images``, default 4) for ONE writer thread that lists them in
+  capture order (:class:`_ImageQueue`). A write error is raised at the next image or
+  at the end of the stage; on any exit whatever was exposed is written before
+  ``rig.safe()`` runs, so the manifest is what a synchronous run would have left.
 """
 
 from __future__ import annotations
@@ -451,12 +456,128 @@ class _RigDriver:
         return {device_pattern_id(shot.pattern, i) for i in range(len(n_displays))}
 
 
+# --------------------------------------------------------------------------- the image queue
+
+
+@dataclass
+class _Job:
+    """One exposed image waiting to be encoded, hashed and listed."""
+
+    path: Path
+    image: np.ndarray
+    id: str
+    replace: bool
+    record: dict
+
+
+class _ImageQueue:
+    """Encodes and lists exposed images while the rig takes the next ones.
+
+    ``maxsize > 0``: ONE writer thread drains a bounded ``queue.Queue`` and does
+    :func:`write_capture_exr` then ``writer.add_file`` (sha256, fsync, manifest append)
+    for each image, in submission order, so the manifest lists images in capture order
+    and a resume sees exactly what a synchronous run would have left. EXR encoding,
+    hashing and fsync release the GIL, so they overlap the next motion and exposure.
+    Memory is bounded by ``maxsize + 1`` images (queued plus the one being written).
+    ``maxsize == 0`` writes inline (the old behaviour, kept for benchmarks).
+
+    The first write error stops the writer (later images are dropped, not written: the
+    disk is full or read-only) and is raised in the capture thread at the next
+    :meth:`submit` or :meth:`flush`. :meth:`close` writes everything already queued
+    (Ctrl-C, SIGTERM, a device error) and stops the thread. Completed writes are handed
+    back through :attr:`done` for the capture thread to count, so the counters and the
+    progress callback stay on the capture thread.
+    """
+
+    def __init__(self, writer: SessionWriter, *, half: bool, compression: str, maxsize: int):
+        import collections
+        import queue
+        import threading
+
+        if maxsize < 0:
+            raise ConfigError(f"queue_images must be >= 0, got {maxsize}")
+        self.writer = writer
+        self.half = half
+        self.compression = compression
+        self.done: collections.deque = collections.deque()  # (job, record), in write order
+        self.error: BaseException | None = None
+        self.failed: _Job | None = None
+        self._raised = False
+        self._q: queue.Queue | None = None
+        self._t: threading.Thread | None = None
+        if maxsize > 0:
+            self._q = queue.Queue(maxsize=maxsize)
+            self._t = threading.Thread(target=self._run, name="opacityhull-capture-writer", daemon=True)
+            self._t.start()
+
+    @property
+    def queued(self) -> bool:
+        return self._q is not None
+
+    def _write(self, job: _Job):
+        write_capture_exr(job.path, job.image, half=self.half, compression=self.compression)
+        try:
+            return self.writer.add_file(job.path, id=job.id, replace=job.replace, **job.record)
+        except OSError:
+            # not listed (add_file cut its half line): leave no unlisted file
+            if not job.replace:
+                job.path.unlink(missing_ok=True)
+            raise
+
+    def _run(self) -> None:
+        q = self._q
+        assert q is not None
+        while True:
+            job = q.get()
+            try:
+                if job is None:
+                    return
+                if self.error is None:
+                    try:
+                        self.done.append((job, self._write(job)))
+                    except BaseException as e:  # handed to the capture thread, never lost
+                        self.error, self.failed = e, job
+            finally:
+                job = None  # drop the image before waiting for the next one (bounded memory)
+                q.task_done()
+
+    def check(self) -> None:
+        """Raise the writer's error (once) in the calling thread."""
+        if self.error is not None and not self._raised:
+            self._raised = True
+            raise self.error
+
+    def submit(self, job: _Job) -> None:
+        self.check()
+        if self._q is None:
+            try:
+                self.done.append((job, self._write(job)))
+            except BaseException:
+                self.failed = job
+                raise
+            return
+        self._q.put(job)  # blocks while maxsize images wait: the capture cannot outrun the disk
+
+    def flush(self) -> None:
+        """Wait until everything submitted is written; raise a write error."""
+        if self._q is not None:
+            self._q.join()
+        self.check()
+
+    def close(self) -> None:
+        """Write what is queued and stop the writer thread (idempotent)."""
+        if self._q is not None and self._t is not None:
+            self._q.put(None)
+            self._t.join()
+            self._t = None
+
+
 # --------------------------------------------------------------------------- main entry
 
 
 def run_capture(rig, plan: CapturePlan, out_dir, *, resume: bool = False, dry_run: bool = False,
                 progress: ProgressCallback | None = None, rig_source: str = "", fsync: bool = True,
-                log: Callable[[str], None] | None = None) -> CaptureResult:
+                log: Callable[[str], None] | None = None, queue_images: int = 4) -> CaptureResult:
     """Capture ``plan`` on ``rig`` into the session folder ``out_dir``.
 
     Parameters
@@ -480,6 +601,11 @@ def run_capture(rig, plan: CapturePlan, out_dir, *, resume: bool = False, dry_ru
         fsync each manifest record (keep True outside benchmarks of the file system).
     log : callable(str), optional
         Receives one-line messages (operator steps, re-shoots).
+    queue_images : int
+        Exposed images that may wait for encoding and fsync while the rig moves on to
+        the next exposure (one writer thread, in capture order; memory is bounded by
+        ``queue_images + 1`` images). 0 writes each image before the next exposure.
+        Whatever is queued is written before the rig is made safe, however the run ends.
 
     Returns
     -------
@@ -533,7 +659,7 @@ def run_capture(rig, plan: CapturePlan, out_dir, *, resume: bool = False, dry_ru
         try:
             return _capture(rig, plan, out, stages=stages, planned=planned, patterns=patterns, done=done,
                             corrupt=corrupt, existing=existing, lock=lock, progress=progress, rig_source=rig_source,
-                            fsync=fsync, log=log, t_start=t_start)
+                            fsync=fsync, log=log, t_start=t_start, queue_images=queue_images)
         finally:
             lock.release()
 
@@ -565,7 +691,7 @@ def _verify_existing(out: Path, plan, geometry, patterns, log, *, rig_source: st
 
 
 def _capture(rig, plan, out: Path, *, stages, planned, patterns, done, corrupt, existing, lock, progress,
-             rig_source, fsync, log, t_start) -> CaptureResult:
+             rig_source, fsync, log, t_start, queue_images: int = 4) -> CaptureResult:
     geometry = rig.geometry
     n_planned = sum(planned.values())
 
@@ -621,61 +747,91 @@ def _capture(rig, plan, out: Path, *, stages, planned, patterns, done, corrupt, 
             # The board may still be on the table when resuming a plan with calibration.
             drv.scene["board"] = None if (existing and plan.calibration is not None) else False
             with writer:
-                if any(pend for _, pend in todo) and patterns:
-                    drv.slots = _pattern_slots(rig, patterns, displays, log)
-                for st, pend in todo:
-                    if not pend:
-                        continue
-                    drv.enter_stage(st)
-                    for shot, idxs in pend:
-                        t0 = time.monotonic()
-                        drv.set_state(shot, displays)
-                        cam = rig.cameras[shot.camera]
-                        spec = geometry.cameras[shot.camera]
-                        for i in idxs:
-                            iid = f"{shot.key}/e{i}"
-                            exp = shot.exposures_s[i]
-                            try:
-                                raw = cam.capture(exp)
-                            except Exception as e:
-                                ki = _caused_by_interrupt(e)
-                                if ki is not None:  # keep its kind: SIGTERM must still exit 143
-                                    raise (Terminated(ki.signum) if isinstance(ki, Terminated)
-                                           else KeyboardInterrupt()) from e
-                                raise
-                            img = _check_image(raw, spec, cam)
-                            fields = dict(exposure_s=exp, lights_deg=shot.lights_deg, light=shot.light,
-                                          pattern=shot.pattern, object_present=shot.object_present,
-                                          extra=_extra(shot))
-                            try:
-                                path = out / shot.rel_path(i)
-                                write_capture_exr(path, img, half=plan.half_float,
-                                                  compression=plan.exr_compression)
+                sink = _ImageQueue(writer, half=plan.half_float, compression=plan.exr_compression,
+                                   maxsize=queue_images)
+
+                def collect(report: bool = True) -> None:
+                    """Count the images the writer has listed (capture thread only)."""
+                    nonlocal taken, reshot, bytes_written
+                    while sink.done:
+                        job, rec = sink.done.popleft()
+                        if job.replace:
+                            reshot += 1
+                            corrupt.discard(job.id)
+                        taken += 1
+                        bytes_written += rec.bytes
+                        result.images += 1
+                        if report and progress is not None:
+                            progress(result.images, n_planned)
+
+                def write_failed(e: BaseException) -> BaseException:
+                    collect(report=False)
+                    if isinstance(e, (OSError, RuntimeError)) and _is_disk_full(e):
+                        where = sink.failed.path if sink.failed is not None else out / "images"
+                        return DiskFull(f"disk full writing {where} ({e}); {result.images} of {n_planned} images "
+                                        "are in the session — free space and run again with --resume")
+                    return e
+
+                try:
+                    if any(pend for _, pend in todo) and patterns:
+                        drv.slots = _pattern_slots(rig, patterns, displays, log)
+                    for st, pend in todo:
+                        if not pend:
+                            continue
+                        drv.enter_stage(st)
+                        for shot, idxs in pend:
+                            t0 = time.monotonic()
+                            drv.set_state(shot, displays)
+                            cam = rig.cameras[shot.camera]
+                            spec = geometry.cameras[shot.camera]
+                            for i in idxs:
+                                iid = f"{shot.key}/e{i}"
+                                exp = shot.exposures_s[i]
                                 try:
-                                    rec = writer.add_file(path, id=iid, shot=shot.key, phase=shot.phase,
-                                                          camera=shot.camera, table_deg=shot.table_deg,
-                                                          replace=iid in corrupt, **fields)
-                                except OSError:
-                                    # not listed (add_file cut its half line): leave no unlisted file
-                                    if iid not in corrupt:
-                                        path.unlink(missing_ok=True)
+                                    raw = cam.capture(exp)
+                                except Exception as e:
+                                    ki = _caused_by_interrupt(e)
+                                    if ki is not None:  # keep its kind: SIGTERM must still exit 143
+                                        raise (Terminated(ki.signum) if isinstance(ki, Terminated)
+                                               else KeyboardInterrupt()) from e
                                     raise
-                            except (OSError, RuntimeError) as e:
-                                if _is_disk_full(e):
-                                    raise DiskFull(
-                                        f"disk full writing {out / shot.rel_path(i)} ({e}); {result.images} of "
-                                        f"{n_planned} images are in the session — free space and run again with "
-                                        "--resume") from None
+                                img = _check_image(raw, spec, cam)
+                                if sink.queued and np.may_share_memory(img, raw):
+                                    # a driver may hand out its frame buffer again for the next exposure
+                                    img = img.copy()
+                                fields = dict(exposure_s=exp, lights_deg=shot.lights_deg, light=shot.light,
+                                              pattern=shot.pattern, object_present=shot.object_present,
+                                              extra=_extra(shot))
+                                job = _Job(path=out / shot.rel_path(i), image=img, id=iid, replace=iid in corrupt,
+                                           record=dict(shot=shot.key, phase=shot.phase, camera=shot.camera,
+                                                       table_deg=shot.table_deg, **fields))
+                                del img, raw
+                                try:
+                                    sink.submit(job)
+                                except Exception as e:
+                                    err = write_failed(e)
+                                    if err is e:
+                                        raise
+                                    raise err from None
+                                del job
+                                collect()
+                            phase_t[shot.phase] = phase_t.get(shot.phase, 0.0) + time.monotonic() - t0
+                        # a stage ends with a manual step or the end of the run: all of it on disk first
+                        try:
+                            sink.flush()
+                        except Exception as e:
+                            err = write_failed(e)
+                            if err is e:
                                 raise
-                            if iid in corrupt:
-                                reshot += 1
-                                corrupt.discard(iid)
-                            taken += 1
-                            bytes_written += rec.bytes
-                            result.images += 1
-                            if progress is not None:
-                                progress(result.images, n_planned)
-                        phase_t[shot.phase] = phase_t.get(shot.phase, 0.0) + time.monotonic() - t0
+                            raise err from None
+                        collect()
+                finally:
+                    # Ctrl-C, SIGTERM or a device error: what was exposed is written before
+                    # rig.safe() runs; a write error here is secondary to the one propagating.
+                    try:
+                        sink.close()
+                    finally:
+                        collect(report=False)
             if drv.slots is not None:
                 log(f"backdrop patterns: {drv.slots.uploads} uploaded, {drv.slots.evictions} deleted to make room")
             result.complete = result.images == n_planned

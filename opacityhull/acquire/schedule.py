@@ -31,6 +31,7 @@ __all__ = [
     "select_cameras",
     "select_lights",
     "estimate",
+    "upload_wire_bytes",
     "move_time_s",
     "expected_counts",
     "natural_displays",
@@ -279,6 +280,10 @@ class MotionRates:
     array_rate_deg_s: float = 30.0
     array_accel_deg_s2: float = 60.0
     serial_bytes_s: float = 11520.0  # display controller link (115200 baud, 10 bits per byte)
+    #: UPLOAD_DATA chunk size of the display driver (``[devices.backdrops].chunk_bytes``)
+    display_chunk_bytes: int = 512
+    #: patterns the display controller stores (its IDENTIFY ``slots=``; 64 on the OHDC-2)
+    display_slots: int = 64
 
     @classmethod
     def from_devices(cls, devices: Mapping | None) -> "MotionRates":
@@ -301,6 +306,10 @@ class MotionRates:
         bd = d.get("backdrops") or {}
         if isinstance(bd, Mapping) and _pos(bd.get("baudrate")):
             kw["serial_bytes_s"] = float(bd["baudrate"]) / 10.0
+        if isinstance(bd, Mapping) and isinstance(bd.get("chunk_bytes"), int) and _pos(bd.get("chunk_bytes")):
+            kw["display_chunk_bytes"] = int(bd["chunk_bytes"])
+        if isinstance(bd, Mapping) and isinstance(bd.get("slots"), int) and _pos(bd.get("slots")):
+            kw["display_slots"] = int(bd["slots"])
         return cls(**kw)
 
 
@@ -334,6 +343,8 @@ class Estimate:
     overhead_s: float = 0.0
     operator_s: float = 0.0
     upload_s: float = 0.0
+    uploads: int = 0  # pattern images sent to the display controller (re-uploads included)
+    upload_bytes: int = 0  # bytes on the serial link for them (frames, replies, deletes)
     operator_steps: int = 0
 
     @property
@@ -357,6 +368,7 @@ class Estimate:
                               "seconds": self.seconds[p]} for p in self.images},
             "breakdown_s": {"moves": self.moves_s, "exposure": self.exposure_s, "overhead": self.overhead_s,
                             "operator": self.operator_s, "pattern_upload": self.upload_s},
+            "pattern_uploads": {"count": self.uploads, "bytes": self.upload_bytes, "seconds": self.upload_s},
             "operator_steps": self.operator_steps,
         }
 
@@ -405,11 +417,81 @@ def estimate(plan: CapturePlan, geometry: RigGeometry, rates: MotionRates | None
             est.seconds[p] = est.seconds.get(p, 0.0) + t
     est.operator_s = est.operator_steps * tm.operator_s
     if upload_patterns and geometry.displays:
-        n_pat = (2 * plan.matting.patterns if plan.matting else 0) + sum(
-            len(v) for v in natural_pattern_ids(plan, geometry).values())
-        px = sum(d.resolution[0] * d.resolution[1] * 3 for d in geometry.displays)
-        est.upload_s = n_pat * px / rates.serial_bytes_s
+        est.uploads, est.upload_bytes = _pattern_uploads(plan, geometry, stages, rates)
+        est.upload_s = est.upload_bytes / rates.serial_bytes_s
     return est
+
+
+def upload_wire_bytes(width: int, height: int, *, chunk_bytes: int = 512, escape_rate: float = 2 / 256) -> float:
+    """Bytes on the display link, both directions, to upload one ``width`` x ``height``
+    RGB8 pattern the way :meth:`opacityhull.rigs.backdrops.SerialBackdrops.upload` does it.
+
+    PATTERN_INFO (answered "no such pattern"), UPLOAD_BEGIN, one UPLOAD_DATA per chunk,
+    UPLOAD_END, each frame and its reply as :func:`~opacityhull.rigs.display_protocol.encode_frame`
+    puts them on the wire. Image bytes equal to the flag or escape byte are sent as two:
+    ``escape_rate`` is their expected fraction (2/256 for uniformly distributed bytes).
+    """
+    from ..rigs import display_protocol as dp
+
+    def frame(msg: tuple[int, bytes]) -> int:
+        return len(dp.encode_frame(1, *msg))
+
+    nbytes = int(width) * int(height) * 3
+    pid = 1  # a slot id whose bytes need no escaping
+    n = frame(dp.pattern_info(pid)) + frame(dp.nak(dp.CMD_PATTERN_INFO, dp.NAK_NO_PATTERN))
+    n += frame(dp.upload_begin(pid, width, height)) + frame(dp.ack(dp.CMD_UPLOAD_BEGIN))
+    for off, k in dp.pattern_chunks(nbytes, chunk_bytes):
+        n += frame(dp.upload_data(pid, off, bytes(k))) + frame(dp.ack(dp.CMD_UPLOAD_DATA, bytes(4)))
+    n += frame(dp.upload_end(pid, 0)) + frame(dp.ack(dp.CMD_UPLOAD_END))
+    return n + escape_rate * nbytes
+
+
+def _pattern_uploads(plan: CapturePlan, geometry: RigGeometry, stages: Sequence[Stage],
+                     rates: MotionRates) -> tuple[int, int]:
+    """Uploads and link bytes of the runner's least-recently-used pattern store
+    (``_PatternSlots`` in runner.py) over the schedule, on an empty controller.
+
+    Every display has its own slot per pattern id, except that identical images share
+    one: the black a natural pattern shows on the displays it does not light. Once the
+    patterns of a table angle do not fit in ``rates.display_slots``, the cyclic sweep
+    evicts each before it is shown again, so every table angle re-uploads them all
+    (about N x displays + 1 for the natural phase)."""
+    from collections import OrderedDict
+
+    from ..rigs import display_protocol as dp
+
+    lit = {pid: d for d, ids in natural_pattern_ids(plan, geometry).items() for pid in ids}
+    res = [tuple(int(v) for v in d.resolution) for d in geometry.displays]
+    cost = {r: upload_wire_bytes(*r, chunk_bytes=rates.display_chunk_bytes) for r in set(res)}
+    delete_b = len(dp.encode_frame(1, *dp.delete(1))) + len(dp.encode_frame(1, *dp.ack(dp.CMD_DELETE)))
+    cap = max(1, int(rates.display_slots))
+    stored: OrderedDict = OrderedDict()
+    uploads, deletes, nbytes = 0, 0, 0.0
+    prev = None
+    for st in stages:
+        for s in st.shots:
+            if s.pattern is None or s.state == prev:
+                continue
+            prev = s.state
+            need = []
+            for i, d in enumerate(geometry.displays):
+                black = s.pattern in lit and lit[s.pattern] != d.name
+                need.append((("black", res[i]) if black else (s.pattern, i), res[i]))
+            keep = {k for k, _ in need}
+            for k, r in need:
+                if k in stored:
+                    stored.move_to_end(k)
+                    continue
+                while len(stored) >= cap:
+                    victim = next((x for x in stored if x not in keep), None)
+                    if victim is None:  # the runner refuses this shot with a ConfigError
+                        break
+                    del stored[victim]
+                    deletes += 1
+                stored[k] = None
+                uploads += 1
+                nbytes += cost[r]
+    return uploads, int(round(nbytes + deletes * delete_b))
 
 
 def _ang(d: float) -> float:

@@ -88,13 +88,7 @@ def synthetic_rig(n_cams: int = 3, width: int = 64, height: int = 48, *, fov_y_d
 def pixel_rays(cam: Camera, ss: int) -> tuple[np.ndarray, np.ndarray]:
     """Origins and unit directions (H·W·ss², 3) of ``ss × ss`` stratified rays per pixel,
     pixel-major (the ss² samples of a pixel are contiguous)."""
-    H, W = cam.height, cam.width
-    offs = (np.arange(ss) + 0.5) / ss - 0.5
-    v, u = np.mgrid[0:H, 0:W].astype(np.float64)
-    uu, vv = np.broadcast_arrays(u[..., None, None] + offs[None, None, None, :],
-                                 v[..., None, None] + offs[None, None, :, None])
-    uu, vv = uu.reshape(-1), vv.reshape(-1)
-    return cam.pixel_rays(np.stack([uu, vv], 1))
+    return cam.supersampled_rays(ss)
 
 
 def sphere_hit_t(o: np.ndarray, d: np.ndarray, c: np.ndarray, r: float) -> np.ndarray:

@@ -204,11 +204,16 @@ def test_natural_phase_is_envmatte_one_display_at_a_time():
     # one display only
     one = _natural({"images": 4, "kernels": 3, "displays": [names[-1]]})
     assert list(natural_pattern_ids(one, geo)) == [names[-1]]
-    # the dry run prices it: one upload per id and display
+    # the dry run prices it: one upload per id on the lit display, and one black shared by
+    # the ids on each other display (they all fit in the controller's 64 slots)
+    from opacityhull.acquire.schedule import upload_wire_bytes
+
     est = estimate(one, geo, MotionRates())
     assert est.images["envmatte"] == len(plan.table_deg) * 4 * ncam
-    px = sum(d["resolution"][0] * d["resolution"][1] * 3 for d in GEOMETRY["displays"])
-    assert est.upload_s == pytest.approx(4 * px / MotionRates().serial_bytes_s)
+    res = {d.name: tuple(d.resolution) for d in geo.displays}
+    wire = 4 * upload_wire_bytes(*res[names[-1]]) + sum(upload_wire_bytes(*res[n]) for n in names[:-1])
+    assert est.uploads == 4 + len(names) - 1
+    assert est.upload_s == pytest.approx(round(wire) / MotionRates().serial_bytes_s)
 
 
 @pytest.mark.parametrize("ph, match", [

@@ -11,9 +11,10 @@ Mitsuba (``relight/natural_eval.py``):
     under the map restricted to the displays' solid angles (what the field covers).
 
 Plan: 2 cameras × 1 table angle at half resolution (100 × 75), N = 30 images on the back
-display (64 × 36 domain), K = 25 — N is held to 30 by the display controller's 64
-pattern slots (see builtin:natural); the paper's N = 200 is measured by
-``benchmarks/natural.py --sim``.
+display (64 × 36 domain), K = 25 — N = 30 keeps the capture and estimate within the CI
+budget (the display controller's 64 pattern slots no longer cap it: the runner uploads
+patterns as they are shown, least recently used first); the paper's N = 200 is measured
+by ``benchmarks/natural.py --sim``.
 
 Thresholds (measured on this plan, contended machine, seeds fixed; PSNR over the
 field's pixels, peak = the truth's brightest pixel there):
@@ -24,7 +25,7 @@ field's pixels, peak = the truth's brightest pixel there):
     28.3 dB worst).
 (c) truth: Mitsuba with the back display showing ``builtin:uffizi`` as the object centre
     sees it there (8-bit, scaled to its peak). At a captured viewpoint the field measured
-    30.8 dB: require ≥ 25 dB and half the error of the environment turned upside
+    26.8 dB: require ≥ 25 dB and half the error of the environment turned upside
     down. At the new viewpoint (camera 2, ULR of the two relit views) measured 18.1 dB,
     relative error 1.27: ULR blends per-surfel colours of two views 15° apart, which a
     refracting object does not have — require only ≥ 15 dB and a relative error < 2
@@ -32,6 +33,8 @@ field's pixels, peak = the truth's brightest pixel there):
 """
 
 from __future__ import annotations
+
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -41,36 +44,7 @@ import simcache
 pytestmark = pytest.mark.slow
 
 SCALE = 0.5
-PLAN = """
-[plan]
-name = "natural_e2e"
-seed = 21
-cameras = [1, 3]
-
-[table]
-steps = 1
-
-[exposures]
-default_s = [0.8]
-
-[phases.matting]
-patterns = 1
-object_absent = true
-cell_px = 4
-level = 0
-
-[phases.lightfield]
-level = 255
-
-[phases.reflectance]
-array_steps = 1
-level = 255
-
-[phases.natural]
-images = 30
-kernels = 25
-displays = ["back"]
-"""
+PLAN = (Path(__file__).parent / "natural_e2e_plan.toml").read_text()  # the capture plan, as `acquire` reads it
 
 
 @pytest.fixture(scope="module")
