@@ -42,7 +42,7 @@ DATA = ROOT / "tests" / "data" / "real"
 BASELINE = {"temple": {"psnr": 17.9, "ssim": 0.59}, "dino": {"psnr": 17.6, "ssim": 0.67}}
 
 KEYS = ("psnr_mean", "ssim_mean", "psnr_interior_mean", "psnr_band_mean", "coverage_iou_mean",
-        "interior_alpha_mean", "spill_px_mean", "ms_per_view", "rebuild_ms_per_view")
+        "interior_alpha_mean", "interior_alpha_covered_mean", "spill_px_mean", "ms_per_view", "rebuild_ms_per_view")
 
 
 def configurations():

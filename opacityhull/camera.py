@@ -332,6 +332,21 @@ class Camera:
         d /= np.linalg.norm(d, axis=1, keepdims=True)
         return self.centre_world, d.reshape(shape)
 
+    def supersampled_rays(self, ss: int) -> tuple[np.ndarray, np.ndarray]:
+        """Rays of ``ss x ss`` stratified samples per pixel.
+
+        Returns
+        -------
+        origin : (3,) camera centre in world coordinates.
+        directions : (H*W*ss*ss, 3) unit vectors, pixel-major (the ss² samples of a pixel are
+            contiguous; sample (i, j) of pixel (u, v) sits at (u + offs[j], v + offs[i])).
+        """
+        offs = (np.arange(ss) + 0.5) / ss - 0.5
+        v, u = np.mgrid[0 : self.height, 0 : self.width].astype(np.float64)
+        uu, vv = np.broadcast_arrays(u[..., None, None] + offs[None, None, None, :],
+                                     v[..., None, None] + offs[None, None, :, None])
+        return self.pixel_rays(np.stack([uu.reshape(-1), vv.reshape(-1)], axis=1))
+
     def in_image(self, uv, margin: float = 0.0) -> np.ndarray:
         """Boolean mask of pixels inside the image (pixel centres 0..W-1, with ``margin``)."""
         uv = np.asarray(uv)

@@ -15,8 +15,11 @@ from __future__ import annotations
 
 import logging
 import os
+import shutil
 import warnings
+from contextlib import contextmanager
 from pathlib import Path
+from typing import Iterator
 
 import numpy as np
 
@@ -37,6 +40,7 @@ __all__ = [
     "srgb_encode",
     "srgb_decode",
     "atomic_path",
+    "replacing_dir",
     "fsync_dir",
     "write_exr_layers",
     "read_exr_layers",
@@ -70,6 +74,25 @@ def fsync_dir(directory) -> None:
         log.debug("fsync %s: %s", directory, e)
     finally:
         os.close(fd)
+
+
+@contextmanager
+def replacing_dir(out) -> Iterator[Path]:
+    """A fresh temporary folder next to ``out`` to write into; on success it replaces ``out``
+    (removing what was there), on error it is removed and ``out`` is left as it was."""
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out.with_name(f".{out.name}.tmp{os.getpid()}")
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir()
+    try:
+        yield tmp
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    if out.exists():
+        shutil.rmtree(out)
+    os.replace(tmp, out)
 
 
 class atomic_path:

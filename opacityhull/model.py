@@ -193,17 +193,29 @@ def write_surfels_ply(path, surfels: Surfels) -> None:
         PlyData([el], text=False, byte_order="<", comments=[f"n_views {surfels.n_views}"]).write(str(tmp))
 
 
-def read_surfels_ply(path) -> Surfels:
+def read_ply(path, *, what: str, elements: Sequence[str]):
+    """The PLY at ``path`` and the data of its ``elements``.
+
+    Raises :class:`~opacityhull.errors.FormatError` naming ``what`` (e.g. "surfel file") and
+    the path when the file is missing, or the path and the reason when it is not a PLY or
+    lacks an element.
+    """
     from plyfile import PlyData
 
     path = Path(path)
     if not path.is_file():
-        raise FormatError(f"surfel file {path} not found")
+        raise FormatError(f"{what} {path} not found")
     try:
         ply = PlyData.read(str(path))
-        v = ply["vertex"].data
+        return ply, [ply[e].data for e in elements]
     except Exception as e:
-        raise FormatError(f"{path}: not a readable PLY with a vertex element ({e})") from None
+        has = f"a {elements[0]} element" if len(elements) == 1 else f"{' and '.join(elements)} elements"
+        raise FormatError(f"{path}: not a readable PLY with {has} ({e})") from None
+
+
+def read_surfels_ply(path) -> Surfels:
+    path = Path(path)
+    ply, (v,) = read_ply(path, what="surfel file", elements=("vertex",))
     n_views = None
     for c in ply.comments:
         if c.startswith("n_views "):

@@ -110,24 +110,24 @@ class TomlContext:
             raise self.err(f"{key}.{name}", f"expected an integer in {lo}..{hi}, got {v!r}")
         return int(v)
 
+    def _given(self, key: str, d: Mapping, name: str, default):
+        """``(d[name], True)``, or ``(default, False)`` when absent; absent without a default is an error."""
+        if name in d:
+            return d[name], True
+        if default is None:
+            raise self.err(key, f"missing key {name!r}")
+        return default, False
+
     def str_(self, key: str, d: Mapping, name: str, default: str | None = None) -> str:
         """A string."""
-        if name not in d:
-            if default is None:
-                raise self.err(key, f"missing key {name!r}")
-            return default
-        v = d[name]
-        if not isinstance(v, str):
+        v, given = self._given(key, d, name, default)
+        if given and not isinstance(v, str):
             raise self.err(f"{key}.{name}", f"expected a string, got {v!r}")
         return v
 
     def bool_(self, key: str, d: Mapping, name: str, default: bool | None = None) -> bool:
         """A boolean (``true``/``false``, not 0/1)."""
-        if name not in d:
-            if default is None:
-                raise self.err(key, f"missing key {name!r}")
-            return default
-        v = d[name]
-        if not isinstance(v, bool):
+        v, given = self._given(key, d, name, default)
+        if given and not isinstance(v, bool):
             raise self.err(f"{key}.{name}", f"expected true or false, got {v!r}")
         return v

@@ -17,14 +17,13 @@ the layout. Each file is written atomically, and a format's folder is first buil
 from __future__ import annotations
 
 import logging
-import os
-import shutil
 from pathlib import Path
 from typing import Literal
 
 import numpy as np
 
 from ..errors import InputError
+from ..imageio import replacing_dir
 from ..model import OpacityHullModel
 
 log = logging.getLogger(__name__)
@@ -284,19 +283,9 @@ def export_model(model_dir, fmt: str, out, *, overwrite: bool = False, **options
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
         if not overwrite:
             raise InputError(f"--out {out}: exists and is not empty (pass --overwrite to replace it)")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_name(f".{out.name}.tmp{os.getpid()}")
-    shutil.rmtree(tmp, ignore_errors=True)
-    tmp.mkdir()
     fn = {"nerfstudio": export_nerfstudio_model, "colmap": export_colmap_model, "ply": export_ply,
           "opencv": export_opencv}[fmt]
-    try:
+    with replacing_dir(out) as tmp:
         summary = fn(model, tmp, **options)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-    if out.exists():
-        shutil.rmtree(out)
-    os.replace(tmp, out)
     summary = {k: (out / Path(v).relative_to(tmp) if isinstance(v, Path) else v) for k, v in summary.items()}
     return {"format": fmt, "model": str(Path(model_dir)), "out": str(out), **summary}

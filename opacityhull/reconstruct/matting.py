@@ -631,25 +631,10 @@ def fill_from_neighbours_reference(values, weights) -> np.ndarray:
 
     Fill low-weight pixels from their confident neighbours (push-pull, Gortler et al.
     1996): a weighted image pyramid is pushed down to 1 pixel, then each level is blended
-    with the upsampled coarser one, ``x = w x + (1 - w) up(x_coarse)``.
-
-    Parameters
-    ----------
-    values : (H, W, C) float
-    weights : (H, W) float in [0, 1]; 1 = known, 0 = unknown.
-
-    Returns
-    -------
-    (H, W, C) float64 with pixels of weight 1 unchanged and no NaN. If no pixel has
-    weight > 0 the result is zeros.
+    with the upsampled coarser one, ``x = w x + (1 - w) up(x_coarse)``. Parameters and
+    result as :func:`fill_from_neighbours`.
     """
-    v = np.asarray(values, dtype=np.float64)
-    if v.ndim == 2:
-        v = v[..., None]
-    w = np.clip(np.nan_to_num(np.asarray(weights, dtype=np.float64), nan=0.0), 0.0, 1.0)
-    if w.shape != v.shape[:2]:
-        raise ShapeError(f"weights have shape {w.shape}, expected {v.shape[:2]}")
-    v = np.where(w[..., None] > 0, np.nan_to_num(v, nan=0.0, posinf=0.0, neginf=0.0), 0.0)
+    v, w = _fill_inputs(values, weights)
     levels = [(v, w)]
     while max(levels[-1][1].shape) > 1:
         lv, lw = levels[-1]
@@ -746,6 +731,13 @@ def fill_from_neighbours(values, weights) -> np.ndarray:
     weight > 0 the result is zeros. Numba; :func:`fill_from_neighbours_reference` is the
     NumPy oracle.
     """
+    return _fill_clean(*_fill_inputs(values, weights))
+
+
+def _fill_inputs(values, weights) -> tuple[np.ndarray, np.ndarray]:
+    """Shared input cleaning of the push-pull fill (not part of the algorithm the oracle checks):
+    contiguous float64 (H, W, C) values, zero where the weight is 0 or the value is not finite,
+    and (H, W) weights clipped to [0, 1] with NaN as 0."""
     v = np.asarray(values, dtype=np.float64)
     if v.ndim == 2:
         v = v[..., None]
@@ -753,7 +745,7 @@ def fill_from_neighbours(values, weights) -> np.ndarray:
     if w.shape != v.shape[:2]:
         raise ShapeError(f"weights have shape {w.shape}, expected {v.shape[:2]}")
     v = np.ascontiguousarray(np.where(w[..., None] > 0, np.nan_to_num(v, nan=0.0, posinf=0.0, neginf=0.0), 0.0))
-    return _fill_clean(v, w)
+    return v, w
 
 
 def _fill_clean(v: np.ndarray, w: np.ndarray) -> np.ndarray:
@@ -817,13 +809,7 @@ def backdrop_from_displays(camera, table_deg: float, geometry, patterns: dict, *
     if s < 1:
         raise InputError(f"supersample must be >= 1, got {supersample}")
     H, W = camera.height, camera.width
-    offs = (np.arange(s) + 0.5) / s - 0.5
-    v, u = np.mgrid[0:H, 0:W].astype(np.float64)
-    # sample (i, j) of a pixel sits at (u + offs[j], v + offs[i])
-    uu, vv = np.broadcast_arrays(u[..., None, None] + offs[None, None, None, :],
-                                 v[..., None, None] + offs[None, None, :, None])
-    uu, vv = uu.reshape(-1), vv.reshape(-1)
-    o, d = camera.pixel_rays(np.stack([uu, vv], axis=1))
+    o, d = camera.supersampled_rays(s)
     best_t = np.full(d.shape[0], np.inf)
     out = np.full((d.shape[0], 3), float(off_radiance))
     obj_from_rig = object_from_rig(table_deg)

@@ -36,17 +36,10 @@ _EPS_Z = 1e-4 * math.sqrt(3.0) / 11.0
 
 def read_mesh_ply(path) -> tuple[np.ndarray, np.ndarray]:
     """Vertices (V, 3) float64 and triangles (F, 3) int64 of a PLY mesh."""
-    from plyfile import PlyData
+    from ..model import read_ply
 
     path = Path(path)
-    if not path.is_file():
-        raise FormatError(f"mesh {path} not found")
-    try:
-        ply = PlyData.read(str(path))
-        v = ply["vertex"].data
-        f = ply["face"].data
-    except Exception as e:
-        raise FormatError(f"{path}: not a readable PLY triangle mesh ({e})") from None
+    _, (v, f) = read_ply(path, what="mesh", elements=("vertex", "face"))
     V = np.stack([v["x"], v["y"], v["z"]], axis=1).astype(np.float64)
     name = "vertex_indices" if "vertex_indices" in f.dtype.names else f.dtype.names[0]
     faces = f[name]

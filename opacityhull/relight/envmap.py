@@ -302,16 +302,24 @@ def angular_to_latlong(img: np.ndarray, *, width: int | None = None, supersample
 
     Each output texel is the area mean of ``supersample²`` bilinear lookups.
     """
+    return _disc_probe_to_latlong(img, "angular map", lambda angle: angle / math.pi, width=width,
+                                  supersample=supersample)
+
+
+def _disc_probe_to_latlong(img: np.ndarray, what: str, radius_of_angle, *, width: int | None,
+                           supersample: int) -> np.ndarray:
+    """A square probe image whose disc holds direction d at radius ``radius_of_angle(angle(d, +Z))``
+    (1 on the rim) along the direction of (dx, dy), +X right, +Y up → lat-long (H, 2H, 3)."""
     S = img.shape[0]
     if img.shape[1] != S:
-        raise ShapeError(f"angular map must be square, got {img.shape[:2]}")
+        raise ShapeError(f"{what} must be square, got {img.shape[:2]}")
     W = int(width or 2 * S)
     H = max(1, W // 2)
 
     def fetch(d):
         dx, dy, dz = d[..., 0], d[..., 1], d[..., 2]
         s = np.hypot(dx, dy)
-        r = np.where(s > 1e-12, np.arccos(np.clip(dz, -1, 1)) / math.pi / np.maximum(s, 1e-12), 0.0)
+        r = np.where(s > 1e-12, radius_of_angle(np.arccos(np.clip(dz, -1, 1))) / np.maximum(s, 1e-12), 0.0)
         u, v = dx * r, dy * r  # in [-1, 1]
         return _bilinear_image(img, (u + 1) * 0.5 * S - 0.5, (1 - v) * 0.5 * S - 0.5)
 
@@ -336,21 +344,9 @@ def latlong_to_angular(latlong: np.ndarray, size: int) -> np.ndarray:
 def mirrorball_to_latlong(img: np.ndarray, *, width: int | None = None, supersample: int = 4) -> np.ndarray:
     """Mirror-ball image (square, ball touching the edges, orthographic view from +Z:
     the centre reflects +Z, the rim −Z, +X right, +Y up) → lat-long (H, 2H, 3)."""
-    S = img.shape[0]
-    if img.shape[1] != S:
-        raise ShapeError(f"mirror-ball image must be square, got {img.shape[:2]}")
-    W = int(width or 2 * S)
-    H = max(1, W // 2)
-
-    def fetch(d):
-        dx, dy, dz = d[..., 0], d[..., 1], d[..., 2]
-        s = np.hypot(dx, dy)
-        # the normal bisects d and the view direction +Z: |(u, v)| = sin(angle(d, +Z) / 2)
-        r = np.where(s > 1e-12, np.sin(0.5 * np.arccos(np.clip(dz, -1, 1))) / np.maximum(s, 1e-12), 0.0)
-        u, v = dx * r, dy * r
-        return _bilinear_image(img, (u + 1) * 0.5 * S - 0.5, (1 - v) * 0.5 * S - 0.5)
-
-    return _supersampled_inverse_map(H, W, fetch, ss=supersample)
+    # the normal bisects d and the view direction +Z: |(u, v)| = sin(angle(d, +Z) / 2)
+    return _disc_probe_to_latlong(img, "mirror-ball image", lambda angle: np.sin(0.5 * angle), width=width,
+                                  supersample=supersample)
 
 
 def downsample_latlong(radiance: np.ndarray, factor: int, *, dtype: type[np.floating] = np.float32) -> np.ndarray:

@@ -76,26 +76,11 @@ def rasterize_geometry(splat, lists, counts, height, width, cutoff, band_h, lut,
     nb = counts.shape[0] - 1
     c2 = np.float64(cutoff) * np.float64(cutoff)
     lut_scale = (lut.shape[0] - 2) / c2
-    inf32 = np.float32(np.inf)
     zero32 = np.float32(0.0)
     for b in range(b0, nb, stride):
         ylo = b * band_h
         yhi = min(height - 1, ylo + band_h - 1)
-        for t in range(counts[b], counts[b + 1]):
-            i = lists[t]
-            x0, y0, z0, A, B2, C, dzx, dzy, zlo, zhi, xa, xb = K._splat_geometry(splat, i)
-            eps = np.float64(splat[i, K.S_ZEPS])
-            for y in range(max(int(splat[i, K.S_BY0]), ylo), min(int(splat[i, K.S_BY1]), yhi) + 1):
-                dy = y - y0
-                tt = B2 * dy
-                cdy = C * dy * dy
-                zrow = z0 + dzy * dy
-                for x in range(xa, xb + 1):
-                    dx = x - x0
-                    q = (A * dx + tt) * dx + cdy
-                    z = min(max(zrow + dzx * dx, zlo), zhi)
-                    zl = np.float32(z + eps) if q <= c2 else inf32
-                    zlim[y, x] = min(zlim[y, x], zl)
+        K._depth_pass(splat, lists, counts[b], counts[b + 1], ylo, yhi, c2, zlim)
         for t in range(counts[b], counts[b + 1]):
             i = lists[t]
             x0, y0, z0, A, B2, C, dzx, dzy, zlo, zhi, xa, xb = K._splat_geometry(splat, i)

@@ -77,7 +77,7 @@ def _psnr_ssim(dp: np.ndarray, dr: np.ndarray, sel: np.ndarray, smap: np.ndarray
 
 
 def loo_metrics(photo_rgba: np.ndarray, render_rgba: np.ndarray, *, alpha_threshold: float = ALPHA_THRESHOLD,
-                band_px: int = 3) -> dict:
+                band_px: int = 3, coverage: np.ndarray | None = None) -> dict:
     """Metrics of a rendering against a photograph (both (H, W, 4) straight RGBA).
 
     ``psnr``/``ssim``/``alpha_mae`` inside the union of the masks (α > ``alpha_threshold``);
@@ -86,7 +86,11 @@ def loo_metrics(photo_rgba: np.ndarray, render_rgba: np.ndarray, *, alpha_thresh
     (see :func:`region_masks`); ``coverage_iou`` of rendered α > ½ against photo α > ½;
     ``spill_px`` rendered pixels (α > ½) outside the photo's mask dilated by one pixel;
     ``interior_alpha`` the mean rendered α where the photo is opaque (α ≥ 0.99, eroded
-    by ``band_px``) and ``interior_alpha_deficit`` = 1 − that. Empty masks give NaN.
+    by ``band_px``) and ``interior_alpha_deficit`` = 1 − that. With the rendering's
+    ``coverage`` (H, W), ``interior_alpha_covered`` is that mean over the opaque pixels the
+    geometry covers (coverage ≥ ½): the blending's own opacity deficit, apart from pixels
+    where the hull and the photo's mask disagree (a thresholded mask's blobs and holes).
+    Empty masks give NaN.
     """
     from skimage.metrics import structural_similarity
 
@@ -100,7 +104,7 @@ def loo_metrics(photo_rgba: np.ndarray, render_rgba: np.ndarray, *, alpha_thresh
     if n == 0:
         return {"psnr": nan, "ssim": nan, "alpha_mae": nan, "mask_px": 0, "psnr_interior": nan,
                 "ssim_interior": nan, "psnr_band": nan, "ssim_band": nan, "coverage_iou": nan, "spill_px": 0,
-                "interior_alpha": nan, "interior_alpha_deficit": nan}
+                "interior_alpha": nan, "interior_alpha_deficit": nan, "interior_alpha_covered": nan}
     dp, dr = _display(p), _display(r)
     win = min(7, min(p.shape[:2]) // 2 * 2 - 1)
     smap = None
@@ -123,9 +127,16 @@ def loo_metrics(photo_rgba: np.ndarray, render_rgba: np.ndarray, *, alpha_thresh
     near = cv2.dilate(pm.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
     spill = int((rm & ~near).sum())
     ia = float(ra[reg["opaque"]].mean()) if reg["opaque"].any() else nan
+    iac = nan
+    if coverage is not None:
+        if np.shape(coverage) != pa.shape:
+            raise InputError(f"coverage {np.shape(coverage)} must be (H, W) = {pa.shape}")
+        sel = reg["opaque"] & (np.nan_to_num(np.asarray(coverage, np.float32)) >= 0.5)
+        iac = float(ra[sel].mean()) if sel.any() else nan
     return {"psnr": psnr, "ssim": ssim, "alpha_mae": amae, "mask_px": n, "psnr_interior": psnr_i,
             "ssim_interior": ssim_i, "psnr_band": psnr_b, "ssim_band": ssim_b, "coverage_iou": iou,
-            "spill_px": spill, "interior_alpha": ia, "interior_alpha_deficit": (1.0 - ia) if ia == ia else nan}
+            "spill_px": spill, "interior_alpha": ia, "interior_alpha_deficit": (1.0 - ia) if ia == ia else nan,
+            "interior_alpha_covered": iac}
 
 
 def select_views(model: OpacityHullModel, spec: str | Sequence | None) -> list[int]:
@@ -246,7 +257,7 @@ def leave_one_out(
         res = render_image(use, cams, pv, cams[i], config=config, exclude_views=[i])
         ms = 1e3 * (time.perf_counter() - t0)
         photo = model.load_view_rgba(i)
-        m = loo_metrics(photo, res.rgba, alpha_threshold=alpha_threshold)
+        m = loo_metrics(photo, res.rgba, alpha_threshold=alpha_threshold, coverage=res.coverage)
         per_view.append({"view": model.views[i].id, "index": i, **m, "ms": ms,
                          **({"rebuild_ms": build_ms[-1], "surfels": len(use)} if build_ms else {})})
         if j in sheet_pick:
@@ -267,7 +278,7 @@ def leave_one_out(
         "alpha_mae": mean("alpha_mae"),
         **{f"{k}_mean": mean(k) for k in ("psnr_interior", "ssim_interior", "psnr_band", "ssim_band",
                                           "coverage_iou", "interior_alpha", "interior_alpha_deficit",
-                                          "spill_px")},
+                                          "interior_alpha_covered", "spill_px")},
         "coverage_iou_min": float(np.nanmin([p["coverage_iou"] for p in per_view])) if per_view else float("nan"),
         "per_view": per_view,
         "ms_per_view": float(np.mean([p["ms"] for p in per_view])),

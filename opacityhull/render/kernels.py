@@ -690,6 +690,28 @@ def _splat_geometry(splat, i):
             np.float64(splat[i, S_DZY]), z0 - dev, z0 + dev, int(splat[i, S_BX0]), int(splat[i, S_BX1]))
 
 
+@njit(cache=True, inline="always", error_model="numpy")
+def _depth_pass(splat, lists, t0, t1, ylo, yhi, c2, zlim):  # pragma: no cover - compiled
+    """Pass 1 of the ε-z-buffer over surfels ``lists[t0:t1]`` in rows ``ylo..yhi``:
+    ``zlim = min(zlim, z + ε)`` for fragments with ``q ≤ c2``."""
+    inf32 = np.float32(np.inf)
+    for t in range(t0, t1):
+        i = lists[t]
+        x0, y0, z0, A, B2, C, dzx, dzy, zlo, zhi, xa, xb = _splat_geometry(splat, i)
+        eps = np.float64(splat[i, S_ZEPS])
+        for y in range(max(int(splat[i, S_BY0]), ylo), min(int(splat[i, S_BY1]), yhi) + 1):
+            dy = y - y0
+            tt = B2 * dy
+            cdy = C * dy * dy
+            zrow = z0 + dzy * dy
+            for x in range(xa, xb + 1):
+                dx = x - x0
+                q = (A * dx + tt) * dx + cdy
+                z = min(max(zrow + dzx * dx, zlo), zhi)
+                zl = np.float32(z + eps) if q <= c2 else inf32
+                zlim[y, x] = min(zlim[y, x], zl)
+
+
 @njit(cache=True, inline="always")
 def _ewa_weight(A, tt, cdy, dx, zrow, dzx, zlo, zhi, c2, lut, lut_scale, w0):
     """A splat's Mahalanobis distance q, clamped depth z and (unmasked) weight at one
@@ -731,26 +753,11 @@ def rasterize(splat, lists, counts, height, width, cutoff, band_h, lut, accum, z
     nb = counts.shape[0] - 1
     c2 = np.float64(cutoff) * np.float64(cutoff)
     lut_scale = (lut.shape[0] - 2) / c2
-    inf32 = np.float32(np.inf)
     zero32 = np.float32(0.0)
     for b in range(b0, nb, stride):
         ylo = b * band_h
         yhi = min(height - 1, ylo + band_h - 1)
-        for t in range(counts[b], counts[b + 1]):
-            i = lists[t]
-            x0, y0, z0, A, B2, C, dzx, dzy, zlo, zhi, xa, xb = _splat_geometry(splat, i)
-            eps = np.float64(splat[i, S_ZEPS])
-            for y in range(max(int(splat[i, S_BY0]), ylo), min(int(splat[i, S_BY1]), yhi) + 1):
-                dy = y - y0
-                tt = B2 * dy
-                cdy = C * dy * dy
-                zrow = z0 + dzy * dy
-                for x in range(xa, xb + 1):
-                    dx = x - x0
-                    q = (A * dx + tt) * dx + cdy
-                    z = min(max(zrow + dzx * dx, zlo), zhi)
-                    zl = np.float32(z + eps) if q <= c2 else inf32
-                    zlim[y, x] = min(zlim[y, x], zl)
+        _depth_pass(splat, lists, counts[b], counts[b + 1], ylo, yhi, c2, zlim)
         for t in range(counts[b], counts[b + 1]):
             i = lists[t]
             x0, y0, z0, A, B2, C, dzx, dzy, zlo, zhi, xa, xb = _splat_geometry(splat, i)

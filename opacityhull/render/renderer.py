@@ -210,6 +210,28 @@ def _remap(img: np.ndarray, grid: np.ndarray, *, nearest: bool = False, border=0
                      borderMode=cv2.BORDER_CONSTANT, borderValue=border)
 
 
+def _remap_buffers(premul, wsum, cov, depth, grid):
+    """The rendered buffers resampled through the distortion ``grid``; depth by nearest
+    neighbour (blending depths across a silhouette would invent surfaces), inf outside."""
+    return (_remap(premul, grid), _remap(np.ascontiguousarray(wsum), grid), _remap(cov, grid),
+            _remap(depth, grid, nearest=True, border=float("inf")))
+
+
+def _stage_ms(t0: float, **ends: float) -> dict:
+    """Milliseconds per stage from the ``perf_counter`` time each stage ended (in order), and the total."""
+    ms, prev = {}, t0
+    for stage, t in ends.items():
+        ms[stage], prev = 1e3 * (t - prev), t
+    ms["total"] = 1e3 * (prev - t0)
+    return ms
+
+
+def _view_stats(camera, config, threads, exclude_views, pv, valid, draw) -> dict:
+    """The stats entries both shading modes report alike."""
+    return {"splats_setup": int(valid.sum()), "splats_drawn": int(draw.size), "width": camera.width, "height": camera.height, "k": int(config.k), "threads": threads,
+            "excluded_views": [int(v) for v in exclude_views], "nonfinite_texels": pv.nonfinite_texels}
+
+
 def render_image(
     surfels: Surfels,
     view_cameras: Sequence[Camera],
@@ -293,34 +315,17 @@ def render_image(
     if grid is not None:
         premul = rgba_img.copy()
         premul[..., :3] *= premul[..., 3:4]
-        premul = _remap(premul, grid)
-        wsum = _remap(np.ascontiguousarray(wsum), grid)
-        cov = _remap(cov, grid)
-        depth = _remap(depth, grid, nearest=True, border=float("inf"))
+        premul, wsum, cov, depth = _remap_buffers(premul, wsum, cov, depth, grid)
         rgba_img = straight_from_premul(premul)
     t_end = time.perf_counter()
     if progress:
         progress(3, 3)
     stats = {
         "surfels": N,
-        "splats_setup": int(valid.sum()),
-        "splats_drawn": int(draw.size),
+        **_view_stats(camera, config, threads, exclude_views, pv, valid, draw),
         "not_drawn_no_view": int(valid.sum() - draw.size),
-        "width": camera.width,
-        "height": camera.height,
-        "k": int(config.k),
-        "threads": threads,
-        "excluded_views": [int(v) for v in exclude_views],
-        "nonfinite_texels": pv.nonfinite_texels,
         "shading": "surfel",
-        "ms": {
-            "prepare": 1e3 * (t_prep - t0),
-            "setup": 1e3 * (t_setup - t_prep),
-            "shade": 1e3 * (t_shade - t_setup),
-            "raster": 1e3 * (t_raster - t_shade),
-            "finish": 1e3 * (t_end - t_raster),
-            "total": 1e3 * (t_end - t0),
-        },
+        "ms": _stage_ms(t0, prepare=t_prep, setup=t_setup, shade=t_shade, raster=t_raster, finish=t_end),
     }
     return RenderResult(rgba_img, depth, np.ascontiguousarray(wsum), cov, camera, config, stats)
 
@@ -364,36 +369,19 @@ def _render_deferred(surfels, pv, allowed, camera, pin, grid, cam_row, C, splat,
         premul *= scale[..., None]
     t_shade = time.perf_counter()
     if grid is not None:
-        premul = _remap(premul, grid)
-        wsum = _remap(np.ascontiguousarray(wsum), grid)
-        cov = _remap(cov, grid)
-        depth = _remap(depth, grid, nearest=True, border=float("inf"))
+        premul, wsum, cov, depth = _remap_buffers(premul, wsum, cov, depth, grid)
     rgba_img = straight_from_premul(premul)
     t_end = time.perf_counter()
     if progress:
         progress(3, 3)
     stats = {
         "surfels": len(surfels),
-        "splats_setup": int(valid.sum()),
-        "splats_drawn": int(draw.size),
+        **_view_stats(camera, config, threads, exclude_views, pv, valid, draw),
         "pixels_covered": int((cov >= config.min_coverage).sum()),
         "pixels_shaded": n_shaded,
-        "width": camera.width,
-        "height": camera.height,
-        "k": int(config.k),
-        "threads": threads,
-        "excluded_views": [int(v) for v in exclude_views],
-        "nonfinite_texels": pv.nonfinite_texels,
         "shading": "pixel",
         "shading_surface": "refined" if refined else "hull",
-        "ms": {
-            "prepare": 1e3 * (t_prep - t0),
-            "setup": 1e3 * (t_setup - t_prep),
-            "raster": 1e3 * (t_raster - t_setup),
-            "shade": 1e3 * (t_shade - t_raster),
-            "finish": 1e3 * (t_end - t_shade),
-            "total": 1e3 * (t_end - t0),
-        },
+        "ms": _stage_ms(t0, prepare=t_prep, setup=t_setup, raster=t_raster, shade=t_shade, finish=t_end),
     }
     return RenderResult(rgba_img, depth, np.ascontiguousarray(wsum, dtype=np.float32), cov, camera, config, stats)
 

@@ -20,7 +20,7 @@ import numpy as np
 from ..errors import ConfigError, DeviceError, InputError
 from . import display_protocol as dp
 from .interfaces import DeviceInfo
-from .transport import DeviceGone, DeviceTimeout, ProtocolError, SerialTransport, Transport
+from .transport import DeviceGone, DeviceTimeout, OverTransport, driver_name, ProtocolError, SerialTransport, Transport
 
 log = logging.getLogger(__name__)
 
@@ -47,7 +47,7 @@ def _check_display_options(name: str, outputs: Mapping[str, int], chunk_bytes: i
         raise ConfigError(f"{name}: chunk_bytes must be 1..{dp.MAX_CHUNK}, got {chunk_bytes}")
 
 
-class DisplayController:
+class DisplayController(OverTransport):
     """The display controller behind the backdrops.
 
     Parameters
@@ -74,10 +74,7 @@ class DisplayController:
     def __init__(self, transport: Transport, *, outputs: Mapping[str, int], name: str | None = None,
                  timeout_s: float = 2.0, retries: int = 3, chunk_bytes: int = 512, reconnect_attempts: int = 2,
                  reconnect_delay_s: float = 0.2):
-        if not isinstance(transport, Transport):
-            raise ConfigError(f"{name or 'backdrops'}: expected a Transport, got {type(transport).__name__} "
-                              f"(use DisplayController.from_url({transport!r}, ...) for a serial URL)")
-        name = transport.name if name is None else name
+        name = driver_name(transport, name, driver="DisplayController", fallback="backdrops")
         _check_display_options(name, outputs, chunk_bytes)
         self.name = name
         self.outputs = dict(outputs)
@@ -103,10 +100,6 @@ class DisplayController:
                    chunk_bytes=chunk_bytes, reconnect_attempts=reconnect_attempts,
                    reconnect_delay_s=reconnect_delay_s)
 
-    @property
-    def url(self) -> str:
-        return self.transport.url
-
     # ---- lifecycle
     def open(self) -> "DisplayController":
         self.transport.open()
@@ -115,17 +108,6 @@ class DisplayController:
 
     def close(self) -> None:
         self.transport.close()
-
-    def __enter__(self):
-        return self.open()
-
-    def __exit__(self, *exc):
-        self.close()
-        return False
-
-    @property
-    def is_open(self) -> bool:
-        return self.transport.is_open
 
     def reconnect(self, max_attempts: int | None = None, delay_s: float | None = None) -> None:
         """Close and re-open the port, up to ``max_attempts`` times; raise :class:`DeviceGone`

@@ -28,7 +28,7 @@ import numpy as np
 from ..errors import ConfigError, DeviceError, FormatError, InputError
 from ..imageio import read_image, srgb_decode
 from .interfaces import CameraInfo, DeviceInfo
-from .transport import DeviceGone, DeviceTimeout
+from .transport import DeviceGone, DeviceTimeout, OpenClose
 
 log = logging.getLogger(__name__)
 
@@ -60,7 +60,7 @@ def _to_rgb(name: str, a: np.ndarray) -> np.ndarray:
 # =========================================================================== OpenCV (UVC)
 
 
-class OpenCVCamera:
+class OpenCVCamera(OpenClose):
     """A camera read through ``cv2.VideoCapture``.
 
     Parameters
@@ -185,13 +185,6 @@ class OpenCVCamera:
         cap, self._cap = self._cap, None
         if cap is not None:
             cap.release()
-
-    def __enter__(self):
-        return self.open()
-
-    def __exit__(self, *exc):
-        self.close()
-        return False
 
     @property
     def backend_name(self) -> str:

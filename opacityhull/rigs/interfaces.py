@@ -12,10 +12,11 @@ import logging
 from contextlib import AbstractContextManager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping, Protocol, Sequence, runtime_checkable
+from typing import Any, Callable, Mapping, Protocol, Sequence, runtime_checkable
 
 import numpy as np
 
+from ..errors import DeviceError
 from ..riggeometry import RigGeometry
 
 log = logging.getLogger(__name__)
@@ -43,6 +44,26 @@ class DeviceInfo:
     detail: str
     identity: str = ""
     state: dict = field(default_factory=dict)
+
+
+def check_opened(device: Any, probe: Callable[[], DeviceInfo]) -> DeviceInfo:
+    """``probe()`` with ``device`` open; never raises.
+
+    A closed device is opened for the probe and closed again, so ``rig check`` leaves every
+    port as it found it; a :class:`~opacityhull.errors.DeviceError` becomes ``ok=False`` with
+    the reason.
+    """
+    opened_here = False
+    try:
+        if not device.is_open:
+            device.open()
+            opened_here = True
+        return probe()
+    except DeviceError as e:
+        return DeviceInfo(device.name, False, str(e), state={"url": device.url})
+    finally:
+        if opened_here:
+            device.close()
 
 
 @runtime_checkable

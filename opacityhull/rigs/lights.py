@@ -20,8 +20,8 @@ from typing import Mapping
 
 from ..errors import ConfigError, DeviceError, InputError
 from . import enttec_protocol as ep
-from .interfaces import DeviceInfo, RotaryAxis
-from .transport import DeviceGone, DeviceTimeout, SerialTransport, Transport
+from .interfaces import DeviceInfo, RotaryAxis, check_opened
+from .transport import DeviceGone, DeviceTimeout, OverTransport, driver_name, SerialTransport, Transport
 
 log = logging.getLogger(__name__)
 
@@ -37,7 +37,7 @@ def _check_dmx_options(name: str, timeout_s: float, universe_size: int) -> None:
         raise ConfigError(f"{name}: timeout_s = {timeout_s!r}, expected a number > 0")
 
 
-class EnttecDmx:
+class EnttecDmx(OverTransport):
     """Driver of one Enttec DMX USB Pro (one DMX universe).
 
     Parameters
@@ -53,10 +53,7 @@ class EnttecDmx:
 
     def __init__(self, transport: Transport, *, name: str | None = None, timeout_s: float = 2.0,
                  universe_size: int = 512, verify_on_open: bool = True):
-        if not isinstance(transport, Transport):
-            raise ConfigError(f"{name or 'dmx'}: expected a Transport, got {type(transport).__name__} "
-                              f"(use EnttecDmx.from_url({transport!r}, ...) for a serial URL)")
-        name = transport.name if name is None else name
+        name = driver_name(transport, name, driver="EnttecDmx", fallback="dmx")
         _check_dmx_options(name, timeout_s, universe_size)
         self.name = name
         self.timeout_s = float(timeout_s)
@@ -85,14 +82,6 @@ class EnttecDmx:
                    verify_on_open=verify_on_open)
 
     # ------------------------------------------------------------------ lifecycle
-    @property
-    def url(self) -> str:
-        return self.transport.url
-
-    @property
-    def is_open(self) -> bool:
-        return self.transport.is_open
-
     def open(self) -> "EnttecDmx":
         with self.lock:
             if self.is_open:
@@ -111,13 +100,6 @@ class EnttecDmx:
     def close(self) -> None:
         self.stop_keepalive()
         self.transport.close()
-
-    def __enter__(self) -> "EnttecDmx":
-        return self.open()
-
-    def __exit__(self, *exc):
-        self.close()
-        return False
 
     def _require_open(self) -> None:
         if not self.is_open:
@@ -248,26 +230,19 @@ class EnttecDmx:
 
     def check(self) -> DeviceInfo:
         """Widget parameters and serial number; never raises."""
-        opened_here = False
-        try:
-            if not self.is_open:
-                self.open()
-                opened_here = True
-            p = self.get_widget_parameters()
-            sn = self.get_serial_number()
-            fw = {1: "DMX", 2: "RDM", 3: "RDM sniffer"}.get(p.firmware[0], "unknown")
-            return DeviceInfo(
-                self.name, p.firmware[0] in (1, 2),
-                f"firmware {p.firmware_version} ({fw}), break {p.break_us:.0f} us, MAB {p.mab_us:.0f} us, "
-                f"{p.rate_hz or 'max'} packets/s on {self.url}",
-                identity=f"Enttec DMX USB Pro serial {sn}",
-                state={"serial": sn, "firmware": p.firmware_version, "break_us": p.break_us, "mab_us": p.mab_us,
-                       "rate_hz": p.rate_hz, "url": self.url, "packets_sent": self.packets_sent})
-        except DeviceError as e:
-            return DeviceInfo(self.name, False, str(e), state={"url": self.url})
-        finally:
-            if opened_here:
-                self.close()
+        return check_opened(self, self._probe)
+
+    def _probe(self) -> DeviceInfo:
+        p = self.get_widget_parameters()
+        sn = self.get_serial_number()
+        fw = {1: "DMX", 2: "RDM", 3: "RDM sniffer"}.get(p.firmware[0], "unknown")
+        return DeviceInfo(
+            self.name, p.firmware[0] in (1, 2),
+            f"firmware {p.firmware_version} ({fw}), break {p.break_us:.0f} us, MAB {p.mab_us:.0f} us, "
+            f"{p.rate_hz or 'max'} packets/s on {self.url}",
+            identity=f"Enttec DMX USB Pro serial {sn}",
+            state={"serial": sn, "firmware": p.firmware_version, "break_us": p.break_us, "mab_us": p.mab_us,
+                   "rate_hz": p.rate_hz, "url": self.url, "packets_sent": self.packets_sent})
 
 
 class DmxLightArray:

@@ -51,11 +51,12 @@ import numbers
 import threading
 import time
 from collections import deque
+from typing import Any
 
 from ..errors import ConfigError, DeviceError, InputError
 from . import grbl_protocol as gp
-from .interfaces import DeviceInfo
-from .transport import DeviceGone, DeviceTimeout, ProtocolError, SerialTransport, Transport
+from .interfaces import DeviceInfo, check_opened
+from .transport import DeviceGone, DeviceTimeout, OverTransport, driver_name, ProtocolError, SerialTransport, Transport
 
 log = logging.getLogger(__name__)
 
@@ -118,7 +119,7 @@ def move_duration_s(distance_deg: float, rate_deg_s: float, accel_deg_s2: float)
     return 2.0 * math.sqrt(d / a)
 
 
-class GrblController:
+class GrblController(OverTransport):
     """One GRBL 1.1 board on one serial port, shared by its axes.
 
     Parameters
@@ -137,10 +138,7 @@ class GrblController:
 
     def __init__(self, transport: Transport, *, name: str | None = None, timeout_s: float = 2.0,
                  poll_s: float = 0.02, boot_timeout_s: float | None = None):
-        if not isinstance(transport, Transport):
-            raise ConfigError(f"{name or 'grbl'}: expected a Transport, got {type(transport).__name__} "
-                              f"(use GrblController.from_url({transport!r}, ...) for a serial URL)")
-        name = transport.name if name is None else name
+        name = driver_name(transport, name, driver="GrblController", fallback="grbl")
         if not (isinstance(timeout_s, (int, float)) and timeout_s > 0 and math.isfinite(timeout_s)):
             raise ConfigError(f"{name}: timeout_s must be a number > 0, got {timeout_s!r}")
         self.name = name
@@ -179,16 +177,8 @@ class GrblController:
 
     # ------------------------------------------------------------------ lifecycle
     @property
-    def url(self) -> str:
-        return self.transport.url
-
-    @property
     def baudrate(self) -> int:
         return self.transport.baudrate
-
-    @property
-    def is_open(self) -> bool:
-        return self.transport.is_open
 
     @property
     def axes(self) -> dict:
@@ -266,13 +256,6 @@ class GrblController:
         """Close the port (no lock: may be called while another thread is blocked in a move)."""
         self.transport.close()
 
-    def __enter__(self) -> "GrblController":
-        return self.open()
-
-    def __exit__(self, *exc):
-        self.close()
-        return False
-
     def reconnect(self, max_attempts: int = 5, delay_s: float = 0.5, *, url: str | None = None,
                   unlock: bool = False) -> "GrblController":
         """Reopen the port after :class:`DeviceGone` and re-read state and settings.
@@ -307,6 +290,22 @@ class GrblController:
             if raw.strip(b"\r\n \t"):
                 return raw
 
+    def _parse_or_discard(self, raw: bytes):
+        """The parsed line, or None for a garbled one (kept in :attr:`discarded`)."""
+        try:
+            return gp.parse_response(raw)
+        except ProtocolError:
+            self.discarded.append(raw.rstrip(b"\r\n"))
+            return None
+
+    def _next_response(self, deadline: float, what: str) -> tuple[bytes, Any]:
+        """The next line before ``deadline`` and its parse (None for a garbled one); a timeout is explained."""
+        try:
+            raw = self._readline(deadline, what)
+        except DeviceTimeout as e:
+            raise self._explain_timeout(e) from None
+        return raw, self._parse_or_discard(raw)
+
     def _note(self, r) -> None:
         if isinstance(r, gp.Alarm):
             log.warning("%s: ALARM:%s (%s)", self.name, r.code, r.meaning)
@@ -330,10 +329,8 @@ class GrblController:
         for raw in lines:
             if not raw.strip(b"\r\n \t"):
                 continue
-            try:
-                r = gp.parse_response(raw)
-            except ProtocolError:
-                self.discarded.append(raw.rstrip(b"\r\n"))
+            r = self._parse_or_discard(raw)
+            if r is None:
                 continue
             if isinstance(r, (gp.Ok, gp.GrblError)):
                 self.discarded.append(raw.rstrip(b"\r\n"))
@@ -361,14 +358,8 @@ class GrblController:
         deadline = time.monotonic() + self.timeout_s
         seen_gc = False
         while True:
-            try:
-                raw = self._readline(deadline, "reply to $G (resynchronising after a lost reply)")
-            except DeviceTimeout as e:
-                raise self._explain_timeout(e) from None
-            try:
-                r = gp.parse_response(raw)
-            except ProtocolError:
-                self.discarded.append(raw.rstrip(b"\r\n"))
+            raw, r = self._next_response(deadline, "reply to $G (resynchronising after a lost reply)")
+            if r is None:
                 continue
             if isinstance(r, gp.Message) and r.kind == "GC":
                 seen_gc = True
@@ -549,10 +540,8 @@ class GrblController:
                         raw = self._readline(until, "answer to '?'")
                     except DeviceTimeout:
                         break
-                    try:
-                        r = gp.parse_response(raw)
-                    except ProtocolError:
-                        self.discarded.append(raw.rstrip(b"\r\n"))
+                    r = self._parse_or_discard(raw)
+                    if r is None:
                         continue
                     self._note(r)
                     if isinstance(r, gp.Status):
@@ -569,10 +558,8 @@ class GrblController:
                     f"{self.name}: no answer to '?' nor a welcome banner after a soft reset on {self.url}; "
                     f"{self.transport.heard_since(mark)} — check that the controller is powered, runs GRBL 1.1 at "
                     f"{self.baudrate} baud, and that no other program holds the port") from None
-            try:
-                r = gp.parse_response(raw)
-            except ProtocolError:
-                self.discarded.append(raw.rstrip(b"\r\n"))
+            r = self._parse_or_discard(raw)
+            if r is None:
                 continue
             self._note(r)
             if isinstance(r, gp.Banner):
@@ -613,14 +600,8 @@ class GrblController:
             deadline = time.monotonic() + self.timeout_s
             pushes = []
             while True:
-                try:
-                    raw = self._readline(deadline, "welcome banner after a soft reset")
-                except DeviceTimeout as e:
-                    raise self._explain_timeout(e) from None
-                try:
-                    r = gp.parse_response(raw)
-                except ProtocolError:
-                    self.discarded.append(raw.rstrip(b"\r\n"))
+                _, r = self._next_response(deadline, "welcome banner after a soft reset")
+                if r is None:
                     continue
                 self._note(r)
                 pushes.append(r)
@@ -661,22 +642,15 @@ class GrblController:
 
     def check(self) -> DeviceInfo:
         """Controller identity and state; never raises."""
-        opened_here = False
-        try:
-            if not self.is_open:
-                self.open()
-                opened_here = True
-            st = self.status()
-            ok = st.state in ("Idle", "Run", "Jog", "Home")
-            alarm = f" ALARM:{self.last_alarm.code}" if st.state == "Alarm" and self.last_alarm else ""
-            return DeviceInfo(self.name, ok, f"{st.state}{alarm} on {self.url}",
-                              identity=f"Grbl {self.version or '?'} ({self.build or 'build ?'})",
-                              state={"state": st.state, "position": st.position(self._wco), "url": self.url})
-        except DeviceError as e:
-            return DeviceInfo(self.name, False, str(e), state={"url": self.url})
-        finally:
-            if opened_here:
-                self.close()
+        return check_opened(self, self._probe)
+
+    def _probe(self) -> DeviceInfo:
+        st = self.status()
+        ok = st.state in ("Idle", "Run", "Jog", "Home")
+        alarm = f" ALARM:{self.last_alarm.code}" if st.state == "Alarm" and self.last_alarm else ""
+        return DeviceInfo(self.name, ok, f"{st.state}{alarm} on {self.url}",
+                          identity=f"Grbl {self.version or '?'} ({self.build or 'build ?'})",
+                          state={"state": st.state, "position": st.position(self._wco), "url": self.url})
 
 
 class GrblAxis:

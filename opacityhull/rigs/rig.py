@@ -29,7 +29,7 @@ from .backdrops import DisplayController
 from .interfaces import Backdrops, CameraDevice, DeviceInfo, LightArray, Port, RotaryAxis, Turntable
 from .lights import DmxLightArray, EnttecDmx
 from .motion import GrblAxis, GrblController, GrblInterrupted
-from .transport import DeviceGone
+from .transport import DeviceGone, OpenClose
 
 if TYPE_CHECKING:  # cameras.py imports the image codecs: only when a camera is built
     from .cameras import DirectoryCamera, OpenCVCamera
@@ -65,7 +65,7 @@ def _board_text(details: dict) -> str:
         return f" ({spec})"
 
 
-class HardwareRig:
+class HardwareRig(OpenClose):
     """Devices plus geometry, implementing :class:`~opacityhull.rigs.interfaces.Rig`.
 
     Parameters
@@ -188,13 +188,6 @@ class HardwareRig:
                 except Exception as e:
                     log.warning("%s: close failed: %s", c.name, e)
         self._open = False
-
-    def __enter__(self) -> "HardwareRig":
-        return self.open()
-
-    def __exit__(self, *exc):
-        self.close()
-        return False
 
     def reconnect(self, device: str | None = None, *, max_attempts: int | None = None,
                   delay_s: float | None = None) -> None:

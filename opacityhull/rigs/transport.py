@@ -29,7 +29,7 @@ import logging
 import select
 import socket
 import time
-from typing import Any, Callable
+from typing import Any, Callable, Self
 
 from ..errors import ConfigError, DeviceError
 
@@ -86,7 +86,50 @@ def check_url(url: str, *, where: str = "url") -> str:
     )
 
 
-class Transport:
+def driver_name(transport: Any, name: str | None, *, driver: str, fallback: str) -> str:
+    """The device name a driver over ``transport`` goes by: ``name``, else the transport's.
+
+    Raises :class:`~opacityhull.errors.ConfigError` (naming ``driver``'s ``from_url``) when
+    ``transport`` is not a :class:`Transport`, e.g. a URL string passed by mistake.
+    """
+    if not isinstance(transport, Transport):
+        raise ConfigError(f"{name or fallback}: expected a Transport, got {type(transport).__name__} "
+                          f"(use {driver}.from_url({transport!r}, ...) for a serial URL)")
+    return transport.name if name is None else name
+
+
+class OpenClose:
+    """``with device:`` opens it and closes it on the way out, whatever happened inside."""
+
+    def open(self) -> Self:
+        raise NotImplementedError
+
+    def close(self) -> None:
+        raise NotImplementedError
+
+    def __enter__(self) -> Self:
+        return self.open()
+
+    def __exit__(self, *exc: object) -> bool:
+        self.close()
+        return False
+
+
+class OverTransport(OpenClose):
+    """A driver talking over ``self.transport``: its URL and open state are the transport's."""
+
+    transport: "Transport"
+
+    @property
+    def url(self) -> str:
+        return self.transport.url
+
+    @property
+    def is_open(self) -> bool:
+        return self.transport.is_open
+
+
+class Transport(OpenClose):
     """Bytes to and from one device, with a timeout on every operation.
 
     The base class holds everything a driver relies on — the receive buffer, the
@@ -166,13 +209,6 @@ class Transport:
 
     def close(self) -> None:
         self._close_raw()
-
-    def __enter__(self):
-        return self.open()
-
-    def __exit__(self, *exc):
-        self.close()
-        return False
 
     def _gone(self, e: BaseException) -> DeviceGone:
         self.close()

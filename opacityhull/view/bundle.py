@@ -35,7 +35,6 @@ from __future__ import annotations
 
 import json
 import logging
-import os
 import shutil
 import zlib
 from importlib import resources
@@ -44,6 +43,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
+from ..imageio import replacing_dir
 from ..model import OpacityHullModel
 from .octree_code import decode_positions, encode_offsets, encode_positions, median_spacing, pack
 
@@ -162,22 +162,12 @@ def write_bundle(model_dir, out, *, k: int = 4, background=(0.0, 0.0, 0.0), firs
         if not overwrite or not _is_bundle(out):
             raise InputError(f"--out {out}: exists and is not an earlier viewer bundle (no manifest.json of "
                              f"format {VIEWER_FORMAT}); choose an empty or new folder")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_name(f".{out.name}.tmp{os.getpid()}")
-    shutil.rmtree(tmp, ignore_errors=True)
-    tmp.mkdir()
-    try:
+    with replacing_dir(out) as tmp:
         summary = _write(tmp, model, s, V, k, bg, first_chunk, progress, srgb_encode, RenderConfig(),
                          ALPHA_MIN, coverage_full, surfel_areas, position_cell_m,
                          int(offset_bits))
         if env is not None:
             summary["envmap"] = _write_envmap(tmp, env, str(envmap))
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-    if out.exists():
-        shutil.rmtree(out)
-    os.replace(tmp, out)
     summary["out"] = str(out)
     summary["index"] = str(out / "index.html")
     return summary

@@ -68,6 +68,17 @@ def test_pixel_rays_hit_projected_points():
     np.testing.assert_allclose(uv[0], [37, 91], atol=1e-6)
 
 
+def test_supersampled_rays_are_stratified_and_pixel_major():
+    cam = make_cam(dist=(-0.1, 0.0, 0.0, 0.0, 0.0))
+    o, d = cam.supersampled_rays(2)
+    assert d.shape == (120 * 160 * 4, 3)
+    # samples 4k..4k+3 belong to pixel k (row-major); sample (i, j) is at (u + offs[j], v + offs[i])
+    k = 91 * 160 + 37
+    uv, _ = cam.project(o + 0.8 * d[4 * k: 4 * k + 4])
+    np.testing.assert_allclose(uv, [[36.75, 90.75], [37.25, 90.75], [36.75, 91.25], [37.25, 91.25]], atol=1e-6)
+    np.testing.assert_allclose(cam.supersampled_rays(1)[1], cam.pixel_rays()[1].reshape(-1, 3), atol=1e-12)
+
+
 def test_camera_validation_messages():
     with pytest.raises(ShapeError, match=r"K has shape \(2, 2\)"):
         Camera(K=np.eye(2), width=10, height=10)

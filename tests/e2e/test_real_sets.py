@@ -72,6 +72,9 @@ def test_real_loo_both_holdouts(real_model):
     # the honest holdout can only be harder: the held-out silhouette no longer carves
     assert g["psnr_mean"] <= b["psnr_mean"] + 0.3
     assert b["coverage_iou_mean"] > t["iou"] and b["interior_alpha_mean"] > t["interior_alpha"], b
+    # where the hull draws, the blended mattes are nearly opaque (measured 0.983 temple,
+    # 0.986 dino); the rest of the deficit is the masks' own blobs and shadow holes
+    assert b["interior_alpha_covered_mean"] > 0.97, b
     # the interior is what geometry can explain; the band is where the silhouettes decide
     assert b["psnr_interior_mean"] > b["psnr_band_mean"] + 3.0
     assert (tmp / "loo" / "loo.json").is_file()

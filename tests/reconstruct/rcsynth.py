@@ -259,3 +259,14 @@ def make_session(root, *, kind="sphere", n_cams=3, n_angles=6, width=64, height=
     write_ply(gt / "object.ply", V, F)
     return {"geometry": geo, "views": views, "alpha": true_alpha, "view_cameras": vcams, "rig_cameras": rig_cams,
             "patterns": pats}
+
+
+def built_sphere(tmp_path_factory, tag: str, config, *, reflectance: bool, seed: int):
+    """A 4-angle sphere session under ``tag`` and its model built with ``config``:
+    ``(session_dir, model_dir, build report)``, for module-scoped fixtures."""
+    from opacityhull.reconstruct.build import build_model
+
+    root = tmp_path_factory.mktemp(tag) / "session"
+    make_session(root, kind="sphere", n_angles=4, reflectance=reflectance, seed=seed)
+    out = tmp_path_factory.mktemp(f"{tag}_model") / "model"
+    return root, out, build_model(root, out, config=config)

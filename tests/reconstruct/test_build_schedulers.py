@@ -34,16 +34,18 @@ def cluster():
 
 
 @pytest.fixture(scope="module")
-def session(tmp_path_factory):
-    root = tmp_path_factory.mktemp("sched") / "session"
-    rcsynth.make_session(root, kind="sphere", n_angles=4, reflectance=True, seed=12)
-    return root
+def built(tmp_path_factory):
+    return rcsynth.built_sphere(tmp_path_factory, "sched", CFG, reflectance=True, seed=12)
 
 
 @pytest.fixture(scope="module")
-def serial_model(session, tmp_path_factory):
-    out = tmp_path_factory.mktemp("sched_serial") / "model"
-    rep = build_model(session, out, config=CFG)
+def session(built):
+    return built[0]
+
+
+@pytest.fixture(scope="module")
+def serial_model(built):
+    _, out, rep = built
     assert rep.scheduler == "serial"
     return out
 

@@ -23,18 +23,19 @@ V = 12  # 3 cameras x 4 table angles
 
 
 @pytest.fixture(scope="module")
-def session(tmp_path_factory):
-    root = tmp_path_factory.mktemp("steps") / "session"
-    rcsynth.make_session(root, kind="sphere", n_angles=4, reflectance=False, seed=11)
-    return root
+def built(tmp_path_factory):
+    return rcsynth.built_sphere(tmp_path_factory, "steps", CFG, reflectance=False, seed=11)
 
 
 @pytest.fixture(scope="module")
-def reference(session, tmp_path_factory):
+def session(built):
+    return built[0]
+
+
+@pytest.fixture(scope="module")
+def reference(built):
     """One uninterrupted build, the model every resumed build must equal."""
-    out = tmp_path_factory.mktemp("steps_ref") / "model"
-    rep = build_model(session, out, config=CFG)
-    return out, rep
+    return built[1], built[2]
 
 
 @pytest.fixture

@@ -10,6 +10,7 @@ are; benchmarks/relight.py and the report give the demo-plan figures.
 
 import json
 import re
+from pathlib import Path
 
 import pytest
 from typer.testing import CliRunner
@@ -41,33 +42,7 @@ THRESHOLDS = {
     ("glossy", "uffizi"): 0.40,
 }
 
-PLAN = """
-[plan]
-name = "relight-ci"
-seed = 5
-cameras = [2]
-description = "relighting CI: one camera, 4 table angles, 4 lights x 6 array angles"
-
-[table]
-steps = 4
-
-[exposures]
-default_s = [0.8]
-
-[phases.matting]
-patterns = 1
-object_absent = true
-cell_px = 4
-level = 255
-
-[phases.lightfield]
-level = 255
-
-[phases.reflectance]
-array_steps = 6
-level = 255
-exposures_s = [2.0]
-"""
+PLAN = (Path(__file__).parent / "relight_ci_plan.toml").read_text()  # the capture plan, as `acquire` reads it
 
 
 def _small_rig(tmp, width=64, height=48):

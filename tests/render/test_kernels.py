@@ -10,38 +10,14 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from opacityhull.camera import Camera, look_at_world_from_cam
+from splat_cases import make_cam, random_surfels, setup_fast
+
 from opacityhull.model import Surfels
 from opacityhull.render import kernels as K
 from opacityhull.render.reference import (bilinear_ref, rasterize_ref, render_image_ref, shade_ref, splat_setup_ref,
                                           ulr_weights_ref)
 from opacityhull.render.renderer import RenderConfig, render_image, surfel_areas
-from opacityhull.render.views import pack_camera, prepare_views, scan_order
-
-
-def make_cam(eye, target=(0.0, 0.1, 0.0), size=(40, 30), fov_deg=30.0, dist=None):
-    W, H = size
-    f = H / (2 * math.tan(math.radians(fov_deg) / 2))
-    Km = np.array([[f, 0, (W - 1) / 2 + 0.3], [0, f * 1.01, (H - 1) / 2 - 0.2], [0, 0, 1.0]])
-    return Camera(K=Km, width=W, height=H, world_from_cam=look_at_world_from_cam(eye, target),
-                  dist=np.zeros(5) if dist is None else dist)
-
-
-def setup_fast(surfels, cam, cfg, areas):
-    N = len(surfels)
-    rec = np.empty((N, K.SPLAT_FIELDS), np.float32)
-    valid = np.empty(N, bool)
-    K.splat_setup(surfels.positions, surfels.normals, surfels.radii, areas, pack_camera(cam), cam.width, cam.height,
-                  cfg.sigma_radius, cfg.filter, cfg.cutoff_sigma, cfg.epsilon_z, cfg.backface_cull, rec, valid, 0, N)
-    return valid, rec
-
-
-def random_surfels(rng, n, centre=(0.0, 0.1, 0.0), spread=0.08, n_views=3):
-    pos = np.asarray(centre) + rng.uniform(-spread, spread, size=(n, 3))
-    nrm = rng.normal(size=(n, 3))
-    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
-    rad = rng.uniform(0.002, 0.01, size=n)
-    return Surfels.from_bool(pos, nrm, rad, rng.random((n, n_views)) < 0.7)
+from opacityhull.render.views import prepare_views, scan_order
 
 
 def test_bilinear_fetch_equals_scipy_map_coordinates():

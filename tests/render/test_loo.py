@@ -76,6 +76,27 @@ def test_loo_metrics_definition():
         loo_metrics(photo, photo[..., :3])
 
 
+def test_interior_alpha_covered_separates_mask_errors_from_blending():
+    """A photo mask with a blob the hull rightly does not cover (coverage 0 there) lowers
+    interior_alpha but not interior_alpha_covered; a half-transparent rendering inside the
+    covered region lowers both."""
+    photo = np.zeros((30, 40, 4), np.float32)
+    photo[5:25, 5:35] = [0.5, 0.4, 0.3, 1.0]
+    render = photo.copy()
+    render[5:25, 20:35, 3] = 0.0  # the right half is a mask blob the hull does not draw
+    cov = np.zeros((30, 40), np.float32)
+    cov[5:25, 5:20] = 1.0
+    m = loo_metrics(photo, render, coverage=cov)
+    assert m["interior_alpha_covered"] == pytest.approx(1.0)
+    assert m["interior_alpha"] < 0.6
+    render[5:25, 5:20, 3] = 0.8
+    m = loo_metrics(photo, render, coverage=cov)
+    assert m["interior_alpha_covered"] == pytest.approx(0.8)
+    assert math.isnan(loo_metrics(photo, photo)["interior_alpha_covered"])  # no coverage given
+    with pytest.raises(InputError, match="coverage"):
+        loo_metrics(photo, photo, coverage=cov[:10])
+
+
 def test_select_views(sphere_dir):
     m = OpacityHullModel.open(sphere_dir[0])
     assert select_views(m, None) == list(range(36))

@@ -112,114 +112,111 @@ def _err(tmp_path, d, match):
     return str(ei.value)
 
 
-def test_unknown_url_scheme(tmp_path, example_dict):
-    d = copy.deepcopy(example_dict)
-    d["devices"]["turntable"]["url"] = "http://grbl.local"
-    _err(tmp_path, d, r"rig.toml: devices.turntable.url: unknown URL scheme in 'http://grbl.local'")
-    d = copy.deepcopy(example_dict)
-    d["devices"]["light_array"]["rotation"]["url"] = "emulator:stepper"
-    _err(tmp_path, d, r"devices.light_array.rotation.url: unknown emulator kind 'stepper'")
-    d = copy.deepcopy(example_dict)
-    d["devices"]["backdrops"]["url"] = "emulator:grbl"
-    _err(tmp_path, d, r"devices.backdrops.url: 'emulator:grbl' emulates a grbl device, but this device is a display")
+_DEL = object()  # an edit that deletes the key
 
 
-def test_missing_and_wrong_dmx_channels(tmp_path, example_dict):
-    d = copy.deepcopy(example_dict)
-    del d["devices"]["light_array"]["channels"]["2"]
-    _err(tmp_path, d, r"devices.light_array.channels: no DMX channel for light 2 \(geometry.lights\[2\]\)")
-    d = copy.deepcopy(example_dict)
-    d["devices"]["light_array"]["channels"]["9"] = 9
-    _err(tmp_path, d, r"devices.light_array.channels.9: no light with id 9 in geometry.lights")
-    d = copy.deepcopy(example_dict)
-    d["devices"]["light_array"]["channels"]["3"] = 1
-    _err(tmp_path, d, r"devices.light_array.channels.3: DMX channel 1 is already used by light 0")
-    d = copy.deepcopy(example_dict)
-    d["devices"]["light_array"]["channels"]["3"] = 513
-    _err(tmp_path, d, r"channels.3: expected a DMX channel 1..512, got 513")
-    d = copy.deepcopy(example_dict)
-    del d["devices"]["light_array"]
-    _err(tmp_path, d, r"devices: geometry.lights has 4 light\(s\) but there is no \[devices.light_array\]")
+def _swap_first_cameras(d):
+    cams = d["devices"]["cameras"]
+    cams[0], cams[1] = cams[1], cams[0]
 
 
-def test_duplicate_device_and_camera_names(tmp_path, example_dict):
-    text = EXAMPLE.read_text() + "\n[devices.turntable]\nurl = \"/dev/ttyUSB3\"\n"
+# (case id, edits, expected message): each edit is (key path, value or _DEL) or a callable on the dict
+_BAD_RIG = [
+    ("url-scheme", [(("devices", "turntable", "url"), "http://grbl.local")],
+     r"rig.toml: devices.turntable.url: unknown URL scheme in 'http://grbl.local'"),
+    ("emulator-kind", [(("devices", "light_array", "rotation", "url"), "emulator:stepper")],
+     r"devices.light_array.rotation.url: unknown emulator kind 'stepper'"),
+    ("emulator-device", [(("devices", "backdrops", "url"), "emulator:grbl")],
+     r"devices.backdrops.url: 'emulator:grbl' emulates a grbl device, but this device is a display"),
+    ("dmx-missing", [(("devices", "light_array", "channels", "2"), _DEL)],
+     r"devices.light_array.channels: no DMX channel for light 2 \(geometry.lights\[2\]\)"),
+    ("dmx-unknown-light", [(("devices", "light_array", "channels", "9"), 9)],
+     r"devices.light_array.channels.9: no light with id 9 in geometry.lights"),
+    ("dmx-reused", [(("devices", "light_array", "channels", "3"), 1)],
+     r"devices.light_array.channels.3: DMX channel 1 is already used by light 0"),
+    ("dmx-range", [(("devices", "light_array", "channels", "3"), 513)],
+     r"channels.3: expected a DMX channel 1..512, got 513"),
+    ("no-light-array", [(("devices", "light_array"), _DEL)],
+     r"devices: geometry.lights has 4 light\(s\) but there is no \[devices.light_array\]"),
+    ("dup-camera", [(("devices", "cameras", 4, "name"), "cam1")],
+     r"devices.cameras\[4\].name: duplicate camera name 'cam1' \(also devices.cameras\[1\]\)"),
+    ("dup-axis", [(("devices", "light_array", "rotation", "axis"), "X")],
+     r"devices.light_array.rotation.axis: axis X of the controller at 'emulator:grbl' is already "
+     r"devices.turntable"),
+    ("dup-port", [(("devices", "backdrops", "url"), "/dev/ttyUSB0"),
+                  (("devices", "light_array", "url"), "/dev/ttyUSB0")],
+     r"devices.backdrops.url: '/dev/ttyUSB0' is also devices.light_array.url \(a enttec device\)"),
+    ("camera-order", [_swap_first_cameras], r"same names in a different order"),
+    ("camera-missing", [lambda d: d["devices"]["cameras"].pop()], r"missing \['cam5'\]"),
+    ("output-missing", [(("devices", "backdrops", "outputs", "back"), _DEL)],
+     r"devices.backdrops.outputs: no controller output for display 'back' \(geometry.displays\[1\]\)"),
+    ("output-unknown-display", [(("devices", "backdrops", "outputs", "side"), 2)],
+     r"devices.backdrops.outputs.side: no display named 'side' in geometry.displays"),
+    ("output-reused", [(("devices", "backdrops", "outputs", "back"), 0)],
+     r"outputs.back: output 0 is already used by display 'bottom'"),
+    ("no-backdrops", [(("devices", "backdrops"), _DEL)],
+     r"geometry.displays has 2 display\(s\) but there is no \[devices.backdrops\]"),
+    ("number-type", [(("devices", "turntable", "steps_per_deg"), "80")],
+     r"devices.turntable.steps_per_deg: expected a number, got '80'"),
+    ("timeout-range", [(("devices", "turntable", "timeout_s"), -1)],
+     r"devices.turntable.timeout_s: must be > 0, got -1"),
+    ("unknown-key", [(("devices", "turntable", "speed"), 3)],
+     r"devices.turntable: unknown key\(s\) \['speed'\]"),
+    ("axis-letter", [(("devices", "turntable", "axis"), "Q")],
+     r"devices.turntable.axis: expected a GRBL axis letter"),
+    ("table-type", [(("devices", "backdrops", "outputs"), 3)],
+     r"devices.backdrops.outputs: expected a table, got int 3"),
+    ("bool-type", [(("devices", "cameras", 0),
+                    {"name": "cam0", "driver": "opencv", "device": 0, "exposure_control": "yes"})],
+     r"devices.cameras\[0\].exposure_control: expected true or false"),
+    ("camera-driver", [(("devices", "cameras", 0), {"name": "cam0", "driver": "gphoto"})],
+     r"devices.cameras\[0\].driver: unknown camera driver 'gphoto'"),
+    ("camera-unknown-key", [(("devices", "cameras", 0),
+                             {"name": "cam0", "driver": "opencv", "device": 0, "pattern": "*.png"})],
+     r"devices.cameras\[0\]: unknown key\(s\) \['pattern'\]"),
+    ("geometry-number", [(("geometry", "cameras", 0, "width"), "wide")],
+     r"rig.toml: geometry.cameras\[0\].width: expected a number"),
+    ("soft-limits", [(("devices", "turntable", "soft_limits_deg"), [10, -10])],
+     r"soft_limits_deg: expected \[min_deg, max_deg\] with min < max"),
+]
+
+
+def _edited(example_dict, edits):
+    d = copy.deepcopy(example_dict)
+    for edit in edits:
+        if callable(edit):
+            edit(d)
+            continue
+        path, value = edit
+        parent = d
+        for k in path[:-1]:
+            parent = parent[k]
+        if value is _DEL:
+            del parent[path[-1]]
+        else:
+            parent[path[-1]] = value
+    return d
+
+
+@pytest.mark.parametrize("edits, match", [c[1:] for c in _BAD_RIG], ids=[c[0] for c in _BAD_RIG])
+def test_bad_rig_config_names_file_and_key(tmp_path, example_dict, edits, match):
+    _err(tmp_path, _edited(example_dict, edits), match)
+
+
+def test_duplicate_device_table_is_invalid_toml(tmp_path):
     p = tmp_path / "dup.toml"
-    p.write_text(text)
+    p.write_text(EXAMPLE.read_text() + "\n[devices.turntable]\nurl = \"/dev/ttyUSB3\"\n")
     with pytest.raises(ConfigError, match=r"dup.toml: invalid TOML \(.*turntable.*"):
         load_rig_config(p)
-    d = copy.deepcopy(example_dict)
-    d["devices"]["cameras"][4]["name"] = "cam1"
-    _err(tmp_path, d, r"devices.cameras\[4\].name: duplicate camera name 'cam1' \(also devices.cameras\[1\]\)")
-    d = copy.deepcopy(example_dict)
-    d["devices"]["light_array"]["rotation"]["axis"] = "X"
-    _err(tmp_path, d, r"devices.light_array.rotation.axis: axis X of the controller at 'emulator:grbl' is already "
-                      r"devices.turntable")
-    d = copy.deepcopy(example_dict)
-    d["devices"]["backdrops"]["url"] = d["devices"]["light_array"]["url"] = "/dev/ttyUSB0"
-    _err(tmp_path, d, r"devices.backdrops.url: '/dev/ttyUSB0' is also devices.light_array.url \(a enttec device\)")
 
 
 def test_camera_names_must_match_geometry(tmp_path, example_dict):
-    d = copy.deepcopy(example_dict)
-    d["devices"]["cameras"][2]["name"] = "camX"
+    d = _edited(example_dict, [(("devices", "cameras", 2, "name"), "camX")])
     msg = _err(tmp_path, d, r"devices.cameras: camera names .* must match geometry.cameras")
     assert "missing ['cam2']" in msg and "not in geometry.cameras: ['camX']" in msg
-    d = copy.deepcopy(example_dict)
-    cams = d["devices"]["cameras"]
-    cams[0], cams[1] = cams[1], cams[0]
-    _err(tmp_path, d, r"same names in a different order")
-    d = copy.deepcopy(example_dict)
-    d["devices"]["cameras"].pop()
-    _err(tmp_path, d, r"missing \['cam5'\]")
 
 
-def test_display_outputs(tmp_path, example_dict):
-    d = copy.deepcopy(example_dict)
-    del d["devices"]["backdrops"]["outputs"]["back"]
-    _err(tmp_path, d, r"devices.backdrops.outputs: no controller output for display 'back' \(geometry.displays\[1\]\)")
-    d = copy.deepcopy(example_dict)
-    d["devices"]["backdrops"]["outputs"]["side"] = 2
-    _err(tmp_path, d, r"devices.backdrops.outputs.side: no display named 'side' in geometry.displays")
-    d = copy.deepcopy(example_dict)
-    d["devices"]["backdrops"]["outputs"]["back"] = 0
-    _err(tmp_path, d, r"outputs.back: output 0 is already used by display 'bottom'")
-    d = copy.deepcopy(example_dict)
-    del d["devices"]["backdrops"]
-    _err(tmp_path, d, r"geometry.displays has 2 display\(s\) but there is no \[devices.backdrops\]")
-
-
-def test_wrong_types_and_unknown_keys(tmp_path, example_dict):
-    d = copy.deepcopy(example_dict)
-    d["devices"]["turntable"]["steps_per_deg"] = "80"
-    _err(tmp_path, d, r"devices.turntable.steps_per_deg: expected a number, got '80'")
-    d = copy.deepcopy(example_dict)
-    d["devices"]["turntable"]["timeout_s"] = -1
-    _err(tmp_path, d, r"devices.turntable.timeout_s: must be > 0, got -1")
-    d = copy.deepcopy(example_dict)
-    d["devices"]["turntable"]["speed"] = 3
-    _err(tmp_path, d, r"devices.turntable: unknown key\(s\) \['speed'\]")
-    d = copy.deepcopy(example_dict)
-    d["devices"]["turntable"]["axis"] = "Q"
-    _err(tmp_path, d, r"devices.turntable.axis: expected a GRBL axis letter")
-    d = copy.deepcopy(example_dict)
-    d["devices"]["backdrops"]["outputs"] = 3
-    _err(tmp_path, d, r"devices.backdrops.outputs: expected a table, got int 3")
-    d = copy.deepcopy(example_dict)
-    d["devices"]["cameras"][0] = {"name": "cam0", "driver": "opencv", "device": 0, "exposure_control": "yes"}
-    _err(tmp_path, d, r"devices.cameras\[0\].exposure_control: expected true or false")
-    d = copy.deepcopy(example_dict)
-    d["devices"]["cameras"][0] = {"name": "cam0", "driver": "gphoto"}
-    _err(tmp_path, d, r"devices.cameras\[0\].driver: unknown camera driver 'gphoto'")
-    d = copy.deepcopy(example_dict)
-    d["devices"]["cameras"][0] = {"name": "cam0", "driver": "opencv", "device": 0, "pattern": "*.png"}
-    _err(tmp_path, d, r"devices.cameras\[0\]: unknown key\(s\) \['pattern'\]")
-    d = copy.deepcopy(example_dict)
-    d["geometry"]["cameras"][0]["width"] = "wide"
-    _err(tmp_path, d, r"rig.toml: geometry.cameras\[0\].width: expected a number")
-    d = copy.deepcopy(example_dict)
-    d["devices"]["turntable"]["soft_limits_deg"] = [10, -10]
-    _err(tmp_path, d, r"soft_limits_deg: expected \[min_deg, max_deg\] with min < max")
+def test_missing_or_invalid_file(tmp_path):
     with pytest.raises(ConfigError, match="rig config .*nope.toml not found"):
         load_rig_config(tmp_path / "nope.toml")
     (tmp_path / "bad.toml").write_text("[rig\nname=")

@@ -86,19 +86,25 @@ def test_garbled_truncated_dropped_replies_are_resent(emu, ctl):
     assert ctl.stats["resends"] >= 3
 
 
-def test_bad_checksum_gets_nak_then_retry_mid_upload(emu, ctl):
-    e, _ = emu
-    img = pattern(3)
-    # corrupt the 3rd chunk on the wire: controller NAKs it, driver resends that chunk only
-    count = {"n": 0}
+def on_nth_upload_chunk(e, n, action):
+    """Run ``action()`` when the emulator ``e`` has received its ``n``-th UPLOAD_DATA frame."""
+    count = [0]
 
     def hook(frame):
         if frame.cmd == dp.CMD_UPLOAD_DATA:
-            count["n"] += 1
-            if count["n"] == 3:
-                e.corrupt_rx = 2  # the next two frames (the resends) fail too
+            count[0] += 1
+            if count[0] == n:
+                action()
 
     e.on_command = hook
+
+
+def test_bad_checksum_gets_nak_then_retry_mid_upload(emu, ctl):
+    e, _ = emu
+    img = pattern(3)
+    # after the 3rd chunk, corrupt the next two frames on the wire (the 4th chunk and its
+    # first resend): the controller NAKs them, the driver resends that chunk only
+    on_nth_upload_chunk(e, 3, lambda: setattr(e, "corrupt_rx", 2))
     ctl.upload("bottom", 9, img)
     np.testing.assert_array_equal(e.pattern(9), img)
     offsets = [int.from_bytes(p[2:6], "big") for k, p in e.history if k == "UPLOAD_DATA"]
@@ -194,15 +200,8 @@ def test_controller_restart_mid_upload_restarts_upload(emu, ctl):
     and the driver starts the upload over once."""
     e, _ = emu
     img = pattern(8)
-    seen = {"n": 0}
-
-    def forget(frame):
-        if frame.cmd == dp.CMD_UPLOAD_DATA:
-            seen["n"] += 1
-            if seen["n"] == 2:
-                e._upload = None  # what a controller power cycle does to an upload in progress
-
-    e.on_command = forget
+    # what a controller power cycle does to an upload in progress
+    on_nth_upload_chunk(e, 2, lambda: setattr(e, "_upload", None))
     ctl.upload("back", 5, img)
     np.testing.assert_array_equal(e.pattern(5), img)
     assert sum(1 for k, _ in e.history if k == "UPLOAD_BEGIN") == 2

@@ -60,40 +60,35 @@ def test_grbl_open_reads_identity_and_writes_only_the_settings_that_differ():
         assert c.is_open and c.url == "memory://expected" and isinstance(c, Port)
 
 
-def test_grbl_move_polls_until_idle_at_the_target():
-    script = GRBL_OPEN + [
+_MOVES = {
+    "polls-until-idle": ([
         (b"?", idle()),
         (b"G90 G0 X90.000\n", b"ok\r\n"),
         (b"?", b"<Run|MPos:45.000,0.000|FS:1800,0>\r\n"),
         (b"?", idle(90.0)),
-    ]
-    with expected_exchange(grbl_with_turntable, script, name="grbl") as tt:
-        tt.controller.open()
-        assert tt.move_to(90.0) == pytest.approx(90.0)
-
-
-def test_grbl_continuous_axis_takes_the_short_way():
-    script = GRBL_OPEN + [(b"?", idle()), (b"G90 G0 X-10.000\n", b"ok\r\n"), (b"?", idle(-10.0))]
-    with expected_exchange(grbl_with_turntable, script, name="grbl") as tt:
-        tt.controller.open()
-        assert tt.move_to(350.0) == pytest.approx(350.0)
-
-
-def test_grbl_lost_line_is_resent_only_after_asking_where_the_axis_is():
-    """No ``ok`` for the move: ``?`` says idle at the start, so the line never arrived;
-    ``$G`` flushes any late reply before the same absolute move is sent again."""
-    script = GRBL_OPEN + [
+    ], 90.0, 1),
+    # 350 deg on a continuous axis at 0: -10 deg is the short way
+    "continuous-short-way": ([(b"?", idle()), (b"G90 G0 X-10.000\n", b"ok\r\n"), (b"?", idle(-10.0))], 350.0, 1),
+    # no ``ok`` for the move: ``?`` says idle at the start, so the line never arrived;
+    # ``$G`` flushes any late reply before the same absolute move is sent again
+    "lost-line-resent-after-asking": ([
         (b"?", idle()),
         (b"G90 G0 X90.000\n", b""),  # lost
         (b"?", idle()),
         (b"$G\n", b"[GC:G0 G54 G17 G21 G90 G94 M5 M9 T0 F0 S0]\r\nok\r\n"),
         (b"G90 G0 X90.000\n", b"ok\r\n"),
         (b"?", idle(90.0)),
-    ]
-    with expected_exchange(grbl_with_turntable, script, name="grbl") as tt:
+    ], 90.0, 2),
+}
+
+
+@pytest.mark.parametrize("case", list(_MOVES))
+def test_grbl_move_exchange(case):
+    tail, target_deg, moves = _MOVES[case]
+    with expected_exchange(grbl_with_turntable, GRBL_OPEN + tail, name="grbl") as tt:
         tt.controller.open()
-        assert tt.move_to(90.0) == pytest.approx(90.0)
-        assert tt.moves == 2
+        assert tt.move_to(target_deg) == pytest.approx(target_deg)
+        assert tt.moves == moves
 
 
 def test_grbl_error_reply_names_code_and_meaning():

@@ -114,6 +114,15 @@ def test_move_follows_a_trapezoid_in_scaled_time():
     assert emu.state == "Idle" and emu.position_deg("X") == 30.0
 
 
+def moving(*, after_s: float):
+    """A configured emulator ``after_s`` seconds (real-time scale) into ``G0 X30``, and its clock."""
+    emu, clock = make(time_scale=1.0)
+    configure(emu)
+    talk(emu, b"G0 X30\n")
+    clock.t += after_s
+    return emu, clock
+
+
 def test_queued_moves_run_back_to_back():
     emu, clock = make(time_scale=1.0)
     configure(emu)
@@ -125,10 +134,7 @@ def test_queued_moves_run_back_to_back():
 
 
 def test_feed_hold_and_resume():
-    emu, clock = make(time_scale=1.0)
-    configure(emu)
-    talk(emu, b"G0 X30\n")
-    clock.t += 0.75
+    emu, clock = moving(after_s=0.75)
     assert talk(emu, b"!") == []
     assert (emu.state, emu.substate) == ("Hold", 1)  # decelerating: v/a = 0.5 s
     held = emu.position_deg("X")
@@ -143,10 +149,7 @@ def test_feed_hold_and_resume():
 
 
 def test_soft_reset_mid_move_alarm_3_then_banner_then_unlock():
-    emu, clock = make(time_scale=1.0)
-    configure(emu)
-    talk(emu, b"G0 X30\n")
-    clock.t += 0.75
+    emu, clock = moving(after_s=0.75)
     out = talk(emu, b"\x18")
     assert out == ["ALARM:3", "Grbl 1.1h ['$' for help]", "[MSG:'$H'|'$X' to unlock]"]
     pos = emu.position_deg("X")
@@ -159,10 +162,7 @@ def test_soft_reset_mid_move_alarm_3_then_banner_then_unlock():
 
 
 def test_reset_from_hold_complete_keeps_position_without_alarm():
-    emu, clock = make(time_scale=1.0)
-    configure(emu)
-    talk(emu, b"G0 X30\n")
-    clock.t += 0.75
+    emu, clock = moving(after_s=0.75)
     talk(emu, b"!")
     clock.t += 1.0
     pos = emu.position_deg("X")
@@ -172,10 +172,7 @@ def test_reset_from_hold_complete_keeps_position_without_alarm():
 
 
 def test_critical_alarm_blocks_everything_until_reset():
-    emu, clock = make(time_scale=1.0)
-    configure(emu)
-    talk(emu, b"G0 X30\n")
-    clock.t += 0.3
+    emu, clock = moving(after_s=0.3)
     emu.inject_alarm(1)
     assert talk(emu, b"") == ["ALARM:1", "[MSG:Reset to continue]"]
     assert emu.critical
@@ -269,10 +266,7 @@ def test_jog_and_jog_cancel():
 
 
 def test_door_holds_and_resumes():
-    emu, clock = make(time_scale=1.0)
-    configure(emu)
-    talk(emu, b"G0 X30\n")
-    clock.t += 0.5
+    emu, clock = moving(after_s=0.5)
     emu.open_door()
     out = talk(emu, b"?")
     assert out[0] == "[MSG:Check Door]" and out[1].startswith("<Door:1|")

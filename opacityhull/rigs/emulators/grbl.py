@@ -425,13 +425,17 @@ class GrblEmulator(EmulatedDevice):
             self._queue.clear()
         return speed
 
-    def _alarm(self, code: int, now: float) -> None:
+    def _drop_motion(self, now: float) -> None:
+        """Stop where the axes are now and forget every queued, active or waiting line."""
         if self._state in ("Run", "Jog", "Home", "Hold", "Door"):
             self._freeze(now, keep_remaining=False)
         self._queue.clear()
         self._active = None
         self._blocking = None
         self._waiting_lines.clear()
+
+    def _alarm(self, code: int, now: float) -> None:
+        self._drop_motion(now)
         self._state, self._sub = "Alarm", None
         self._out.append(self._line(f"ALARM:{code}"))
         if code in (1, 2):
@@ -443,12 +447,7 @@ class GrblEmulator(EmulatedDevice):
         moving = (self._state in ("Run", "Jog", "Home") and self._active is not None) or \
             (self._state == "Hold" and self._sub == 1) or (self._state == "Door" and self._sub in (2, 3))
         was_home = self._state == "Home"
-        if self._state in ("Run", "Jog", "Home", "Hold", "Door"):
-            self._freeze(now, keep_remaining=False)
-        self._queue.clear()
-        self._active = None
-        self._blocking = None
-        self._waiting_lines.clear()
+        self._drop_motion(now)
         self._buf.clear()
         self._critical = False
         if moving:

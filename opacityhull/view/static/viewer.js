@@ -18,7 +18,9 @@ function showError(msg) {
   console.error(msg);
 }
 
-async function fetchBytes(url, expected, what) {
+// fetch(url), turning a network failure or an HTTP error into a message naming what was
+// being loaded and what to do about it.
+async function fetchOk(url, what) {
   let r;
   try {
     r = await fetch(url);
@@ -29,6 +31,11 @@ async function fetchBytes(url, expected, what) {
     throw new Error(`Could not load ${what} (${url}): HTTP ${r.status} ${r.statusText}. ` +
       `The bundle is incomplete; write it again with "opacityhull view MODEL --out DIR".`);
   }
+  return r;
+}
+
+async function fetchBytes(url, expected, what) {
+  const r = await fetchOk(url, what);
   const buf = await r.arrayBuffer();
   if (expected !== undefined && buf.byteLength !== expected) {
     throw new Error(`${what} (${url}) has ${buf.byteLength} bytes, expected ${expected}: the file is truncated or ` +
@@ -40,16 +47,7 @@ async function fetchBytes(url, expected, what) {
 // Streams url through DecompressionStream("deflate") (zlib), handing each inflated piece to
 // onChunk as it arrives: the octree code is decoded level by level while it downloads.
 async function fetchInflate(url, expected, what, onChunk) {
-  let r;
-  try {
-    r = await fetch(url);
-  } catch (err) {
-    throw new Error(`Could not load ${what} (${url}): ${err.message}. Is the viewer's server still running?`);
-  }
-  if (!r.ok) {
-    throw new Error(`Could not load ${what} (${url}): HTTP ${r.status} ${r.statusText}. ` +
-      `The bundle is incomplete; write it again with "opacityhull view MODEL --out DIR".`);
-  }
+  const r = await fetchOk(url, what);
   let n = 0;
   const count = new TransformStream({ transform(chunk, ctl) { n += chunk.byteLength; ctl.enqueue(chunk); } });
   const reader = r.body.pipeThrough(count).pipeThrough(new DecompressionStream("deflate")).getReader();
