@@ -52,7 +52,7 @@ GRBL_AXES = ("X", "Y", "Z", "A", "B", "C")
 _AXIS_KEYS = {"url", "axis", "steps_per_deg", "max_rate_deg_s", "accel_deg_s2", "backlash_deg", "soft_limits_deg",
               "timeout_s", "baudrate"}
 _LIGHT_KEYS = {"url", "timeout_s", "baudrate", "rotation", "channels"}
-_BACKDROP_KEYS = {"url", "timeout_s", "baudrate", "outputs", "retries", "chunk_bytes"}
+_BACKDROP_KEYS = {"url", "timeout_s", "baudrate", "outputs", "retries", "chunk_bytes", "slots"}
 _CAMERA_COMMON = {"name", "driver", "device"}
 _CAMERA_OPTIONS = {
     "opencv": {"fourcc", "timeout_s", "linearize", "white_level", "backend", "exposure_control", "discard_frames"},
@@ -393,6 +393,9 @@ def parse_rig_config(data: Mapping[str, Any], *, source: str = "<rig config>", b
         bd = ctx.table(key, dev["backdrops"])
         ctx.keys(key, bd, _BACKDROP_KEYS)
         url = ctx.url(key, bd, "display")
+        # the controller's pattern store: only `capture --dry-run` reads it (it prices the
+        # re-uploads); the runner asks the controller itself (IDENTIFY slots=)
+        ctx.int_(key, bd, "slots", 64, 1, 65535)
         if "outputs" not in bd:
             raise ctx.err(key, "missing [devices.backdrops.outputs] (display name = controller output)")
         out_tab = ctx.table(f"{key}.outputs", bd["outputs"])

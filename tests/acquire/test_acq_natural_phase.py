@@ -150,3 +150,12 @@ def test_upload_price_follows_the_rig_link_settings():
     # 27 vs 14 chunks: 13 more UPLOAD_DATA frames (flag seq cmd, id+offset, CRC-16, flag) and
     # their ACKs (flag seq ACK cmd, offset, CRC-16, flag)
     assert small - big == 13 * ((3 + 6 + 2 + 1) + (4 + 4 + 2 + 1))
+
+
+def test_dry_run_reads_the_store_size_from_the_rig_config():
+    """`[devices.backdrops] slots` is accepted by the rig config and is what the dry run
+    prices re-uploads with (the runner asks the controller itself)."""
+    from opacityhull.acquire.schedule import MotionRates
+
+    assert MotionRates.from_devices({"backdrops": {"slots": 16}}).display_slots == 16
+    assert MotionRates.from_devices({"backdrops": {}}).display_slots == 64

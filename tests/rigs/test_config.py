@@ -154,6 +154,8 @@ _BAD_RIG = [
      r"devices.backdrops.outputs.side: no display named 'side' in geometry.displays"),
     ("output-reused", [(("devices", "backdrops", "outputs", "back"), 0)],
      r"outputs.back: output 0 is already used by display 'bottom'"),
+    ("slots-zero", [(("devices", "backdrops", "slots"), 0)],
+     r"devices.backdrops.slots: expected an integer in 1..65535, got 0"),
     ("no-backdrops", [(("devices", "backdrops"), _DEL)],
      r"geometry.displays has 2 display\(s\) but there is no \[devices.backdrops\]"),
     ("number-type", [(("devices", "turntable", "steps_per_deg"), "80")],
