@@ -34,3 +34,22 @@ def sim_cache(_simcache_root):
     import simcache
 
     return simcache
+
+
+@pytest.fixture(scope="session")
+def dask_cluster():
+    """Address of one 2-worker ``distributed.LocalCluster`` (1 thread each, on 127.0.0.1),
+    shared by the tests that run build, LOO and render steps through ``--scheduler``;
+    starting one is the slow part. (tests/core/test_executor.py keeps its own: it kills
+    workers and needs ``allowed-failures = 1``.)"""
+    pytest.importorskip("distributed")
+    from distributed import LocalCluster
+
+    # dashboard_address=None (no dashboard) is accepted at runtime; distributed annotates it as str
+    lc = LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
+                      dashboard_address=None,  # pyright: ignore[reportArgumentType]
+                      silence_logs=40)
+    try:
+        yield lc.scheduler_address
+    finally:
+        lc.close()

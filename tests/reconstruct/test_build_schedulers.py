@@ -22,15 +22,8 @@ CFG = BuildConfig(hull_res=32, pictures=False)
 
 
 @pytest.fixture(scope="module")
-def cluster():
-    from distributed import LocalCluster
-
-    lc = LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1", dashboard_address=None,
-                      silence_logs=40)
-    try:
-        yield lc.scheduler_address
-    finally:
-        lc.close()
+def cluster(dask_cluster):
+    return dask_cluster
 
 
 @pytest.fixture(scope="module")

@@ -23,17 +23,8 @@ FRAMES = 5
 
 
 @pytest.fixture(scope="module")
-def cluster():
-    from distributed import LocalCluster
-
-    # dashboard_address=None (no dashboard) is accepted at runtime; distributed annotates it as str
-    lc = LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
-                      dashboard_address=None,  # pyright: ignore[reportArgumentType]
-                      silence_logs=40)
-    try:
-        yield lc.scheduler_address
-    finally:
-        lc.close()
+def cluster(dask_cluster):
+    return dask_cluster
 
 
 @pytest.fixture(scope="module")
