@@ -700,9 +700,11 @@ def build_geometry(alphas: Sequence[np.ndarray], cameras: Sequence[Camera], rms_
 
             imgs = [images(i) if callable(images) else images[i] for i in range(V)]
             move = config.refine == "surfels"
-            # shading depth only: coverage comes from the hull, so nothing needs restoring
+            # shading depth only: coverage and radii stay the hull's, so neither the outline
+            # restoration nor the radius growth of moved surfels is needed
+            pc = PhotoConfig() if move else PhotoConfig(keep_coverage=False, radius_neighbours=0)
             pos, nrm, rad, st = refine_surfels(sample.positions, sample.normals, sample.radii, vis, pin, imgs,
-                                               list(alphas), config=PhotoConfig(keep_coverage=move))
+                                               list(alphas), config=pc)
             if move:
                 vis = cast(np.ndarray, surfel_visibility(pos, nrm, rad, pin, depth_tol_m=config.depth_tol_m,
                                                          facing_cos=config.facing_cos))
