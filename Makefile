@@ -64,6 +64,7 @@ demo: venv
 
 test: venv
 	@$(VENV)/bin/ruff check opacityhull tests benchmarks
+	@$(VENV)/bin/ruff format --check opacityhull tests benchmarks
 	@$(PYRIGHT)
 	@OPENBLAS_NUM_THREADS=1 $(PY) -m pytest $(PYTEST_ARGS)
 

@@ -41,8 +41,7 @@ def bench_writer(n: int, width: int, height: int, *, half: bool, fsync: bool, co
     yy, xx = np.mgrid[0:height, 0:width]
     inside = ((xx - width / 2) ** 2 + (yy - height / 2) ** 2) < (0.3 * height) ** 2
     base = (inside * (0.3 + 0.2 * np.sin(xx / 17.0) * np.cos(yy / 23.0)))[..., None] * np.array([1.0, 0.8, 0.6])
-    imgs = [(base + 0.01 * inside[..., None] * rng.standard_normal(base.shape)).astype(np.float32)
-            for _ in range(4)]
+    imgs = [(base + 0.01 * inside[..., None] * rng.standard_normal(base.shape)).astype(np.float32) for _ in range(4)]
     root = tmp / f"w{width}_{int(half)}_{int(fsync)}_{compression}"
     w = SessionWriter(root, fsync=fsync).create({"rig": {"cameras": []}})
     import opacityhull.imageio as iio
@@ -63,9 +62,15 @@ def bench_writer(n: int, width: int, height: int, *, half: bool, fsync: bool, co
         iio.fsync_dir = saved
         w.close()
     shutil.rmtree(root, ignore_errors=True)
-    return {"case": f"{width}x{height} {'half' if half else 'float'} {compression}{' fsync' if fsync else ''}",
-            "images": n, "seconds": dt, "images_s": n / dt, "MB_s": nbytes / dt / 1e6,
-            "bytes_per_image": nbytes / n, "raw_bytes_per_image": width * height * 3 * (2 if half else 4)}
+    return {
+        "case": f"{width}x{height} {'half' if half else 'float'} {compression}{' fsync' if fsync else ''}",
+        "images": n,
+        "seconds": dt,
+        "images_s": n / dt,
+        "MB_s": nbytes / dt / 1e6,
+        "bytes_per_image": nbytes / n,
+        "raw_bytes_per_image": width * height * 3 * (2 if half else 4),
+    }
 
 
 def bench_disk(n: int, nbytes: int, tmp: Path) -> dict:
@@ -86,8 +91,13 @@ def bench_disk(n: int, nbytes: int, tmp: Path) -> dict:
         os.close(fd)
     dt = time.perf_counter() - t0
     shutil.rmtree(d, ignore_errors=True)
-    return {"case": f"plain files {nbytes / 1e3:.0f} kB + fsync", "images": n, "seconds": dt, "images_s": n / dt,
-            "MB_s": n * nbytes / dt / 1e6}
+    return {
+        "case": f"plain files {nbytes / 1e3:.0f} kB + fsync",
+        "images": n,
+        "seconds": dt,
+        "images_s": n / dt,
+        "MB_s": n * nbytes / dt / 1e6,
+    }
 
 
 def _open_rig(spec: str):
@@ -122,9 +132,18 @@ def bench_capture(rig_spec: str, plan_spec: str, tmp: Path) -> dict:
         dt = time.perf_counter() - t0
     finally:
         rig.close()
-    return {"rig": label, "plan": plan.name, "images": res.images, "seconds": dt, "open_s": t_open,
-            "images_s": res.images / dt, "MB_s": res.bytes_written / dt / 1e6, "bytes": res.bytes_written,
-            "phase_seconds": res.phase_seconds, "per_phase": res.per_phase}
+    return {
+        "rig": label,
+        "plan": plan.name,
+        "images": res.images,
+        "seconds": dt,
+        "open_s": t_open,
+        "images_s": res.images / dt,
+        "MB_s": res.bytes_written / dt / 1e6,
+        "bytes": res.bytes_written,
+        "phase_seconds": res.phase_seconds,
+        "per_phase": res.per_phase,
+    }
 
 
 def main(argv=None) -> int:
@@ -146,35 +165,56 @@ def main(argv=None) -> int:
     rows = []
     with tempfile.TemporaryDirectory(dir=ROOT / "benchmarks") as td:
         tmp = Path(td)
-        for (w, h) in ((200, 150), (640, 480)):
+        for w, h in ((200, 150), (640, 480)):
             for comp in ("rle", "none", "zip"):
                 for half, fsync in ((False, True), (False, False), (True, True)):
-                    rows.append(bench_writer(n if w < 600 else n // 3, w, h, half=half, fsync=fsync,
-                                             compression=comp, tmp=tmp))
+                    rows.append(
+                        bench_writer(n if w < 600 else n // 3, w, h, half=half, fsync=fsync, compression=comp, tmp=tmp)
+                    )
         big = [r for r in rows if r["case"] == "640x480 float none fsync"][0]
         disk = [bench_disk(n, int(big["bytes_per_image"]), tmp)]
         cap = bench_capture(rig_spec, a.plan, tmp)
-    summary = {"writer": rows, "disk_limit": disk, "capture": cap,
-               "machine": {"cpus": os.cpu_count(), "note": "2 shared cores; fsync cost depends on the disk"}}
+    summary = {
+        "writer": rows,
+        "disk_limit": disk,
+        "capture": cap,
+        "machine": {"cpus": os.cpu_count(), "note": "2 shared cores; fsync cost depends on the disk"},
+    }
     OUT.mkdir(parents=True, exist_ok=True)
-    md = ["# acquire: session writing and capture throughput", "",
-          "| case | images | s | images/s | MB/s | bytes/image (raw) |", "|---|---|---|---|---|---|"]
+    md = [
+        "# acquire: session writing and capture throughput",
+        "",
+        "| case | images | s | images/s | MB/s | bytes/image (raw) |",
+        "|---|---|---|---|---|---|",
+    ]
     for r in rows:
-        md.append(f"| {r['case']} | {r['images']} | {r['seconds']:.2f} | {r['images_s']:.1f} | {r['MB_s']:.1f} | "
-                  f"{r['bytes_per_image']:.0f} ({r['raw_bytes_per_image']}) |")
+        md.append(
+            f"| {r['case']} | {r['images']} | {r['seconds']:.2f} | {r['images_s']:.1f} | {r['MB_s']:.1f} | "
+            f"{r['bytes_per_image']:.0f} ({r['raw_bytes_per_image']}) |"
+        )
     for r in disk:
-        md.append(f"| machine limit: {r['case']} | {r['images']} | {r['seconds']:.2f} | {r['images_s']:.1f} | "
-                  f"{r['MB_s']:.1f} | |")
-    md += ["", f"Capture of {cap['plan']} on {cap['rig']}: {cap['images']} images in {cap['seconds']:.1f} s "
-               f"({cap['images_s']:.1f} images/s, {cap['MB_s']:.2f} MB/s; opening the rig {cap['open_s']:.1f} s).", "",
-           "| phase | images | s | images/s |", "|---|---|---|---|"]
+        md.append(
+            f"| machine limit: {r['case']} | {r['images']} | {r['seconds']:.2f} | {r['images_s']:.1f} | "
+            f"{r['MB_s']:.1f} | |"
+        )
+    md += [
+        "",
+        f"Capture of {cap['plan']} on {cap['rig']}: {cap['images']} images in {cap['seconds']:.1f} s "
+        f"({cap['images_s']:.1f} images/s, {cap['MB_s']:.2f} MB/s; opening the rig {cap['open_s']:.1f} s).",
+        "",
+        "| phase | images | s | images/s |",
+        "|---|---|---|---|",
+    ]
     for p, s in cap["phase_seconds"].items():
         k = cap["per_phase"].get(p, 0)
         md.append(f"| {p} | {k} | {s:.2f} | {k / s if s else float('nan'):.1f} |")
     ratio = big["images_s"] / disk[0]["images_s"]
-    md += ["", f"640x480 float32 uncompressed with fsync reaches {ratio:.0%} of the plain write+fsync rate of the "
-               "same bytes (the rest is the EXR encoder, the sha256 of every file and the manifest fsync); RLE and "
-               "ZIP add their compression time on top."]
+    md += [
+        "",
+        f"640x480 float32 uncompressed with fsync reaches {ratio:.0%} of the plain write+fsync rate of the "
+        "same bytes (the rest is the EXR encoder, the sha256 of every file and the manifest fsync); RLE and "
+        "ZIP add their compression time on top.",
+    ]
     (OUT / "acquire.md").write_text("\n".join(md) + "\n")
     try:
         import matplotlib

@@ -41,10 +41,21 @@ def build_rig(width: int, height: int, rng):
     from opacityhull.riggeometry import RigGeometry
 
     f = 430.0 * width / 320.0
-    g = {"target_m": [0.0, 0.02, 0.0], "cameras": [
-        {"name": f"cam{i}", "width": width, "height": height, "distance_m": 0.5, "elevation_deg": el,
-         "azimuth_deg": az, "focal_px": f}
-        for i, (el, az) in enumerate([(30.0, 0.0), (45.0, 90.0), (60.0, 180.0), (75.0, 270.0)])]}
+    g = {
+        "target_m": [0.0, 0.02, 0.0],
+        "cameras": [
+            {
+                "name": f"cam{i}",
+                "width": width,
+                "height": height,
+                "distance_m": 0.5,
+                "elevation_deg": el,
+                "azimuth_deg": az,
+                "focal_px": f,
+            }
+            for i, (el, az) in enumerate([(30.0, 0.0), (45.0, 90.0), (60.0, 180.0), (75.0, 270.0)])
+        ],
+    }
     nominal = RigGeometry.from_dict(g).nominal_cameras()
     true = []
     for i, cam in enumerate(nominal):
@@ -55,16 +66,22 @@ def build_rig(width: int, height: int, rng):
         K[0, 0] *= 1.045
         K[1, 1] *= 1.045
         dist = [-0.2, 0.05, 0.0, 0.0, 0.0] if i == 1 else np.zeros(5)
-        true.append(Camera(K=K, dist=dist, width=width, height=height, world_from_cam=cam.world_from_cam @ dT,
-                           name=cam.name))
+        true.append(
+            Camera(K=K, dist=dist, width=width, height=height, world_from_cam=cam.world_from_cam @ dT, name=cam.name)
+        )
     return nominal, true
 
 
 def run(quick: bool) -> dict:
     from opacityhull.camera import rig_from_object
     from opacityhull.charuco import CharucoSpec
-    from opacityhull.reconstruct.calibration import (CalibrationConfig, calibrate_observations, detect_charuco,
-                                                     pose_errors, render_charuco_view)
+    from opacityhull.reconstruct.calibration import (
+        CalibrationConfig,
+        calibrate_observations,
+        detect_charuco,
+        pose_errors,
+        render_charuco_view,
+    )
 
     width, height = (320, 240) if quick else (640, 480)
     max_angles = 12 if quick else 24
@@ -83,8 +100,13 @@ def run(quick: bool) -> dict:
         for c, cam in enumerate(true):
             for a in all_angles:
                 t0 = time.perf_counter()
-                img = render_charuco_view(cam, world_from_board=rig_from_object(a) @ placed.object_from_board(),
-                                          charuco=spec, noise_sigma=0.004, rng=rng)
+                img = render_charuco_view(
+                    cam,
+                    world_from_board=rig_from_object(a) @ placed.object_from_board(),
+                    charuco=spec,
+                    noise_sigma=0.004,
+                    rng=rng,
+                )
                 t1 = time.perf_counter()
                 obs.append(detect_charuco(img, charuco=spec, camera=c, table_deg=a))
                 t_detect += time.perf_counter() - t1
@@ -99,22 +121,34 @@ def run(quick: bool) -> dict:
             sub = [o for o in obs if round(o.table_deg, 6) in keep]
             for refine in (False, True):
                 t0 = time.perf_counter()
-                res = calibrate_observations(sub, image_sizes=sizes, charuco=spec, nominal=nominal,
-                                             config=CalibrationConfig(refine=refine))
+                res = calibrate_observations(
+                    sub, image_sizes=sizes, charuco=spec, nominal=nominal, config=CalibrationConfig(refine=refine)
+                )
                 wall = time.perf_counter() - t0
                 pe = pose_errors(res, true, align_gauge=True)
                 n_corners = int(res.residuals_px.shape[0])
-                rows.append({
-                    "seed": seed, "angles": n, "refine": refine, "views": len(res.used_views),
-                    "dropped": len(res.dropped_views), "corners": n_corners,
-                    "t_intrinsics_s": res.seconds["intrinsics"], "t_axis_s": res.seconds["axis"],
-                    "t_refine_s": res.seconds["refine"], "t_total_s": wall,
-                    "evaluations": res.refine_info.get("evaluations", 0),
-                    "rms_px": res.rms_px, "rot_deg": float(np.mean(pe["rotation_deg"])),
-                    "max_rot_deg": pe["max_rotation_deg"], "pos_mm": float(np.mean(pe["position_mm"])),
-                    "max_pos_mm": pe["max_position_mm"], "focal_pct": float(np.mean(pe["focal_pct"])),
-                    "max_focal_pct": pe["max_focal_pct"],
-                })
+                rows.append(
+                    {
+                        "seed": seed,
+                        "angles": n,
+                        "refine": refine,
+                        "views": len(res.used_views),
+                        "dropped": len(res.dropped_views),
+                        "corners": n_corners,
+                        "t_intrinsics_s": res.seconds["intrinsics"],
+                        "t_axis_s": res.seconds["axis"],
+                        "t_refine_s": res.seconds["refine"],
+                        "t_total_s": wall,
+                        "evaluations": res.refine_info.get("evaluations", 0),
+                        "rms_px": res.rms_px,
+                        "rot_deg": float(np.mean(pe["rotation_deg"])),
+                        "max_rot_deg": pe["max_rotation_deg"],
+                        "pos_mm": float(np.mean(pe["position_mm"])),
+                        "max_pos_mm": pe["max_position_mm"],
+                        "focal_pct": float(np.mean(pe["focal_pct"])),
+                        "max_focal_pct": pe["max_focal_pct"],
+                    }
+                )
     # aggregate over seeds
     table = []
     for n in counts:
@@ -124,9 +158,14 @@ def run(quick: bool) -> dict:
             agg.update(angles=n, refine=refine)
             table.append(agg)
     return {
-        "benchmark": "calibration", "quick": quick, "image_size": [width, height], "cameras": 4,
-        "seeds": seeds, "images": n_images,
-        "detect_ms_per_image": 1000.0 * t_detect / n_images, "render_ms_per_image": 1000.0 * t_render / n_images,
+        "benchmark": "calibration",
+        "quick": quick,
+        "image_size": [width, height],
+        "cameras": 4,
+        "seeds": seeds,
+        "images": n_images,
+        "detect_ms_per_image": 1000.0 * t_detect / n_images,
+        "render_ms_per_image": 1000.0 * t_render / n_images,
         "table": table,
     }
 

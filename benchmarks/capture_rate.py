@@ -42,9 +42,15 @@ PAPER_S_PER_IMAGE = (6 * 3600 + 23 * 60) / 109_776
 def _plan(steps: int):
     from opacityhull.acquire.plan import parse_plan
 
-    return parse_plan({"plan": {"name": "rate", "seed": 1}, "table": {"steps": steps},
-                       "exposures": {"default_s": [0.5]}, "phases": {"lightfield": {"level": 200}}},
-                      where="benchmarks/capture_rate.py")
+    return parse_plan(
+        {
+            "plan": {"name": "rate", "seed": 1},
+            "table": {"steps": steps},
+            "exposures": {"default_s": [0.5]},
+            "phases": {"lightfield": {"level": 200}},
+        },
+        where="benchmarks/capture_rate.py",
+    )
 
 
 def _rig(width: int, height: int):
@@ -94,8 +100,14 @@ def run_once(rig, plan, tmp: Path, *, queue_images: int, expose_s: float) -> dic
     assert res.complete, res.to_dict()
     mb = res.bytes_written / 1e6
     shutil.rmtree(out, ignore_errors=True)
-    return {"images": res.images, "seconds": dt, "images_per_s": res.images / dt, "s_per_image": dt / res.images,
-            "write_s_per_image": sum(write_s) / max(len(write_s), 1), "mb_per_image": mb / res.images}
+    return {
+        "images": res.images,
+        "seconds": dt,
+        "images_per_s": res.images / dt,
+        "s_per_image": dt / res.images,
+        "write_s_per_image": sum(write_s) / max(len(write_s), 1),
+        "mb_per_image": mb / res.images,
+    }
 
 
 def main(argv=None) -> int:
@@ -103,8 +115,12 @@ def main(argv=None) -> int:
     ap.add_argument("--quick", action="store_true", help="one small resolution, one repeat")
     ap.add_argument("--json", action="store_true", help="print one JSON object")
     ap.add_argument("--repeats", type=int, default=None, help="alternating on/off repetitions (default 3, quick 1)")
-    ap.add_argument("--expose-ms", type=float, default=None,
-                    help="idle wait per capture standing in for sensor integration + readout (default 0 and 100)")
+    ap.add_argument(
+        "--expose-ms",
+        type=float,
+        default=None,
+        help="idle wait per capture standing in for sensor integration + readout (default 0 and 100)",
+    )
     ap.add_argument("--steps", type=int, default=None, help="turntable steps (x 3 cameras images per run)")
     a = ap.parse_args(argv)
 
@@ -122,32 +138,50 @@ def main(argv=None) -> int:
                 for ems in exposes:
                     runs: dict[int, list[dict]] = {0: [], 4: []}
                     for r in range(repeats):
-                        for q in ((0, 4) if r % 2 == 0 else (4, 0)):  # alternate, so drift hits both
+                        for q in (0, 4) if r % 2 == 0 else (4, 0):  # alternate, so drift hits both
                             runs[q].append(run_once(rig, plan, tmp, queue_images=q, expose_s=ems / 1e3))
                     for q, rs in runs.items():
                         best = min(rs, key=lambda d: d["s_per_image"])
-                        rows.append({"width": w, "height": h, "expose_ms": ems, "queue_images": q,
-                                     "images": best["images"], "repeats": len(rs),
-                                     "s_per_image": best["s_per_image"], "images_per_s": best["images_per_s"],
-                                     "write_s_per_image": min(d["write_s_per_image"] for d in rs),
-                                     "mb_per_image": best["mb_per_image"]})
+                        rows.append(
+                            {
+                                "width": w,
+                                "height": h,
+                                "expose_ms": ems,
+                                "queue_images": q,
+                                "images": best["images"],
+                                "repeats": len(rs),
+                                "s_per_image": best["s_per_image"],
+                                "images_per_s": best["images_per_s"],
+                                "write_s_per_image": min(d["write_s_per_image"] for d in rs),
+                                "mb_per_image": best["mb_per_image"],
+                            }
+                        )
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
 
     speedups = {}
     for r in rows:
         if r["queue_images"] == 4:
-            off = next(o for o in rows if o["queue_images"] == 0 and (o["width"], o["expose_ms"]) ==
-                       (r["width"], r["expose_ms"]))
+            off = next(
+                o
+                for o in rows
+                if o["queue_images"] == 0 and (o["width"], o["expose_ms"]) == (r["width"], r["expose_ms"])
+            )
             speedups[f"{r['width']}x{r['height']}@{r['expose_ms']:g}ms"] = off["s_per_image"] / r["s_per_image"]
     big = [r for r in rows if r["queue_images"] == 0 and r["width"] == max(x for x, _ in res_list)]
     write_big = min(r["write_s_per_image"] for r in big)
-    summary = {"rows": rows, "speedup_queue_on_vs_off": speedups, "paper_s_per_image": PAPER_S_PER_IMAGE,
-               "ours_write_s_per_image_at": {"resolution": f"{big[0]['width']}x{big[0]['height']}",
-                                             "seconds": write_big,
-                                             "fraction_of_paper": write_big / PAPER_S_PER_IMAGE},
-               "contended": "2-core machine shared with other jobs: absolute times are pessimistic; ratios are "
-                            "from alternating runs in one process"}
+    summary = {
+        "rows": rows,
+        "speedup_queue_on_vs_off": speedups,
+        "paper_s_per_image": PAPER_S_PER_IMAGE,
+        "ours_write_s_per_image_at": {
+            "resolution": f"{big[0]['width']}x{big[0]['height']}",
+            "seconds": write_big,
+            "fraction_of_paper": write_big / PAPER_S_PER_IMAGE,
+        },
+        "contended": "2-core machine shared with other jobs: absolute times are pessimistic; ratios are "
+        "from alternating runs in one process",
+    }
     OUT.mkdir(parents=True, exist_ok=True)
     suffix = "_quick" if a.quick else ""
     _write_md(OUT / f"capture_rate{suffix}.md", summary, " ".join(sys.argv[1:]) if argv is None else " ".join(argv))
@@ -160,24 +194,34 @@ def main(argv=None) -> int:
 
 
 def _write_md(path: Path, s: dict, args: str) -> None:
-    lines = ["# Capture rate: image queue on vs off", "",
-             f"`.venv/bin/python benchmarks/capture_rate.py {args}`".replace(" `", "`"), "",
-             "Lab rig (real drivers over ptys to the emulators), synthetic cameras, light-field plan, fsync on. "
-             "Best of the alternating repeats. " + s["contended"] + ".", "",
-             "| resolution | expose ms | queue | images | s/image | images/s | write s/image | MB/image |",
-             "|---|---|---|---|---|---|---|---|"]
+    lines = [
+        "# Capture rate: image queue on vs off",
+        "",
+        f"`.venv/bin/python benchmarks/capture_rate.py {args}`".replace(" `", "`"),
+        "",
+        "Lab rig (real drivers over ptys to the emulators), synthetic cameras, light-field plan, fsync on. "
+        "Best of the alternating repeats. " + s["contended"] + ".",
+        "",
+        "| resolution | expose ms | queue | images | s/image | images/s | write s/image | MB/image |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
     for r in s["rows"]:
-        lines.append(f"| {r['width']}x{r['height']} | {r['expose_ms']:g} | {r['queue_images']} | {r['images']} | "
-                     f"{r['s_per_image']:.4f} | {r['images_per_s']:.1f} | {r['write_s_per_image']:.4f} | "
-                     f"{r['mb_per_image']:.2f} |")
-    lines += ["", "Speed-up (s/image off / on): " +
-              ", ".join(f"{k}: {v:.2f}x" for k, v in s["speedup_queue_on_vs_off"].items()), "",
-              f"The paper: 6 h 23 min for 109,776 images = {s['paper_s_per_image']:.3f} s/image. Ours (the write "
-              f"per image at {s['ours_write_s_per_image_at']['resolution']}): "
-              f"{s['ours_write_s_per_image_at']['seconds']:.3f} s = "
-              f"{100 * s['ours_write_s_per_image_at']['fraction_of_paper']:.0f}% of it, and with the queue it "
-              "overlaps the exposure and the motion instead of adding to them; the rest of a real rig's time is "
-              "the cameras' exposure and transfer and the turntable / light-array moves (not ours)."]
+        lines.append(
+            f"| {r['width']}x{r['height']} | {r['expose_ms']:g} | {r['queue_images']} | {r['images']} | "
+            f"{r['s_per_image']:.4f} | {r['images_per_s']:.1f} | {r['write_s_per_image']:.4f} | "
+            f"{r['mb_per_image']:.2f} |"
+        )
+    lines += [
+        "",
+        "Speed-up (s/image off / on): " + ", ".join(f"{k}: {v:.2f}x" for k, v in s["speedup_queue_on_vs_off"].items()),
+        "",
+        f"The paper: 6 h 23 min for 109,776 images = {s['paper_s_per_image']:.3f} s/image. Ours (the write "
+        f"per image at {s['ours_write_s_per_image_at']['resolution']}): "
+        f"{s['ours_write_s_per_image_at']['seconds']:.3f} s = "
+        f"{100 * s['ours_write_s_per_image_at']['fraction_of_paper']:.0f}% of it, and with the queue it "
+        "overlaps the exposure and the motion instead of adding to them; the rest of a real rig's time is "
+        "the cameras' exposure and transfer and the turntable / light-array moves (not ours).",
+    ]
     path.write_text("\n".join(lines) + "\n")
 
 
@@ -191,8 +235,14 @@ def _plot(path: Path, rows: list[dict]) -> None:
     fig, ax = plt.subplots(figsize=(7, 3.5))
     xs = range(len(keys))
     for j, q in enumerate((0, 4)):
-        vals = [next(r["images_per_s"] for r in rows if (r["width"], r["height"], r["expose_ms"]) == k
-                     and r["queue_images"] == q) for k in keys]
+        vals = [
+            next(
+                r["images_per_s"]
+                for r in rows
+                if (r["width"], r["height"], r["expose_ms"]) == k and r["queue_images"] == q
+            )
+            for k in keys
+        ]
         ax.bar([x + (j - 0.5) * 0.38 for x in xs], vals, width=0.38, label=f"queue_images={q}")
     ax.axhline(1 / PAPER_S_PER_IMAGE, color="k", ls="--", lw=1, label="paper (0.21 s/image)")
     ax.set_xticks(list(xs), [f"{w}x{h}\nexpose {e:g} ms" for w, h, e in keys])

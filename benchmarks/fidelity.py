@@ -41,8 +41,18 @@ OUT = ROOT / "benchmarks" / "out"
 DATA = ROOT / "tests" / "data" / "real"
 BASELINE = {"temple": {"psnr": 17.9, "ssim": 0.59}, "dino": {"psnr": 17.6, "ssim": 0.67}}
 
-KEYS = ("psnr_mean", "ssim_mean", "psnr_interior_mean", "psnr_band_mean", "coverage_iou_mean",
-        "interior_alpha_mean", "interior_alpha_covered_mean", "spill_px_mean", "ms_per_view", "rebuild_ms_per_view")
+KEYS = (
+    "psnr_mean",
+    "ssim_mean",
+    "psnr_interior_mean",
+    "psnr_band_mean",
+    "coverage_iou_mean",
+    "interior_alpha_mean",
+    "interior_alpha_covered_mean",
+    "spill_px_mean",
+    "ms_per_view",
+    "rebuild_ms_per_view",
+)
 
 
 def configurations():
@@ -75,19 +85,28 @@ def run_set(name: str, tmp: Path, views: str, configs) -> list[dict]:
         rep = build_model(session, model, config=BuildConfig(pictures=False, **build_kw))
         build_s = time.perf_counter() - t0
         t0 = time.perf_counter()
-        loo = run_loo_holdouts(model, views=views, config=RenderConfig(**render_kw), holdout="both",
-                               out=tmp / f"{name}_{label}_loo")
+        loo = run_loo_holdouts(
+            model, views=views, config=RenderConfig(**render_kw), holdout="both", out=tmp / f"{name}_{label}_loo"
+        )
         loo_s = time.perf_counter() - t0
-        row = {"set": name, "config": label, "surfels": rep.surfels, "build_s": round(build_s, 2),
-               "build_steps_s": rep.seconds, "loo_s": round(loo_s, 1),
-               "hull_res": rep.hull.get("resolution", {}).get("hull_res"),
-               "carve_tolerance": rep.hull.get("carve_tolerance")}
+        row = {
+            "set": name,
+            "config": label,
+            "surfels": rep.surfels,
+            "build_s": round(build_s, 2),
+            "build_steps_s": rep.seconds,
+            "loo_s": round(loo_s, 1),
+            "hull_res": rep.hull.get("resolution", {}).get("hull_res"),
+            "carve_tolerance": rep.hull.get("carve_tolerance"),
+        }
         for kind, h in loo["holdouts"].items():
             row[kind] = {k: h.get(k) for k in KEYS}
         rows.append(row)
-        print(f"{name:7s} {label:26s} surfels {rep.surfels:8d}  geometry {row['geometry']['psnr_mean']:.2f} dB "
-              f"(blend {row['blend']['psnr_mean']:.2f})  build {build_s:.1f} s  loo {loo_s:.0f} s",
-              file=sys.stderr)
+        print(
+            f"{name:7s} {label:26s} surfels {rep.surfels:8d}  geometry {row['geometry']['psnr_mean']:.2f} dB "
+            f"(blend {row['blend']['psnr_mean']:.2f})  build {build_s:.1f} s  loo {loo_s:.0f} s",
+            file=sys.stderr,
+        )
     return rows
 
 
@@ -103,15 +122,23 @@ def run_model(name: str, model_dir: Path, views: str, configs, tmp: Path) -> lis
         seen.add(key)
         t0 = time.perf_counter()
         loo = run_loo(model_dir, views=views, config=RenderConfig(**render_kw), out=tmp / f"{name}_{label}")
-        rows.append({"set": name, "config": "render:" + (render_kw.get("shading", "default")),
-                     "loo_s": round(time.perf_counter() - t0, 1), "blend": {k: loo.get(k) for k in KEYS}})
+        rows.append(
+            {
+                "set": name,
+                "config": "render:" + (render_kw.get("shading", "default")),
+                "loo_s": round(time.perf_counter() - t0, 1),
+                "blend": {k: loo.get(k) for k in KEYS},
+            }
+        )
     return rows
 
 
 def table(rows) -> str:
-    L = ["| set | configuration | surfels | hull res | tol | geometry-holdout PSNR / SSIM | interior / band dB | "
-         "coverage IoU | interior α | blend-holdout PSNR | build s | ms per view | rebuild ms per view |",
-         "|---|---|---:|---:|---:|---|---|---:|---:|---:|---:|---:|---:|"]
+    L = [
+        "| set | configuration | surfels | hull res | tol | geometry-holdout PSNR / SSIM | interior / band dB | "
+        "coverage IoU | interior α | blend-holdout PSNR | build s | ms per view | rebuild ms per view |",
+        "|---|---|---:|---:|---:|---|---|---:|---:|---:|---:|---:|---:|",
+    ]
     for r in rows:
         g = r.get("geometry") or {}
         b = r.get("blend") or {}
@@ -120,11 +147,13 @@ def table(rows) -> str:
             v = d.get(k)
             return fmt.format(v) if isinstance(v, (int, float)) and v == v else "–"
 
-        L.append(f"| {r['set']} | {r['config']} | {r.get('surfels', '–')} | {r.get('hull_res', '–')} | "
-                 f"{r.get('carve_tolerance', '–')} | {f(g, 'psnr_mean')} / {f(g, 'ssim_mean', '{:.3f}')} | "
-                 f"{f(g, 'psnr_interior_mean')} / {f(g, 'psnr_band_mean')} | {f(g or b, 'coverage_iou_mean', '{:.3f}')} | "
-                 f"{f(g or b, 'interior_alpha_mean', '{:.3f}')} | {f(b, 'psnr_mean')} | {r.get('build_s', '–')} | "
-                 f"{f(g or b, 'ms_per_view', '{:.0f}')} | {f(g, 'rebuild_ms_per_view', '{:.0f}')} |")
+        L.append(
+            f"| {r['set']} | {r['config']} | {r.get('surfels', '–')} | {r.get('hull_res', '–')} | "
+            f"{r.get('carve_tolerance', '–')} | {f(g, 'psnr_mean')} / {f(g, 'ssim_mean', '{:.3f}')} | "
+            f"{f(g, 'psnr_interior_mean')} / {f(g, 'psnr_band_mean')} | {f(g or b, 'coverage_iou_mean', '{:.3f}')} | "
+            f"{f(g or b, 'interior_alpha_mean', '{:.3f}')} | {f(b, 'psnr_mean')} | {r.get('build_s', '–')} | "
+            f"{f(g or b, 'ms_per_view', '{:.0f}')} | {f(g, 'rebuild_ms_per_view', '{:.0f}')} |"
+        )
     return "\n".join(L)
 
 
@@ -176,11 +205,17 @@ def main(argv=None) -> int:
             name, _, d = spec.partition("=")
             rows += run_model(name, Path(d), "every:2", configs, tmp)
     OUT.mkdir(parents=True, exist_ok=True)
-    md = ["# Fidelity on real photographs", "",
-          f"`benchmarks/fidelity.py{' --quick' if a.quick else ''}`; held-out views: {views}; PSNR/SSIM over the "
-          "union of photo mask and rendered coverage, colour over black, sRGB (as the baseline). Plain baseline "
-          "(geometry holdout): temple 17.9 dB / 0.59, dino 17.6 dB / 0.67; goal baseline + 3 dB. Times are wall "
-          "seconds on a shared 2-core machine.", "", table(rows), ""]
+    md = [
+        "# Fidelity on real photographs",
+        "",
+        f"`benchmarks/fidelity.py{' --quick' if a.quick else ''}`; held-out views: {views}; PSNR/SSIM over the "
+        "union of photo mask and rendered coverage, colour over black, sRGB (as the baseline). Plain baseline "
+        "(geometry holdout): temple 17.9 dB / 0.59, dino 17.6 dB / 0.67; goal baseline + 3 dB. Times are wall "
+        "seconds on a shared 2-core machine.",
+        "",
+        table(rows),
+        "",
+    ]
     # the quick and the full run keep separate files: the full one compares with the baseline
     stem = "fidelity_quick" if a.quick else "fidelity"
     (OUT / f"{stem}.md").write_text("\n".join(md))

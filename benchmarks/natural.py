@@ -107,21 +107,38 @@ def bench_sweep(rng, *, size, n_pixels, Ks, Ns):
                 continue
             dt, f = _timed_estimate(train[:N], obs, nt.NaturalConfig(n_kernels=K))
             pn, bmin, bmean, _, med = _errors(f, T, test, bars)
-            rows.append(dict(K=K, N=N, time_s=dt, px_per_s=n_pixels / dt, psnr_natural_db=pn,
-                             bar_min_db=bmin, bar_mean_db=bmean, median_rel_rms=med,
-                             kernels_used=float(f.n_kernels.mean())))
+            rows.append(
+                dict(
+                    K=K,
+                    N=N,
+                    time_s=dt,
+                    px_per_s=n_pixels / dt,
+                    psnr_natural_db=pn,
+                    bar_min_db=bmin,
+                    bar_mean_db=bmean,
+                    median_rel_rms=med,
+                    kernels_used=float(f.n_kernels.mean()),
+                )
+            )
     # per kind at the paper's setting
     per_kind = {}
     N0 = 200 if 200 in Ns else max(Ns)
     f = nt.estimate_natural(train[:N0], _apply(T, train[:N0]), config=nt.NaturalConfig(n_kernels=25))
     for kind in ns.KINDS:
         sel = np.array([k == kind for k in kinds])
-        sub = nt.NaturalField(boxes=f.boxes[sel], weights=f.weights[sel], n_kernels=f.n_kernels[sel],
-                              residual=f.residual[sel], domain_hw=f.domain_hw, pixels_shape=(int(sel.sum()),),
-                              n_images=f.n_images)
+        sub = nt.NaturalField(
+            boxes=f.boxes[sel],
+            weights=f.weights[sel],
+            n_kernels=f.n_kernels[sel],
+            residual=f.residual[sel],
+            domain_hw=f.domain_hw,
+            pixels_shape=(int(sel.sum()),),
+            n_images=f.n_images,
+        )
         pn, bmin, bmean, per, med = _errors(sub, T[sel], test, bars)
-        per_kind[kind] = dict(psnr_natural_db=pn, bar_min_db=bmin, bar_mean_db=bmean, bar_per_position_db=per,
-                              median_rel_rms=med)
+        per_kind[kind] = dict(
+            psnr_natural_db=pn, bar_min_db=bmin, bar_mean_db=bmean, bar_per_position_db=per, median_rel_rms=med
+        )
     numba.set_num_threads(numba.config.NUMBA_NUM_THREADS)
     return dict(size=size, n_pixels=n_pixels, rows=rows, per_kind_K25=per_kind, per_kind_N=N0)
 
@@ -152,9 +169,18 @@ def bench_speed(rng, *, size, n_fast, n_ref, rounds):
     nt.estimate_natural(imgs3, obs3, config=cfg)
     rgb = n_fast / (time.perf_counter() - t0)
     numba.set_num_threads(numba.config.NUMBA_NUM_THREADS)
-    return dict(size=size, K=25, N=200, fast_px_per_s=float(np.median(fast)), scipy_px_per_s=float(np.median(ref)),
-                speedup=float(np.median(np.array(fast) / np.array(ref))), fast_rounds=fast, scipy_rounds=ref,
-                fast_rgb_px_per_s=rgb, threads=1)
+    return dict(
+        size=size,
+        K=25,
+        N=200,
+        fast_px_per_s=float(np.median(fast)),
+        scipy_px_per_s=float(np.median(ref)),
+        speedup=float(np.median(np.array(fast) / np.array(ref))),
+        fast_rounds=fast,
+        scipy_rounds=ref,
+        fast_rgb_px_per_s=rgb,
+        threads=1,
+    )
 
 
 def bench_relight(rng, *, size, n_pixels):
@@ -164,9 +190,15 @@ def bench_relight(rng, *, size, n_pixels):
     T, _, train, test, _ = _scene(rng, size=size, n_pixels=64, n_images=200, n_test=1)
     f = nt.estimate_natural(train, _apply(T, train), config=nt.NaturalConfig(n_kernels=25))
     reps = -(-n_pixels // 64)
-    big = nt.NaturalField(boxes=np.tile(f.boxes, (reps, 1, 1)), weights=np.tile(f.weights, (reps, 1, 1)),
-                          n_kernels=np.tile(f.n_kernels, reps), residual=np.tile(f.residual, reps),
-                          domain_hw=f.domain_hw, pixels_shape=(64 * reps,), n_images=f.n_images)
+    big = nt.NaturalField(
+        boxes=np.tile(f.boxes, (reps, 1, 1)),
+        weights=np.tile(f.weights, (reps, 1, 1)),
+        n_kernels=np.tile(f.n_kernels, reps),
+        residual=np.tile(f.residual, reps),
+        domain_hw=f.domain_hw,
+        pixels_shape=(64 * reps,),
+        n_images=f.n_images,
+    )
     L = test[0]
     nt.relight_natural(big, L)
     ts = []
@@ -179,10 +211,17 @@ def bench_relight(rng, *, size, n_pixels):
         p32 = nt.save_field(Path(td) / "a.npz", f)
         p16 = nt.save_field(Path(td) / "b.npz", f, weights_dtype="float16")
         z32, z16 = p32.stat().st_size / f.n_pixels, p16.stat().st_size / f.n_pixels
-    return dict(pixels=big.n_pixels, relight_px_per_s=big.n_pixels / min(ts), K=25, mean_kernels=float(f.n_kernels.mean()),
-                bytes_per_px_float32=f.bytes_per_pixel("float32"), bytes_per_px_float16=f.bytes_per_pixel("float16"),
-                bytes_per_px_rgb_float16=8 * 25 + 25 * 3 * 2 + 5,
-                npz_compressed_bytes_per_px_float32=z32, npz_compressed_bytes_per_px_float16=z16)
+    return dict(
+        pixels=big.n_pixels,
+        relight_px_per_s=big.n_pixels / min(ts),
+        K=25,
+        mean_kernels=float(f.n_kernels.mean()),
+        bytes_per_px_float32=f.bytes_per_pixel("float32"),
+        bytes_per_px_float16=f.bytes_per_pixel("float16"),
+        bytes_per_px_rgb_float16=8 * 25 + 25 * 3 * 2 + 5,
+        npz_compressed_bytes_per_px_float32=z32,
+        npz_compressed_bytes_per_px_float16=z16,
+    )
 
 
 def kernel_figure(rng, out: Path, *, size):
@@ -202,7 +241,7 @@ def kernel_figure(rng, out: Path, *, size):
     fig, ax = plt.subplots(len(kinds), len(splits) + 1, figsize=(2.0 * (len(splits) + 1), 2.1 * len(kinds)))
     for r, kind in enumerate(kinds):
         for c, s in enumerate(splits):
-            f = nt.estimate_natural(imgs, obs[:, r:r + 1], config=nt.NaturalConfig(n_kernels=s + 1, rel_tol=0))
+            f = nt.estimate_natural(imgs, obs[:, r : r + 1], config=nt.NaturalConfig(n_kernels=s + 1, rel_tol=0))
             D = nt.transport_matrix(f)[0, 0].reshape(size, size)
             a = ax[r, c]
             a.imshow(D, cmap="gray", vmin=0, vmax=max(D.max(), 1e-12), interpolation="nearest")
@@ -220,7 +259,9 @@ def kernel_figure(rng, out: Path, *, size):
         a.set_yticks([])
         if r == 0:
             a.set_title("true T_i", fontsize=9)
-    fig.suptitle(f"box kernels over the {size}x{size} display (N = 200 natural images); grey = weight / area", fontsize=10)
+    fig.suptitle(
+        f"box kernels over the {size}x{size} display (N = 200 natural images); grey = weight / area", fontsize=10
+    )
     fig.tight_layout()
     out.mkdir(parents=True, exist_ok=True)
     with atomic_path(out / "natural_kernels.png") as tmp:
@@ -246,28 +287,45 @@ def bench_glass(rng, out: Path, *, size, height, width):
     dt = time.perf_counter() - t0
     bars = np.stack([ns.white_bar(i, 16, height=size, width=size) for i in range(16)]).mean(axis=3)
     pn, bmin, bmean, per, med = _errors(f, T, test, bars)
-    shows = [("held-out natural image", test[0]), ("white bar, position 5", bars[5]), ("white bar, position 11", bars[11])]
+    shows = [
+        ("held-out natural image", test[0]),
+        ("white bar, position 5", bars[5]),
+        ("white bar, position 11", bars[11]),
+    ]
     fig, ax = plt.subplots(len(shows), 4, figsize=(12, 2.9 * len(shows)))
     for r, (name, L) in enumerate(shows):
         tru = _apply(T, L[None])[0].reshape(height, width)
         est = nt.relight_natural(f, L)[:, 0].reshape(height, width)
         vmax = max(tru.max(), 1e-12)
-        for c, (img, title, kw) in enumerate([(L, f"display: {name}", dict(cmap="gray", vmin=0, vmax=1)),
-                                              (tru, "truth", dict(cmap="gray", vmin=0, vmax=vmax)),
-                                              (est, "estimate (K = 25, N = 200)", dict(cmap="gray", vmin=0, vmax=vmax)),
-                                              (np.abs(est - tru) * 10, "|error| × 10", dict(cmap="magma", vmin=0, vmax=vmax))]):
+        for c, (img, title, kw) in enumerate(
+            [
+                (L, f"display: {name}", dict(cmap="gray", vmin=0, vmax=1)),
+                (tru, "truth", dict(cmap="gray", vmin=0, vmax=vmax)),
+                (est, "estimate (K = 25, N = 200)", dict(cmap="gray", vmin=0, vmax=vmax)),
+                (np.abs(est - tru) * 10, "|error| × 10", dict(cmap="magma", vmin=0, vmax=vmax)),
+            ]
+        ):
             ax[r, c].imshow(img, interpolation="nearest", **kw)
             ax[r, c].set_title(title, fontsize=9)
             ax[r, c].set_xticks([])
             ax[r, c].set_yticks([])
         ax[r, 3].set_xlabel(f"PSNR {_psnr(est, tru, vmax):.1f} dB", fontsize=9)
-    fig.suptitle(f"synthetic glass ball in front of the display ({width}x{height} px, {size}x{size} display)", fontsize=10)
+    fig.suptitle(
+        f"synthetic glass ball in front of the display ({width}x{height} px, {size}x{size} display)", fontsize=10
+    )
     fig.tight_layout()
     with atomic_path(out / "natural_sheet.png") as tmp:
         fig.savefig(tmp, dpi=100)
     plt.close(fig)
-    return dict(pixels=height * width, time_s=dt, psnr_natural_db=pn, bar_min_db=bmin, bar_mean_db=bmean,
-                bar_per_position_db=per, median_rel_rms=med)
+    return dict(
+        pixels=height * width,
+        time_s=dt,
+        psnr_natural_db=pn,
+        bar_min_db=bmin,
+        bar_mean_db=bmean,
+        bar_per_position_db=per,
+        median_rel_rms=med,
+    )
 
 
 def write_report(res, out: Path) -> None:
@@ -280,39 +338,65 @@ def write_report(res, out: Path) -> None:
 
     out.mkdir(parents=True, exist_ok=True)
     sw, sp, rl = res["sweep"], res["speed"], res["relight"]
-    lines = ["# Natural-illumination reflectance fields", "",
-             f"Synthetic transport, {sw['size']}×{sw['size']} display, {sw['n_pixels']} pixels (5 kinds), mono; "
-             "timings contended (2 shared cores), one numba thread unless noted.", "",
-             "## Error against K and N", "",
-             "PSNR over all pixels (peak = brightest true value); the median pixel's relative RMS error is "
-             "robust to the few pixels where the greedy subdivision took a wrong branch.", "",
-             "| K | N | time (s) | px/s | natural PSNR (dB) | median px rel. RMS | bar worst (dB) | bar mean (dB) | kernels used |",
-             "|---|---|---|---|---|---|---|---|---|"]
+    lines = [
+        "# Natural-illumination reflectance fields",
+        "",
+        f"Synthetic transport, {sw['size']}×{sw['size']} display, {sw['n_pixels']} pixels (5 kinds), mono; "
+        "timings contended (2 shared cores), one numba thread unless noted.",
+        "",
+        "## Error against K and N",
+        "",
+        "PSNR over all pixels (peak = brightest true value); the median pixel's relative RMS error is "
+        "robust to the few pixels where the greedy subdivision took a wrong branch.",
+        "",
+        "| K | N | time (s) | px/s | natural PSNR (dB) | median px rel. RMS | bar worst (dB) | bar mean (dB) | kernels used |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
     for r in sw["rows"]:
-        lines.append(f"| {r['K']} | {r['N']} | {r['time_s']:.3f} | {r['px_per_s']:.0f} | {r['psnr_natural_db']:.1f} | "
-                     f"{100 * r['median_rel_rms']:.2f} % | {r['bar_min_db']:.1f} | {r['bar_mean_db']:.1f} | "
-                     f"{r['kernels_used']:.1f} |")
-    lines += ["", f"## Per kind at K = 25, N = {sw['per_kind_N']}", "",
-              "| kind | natural PSNR (dB) | median px rel. RMS | bar worst (dB) | bar mean (dB) |", "|---|---|---|---|---|"]
+        lines.append(
+            f"| {r['K']} | {r['N']} | {r['time_s']:.3f} | {r['px_per_s']:.0f} | {r['psnr_natural_db']:.1f} | "
+            f"{100 * r['median_rel_rms']:.2f} % | {r['bar_min_db']:.1f} | {r['bar_mean_db']:.1f} | "
+            f"{r['kernels_used']:.1f} |"
+        )
+    lines += [
+        "",
+        f"## Per kind at K = 25, N = {sw['per_kind_N']}",
+        "",
+        "| kind | natural PSNR (dB) | median px rel. RMS | bar worst (dB) | bar mean (dB) |",
+        "|---|---|---|---|---|",
+    ]
     for k, v in sw["per_kind_K25"].items():
-        lines.append(f"| {k} | {v['psnr_natural_db']:.1f} | {100 * v['median_rel_rms']:.2f} % | {v['bar_min_db']:.1f} | "
-                     f"{v['bar_mean_db']:.1f} |")
+        lines.append(
+            f"| {k} | {v['psnr_natural_db']:.1f} | {100 * v['median_rel_rms']:.2f} % | {v['bar_min_db']:.1f} | "
+            f"{v['bar_mean_db']:.1f} |"
+        )
     g = res["glass"]
-    lines += ["", "## Synthetic glass ball (K = 25, N = 200; `natural_sheet.png`)", "",
-              f"- {g['pixels']} px in {g['time_s']:.2f} s (all threads); held-out natural images "
-              f"{g['psnr_natural_db']:.1f} dB; moving bar worst {g['bar_min_db']:.1f} dB, mean {g['bar_mean_db']:.1f} dB "
-              f"(issue goals on Mitsuba's glass: ≥ 30 dB and ≥ 25 dB per position)"]
-    lines += ["", "## Estimation speed (K = 25, N = 200, one core, alternating rounds)", "",
-              f"- fast (numba, SAT + Gram NNLS, warm-started candidates): {sp['fast_px_per_s']:.0f} px/s (mono), "
-              f"{sp['fast_rgb_px_per_s']:.0f} px/s (RGB)",
-              f"- SciPy `nnls` per candidate per pixel (same rule, SAT columns): {sp['scipy_px_per_s']:.1f} px/s",
-              f"- speed-up (median of per-round ratios): **{sp['speedup']:.0f}×** (goal ≥ 2×)", "",
-              "## Relighting and storage", "",
-              f"- relighting: {rl['relight_px_per_s'] / 1e6:.2f} M px/s on one core (K = 25, SAT of the new image)",
-              f"- bytes per pixel (K = 25, mono): {rl['bytes_per_px_float32']} (float32 weights), "
-              f"{rl['bytes_per_px_float16']} (float16); RGB float16 {rl['bytes_per_px_rgb_float16']}; "
-              f"compressed NPZ as written: {rl['npz_compressed_bytes_per_px_float32']:.0f} / "
-              f"{rl['npz_compressed_bytes_per_px_float16']:.0f} (mean {rl['mean_kernels']:.1f} kernels used)", ""]
+    lines += [
+        "",
+        "## Synthetic glass ball (K = 25, N = 200; `natural_sheet.png`)",
+        "",
+        f"- {g['pixels']} px in {g['time_s']:.2f} s (all threads); held-out natural images "
+        f"{g['psnr_natural_db']:.1f} dB; moving bar worst {g['bar_min_db']:.1f} dB, mean {g['bar_mean_db']:.1f} dB "
+        f"(issue goals on Mitsuba's glass: ≥ 30 dB and ≥ 25 dB per position)",
+    ]
+    lines += [
+        "",
+        "## Estimation speed (K = 25, N = 200, one core, alternating rounds)",
+        "",
+        f"- fast (numba, SAT + Gram NNLS, warm-started candidates): {sp['fast_px_per_s']:.0f} px/s (mono), "
+        f"{sp['fast_rgb_px_per_s']:.0f} px/s (RGB)",
+        f"- SciPy `nnls` per candidate per pixel (same rule, SAT columns): {sp['scipy_px_per_s']:.1f} px/s",
+        f"- speed-up (median of per-round ratios): **{sp['speedup']:.0f}×** (goal ≥ 2×)",
+        "",
+        "## Relighting and storage",
+        "",
+        f"- relighting: {rl['relight_px_per_s'] / 1e6:.2f} M px/s on one core (K = 25, SAT of the new image)",
+        f"- bytes per pixel (K = 25, mono): {rl['bytes_per_px_float32']} (float32 weights), "
+        f"{rl['bytes_per_px_float16']} (float16); RGB float16 {rl['bytes_per_px_rgb_float16']}; "
+        f"compressed NPZ as written: {rl['npz_compressed_bytes_per_px_float32']:.0f} / "
+        f"{rl['npz_compressed_bytes_per_px_float16']:.0f} (mean {rl['mean_kernels']:.1f} kernels used)",
+        "",
+    ]
     (out / "natural.md").write_text("\n".join(lines))
 
     fig, ax = plt.subplots(1, 3, figsize=(16, 4.2))
@@ -321,8 +405,9 @@ def write_report(res, out: Path) -> None:
         rr = [r for r in sw["rows"] if r["N"] == N]
         ax[0].plot([r["time_s"] for r in rr], [r["psnr_natural_db"] for r in rr], "o-", label=f"N={N}")
         for r in rr:
-            ax[0].annotate(str(r["K"]), (r["time_s"], r["psnr_natural_db"]), fontsize=7, xytext=(2, 2),
-                           textcoords="offset points")
+            ax[0].annotate(
+                str(r["K"]), (r["time_s"], r["psnr_natural_db"]), fontsize=7, xytext=(2, 2), textcoords="offset points"
+            )
         ax[1].plot([r["time_s"] for r in rr], [r["bar_min_db"] for r in rr], "s--", label=f"N={N}")
     for kind, v in sw["per_kind_K25"].items():
         ax[2].plot(range(len(v["bar_per_position_db"])), v["bar_per_position_db"], "o-", ms=3, label=kind)
@@ -375,13 +460,21 @@ def bench_sim(out: Path, *, scenes, Ns, n_test, n_bar, scale, camera=2, table_de
 
             w, h = back.resolution
             train.append(probe_crop(rng, width=w, height=h)[0] if k % 2 == 0 else natural_image(rng, width=w, height=h))
-        obs = np.stack([ne.render_display_image(rig, camera, table_deg, "back", p, seed=k).reshape(-1, 3)[idx]
-                        for k, p in enumerate(train)])
+        obs = np.stack(
+            [
+                ne.render_display_image(rig, camera, table_deg, "back", p, seed=k).reshape(-1, 3)[idx]
+                for k, p in enumerate(train)
+            ]
+        )
         render_s = time.perf_counter() - t0
         tests = ne.held_out_images(back, n_test)
         bars = ne.bar_patterns(back, n_bar)
-        truth_t = [ne.render_display_image(rig, camera, table_deg, "back", p, seed=1000 + k) for k, p in enumerate(tests)]
-        truth_b = [ne.render_display_image(rig, camera, table_deg, "back", p, seed=2000 + k) for k, p in enumerate(bars)]
+        truth_t = [
+            ne.render_display_image(rig, camera, table_deg, "back", p, seed=1000 + k) for k, p in enumerate(tests)
+        ]
+        truth_b = [
+            ne.render_display_image(rig, camera, table_deg, "back", p, seed=2000 + k) for k, p in enumerate(bars)
+        ]
         L = lambda p: p.astype(np.float64) / 255 * back.max_radiance  # noqa: E731
         rows = []
         for N in Ns:
@@ -391,19 +484,38 @@ def bench_sim(out: Path, *, scenes, Ns, n_test, n_bar, scale, camera=2, table_de
             import dataclasses
 
             f = dataclasses.replace(f, pixel_index=idx.astype(np.int32), image_hw=mask.shape)
-            pt = [ne.compare(nt.scatter_pixels(f, nt.relight_natural(f, L(p))), t, mask)["psnr"]
-                  for p, t in zip(tests, truth_t)]
-            pb = [ne.compare(nt.scatter_pixels(f, nt.relight_natural(f, L(p))), t, mask)["psnr"]
-                  for p, t in zip(bars, truth_b)]
-            rows.append(dict(N=N, K=25, pixels=int(idx.size), estimate_s=est_s, px_per_s=idx.size / est_s,
-                             held_out_mean_db=float(np.mean(pt)), held_out_min_db=float(np.min(pt)),
-                             bar_min_db=float(np.min(pb)), bar_mean_db=float(np.mean(pb)),
-                             bar_per_position_db=[float(v) for v in pb], kernels_mean=float(f.n_kernels.mean())))
+            pt = [
+                ne.compare(nt.scatter_pixels(f, nt.relight_natural(f, L(p))), t, mask)["psnr"]
+                for p, t in zip(tests, truth_t)
+            ]
+            pb = [
+                ne.compare(nt.scatter_pixels(f, nt.relight_natural(f, L(p))), t, mask)["psnr"]
+                for p, t in zip(bars, truth_b)
+            ]
+            rows.append(
+                dict(
+                    N=N,
+                    K=25,
+                    pixels=int(idx.size),
+                    estimate_s=est_s,
+                    px_per_s=idx.size / est_s,
+                    held_out_mean_db=float(np.mean(pt)),
+                    held_out_min_db=float(np.min(pt)),
+                    bar_min_db=float(np.min(pb)),
+                    bar_mean_db=float(np.mean(pb)),
+                    bar_per_position_db=[float(v) for v in pb],
+                    kernels_mean=float(f.n_kernels.mean()),
+                )
+            )
             if N == max(Ns):
                 bar_curves[scene] = pb
-                for name, p, t in (("held-out natural image 0", tests[0], truth_t[0]),
-                                   (f"white bar, position {n_bar // 3}", bars[n_bar // 3], truth_b[n_bar // 3])):
-                    sheet_rows.append((f"{scene}: {name}", p, nt.scatter_pixels(f, nt.relight_natural(f, L(p))), t, mask))
+                for name, p, t in (
+                    ("held-out natural image 0", tests[0], truth_t[0]),
+                    (f"white bar, position {n_bar // 3}", bars[n_bar // 3], truth_b[n_bar // 3]),
+                ):
+                    sheet_rows.append(
+                        (f"{scene}: {name}", p, nt.scatter_pixels(f, nt.relight_natural(f, L(p))), t, mask)
+                    )
         res[scene] = dict(render_s=render_s, rows=rows, view=f"c{camera}_t{table_deg:07.3f}", scale=scale)
 
     fig, ax = plt.subplots(len(sheet_rows), 4, figsize=(12, 2.6 * len(sheet_rows)))
@@ -417,9 +529,14 @@ def bench_sim(out: Path, *, scenes, Ns, n_test, n_bar, scale, camera=2, table_de
         est = np.where(m[..., None], est, 0.0)[y0:y1, x0:x1]
         vmax = float(np.percentile(tru[m[y0:y1, x0:x1]], 95)) or 1.0
         err = np.abs(est - tru).mean(axis=-1)
-        for c, (img, title) in enumerate([(p / 255.0, f"display: {name}"), (np.clip(est / vmax, 0, 1), "estimate"),
-                                          (np.clip(tru / vmax, 0, 1), "truth (Mitsuba)"),
-                                          (np.clip(err / vmax * 4, 0, 1), f"|error| × 4 ({psnr:.1f} dB)")]):
+        for c, (img, title) in enumerate(
+            [
+                (p / 255.0, f"display: {name}"),
+                (np.clip(est / vmax, 0, 1), "estimate"),
+                (np.clip(tru / vmax, 0, 1), "truth (Mitsuba)"),
+                (np.clip(err / vmax * 4, 0, 1), f"|error| × 4 ({psnr:.1f} dB)"),
+            ]
+        ):
             ax[r, c].imshow(img, interpolation="nearest", cmap=None if img.ndim == 3 else "magma")
             ax[r, c].set_title(title, fontsize=8)
             ax[r, c].set_xticks([])
@@ -443,17 +560,24 @@ def bench_sim(out: Path, *, scenes, Ns, n_test, n_bar, scale, camera=2, table_de
         fig.savefig(tmp, dpi=100)
     plt.close(fig)
 
-    lines = ["# Natural-illumination fields against Mitsuba (simulated rig)", "",
-             f"One view (camera {camera}, table {table_deg:g}°, scale {scale:g}), back display 64×36, K = 25; "
-             "PSNR over the object's pixels (truth coverage α > 0.5), peak = the truth's brightest pixel; "
-             "timings contended (2 shared cores).", "",
-             "| scene | N | pixels | estimate (s) | px/s | held-out mean (dB) | held-out min (dB) | bar min (dB) | "
-             "bar mean (dB) | kernels |", "|---|---|---|---|---|---|---|---|---|---|"]
+    lines = [
+        "# Natural-illumination fields against Mitsuba (simulated rig)",
+        "",
+        f"One view (camera {camera}, table {table_deg:g}°, scale {scale:g}), back display 64×36, K = 25; "
+        "PSNR over the object's pixels (truth coverage α > 0.5), peak = the truth's brightest pixel; "
+        "timings contended (2 shared cores).",
+        "",
+        "| scene | N | pixels | estimate (s) | px/s | held-out mean (dB) | held-out min (dB) | bar min (dB) | "
+        "bar mean (dB) | kernels |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
     for scene, r in res.items():
         for row in r["rows"]:
-            lines.append(f"| {scene} | {row['N']} | {row['pixels']} | {row['estimate_s']:.1f} | {row['px_per_s']:.0f} | "
-                         f"{row['held_out_mean_db']:.1f} | {row['held_out_min_db']:.1f} | {row['bar_min_db']:.1f} | "
-                         f"{row['bar_mean_db']:.1f} | {row['kernels_mean']:.1f} |")
+            lines.append(
+                f"| {scene} | {row['N']} | {row['pixels']} | {row['estimate_s']:.1f} | {row['px_per_s']:.0f} | "
+                f"{row['held_out_mean_db']:.1f} | {row['held_out_min_db']:.1f} | {row['bar_min_db']:.1f} | "
+                f"{row['bar_mean_db']:.1f} | {row['kernels_mean']:.1f} |"
+            )
     lines += ["", "![sheet](natural_sim_sheet.png)", "", "![bar](natural_bar.png)", ""]
     with atomic_path(out / "natural_sim.md") as tmp:
         tmp.write_text("\n".join(lines))
@@ -471,10 +595,18 @@ def main(argv=None) -> int:
     t0 = time.perf_counter()
     if a.sim:
         a.out.mkdir(parents=True, exist_ok=True)
-        res = {"quick": q, "machine": "2 shared cores (other jobs running): timings are contended",
-               "sim": bench_sim(a.out, scenes=["glass"] if q else ["glass", "diffuse"],
-                                Ns=[25, 50] if q else [25, 50, 100, 200], n_test=4 if q else 8,
-                                n_bar=16, scale=0.5)}
+        res = {
+            "quick": q,
+            "machine": "2 shared cores (other jobs running): timings are contended",
+            "sim": bench_sim(
+                a.out,
+                scenes=["glass"] if q else ["glass", "diffuse"],
+                Ns=[25, 50] if q else [25, 50, 100, 200],
+                n_test=4 if q else 8,
+                n_bar=16,
+                scale=0.5,
+            ),
+        }
         res["wall_s"] = time.perf_counter() - t0
         if a.json:
             from opacityhull.cliutil import to_jsonable
@@ -485,16 +617,22 @@ def main(argv=None) -> int:
         return 0
     rng = np.random.default_rng(2004)
     res = {"quick": q, "machine": "2 shared cores (other jobs running): timings are contended"}
-    res["sweep"] = bench_sweep(rng, size=32 if q else 64, n_pixels=40 if q else 100,
-                               Ks=[1, 4, 8, 16, 25, 32] if q else [1, 2, 4, 8, 16, 25, 32],
-                               Ns=[25, 50, 100, 200, 400])
-    res["speed"] = bench_speed(rng, size=32 if q else 64, n_fast=60 if q else 200, n_ref=5 if q else 10,
-                               rounds=3 if q else 5)
+    res["sweep"] = bench_sweep(
+        rng,
+        size=32 if q else 64,
+        n_pixels=40 if q else 100,
+        Ks=[1, 4, 8, 16, 25, 32] if q else [1, 2, 4, 8, 16, 25, 32],
+        Ns=[25, 50, 100, 200, 400],
+    )
+    res["speed"] = bench_speed(
+        rng, size=32 if q else 64, n_fast=60 if q else 200, n_ref=5 if q else 10, rounds=3 if q else 5
+    )
     res["relight"] = bench_relight(rng, size=32 if q else 64, n_pixels=200_000 if q else 1_000_000)
     a.out.mkdir(parents=True, exist_ok=True)
     kernel_figure(np.random.default_rng(7), a.out, size=32 if q else 64)
-    res["glass"] = bench_glass(np.random.default_rng(3), a.out, size=32 if q else 64, height=24 if q else 48,
-                               width=32 if q else 64)
+    res["glass"] = bench_glass(
+        np.random.default_rng(3), a.out, size=32 if q else 64, height=24 if q else 48, width=32 if q else 64
+    )
     write_report(res, a.out)
     res["wall_s"] = time.perf_counter() - t0
     if a.json:

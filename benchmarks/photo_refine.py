@@ -57,8 +57,21 @@ def build(name, scratch, hull_res):
     sess = scratch / f"{name}-sess"
     model = scratch / f"{name}-{hull_res}"
     if not (sess / "session.toml").is_file():
-        run([OPH, "import", "colmap", "--model", str(d / "sparse"), "--images", str(d / "images"),
-             "--masks", str(d / "masks"), "--out", str(sess)])
+        run(
+            [
+                OPH,
+                "import",
+                "colmap",
+                "--model",
+                str(d / "sparse"),
+                "--images",
+                str(d / "images"),
+                "--masks",
+                str(d / "masks"),
+                "--out",
+                str(sess),
+            ]
+        )
     if not (model / "model.toml").is_file():
         run([OPH, "build", str(sess), "--out", str(model), "--hull-res", str(hull_res), "--no-pictures", "--json"])
     return model
@@ -86,9 +99,17 @@ def refine(m, cams, rgba, config, exclude=()):
 
     s = m.surfels
     t0 = time.perf_counter()
-    pos, nrm, rad, stats = refine_surfels(s.positions, s.normals, s.radii, s.visible_bool(), cams,
-                                     [a[..., :3] for a in rgba], [a[..., 3] for a in rgba], config=config,
-                                     exclude_views=exclude)
+    pos, nrm, rad, stats = refine_surfels(
+        s.positions,
+        s.normals,
+        s.radii,
+        s.visible_bool(),
+        cams,
+        [a[..., :3] for a in rgba],
+        [a[..., 3] for a in rgba],
+        config=config,
+        exclude_views=exclude,
+    )
     t_ref = time.perf_counter() - t0
     vis = surfel_visibility(pos, nrm, rad, cams)
     t_vis = time.perf_counter() - t0 - t_ref
@@ -121,9 +142,14 @@ def photo_holdout_loo(m, cams, rgba, config, views):
         t_ref.append(tr)
         res = render_image(spatially_sorted(sf), cams, pv, cams[i], config=RenderConfig(), exclude_views=[i])
         per.append(loo_metrics(rgba[i], res.rgba))
-    return ({"psnr_mean": float(np.mean([p["psnr"] for p in per])),
-             "ssim_mean": float(np.mean([p["ssim"] for p in per])),
-             "per_view": per}, float(np.mean(t_ref)))
+    return (
+        {
+            "psnr_mean": float(np.mean([p["psnr"] for p in per])),
+            "ssim_mean": float(np.mean([p["ssim"] for p in per])),
+            "per_view": per,
+        },
+        float(np.mean(t_ref)),
+    )
 
 
 def main(argv=None):
@@ -153,8 +179,18 @@ def main(argv=None):
         base, t_base = cli_loo(model, scratch / f"{name}-{args.hull_res}-loo")
         m, cams, rgba = load(model)
         views = [int(p["index"]) for p in base["per_view"]]
-        rows.append(dict(set=name, variant="hull", protocol="-", psnr=base["psnr_mean"], ssim=base["ssim_mean"],
-                         refine_s=0.0, moved=0.0, n=len(m.surfels)))
+        rows.append(
+            dict(
+                set=name,
+                variant="hull",
+                protocol="-",
+                psnr=base["psnr_mean"],
+                ssim=base["ssim_mean"],
+                refine_s=0.0,
+                moved=0.0,
+                n=len(m.surfels),
+            )
+        )
         print(f"{name}: hull  PSNR {base['psnr_mean']:.2f}  SSIM {base['ssim_mean']:.3f}", file=sys.stderr)
         for vname in args.variants.split(","):
             cfg = variants[vname]
@@ -162,18 +198,41 @@ def main(argv=None):
                 sf, stats, tr, tv = refine(m, cams, rgba, cfg)
                 dst = write_copy(model, sf, scratch / f"{name}-{args.hull_res}-{vname}")
                 s, _ = cli_loo(dst, dst / "loo")
-                rows.append(dict(set=name, variant=vname, protocol="blend", psnr=s["psnr_mean"], ssim=s["ssim_mean"],
-                                 refine_s=tr, moved=stats["n_moved"] / max(stats["n_surfels"], 1), n=len(sf),
-                                 conf=stats["n_confident"] / max(stats["n_surfels"], 1),
-                                 depth_mm=1e3 * stats["mean_depth_moved_m"], vis_s=tv,
-                                 cost_volume_s=stats["seconds_cost_volume"]))
-                print(f"{name}: {vname} blend PSNR {s['psnr_mean']:.2f} SSIM {s['ssim_mean']:.3f} refine {tr:.1f}s "
-                      f"moved {rows[-1]['moved']:.2f} conf {rows[-1]['conf']:.2f} depth {rows[-1]['depth_mm']:.2f} mm",
-                      file=sys.stderr)
+                rows.append(
+                    dict(
+                        set=name,
+                        variant=vname,
+                        protocol="blend",
+                        psnr=s["psnr_mean"],
+                        ssim=s["ssim_mean"],
+                        refine_s=tr,
+                        moved=stats["n_moved"] / max(stats["n_surfels"], 1),
+                        n=len(sf),
+                        conf=stats["n_confident"] / max(stats["n_surfels"], 1),
+                        depth_mm=1e3 * stats["mean_depth_moved_m"],
+                        vis_s=tv,
+                        cost_volume_s=stats["seconds_cost_volume"],
+                    )
+                )
+                print(
+                    f"{name}: {vname} blend PSNR {s['psnr_mean']:.2f} SSIM {s['ssim_mean']:.3f} refine {tr:.1f}s "
+                    f"moved {rows[-1]['moved']:.2f} conf {rows[-1]['conf']:.2f} depth {rows[-1]['depth_mm']:.2f} mm",
+                    file=sys.stderr,
+                )
             if args.protocol in ("photo", "both"):
                 s, tr = photo_holdout_loo(m, cams, rgba, cfg, views)
-                rows.append(dict(set=name, variant=vname, protocol="photo", psnr=s["psnr_mean"], ssim=s["ssim_mean"],
-                                 refine_s=tr, moved=float("nan"), n=len(m.surfels)))
+                rows.append(
+                    dict(
+                        set=name,
+                        variant=vname,
+                        protocol="photo",
+                        psnr=s["psnr_mean"],
+                        ssim=s["ssim_mean"],
+                        refine_s=tr,
+                        moved=float("nan"),
+                        n=len(m.surfels),
+                    )
+                )
                 print(f"{name}: {vname} photo PSNR {s['psnr_mean']:.2f} SSIM {s['ssim_mean']:.3f}", file=sys.stderr)
     print(json.dumps(rows, indent=1))
     if not args.no_write:
@@ -189,8 +248,10 @@ def write_outputs(rows, args):
     import matplotlib.pyplot as plt
 
     OUT.mkdir(parents=True, exist_ok=True)
-    cmd = (f".venv/bin/python benchmarks/photo_refine.py --hull-res {args.hull_res} --sets {args.sets} "
-           f"--protocol {args.protocol} --variants {args.variants}")
+    cmd = (
+        f".venv/bin/python benchmarks/photo_refine.py --hull-res {args.hull_res} --sets {args.sets} "
+        f"--protocol {args.protocol} --variants {args.variants}"
+    )
     store = OUT / "photo_refine.json"
     runs = json.loads(store.read_text()) if store.is_file() else {}
     runs[cmd] = {"hull_res": args.hull_res, "utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "rows": rows}
@@ -210,13 +271,20 @@ def write_outputs(rows, args):
         "",
     ]
     for c, run in runs.items():
-        lines += [f"## hull-res {run['hull_res']} ({run['utc']})", "", f"`{c}`", "",
-                  "| set | variant | protocol | PSNR dB | SSIM | refine s (cost volume s) | moved | confident | mean depth mm |",
-                  "|---|---|---|---|---|---|---|---|---|"]
+        lines += [
+            f"## hull-res {run['hull_res']} ({run['utc']})",
+            "",
+            f"`{c}`",
+            "",
+            "| set | variant | protocol | PSNR dB | SSIM | refine s (cost volume s) | moved | confident | mean depth mm |",
+            "|---|---|---|---|---|---|---|---|---|",
+        ]
         for r in run["rows"]:
-            lines.append(f"| {r['set']} | {r['variant']} | {r['protocol']} | {r['psnr']:.2f} | {r['ssim']:.3f} | "
-                         f"{r['refine_s']:.1f} ({r.get('cost_volume_s', float('nan')):.1f}) | {r.get('moved', float('nan')):.2f} | "
-                         f"{r.get('conf', float('nan')):.2f} | {r.get('depth_mm', float('nan')):.2f} |")
+            lines.append(
+                f"| {r['set']} | {r['variant']} | {r['protocol']} | {r['psnr']:.2f} | {r['ssim']:.3f} | "
+                f"{r['refine_s']:.1f} ({r.get('cost_volume_s', float('nan')):.1f}) | {r.get('moved', float('nan')):.2f} | "
+                f"{r.get('conf', float('nan')):.2f} | {r.get('depth_mm', float('nan')):.2f} |"
+            )
         lines.append("")
     (OUT / "photo_refine.md").write_text("\n".join(lines))
     allrows = [(run["hull_res"], r) for run in runs.values() for r in run["rows"]]
@@ -225,8 +293,11 @@ def write_outputs(rows, args):
     for ax, s in zip(axes[0], sets):
         rs = [(h, r) for h, r in allrows if r["set"] == s]
         labels = [f"{h}\n{r['variant']}" + ("" if r["protocol"] == "-" else f"\n{r['protocol']}") for h, r in rs]
-        ax.bar(range(len(rs)), [r["psnr"] for _, r in rs],
-               color=["grey" if r["protocol"] == "-" else ("C0" if r["protocol"] == "blend" else "C1") for _, r in rs])
+        ax.bar(
+            range(len(rs)),
+            [r["psnr"] for _, r in rs],
+            color=["grey" if r["protocol"] == "-" else ("C0" if r["protocol"] == "blend" else "C1") for _, r in rs],
+        )
         ax.set_xticks(range(len(rs)), labels, fontsize=6)
         ax.set_ylim(min(r["psnr"] for _, r in rs) - 0.5, max(r["psnr"] for _, r in rs) + 0.3)
         ax.set_ylabel("LOO PSNR (dB)")

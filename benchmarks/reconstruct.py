@@ -77,16 +77,26 @@ def bench_matting(quick: bool) -> dict:
     reps = 3 if quick else 7
     out = {"K": K, "width": W, "height": H, "compile_s": compile_s}
     Cr, Br = C.reshape(K, N, 3), B.reshape(K, N, 3)
-    bufs = [np.empty(N, np.float32), np.empty((N, 3), np.float32), np.empty(N), np.empty(N, np.float32),
-            np.empty(N, np.float32), np.empty(N, np.uint8)]  # as solve_matte allocates them
+    bufs = [
+        np.empty(N, np.float32),
+        np.empty((N, 3), np.float32),
+        np.empty(N),
+        np.empty(N, np.float32),
+        np.empty(N, np.float32),
+        np.empty(N, np.uint8),
+    ]  # as solve_matte allocates them
     inf = np.full(K, np.inf, np.float32)
     threads = numba.config.NUMBA_NUM_THREADS
     for nt in sorted({1, threads}):
         numba.set_num_threads(nt)
         te = best_of(lambda: m.solve_matte(C, B), reps)
         tk = best_of(lambda: m._matte_kernel(Cr, Br, inf, inf, *bufs), reps)
-        out[f"threads_{nt}"] = {"end_to_end_s": te, "kernel_s": tk, "end_to_end_mpx_s": N / te / 1e6,
-                                "kernel_mpx_s": N / tk / 1e6}
+        out[f"threads_{nt}"] = {
+            "end_to_end_s": te,
+            "kernel_s": tk,
+            "end_to_end_mpx_s": N / te / 1e6,
+            "kernel_mpx_s": N / tk / 1e6,
+        }
     numba.set_num_threads(threads)
     bw = memory_bandwidth_gbs()
     out["bandwidth_gbs"] = bw
@@ -170,10 +180,19 @@ def bench_carving(quick: bool) -> dict:
     ref_small = carve_reference(sils, cams, HullGrid.from_bounds(lo, hi, 48))
     oct_small = carve_octree(sils, cams, HullGrid.from_bounds(lo, hi, 48))
     out = {
-        "views": V, "width": W, "height": H, "grid": list(grid.shape), "voxels": int(np.prod(grid.shape)),
-        "occupied": int(occ_o.sum()), "silhouettes_s": sil_s, "compile_s": compile_s,
-        "octree_s": t_oct, "octree_root_cell_s": {str(k): v for k, v in roots.items()},
-        "octree_cells": st.cells, "octree_tests": st.tests, "dense_numba_s": t_dense,
+        "views": V,
+        "width": W,
+        "height": H,
+        "grid": list(grid.shape),
+        "voxels": int(np.prod(grid.shape)),
+        "occupied": int(occ_o.sum()),
+        "silhouettes_s": sil_s,
+        "compile_s": compile_s,
+        "octree_s": t_oct,
+        "octree_root_cell_s": {str(k): v for k, v in roots.items()},
+        "octree_cells": st.cells,
+        "octree_tests": st.tests,
+        "dense_numba_s": t_dense,
         "octree_equals_dense": bool(np.array_equal(occ_o, occ_d)),
         "fatness_octree_over_dense": float(occ_o.sum() / max(occ_d.sum(), 1)),
         "octree_equals_numpy_reference_48": bool(np.array_equal(ref_small, oct_small)),
@@ -200,27 +219,46 @@ def bench_accuracy(quick: bool, tmp: Path) -> dict:
     base = tmp / "base"
     rcsynth.make_session(base, n_angles=8, n_patterns=3, reflectance=False, width=96, height=72, seed=1)
     build_model(base, tmp / "warm", config=BuildConfig(hull_res=32, pictures=False))  # compile
-    for res in ((32, 64, 128) if quick else (32, 64, 128, 192, 256)):
-        r = build_model(base, tmp / f"m_res{res}", config=BuildConfig(hull_res=res, pictures=False),
-                        ground_truth=True)
-        rows["hull_res"].append({"hull_res": res, "hull_iou": r.metrics["hull_iou"],
-                                 "object_in_hull": r.metrics["hull_object_in_hull"], "surfels": r.surfels,
-                                 "hull_s": r.seconds["hull"], "surfels_s": r.seconds["surfels"],
-                                 "visibility_s": r.seconds["visibility"], "total_s": r.seconds["total"]})
+    for res in (32, 64, 128) if quick else (32, 64, 128, 192, 256):
+        r = build_model(base, tmp / f"m_res{res}", config=BuildConfig(hull_res=res, pictures=False), ground_truth=True)
+        rows["hull_res"].append(
+            {
+                "hull_res": res,
+                "hull_iou": r.metrics["hull_iou"],
+                "object_in_hull": r.metrics["hull_object_in_hull"],
+                "surfels": r.surfels,
+                "hull_s": r.seconds["hull"],
+                "surfels_s": r.seconds["surfels"],
+                "visibility_s": r.seconds["visibility"],
+                "total_s": r.seconds["total"],
+            }
+        )
     for npat in (1, 2, 3):
         s = tmp / f"k{npat}"
-        rcsynth.make_session(s, n_angles=4, n_patterns=npat, reflectance=False, width=96, height=72, seed=2,
-                             noise=0.005)
+        rcsynth.make_session(
+            s, n_angles=4, n_patterns=npat, reflectance=False, width=96, height=72, seed=2, noise=0.005
+        )
         r = build_model(s, tmp / f"m_k{npat}", config=BuildConfig(hull_res=64, pictures=False), ground_truth=True)
-        rows["K"].append({"K": 2 * npat, "alpha_mae": r.metrics["alpha_mae"], "matting_s": r.seconds["matting"],
-                          "matting_s_per_view": r.seconds["matting"] / r.views})
-    for n_angles in ((2, 4, 8) if quick else (2, 4, 8, 12)):
+        rows["K"].append(
+            {
+                "K": 2 * npat,
+                "alpha_mae": r.metrics["alpha_mae"],
+                "matting_s": r.seconds["matting"],
+                "matting_s_per_view": r.seconds["matting"] / r.views,
+            }
+        )
+    for n_angles in (2, 4, 8) if quick else (2, 4, 8, 12):
         s = tmp / f"v{n_angles}"
         rcsynth.make_session(s, n_angles=n_angles, n_patterns=1, reflectance=False, width=96, height=72, seed=3)
-        r = build_model(s, tmp / f"m_v{n_angles}", config=BuildConfig(hull_res=96, pictures=False),
-                        ground_truth=True)
-        rows["views"].append({"views": r.views, "hull_iou": r.metrics["hull_iou"], "hull_s": r.seconds["hull"],
-                              "total_s": r.seconds["total"]})
+        r = build_model(s, tmp / f"m_v{n_angles}", config=BuildConfig(hull_res=96, pictures=False), ground_truth=True)
+        rows["views"].append(
+            {
+                "views": r.views,
+                "hull_iou": r.metrics["hull_iou"],
+                "hull_s": r.seconds["hull"],
+                "total_s": r.seconds["total"],
+            }
+        )
     return rows
 
 
@@ -235,32 +273,51 @@ def write_report(res: dict) -> None:
 
     OUT.mkdir(parents=True, exist_ok=True)
     mt, cv, acc = res["matting"], res["carving"], res["accuracy"]
-    L = ["# Reconstruction benchmark", "", f"Machine: {os.cpu_count()} cores; measured copy bandwidth "
-         f"{mt['bandwidth_gbs']:.1f} GB/s (read + write).", "",
-         "## Matting (K = 6, 720×576)", "",
-         "| threads | end to end (ms) | Mpx/s | kernel (ms) | kernel Mpx/s |", "|---|---|---|---|---|"]
+    L = [
+        "# Reconstruction benchmark",
+        "",
+        f"Machine: {os.cpu_count()} cores; measured copy bandwidth {mt['bandwidth_gbs']:.1f} GB/s (read + write).",
+        "",
+        "## Matting (K = 6, 720×576)",
+        "",
+        "| threads | end to end (ms) | Mpx/s | kernel (ms) | kernel Mpx/s |",
+        "|---|---|---|---|---|",
+    ]
     for k in sorted(k for k in mt if k.startswith("threads_")):
         v = mt[k]
-        L.append(f"| {k.split('_')[1]} | {v['end_to_end_s'] * 1e3:.1f} | {v['end_to_end_mpx_s']:.1f} | "
-                 f"{v['kernel_s'] * 1e3:.1f} | {v['kernel_mpx_s']:.1f} |")
-    L += ["", f"Kernel per core: **{mt['kernel_per_core_mpx_s']:.1f} Mpx/s** (target ≥ 20); bandwidth bound "
-          f"{mt['bandwidth_bound_mpx_s']:.0f} Mpx/s at {mt['bytes_per_px']} B/px → "
-          f"{100 * mt['kernel_ratio_to_bound']:.0f} % of it. Compile {mt['compile_s']:.1f} s (cached).", "",
-          f"## Carving ({cv['views']} views of {cv['width']}×{cv['height']}, grid {cv['grid']})", "",
-          "| carver | seconds |", "|---|---|",
-          f"| octree (root 32, SATs included) | {cv['octree_s']:.3f} |",
-          f"| dense numba, centre-sampled | {cv['dense_numba_s']:.3f} |",
-          f"| Open3D | {cv['open3d']} |", "",
-          f"Octree == dense voxel for voxel: {cv['octree_equals_dense']} (fatness ratio "
-          f"{cv['fatness_octree_over_dense']:.4f}); == NumPy reference at 48³: {cv['octree_equals_numpy_reference_48']}. "
-          f"Root cell sweep (s): {json.dumps({k: round(v, 3) for k, v in cv['octree_root_cell_s'].items()})}. "
-          f"{cv['octree_cells']} cells, {cv['octree_tests']} cell-view tests for {cv['voxels']} voxels.", "",
-          "## Accuracy against time (analytic sphere, 3 cameras, 96×72)", "",
-          "| hull res | IoU | object in hull | surfels | hull s | surfels s | visibility s | build s |",
-          "|---|---|---|---|---|---|---|---|"]
+        L.append(
+            f"| {k.split('_')[1]} | {v['end_to_end_s'] * 1e3:.1f} | {v['end_to_end_mpx_s']:.1f} | "
+            f"{v['kernel_s'] * 1e3:.1f} | {v['kernel_mpx_s']:.1f} |"
+        )
+    L += [
+        "",
+        f"Kernel per core: **{mt['kernel_per_core_mpx_s']:.1f} Mpx/s** (target ≥ 20); bandwidth bound "
+        f"{mt['bandwidth_bound_mpx_s']:.0f} Mpx/s at {mt['bytes_per_px']} B/px → "
+        f"{100 * mt['kernel_ratio_to_bound']:.0f} % of it. Compile {mt['compile_s']:.1f} s (cached).",
+        "",
+        f"## Carving ({cv['views']} views of {cv['width']}×{cv['height']}, grid {cv['grid']})",
+        "",
+        "| carver | seconds |",
+        "|---|---|",
+        f"| octree (root 32, SATs included) | {cv['octree_s']:.3f} |",
+        f"| dense numba, centre-sampled | {cv['dense_numba_s']:.3f} |",
+        f"| Open3D | {cv['open3d']} |",
+        "",
+        f"Octree == dense voxel for voxel: {cv['octree_equals_dense']} (fatness ratio "
+        f"{cv['fatness_octree_over_dense']:.4f}); == NumPy reference at 48³: {cv['octree_equals_numpy_reference_48']}. "
+        f"Root cell sweep (s): {json.dumps({k: round(v, 3) for k, v in cv['octree_root_cell_s'].items()})}. "
+        f"{cv['octree_cells']} cells, {cv['octree_tests']} cell-view tests for {cv['voxels']} voxels.",
+        "",
+        "## Accuracy against time (analytic sphere, 3 cameras, 96×72)",
+        "",
+        "| hull res | IoU | object in hull | surfels | hull s | surfels s | visibility s | build s |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
     for r in acc["hull_res"]:
-        L.append(f"| {r['hull_res']} | {r['hull_iou']:.3f} | {r['object_in_hull']:.4f} | {r['surfels']} | "
-                 f"{r['hull_s']:.3f} | {r['surfels_s']:.3f} | {r['visibility_s']:.3f} | {r['total_s']:.2f} |")
+        L.append(
+            f"| {r['hull_res']} | {r['hull_iou']:.3f} | {r['object_in_hull']:.4f} | {r['surfels']} | "
+            f"{r['hull_s']:.3f} | {r['surfels_s']:.3f} | {r['visibility_s']:.3f} | {r['total_s']:.2f} |"
+        )
     L += ["", "| K | alpha MAE | matting s / view |", "|---|---|---|"]
     for r in acc["K"]:
         L.append(f"| {r['K']} | {r['alpha_mae']:.4f} | {r['matting_s_per_view']:.4f} |")
@@ -302,8 +359,11 @@ def main() -> None:
     args = ap.parse_args()
     tmp = Path(tempfile.mkdtemp(prefix="bench_reconstruct_"))
     try:
-        res = {"matting": bench_matting(args.quick), "carving": bench_carving(args.quick),
-               "accuracy": bench_accuracy(args.quick, tmp)}
+        res = {
+            "matting": bench_matting(args.quick),
+            "carving": bench_carving(args.quick),
+            "accuracy": bench_accuracy(args.quick, tmp),
+        }
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     write_report(res)

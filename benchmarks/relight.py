@@ -67,8 +67,15 @@ def bench_throughput(tmp: Path, *, width: int, height: int, table_degs, orbit_fr
     from opacityhull.relight.relit import Relighter, relight_stack
     from opacityhull.relight.synthetic import write_sphere_model
 
-    t_write, root = _t(write_sphere_model, tmp / "demo", width=width, height=height, table_degs=table_degs,
-                       camera_elevations_deg=(10.0, 40.0), n_surfels=20000)
+    t_write, root = _t(
+        write_sphere_model,
+        tmp / "demo",
+        width=width,
+        height=height,
+        table_degs=table_degs,
+        camera_elevations_deg=(10.0, 40.0),
+        n_surfels=20000,
+    )
     m = OpacityHullModel.open(root)
     R = Relighter(m)
     # compile (cached on disk after the first run) — measured separately
@@ -111,8 +118,14 @@ def bench_throughput(tmp: Path, *, width: int, height: int, table_degs, orbit_fr
         oc = orbit_cameras(m, orbit_frames)
         render_image(m.surfels, cams, pv, oc[0])  # warm
         t_r, _ = _t(lambda: [render_image(m.surfels, cams, prepare_views(cams, relit), c) for c in oc])
-        res.update({"orbit_frames": orbit_frames, "orbit_render_s": t_r, "orbit_frames_per_s": orbit_frames / t_r,
-                    "orbit_total_s": t_all + t_r})
+        res.update(
+            {
+                "orbit_frames": orbit_frames,
+                "orbit_render_s": t_r,
+                "orbit_frames_per_s": orbit_frames / t_r,
+                "orbit_total_s": t_all + t_r,
+            }
+        )
     except ImportError as e:  # renderer not installed
         res["orbit_error"] = str(e)
     return res
@@ -188,7 +201,7 @@ def bench_accuracy(probes: dict, *, width, height, arrays, kernels, table_degs) 
     truths_full = {p: sv.truth(e, upper_only=False) for p, e in probes.items()}
     truth_s = time.perf_counter() - t0
     rows = []
-    for (nl, npos) in arrays:
+    for nl, npos in arrays:
         ls = sv.light_set(nl, npos)
         stacks = sv.stacks(ls)
         for kname, cfg in kernels:
@@ -200,10 +213,18 @@ def bench_accuracy(probes: dict, *, width, height, arrays, kernels, table_degs) 
                 errs, t = sv.errors(ls, stacks, env, truths[p], cfg)
                 per[p] = float(np.mean(errs))
                 tt.append(t)
-            rows.append({"array": f"{nl}x{npos}", "K": len(ls), "spacing_deg": math.degrees(ls.spacing_rad()),
-                         "kernel": kname, "rel_err_mean": float(np.mean(list(per.values()))),
-                         "rel_err_worst_probe": float(max(per.values())), "per_probe": per,
-                         "relight_ms_per_view": 1e3 * float(np.mean(tt))})
+            rows.append(
+                {
+                    "array": f"{nl}x{npos}",
+                    "K": len(ls),
+                    "spacing_deg": math.degrees(ls.spacing_rad()),
+                    "kernel": kname,
+                    "rel_err_mean": float(np.mean(list(per.values()))),
+                    "rel_err_worst_probe": float(max(per.values())),
+                    "per_probe": per,
+                    "relight_ms_per_view": 1e3 * float(np.mean(tt)),
+                }
+            )
     # 3. lower hemisphere
     ls = sv.light_set(4, 15)
     stacks = sv.stacks(ls)
@@ -213,8 +234,14 @@ def bench_accuracy(probes: dict, *, width, height, arrays, kernels, table_degs) 
         for truth_name, tr in (("table blocks light from below", truths), ("no table (full sphere)", truths_full)):
             e = [float(np.mean(sv.errors(ls, stacks, env, tr[p], cfg)[0])) for p, env in probes.items()]
             lower.append({"policy": policy, "truth": truth_name, "rel_err_mean": float(np.mean(e))})
-    return {"rows": rows, "lower_hemisphere": lower, "truth_s": truth_s, "views": len(views),
-            "view_size": [width, height], "probes": list(probes)}
+    return {
+        "rows": rows,
+        "lower_hemisphere": lower,
+        "truth_s": truth_s,
+        "views": len(views),
+        "view_size": [width, height],
+        "probes": list(probes),
+    }
 
 
 # --------------------------------------------------------------------------- 4. PCA
@@ -239,8 +266,16 @@ def bench_pca(tmp: Path, probe, *, width, height, ranks) -> dict:
         t_c, c = _t(compress_reflectance, s, r)
         t_r, approx = _t(c.relight, w, repeat=3)
         e = float(np.linalg.norm(approx[mask] - full[mask]) / np.linalg.norm(full[mask]))
-        rows.append({"rank": r, "compression": c.compression_ratio, "reflectance_rel_err": c.rel_error,
-                     "relit_rel_err": e, "compress_s": t_c, "relight_ms": 1e3 * t_r})
+        rows.append(
+            {
+                "rank": r,
+                "compression": c.compression_ratio,
+                "reflectance_rel_err": c.rel_error,
+                "relit_rel_err": e,
+                "compress_s": t_c,
+                "relight_ms": 1e3 * t_r,
+            }
+        )
     return {"rows": rows, "full_relight_ms": 1e3 * t_full, "K": s.shape[0], "view_size": [width, height]}
 
 
@@ -256,36 +291,80 @@ def write_report(res: dict, out: Path) -> None:
     from opacityhull.imageio import atomic_path
 
     tp, acc, pca = res["throughput"], res["accuracy"], res["pca"]
-    L = ["# Relighting benchmark", "", f"Machine: {res['machine']}", "",
-         "## Throughput (analytic sphere model, warm)", "",
-         "| quantity | value |", "|---|---|"]
-    for k in ("view_size", "n_views", "n_lights", "load_stack_ms", "load_matte_ms", "weights_ms_per_table_angle",
-              "kernel_ms", "kernel_gb_s", "stack_mb", "relit_views_per_s", "relight_all_views_s", "orbit_frames",
-              "orbit_render_s", "orbit_frames_per_s", "orbit_total_s", "kernel_compile_s"):
+    L = [
+        "# Relighting benchmark",
+        "",
+        f"Machine: {res['machine']}",
+        "",
+        "## Throughput (analytic sphere model, warm)",
+        "",
+        "| quantity | value |",
+        "|---|---|",
+    ]
+    for k in (
+        "view_size",
+        "n_views",
+        "n_lights",
+        "load_stack_ms",
+        "load_matte_ms",
+        "weights_ms_per_table_angle",
+        "kernel_ms",
+        "kernel_gb_s",
+        "stack_mb",
+        "relit_views_per_s",
+        "relight_all_views_s",
+        "orbit_frames",
+        "orbit_render_s",
+        "orbit_frames_per_s",
+        "orbit_total_s",
+        "kernel_compile_s",
+    ):
         if k in tp:
             v = tp[k]
             L.append(f"| {k} | {v:.3g} |" if isinstance(v, float) else f"| {k} | {v} |")
-    L += ["", f"The kernel streams K one-light images once: {tp['kernel_gb_s']:.2f} GB/s against a measured "
-          f"{res['bandwidth_gb_s']:.2f} GB/s single-pass read bandwidth on this (shared) machine "
-          f"= {100 * tp['kernel_gb_s'] / res['bandwidth_gb_s']:.0f} % of the limit; decoding the ZIP-compressed "
-          "EXR of the one-light images costs more than the product itself.", "",
-          f"## Accuracy against the number of lights ({acc['views']} views {acc['view_size'][0]}x{acc['view_size'][1]}, "
-          f"probes {', '.join(acc['probes'])}, yaw 180)", "",
-          "Relative L2 error of relit views of the Lambertian sphere against the exact quadrature (table blocks "
-          "light from below), mean over views and probes; capture time and relight time both grow with K.", "",
-          "| array | K | spacing (deg) | kernel | rel. error mean | worst probe | relight ms/view |", "|---|---|---|---|---|---|---|"]
+    L += [
+        "",
+        f"The kernel streams K one-light images once: {tp['kernel_gb_s']:.2f} GB/s against a measured "
+        f"{res['bandwidth_gb_s']:.2f} GB/s single-pass read bandwidth on this (shared) machine "
+        f"= {100 * tp['kernel_gb_s'] / res['bandwidth_gb_s']:.0f} % of the limit; decoding the ZIP-compressed "
+        "EXR of the one-light images costs more than the product itself.",
+        "",
+        f"## Accuracy against the number of lights ({acc['views']} views {acc['view_size'][0]}x{acc['view_size'][1]}, "
+        f"probes {', '.join(acc['probes'])}, yaw 180)",
+        "",
+        "Relative L2 error of relit views of the Lambertian sphere against the exact quadrature (table blocks "
+        "light from below), mean over views and probes; capture time and relight time both grow with K.",
+        "",
+        "| array | K | spacing (deg) | kernel | rel. error mean | worst probe | relight ms/view |",
+        "|---|---|---|---|---|---|---|",
+    ]
     for r in acc["rows"]:
-        L.append(f"| {r['array']} | {r['K']} | {r['spacing_deg']:.1f} | {r['kernel']} | {100 * r['rel_err_mean']:.2f} % | "
-                 f"{100 * r['rel_err_worst_probe']:.2f} % | {r['relight_ms_per_view']:.1f} |")
-    L += ["", "## Light from below the table (4 x 15, vmf 0.25)", "", "| policy | truth | rel. error |", "|---|---|---|"]
+        L.append(
+            f"| {r['array']} | {r['K']} | {r['spacing_deg']:.1f} | {r['kernel']} | {100 * r['rel_err_mean']:.2f} % | "
+            f"{100 * r['rel_err_worst_probe']:.2f} % | {r['relight_ms_per_view']:.1f} |"
+        )
+    L += [
+        "",
+        "## Light from below the table (4 x 15, vmf 0.25)",
+        "",
+        "| policy | truth | rel. error |",
+        "|---|---|---|",
+    ]
     for r in acc["lower_hemisphere"]:
         L.append(f"| {r['policy']} | {r['truth']} | {100 * r['rel_err_mean']:.2f} % |")
-    L += ["", f"## PCA per view (rank r of the {pca['K']}-light data, {pca['view_size'][0]}x{pca['view_size'][1]}, "
-          f"full relight {pca['full_relight_ms']:.1f} ms)", "",
-          "| rank | compression | reflectance error | relit error vs full | relight ms | compress s |", "|---|---|---|---|---|---|"]
+    L += [
+        "",
+        f"## PCA per view (rank r of the {pca['K']}-light data, {pca['view_size'][0]}x{pca['view_size'][1]}, "
+        f"full relight {pca['full_relight_ms']:.1f} ms)",
+        "",
+        "| rank | compression | reflectance error | relit error vs full | relight ms | compress s |",
+        "|---|---|---|---|---|---|",
+    ]
     for r in pca["rows"]:
-        L.append(f"| {r['rank']} | {r['compression']:.1f}x | {100 * r['reflectance_rel_err']:.3f} % | "
-                 f"{100 * r['relit_rel_err']:.3f} % | {r['relight_ms']:.2f} | {r['compress_s']:.2f} |")
+        L.append(
+            f"| {r['rank']} | {r['compression']:.1f}x | {100 * r['reflectance_rel_err']:.3f} % | "
+            f"{100 * r['relit_rel_err']:.3f} % | {r['relight_ms']:.2f} | {r['compress_s']:.2f} |"
+        )
     L.append("")
     out.mkdir(parents=True, exist_ok=True)
     with atomic_path(out / "relight.md") as tmp:
@@ -308,8 +387,15 @@ def write_report(res: dict, out: Path) -> None:
     ax[1].set_title("partition kernel (4x15)")
     ax[1].tick_params(axis="x", rotation=20)
     pr = pca["rows"]
-    ax[2].semilogy([r["rank"] for r in pr], [max(1e-6, 100 * r["relit_rel_err"]) for r in pr], "o-", label="relit vs full")
-    ax[2].semilogy([r["rank"] for r in pr], [max(1e-6, 100 * r["reflectance_rel_err"]) for r in pr], "s--", label="reflectance data")
+    ax[2].semilogy(
+        [r["rank"] for r in pr], [max(1e-6, 100 * r["relit_rel_err"]) for r in pr], "o-", label="relit vs full"
+    )
+    ax[2].semilogy(
+        [r["rank"] for r in pr],
+        [max(1e-6, 100 * r["reflectance_rel_err"]) for r in pr],
+        "s--",
+        label="reflectance data",
+    )
     ax2 = ax[2].twinx()
     ax2.plot([r["rank"] for r in pr], [r["relight_ms"] for r in pr], "g:", label="relight ms")
     ax2.set_ylabel("relight ms / view", color="g")
@@ -335,20 +421,40 @@ def main(argv=None) -> int:
     probe_names = ["grace", "uffizi"] if q else ["ennis", "grace", "pisa", "uffizi", "wells"]
     probes = load_probes(probe_names)
     arrays = [(2, 6), (3, 10), (4, 15), (6, 20), (8, 30)] if not q else [(2, 6), (4, 15), (8, 30)]
-    kernels = [("voronoi", KernelConfig(kind="voronoi")), ("vmf 0.25", KernelConfig(kind="vmf", width=0.25)),
-               ("vmf 0.5", KernelConfig(kind="vmf", width=0.5)), ("vmf 1.0", KernelConfig(kind="vmf", width=1.0)),
-               ("linear", KernelConfig(kind="linear"))]
+    kernels = [
+        ("voronoi", KernelConfig(kind="voronoi")),
+        ("vmf 0.25", KernelConfig(kind="vmf", width=0.25)),
+        ("vmf 0.5", KernelConfig(kind="vmf", width=0.5)),
+        ("vmf 1.0", KernelConfig(kind="vmf", width=1.0)),
+        ("linear", KernelConfig(kind="linear")),
+    ]
     res = {"quick": q, "machine": "2 shared cores (other jobs running), numpy/numba, OMP threading"}
     res["bandwidth_gb_s"] = memory_bandwidth_gbs()
     with tempfile.TemporaryDirectory() as td:
         tmp = Path(td)
-        res["throughput"] = bench_throughput(tmp, width=200, height=150,
-                                             table_degs=(0.0, 90.0, 180.0, 270.0) if q else tuple(range(0, 360, 30)),
-                                             orbit_frames=12 if q else 72, probe=probes["grace"])
-        res["accuracy"] = bench_accuracy(probes, width=32 if q else 64, height=24 if q else 48, arrays=arrays,
-                                         kernels=kernels, table_degs=(0.0, 135.0) if q else (0.0, 90.0, 180.0, 270.0))
-        res["pca"] = bench_pca(tmp, probes["grace"], width=200, height=150,
-                               ranks=[1, 2, 3, 4, 6, 9, 12, 20, 60] if not q else [1, 3, 6, 9, 20, 60])
+        res["throughput"] = bench_throughput(
+            tmp,
+            width=200,
+            height=150,
+            table_degs=(0.0, 90.0, 180.0, 270.0) if q else tuple(range(0, 360, 30)),
+            orbit_frames=12 if q else 72,
+            probe=probes["grace"],
+        )
+        res["accuracy"] = bench_accuracy(
+            probes,
+            width=32 if q else 64,
+            height=24 if q else 48,
+            arrays=arrays,
+            kernels=kernels,
+            table_degs=(0.0, 135.0) if q else (0.0, 90.0, 180.0, 270.0),
+        )
+        res["pca"] = bench_pca(
+            tmp,
+            probes["grace"],
+            width=200,
+            height=150,
+            ranks=[1, 2, 3, 4, 6, 9, 12, 20, 60] if not q else [1, 3, 6, 9, 20, 60],
+        )
     write_report(res, a.out)
     if a.json:
         from opacityhull.cliutil import to_jsonable

@@ -109,17 +109,29 @@ def throughput(sizes, ks, *, reps: int, shadings=("surfel", "pixel")) -> tuple[l
                 # best of the repetitions: this VM's neighbours steal cycles (the same frame
                 # measured 110-170 ms minutes apart); the median shows how large that spread is
                 for sh, (cpu, wall, stats, cpus) in best.items():
-                    row = {"surfels": n, "k": k, "shading": sh, "threads": stats["threads"],
-                           "drawn": stats["splats_drawn"], "pixels_shaded": stats.get("pixels_shaded"),
-                           "cpu_ms": 1e3 * cpu, "cpu_ms_median": 1e3 * float(np.median(cpus)), "wall_ms": 1e3 * wall,
-                           "surfels_per_s_per_core": n / cpu if threads == 1 else None,
-                           "surfels_per_s_wall": n / wall, "stage_ms": stats["ms"]}
+                    row = {
+                        "surfels": n,
+                        "k": k,
+                        "shading": sh,
+                        "threads": stats["threads"],
+                        "drawn": stats["splats_drawn"],
+                        "pixels_shaded": stats.get("pixels_shaded"),
+                        "cpu_ms": 1e3 * cpu,
+                        "cpu_ms_median": 1e3 * float(np.median(cpus)),
+                        "wall_ms": 1e3 * wall,
+                        "surfels_per_s_per_core": n / cpu if threads == 1 else None,
+                        "surfels_per_s_wall": n / wall,
+                        "stage_ms": stats["ms"],
+                    }
                     if threads == 1 and sh == "surfel":
                         nb = S.visibility.shape[1]
                         row.update(bytes_per_surfel(n, stats["splats_drawn"], k, nb, 1.25))
                     rows.append(row)
-                    print(f"  {n:>8} surfels k={k} {sh:>6} threads={row['threads']}: cpu {row['cpu_ms']:.0f} ms, "
-                          f"wall {row['wall_ms']:.0f} ms, {n / cpu / 1e6:.2f} M surfels/s (cpu)", file=sys.stderr)
+                    print(
+                        f"  {n:>8} surfels k={k} {sh:>6} threads={row['threads']}: cpu {row['cpu_ms']:.0f} ms, "
+                        f"wall {row['wall_ms']:.0f} ms, {n / cpu / 1e6:.2f} M surfels/s (cpu)",
+                        file=sys.stderr,
+                    )
         info.setdefault("model_build_s", {})[n] = t_model
         info.setdefault("surfel_areas_s", {})[n] = t_areas
     return rows, info
@@ -150,26 +162,50 @@ def accuracy(model_dir: str | None, quick: bool, shadings=("surfel", "pixel")) -
             model._render_sorted_surfels = surfels
         s = leave_one_out(model, views=views, config=cfg, prepared=pv)
         n = len(model_surfels(model))
-        extra = {key[:-5]: s[key] for key in ("psnr_interior_mean", "psnr_band_mean", "coverage_iou_mean",
-                                              "interior_alpha_mean", "spill_px_mean") if key in s}
-        rows.append({"model": source, "knob": knob, "value": value, "shading": cfg.shading, "surfels": n,
-                     "psnr": s["psnr_mean"], "ssim": s["ssim_mean"], "alpha_mae": s["alpha_mae"],
-                     "ms_per_view": s["ms_per_view"], **extra})
-        print(f"  {cfg.shading} {knob}={value}: PSNR {s['psnr_mean']:.2f} dB SSIM {s['ssim_mean']:.4f} "
-              f"aMAE {s['alpha_mae']:.4f} " + " ".join(f"{a} {b:.4g}" for a, b in extra.items())
-              + f" ({s['ms_per_view']:.0f} ms/view)", file=sys.stderr)
+        extra = {
+            key[:-5]: s[key]
+            for key in (
+                "psnr_interior_mean",
+                "psnr_band_mean",
+                "coverage_iou_mean",
+                "interior_alpha_mean",
+                "spill_px_mean",
+            )
+            if key in s
+        }
+        rows.append(
+            {
+                "model": source,
+                "knob": knob,
+                "value": value,
+                "shading": cfg.shading,
+                "surfels": n,
+                "psnr": s["psnr_mean"],
+                "ssim": s["ssim_mean"],
+                "alpha_mae": s["alpha_mae"],
+                "ms_per_view": s["ms_per_view"],
+                **extra,
+            }
+        )
+        print(
+            f"  {cfg.shading} {knob}={value}: PSNR {s['psnr_mean']:.2f} dB SSIM {s['ssim_mean']:.4f} "
+            f"aMAE {s['alpha_mae']:.4f} "
+            + " ".join(f"{a} {b:.4g}" for a, b in extra.items())
+            + f" ({s['ms_per_view']:.0f} ms/view)",
+            file=sys.stderr,
+        )
 
     full = model_surfels(model)
     for sh in shadings:
         leave_one_out(model, views=views[:1], config=RenderConfig(shading=sh), prepared=pv)  # warm
     for sh in shadings:
         base = RenderConfig(shading=sh)
-        for k in ((1, 2, 4, 8) if quick else (1, 2, 3, 4, 6, 8)):
+        for k in (1, 2, 4, 8) if quick else (1, 2, 3, 4, 6, 8):
             run("k", k, RenderConfig(k=k, shading=sh), full)
-        for f in ((0.0, 0.25, 1.0) if quick else (0.0, 0.1, 0.25, 0.5, 1.0)):
+        for f in (0.0, 0.25, 1.0) if quick else (0.0, 0.1, 0.25, 0.5, 1.0):
             run("filter", f, RenderConfig(filter=f, shading=sh), full)
         rng = np.random.default_rng(0)
-        for frac in ((0.25, 1.0) if quick else (0.125, 0.25, 0.5, 1.0)):
+        for frac in (0.25, 1.0) if quick else (0.125, 0.25, 0.5, 1.0):
             keep = np.sort(rng.choice(len(full), int(len(full) * frac), replace=False))
             sub = full.subset(keep)
             # fewer surfels cover the same surface: radii grow with the spacing
@@ -193,12 +229,17 @@ def plots(tp_rows, acc_rows, source):
             rr = [r for r in one if r["k"] == k and r.get("shading", "surfel") == sh]
             if not rr:
                 continue
-            ax[0].plot([r["surfels"] for r in rr], [r["surfels_per_s_per_core"] / 1e6 for r in rr], ls,
-                       label=f"k={k} {sh}")
+            ax[0].plot(
+                [r["surfels"] for r in rr], [r["surfels_per_s_per_core"] / 1e6 for r in rr], ls, label=f"k={k} {sh}"
+            )
             ax[1].plot([r["surfels"] for r in rr], [r["cpu_ms"] for r in rr], ls, label=f"k={k} {sh}")
     ax[0].axhline(4.0, color="grey", ls="--", label="target 4 M/s")
-    ax[0].set(xscale="log", xlabel="surfels", ylabel="M surfels / s / core", title="throughput at 512² (1 thread, CPU time)")
-    ax[1].set(xscale="log", yscale="log", xlabel="surfels", ylabel="ms per frame (CPU, 1 thread)", title="frame time at 512²")
+    ax[0].set(
+        xscale="log", xlabel="surfels", ylabel="M surfels / s / core", title="throughput at 512² (1 thread, CPU time)"
+    )
+    ax[1].set(
+        xscale="log", yscale="log", xlabel="surfels", ylabel="ms per frame (CPU, 1 thread)", title="frame time at 512²"
+    )
     ax[0].legend(fontsize=8)
     ax[1].legend(fontsize=8)
     fig.tight_layout()
@@ -216,10 +257,14 @@ def plots(tp_rows, acc_rows, source):
                 if not rr:
                     continue
                 a.plot([r["value"] for r in rr], [r["psnr"] for r in rr], "o" + ls, color="C0", label=f"PSNR {sh}")
-                b.plot([r["value"] for r in rr], [r["ms_per_view"] for r in rr], "s" + ls, color="C1",
-                       label=f"ms {sh}")
-            a.set_xlabel({"k": "k (ULR neighbours)", "filter": "EWA prefilter variance (px²)",
-                          "density": "surfel fraction kept"}[knob])
+                b.plot([r["value"] for r in rr], [r["ms_per_view"] for r in rr], "s" + ls, color="C1", label=f"ms {sh}")
+            a.set_xlabel(
+                {
+                    "k": "k (ULR neighbours)",
+                    "filter": "EWA prefilter variance (px²)",
+                    "density": "surfel fraction kept",
+                }[knob]
+            )
             a.set_ylabel("LOO PSNR (dB)", color="C0")
             b.set_ylabel("ms per view", color="C1")
             a.legend(fontsize=7, loc="lower left")
@@ -234,8 +279,12 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true", help="100 k and 500 k surfels, k in {1, 4, 8}, fewer LOO views")
     ap.add_argument("--json", action="store_true", help="print the summary as one JSON object on stdout")
-    ap.add_argument("--model", action="append", default=None,
-                    help="built model for the accuracy sweep (repeatable; 'sphere' or default: the analytic sphere)")
+    ap.add_argument(
+        "--model",
+        action="append",
+        default=None,
+        help="built model for the accuracy sweep (repeatable; 'sphere' or default: the analytic sphere)",
+    )
     ap.add_argument("--shading", choices=("pixel", "surfel", "both"), default="both", help="shading mode(s) to measure")
     ap.add_argument("--skip-accuracy", action="store_true")
     args = ap.parse_args()
@@ -249,7 +298,7 @@ def main():
     shadings = ("surfel", "pixel") if args.shading == "both" else (args.shading,)
     tp_rows, info = throughput(sizes, ks, reps=5, shadings=shadings)
     acc_rows, sources = [], []
-    for mdir in ([None] if not args.model else [None if m == "sphere" else m for m in args.model]):
+    for mdir in [None] if not args.model else [None if m == "sphere" else m for m in args.model]:
         if args.skip_accuracy:
             break
         rr, src = accuracy(mdir, args.quick, shadings)
@@ -268,11 +317,18 @@ def main():
         "ms_per_frame": head["cpu_ms"],
         "ms_per_frame_median": head["cpu_ms_median"],
         "surfels_per_s_per_core_median": head["surfels"] / (head["cpu_ms_median"] / 1e3),
-        "ms_per_frame_wall_all_threads": next(r["wall_ms"] for r in tp_rows
-                                              if r["surfels"] == head["surfels"] and r["k"] == 4
-                                              and r["shading"] == head_sh and not r["surfels_per_s_per_core"]),
-        "ms_per_frame_by_shading": {sh: next(r["cpu_ms"] for r in one if r["surfels"] == head["surfels"]
-                                             and r["k"] == 4 and r["shading"] == sh) for sh in shadings},
+        "ms_per_frame_wall_all_threads": next(
+            r["wall_ms"]
+            for r in tp_rows
+            if r["surfels"] == head["surfels"]
+            and r["k"] == 4
+            and r["shading"] == head_sh
+            and not r["surfels_per_s_per_core"]
+        ),
+        "ms_per_frame_by_shading": {
+            sh: next(r["cpu_ms"] for r in one if r["surfels"] == head["surfels"] and r["k"] == 4 and r["shading"] == sh)
+            for sh in shadings
+        },
         "at": {"surfels": head["surfels"], "k": 4, "resolution": "512x512", "drawn": head["drawn"]},
         "target_surfels_per_s_per_core": 4e6,
         "bandwidth_gb_s": bw,
@@ -290,43 +346,60 @@ def main():
     OUT.mkdir(parents=True, exist_ok=True)
     plots(tp_rows, acc_rows, source) if acc_rows else None
     lines = [
-        "# Renderer benchmark (`benchmarks/render.py" + (" --quick" if args.quick else "") + "`)", "",
+        "# Renderer benchmark (`benchmarks/render.py" + (" --quick" if args.quick else "") + "`)",
+        "",
         f"Machine: {os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.1f} while measuring (shared). "
         f"NumPy copy bandwidth {bw:.1f} GB/s (read + write). numba compile / cache load "
-        f"{info['compile_or_cache_load_s']:.1f} s (not in the timings).", "",
-        "## Throughput at 512×512 (analytic sphere, novel view, warm)", "",
+        f"{info['compile_or_cache_load_s']:.1f} s (not in the timings).",
+        "",
+        "## Throughput at 512×512 (analytic sphere, novel view, warm)",
+        "",
         "CPU time is the best of 5 frames (median in brackets); M surfels/s/core from the best. "
         "On this shared VM whole runs an hour apart differed by up to 1.7x (2 M surfels, k = 4: "
-        "297 ms against 506 ms per frame, the other tenants' load), so compare rows within one run.", "",
+        "297 ms against 506 ms per frame, the other tenants' load), so compare rows within one run.",
+        "",
         "| surfels | shading | drawn | k | threads | CPU ms/frame | wall ms/frame | M surfels/s/core | setup / shade / raster ms |",
         "|---:|---|---:|---:|---:|---:|---:|---:|---|",
     ]
     for r in tp_rows:
         st = r["stage_ms"]
-        lines.append(f"| {r['surfels']:,} | {r['shading']} | {r['drawn']:,} | {r['k']} | {r['threads']} | {r['cpu_ms']:.0f} ({r['cpu_ms_median']:.0f}) | "
-                     f"{r['wall_ms']:.0f} | {(r['surfels'] / r['cpu_ms'] / 1e3) if r['surfels_per_s_per_core'] else float('nan'):.2f} | "
-                     f"{st['setup']:.0f} / {st['shade']:.0f} / {st['raster']:.0f} |")
-    lines += ["", "## Memory-bandwidth bound (surfel shading)", "",
-              f"Estimated DRAM traffic {head['bytes_per_surfel']:.0f} B per input surfel at {head['surfels']:,} "
-              f"surfels, k = 4 (see `bytes_per_surfel`); at {bw:.1f} GB/s that bounds the renderer at "
-              f"{bound / 1e6:.1f} M surfels/s; measured {head['surfels_per_s_per_core'] / 1e6:.2f} M/s per core = "
-              f"{100 * summary['fraction_of_bandwidth_bound']:.0f} % of the bound (target 4 M/s). "
-              "The renderer is compute- and latency-bound (ULR search, scattered texel fetches), not "
-              "bandwidth-bound.", ""]
+        lines.append(
+            f"| {r['surfels']:,} | {r['shading']} | {r['drawn']:,} | {r['k']} | {r['threads']} | {r['cpu_ms']:.0f} ({r['cpu_ms_median']:.0f}) | "
+            f"{r['wall_ms']:.0f} | {(r['surfels'] / r['cpu_ms'] / 1e3) if r['surfels_per_s_per_core'] else float('nan'):.2f} | "
+            f"{st['setup']:.0f} / {st['shade']:.0f} / {st['raster']:.0f} |"
+        )
+    lines += [
+        "",
+        "## Memory-bandwidth bound (surfel shading)",
+        "",
+        f"Estimated DRAM traffic {head['bytes_per_surfel']:.0f} B per input surfel at {head['surfels']:,} "
+        f"surfels, k = 4 (see `bytes_per_surfel`); at {bw:.1f} GB/s that bounds the renderer at "
+        f"{bound / 1e6:.1f} M surfels/s; measured {head['surfels_per_s_per_core'] / 1e6:.2f} M/s per core = "
+        f"{100 * summary['fraction_of_bandwidth_bound']:.0f} % of the bound (target 4 M/s). "
+        "The renderer is compute- and latency-bound (ULR search, scattered texel fetches), not "
+        "bandwidth-bound.",
+        "",
+    ]
     if acc_rows:
-        lines += [f"## Accuracy vs time: leave-one-out on {source}", "",
-                  "Interior/band PSNR, coverage IoU (α > ½ both), interior α (photo opaque, eroded) and spill "
-                  "(rendered α > ½ outside the photo's mask dilated by 1 px) from `loo_metrics`.", "",
-                  "| model | shading | knob | value | surfels | PSNR dB | interior | band | SSIM | alpha MAE | IoU | "
-                  "interior α | spill px | ms/view |",
-                  "|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+        lines += [
+            f"## Accuracy vs time: leave-one-out on {source}",
+            "",
+            "Interior/band PSNR, coverage IoU (α > ½ both), interior α (photo opaque, eroded) and spill "
+            "(rendered α > ½ outside the photo's mask dilated by 1 px) from `loo_metrics`.",
+            "",
+            "| model | shading | knob | value | surfels | PSNR dB | interior | band | SSIM | alpha MAE | IoU | "
+            "interior α | spill px | ms/view |",
+            "|---|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+        ]
         nan = float("nan")
         for r in acc_rows:
-            lines.append(f"| {Path(r['model'].split()[-1]).name if r['model'].startswith('built') else 'sphere'} | "
-                         f"{r['shading']} | {r['knob']} | {r['value']} | {r['surfels']:,} | {r['psnr']:.2f} | "
-                         f"{r.get('psnr_interior', nan):.2f} | {r.get('psnr_band', nan):.2f} | {r['ssim']:.4f} | "
-                         f"{r['alpha_mae']:.4f} | {r.get('coverage_iou', nan):.4f} | {r.get('interior_alpha', nan):.4f} | "
-                         f"{r.get('spill_px', nan):.0f} | {r['ms_per_view']:.0f} |")
+            lines.append(
+                f"| {Path(r['model'].split()[-1]).name if r['model'].startswith('built') else 'sphere'} | "
+                f"{r['shading']} | {r['knob']} | {r['value']} | {r['surfels']:,} | {r['psnr']:.2f} | "
+                f"{r.get('psnr_interior', nan):.2f} | {r.get('psnr_band', nan):.2f} | {r['ssim']:.4f} | "
+                f"{r['alpha_mae']:.4f} | {r.get('coverage_iou', nan):.4f} | {r.get('interior_alpha', nan):.4f} | "
+                f"{r.get('spill_px', nan):.0f} | {r['ms_per_view']:.0f} |"
+            )
         lines += ["", "![throughput](render_throughput.png)", "", "![accuracy](render_accuracy.png)"]
     (OUT / "render.md").write_text("\n".join(lines) + "\n")
     (OUT / "render.json").write_text(json.dumps(summary, indent=1, default=float))

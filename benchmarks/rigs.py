@@ -72,10 +72,19 @@ def timed(fn, n: int, warmup: int) -> np.ndarray:
 
 def row(name: str, kind: str, t: np.ndarray, limit_s: float | None, note: str) -> dict:
     med = float(np.median(t))
-    return {"measure": name, "transport": kind, "n": int(t.size), "median_us": med * 1e6,
-            "p95_us": float(np.percentile(t, 95)) * 1e6, "p99_us": float(np.percentile(t, 99)) * 1e6,
-            "rate_hz": 1.0 / med, "hw_limit_hz": (1.0 / limit_s) if limit_s else None,
-            "x_faster_than_hw": (limit_s / med) if limit_s else None, "note": note, "samples_s": t}
+    return {
+        "measure": name,
+        "transport": kind,
+        "n": int(t.size),
+        "median_us": med * 1e6,
+        "p95_us": float(np.percentile(t, 95)) * 1e6,
+        "p99_us": float(np.percentile(t, 99)) * 1e6,
+        "rate_hz": 1.0 / med,
+        "hw_limit_hz": (1.0 / limit_s) if limit_s else None,
+        "x_faster_than_hw": (limit_s / med) if limit_s else None,
+        "note": note,
+        "samples_s": t,
+    }
 
 
 def bench_kind(kind: str, n: int) -> list[dict]:
@@ -84,9 +93,11 @@ def bench_kind(kind: str, n: int) -> list[dict]:
     with EmulatorServer(Pong(), kind=kind) as srv:
         tr = SerialTransport(srv.url, timeout_s=2.0)
         with tr:
+
             def ping():
                 tr.write(b"?")
                 tr.read_until(b"\n")
+
             rows.append(row("echo", kind, timed(ping, n, warm), None, "transport + server floor"))
     emu = GrblEmulator(steps_per_deg=80.0)
     with EmulatorServer(emu, kind=kind) as srv:
@@ -94,17 +105,24 @@ def bench_kind(kind: str, n: int) -> list[dict]:
         ax = GrblAxis(ctl, axis="X", steps_per_deg=80.0, max_rate_deg_s=30.0, accel_deg_s2=60.0, name="turntable")
         with ctl:
             rows.append(row("status", kind, timed(ctl.status, n, warm), WIRE_STATUS_S, "'?' -> report"))
-            rows.append(row("line", kind, timed(lambda: ctl.send_line("G90"), n, warm), WIRE_LINE_S,
-                            "'G90' -> ok"))
+            rows.append(row("line", kind, timed(lambda: ctl.send_line("G90"), n, warm), WIRE_LINE_S, "'G90' -> ok"))
             angles = iter(np.tile([12.5, 0.0], n + warm))
-            rows.append(row("move", kind, timed(lambda: ax.move_to(next(angles)), n, warm), WIRE_MOVE_S,
-                            "instant move: status, line, status"))
+            rows.append(
+                row(
+                    "move",
+                    kind,
+                    timed(lambda: ax.move_to(next(angles)), n, warm),
+                    WIRE_MOVE_S,
+                    "instant move: status, line, status",
+                )
+            )
     emu = EnttecEmulator()
     with EmulatorServer(emu, kind=kind) as srv:
         dmx = EnttecDmx.from_url(srv.url, timeout_s=2.0)
         with dmx:
-            rows.append(row("dmx_params", kind, timed(dmx.get_widget_parameters, n, warm), None,
-                            "label 3 request/reply"))
+            rows.append(
+                row("dmx_params", kind, timed(dmx.get_widget_parameters, n, warm), None, "label 3 request/reply")
+            )
             universe = bytes(range(256)) * 2
             base = emu.dmx_packets
             t0 = time.perf_counter()
@@ -134,19 +152,26 @@ def main(argv=None) -> int:
     wall = time.perf_counter() - t0
 
     OUT.mkdir(parents=True, exist_ok=True)
-    md = ["# Rig driver latency (driver + emulator in one process)", "",
-          f"Machine: {platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}, "
-          f"load {os.getloadavg()[0]:.1f}; n = {n} per row; run `.venv/bin/python benchmarks/rigs.py"
-          f"{' --quick' if args.quick else ''}`.", "",
-          "Hardware limits: GRBL status exchange 3.6 ms on the wire at 115200 baud (plus 5-20 ms report "
-          "generation in GRBL); DMX512 universe 22.7 ms on the line (DMX USB Pro: <= 40 packets/s).", "",
-          "| measure | transport | median µs | p95 µs | p99 µs | rate /s | hardware limit /s | × faster than hw |",
-          "|---|---|---:|---:|---:|---:|---:|---:|"]
+    md = [
+        "# Rig driver latency (driver + emulator in one process)",
+        "",
+        f"Machine: {platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}, "
+        f"load {os.getloadavg()[0]:.1f}; n = {n} per row; run `.venv/bin/python benchmarks/rigs.py"
+        f"{' --quick' if args.quick else ''}`.",
+        "",
+        "Hardware limits: GRBL status exchange 3.6 ms on the wire at 115200 baud (plus 5-20 ms report "
+        "generation in GRBL); DMX512 universe 22.7 ms on the line (DMX USB Pro: <= 40 packets/s).",
+        "",
+        "| measure | transport | median µs | p95 µs | p99 µs | rate /s | hardware limit /s | × faster than hw |",
+        "|---|---|---:|---:|---:|---:|---:|---:|",
+    ]
     for r in rows:
         hw = f"{r['hw_limit_hz']:.0f}" if r["hw_limit_hz"] else "—"
         x = f"{r['x_faster_than_hw']:.1f}" if r["x_faster_than_hw"] else "—"
-        md.append(f"| {r['measure']} | {r['transport']} | {r['median_us']:.0f} | {r['p95_us']:.0f} | "
-                  f"{r['p99_us']:.0f} | {r['rate_hz']:.0f} | {hw} | {x} |")
+        md.append(
+            f"| {r['measure']} | {r['transport']} | {r['median_us']:.0f} | {r['p95_us']:.0f} | "
+            f"{r['p99_us']:.0f} | {r['rate_hz']:.0f} | {hw} | {x} |"
+        )
     dmx = [r for r in rows if r["measure"] == "dmx_send"]
     md += ["", "DMX throughput: " + ", ".join(f"{r['transport']} {r['MB_s']:.1f} MB/s" for r in dmx) + ".", ""]
     (OUT / "rigs.md").write_text("\n".join(md) + "\n")
@@ -162,8 +187,12 @@ def main(argv=None) -> int:
             if r["measure"] == "dmx_send":
                 continue
             s = np.sort(r["samples_s"]) * 1e6
-            axes[0].plot(s, np.linspace(0, 1, s.size), ls="-" if r["transport"] == "pty" else "--",
-                         label=f"{r['measure']} ({r['transport']})")
+            axes[0].plot(
+                s,
+                np.linspace(0, 1, s.size),
+                ls="-" if r["transport"] == "pty" else "--",
+                label=f"{r['measure']} ({r['transport']})",
+            )
         axes[0].axvline(WIRE_STATUS_S * 1e6, color="k", lw=0.8)
         axes[0].text(WIRE_STATUS_S * 1e6, 0.05, " GRBL '?' wire time", fontsize=8)
         axes[0].set_xscale("log")
@@ -185,9 +214,14 @@ def main(argv=None) -> int:
     except ImportError:  # pragma: no cover
         pass
 
-    summary = {"benchmark": "rigs", "quick": args.quick, "n": n, "wall_s": wall,
-               "results": [{k: v for k, v in r.items() if k != "samples_s"} for r in rows],
-               "outputs": [str(OUT / "rigs.md"), str(OUT / "rigs.png")]}
+    summary = {
+        "benchmark": "rigs",
+        "quick": args.quick,
+        "n": n,
+        "wall_s": wall,
+        "results": [{k: v for k, v in r.items() if k != "samples_s"} for r in rows],
+        "outputs": [str(OUT / "rigs.md"), str(OUT / "rigs.png")],
+    }
     if args.json:
         print(json.dumps(summary))
     else:

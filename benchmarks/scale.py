@@ -47,10 +47,18 @@ def make_session(root: Path, *, n_table: int, width: int, height: int, lights: i
     from opacityhull.acquire.synthetic import SyntheticSessionConfig, write_synthetic_session
 
     t = time.perf_counter()
-    info = write_synthetic_session(root, SyntheticSessionConfig(n_table=n_table, width_px=width, height_px=height,
-                                                                n_light_dirs=lights, groundtruth=False))
-    return {"write_s": time.perf_counter() - t, "images": info["n_images"], "session_bytes": info["bytes"],
-            "views": len(info["views"])}
+    info = write_synthetic_session(
+        root,
+        SyntheticSessionConfig(
+            n_table=n_table, width_px=width, height_px=height, n_light_dirs=lights, groundtruth=False
+        ),
+    )
+    return {
+        "write_s": time.perf_counter() - t,
+        "images": info["n_images"],
+        "session_bytes": info["bytes"],
+        "views": len(info["views"]),
+    }
 
 
 def run_build_rss(session: Path, model: Path, *, reflectance: bool) -> dict:
@@ -72,18 +80,23 @@ def run_build_rss(session: Path, model: Path, *, reflectance: bool) -> dict:
         raise RuntimeError(f"build failed ({p.returncode}): {err.decode()[-2000:]}")
     rep = json.loads(out)
     model_bytes = sum(f.stat().st_size for f in model.rglob("*") if f.is_file())
-    views_bytes = sum(f.stat().st_size for d in ("views", "reflectance") if (model / d).is_dir()
-                      for f in (model / d).iterdir())
-    return {"build_s": wall, "peak_rss_mb": ru.ru_maxrss / 1024.0, "model_bytes": model_bytes,
-            "disk_bytes_per_view": views_bytes / max(rep["views"], 1), "surfels": rep["surfels"],
-            "steps_s": rep.get("seconds", {})}
+    views_bytes = sum(
+        f.stat().st_size for d in ("views", "reflectance") if (model / d).is_dir() for f in (model / d).iterdir()
+    )
+    return {
+        "build_s": wall,
+        "peak_rss_mb": ru.ru_maxrss / 1024.0,
+        "model_bytes": model_bytes,
+        "disk_bytes_per_view": views_bytes / max(rep["views"], 1),
+        "surfels": rep["surfels"],
+        "steps_s": rep.get("seconds", {}),
+    }
 
 
 def baseline_rss_mb() -> float:
     """Peak RSS of a child that only imports the build (interpreter, NumPy, numba, OpenCV,
     the cached kernels loaded lazily): the floor under every build's peak."""
-    p = subprocess.Popen([sys.executable, "-c", "import opacityhull.reconstruct.build, opacityhull.cli"],
-                         env=_env())
+    p = subprocess.Popen([sys.executable, "-c", "import opacityhull.reconstruct.build, opacityhull.cli"], env=_env())
     _, status, ru = os.wait4(p.pid, 0)
     return ru.ru_maxrss / 1024.0
 
@@ -92,8 +105,12 @@ def run_render_rss(model: Path, out: Path) -> dict:
     """``opacityhull render MODEL`` (the first captured view) in a child: time, peak RSS."""
     t = time.perf_counter()
     with tempfile.TemporaryFile() as fe:
-        p = subprocess.Popen([str(CLI), "render", str(model), "--out", str(out), "--json"],
-                             stdout=subprocess.DEVNULL, stderr=fe, env=_env())
+        p = subprocess.Popen(
+            [str(CLI), "render", str(model), "--out", str(out), "--json"],
+            stdout=subprocess.DEVNULL,
+            stderr=fe,
+            env=_env(),
+        )
         _, status, ru = os.wait4(p.pid, 0)
         if os.waitstatus_to_exitcode(status) != 0:
             fe.seek(0)
@@ -111,8 +128,11 @@ def sweep_point(tmp: Path, *, n_table: int, width: int, height: int, lights: int
         row.update(run_render_rss(m, tmp / f"{name}.png"))
     shutil.rmtree(s, ignore_errors=True)
     shutil.rmtree(m, ignore_errors=True)
-    print(f"  {name}: write {row['write_s']:.1f} s, build {row['build_s']:.1f} s, "
-          f"peak {row['peak_rss_mb']:.0f} MB, {row['disk_bytes_per_view'] / 1e3:.0f} kB/view", file=sys.stderr)
+    print(
+        f"  {name}: write {row['write_s']:.1f} s, build {row['build_s']:.1f} s, "
+        f"peak {row['peak_rss_mb']:.0f} MB, {row['disk_bytes_per_view'] / 1e3:.0f} kB/view",
+        file=sys.stderr,
+    )
     return row
 
 
@@ -128,12 +148,16 @@ def scheduler_comparison(tmp: Path, *, n_table: int, width: int, height: int, re
     make_session(s, n_table=n_table, width=width, height=height, lights=0)
     tasks = view_tasks(s)
     res: dict = {"views": len(tasks), "width": width, "height": height}
-    lc = LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
-                      dashboard_address=None, silence_logs=40)
+    lc = LocalCluster(
+        n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1", dashboard_address=None, silence_logs=40
+    )
     try:
-        execs = {"serial": open_executor("serial"), "threads": open_executor("threads", workers=2),
-                 "processes": open_executor("processes", workers=2),
-                 "cluster": open_executor(lc.scheduler_address)}
+        execs = {
+            "serial": open_executor("serial"),
+            "threads": open_executor("threads", workers=2),
+            "processes": open_executor("processes", workers=2),
+            "cluster": open_executor(lc.scheduler_address),
+        }
         ref = None
         for name, ex in execs.items():  # warm: numba caches, the session's manifest per worker
             got = ex.map(matte_view_checksum, tasks[:4])
@@ -182,8 +206,9 @@ def scheduler_comparison(tmp: Path, *, n_table: int, width: int, height: int, re
     shutil.rmtree(s, ignore_errors=True)
     best = {k: min(v) for k, v in times.items()}
     res["build_matting_seconds"] = {k: min(v) for k, v in build_times.items()}
-    res["build_matting_speedup_cluster"] = (res["build_matting_seconds"]["serial"]
-                                            / res["build_matting_seconds"]["cluster"])
+    res["build_matting_speedup_cluster"] = (
+        res["build_matting_seconds"]["serial"] / res["build_matting_seconds"]["cluster"]
+    )
     res["seconds"] = best
     res["cluster_chunksize"] = chunk["cluster_chunked"]
     res["per_view_ms"] = {k: 1e3 * v / len(tasks) for k, v in best.items()}
@@ -206,8 +231,9 @@ def plot(rows: list[dict], sched: dict, path: Path, base_mb: float | None = None
 
     fig, ax = plt.subplots(1, 3, figsize=(15, 4.2))
     groups = {
-        f"views ({rows[0]['width']}x{rows[0]['height']})":
-            [r for r in rows if r["lights"] == 0 and r["width"] == rows[0]["width"]],
+        f"views ({rows[0]['width']}x{rows[0]['height']})": [
+            r for r in rows if r["lights"] == 0 and r["width"] == rows[0]["width"]
+        ],
         "resolution (48 views)": [r for r in rows if r["views"] == 48 and r["lights"] == 0],
         "light directions (48 views)": [r for r in rows if r["views"] == 48 and r["width"] == rows[0]["width"]],
     }
@@ -230,7 +256,7 @@ def plot(rows: list[dict], sched: dict, path: Path, base_mb: float | None = None
         a.legend(fontsize=8)
     if sched:
         names = list(sched["seconds"])
-        ax[2].bar(names, [sched["seconds"][n] for n in names], color=["grey", "C0", "C1", "C2", "C3"][:len(names)])
+        ax[2].bar(names, [sched["seconds"][n] for n in names], color=["grey", "C0", "C1", "C2", "C3"][: len(names)])
         for i, n in enumerate(names):
             ax[2].text(i, sched["seconds"][n], f"{sched['speedup_vs_serial'][n]:.2f}x", ha="center", va="bottom")
         ax[2].set_ylabel("s")
@@ -241,40 +267,62 @@ def plot(rows: list[dict], sched: dict, path: Path, base_mb: float | None = None
 
 
 def table(rows: list[dict], sched: dict, summary: dict, quick: bool) -> str:
-    lines = ["# Paper scale (benchmarks/scale.py)", "",
-             f"Mode: {'quick' if quick else 'full'}. Synthetic analytic session (6 cameras, no Mitsuba), "
-             "`opacityhull build --no-pictures` in a child process per point; peak RSS = the child's "
-             "`ru_maxrss`. The machine is a shared, loaded 2-core VM: timings are contended, "
-             "ratios measured in one run are what to compare.", "",
-             "| views | size | lights | images | session MB | write s | build s | peak RSS MB | model kB/view "
-             "| surfels |",
-             "|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    lines = [
+        "# Paper scale (benchmarks/scale.py)",
+        "",
+        f"Mode: {'quick' if quick else 'full'}. Synthetic analytic session (6 cameras, no Mitsuba), "
+        "`opacityhull build --no-pictures` in a child process per point; peak RSS = the child's "
+        "`ru_maxrss`. The machine is a shared, loaded 2-core VM: timings are contended, "
+        "ratios measured in one run are what to compare.",
+        "",
+        "| views | size | lights | images | session MB | write s | build s | peak RSS MB | model kB/view | surfels |",
+        "|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|",
+    ]
     for r in rows:
-        lines.append(f"| {r['views']} | {r['width']}x{r['height']} | {r['lights']} | {r['images']} | "
-                     f"{r['session_bytes'] / 1e6:.1f} | {r['write_s']:.1f} | {r['build_s']:.1f} | "
-                     f"{r['peak_rss_mb']:.0f} | {r['disk_bytes_per_view'] / 1e3:.1f} | {r['surfels']} |")
+        lines.append(
+            f"| {r['views']} | {r['width']}x{r['height']} | {r['lights']} | {r['images']} | "
+            f"{r['session_bytes'] / 1e6:.1f} | {r['write_s']:.1f} | {r['build_s']:.1f} | "
+            f"{r['peak_rss_mb']:.0f} | {r['disk_bytes_per_view'] / 1e3:.1f} | {r['surfels']} |"
+        )
     if "baseline_rss_mb" in summary:
-        lines += ["", f"A child that only imports the build peaks at {summary['baseline_rss_mb']:.0f} MB: the "
-                  "floor under every row (at 64x48 the views' own data is a few MB)."]
+        lines += [
+            "",
+            f"A child that only imports the build peaks at {summary['baseline_rss_mb']:.0f} MB: the "
+            "floor under every row (at 64x48 the views' own data is a few MB).",
+        ]
     if summary.get("render_peak_rss_mb_432_views"):
-        lines += ["", "Renderer (`opacityhull render MODEL`, first captured view, child process) peak RSS: "
-                  f"{summary['render_peak_rss_mb_48_views']:.0f} MB for the 48-view model, "
-                  f"{summary['render_peak_rss_mb_432_views']:.0f} MB for the 432-view one."]
+        lines += [
+            "",
+            "Renderer (`opacityhull render MODEL`, first captured view, child process) peak RSS: "
+            f"{summary['render_peak_rss_mb_48_views']:.0f} MB for the 48-view model, "
+            f"{summary['render_peak_rss_mb_432_views']:.0f} MB for the 432-view one.",
+        ]
     if sched:
-        lines += ["", f"Per-view matting of {sched['views']} views at {sched['width']}x{sched['height']} "
-                  "(warm, best of repeats, mattes checked equal to serial):", "",
-                  "| scheduler | s | ms/view | speedup |", "|---|---:|---:|---:|"]
+        lines += [
+            "",
+            f"Per-view matting of {sched['views']} views at {sched['width']}x{sched['height']} "
+            "(warm, best of repeats, mattes checked equal to serial):",
+            "",
+            "| scheduler | s | ms/view | speedup |",
+            "|---|---:|---:|---:|",
+        ]
         for k, v in sched["seconds"].items():
             lines.append(f"| {k} | {v:.2f} | {sched['per_view_ms'][k]:.1f} | {sched['speedup_vs_serial'][k]:.2f} |")
         if "build_matting_seconds" in sched:
             bm = sched["build_matting_seconds"]
-            lines += ["", f"`build_model`'s matting step on the same session (`--scheduler`; each view's matte "
-                      f"written to MODEL/build/mattes, the models checked equal): serial {bm['serial']:.2f} s, "
-                      f"2-worker cluster {bm['cluster']:.2f} s, {sched['build_matting_speedup_cluster']:.2f}x."]
-        lines += ["", f"16 workers (projected: the serial per-view cost over 16 slots plus the cluster's "
-                  f"own {sched['cluster_overhead_ms_per_task']:.1f} ms per task and slot, measured with no-op tasks): "
-                  f"{sched['projected_16_workers_s']:.2f} s, {sched['projected_16_worker_speedup']:.1f}x serial "
-                  "(assumes 16 real cores and a file system that keeps up)."]
+            lines += [
+                "",
+                f"`build_model`'s matting step on the same session (`--scheduler`; each view's matte "
+                f"written to MODEL/build/mattes, the models checked equal): serial {bm['serial']:.2f} s, "
+                f"2-worker cluster {bm['cluster']:.2f} s, {sched['build_matting_speedup_cluster']:.2f}x.",
+            ]
+        lines += [
+            "",
+            f"16 workers (projected: the serial per-view cost over 16 slots plus the cluster's "
+            f"own {sched['cluster_overhead_ms_per_task']:.1f} ms per task and slot, measured with no-op tasks): "
+            f"{sched['projected_16_workers_s']:.2f} s, {sched['projected_16_worker_speedup']:.1f}x serial "
+            "(assumes 16 real cores and a file system that keeps up).",
+        ]
     lines += ["", "Summary: `" + json.dumps(summary) + "`", ""]
     return "\n".join(lines)
 
@@ -303,10 +351,17 @@ def main() -> None:
     base_mb = baseline_rss_mb()
     try:
         for n_table, w, h, lights in points:
-            rows.append(sweep_point(tmp, n_table=n_table, width=w, height=h, lights=lights,
-                                    render=(w, h) == small and lights == 0 and n_table in (8, 72)))
-        sched = scheduler_comparison(tmp, n_table=sched_pt[0], width=sched_pt[1], height=sched_pt[2],
-                                     repeats=repeats)
+            rows.append(
+                sweep_point(
+                    tmp,
+                    n_table=n_table,
+                    width=w,
+                    height=h,
+                    lights=lights,
+                    render=(w, h) == small and lights == 0 and n_table in (8, 72),
+                )
+            )
+        sched = scheduler_comparison(tmp, n_table=sched_pt[0], width=sched_pt[1], height=sched_pt[2], repeats=repeats)
     finally:
         if args.tmp is None:
             shutil.rmtree(tmp, ignore_errors=True)
@@ -341,8 +396,9 @@ def main() -> None:
     if not args.quick:
         big = (200, 150)
         summary["peak_rss_ratio_432_vs_48_at_200x150"] = pick(432, big)["peak_rss_mb"] / pick(48, big)["peak_rss_mb"]
-        summary["peak_rss_above_baseline_ratio_432_vs_48_at_200x150"] = (
-            (pick(432, big)["peak_rss_mb"] - base_mb) / max(pick(48, big)["peak_rss_mb"] - base_mb, 1.0))
+        summary["peak_rss_above_baseline_ratio_432_vs_48_at_200x150"] = (pick(432, big)["peak_rss_mb"] - base_mb) / max(
+            pick(48, big)["peak_rss_mb"] - base_mb, 1.0
+        )
     res = {"summary": summary, **summary, "rows": rows, "schedulers": sched}
     (OUT / "scale.json").write_text(json.dumps(res, indent=1))
     (OUT / "scale.md").write_text(table(rows, sched, summary, args.quick))

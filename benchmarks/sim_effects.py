@@ -67,8 +67,10 @@ def throughput(n: int, scales=(1.0, 2.0)) -> dict:
     mi = use_mitsuba()
     g = default_geometry()
     rng = np.random.default_rng(0)
-    pats = [{d.name: rng.integers(0, 256, (d.resolution[1], d.resolution[0], 3), dtype=np.uint8)
-             for d in g.displays} for _ in range(n + 1)]
+    pats = [
+        {d.name: rng.integers(0, 256, (d.resolution[1], d.resolution[0], 3), dtype=np.uint8) for d in g.displays}
+        for _ in range(n + 1)
+    ]
     cases = [
         ("diffuse", "reflectance", SimState(table_deg=10, light_levels={1: 255})),
         ("diffuse", "lightfield", SimState(table_deg=10, light_levels={i: 255 for i in range(4)})),
@@ -110,15 +112,30 @@ def throughput(n: int, scales=(1.0, 2.0)) -> dict:
                 eff = r.effects_for(st)
                 passes = len(st.lights_on()) + (1 if st.displays_on() else 0)
                 dt = float(np.median(t_obj[mode]))
-                out["cases"].append({
-                    "scene": name, "phase": phase, "mode": mode, "width": cam.width, "height": cam.height,
-                    "integrator": eff.integrator, "max_depth": eff.max_depth, "spp": eff.spp, "passes": passes,
-                    "first_render_s": t_first[mode], "warm_render_s": dt, "warm_render_min_s": float(np.min(t_obj[mode])),
-                    "backdrop_shot_s": float(np.median(t_bg[mode])) if t_bg[mode] else None,
-                    "renders_per_s": 1.0 / dt, "pixel_fraction": r.pixels_rendered / max(r.pixels_framed, 1),
-                    "samples_per_s": cam.width * cam.height * eff.spp * passes / dt})
-                print(f"throughput {mi.variant()} {cam.width}x{cam.height} {name} {phase} {mode}: {dt:.3f} s",
-                      file=sys.stderr)
+                out["cases"].append(
+                    {
+                        "scene": name,
+                        "phase": phase,
+                        "mode": mode,
+                        "width": cam.width,
+                        "height": cam.height,
+                        "integrator": eff.integrator,
+                        "max_depth": eff.max_depth,
+                        "spp": eff.spp,
+                        "passes": passes,
+                        "first_render_s": t_first[mode],
+                        "warm_render_s": dt,
+                        "warm_render_min_s": float(np.min(t_obj[mode])),
+                        "backdrop_shot_s": float(np.median(t_bg[mode])) if t_bg[mode] else None,
+                        "renders_per_s": 1.0 / dt,
+                        "pixel_fraction": r.pixels_rendered / max(r.pixels_framed, 1),
+                        "samples_per_s": cam.width * cam.height * eff.spp * passes / dt,
+                    }
+                )
+                print(
+                    f"throughput {mi.variant()} {cam.width}x{cam.height} {name} {phase} {mode}: {dt:.3f} s",
+                    file=sys.stderr,
+                )
     return out
 
 
@@ -166,46 +183,95 @@ def accuracy(quick: bool, scales=(1.0,), *, scenes=None, phases=None, ref_spp: i
             for scale in scales:
                 base = calibration_camera() if phase == "calibration" else g.nominal_cameras()[2]
                 cam = base if scale == 1 else base.scaled(scale)
-                also = () if phase in ("calibration", "groundtruth") else tuple(
-                    reference_effects(scene, phase, spp=s_) for s_ in low_spps)
+                also = (
+                    ()
+                    if phase in ("calibration", "groundtruth")
+                    else tuple(reference_effects(scene, phase, spp=s_) for s_ in low_spps)
+                )
                 # the selection as it was before crop rendering, cheaper backdrops and the
                 # declared-matting candidates (2026-12-01): whole frame, the undeclared spp
                 before = replace(select_effects(scene, phase, declared=False), crop=False, backdrop_spp=None)
                 if phase != "groundtruth":
                     also = also + (before,)
                 t0 = time.perf_counter()
-                e = phase_error(scene, phase, geometry=g, camera=cam, ref_spp=ref_spp, renderer=r, warm=True, seed=1,
-                                also=also, clock=CLOCK)
-                row = {**e.to_json(), "wall_s": time.perf_counter() - t0, "width": cam.width, "height": cam.height,
-                       "scale": scale, "ref_spp": ref_spp}
+                e = phase_error(
+                    scene,
+                    phase,
+                    geometry=g,
+                    camera=cam,
+                    ref_spp=ref_spp,
+                    renderer=r,
+                    warm=True,
+                    seed=1,
+                    also=also,
+                    clock=CLOCK,
+                )
+                row = {
+                    **e.to_json(),
+                    "wall_s": time.perf_counter() - t0,
+                    "width": cam.width,
+                    "height": cam.height,
+                    "scale": scale,
+                    "ref_spp": ref_spp,
+                }
                 refs = [(c.spp, err, t) for c, err, t in e.also if c.max_depth == 16 and not c.crop]
                 row.update(equal_error(e.error, refs, ref_spp, e.seconds_reference))
                 prev = [(err, t) for c, err, t in e.also if c == before]
                 row["error_before"], row["seconds_before"] = prev[0] if prev else (None, None)
-                row["speedup_over_before"] = (prev[0][1] / max(e.seconds_selected, 1e-9) if prev else None)
-                row["speedup_equal_error"] = (row["t_ref_equal_error"] / max(e.seconds_selected, 1e-9)
-                                              if row["t_ref_equal_error"] else None)
+                row["speedup_over_before"] = prev[0][1] / max(e.seconds_selected, 1e-9) if prev else None
+                row["speedup_equal_error"] = (
+                    row["t_ref_equal_error"] / max(e.seconds_selected, 1e-9) if row["t_ref_equal_error"] else None
+                )
                 rows.append(row)
-                eq = (f" equal-error ref {row['ref_spp_equal_error']:.0f}spp {row['t_ref_equal_error']:.3f}s"
-                      if row["t_ref_equal_error"] else "")
-                print(f"{name:8s} {phase:12s} {cam.width}x{cam.height} {e.metric:9s} err {e.error:.4f} "
-                      f"(bound {e.bound}) sel {e.seconds_selected:.3f}s ref {e.seconds_reference:.3f}s{eq}",
-                      file=sys.stderr, flush=True)
+                eq = (
+                    f" equal-error ref {row['ref_spp_equal_error']:.0f}spp {row['t_ref_equal_error']:.3f}s"
+                    if row["t_ref_equal_error"]
+                    else ""
+                )
+                print(
+                    f"{name:8s} {phase:12s} {cam.width}x{cam.height} {e.metric:9s} err {e.error:.4f} "
+                    f"(bound {e.bound}) sel {e.seconds_selected:.3f}s ref {e.seconds_reference:.3f}s{eq}",
+                    file=sys.stderr,
+                    flush=True,
+                )
                 if phase == "envmatte":
                     # the rig cannot tell an envmatte capture from a matting one (same emitters):
                     # SimCamera renders it with the matting selection — measure that too
                     mat = select_effects(scene, "matting", declared=False)  # what an undeclared shot gets
                     env = select_effects(scene, "envmatte")
                     if mat.key() != env.key() or mat.spp != env.spp:
-                        as_captured = replace(mat, phase="envmatte", error_metric=env.error_metric,
-                                              error_bound=env.error_bound)
-                        e2 = phase_error(scene, phase, geometry=g, camera=cam, ref_spp=ref_spp, renderer=r,
-                                         warm=True, seed=1, selected=as_captured, clock=CLOCK)
-                        rows.append({**e2.to_json(), "phase": "envmatte (captured as matting)", "wall_s": 0.0,
-                                     "width": cam.width, "height": cam.height, "scale": scale, "ref_spp": ref_spp,
-                                     "ref_spp_equal_error": None, "t_ref_equal_error": None,
-                                     "speedup_equal_error": None, "error_before": None, "seconds_before": None,
-                                     "speedup_over_before": None})
+                        as_captured = replace(
+                            mat, phase="envmatte", error_metric=env.error_metric, error_bound=env.error_bound
+                        )
+                        e2 = phase_error(
+                            scene,
+                            phase,
+                            geometry=g,
+                            camera=cam,
+                            ref_spp=ref_spp,
+                            renderer=r,
+                            warm=True,
+                            seed=1,
+                            selected=as_captured,
+                            clock=CLOCK,
+                        )
+                        rows.append(
+                            {
+                                **e2.to_json(),
+                                "phase": "envmatte (captured as matting)",
+                                "wall_s": 0.0,
+                                "width": cam.width,
+                                "height": cam.height,
+                                "scale": scale,
+                                "ref_spp": ref_spp,
+                                "ref_spp_equal_error": None,
+                                "t_ref_equal_error": None,
+                                "speedup_equal_error": None,
+                                "error_before": None,
+                                "seconds_before": None,
+                                "speedup_over_before": None,
+                            }
+                        )
     return rows
 
 
@@ -230,8 +296,11 @@ def matting_candidates(scenes=None, *, rounds: int = 4, ref_spp: int = 256, scal
     rig_cam = rig_cam if scale == 1 else rig_cam.scaled(scale)
     table = 20.0
     rows = []
-    for name, (cam_name, cam) in [(n, c) for n in scenes or ("diffuse", "sphere", "glass", "glossy", "fuzzy")
-                                  for c in (("rig", rig_cam), ("test", eval_camera()))]:
+    for name, (cam_name, cam) in [
+        (n, c)
+        for n in scenes or ("diffuse", "sphere", "glass", "glossy", "fuzzy")
+        for c in (("rig", rig_cam), ("test", eval_camera()))
+    ]:
         sc = load_scene(f"builtin:{name}")
         r = SimRenderer(sc, g)
         sel = select_effects(sc, "matting")
@@ -254,17 +323,20 @@ def matting_candidates(scenes=None, *, rounds: int = 4, ref_spp: int = 256, scal
             return triangulation_alpha(imgs[("c", 0)], imgs[("c", 1)], imgs[("b", 0)], imgs[("b", 1)]), secs
 
         a_ref, _ = run(reference_effects(sc, "matting", spp=ref_spp), 1000)
-        mask = coverage_mask(render_ground_truth(sc, RigGeometry.view_camera(cam, table), spp=64, renderer=r,
-                                                 seed=12)["alpha"])
+        mask = coverage_mask(
+            render_ground_truth(sc, RigGeometry.view_camera(cam, table), spp=64, renderer=r, seed=12)["alpha"]
+        )
         base = select_effects(sc, "matting", declared=False)  # the integrator of the kind's matting row
         cands = {"before": replace(base, spp=64, crop=False, backdrop_spp=None)}
         for spp in (16, 25, 36, 49, 64):
-            cands[f"{base.integrator} d{base.max_depth} {spp}"] = replace(base, spp=spp, crop=True,
-                                                                         backdrop_spp=min(16, spp))
+            cands[f"{base.integrator} d{base.max_depth} {spp}"] = replace(
+                base, spp=spp, crop=True, backdrop_spp=min(16, spp)
+            )
         if base.integrator == "direct":
             for spp in (16, 36):
-                cands[f"path d2 {spp}"] = replace(base, integrator="path", max_depth=2, spp=spp, crop=True,
-                                                  backdrop_spp=min(16, spp))
+                cands[f"path d2 {spp}"] = replace(
+                    base, integrator="path", max_depth=2, spp=spp, crop=True, backdrop_spp=min(16, spp)
+                )
         for c in cands.values():
             run(c, 5)  # warm: JIT compilation out of the timings
         errs: dict = {k: [] for k in cands}
@@ -277,14 +349,33 @@ def matting_candidates(scenes=None, *, rounds: int = 4, ref_spp: int = 256, scal
         t_before = float(np.median(secs["before"]))
         for k, c in cands.items():
             t = float(np.median(secs[k]))
-            rows.append({"scene": name, "kind": scene_kind(sc, "matting"), "camera": cam_name,
-                         "width": cam.width, "height": cam.height,
-                         "candidate": k, "integrator": c.integrator, "max_depth": c.max_depth, "spp": c.spp,
-                         "crop": c.crop, "error": float(np.mean(errs[k])), "error_max": float(np.max(errs[k])),
-                         "bound": sel.error_bound, "pair_s": t, "speedup_over_before": t_before / max(t, 1e-9),
-                         "rounds": rounds, "ref_spp": ref_spp})
-            print(f"candidates {name:8s} {k:16s} err {rows[-1]['error']:.4f} (bound {sel.error_bound}) "
-                  f"pair {t:.3f}s x{rows[-1]['speedup_over_before']:.2f} over before", file=sys.stderr, flush=True)
+            rows.append(
+                {
+                    "scene": name,
+                    "kind": scene_kind(sc, "matting"),
+                    "camera": cam_name,
+                    "width": cam.width,
+                    "height": cam.height,
+                    "candidate": k,
+                    "integrator": c.integrator,
+                    "max_depth": c.max_depth,
+                    "spp": c.spp,
+                    "crop": c.crop,
+                    "error": float(np.mean(errs[k])),
+                    "error_max": float(np.max(errs[k])),
+                    "bound": sel.error_bound,
+                    "pair_s": t,
+                    "speedup_over_before": t_before / max(t, 1e-9),
+                    "rounds": rounds,
+                    "ref_spp": ref_spp,
+                }
+            )
+            print(
+                f"candidates {name:8s} {k:16s} err {rows[-1]['error']:.4f} (bound {sel.error_bound}) "
+                f"pair {t:.3f}s x{rows[-1]['speedup_over_before']:.2f} over before",
+                file=sys.stderr,
+                flush=True,
+            )
     return rows
 
 
@@ -299,8 +390,9 @@ def candidates_table(rows: list[dict]) -> dict:
         key = (r["integrator"], r["max_depth"], r["spp"])
         e, t = out.setdefault(r["kind"], {}).get(key, (0.0, 0.0))
         out[r["kind"]][key] = (max(e, r["error"]), max(t, r["pair_s"]) if r.get("camera", "rig") == "rig" else t)
-    return {kind: sorted((i, d, s, round(e, 4), round(t, 3)) for (i, d, s), (e, t) in v.items())
-            for kind, v in out.items()}
+    return {
+        kind: sorted((i, d, s, round(e, 4), round(t, 3)) for (i, d, s), (e, t) in v.items()) for kind, v in out.items()
+    }
 
 
 def refresh_bounds(rows: list[dict]) -> list[dict]:
@@ -320,69 +412,99 @@ def _f(v, fmt="{:.3f}"):
     return "—" if v is None else fmt.format(v)
 
 
-def write_outputs(rows: list[dict], tput: list[dict], quick: bool, notes: list[str] | None = None,
-                  candidates: list[dict] | None = None) -> dict:
+def write_outputs(
+    rows: list[dict],
+    tput: list[dict],
+    quick: bool,
+    notes: list[str] | None = None,
+    candidates: list[dict] | None = None,
+) -> dict:
     OUT.mkdir(parents=True, exist_ok=True)
-    lines = ["# Simulator effect selection vs full-effects reference", "",
-             f"Mode: {'quick' if quick else 'full'}; reference = path tracing, max_depth 16, whole frame, "
-             f"{rows[0]['ref_spp'] if rows else '?'} spp; camera 2 of the default rig (calibration: a camera seeing "
-             "the whole board) at each size; warm timings (JIT compile excluded); selections crop to the object's "
-             "footprint. 'equal-error ref' = the reference configuration at the spp where its own noise equals the "
-             "selection's error (interpolated from its error at low spp).", "",
-             f"Timings: {'CPU seconds of the benchmark process (all Mitsuba threads)' if CLOCK is time.process_time else 'wall seconds'}"
-             "; 2-core machine shared with ~8 other jobs (contended); ratios are measured in one process.", "",
-             "'before' = the same selection rendered as on 2026-12-01 (whole frame, backdrops at the shot's spp; "
-             "matting: 64 spp, what a shot whose capture does not declare its phase still gets).", "",
-             "matting rows are the *declared* matting selection (SimState.phase = 'matting', set by "
-             "SimRig.note_phase): the cheapest measured candidate inside the crop within 0.85 x the bound (see "
-             "'Matting candidates' below). 'envmatte (captured as matting)' is what an undeclared displays-on shot "
-             "gets. The speed-ups of the first table come from single sequential runs on a contended machine "
-             "(up to ~2x apart run to run); the candidates table's speed-ups over 'before' are measured alternately.",
-             "",
-             "| scene | phase | size | selected | metric | error | bound | ok | t selected (s) | t reference (s) | "
-             "speed-up | equal-error ref (spp, s) | speed-up at equal error | before: error, t (s) | "
-             "speed-up over before |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    lines = [
+        "# Simulator effect selection vs full-effects reference",
+        "",
+        f"Mode: {'quick' if quick else 'full'}; reference = path tracing, max_depth 16, whole frame, "
+        f"{rows[0]['ref_spp'] if rows else '?'} spp; camera 2 of the default rig (calibration: a camera seeing "
+        "the whole board) at each size; warm timings (JIT compile excluded); selections crop to the object's "
+        "footprint. 'equal-error ref' = the reference configuration at the spp where its own noise equals the "
+        "selection's error (interpolated from its error at low spp).",
+        "",
+        f"Timings: {'CPU seconds of the benchmark process (all Mitsuba threads)' if CLOCK is time.process_time else 'wall seconds'}"
+        "; 2-core machine shared with ~8 other jobs (contended); ratios are measured in one process.",
+        "",
+        "'before' = the same selection rendered as on 2026-12-01 (whole frame, backdrops at the shot's spp; "
+        "matting: 64 spp, what a shot whose capture does not declare its phase still gets).",
+        "",
+        "matting rows are the *declared* matting selection (SimState.phase = 'matting', set by "
+        "SimRig.note_phase): the cheapest measured candidate inside the crop within 0.85 x the bound (see "
+        "'Matting candidates' below). 'envmatte (captured as matting)' is what an undeclared displays-on shot "
+        "gets. The speed-ups of the first table come from single sequential runs on a contended machine "
+        "(up to ~2x apart run to run); the candidates table's speed-ups over 'before' are measured alternately.",
+        "",
+        "| scene | phase | size | selected | metric | error | bound | ok | t selected (s) | t reference (s) | "
+        "speed-up | equal-error ref (spp, s) | speed-up at equal error | before: error, t (s) | "
+        "speed-up over before |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
     for r in rows:
         s = r["selected"]
-        eq = (f"{r['ref_spp_equal_error']:.0f}, {r['t_ref_equal_error']:.3f}" if r.get("t_ref_equal_error")
-              else "—")
-        lines.append(f"| {r['scene']} | {r['phase']} | {r['width']}x{r['height']} | {s['integrator']} d{s['max_depth']} "
-                     f"{s['spp']}spp{' crop' if s.get('crop') else ''} | {r['metric']} | {r['error']:.4f} | {r['bound']} | "
-                     f"{'yes' if r['within_bound'] else '**NO**'} | {r['seconds_selected']:.3f} | "
-                     f"{r['seconds_reference']:.3f} | {r['speedup']:.1f}x | {eq} | "
-                     f"{_f(r.get('speedup_equal_error'), '{:.1f}x')} | "
-                     + (f"{r['error_before']:.4f}, {r['seconds_before']:.3f}" if r.get("seconds_before") else "—")
-                     + f" | {_f(r.get('speedup_over_before'), '{:.1f}x')} |")
-    lines += ["", "# Capture times per shot (warm, median)", "",
-              "One capture = one Mitsuba render per light switched on plus one for the displays (x passes). "
-              "'crop' and 'full frame' were measured alternately in one process; a matting object shot takes "
-              "its outside pixels from the backdrop shot of the same patterns, taken first (as a capture does).", "",
-              "| variant | size | scene | phase | config | mode | pixels rendered | first capture (s, incl. load+JIT) | "
-              "warm object shot (s) | backdrop shot (s) |", "|---|---|---|---|---|---|---|---|---|---|"]
+        eq = f"{r['ref_spp_equal_error']:.0f}, {r['t_ref_equal_error']:.3f}" if r.get("t_ref_equal_error") else "—"
+        lines.append(
+            f"| {r['scene']} | {r['phase']} | {r['width']}x{r['height']} | {s['integrator']} d{s['max_depth']} "
+            f"{s['spp']}spp{' crop' if s.get('crop') else ''} | {r['metric']} | {r['error']:.4f} | {r['bound']} | "
+            f"{'yes' if r['within_bound'] else '**NO**'} | {r['seconds_selected']:.3f} | "
+            f"{r['seconds_reference']:.3f} | {r['speedup']:.1f}x | {eq} | "
+            f"{_f(r.get('speedup_equal_error'), '{:.1f}x')} | "
+            + (f"{r['error_before']:.4f}, {r['seconds_before']:.3f}" if r.get("seconds_before") else "—")
+            + f" | {_f(r.get('speedup_over_before'), '{:.1f}x')} |"
+        )
+    lines += [
+        "",
+        "# Capture times per shot (warm, median)",
+        "",
+        "One capture = one Mitsuba render per light switched on plus one for the displays (x passes). "
+        "'crop' and 'full frame' were measured alternately in one process; a matting object shot takes "
+        "its outside pixels from the backdrop shot of the same patterns, taken first (as a capture does).",
+        "",
+        "| variant | size | scene | phase | config | mode | pixels rendered | first capture (s, incl. load+JIT) | "
+        "warm object shot (s) | backdrop shot (s) |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
     for t in tput:
         for c in t.get("cases", []):
-            lines.append(f"| {t['variant']} | {c['width']}x{c['height']} | {c['scene']} | {c['phase']} | "
-                         f"{c['integrator']} d{c['max_depth']} {c['spp']}spp x{c.get('passes', 1)} | {c['mode']} | "
-                         f"{100 * c['pixel_fraction']:.0f}% | {c['first_render_s']:.2f} | {c['warm_render_s']:.3f} | "
-                         f"{_f(c.get('backdrop_shot_s'))} |")
+            lines.append(
+                f"| {t['variant']} | {c['width']}x{c['height']} | {c['scene']} | {c['phase']} | "
+                f"{c['integrator']} d{c['max_depth']} {c['spp']}spp x{c.get('passes', 1)} | {c['mode']} | "
+                f"{100 * c['pixel_fraction']:.0f}% | {c['first_render_s']:.2f} | {c['warm_render_s']:.3f} | "
+                f"{_f(c.get('backdrop_shot_s'))} |"
+            )
         if "error" in t:
             lines.append(f"| {t['variant']} | — | — | — | failed: {t['error']} | | | | | |")
     if candidates:
-        lines += ["", "# Matting candidates inside the crop (what the selection picks from)", "",
-                  "Each round renders every candidate once, alternately; error = alpha MAE against one reference "
-                  "(mean over rounds, new seeds), time = CPU seconds per object + backdrop shot pair (median). "
-                  "'before' = the 2026-12-01 selection (whole frame, 64 spp, backdrops at 64 spp). The selection "
-                  "(opacityhull.sim.effects.MATTING_CANDIDATES, worst built-in of each kind) takes the cheapest "
-                  "candidate whose error is within MATTING_MARGIN x the bound.", "",
-                  "| scene | camera | candidate | error (mean, max) | bound | pair (s) | speed-up over before |",
-                  "|---|---|---|---|---|---|---|"]
+        lines += [
+            "",
+            "# Matting candidates inside the crop (what the selection picks from)",
+            "",
+            "Each round renders every candidate once, alternately; error = alpha MAE against one reference "
+            "(mean over rounds, new seeds), time = CPU seconds per object + backdrop shot pair (median). "
+            "'before' = the 2026-12-01 selection (whole frame, 64 spp, backdrops at 64 spp). The selection "
+            "(opacityhull.sim.effects.MATTING_CANDIDATES, worst built-in of each kind) takes the cheapest "
+            "candidate whose error is within MATTING_MARGIN x the bound.",
+            "",
+            "| scene | camera | candidate | error (mean, max) | bound | pair (s) | speed-up over before |",
+            "|---|---|---|---|---|---|---|",
+        ]
         for c in candidates:
-            lines.append(f"| {c['scene']} | {c.get('camera', 'rig')} {c['width']}x{c['height']} | {c['candidate']} | "
-                         f"{c['error']:.4f}, "
-                         f"{c['error_max']:.4f} | {c['bound']} | {c['pair_s']:.3f} | {c['speedup_over_before']:.2f}x |")
-    lines += ["", "Machine: 2 cores shared with other jobs; Mitsuba renders are compute-bound (ray "
-              "traversal and shading), not memory-bound, so the 10 GB/s bandwidth limit is not the bound here."]
+            lines.append(
+                f"| {c['scene']} | {c.get('camera', 'rig')} {c['width']}x{c['height']} | {c['candidate']} | "
+                f"{c['error']:.4f}, "
+                f"{c['error_max']:.4f} | {c['bound']} | {c['pair_s']:.3f} | {c['speedup_over_before']:.2f}x |"
+            )
+    lines += [
+        "",
+        "Machine: 2 cores shared with other jobs; Mitsuba renders are compute-bound (ray "
+        "traversal and shading), not memory-bound, so the 10 GB/s bandwidth limit is not the bound here.",
+    ]
     lines += [""] + list(notes or [])
     (OUT / "sim_effects.md").write_text("\n".join(lines) + "\n")
 
@@ -397,11 +519,17 @@ def write_outputs(rows: list[dict], tput: list[dict], quick: bool, notes: list[s
     markers = dict(zip(phases, "osD^vP*X"))
     for r in rows:
         y = max(r["error"], 1e-5)
-        ax.scatter(r["seconds_selected"], y, marker=markers[r["phase"]], s=40,
-                   color="tab:green" if r["within_bound"] else "tab:red")
+        ax.scatter(
+            r["seconds_selected"],
+            y,
+            marker=markers[r["phase"]],
+            s=40,
+            color="tab:green" if r["within_bound"] else "tab:red",
+        )
         if r.get("t_ref_equal_error"):
-            ax.scatter(r["t_ref_equal_error"], y, marker=markers[r["phase"]], s=30, facecolors="none",
-                       edgecolors="tab:blue")
+            ax.scatter(
+                r["t_ref_equal_error"], y, marker=markers[r["phase"]], s=30, facecolors="none", edgecolors="tab:blue"
+            )
             ax.plot([r["seconds_selected"], r["t_ref_equal_error"]], [y, y], color="tab:blue", lw=0.4)
         for a in r.get("also", []):
             ax.scatter(a["seconds"], max(a["error"], 1e-5), marker=markers[r["phase"]], s=12, color="tab:gray")
@@ -420,8 +548,12 @@ def write_outputs(rows: list[dict], tput: list[dict], quick: bool, notes: list[s
     labels = [f"{r['scene'].split(':')[-1]} {r['phase'][:5]} {r['width']}" for r in rows]
     x = np.arange(len(rows))
     ax.bar(x - 0.2, [r["error"] / r["bound"] for r in rows], 0.4, label="error / bound")
-    ax.bar(x + 0.2, [np.log10(max(r.get("speedup_equal_error") or r["speedup"], 1.0)) for r in rows], 0.4,
-           label="log10 speed-up (at equal error where measured)")
+    ax.bar(
+        x + 0.2,
+        [np.log10(max(r.get("speedup_equal_error") or r["speedup"], 1.0)) for r in rows],
+        0.4,
+        label="log10 speed-up (at equal error where measured)",
+    )
     ax.axhline(1.0, color="r", lw=0.8)
     ax.axhline(np.log10(3.0), color="k", lw=0.6, ls="--")
     ax.set_xticks(x)
@@ -431,47 +563,74 @@ def write_outputs(rows: list[dict], tput: list[dict], quick: bool, notes: list[s
     fig.tight_layout()
     fig.savefig(OUT / "sim_effects.png", dpi=120)
     plt.close(fig)
-    summary = {"accuracy": rows, "throughput": tput, "matting_candidates": candidates or [],
-               "all_within_bounds": all(r["within_bound"] for r in rows),
-               "table": str(OUT / "sim_effects.md"), "plot": str(OUT / "sim_effects.png")}
+    summary = {
+        "accuracy": rows,
+        "throughput": tput,
+        "matting_candidates": candidates or [],
+        "all_within_bounds": all(r["within_bound"] for r in rows),
+        "table": str(OUT / "sim_effects.md"),
+        "plot": str(OUT / "sim_effects.png"),
+    }
     (OUT / "sim_effects.json").write_text(json.dumps(summary, indent=1))
     return summary
 
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=(__doc__ or "").split("\n\n")[0])
-    ap.add_argument("--quick", action="store_true", help="256-spp reference, default size only, fewer throughput renders")
+    ap.add_argument(
+        "--quick", action="store_true", help="256-spp reference, default size only, fewer throughput renders"
+    )
     ap.add_argument("--json", action="store_true", help="print the summary as one JSON object on stdout")
-    ap.add_argument("--scales", default=None,
-                    help="camera scales for the accuracy table (default 1,1.4,2: 1x, ~2x, 4x pixels, sizes that keep square pixels; quick: 1)")
+    ap.add_argument(
+        "--scales",
+        default=None,
+        help="camera scales for the accuracy table (default 1,1.4,2: 1x, ~2x, 4x pixels, sizes that keep square pixels; quick: 1)",
+    )
     ap.add_argument("--ref-spp", type=int, default=None, help="reference spp (default 1024; quick 256)")
     ap.add_argument("--scenes", default=None, help="comma-separated built-in scenes (default: all)")
     ap.add_argument("--phases", default=None, help="comma-separated phases (default: all)")
     ap.add_argument("--variants", default="llvm_ad_rgb,scalar_rgb", help="Mitsuba variants for the throughput")
-    ap.add_argument("--clock", choices=("cpu", "wall"), default="cpu",
-                    help="seconds as CPU time of this process (default; steadier when the machine is shared) or wall")
+    ap.add_argument(
+        "--clock",
+        choices=("cpu", "wall"),
+        default="cpu",
+        help="seconds as CPU time of this process (default; steadier when the machine is shared) or wall",
+    )
     ap.add_argument("--throughput-only", action="store_true", help=argparse.SUPPRESS)
-    ap.add_argument("--matting-candidates", action="store_true",
-                    help="only measure the matting candidates (the table behind MATTING_CANDIDATES) and print them "
-                         "as JSON; writes nothing")
+    ap.add_argument(
+        "--matting-candidates",
+        action="store_true",
+        help="only measure the matting candidates (the table behind MATTING_CANDIDATES) and print them "
+        "as JSON; writes nothing",
+    )
     ap.add_argument("--skip-candidates", action="store_true", help="leave the matting candidates out")
     ap.add_argument("--rounds", type=int, default=None, help="rounds of the matting candidates (default 4; quick 2)")
     ap.add_argument("--skip-throughput", action="store_true", help="only the accuracy table")
     ap.add_argument("--skip-accuracy", action="store_true", help="only the throughput table")
-    ap.add_argument("--merge", type=Path, nargs="+", default=None,
-                    help="write the outputs from earlier --json summaries (or --throughput-only lines) measured in "
-                         "parts, e.g. one process per scale; nothing is measured")
-    ap.add_argument("--accuracy-from", type=Path, default=None,
-                    help="reuse the accuracy rows of an earlier sim_effects.json (bounds refreshed from the current "
-                         "selection) and measure only the throughput")
+    ap.add_argument(
+        "--merge",
+        type=Path,
+        nargs="+",
+        default=None,
+        help="write the outputs from earlier --json summaries (or --throughput-only lines) measured in "
+        "parts, e.g. one process per scale; nothing is measured",
+    )
+    ap.add_argument(
+        "--accuracy-from",
+        type=Path,
+        default=None,
+        help="reuse the accuracy rows of an earlier sim_effects.json (bounds refreshed from the current "
+        "selection) and measure only the throughput",
+    )
     args = ap.parse_args()
     global CLOCK
     CLOCK = time.process_time if args.clock == "cpu" else time.perf_counter
     n = 3 if args.quick else 5
     rounds = args.rounds or (2 if args.quick else 4)
     if args.matting_candidates:
-        cand = matting_candidates(args.scenes.split(",") if args.scenes else None, rounds=rounds,
-                                  ref_spp=args.ref_spp or 256)
+        cand = matting_candidates(
+            args.scenes.split(",") if args.scenes else None, rounds=rounds, ref_spp=args.ref_spp or 256
+        )
         print(json.dumps({"matting_candidates": cand, "table": candidates_table(cand)}))
         return 0
     if args.throughput_only:
@@ -496,10 +655,18 @@ def main() -> int:
     elif args.skip_accuracy:
         rows = []
     else:
-        rows = accuracy(args.quick, scales, scenes=args.scenes.split(",") if args.scenes else None,
-                        phases=args.phases.split(",") if args.phases else None, ref_spp=args.ref_spp)
-    cand = [] if args.skip_candidates or args.accuracy_from is not None else matting_candidates(
-        args.scenes.split(",") if args.scenes else None, rounds=rounds, ref_spp=256)
+        rows = accuracy(
+            args.quick,
+            scales,
+            scenes=args.scenes.split(",") if args.scenes else None,
+            phases=args.phases.split(",") if args.phases else None,
+            ref_spp=args.ref_spp,
+        )
+    cand = (
+        []
+        if args.skip_candidates or args.accuracy_from is not None
+        else matting_candidates(args.scenes.split(",") if args.scenes else None, rounds=rounds, ref_spp=256)
+    )
     tput = []
     if not args.skip_throughput:
         for variant in args.variants.split(","):

@@ -52,8 +52,13 @@ def browser_timings(bundle_dir, drv, orbit_frames: int = 3) -> dict:
         n = drv.execute_script("return window.opacityhull.manifest.n_surfels")
         drv.execute_script(f"window.opacityhull.viewer.budget = {max(1, n // 16)}")
         frame16 = drv.execute_script(f"return window.opacityhull.benchmark({orbit_frames})")
-    return {"first_frame_ms": first, "first_frame_ms_all": firsts, "loaded_ms": ready, "frame_ms": frame,
-            "frame_ms_budget_1_16": frame16}
+    return {
+        "first_frame_ms": first,
+        "first_frame_ms_all": firsts,
+        "loaded_ms": ready,
+        "frame_ms": frame,
+        "frame_ms_budget_1_16": frame16,
+    }
 
 
 def browser_psnr(model_dir, bundle_dir, drv, views=(2, 13)) -> list:
@@ -72,8 +77,9 @@ def browser_psnr(model_dir, bundle_dir, drv, views=(2, 13)) -> list:
     _, pos, rec = read_bundle(bundle_dir)
     lf = rec["r_min"] == 0
     vis = rec["vis"][lf].view(np.uint8).reshape(int(lf.sum()), -1)[:, : model.surfels.visibility.shape[1]]
-    dec = Surfels(positions=pos[lf], normals=rec["nrm"][lf], radii=rec["radius"][lf], visibility=vis,
-                  n_views=len(model.views))
+    dec = Surfels(
+        positions=pos[lf], normals=rec["nrm"][lf], radii=rec["radius"][lf], visibility=vis, n_views=len(model.views)
+    )
     cams = [v.camera for v in model.views]
     pv = prepare_model_views(model)
     out = []
@@ -88,8 +94,13 @@ def browser_psnr(model_dir, bundle_dir, drv, views=(2, 13)) -> list:
             mask = cpu.rgba[..., 3] > 0.01
             same = render_image(dec, cams, pv, cams[v], config=RenderConfig(threads=1, shading="surfel"))
             spre = same.rgba[..., :3] * same.rgba[..., 3:4]
-            out.append({"view": v, "psnr_db": float(10 * np.log10(1 / np.mean((gpu - pre)[mask] ** 2))),
-                        "psnr_db_same_surfels": float(10 * np.log10(1 / np.mean((gpu - spre)[mask] ** 2)))})
+            out.append(
+                {
+                    "view": v,
+                    "psnr_db": float(10 * np.log10(1 / np.mean((gpu - pre)[mask] ** 2))),
+                    "psnr_db_same_surfels": float(10 * np.log10(1 / np.mean((gpu - spre)[mask] ** 2))),
+                }
+            )
     return out
 
 
@@ -117,11 +128,24 @@ def lod_table(m, fracs=(1 / 16, 1 / 4, 1)) -> list:
         render_image(s, cams, pv, cam, config=RenderConfig(threads=1))  # warm the area cache
         r = render_image(s, cams, pv, cam, config=RenderConfig(threads=1))
         sel = (full.rgba[..., 3] > 0.01) | (r.rgba[..., 3] > 0.01)
-        d = np.concatenate([(r.rgba[..., :3] * r.rgba[..., 3:] - full.rgba[..., :3] * full.rgba[..., 3:])[sel].ravel(),
-                            (r.rgba[..., 3] - full.rgba[..., 3])[sel]])
+        d = np.concatenate(
+            [
+                (r.rgba[..., :3] * r.rgba[..., 3:] - full.rgba[..., :3] * full.rgba[..., 3:])[sel].ravel(),
+                (r.rgba[..., 3] - full.rgba[..., 3])[sel],
+            ]
+        )
         psnr = float("inf") if not d.any() else float(10 * np.log10(1 / np.mean(d**2)))
-        rows.append({"budget_fraction": f, "splats": int(mask.sum()), "psnr_db": psnr, "cut_ms": cut_ms,
-                     "render_ms": r.stats["ms"]["total"], "tree_nodes": len(tree), "tree_build_s": build_s})
+        rows.append(
+            {
+                "budget_fraction": f,
+                "splats": int(mask.sum()),
+                "psnr_db": psnr,
+                "cut_ms": cut_ms,
+                "render_ms": r.stats["ms"]["total"],
+                "tree_nodes": len(tree),
+                "tree_build_s": build_s,
+            }
+        )
     return rows
 
 
@@ -131,8 +155,14 @@ def octree_bits(positions, normals, *, factor: float = 1.0, offset_bits: int = 3
     spacing, and the ``offset_bits`` normal offsets (deflated)."""
     import zlib
 
-    from opacityhull.view.octree_code import (apply_offsets, decode_positions, encode_offsets, encode_positions,
-                                              median_spacing, pack)
+    from opacityhull.view.octree_code import (
+        apply_offsets,
+        decode_positions,
+        encode_offsets,
+        encode_positions,
+        median_spacing,
+        pack,
+    )
 
     P = np.asarray(positions, np.float64)
     n = len(P)
@@ -141,8 +171,14 @@ def octree_bits(positions, normals, *, factor: float = 1.0, offset_bits: int = 3
     _, cz, nz = pack(oc)
     h = oc.size / 2**oc.depth
     C = decode_positions(oc)
-    out = {"surfels": n, "cell_over_spacing": factor, "depth": oc.depth, "cells_per_surfel": len(oc.counts) / n
-           if len(oc.counts) else 1.0, "bits_codes": 8 * len(cz) / n, "bits_counts": 8 * len(nz) / n}
+    out = {
+        "surfels": n,
+        "cell_over_spacing": factor,
+        "depth": oc.depth,
+        "cells_per_surfel": len(oc.counts) / n if len(oc.counts) else 1.0,
+        "bits_codes": 8 * len(cz) / n,
+        "bits_counts": 8 * len(nz) / n,
+    }
     Q = C
     if offset_bits:
         No = np.asarray(normals, np.float32)[oc.order]
@@ -214,12 +250,18 @@ def main(argv=None) -> int:
             model_s = time.perf_counter() - t
             t = time.perf_counter()
             s = write_bundle(root, tmp / f"b{n}")
-            row = {"surfels": n, "views": s["views"], "bundle_bytes": s["bytes"],
-                   "bytes_per_surfel": s["bytes_per_surfel"], "bytes_per_view": s["bytes_per_view"],
-                   "octree_coded_fraction": s["octree_coded_surfels"] / n,
-                   "position_bits_octree": s["position_bits_per_coded_surfel"],
-                   "position_bits_offsets": s["position_offset_bits_per_coded_surfel"],
-                   "bundle_write_s": time.perf_counter() - t, "model_s": model_s}
+            row = {
+                "surfels": n,
+                "views": s["views"],
+                "bundle_bytes": s["bytes"],
+                "bytes_per_surfel": s["bytes_per_surfel"],
+                "bytes_per_view": s["bytes_per_view"],
+                "octree_coded_fraction": s["octree_coded_surfels"] / n,
+                "position_bits_octree": s["position_bits_per_coded_surfel"],
+                "position_bits_offsets": s["position_offset_bits_per_coded_surfel"],
+                "bundle_write_s": time.perf_counter() - t,
+                "model_s": model_s,
+            }
             if drv is not None:
                 row.update(browser_timings(tmp / f"b{n}", drv))
             print(f"{n} surfels: {row}", file=sys.stderr)
@@ -247,40 +289,68 @@ def main(argv=None) -> int:
         shutil.rmtree(tmp, ignore_errors=True)
     OUT.mkdir(parents=True, exist_ok=True)
     (OUT / "viewer.json").write_text(json.dumps(res, indent=1) + "\n")
-    lines = ["# Viewer benchmark", "", res["machine"], "",
-             "| surfels | bytes/surfel | bytes/view | bundle MB | first picture ms | loaded ms | frame ms | frame ms at N/16 |",
-             "|---|---|---|---|---|---|---|---|"]
+    lines = [
+        "# Viewer benchmark",
+        "",
+        res["machine"],
+        "",
+        "| surfels | bytes/surfel | bytes/view | bundle MB | first picture ms | loaded ms | frame ms | frame ms at N/16 |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
     for r in res["sizes"]:
-        lines.append(f"| {r['surfels']} | {r['bytes_per_surfel']:.0f} | {r['bytes_per_view']} | {r['bundle_bytes'] / 1e6:.1f} "
-                     f"| {r.get('first_frame_ms', float('nan')):.0f} | {r.get('loaded_ms', float('nan')):.0f} "
-                     f"| {r.get('frame_ms', float('nan')):.0f} | {r.get('frame_ms_budget_1_16', float('nan')):.0f} |")
+        lines.append(
+            f"| {r['surfels']} | {r['bytes_per_surfel']:.0f} | {r['bytes_per_view']} | {r['bundle_bytes'] / 1e6:.1f} "
+            f"| {r.get('first_frame_ms', float('nan')):.0f} | {r.get('loaded_ms', float('nan')):.0f} "
+            f"| {r.get('frame_ms', float('nan')):.0f} | {r.get('frame_ms_budget_1_16', float('nan')):.0f} |"
+        )
     if "cpu_vs_browser" in res:
-        lines += ["", "CPU renderer vs browser (captured cameras, inside the mask): " +
-                  ", ".join(f"view {p['view']} {p['psnr_db']:.1f} dB vs the exact model, "
-                            f"{p['psnr_db_same_surfels']:.1f} dB vs the bundle's decoded surfels"
-                            for p in res["cpu_vs_browser"])]
-    lines += ["", "SH fit RMS (sRGB, all observations) by degree: " +
-              ", ".join(f"{k}: {v:.4f}" for k, v in res["sh_fit_rms"].items()),
-              "", "Bundle position code (octree byte codes + counts, deflated; cell = median spacing; "
-              "plus 3-bit normal offsets), bits per surfel:", "",
-              "| positions of | surfels | octree + counts | offsets | total | max error (spacing) |",
-              "|---|---|---|---|---|---|"]
-    for r in res["sizes"]:
-        lines.append(f"| sphere bundle | {r['surfels']} | {r['position_bits_octree']:.2f} | "
-                     f"{r['position_bits_offsets']:.2f} | {r['position_bits_octree'] + r['position_bits_offsets']:.2f} | |")
-    for o in res.get("octree_code", []):
-        lines.append(f"| {o['model']} | {o['surfels']} | {o['bits_codes'] + o['bits_counts']:.2f} | "
-                     f"{o['bits_offsets']:.2f} | {o['bits_total']:.2f} | {o['max_error_over_spacing']:.2f} |")
-    lines += ["", "Coding trade-off (50 k sphere, CPU, camera 4: decoded vs exact positions):", "",
-              "| cell / spacing | offset bits | bits/surfel | PSNR pixel shading | PSNR surfel shading |",
-              "|---|---|---|---|---|"]
-    for o in res["coding_tradeoff"]:
-        lines.append(f"| {o['cell_over_spacing']:g} | {o['offset_bits']} | {o['bits_total']:.2f} | "
-                     f"{o['psnr_db_pixel']:.1f} | {o['psnr_db_surfel']:.1f} |")
+        lines += [
+            "",
+            "CPU renderer vs browser (captured cameras, inside the mask): "
+            + ", ".join(
+                f"view {p['view']} {p['psnr_db']:.1f} dB vs the exact model, "
+                f"{p['psnr_db_same_surfels']:.1f} dB vs the bundle's decoded surfels"
+                for p in res["cpu_vs_browser"]
+            ),
+        ]
     lines += [
-              "", "| LOD budget | splats | PSNR vs full (dB) | cut ms | CPU render ms |", "|---|---|---|---|---|"]
+        "",
+        "SH fit RMS (sRGB, all observations) by degree: "
+        + ", ".join(f"{k}: {v:.4f}" for k, v in res["sh_fit_rms"].items()),
+        "",
+        "Bundle position code (octree byte codes + counts, deflated; cell = median spacing; "
+        "plus 3-bit normal offsets), bits per surfel:",
+        "",
+        "| positions of | surfels | octree + counts | offsets | total | max error (spacing) |",
+        "|---|---|---|---|---|---|",
+    ]
+    for r in res["sizes"]:
+        lines.append(
+            f"| sphere bundle | {r['surfels']} | {r['position_bits_octree']:.2f} | "
+            f"{r['position_bits_offsets']:.2f} | {r['position_bits_octree'] + r['position_bits_offsets']:.2f} | |"
+        )
+    for o in res.get("octree_code", []):
+        lines.append(
+            f"| {o['model']} | {o['surfels']} | {o['bits_codes'] + o['bits_counts']:.2f} | "
+            f"{o['bits_offsets']:.2f} | {o['bits_total']:.2f} | {o['max_error_over_spacing']:.2f} |"
+        )
+    lines += [
+        "",
+        "Coding trade-off (50 k sphere, CPU, camera 4: decoded vs exact positions):",
+        "",
+        "| cell / spacing | offset bits | bits/surfel | PSNR pixel shading | PSNR surfel shading |",
+        "|---|---|---|---|---|",
+    ]
+    for o in res["coding_tradeoff"]:
+        lines.append(
+            f"| {o['cell_over_spacing']:g} | {o['offset_bits']} | {o['bits_total']:.2f} | "
+            f"{o['psnr_db_pixel']:.1f} | {o['psnr_db_surfel']:.1f} |"
+        )
+    lines += ["", "| LOD budget | splats | PSNR vs full (dB) | cut ms | CPU render ms |", "|---|---|---|---|---|"]
     for r in res["lod"]:
-        lines.append(f"| {r['budget_fraction']:.4g} | {r['splats']} | {r['psnr_db']:.1f} | {r['cut_ms']:.1f} | {r['render_ms']:.0f} |")
+        lines.append(
+            f"| {r['budget_fraction']:.4g} | {r['splats']} | {r['psnr_db']:.1f} | {r['cut_ms']:.1f} | {r['render_ms']:.0f} |"
+        )
     (OUT / "viewer.md").write_text("\n".join(lines) + "\n")
     import matplotlib
 

@@ -343,8 +343,9 @@ class Camera:
         """
         offs = (np.arange(ss) + 0.5) / ss - 0.5
         v, u = np.mgrid[0 : self.height, 0 : self.width].astype(np.float64)
-        uu, vv = np.broadcast_arrays(u[..., None, None] + offs[None, None, None, :],
-                                     v[..., None, None] + offs[None, None, :, None])
+        uu, vv = np.broadcast_arrays(
+            u[..., None, None] + offs[None, None, None, :], v[..., None, None] + offs[None, None, :, None]
+        )
         return self.pixel_rays(np.stack([uu.reshape(-1), vv.reshape(-1)], axis=1))
 
     def in_image(self, uv, margin: float = 0.0) -> np.ndarray:
@@ -435,10 +436,12 @@ def colmap_intrinsics(model: str, params) -> tuple[np.ndarray, np.ndarray]:
     if names is None:
         raise _ColmapModelError(
             f"camera model {model} not supported (use SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV or "
-            "FULL_OPENCV; undistort other models with COLMAP's image_undistorter first)")
+            "FULL_OPENCV; undistort other models with COLMAP's image_undistorter first)"
+        )
     if len(p) != len(names):
-        raise _ColmapModelError(f"wrong number of parameters for {model}: {len(p)}, expected {len(names)} "
-                                f"({', '.join(names)})")
+        raise _ColmapModelError(
+            f"wrong number of parameters for {model}: {len(p)}, expected {len(names)} ({', '.join(names)})"
+        )
     if not all(math.isfinite(x) for x in p):
         raise _ColmapModelError(f"camera parameters of {model} are not finite: {p}")
     v = dict(zip(names, p))
@@ -471,8 +474,10 @@ def _checked_qwxyz_to_rotmat(q, t=(0.0, 0.0, 0.0), *, where: str, tol: float = 1
     if n < 1e-12:
         raise FormatError(f"{where}: rotation quaternion (QW, QX, QY, QZ) is zero; expected unit length")
     if abs(n - 1.0) > tol:
-        raise FormatError(f"{where}: rotation quaternion {q.tolist()} has length {n:.6g}, expected 1 "
-                          f"(within {tol:g}); is the column order QW QX QY QZ?")
+        raise FormatError(
+            f"{where}: rotation quaternion {q.tolist()} has length {n:.6g}, expected 1 "
+            f"(within {tol:g}); is the column order QW QX QY QZ?"
+        )
     return _qwxyz_to_rotmat(q / n)
 
 
@@ -530,9 +535,7 @@ def write_colmap_text(
         T = cam.cam_from_world
         q = _rotmat_to_qwxyz(T[:3, :3])
         t = T[:3, 3]
-        img_lines.append(
-            f"{i} " + " ".join(f"{v:.17g}" for v in (*q, *t)) + f" {written[g]} {name}"
-        )
+        img_lines.append(f"{i} " + " ".join(f"{v:.17g}" for v in (*q, *t)) + f" {written[g]} {name}")
         img_lines.append("")
     pts_lines = ["# 3D point list with one line of data per point:", "#   POINT3D_ID, X, Y, Z, R, G, B, ERROR, TRACK[]"]
     if points3d is not None:
@@ -594,7 +597,9 @@ def read_colmap_text(directory) -> list[tuple[str, Camera]]:
         if cid not in intr:
             raise FormatError(f"{imgs_path}:{lineno}: image {name!r} refers to camera {cid}, not in cameras.txt")
         T = np.eye(4)
-        T[:3, :3] = _checked_qwxyz_to_rotmat([qw, qx, qy, qz], (tx, ty, tz), where=f"{imgs_path}:{lineno}: image {name!r}")
+        T[:3, :3] = _checked_qwxyz_to_rotmat(
+            [qw, qx, qy, qz], (tx, ty, tz), where=f"{imgs_path}:{lineno}: image {name!r}"
+        )
         T[:3, 3] = (tx, ty, tz)
         Tinv = np.eye(4)
         Tinv[:3, :3] = T[:3, :3].T
@@ -629,13 +634,17 @@ def read_colmap_binary(directory) -> list[tuple[str, Camera]]:
     try:
         import pycolmap
     except ImportError:  # pragma: no cover - pycolmap is a dependency
-        raise FormatError(f"{d}: a binary COLMAP model needs pycolmap (pip install pycolmap), "
-                          "or convert it with `colmap model_converter --output_type TXT`") from None
+        raise FormatError(
+            f"{d}: a binary COLMAP model needs pycolmap (pip install pycolmap), "
+            "or convert it with `colmap model_converter --output_type TXT`"
+        ) from None
     try:
         rec = pycolmap.Reconstruction(str(d))
     except Exception as e:  # pycolmap raises ValueError/RuntimeError with its C++ message
-        raise FormatError(f"{d}: cannot read the binary COLMAP model ({str(e).strip()}); expected cameras.bin, "
-                          "images.bin and points3D.bin (COLMAP 4 also rigs.bin, frames.bin)") from None
+        raise FormatError(
+            f"{d}: cannot read the binary COLMAP model ({str(e).strip()}); expected cameras.bin, "
+            "images.bin and points3D.bin (COLMAP 4 also rigs.bin, frames.bin)"
+        ) from None
     intr: dict[int, tuple[np.ndarray, np.ndarray, int, int]] = {}
     for cid, c in rec.cameras.items():
         try:
@@ -825,9 +834,23 @@ def nerfstudio_intrinsics(cam: Camera) -> dict:
     }
 
 
-def camera_from_nerfstudio(transform_matrix, *, fl_x: float, fl_y: float, cx: float, cy: float, w: int, h: int,
-                           k1: float = 0.0, k2: float = 0.0, k3: float = 0.0, p1: float = 0.0, p2: float = 0.0,
-                           name: str = "", rigid_tol: float = 1e-4) -> Camera:
+def camera_from_nerfstudio(
+    transform_matrix,
+    *,
+    fl_x: float,
+    fl_y: float,
+    cx: float,
+    cy: float,
+    w: int,
+    h: int,
+    k1: float = 0.0,
+    k2: float = 0.0,
+    k3: float = 0.0,
+    p1: float = 0.0,
+    p2: float = 0.0,
+    name: str = "",
+    rigid_tol: float = 1e-4,
+) -> Camera:
     """Inverse of :func:`nerfstudio_transform_matrix` and :func:`nerfstudio_intrinsics`.
 
     Parameters
@@ -859,12 +882,20 @@ def camera_from_nerfstudio(transform_matrix, *, fl_x: float, fl_y: float, cx: fl
     err = float(np.abs(R.T @ R - np.eye(3)).max())
     det = float(np.linalg.det(R))
     if err > rigid_tol or det <= 0:
-        raise InputError(f"transform_matrix is not rigid (max |RᵀR − I| = {err:.3g}, det = {det:.6g}; expected a "
-                         f"rotation within {rigid_tol:g} and det +1: no scale, shear or mirror)")
+        raise InputError(
+            f"transform_matrix is not rigid (max |RᵀR − I| = {err:.3g}, det = {det:.6g}; expected a "
+            f"rotation within {rigid_tol:g} and det +1: no scale, shear or mirror)"
+        )
     U, _, Vt = np.linalg.svd(R)
     M = M.copy()
     M[:3, :3] = U @ Vt
     K = np.array([[fl_x, 0.0, cx - 0.5], [0.0, fl_y, cy - 0.5], [0.0, 0.0, 1.0]])
     # _OPENGL_FLIP is its own inverse
-    return Camera(K=K, width=int(w), height=int(h), world_from_cam=M @ _OPENGL_FLIP,
-                  dist=np.array([k1, k2, p1, p2, k3]), name=name)
+    return Camera(
+        K=K,
+        width=int(w),
+        height=int(h),
+        world_from_cam=M @ _OPENGL_FLIP,
+        dist=np.array([k1, k2, p1, p2, k3]),
+        name=name,
+    )

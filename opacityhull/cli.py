@@ -59,8 +59,9 @@ def _version_callback(value: bool):
 
 @app.callback()
 def _main(
-    version: bool = typer.Option(False, "--version", callback=_version_callback, is_eager=True,
-                                 help="Print the version and exit."),
+    version: bool = typer.Option(
+        False, "--version", callback=_version_callback, is_eager=True, help="Print the version and exit."
+    ),
 ):
     """opacityhull — capture, reconstruct, render and relight opacity hulls."""
 
@@ -68,8 +69,7 @@ def _main(
 _register_all()
 
 
-_BOOL_WORDS = {"true": True, "1": True, "yes": True, "on": True, "false": False, "0": False, "no": False,
-               "off": False}
+_BOOL_WORDS = {"true": True, "1": True, "yes": True, "on": True, "false": False, "0": False, "no": False, "off": False}
 
 
 def normalize_argv(argv: list[str]) -> list[str]:

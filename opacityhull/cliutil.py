@@ -17,8 +17,16 @@ import numpy as np
 
 from .errors import EXIT_CODES, InputError, OpacityHullError, Terminated, write_error
 
-__all__ = ["cli_errors", "emit", "error_message", "writing_to", "progress", "console", "ProgressCallback",
-           "to_jsonable"]
+__all__ = [
+    "cli_errors",
+    "emit",
+    "error_message",
+    "writing_to",
+    "progress",
+    "console",
+    "ProgressCallback",
+    "to_jsonable",
+]
 
 ProgressCallback = Callable[[int, int], None]
 
@@ -69,8 +77,9 @@ def _stdout_hint() -> None:
     except (AttributeError, ValueError):
         return
     if redirected and os.environ.get("OPACITYHULL_NO_HINT") is None:
-        sys.stderr.write("note: the text above went to stderr; stdout is for --json (add --json to capture "
-                         "the result with > or |)\n")
+        sys.stderr.write(
+            "note: the text above went to stderr; stdout is for --json (add --json to capture the result with > or |)\n"
+        )
 
 
 def error_message(exc: BaseException) -> str:
@@ -142,8 +151,14 @@ def progress(description: str, total: int | None = None, *, enabled: bool = True
     if not enabled:
         yield lambda done, total=None: None
         return
-    from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn,
-                               TimeRemainingColumn)
+    from rich.progress import (
+        BarColumn,
+        MofNCompleteColumn,
+        Progress,
+        TextColumn,
+        TimeElapsedColumn,
+        TimeRemainingColumn,
+    )
 
     with Progress(
         TextColumn("[bold]{task.description}"),

@@ -94,8 +94,7 @@ def view_step(model, out_web, *, envmap: str | None = None, progress=None) -> di
     out_web = Path(out_web)
     summary = write_bundle(model, out_web, envmap=envmap, progress=progress)
     summary["serve"] = f"opacityhull view {shlex.quote(str(model))} --port {VIEW_PORT}"
-    summary["serve_static"] = (f"python3 -m http.server -b 127.0.0.1 -d "
-                               f"{shlex.quote(str(out_web))} {VIEW_PORT}")
+    summary["serve_static"] = f"python3 -m http.server -b 127.0.0.1 -d {shlex.quote(str(out_web))} {VIEW_PORT}"
     summary["url"] = f"http://127.0.0.1:{VIEW_PORT}/"
     return summary
 
@@ -105,8 +104,11 @@ def print_view_summary(v: dict) -> None:
     from rich.markup import escape
 
     c = console()
-    c.print(f"viewer: {v['surfels']} surfels, {v['bytes'] / 1e6:.1f} MB bundle in [cyan]{escape(v['out'])}[/]. "
-            "Open it with", highlight=False)
+    c.print(
+        f"viewer: {v['surfels']} surfels, {v['bytes'] / 1e6:.1f} MB bundle in [cyan]{escape(v['out'])}[/]. "
+        "Open it with",
+        highlight=False,
+    )
     c.print(f"  [bold]{escape(v['serve'])}[/]   (then {v['url']} in a browser; Ctrl-C stops)", highlight=False)
     c.print(f"  or serve the written bundle: {v['serve_static']}", highlight=False, markup=False)
 
@@ -127,8 +129,10 @@ def _capture_fresh(plan_obj, rig: str, session: Path, model: Path, *, label: str
             for d in (session, model):
                 if d.exists():
                     d.rename(d.with_name(f"{d.name}.old-{stamp}"))
-            console().print(f"[yellow]earlier demo output does not match ({why}); kept it as "
-                            f"{session.name}.old-{stamp} / {model.name}.old-{stamp} and capturing afresh[/yellow]")
+            console().print(
+                f"[yellow]earlier demo output does not match ({why}); kept it as "
+                f"{session.name}.old-{stamp} / {model.name}.old-{stamp} and capturing afresh[/yellow]"
+            )
         resume = (session / "session.toml").is_file()
         with progress(f"capture {label}") as cb:
             return run_capture(sim_rig, plan_obj, session, resume=resume, progress=cb, rig_source=rig)
@@ -136,8 +140,9 @@ def _capture_fresh(plan_obj, rig: str, session: Path, model: Path, *, label: str
         sim_rig.close()
 
 
-def glass_step(out_dir, *, probe: str = "grace", rig: str = GLASS_RIG, plan_text: str = GLASS_PLAN,
-               eval_spp: int = 32) -> dict:
+def glass_step(
+    out_dir, *, probe: str = "grace", rig: str = GLASS_RIG, plan_text: str = GLASS_PLAN, eval_spp: int = 32
+) -> dict:
     """The demo's relit glass: capture :data:`GLASS_PLAN` on ``rig`` into
     ``out_dir/session`` (resumed if there), build ``out_dir/model`` with the simulator's
     true cameras and the natural-illumination field, relight it under
@@ -168,8 +173,7 @@ def glass_step(out_dir, *, probe: str = "grace", rig: str = GLASS_RIG, plan_text
         console().print(f"glass model already built in {model}; reusing it")
     else:
         with progress("build glass") as cb:
-            rep = build_model(session, model, config=BuildConfig(cameras="groundtruth"), ground_truth=True,
-                              progress=cb)
+            rep = build_model(session, model, config=BuildConfig(cameras="groundtruth"), ground_truth=True, progress=cb)
         report = rep.to_dict()
     secs["build"] = time.monotonic() - t
     t = time.monotonic()
@@ -180,16 +184,32 @@ def glass_step(out_dir, *, probe: str = "grace", rig: str = GLASS_RIG, plan_text
     ev = eval_relight(model, envmap=builtin_envmap(probe), out=out / "eval", spp=eval_spp)
     secs["eval"] = time.monotonic() - t
     nat = (report.get("hull", {}) or {}).get("natural", {}) or {}
-    return {"session": str(session), "model": str(model), "images": getattr(cap, "images", None),
-            "views_sheet": rl.get("views_sheet"),
-            "eval": {"psnr_mean": ev["psnr_mean"], "rel_err_mean": ev["rel_err_mean"], "sheet": ev.get("sheet"),
-                     "per_view_psnr": [p["psnr"] for p in ev["per_view"]]},
-            "natural": {k: nat.get(k) for k in ("pixels", "kernels_mean", "bytes", "seconds") if k in nat},
-            "seconds": secs}
+    return {
+        "session": str(session),
+        "model": str(model),
+        "images": getattr(cap, "images", None),
+        "views_sheet": rl.get("views_sheet"),
+        "eval": {
+            "psnr_mean": ev["psnr_mean"],
+            "rel_err_mean": ev["rel_err_mean"],
+            "sheet": ev.get("sheet"),
+            "per_view_psnr": [p["psnr"] for p in ev["per_view"]],
+        },
+        "natural": {k: nat.get(k) for k in ("pixels", "kernels_mean", "bytes", "seconds") if k in nat},
+        "seconds": secs,
+    }
 
 
-def run_demo(out: Path, *, as_json: bool = False, rig: str = DEFAULT_RIG, plan: str = DEFAULT_PLAN,
-             probe: str = "grace", orbit_frames: int = 24, with_glass: bool = True) -> dict:
+def run_demo(
+    out: Path,
+    *,
+    as_json: bool = False,
+    rig: str = DEFAULT_RIG,
+    plan: str = DEFAULT_PLAN,
+    probe: str = "grace",
+    orbit_frames: int = 24,
+    with_glass: bool = True,
+) -> dict:
     """Run every stage into ``out`` and print where the pictures are.
 
     Returns the summary (also written to ``out/demo.json``).
@@ -226,8 +246,14 @@ def run_demo(out: Path, *, as_json: bool = False, rig: str = DEFAULT_RIG, plan: 
         console().print(f"model already built in {model}; reusing it")
     else:
         with progress("build") as cb:
-            rep = build_model(session, model, config=BuildConfig(), ground_truth=True, progress=cb,
-                              on_step=lambda s: console().print(f"  build: {s}"))
+            rep = build_model(
+                session,
+                model,
+                config=BuildConfig(),
+                ground_truth=True,
+                progress=cb,
+                on_step=lambda s: console().print(f"  build: {s}"),
+            )
         metrics = rep.metrics
         report = rep.to_dict()
     seconds["build"] = time.monotonic() - t
@@ -235,8 +261,11 @@ def run_demo(out: Path, *, as_json: bool = False, rig: str = DEFAULT_RIG, plan: 
         "model": str(model),
         "views": report.get("views"),
         "surfels": report.get("surfels"),
-        "metrics": {k: metrics.get(k) for k in ("alpha_mae", "hull_iou", "hull_iou_vs_true_alpha_hull",
-                                                "reproj_rms_px", "pose_max_rotation_deg") if k in metrics},
+        "metrics": {
+            k: metrics.get(k)
+            for k in ("alpha_mae", "hull_iou", "hull_iou_vs_true_alpha_hull", "reproj_rms_px", "pose_max_rotation_deg")
+            if k in metrics
+        },
         "pictures": str(model / "pictures"),
     }
 
@@ -296,19 +325,27 @@ def run_demo(out: Path, *, as_json: bool = False, rig: str = DEFAULT_RIG, plan: 
         b = s["build"]["metrics"]
         loo = s["render"].get("loo", {})
         ev = s["relight"].get("eval") or {}
-        c.print(f"captured {s['capture']['images']} images in {seconds['capture']:.0f} s; "
-                f"built {s['build']['surfels']} surfels over {s['build']['views']} views in {seconds['build']:.0f} s")
+        c.print(
+            f"captured {s['capture']['images']} images in {seconds['capture']:.0f} s; "
+            f"built {s['build']['surfels']} surfels over {s['build']['views']} views in {seconds['build']:.0f} s"
+        )
         if b:
             c.print("build vs ground truth: " + ", ".join(f"{k} {v:.3g}" for k, v in b.items() if isinstance(v, float)))
         if loo:
-            c.print(f"leave-one-out: PSNR {loo.get('psnr_mean', float('nan')):.1f} dB, SSIM {loo.get('ssim_mean', float('nan')):.3f}, "
-                    f"alpha MAE {loo.get('alpha_mae', float('nan')):.3f}")
+            c.print(
+                f"leave-one-out: PSNR {loo.get('psnr_mean', float('nan')):.1f} dB, SSIM {loo.get('ssim_mean', float('nan')):.3f}, "
+                f"alpha MAE {loo.get('alpha_mae', float('nan')):.3f}"
+            )
         if "rel_err_mean" in ev:
-            c.print(f"relit vs Mitsuba under {probe}: relative error {ev['rel_err_mean']:.3f}, PSNR {ev['psnr_mean']:.1f} dB")
+            c.print(
+                f"relit vs Mitsuba under {probe}: relative error {ev['rel_err_mean']:.3f}, PSNR {ev['psnr_mean']:.1f} dB"
+            )
         ge = (s.get("glass") or {}).get("eval") or {}
         if ge:
-            c.print(f"relit glass vs Mitsuba under {probe} (probe on the back display): relative error "
-                    f"{ge['rel_err_mean']:.3f}, PSNR {ge['psnr_mean']:.1f} dB; glass step {seconds['glass']:.0f} s")
+            c.print(
+                f"relit glass vs Mitsuba under {probe} (probe on the back display): relative error "
+                f"{ge['rel_err_mean']:.3f}, PSNR {ge['psnr_mean']:.1f} dB; glass step {seconds['glass']:.0f} s"
+            )
         c.print(f"total {seconds['total']:.0f} s. Pictures:")
         for what, path in s["pictures"].items():
             if path:

@@ -40,8 +40,9 @@ def direction_to_uv(directions, *, invalid: Literal["raise", "zenith"] = "raise"
     bad = ~np.isfinite(n) | (n < 1e-12)
     if np.any(bad):
         if invalid == "raise":
-            raise InputError(f"{int(np.count_nonzero(bad))} direction(s) are zero, NaN or Inf; expected finite "
-                             "non-zero vectors")
+            raise InputError(
+                f"{int(np.count_nonzero(bad))} direction(s) are zero, NaN or Inf; expected finite non-zero vectors"
+            )
         if invalid != "zenith":
             raise InputError(f"invalid={invalid!r}: expected 'raise' or 'zenith'")
         d = np.where(bad[..., None], np.array([0.0, 1.0, 0.0]), d)

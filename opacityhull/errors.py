@@ -92,9 +92,7 @@ def check_shape(name: str, array, expected: tuple, *, dtype=None) -> None:
     ``expected`` may contain ``None`` for "any size" in that axis.
     """
     shape = getattr(array, "shape", None)
-    ok = shape is not None and len(shape) == len(expected) and all(
-        e is None or e == s for s, e in zip(shape, expected)
-    )
+    ok = shape is not None and len(shape) == len(expected) and all(e is None or e == s for s, e in zip(shape, expected))
     if not ok:
         want = "(" + ", ".join("*" if e is None else str(e) for e in expected) + ")"
         raise ShapeError(f"{name} has shape {shape}, expected {want}")
@@ -157,14 +155,18 @@ def write_error(exc: BaseException, path=None) -> WriteError | None:
     if isinstance(exc, OSError) and exc.errno in WRITE_ERRNOS:
         why = WRITE_ERRNOS[exc.errno]
         where = where if where is not None else exc.filename
-    elif where is not None and not isinstance(exc, OSError) and \
-            (not isinstance(exc, OpacityHullError) or isinstance(exc, FormatError)):
+    elif (
+        where is not None
+        and not isinstance(exc, OSError)
+        and (not isinstance(exc, OpacityHullError) or isinstance(exc, FormatError))
+    ):
         # another OSError (EIO, ENOENT) is its own message, whatever the disk's state
         why = _fs_problem(where)
     if why is None:
         return None
-    return WriteError(f"cannot write {where}: {why} — free space or choose another --out; "
-                      "files already written are intact")
+    return WriteError(
+        f"cannot write {where}: {why} — free space or choose another --out; files already written are intact"
+    )
 
 
 def check_writable(path, *, flag: str = "--out") -> None:

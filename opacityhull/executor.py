@@ -81,21 +81,25 @@ def parse_scheduler(scheduler: str) -> SchedulerSpec:
     if s in SCHEDULERS:
         return SchedulerSpec(kind=s)
     if s.startswith("tcp://"):
-        rest = s[len("tcp://"):]
+        rest = s[len("tcp://") :]
         host, sep, port = rest.rpartition(":")
         if sep and host and port.isdigit() and 0 < int(port) < 65536:
             return SchedulerSpec(kind="tcp", address=s)
-    raise InputError(f"--scheduler {scheduler!r}: expected serial, threads, processes or tcp://HOST:PORT "
-                     "(a dask scheduler's address)")
+    raise InputError(
+        f"--scheduler {scheduler!r}: expected serial, threads, processes or tcp://HOST:PORT "
+        "(a dask scheduler's address)"
+    )
 
 
 def _check_shippable(fn: Callable, scheduler: str) -> None:
     mod = getattr(fn, "__module__", None)
     name = getattr(fn, "__qualname__", repr(fn))
     if mod == "__main__" or "<lambda>" in name or "<locals>" in name:
-        raise InputError(f"--scheduler {scheduler}: task {mod}.{name} is not importable by module path in a "
-                         "worker (a __main__, lambda or nested function); define it at module level in a module "
-                         "the workers can import (numba kernels would otherwise recompile in every task)")
+        raise InputError(
+            f"--scheduler {scheduler}: task {mod}.{name} is not importable by module path in a "
+            "worker (a __main__, lambda or nested function); define it at module level in a module "
+            "the workers can import (numba kernels would otherwise recompile in every task)"
+        )
 
 
 def set_numba_threads(n: int | None) -> None:
@@ -126,8 +130,9 @@ class Executor:
     scheduler: str = "serial"
     n_workers: int = 1
 
-    def map(self, fn: Callable[[Any], Any], items: Iterable[Any], *, progress: Progress | None = None,
-            chunksize: int = 1) -> list:
+    def map(
+        self, fn: Callable[[Any], Any], items: Iterable[Any], *, progress: Progress | None = None, chunksize: int = 1
+    ) -> list:
         """``[fn(x) for x in items]``, in item order; ``progress(done, total)`` as tasks finish.
 
         ``chunksize`` items go to a worker as one task: use it when one item costs about
@@ -140,7 +145,7 @@ class Executor:
             return self._map(fn, items, progress=progress)
         if self.scheduler not in ("serial", "threads"):
             _check_shippable(fn, self.scheduler)
-        chunks = [(fn, items[i:i + cs]) for i in range(0, len(items), cs)]
+        chunks = [(fn, items[i : i + cs]) for i in range(0, len(items), cs)]
         n = len(items)
         prog = None if progress is None else (lambda done, total: progress(min(done * cs, n), n))
         return [y for part in self._map(apply_chunk, chunks, progress=prog) for y in part]
@@ -190,8 +195,12 @@ class _PoolExecutor(Executor):
             return cf.ThreadPoolExecutor(max_workers=self.n_workers, thread_name_prefix="opacityhull")
         import multiprocessing as mp
 
-        return cf.ProcessPoolExecutor(max_workers=self.n_workers, mp_context=mp.get_context("spawn"),
-                                      initializer=set_numba_threads, initargs=(self.numba_threads,))
+        return cf.ProcessPoolExecutor(
+            max_workers=self.n_workers,
+            mp_context=mp.get_context("spawn"),
+            initializer=set_numba_threads,
+            initargs=(self.numba_threads,),
+        )
 
     def _map(self, fn, items, *, progress=None):
         if self.scheduler == "processes":
@@ -232,12 +241,20 @@ class _PoolExecutor(Executor):
             attempts += 1
             left = n - len(results)
             if attempts > self.retries:
-                raise WorkerLost(f"--scheduler {self.scheduler}: a worker process died while running "
-                                 f"{fn.__module__}.{fn.__qualname__} (first unfinished item {broken_at}: "
-                                 f"{items[broken_at]!r}); {left} of {n} item(s) unfinished after "
-                                 f"{self.retries} restart(s) (out of memory? check dmesg)")
-            log.warning("scheduler %s: a worker died (item %d); restarting the pool for %d item(s), retry %d/%d",
-                        self.scheduler, broken_at, left, attempts, self.retries)
+                raise WorkerLost(
+                    f"--scheduler {self.scheduler}: a worker process died while running "
+                    f"{fn.__module__}.{fn.__qualname__} (first unfinished item {broken_at}: "
+                    f"{items[broken_at]!r}); {left} of {n} item(s) unfinished after "
+                    f"{self.retries} restart(s) (out of memory? check dmesg)"
+                )
+            log.warning(
+                "scheduler %s: a worker died (item %d); restarting the pool for %d item(s), retry %d/%d",
+                self.scheduler,
+                broken_at,
+                left,
+                attempts,
+                self.retries,
+            )
         return [results[i] for i in range(n)]
 
     def close(self):
@@ -253,18 +270,22 @@ class DaskExecutor(Executor):
         try:
             from distributed import Client
         except ImportError as e:  # pragma: no cover - dask is a dependency
-            raise InputError(f"--scheduler {address}: dask.distributed is not installed ({e}); "
-                             "pip install 'dask[distributed]'") from e
+            raise InputError(
+                f"--scheduler {address}: dask.distributed is not installed ({e}); pip install 'dask[distributed]'"
+            ) from e
         self.scheduler = address
         self.client: Any = None
         try:
             self.client = Client(address, timeout=f"{float(timeout_s)}s", set_as_default=False)
         except (OSError, TimeoutError) as e:
-            raise InputError(f"--scheduler {address}: no dask scheduler answered within {timeout_s:g} s ({e}); "
-                             "start one with `dask scheduler` (see docs/distributed.md) or use --scheduler "
-                             "serial|threads|processes") from None
-        self.n_workers = max(1, sum(w.get("nthreads", 1) for w in self.client.scheduler_info(n_workers=-1)
-                                    .get("workers", {}).values()))
+            raise InputError(
+                f"--scheduler {address}: no dask scheduler answered within {timeout_s:g} s ({e}); "
+                "start one with `dask scheduler` (see docs/distributed.md) or use --scheduler "
+                "serial|threads|processes"
+            ) from None
+        self.n_workers = max(
+            1, sum(w.get("nthreads", 1) for w in self.client.scheduler_info(n_workers=-1).get("workers", {}).values())
+        )
         if numba_threads is not None:
             try:
                 if NumbaThreads is not None:
@@ -291,12 +312,16 @@ class DaskExecutor(Executor):
                     progress(done, n)
             return self.client.gather(futs)
         except KilledWorker as e:
-            raise WorkerLost(f"--scheduler {self.scheduler}: workers died while running {fn.__module__}."
-                             f"{fn.__qualname__} (dask gave up after distributed.scheduler.allowed-failures "
-                             f"retries): {e}") from None
+            raise WorkerLost(
+                f"--scheduler {self.scheduler}: workers died while running {fn.__module__}."
+                f"{fn.__qualname__} (dask gave up after distributed.scheduler.allowed-failures "
+                f"retries): {e}"
+            ) from None
         except (FutureCancelledError, OSError) as e:
-            raise WorkerLost(f"--scheduler {self.scheduler}: lost the scheduler or the tasks while running "
-                             f"{fn.__module__}.{fn.__qualname__}: {e}") from None
+            raise WorkerLost(
+                f"--scheduler {self.scheduler}: lost the scheduler or the tasks while running "
+                f"{fn.__module__}.{fn.__qualname__}: {e}"
+            ) from None
         finally:
             pending = [f for f in futs if not f.done()]
             if pending:
@@ -332,8 +357,14 @@ def _make_numba_plugin_class():
     return NumbaThreads
 
 
-def open_executor(scheduler: str = "serial", *, workers: int | None = None, timeout_s: float = 10.0,
-                  retries: int = 2, numba_threads: int | None = 1) -> Executor:
+def open_executor(
+    scheduler: str = "serial",
+    *,
+    workers: int | None = None,
+    timeout_s: float = 10.0,
+    retries: int = 2,
+    numba_threads: int | None = 1,
+) -> Executor:
     """The executor of a ``--scheduler`` value.
 
     Parameters
@@ -362,6 +393,7 @@ def open_executor(scheduler: str = "serial", *, workers: int | None = None, time
 
 
 # ---- module-level tasks (importable in workers) used by the tests and benchmarks
+
 
 def apply_chunk(args: tuple) -> list:
     """``(fn, items)`` -> ``[fn(x) for x in items]``: one task for a chunk of items."""

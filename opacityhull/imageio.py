@@ -244,8 +244,10 @@ def _exr_attribute(name: str, value, path):
     if name == "chromaticities":
         c = tuple(float(x) for x in np.asarray(value, np.float64).reshape(-1))
         if len(c) != 8 or not all(np.isfinite(c)):
-            raise InputError(f"EXR attribute chromaticities for {path}: expected 8 finite numbers "
-                             f"(red, green, blue, white x y), got {value!r}")
+            raise InputError(
+                f"EXR attribute chromaticities for {path}: expected 8 finite numbers "
+                f"(red, green, blue, white x y), got {value!r}"
+            )
         return c
     if isinstance(value, str):
         return value

@@ -157,8 +157,14 @@ class Surfels:
         return (self.visibility[:, view // 8] >> (view % 8)) & 1 == 1
 
     def subset(self, mask) -> "Surfels":
-        return Surfels(self.positions[mask], self.normals[mask], self.radii[mask], self.visibility[mask], self.n_views,
-                       None if self.depth_m is None else self.depth_m[mask])
+        return Surfels(
+            self.positions[mask],
+            self.normals[mask],
+            self.radii[mask],
+            self.visibility[mask],
+            self.n_views,
+            None if self.depth_m is None else self.depth_m[mask],
+        )
 
 
 def pack_visibility(visible_bool: np.ndarray) -> np.ndarray:
@@ -176,7 +182,9 @@ def write_surfels_ply(path, surfels: Surfels) -> None:
     from .imageio import atomic_path
 
     nb = surfels.visibility.shape[1]
-    dtype = [(k, "f4") for k in ("x", "y", "z", "nx", "ny", "nz", "radius")] + [(f"vis_{i:03d}", "u1") for i in range(nb)]
+    dtype = [(k, "f4") for k in ("x", "y", "z", "nx", "ny", "nz", "radius")] + [
+        (f"vis_{i:03d}", "u1") for i in range(nb)
+    ]
     if surfels.depth_m is not None:
         dtype.append(("depth", "f4"))
     arr = np.empty(len(surfels), dtype=dtype)
@@ -380,7 +388,9 @@ class OpacityHullModel:
         layers = read_exr_layers(p)
         for L in self.light_samples:
             if L.key not in layers:
-                raise FormatError(f"{p}: one-light image {L.key} (light {L.light_id} at array {L.array_deg} deg) missing")
+                raise FormatError(
+                    f"{p}: one-light image {L.key} (light {L.light_id} at array {L.array_deg} deg) missing"
+                )
         return {k: v[..., :3] for k, v in layers.items()}
 
     def light_direction(self, i: int, sample: LightSample) -> np.ndarray:
@@ -399,8 +409,14 @@ class OpacityHullModel:
 
         p = self.root / "reflectance" / f"{self.views[i].id}.exr"
         h = read_exr_header(p)
-        names = {"lightId": "light_id", "arrayAngleDeg": "array_deg", "lightIntensity": "intensity",
-                 "lightOutputRGB": "output_rgb", "lightDirection": "direction", "lightPosition": "position_m"}
+        names = {
+            "lightId": "light_id",
+            "arrayAngleDeg": "array_deg",
+            "lightIntensity": "intensity",
+            "lightOutputRGB": "output_rgb",
+            "lightDirection": "direction",
+            "lightPosition": "position_m",
+        }
         out = {}
         for L in self.light_samples:
             d = {}
@@ -417,9 +433,13 @@ def _light_header(view: ViewInfo, lights: Sequence[LightSample], geometry: RigGe
     and relighting tools read a one-light image's light from its own file)."""
     from .imageio import REC709_CHROMATICITIES
 
-    hdr = {"chromaticities": REC709_CHROMATICITIES, "view": view.id, "tableAngleDeg": float(view.table_deg),
-           "lightFrame": "object frame (rig frame at table angle 0, metres); directions point from the "
-                         "object origin towards the light"}
+    hdr = {
+        "chromaticities": REC709_CHROMATICITIES,
+        "view": view.id,
+        "tableAngleDeg": float(view.table_deg),
+        "lightFrame": "object frame (rig frame at table angle 0, metres); directions point from the "
+        "object origin towards the light",
+    }
     for L in lights:
         hdr[f"{L.key}.lightId"] = int(L.light_id)
         hdr[f"{L.key}.arrayAngleDeg"] = float(L.array_deg)
@@ -428,8 +448,11 @@ def _light_header(view: ViewInfo, lights: Sequence[LightSample], geometry: RigGe
             try:
                 spec = geometry.light(L.light_id)
             except ValueError:
-                log.warning("light %d of sample %s is not in the rig geometry; its reflectance layer carries no "
-                            "direction", L.light_id, L.key)
+                log.warning(
+                    "light %d of sample %s is not in the rig geometry; its reflectance layer carries no direction",
+                    L.light_id,
+                    L.key,
+                )
         if spec is None or geometry is None:
             continue
         hdr[f"{L.key}.lightIntensity"] = float(spec.intensity)
@@ -476,8 +499,12 @@ def write_model(
     root.mkdir(parents=True, exist_ok=True)
     if surfels.n_views != len(views):
         raise InputError(f"surfels have {surfels.n_views} views, {len(views)} views given")
-    write_colmap_text(root / "cameras", [v.camera for v in views], [v.id for v in views],
-                      share_intrinsics=[v.camera_index for v in views])
+    write_colmap_text(
+        root / "cameras",
+        [v.camera for v in views],
+        [v.id for v in views],
+        share_intrinsics=[v.camera_index for v in views],
+    )
     write_surfels_ply(root / "surfels.ply", surfels)
     total = len(views) * (1 + (reflectance is not None))
     done = 0
@@ -486,8 +513,9 @@ def write_model(
             check_shape(f"view {v.id} RGBA", img, (v.camera.height, v.camera.width, 4))
             pre = np.array(img, dtype=np.float32)
             pre[..., :3] *= pre[..., 3:4]
-            write_exr(root / "views" / f"{v.id}.exr", pre,
-                      header={"chromaticities": REC709_CHROMATICITIES, "view": v.id})
+            write_exr(
+                root / "views" / f"{v.id}.exr", pre, header={"chromaticities": REC709_CHROMATICITIES, "view": v.id}
+            )
             done += 1
             if progress:
                 progress(done, total)
@@ -514,8 +542,11 @@ def write_model(
             log.warning("write_model: reflectance without a rig geometry; its layers carry no light direction")
         for v in views:
             imgs = reflectance["images"](v.index)
-            write_exr_layers(root / "reflectance" / f"{v.id}.exr", {L.key: imgs[L.key] for L in lights},
-                             header=_light_header(v, lights, geometry))
+            write_exr_layers(
+                root / "reflectance" / f"{v.id}.exr",
+                {L.key: imgs[L.key] for L in lights},
+                header=_light_header(v, lights, geometry),
+            )
             done += 1
             if progress:
                 progress(done, total)

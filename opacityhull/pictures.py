@@ -27,8 +27,17 @@ from .imageio import atomic_path, srgb_encode, write_png
 
 log = logging.getLogger(__name__)
 
-__all__ = ["ColorBar", "auto_exposure", "to_srgb8", "encoded_to_u8", "heat", "label_tile", "contact_sheet", "write_sheet",
-           "write_animation"]
+__all__ = [
+    "ColorBar",
+    "auto_exposure",
+    "to_srgb8",
+    "encoded_to_u8",
+    "heat",
+    "label_tile",
+    "contact_sheet",
+    "write_sheet",
+    "write_animation",
+]
 
 _FONT = 0  # cv2.FONT_HERSHEY_SIMPLEX, without importing cv2 at module import
 
@@ -125,8 +134,9 @@ def label_tile(tile8: np.ndarray, text: str, *, scale: float = 0.4) -> np.ndarra
 def _as_tile(i: int, t) -> np.ndarray:
     a = np.asarray(t)
     if a.dtype != np.uint8:
-        raise InputError(f"contact sheet tile {i}: dtype {a.dtype}, expected uint8 (convert with to_srgb8, "
-                         "encoded_to_u8 or heat)")
+        raise InputError(
+            f"contact sheet tile {i}: dtype {a.dtype}, expected uint8 (convert with to_srgb8, encoded_to_u8 or heat)"
+        )
     if a.ndim == 2:
         a = np.repeat(a[..., None], 3, axis=2)
     if a.ndim != 3 or a.shape[2] < 3 or a.shape[0] == 0 or a.shape[1] == 0:
@@ -221,7 +231,9 @@ def contact_sheet(
     if labels is not None and len(labels) != len(tiles):
         raise InputError(f"contact sheet: {len(labels)} labels for {len(tiles)} tiles")
     if gap < 0 or not (0 <= background <= 255):
-        raise InputError(f"contact sheet: gap {gap}, background {background}: expected gap >= 0 and 0 <= background <= 255")
+        raise InputError(
+            f"contact sheet: gap {gap}, background {background}: expected gap >= 0 and 0 <= background <= 255"
+        )
     ims = [_as_tile(i, t) for i, t in enumerate(tiles)]
     widest = max(t.shape[1] for t in ims)
     if min_width and widest < min_width:
@@ -297,4 +309,3 @@ def write_animation(path, frames8: Sequence[np.ndarray], *, fps: float, loop: in
         raise InputError(f"{path}: animation suffix {path.suffix!r}, expected .gif or .mp4")
     log.debug("wrote %s: %d frames at %g fps", path, len(ims), fps)
     return path
-

@@ -198,8 +198,23 @@ class RigGeometry:
             raise ConfigError(f"{where}.cameras: at least one [[{where}.cameras]] entry is required")
         for i, c in enumerate(raw_cams):
             w = f"{where}.cameras[{i}]"
-            _check_keys(w, c, {"name", "width", "height", "distance_m", "elevation_deg", "azimuth_deg",
-                               "fov_y_deg", "focal_px", "gain", "cx", "cy"})
+            _check_keys(
+                w,
+                c,
+                {
+                    "name",
+                    "width",
+                    "height",
+                    "distance_m",
+                    "elevation_deg",
+                    "azimuth_deg",
+                    "fov_y_deg",
+                    "focal_px",
+                    "gain",
+                    "cx",
+                    "cy",
+                },
+            )
             name = str(c.get("name", f"cam{i}"))
             if name in names:
                 raise ConfigError(f"{w}.name: duplicate camera name {name!r}")
@@ -247,12 +262,16 @@ class RigGeometry:
                 raise ConfigError(f"{w}: light at the origin has no direction")
             cr, cg, cb = (float(x) for x in _vec(f"{w}.colour", L.get("colour", [1.0, 1.0, 1.0])))
             colour = (cr, cg, cb)
-            lights.append(LightSpec(id=lid, position_m=pos, intensity=_num(w, L, "intensity", 1.0, lo=0.0), colour=colour))
+            lights.append(
+                LightSpec(id=lid, position_m=pos, intensity=_num(w, L, "intensity", 1.0, lo=0.0), colour=colour)
+            )
         displays = []
         dnames = set()
         for i, d in enumerate(g.get("displays", [])):
             w = f"{where}.displays[{i}]"
-            _check_keys(w, d, {"name", "centre_m", "normal", "up", "size_m", "resolution", "rotates_with_table", "max_radiance"})
+            _check_keys(
+                w, d, {"name", "centre_m", "normal", "up", "size_m", "resolution", "rotates_with_table", "max_radiance"}
+            )
             name = str(d.get("name", f"display{i}"))
             if name in dnames:
                 raise ConfigError(f"{w}.name: duplicate display name {name!r}")

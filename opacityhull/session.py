@@ -202,10 +202,14 @@ _RECORD_TYPES = {
     "phase": (lambda v: v in PHASES, f"one of {', '.join(PHASES)}"),
     "camera": (lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= 0, "an integer >= 0"),
     "table_deg": (lambda v: _is_num(v) and np.isfinite(v), "a finite number (degrees)"),
-    "path": (lambda v: isinstance(v, str) and bool(v) and not v.startswith("/") and ".." not in v.split("/"),
-             "a relative path inside the session"),
-    "sha256": (lambda v: isinstance(v, str) and len(v) == 64 and all(c in "0123456789abcdef" for c in v),
-               "64 lowercase hex digits"),
+    "path": (
+        lambda v: isinstance(v, str) and bool(v) and not v.startswith("/") and ".." not in v.split("/"),
+        "a relative path inside the session",
+    ),
+    "sha256": (
+        lambda v: isinstance(v, str) and len(v) == 64 and all(c in "0123456789abcdef" for c in v),
+        "64 lowercase hex digits",
+    ),
     "bytes": (lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= 0, "an integer >= 0"),
     "exposure_s": (lambda v: v is None or (_is_num(v) and np.isfinite(v) and v > 0), "null or a number > 0 (seconds)"),
     "lights_deg": (lambda v: v is None or (_is_num(v) and np.isfinite(v)), "null or a finite number (degrees)"),
@@ -366,8 +370,10 @@ class Session:
         Raises :class:`FormatError` naming the file and key unless it is a finite number > 0."""
         v = self.meta.get("session", {}).get("white_level", 1.0)
         if not _is_num(v) or not np.isfinite(v) or v <= 0:
-            raise FormatError(f"{self.root / 'session.toml'}: [session] white_level = {json.dumps(v, default=str)}, "
-                              "expected a finite number > 0 (the sensor value at saturation)")
+            raise FormatError(
+                f"{self.root / 'session.toml'}: [session] white_level = {json.dumps(v, default=str)}, "
+                "expected a finite number > 0 (the sensor value at saturation)"
+            )
         return float(v)
 
     @property
@@ -481,8 +487,12 @@ class Session:
             return 1.0
         cams = self.geometry.cameras  # a corrupt [rig] table raises FormatError naming the key
         if not 0 <= int(camera) < len(cams):
-            log.warning("%s: camera %d is not among the rig's %d cameras; gain 1.0", self.root / "session.toml",
-                        camera, len(cams))
+            log.warning(
+                "%s: camera %d is not among the rig's %d cameras; gain 1.0",
+                self.root / "session.toml",
+                camera,
+                len(cams),
+            )
             return 1.0
         return float(cams[int(camera)].gain)
 
@@ -549,8 +559,7 @@ def read_manifest(path, *, problems: list[str] | None = None) -> Iterator[ShotRe
     return iter(out)
 
 
-def check_manifest(session: "Session", *, hash_files: bool = True,
-                   progress=None) -> list[str]:
+def check_manifest(session: "Session", *, hash_files: bool = True, progress=None) -> list[str]:
     """Problems of a session's manifest against its files, as messages (empty = OK).
 
     Checks what ``build`` would otherwise trust: every listed image exists with the
@@ -574,8 +583,10 @@ def check_manifest(session: "Session", *, hash_files: bool = True,
         elif p.stat().st_size != r.bytes:
             problems.append(f"{manifest}: {r.id!r}: {r.path} has {p.stat().st_size} bytes, the manifest says {r.bytes}")
         elif hash_files and sha256_file(p) != r.sha256:
-            problems.append(f"{manifest}: {r.id!r}: {r.path} has sha256 {sha256_file(p)[:12]}..., the manifest says "
-                            f"{r.sha256[:12]}...")
+            problems.append(
+                f"{manifest}: {r.id!r}: {r.path} has sha256 {sha256_file(p)[:12]}..., the manifest says "
+                f"{r.sha256[:12]}..."
+            )
         if progress is not None:
             progress(k + 1, len(recs))
     return problems
@@ -586,8 +597,9 @@ def require_manifest_ok(session: "Session", *, hash_files: bool = True, progress
     problems = check_manifest(session, hash_files=hash_files, progress=progress)
     if problems:
         more = f" (and {len(problems) - 5} more)" if len(problems) > 5 else ""
-        raise FormatError("; ".join(problems[:5]) + more + " — run `opacityhull session verify` and re-capture "
-                          "with --resume")
+        raise FormatError(
+            "; ".join(problems[:5]) + more + " — run `opacityhull session verify` and re-capture with --resume"
+        )
 
 
 def check_finite(image: np.ndarray, *, where: str) -> str | None:
@@ -604,8 +616,10 @@ def check_finite(image: np.ndarray, *, where: str) -> str | None:
     n_nan = int(np.isnan(a).sum())
     n_inf = int(bad.sum()) - n_nan
     px = int(bad.reshape(a.shape[0], a.shape[1], -1).any(axis=-1).sum()) if a.ndim >= 2 else int(bad.sum())
-    return (f"{where}: {px} pixel(s) are not finite ({n_nan} NaN, {n_inf} Inf values) — a broken sensor read or "
-            "a corrupt file")
+    return (
+        f"{where}: {px} pixel(s) are not finite ({n_nan} NaN, {n_inf} Inf values) — a broken sensor read or "
+        "a corrupt file"
+    )
 
 
 # --------------------------------------------------------------------------- writer
@@ -683,8 +697,19 @@ class SessionWriter:
     def ids(self) -> set[str]:
         return set(self._ids)
 
-    def add_image(self, image: np.ndarray, *, id: str, shot: str, phase: str, camera: int, table_deg: float,
-                  rel_path: str, half: bool = False, **fields) -> ShotRecord:
+    def add_image(
+        self,
+        image: np.ndarray,
+        *,
+        id: str,
+        shot: str,
+        phase: str,
+        camera: int,
+        table_deg: float,
+        rel_path: str,
+        half: bool = False,
+        **fields,
+    ) -> ShotRecord:
         """Write ``image`` (EXR) at ``rel_path`` atomically and append its record."""
         from .imageio import write_exr
 
@@ -694,8 +719,9 @@ class SessionWriter:
         write_exr(path, image, half=half)
         return self.add_file(path, id=id, shot=shot, phase=phase, camera=camera, table_deg=table_deg, **fields)
 
-    def add_file(self, path, *, id: str, shot: str, phase: str, camera: int, table_deg: float,
-                 replace: bool = False, **fields) -> ShotRecord:
+    def add_file(
+        self, path, *, id: str, shot: str, phase: str, camera: int, table_deg: float, replace: bool = False, **fields
+    ) -> ShotRecord:
         """Append the record of a file already atomically in place inside the session.
 
         ``replace=True`` allows an id that is already listed (an image re-taken because

@@ -46,9 +46,14 @@ def dask_cluster():
     from distributed import LocalCluster
 
     # dashboard_address=None (no dashboard) is accepted at runtime; distributed annotates it as str
-    lc = LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
-                      dashboard_address=None,  # pyright: ignore[reportArgumentType]
-                      silence_logs=40)
+    lc = LocalCluster(
+        n_workers=2,
+        threads_per_worker=1,
+        processes=True,
+        host="127.0.0.1",
+        dashboard_address=None,  # pyright: ignore[reportArgumentType]
+        silence_logs=40,
+    )
     try:
         yield lc.scheduler_address
     finally:

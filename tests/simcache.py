@@ -162,12 +162,30 @@ def captured(scene: str, plan_path, scale: float = CI_SCALE) -> Path:
                 base.mkdir(parents=True, exist_ok=True)
                 env = dict(os.environ, COLUMNS="400")  # rich wraps messages at the terminal width
                 t = time.perf_counter()
-                p = subprocess.run([sys.executable, "-m", "opacityhull.cli", "capture", "--rig",
-                                    _rig_spec(scene, scale), "--plan", str(plan_path), "--out", str(part), "--json"],
-                                   capture_output=True, text=True, timeout=3000, env=env)
+                p = subprocess.run(
+                    [
+                        sys.executable,
+                        "-m",
+                        "opacityhull.cli",
+                        "capture",
+                        "--rig",
+                        _rig_spec(scene, scale),
+                        "--plan",
+                        str(plan_path),
+                        "--out",
+                        str(part),
+                        "--json",
+                    ],
+                    capture_output=True,
+                    text=True,
+                    timeout=3000,
+                    env=env,
+                )
                 if p.returncode != 0:
-                    raise AssertionError(f"capture of {_rig_spec(scene, scale)} with {plan_path} failed "
-                                         f"(exit {p.returncode}): {p.stderr[-2000:]}")
+                    raise AssertionError(
+                        f"capture of {_rig_spec(scene, scale)} with {plan_path} failed "
+                        f"(exit {p.returncode}): {p.stderr[-2000:]}"
+                    )
                 part.rename(sess)
                 secs = time.perf_counter() - t
                 (base / "capture.done").write_text(json.dumps({"seconds": secs, "summary": p.stdout.strip()}))
@@ -209,8 +227,9 @@ def built(scene: str, plan_path, scale: float = CI_SCALE, **build_config) -> Pat
                 rep["model_dir"] = str(model)
                 rp.write_text(json.dumps(rep, indent=2) + "\n")
                 secs = time.perf_counter() - t
-                (base / f"model_{bhash}.done").write_text(json.dumps({"seconds": secs,
-                                                                       "build_config": repr(sorted(build_config.items()))}))
+                (base / f"model_{bhash}.done").write_text(
+                    json.dumps({"seconds": secs, "build_config": repr(sorted(build_config.items()))})
+                )
                 _LOG.append({"what": "build", "key": key, "seconds": secs})
         return model
 

@@ -22,8 +22,9 @@ __all__ = ["register", "resolve_rig", "rig_static"]
 
 # options every ``import`` subcommand takes alike
 _IMPORT_OUT = typer.Option(..., "--out", help="New session folder (absent after any failure).")
-_ALLOW_FULL_MASKS = typer.Option(False, "--allow-full-masks", help="Keep masks without background "
-                                                                    "(close-ups) instead of refusing them.")
+_ALLOW_FULL_MASKS = typer.Option(
+    False, "--allow-full-masks", help="Keep masks without background (close-ups) instead of refusing them."
+)
 
 
 def _run_import(run, json_out: bool, source) -> None:
@@ -31,8 +32,14 @@ def _run_import(run, json_out: bool, source) -> None:
     naming the counts, ``source(report)`` and the new session."""
     with progress("import", enabled=not json_out) as cb:
         rep = run(cb)
-    emit(rep, json_out, lambda r: console().print(
-        f"imported {r['images']} images ({r['masks']} masks){source(r)} into {r['session']}", highlight=False))
+    emit(
+        rep,
+        json_out,
+        lambda r: console().print(
+            f"imported {r['images']} images ({r['masks']} masks){source(r)} into {r['session']}", highlight=False
+        ),
+    )
+
 
 log = logging.getLogger(__name__)
 
@@ -98,14 +105,22 @@ def _print_estimate(summary: dict) -> None:
         t.add_column(col, justify="right" if col != "phase" else "left")
     for p, v in est["per_phase"].items():
         t.add_row(p, str(v["shots"]), str(v["images"]), human_bytes(v["bytes"]), human_seconds(v["seconds"]))
-    t.add_row("[bold]total", "", f"[bold]{est['images']}", f"[bold]{human_bytes(est['bytes'])}",
-              f"[bold]{human_seconds(est['seconds'])}")
+    t.add_row(
+        "[bold]total",
+        "",
+        f"[bold]{est['images']}",
+        f"[bold]{human_bytes(est['bytes'])}",
+        f"[bold]{human_seconds(est['seconds'])}",
+    )
     c = console()
     c.print(t)
     b = est["breakdown_s"]
-    c.print(f"time: moves {human_seconds(b['moves'])}, exposure {human_seconds(b['exposure'])}, per-image overhead "
-            f"{human_seconds(b['overhead'])}, pattern upload {human_seconds(b['pattern_upload'])}, "
-            f"{est['operator_steps']} manual step(s) {human_seconds(b['operator'])}", highlight=False)
+    c.print(
+        f"time: moves {human_seconds(b['moves'])}, exposure {human_seconds(b['exposure'])}, per-image overhead "
+        f"{human_seconds(b['overhead'])}, pattern upload {human_seconds(b['pattern_upload'])}, "
+        f"{est['operator_steps']} manual step(s) {human_seconds(b['operator'])}",
+        highlight=False,
+    )
 
 
 @contextmanager
@@ -161,15 +176,26 @@ def register(app, groups) -> None:
     @app.command("capture")
     @cli_errors
     def capture(
-        rig: str = typer.Option(..., "--rig", help="Rig TOML path, or sim:SCENE (or sim:SCENE@RIG.toml) for the simulated rig."),
+        rig: str = typer.Option(
+            ..., "--rig", help="Rig TOML path, or sim:SCENE (or sim:SCENE@RIG.toml) for the simulated rig."
+        ),
         plan: str = typer.Option(..., "--plan", help="Plan TOML path or builtin:tiny|demo|paper."),
-        out: Optional[Path] = typer.Option(None, "--out", help="Session folder (new/empty, or existing with --resume)."),
-        resume: bool = typer.Option(False, "--resume", help="Continue the session in --out: verify what is there, "
-                                                            "take only what is missing or corrupt."),
-        dry_run: bool = typer.Option(False, "--dry-run", help="Print counts, bytes and estimated time per phase; "
-                                                              "touch no device, write nothing."),
-        assume_ready: bool = typer.Option(False, "--assume-ready", help="Hardware rigs without a terminal: take "
-                                                                        "every manual step (board, object) as done."),
+        out: Optional[Path] = typer.Option(
+            None, "--out", help="Session folder (new/empty, or existing with --resume)."
+        ),
+        resume: bool = typer.Option(
+            False,
+            "--resume",
+            help="Continue the session in --out: verify what is there, take only what is missing or corrupt.",
+        ),
+        dry_run: bool = typer.Option(
+            False, "--dry-run", help="Print counts, bytes and estimated time per phase; touch no device, write nothing."
+        ),
+        assume_ready: bool = typer.Option(
+            False,
+            "--assume-ready",
+            help="Hardware rigs without a terminal: take every manual step (board, object) as done.",
+        ),
         json_out: bool = typer.Option(False, "--json", help="Print one JSON object on stdout."),
     ):
         """Capture a session: run a plan on a rig, resumably (exit 5 = stopped early, resumable; 130 = Ctrl-C)."""
@@ -181,9 +207,16 @@ def register(app, groups) -> None:
             geometry, devices = rig_static(rig)
             stages = schedule(the_plan, geometry)
             est = estimate(the_plan, geometry, MotionRates.from_devices(devices), stages)
-            summary = {"complete": False, "images": 0, "session": str(out) if out else None, "dry_run": True,
-                       "plan": the_plan.name, "rig": rig, "planned_per_phase": expected_counts(stages),
-                       "estimate": est.to_dict()}
+            summary = {
+                "complete": False,
+                "images": 0,
+                "session": str(out) if out else None,
+                "dry_run": True,
+                "plan": the_plan.name,
+                "rig": rig,
+                "planned_per_phase": expected_counts(stages),
+                "estimate": est.to_dict(),
+            }
             emit(summary, json_out, _print_estimate)
             return
         if out is None:
@@ -199,8 +232,15 @@ def register(app, groups) -> None:
                 try:
                     the_rig.open()
                     with progress(f"capture {the_plan.name}") as cb:
-                        res = run_capture(the_rig, the_plan, out, resume=resume, progress=cb, rig_source=rig,
-                                          log=lambda m: console().print(f"[cyan]{escape(m)}", highlight=False))
+                        res = run_capture(
+                            the_rig,
+                            the_plan,
+                            out,
+                            resume=resume,
+                            progress=cb,
+                            rig_source=rig,
+                            log=lambda m: console().print(f"[cyan]{escape(m)}", highlight=False),
+                        )
                 finally:
                     the_rig.close()
         except (OpacityHullError, KeyboardInterrupt) as e:
@@ -212,13 +252,17 @@ def register(app, groups) -> None:
 
         def human(s):
             state = "complete" if s["complete"] else "INCOMPLETE"
-            console().print(f"capture {state}: {s['images']}/{s['planned']} images in {s['session']} "
-                            f"({s['taken']} taken now, {s['seconds']:.1f} s)", highlight=False)
+            console().print(
+                f"capture {state}: {s['images']}/{s['planned']} images in {s['session']} "
+                f"({s['taken']} taken now, {s['seconds']:.1f} s)",
+                highlight=False,
+            )
 
         emit(summary, json_out, human)
         if not res.complete:
-            raise CaptureInterrupted(f"capture incomplete: {res.images} of {res.planned} images; run again with "
-                                     "--resume")
+            raise CaptureInterrupted(
+                f"capture incomplete: {res.images} of {res.planned} images; run again with --resume"
+            )
 
     session = groups["session"]
 
@@ -236,9 +280,12 @@ def register(app, groups) -> None:
 
         def human(r):
             c = console()
-            c.print(f"{'OK' if r['ok'] else 'NOT OK'}: {r['images']} images; missing {len(r['missing'])}, "
-                    f"corrupt {len(r['corrupt'])}, unlisted {len(r['unlisted'])}, invalid records "
-                    f"{len(r.get('invalid', []))}", highlight=False)
+            c.print(
+                f"{'OK' if r['ok'] else 'NOT OK'}: {r['images']} images; missing {len(r['missing'])}, "
+                f"corrupt {len(r['corrupt'])}, unlisted {len(r['unlisted'])}, invalid records "
+                f"{len(r.get('invalid', []))}",
+                highlight=False,
+            )
             for k in ("missing", "corrupt", "unlisted", "invalid"):
                 for p in r.get(k, [])[:10]:
                     c.print(f"  {k}: {p}", highlight=False, markup=False)
@@ -264,11 +311,17 @@ def register(app, groups) -> None:
 
         def human(r):
             c = console()
-            c.print(f"session {r['session']}: plan {r['plan']}, rig {r['rig_source'] or '?'}, {r['images']} images, "
-                    f"{human_bytes(r['bytes'])}, {r['views']} views", highlight=False)
+            c.print(
+                f"session {r['session']}: plan {r['plan']}, rig {r['rig_source'] or '?'}, {r['images']} images, "
+                f"{human_bytes(r['bytes'])}, {r['views']} views",
+                highlight=False,
+            )
             for ph, v in r["phases"].items():
-                c.print(f"  {ph}: {v['images']} images ({v['hdr']} hdr), {v['views']} views, "
-                        f"{human_bytes(v['bytes'])}, exposures {v['exposures_s']}", highlight=False)
+                c.print(
+                    f"  {ph}: {v['images']} images ({v['hdr']} hdr), {v['views']} views, "
+                    f"{human_bytes(v['bytes'])}, exposures {v['exposures_s']}",
+                    highlight=False,
+                )
 
         emit(rep, json_out, human)
 
@@ -286,22 +339,34 @@ def register(app, groups) -> None:
         from .hdr import hdr_session
 
         with progress("hdr merge", enabled=not json_out) as cb:
-            rep = hdr_session(directory, phases=phase or None, method=method, saturation=saturation, force=force,
-                              progress=cb)
-        emit(rep, json_out, lambda r: console().print(
-            f"merged {r['merged']} of {r['shots']} bracketed shots ({r['skipped']} up to date); "
-            f"{r['saturated_px']} pixels clipped in every exposure", highlight=False))
+            rep = hdr_session(
+                directory, phases=phase or None, method=method, saturation=saturation, force=force, progress=cb
+            )
+        emit(
+            rep,
+            json_out,
+            lambda r: console().print(
+                f"merged {r['merged']} of {r['shots']} bracketed shots ({r['skipped']} up to date); "
+                f"{r['saturated_px']} pixels clipped in every exposure",
+                highlight=False,
+            ),
+        )
 
     imp = groups["import"]
 
     @imp.command("colmap")
     @cli_errors
     def import_colmap_cmd(
-        model: Path = typer.Option(..., "--model", help="COLMAP model folder: binary (cameras.bin, images.bin, ...; "
-                                                        "wins, as in COLMAP) or text (cameras.txt, images.txt)."),
+        model: Path = typer.Option(
+            ...,
+            "--model",
+            help="COLMAP model folder: binary (cameras.bin, images.bin, ...; "
+            "wins, as in COLMAP) or text (cameras.txt, images.txt).",
+        ),
         images: Path = typer.Option(..., "--images", help="Folder of the images (PNG/JPG/EXR)."),
-        masks: Optional[Path] = typer.Option(None, "--masks", help="Folder of masks named like the images "
-                                                                    "(default: the images' own alpha, if any)."),
+        masks: Optional[Path] = typer.Option(
+            None, "--masks", help="Folder of masks named like the images (default: the images' own alpha, if any)."
+        ),
         out: Path = _IMPORT_OUT,
         allow_full_masks: bool = _ALLOW_FULL_MASKS,
         json_out: bool = typer.Option(False, "--json", help="Print one JSON object on stdout."),
@@ -309,15 +374,20 @@ def register(app, groups) -> None:
         """Turn a COLMAP-calibrated image set into a session that `build` accepts."""
         from .importers import import_colmap
 
-        _run_import(lambda cb: import_colmap(model, images, out, masks_dir=masks, allow_full_masks=allow_full_masks,
-                                             progress=cb),
-                    json_out, lambda r: f" from a {r['model_format']} COLMAP model")
+        _run_import(
+            lambda cb: import_colmap(
+                model, images, out, masks_dir=masks, allow_full_masks=allow_full_masks, progress=cb
+            ),
+            json_out,
+            lambda r: f" from a {r['model_format']} COLMAP model",
+        )
 
     @imp.command("nerfstudio")
     @cli_errors
     def import_nerfstudio_cmd(
-        transforms: Path = typer.Option(..., "--transforms", help="nerfstudio / instant-ngp / Blender "
-                                                                  "transforms.json (images relative to it)."),
+        transforms: Path = typer.Option(
+            ..., "--transforms", help="nerfstudio / instant-ngp / Blender transforms.json (images relative to it)."
+        ),
         out: Path = _IMPORT_OUT,
         allow_full_masks: bool = _ALLOW_FULL_MASKS,
         json_out: bool = typer.Option(False, "--json", help="Print one JSON object on stdout."),
@@ -325,5 +395,8 @@ def register(app, groups) -> None:
         """Turn a nerfstudio transforms.json (RGBA images or mask_path mattes) into a session that `build` accepts."""
         from .importers import import_nerfstudio
 
-        _run_import(lambda cb: import_nerfstudio(transforms, out, allow_full_masks=allow_full_masks, progress=cb),
-                    json_out, lambda r: "")
+        _run_import(
+            lambda cb: import_nerfstudio(transforms, out, allow_full_masks=allow_full_masks, progress=cb),
+            json_out,
+            lambda r: "",
+        )

@@ -22,8 +22,14 @@ __all__ = ["COMPRESSIONS", "ExrCompression", "write_capture_exr"]
 
 ExrCompression = Literal["none", "rle", "zip", "zips", "piz", "zstd"]
 COMPRESSIONS: tuple[ExrCompression, ...] = get_args(ExrCompression)
-_NAMES = {"none": "NO_COMPRESSION", "rle": "RLE_COMPRESSION", "zip": "ZIP_COMPRESSION", "zips": "ZIPS_COMPRESSION",
-          "piz": "PIZ_COMPRESSION", "zstd": "ZSTD_COMPRESSION"}
+_NAMES = {
+    "none": "NO_COMPRESSION",
+    "rle": "RLE_COMPRESSION",
+    "zip": "ZIP_COMPRESSION",
+    "zips": "ZIPS_COMPRESSION",
+    "piz": "PIZ_COMPRESSION",
+    "zstd": "ZSTD_COMPRESSION",
+}
 
 
 def _compression(name: str):
@@ -53,8 +59,11 @@ def write_capture_exr(path, image, *, half: bool = False, compression: str = "rl
     if half:
         over = np.abs(a) > HALF_MAX
         if np.any(over):
-            warnings.warn(f"{path}: {int(np.count_nonzero(over))} values beyond the half-float range clamped to "
-                          f"±{HALF_MAX}", HalfOverflowWarning, stacklevel=2)
+            warnings.warn(
+                f"{path}: {int(np.count_nonzero(over))} values beyond the half-float range clamped to ±{HALF_MAX}",
+                HalfOverflowWarning,
+                stacklevel=2,
+            )
         a = np.clip(a, -HALF_MAX, HALF_MAX).astype(np.float16)
     chans = {n: np.ascontiguousarray(a[:, :, i]) for i, n in enumerate(names)}
     hdr = {"compression": _compression(compression), "type": OpenEXR.scanlineimage}

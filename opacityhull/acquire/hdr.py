@@ -47,8 +47,14 @@ def _stack(images, exposures_s) -> tuple[np.ndarray, np.ndarray]:
     return np.stack(imgs), t
 
 
-def merge_linear(images: Sequence[np.ndarray], exposures_s: Sequence[float], *, white_level: float = 1.0,
-                 saturation: float = 0.98, gain: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+def merge_linear(
+    images: Sequence[np.ndarray],
+    exposures_s: Sequence[float],
+    *,
+    white_level: float = 1.0,
+    saturation: float = 0.98,
+    gain: float = 1.0,
+) -> tuple[np.ndarray, np.ndarray]:
     """Merge a bracket of linear images into radiance.
 
     Parameters
@@ -124,9 +130,15 @@ def _to_u8(img: np.ndarray, white_level: float) -> np.ndarray:
     return np.clip(np.round(np.asarray(img, np.float32)[..., :3] / white_level * 255.0), 0, 255).astype(np.uint8)
 
 
-def recover_response(brackets: Sequence[Sequence[np.ndarray]], exposures_s: Sequence[float], *,
-                     white_level: float = 1.0, samples: int = 70, lambda_smooth: float = 10.0,
-                     seed: int = 0) -> np.ndarray:
+def recover_response(
+    brackets: Sequence[Sequence[np.ndarray]],
+    exposures_s: Sequence[float],
+    *,
+    white_level: float = 1.0,
+    samples: int = 70,
+    lambda_smooth: float = 10.0,
+    seed: int = 0,
+) -> np.ndarray:
     """Debevec–Malik camera response from brackets of one or more scenes.
 
     Parameters
@@ -157,8 +169,14 @@ def recover_response(brackets: Sequence[Sequence[np.ndarray]], exposures_s: Sequ
     return np.asarray(resp, np.float32).reshape(256, 3)
 
 
-def merge_debevec(images: Sequence[np.ndarray], exposures_s: Sequence[float], response: np.ndarray, *,
-                  white_level: float = 1.0, gain: float = 1.0) -> np.ndarray:
+def merge_debevec(
+    images: Sequence[np.ndarray],
+    exposures_s: Sequence[float],
+    response: np.ndarray,
+    *,
+    white_level: float = 1.0,
+    gain: float = 1.0,
+) -> np.ndarray:
     """Merge a bracket of non-linear 8-bit-coded images with a recovered response.
 
     Returns relative radiance (H, W, 3) float32 (divided by ``gain``)."""
@@ -189,9 +207,16 @@ def _exposure_s(r: ShotRecord) -> float:
     return float(r.exposure_s)
 
 
-def hdr_session(root, *, phases: Sequence[str] | None = None, method: str = "auto", saturation: float = 0.98,
-                force: bool = False, progress: Callable[[int, int], None] | None = None,
-                response_shots: int = 8) -> dict:
+def hdr_session(
+    root,
+    *,
+    phases: Sequence[str] | None = None,
+    method: str = "auto",
+    saturation: float = 0.98,
+    force: bool = False,
+    progress: Callable[[int, int], None] | None = None,
+    response_shots: int = 8,
+) -> dict:
     """Merge every bracketed shot of a session and append ``kind = "hdr"`` records.
 
     Parameters
@@ -225,8 +250,10 @@ def hdr_session(root, *, phases: Sequence[str] | None = None, method: str = "aut
         have = set(sess.phases())
         absent = [p for p in phases if not phase_names([p]) & have]
         if absent:
-            raise InputError(f"--phase {absent[0]!r}: {root} has no images of that phase (it has "
-                             f"{', '.join(sorted(have)) or 'none'})")
+            raise InputError(
+                f"--phase {absent[0]!r}: {root} has no images of that phase (it has "
+                f"{', '.join(sorted(have)) or 'none'})"
+            )
     groups = _brackets(sess, phase_names(phases) if phases else None)
     white = sess.white_level
     linear_of = {int(c.get("index", i)): bool(c.get("linear", True)) for i, c in enumerate(sess.camera_info)}
@@ -255,8 +282,9 @@ def hdr_session(root, *, phases: Sequence[str] | None = None, method: str = "aut
         cand = [recs for recs in cand if [_exposure_s(r) for r in recs] == times]
         step = max(1, len(cand) // response_shots)
         chosen = cand[::step][:response_shots]
-        responses[c] = recover_response([[sess.load_image(r) for r in recs] for recs in chosen], times,
-                                        white_level=white)
+        responses[c] = recover_response(
+            [[sess.load_image(r) for r in recs] for recs in chosen], times, white_level=white
+        )
         from ..imageio import atomic_path
 
         rp = root / "hdr" / f"response_c{c}.csv"
@@ -281,13 +309,32 @@ def hdr_session(root, *, phases: Sequence[str] | None = None, method: str = "aut
                 L = merge_debevec(imgs, times, responses[c], white_level=white, gain=geom_gain[c])
                 extra["response"] = resp_files.get(c, "")
             r0 = recs[0]
-            w.add_image(L, id=f"{shot}/hdr", shot=shot, phase=r0.phase, camera=c, table_deg=r0.table_deg,
-                        rel_path=f"images/{shot}_hdr.exr", kind="hdr", sources=tuple(r.id for r in recs),
-                        lights_deg=r0.lights_deg, light=r0.light, pattern=r0.pattern,
-                        object_present=r0.object_present, extra=extra, replace=shot in existing)
+            w.add_image(
+                L,
+                id=f"{shot}/hdr",
+                shot=shot,
+                phase=r0.phase,
+                camera=c,
+                table_deg=r0.table_deg,
+                rel_path=f"images/{shot}_hdr.exr",
+                kind="hdr",
+                sources=tuple(r.id for r in recs),
+                lights_deg=r0.lights_deg,
+                light=r0.light,
+                pattern=r0.pattern,
+                object_present=r0.object_present,
+                extra=extra,
+                replace=shot in existing,
+            )
             merged += 1
             if progress is not None:
                 progress(k + 1, len(todo))
-    return {"session": str(root), "shots": len(groups), "merged": merged, "skipped": len(groups) - len(todo),
-            "saturated_px": sat_px, "methods": {str(c): m for c, m in methods.items()},
-            "responses": {str(c): f for c, f in resp_files.items()}}
+    return {
+        "session": str(root),
+        "shots": len(groups),
+        "merged": merged,
+        "skipped": len(groups) - len(todo),
+        "saturated_px": sat_px,
+        "methods": {str(c): m for c, m in methods.items()},
+        "responses": {str(c): f for c, f in resp_files.items()},
+    }

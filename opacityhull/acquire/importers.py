@@ -87,9 +87,13 @@ log = logging.getLogger(__name__)
 _IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".exr", ".tif", ".tiff")
 #: A matte pixel is object when alpha >= MATTE_HALF (the default silhouette threshold of build).
 MATTE_HALF = 0.5
-_WRITE_ERRNOS = {errno.ENOSPC: "the disk is full (ENOSPC)", errno.EDQUOT: "the disk quota is exceeded (EDQUOT)",
-                 errno.EROFS: "the file system is read-only (EROFS)", errno.EACCES: "permission denied (EACCES)",
-                 errno.EPERM: "operation not permitted (EPERM)"}
+_WRITE_ERRNOS = {
+    errno.ENOSPC: "the disk is full (ENOSPC)",
+    errno.EDQUOT: "the disk quota is exceeded (EDQUOT)",
+    errno.EROFS: "the file system is read-only (EROFS)",
+    errno.EACCES: "permission denied (EACCES)",
+    errno.EPERM: "operation not permitted (EPERM)",
+}
 #: nerfstudio camera models that are perspective (its CAMERA_MODEL_TO_TYPE); the rest are refused.
 _NS_PERSPECTIVE = ("OPENCV", "PINHOLE", "SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL")
 
@@ -202,8 +206,9 @@ def _write_failure(exc: BaseException, out: Path) -> InputError | None:
         msg = str(we).split(" — ")[0] if we is not None else None
     if msg is None:
         return None
-    return WriteError(f"--out {out}: {msg}; the partial import was removed, nothing was written — free space or "
-                      "choose another --out")
+    return WriteError(
+        f"--out {out}: {msg}; the partial import was removed, nothing was written — free space or choose another --out"
+    )
 
 
 @contextmanager
@@ -246,8 +251,16 @@ def _matte_problem(alpha: np.ndarray) -> str | None:
     return None
 
 
-def _write_session(out: Path, views: list[_View], *, kind: str, source: str, import_meta: dict,
-                   allow_full_masks: bool, progress: Callable[[int, int], None] | None) -> dict:
+def _write_session(
+    out: Path,
+    views: list[_View],
+    *,
+    kind: str,
+    source: str,
+    import_meta: dict,
+    allow_full_masks: bool,
+    progress: Callable[[int, int], None] | None,
+) -> dict:
     centres = np.array([v.cam.centre_world for v in views])
     forwards = np.array([v.cam.forward_world for v in views])
     target = closest_point_to_axes(centres, forwards)
@@ -262,20 +275,44 @@ def _write_session(out: Path, views: list[_View], *, kind: str, source: str, imp
             off, d = -cam.forward_world, 1e-6
         el = math.degrees(math.asin(max(-1.0, min(1.0, off[1] / d))))
         az = math.degrees(math.atan2(off[0], off[2]))
-        geo_cams.append({"name": f"cam{i}", "width": int(cam.width), "height": int(cam.height), "distance_m": d,
-                         "elevation_deg": el, "azimuth_deg": az, "focal_px": float(0.5 * (cam.fx + cam.fy)),
-                         "cx": float(cam.cx), "cy": float(cam.cy), "gain": 1.0})
+        geo_cams.append(
+            {
+                "name": f"cam{i}",
+                "width": int(cam.width),
+                "height": int(cam.height),
+                "distance_m": d,
+                "elevation_deg": el,
+                "azimuth_deg": az,
+                "focal_px": float(0.5 * (cam.fx + cam.fy)),
+                "cx": float(cam.cx),
+                "cy": float(cam.cy),
+                "gain": 1.0,
+            }
+        )
         vid = view_id(i, 0.0)
         vids.append(vid)
         view_cams.append(cam.with_name(vid))
     meta = {
-        "session": {"rig_source": f"import:{kind}:{source}", "plan_name": f"import-{kind}", "white_level": 1.0,
-                    "software_version": __version__},
+        "session": {
+            "rig_source": f"import:{kind}:{source}",
+            "plan_name": f"import-{kind}",
+            "white_level": 1.0,
+            "software_version": __version__,
+        },
         "rig": {"target_m": [float(x) for x in target], "cameras": geo_cams},
         "plan": {"plan": {"name": f"import-{kind}"}},
         "import": {"kind": kind, **import_meta, "names": [v.source for v in views]},
-        "camera_info": [{"index": i, "name": f"cam{i}", "width": int(v.cam.width), "height": int(v.cam.height),
-                         "white_level": 1.0, "linear": True} for i, v in enumerate(views)],
+        "camera_info": [
+            {
+                "index": i,
+                "name": f"cam{i}",
+                "width": int(v.cam.width),
+                "height": int(v.cam.height),
+                "white_level": 1.0,
+                "linear": True,
+            }
+            for i, v in enumerate(views)
+        ],
     }
     n_masks = 0
     full_views: list[str] = []
@@ -285,54 +322,89 @@ def _write_session(out: Path, views: list[_View], *, kind: str, source: str, imp
             cam = v.cam
             rgb, alpha = _read_rgb_alpha(v.image)
             if rgb.shape[:2] != (cam.height, cam.width):
-                raise InputError(f"{v.image}: image is {rgb.shape[1]}x{rgb.shape[0]}, but the camera of {v.what} "
-                                 f"is {cam.width}x{cam.height}")
+                raise InputError(
+                    f"{v.image}: image is {rgb.shape[1]}x{rgb.shape[0]}, but the camera of {v.what} "
+                    f"is {cam.width}x{cam.height}"
+                )
             if not np.all(np.isfinite(rgb)):
                 raise FormatError(f"{v.image}: {int((~np.isfinite(rgb)).sum())} colour values are NaN or Inf")
             matte_file = v.image
             if v.mask is not None:
                 alpha, matte_file = _read_mask(v.mask), v.mask
                 if alpha.shape != (cam.height, cam.width):
-                    raise InputError(f"{v.mask}: mask is {alpha.shape[1]}x{alpha.shape[0]}, but the image of "
-                                     f"{v.what} is {cam.width}x{cam.height}")
+                    raise InputError(
+                        f"{v.mask}: mask is {alpha.shape[1]}x{alpha.shape[0]}, but the image of "
+                        f"{v.what} is {cam.width}x{cam.height}"
+                    )
             if alpha is not None:
                 if not np.all(np.isfinite(alpha)):
                     raise FormatError(f"{matte_file}: {int((~np.isfinite(alpha)).sum())} matte values are NaN or Inf")
                 prob = _matte_problem(alpha)
                 if prob == "empty":
-                    raise InputError(f"{matte_file}: the matte of {v.what} is empty (no pixel reaches alpha "
-                                     f"{MATTE_HALF}: no object), so it would carve the whole hull away; fix the "
-                                     "mask or leave the image out")
+                    raise InputError(
+                        f"{matte_file}: the matte of {v.what} is empty (no pixel reaches alpha "
+                        f"{MATTE_HALF}: no object), so it would carve the whole hull away; fix the "
+                        "mask or leave the image out"
+                    )
                 if prob == "full":
                     if not allow_full_masks:
                         raise InputError(
                             f"{matte_file}: the matte of {v.what} is full (no pixel below alpha {MATTE_HALF}: no "
                             "background) — an inverted mask or an 'all valid' loss mask? For a genuine close-up "
-                            "pass --allow-full-masks (such a view carves nothing)")
+                            "pass --allow-full-masks (such a view carves nothing)"
+                        )
                     full_views.append(v.what)
                 mkey = shot_key("mask", i, 0.0)
             key = shot_key("lightfield", i, 0.0)
-            w.add_image(np.ascontiguousarray(rgb, np.float32), id=f"{key}/e0", shot=key, phase="lightfield",
-                        camera=i, table_deg=0.0, rel_path=f"images/{key}_e0.exr", exposure_s=1.0,
-                        extra={"source": v.source})
+            w.add_image(
+                np.ascontiguousarray(rgb, np.float32),
+                id=f"{key}/e0",
+                shot=key,
+                phase="lightfield",
+                camera=i,
+                table_deg=0.0,
+                rel_path=f"images/{key}_e0.exr",
+                exposure_s=1.0,
+                extra={"source": v.source},
+            )
             if alpha is not None:
-                w.add_image(np.ascontiguousarray(np.clip(alpha, 0, 1)[..., None], np.float32), id=f"{mkey}/e0",
-                            shot=mkey, phase="mask", camera=i, table_deg=0.0, rel_path=f"images/{mkey}_e0.exr",
-                            extra={"source": str(matte_file.name)})
+                w.add_image(
+                    np.ascontiguousarray(np.clip(alpha, 0, 1)[..., None], np.float32),
+                    id=f"{mkey}/e0",
+                    shot=mkey,
+                    phase="mask",
+                    camera=i,
+                    table_deg=0.0,
+                    rel_path=f"images/{mkey}_e0.exr",
+                    extra={"source": str(matte_file.name)},
+                )
                 n_masks += 1
             if progress is not None:
                 progress(i + 1, len(views))
     if full_views:
         log.warning("%d full matte(s) kept (--allow-full-masks): %s", len(full_views), ", ".join(full_views[:5]))
-    return {"session": str(out), "images": len(views), "masks": n_masks, "full_masks": len(full_views),
-            "target_m": [float(x) for x in target], "cameras": len(views)}
+    return {
+        "session": str(out),
+        "images": len(views),
+        "masks": n_masks,
+        "full_masks": len(full_views),
+        "target_m": [float(x) for x in target],
+        "cameras": len(views),
+    }
 
 
 # --------------------------------------------------------------------------- COLMAP
 
 
-def import_colmap(model_dir, images_dir, out, *, masks_dir=None, allow_full_masks: bool = False,
-                  progress: Callable[[int, int], None] | None = None) -> dict:
+def import_colmap(
+    model_dir,
+    images_dir,
+    out,
+    *,
+    masks_dir=None,
+    allow_full_masks: bool = False,
+    progress: Callable[[int, int], None] | None = None,
+) -> dict:
     """Turn a COLMAP model (binary or text) and its images into a session folder ``out``.
 
     Parameters
@@ -374,13 +446,26 @@ def import_colmap(model_dir, images_dir, out, *, masks_dir=None, allow_full_mask
         if masks_dir is not None:
             mp = _find(Path(masks_dir), name)
             if mp is None:
-                raise InputError(f"--masks {masks_dir}: no mask for image {name!r} (expected e.g. "
-                                 f"{Path(masks_dir) / (name + '.png')})")
+                raise InputError(
+                    f"--masks {masks_dir}: no mask for image {name!r} (expected e.g. "
+                    f"{Path(masks_dir) / (name + '.png')})"
+                )
         views.append(_View(cam=cam, image=p, mask=mp, source=name, what=f"COLMAP image {name!r}"))
-    meta = {"model": str(model_dir.resolve()), "model_format": kind, "images": str(images_dir.resolve()),
-            "masks": str(Path(masks_dir).resolve()) if masks_dir is not None else ""}
-    rep = _write_session(out, views, kind="colmap", source=str(model_dir), import_meta=meta,
-                         allow_full_masks=allow_full_masks, progress=progress)
+    meta = {
+        "model": str(model_dir.resolve()),
+        "model_format": kind,
+        "images": str(images_dir.resolve()),
+        "masks": str(Path(masks_dir).resolve()) if masks_dir is not None else "",
+    }
+    rep = _write_session(
+        out,
+        views,
+        kind="colmap",
+        source=str(model_dir),
+        import_meta=meta,
+        allow_full_masks=allow_full_masks,
+        progress=progress,
+    )
     rep["model_format"] = kind
     return rep
 
@@ -396,8 +481,10 @@ def _rigid4(name: str, M, where: str) -> np.ndarray:
         raise FormatError(f"{where}: {name} must be a finite 3x4 or 4x4 matrix, got shape {A.shape}")
     R = A[:3, :3]
     if np.abs(R.T @ R - np.eye(3)).max() > 1e-4 or np.linalg.det(R) <= 0 or not np.allclose(A[3], [0, 0, 0, 1]):
-        raise FormatError(f"{where}: {name} is not a rigid transform (rotation + translation); scaled or mirrored "
-                          "worlds are not supported")
+        raise FormatError(
+            f"{where}: {name} is not a rigid transform (rotation + translation); scaled or mirrored "
+            "worlds are not supported"
+        )
     return A
 
 
@@ -408,8 +495,9 @@ def _number(d: dict, key: str, where: str) -> float:
     return float(v)
 
 
-def import_nerfstudio(transforms, out, *, allow_full_masks: bool = False,
-                      progress: Callable[[int, int], None] | None = None) -> dict:
+def import_nerfstudio(
+    transforms, out, *, allow_full_masks: bool = False, progress: Callable[[int, int], None] | None = None
+) -> dict:
     """Turn a nerfstudio ``transforms.json`` and its images into a session folder ``out``.
 
     Parameters
@@ -449,8 +537,10 @@ def import_nerfstudio(transforms, out, *, allow_full_masks: bool = False,
         raise FormatError(f"{path}: expected a JSON object with 'frames', got {type(meta).__name__}")
     frames = meta.get("frames")
     if not isinstance(frames, list) or not frames:
-        raise FormatError(f"{path}: missing key 'frames' (or it is empty): expected a list of frames with "
-                          "file_path and transform_matrix")
+        raise FormatError(
+            f"{path}: missing key 'frames' (or it is empty): expected a list of frames with "
+            "file_path and transform_matrix"
+        )
     A = None
     if meta.get("applied_transform") is not None:
         A = _rigid4("applied_transform", meta["applied_transform"], f"{path}")
@@ -460,8 +550,10 @@ def import_nerfstudio(transforms, out, *, allow_full_masks: bool = False,
     has_mask = [isinstance(f, dict) and "mask_path" in f for f in frames]
     if any(has_mask) and not all(has_mask):
         i = has_mask.index(False)
-        raise FormatError(f"{path}: frame {i} has no mask_path but frame {has_mask.index(True)} has one; nerfstudio "
-                          "needs mask_path on every frame or on none")
+        raise FormatError(
+            f"{path}: frame {i} has no mask_path but frame {has_mask.index(True)} has one; nerfstudio "
+            "needs mask_path on every frame or on none"
+        )
     views: list[_View] = []
     sizes: dict[Path, tuple[int, int]] = {}
     for i, fr in enumerate(frames):
@@ -479,8 +571,10 @@ def import_nerfstudio(transforms, out, *, allow_full_masks: bool = False,
 
         model = get("camera_model") or "OPENCV"
         if model not in _NS_PERSPECTIVE:
-            raise FormatError(f"{where}: camera_model {model!r} not supported (perspective models only: "
-                              f"{', '.join(_NS_PERSPECTIVE)}; undistort fisheye/equirectangular images first)")
+            raise FormatError(
+                f"{where}: camera_model {model!r} not supported (perspective models only: "
+                f"{', '.join(_NS_PERSPECTIVE)}; undistort fisheye/equirectangular images first)"
+            )
         img = _find(root, fp)
         if img is None:
             raise InputError(f"{where}: image file {root / fp} not found (also tried {fp}.png etc.)")
@@ -489,9 +583,26 @@ def import_nerfstudio(transforms, out, *, allow_full_masks: bool = False,
             mask = _find(root, str(fr["mask_path"]))
             if mask is None:
                 raise InputError(f"{where}: mask file {root / str(fr['mask_path'])} not found")
-        num = {k: _number(fr if k in fr else meta, k, where) for k in
-               ("fl_x", "fl_y", "cx", "cy", "w", "h", "k1", "k2", "k3", "k4", "p1", "p2", "camera_angle_x",
-                "camera_angle_y") if get(k) is not None}
+        num = {
+            k: _number(fr if k in fr else meta, k, where)
+            for k in (
+                "fl_x",
+                "fl_y",
+                "cx",
+                "cy",
+                "w",
+                "h",
+                "k1",
+                "k2",
+                "k3",
+                "k4",
+                "p1",
+                "p2",
+                "camera_angle_x",
+                "camera_angle_y",
+            )
+            if get(k) is not None
+        }
         if "w" not in num or "h" not in num:
             if img not in sizes:
                 rgb, _ = _read_rgb_alpha(img)  # Blender sets give no size: the image's own
@@ -508,8 +619,10 @@ def import_nerfstudio(transforms, out, *, allow_full_masks: bool = False,
         if fy is None:
             fy = fx
         if num.get("k4", 0.0) != 0.0:
-            raise FormatError(f"{where}: k4 = {num['k4']} (nerfstudio's r^8 radial term) is not representable in "
-                              "the OpenCV 5-term model; undistort the images first")
+            raise FormatError(
+                f"{where}: k4 = {num['k4']} (nerfstudio's r^8 radial term) is not representable in "
+                "the OpenCV 5-term model; undistort the images first"
+            )
         try:
             T = np.asarray(fr["transform_matrix"], dtype=np.float64)
         except (TypeError, ValueError):
@@ -519,18 +632,38 @@ def import_nerfstudio(transforms, out, *, allow_full_masks: bool = False,
         if T.shape != (4, 4):
             raise FormatError(f"{where}: transform_matrix has shape {T.shape}, expected 4x4 (or 3x4)")
         try:
-            cam = camera_from_nerfstudio(source_from_file @ T, fl_x=fx, fl_y=fy, cx=num.get("cx", w / 2),
-                                         cy=num.get("cy", h / 2), w=int(w), h=int(h), k1=num.get("k1", 0.0),
-                                         k2=num.get("k2", 0.0), k3=num.get("k3", 0.0), p1=num.get("p1", 0.0),
-                                         p2=num.get("p2", 0.0), name=fp)
+            cam = camera_from_nerfstudio(
+                source_from_file @ T,
+                fl_x=fx,
+                fl_y=fy,
+                cx=num.get("cx", w / 2),
+                cy=num.get("cy", h / 2),
+                w=int(w),
+                h=int(h),
+                k1=num.get("k1", 0.0),
+                k2=num.get("k2", 0.0),
+                k3=num.get("k3", 0.0),
+                p1=num.get("p1", 0.0),
+                p2=num.get("p2", 0.0),
+                name=fp,
+            )
         except InputError as e:
             raise FormatError(f"{where}: {e}") from None
         views.append(_View(cam=cam, image=img, mask=mask, source=fp, what=f"frame {i} ({fp!r})"))
-    imeta = {"transforms": str(path.resolve()),
-             "applied_transform": file_from_source[:3].tolist() if A is not None else [],
-             "applied_transform_undone": A is not None}
-    rep = _write_session(out, views, kind="nerfstudio", source=str(path), import_meta=imeta,
-                         allow_full_masks=allow_full_masks, progress=progress)
+    imeta = {
+        "transforms": str(path.resolve()),
+        "applied_transform": file_from_source[:3].tolist() if A is not None else [],
+        "applied_transform_undone": A is not None,
+    }
+    rep = _write_session(
+        out,
+        views,
+        kind="nerfstudio",
+        source=str(path),
+        import_meta=imeta,
+        allow_full_masks=allow_full_masks,
+        progress=progress,
+    )
     rep["applied_transform_undone"] = A is not None
     return rep
 

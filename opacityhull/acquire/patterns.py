@@ -164,11 +164,14 @@ def probe_crop(rng: np.random.Generator, *, width: int, height: int, mean: float
     ch = max(int(ph * s), 2)
     cw = min(max(int(ch * width / max(height, 1)), 2), pw)
     y0, x0 = int(rng.integers(0, ph - ch + 1)), int(rng.integers(0, pw - cw + 1))
-    crop = cv2.resize(np.ascontiguousarray(img[y0:y0 + ch, x0:x0 + cw]), (width, height),
-                      interpolation=cv2.INTER_AREA).astype(np.float64)
+    crop = cv2.resize(
+        np.ascontiguousarray(img[y0 : y0 + ch, x0 : x0 + cw]), (width, height), interpolation=cv2.INTER_AREA
+    ).astype(np.float64)
     crop = np.clip(crop / max(float(crop.mean()), 1e-12) * mean, 0.0, 1.0)
-    return (np.round(crop * 255).astype(np.uint8),
-            f"probe:{name}:mirror={mirror}:rot={rot * 90}:crop={x0},{y0},{cw}x{ch}")
+    return (
+        np.round(crop * 255).astype(np.uint8),
+        f"probe:{name}:mirror={mirror}:rot={rot * 90}:crop={x0},{y0},{cw}x{ch}",
+    )
 
 
 def _natural_image_for(e, k: int, d, domain_index: int) -> tuple[np.ndarray, str]:
@@ -191,8 +194,9 @@ def plan_patterns(plan: CapturePlan, geometry: RigGeometry) -> dict[int, Pattern
             imgs, comps = {}, {}
             for d in geometry.displays:
                 w, h = d.resolution
-                imgs[d.name] = random_pattern(_rng(m.seed, j, _display_key(d.name)), width=w, height=h,
-                                              cell_px=m.cell_px)
+                imgs[d.name] = random_pattern(
+                    _rng(m.seed, j, _display_key(d.name)), width=w, height=h, cell_px=m.cell_px
+                )
                 comps[d.name] = complement(imgs[d.name])
             out[2 * j - 1] = Pattern(2 * j - 1, "random", "matting", imgs, seed=m.seed)
             out[2 * j] = Pattern(2 * j, "complement", "matting", comps, of=2 * j - 1, seed=m.seed)
@@ -202,10 +206,18 @@ def plan_patterns(plan: CapturePlan, geometry: RigGeometry) -> dict[int, Pattern
         for i, (dname, ids) in enumerate(natural_pattern_ids(plan, geometry).items()):
             for k, pid in enumerate(ids):
                 img, src = _natural_image_for(e, k, by_name[dname], i)
-                imgs = {d.name: (img if d.name == dname else np.zeros((d.resolution[1], d.resolution[0], 3), np.uint8))
-                        for d in geometry.displays}
-                out[pid] = Pattern(pid, "natural", "envmatte", imgs,
-                                   seed=None if src.startswith("user:") else e.seed, source=f"{dname}:{src}")
+                imgs = {
+                    d.name: (img if d.name == dname else np.zeros((d.resolution[1], d.resolution[0], 3), np.uint8))
+                    for d in geometry.displays
+                }
+                out[pid] = Pattern(
+                    pid,
+                    "natural",
+                    "envmatte",
+                    imgs,
+                    seed=None if src.startswith("user:") else e.seed,
+                    source=f"{dname}:{src}",
+                )
     return out
 
 

@@ -162,8 +162,9 @@ def _angle_list(where: str, v: Any) -> tuple[float, ...]:
     return tuple(out)
 
 
-def _sweep(where: str, d: Mapping, *, steps_key: str, step_key: str, list_key: str | None,
-           default_steps: int) -> tuple[float, ...]:
+def _sweep(
+    where: str, d: Mapping, *, steps_key: str, step_key: str, list_key: str | None, default_steps: int
+) -> tuple[float, ...]:
     """Angles from ``steps`` (evenly over 360), ``step_deg`` or an explicit list."""
     given = [k for k in (steps_key, step_key, list_key) if k and k in d]
     if len(given) > 1:
@@ -176,7 +177,11 @@ def _sweep(where: str, d: Mapping, *, steps_key: str, step_key: str, list_key: s
         if step <= 0 or step > 360:
             raise ConfigError(f"{where}.{step_key}: must be in (0, 360] degrees, got {step}")
         # whole sweep without repeating 0 = 360: 360/step angles when it divides, else ceil
-        n = int(round(360.0 / step)) if abs(360.0 / step - round(360.0 / step)) < 1e-9 else int(math.floor(360.0 / step)) + 1
+        n = (
+            int(round(360.0 / step))
+            if abs(360.0 / step - round(360.0 / step)) < 1e-9
+            else int(math.floor(360.0 / step)) + 1
+        )
         angles = [start + i * step for i in range(n)]
     else:
         v = d.get(steps_key, default_steps)
@@ -200,7 +205,7 @@ def _lights_deg(where: str, d: Mapping, default) -> float | str:
     if v == "table":
         return "table"
     if isinstance(v, str):
-        raise ConfigError(f"{where}.lights_deg: expected a number of degrees or \"table\", got {v!r}")
+        raise ConfigError(f'{where}.lights_deg: expected a number of degrees or "table", got {v!r}')
     return round(_number(f"{where}.lights_deg", v) % 360.0, 6)
 
 
@@ -341,8 +346,9 @@ class CapturePlan:
 # --------------------------------------------------------------------------- parsing
 
 
-def parse_plan(d: Mapping[str, Any], *, where: str = "plan", source: str = "",
-               base_dir: Path | None = None) -> CapturePlan:
+def parse_plan(
+    d: Mapping[str, Any], *, where: str = "plan", source: str = "", base_dir: Path | None = None
+) -> CapturePlan:
     """Parse a plan table (the whole TOML document) into a :class:`CapturePlan`.
 
     Raises :class:`~opacityhull.errors.ConfigError` naming ``where`` and the key.
@@ -368,9 +374,12 @@ def parse_plan(d: Mapping[str, Any], *, where: str = "plan", source: str = "",
         elif isinstance(cams, int) and not isinstance(cams, bool):
             if cams <= 0:
                 raise ConfigError(f"{where}: [plan].cameras: a camera count must be > 0, got {cams}")
-        elif not isinstance(cams, list) or not cams or not all(isinstance(c, int) and not isinstance(c, bool)
-                                                                 and c >= 0 for c in cams):
-            raise ConfigError(f"{where}: [plan].cameras: expected \"all\" or a list of camera indices, got {cams!r}")
+        elif (
+            not isinstance(cams, list)
+            or not cams
+            or not all(isinstance(c, int) and not isinstance(c, bool) and c >= 0 for c in cams)
+        ):
+            raise ConfigError(f'{where}: [plan].cameras: expected "all" or a list of camera indices, got {cams!r}')
         elif len(set(cams)) != len(cams):
             raise ConfigError(f"{where}: [plan].cameras: duplicate camera index in {cams}")
         else:
@@ -378,8 +387,9 @@ def parse_plan(d: Mapping[str, Any], *, where: str = "plan", source: str = "",
 
     t = _table(where, d, "table")
     _check_keys(f"{where}: [table]", t, {"steps", "step_deg", "start_deg", "angles_deg"})
-    table_deg = _sweep(f"{where}: [table]", t, steps_key="steps", step_key="step_deg", list_key="angles_deg",
-                       default_steps=1)
+    table_deg = _sweep(
+        f"{where}: [table]", t, steps_key="steps", step_key="step_deg", list_key="angles_deg", default_steps=1
+    )
 
     e = _table(where, d, "exposures")
     _check_keys(f"{where}: [exposures]", e, {"default_s"})
@@ -408,8 +418,10 @@ def parse_plan(d: Mapping[str, Any], *, where: str = "plan", source: str = "",
         phase_name = {}
     unknown = sorted(set(phases) - set(PLAN_PHASES))
     if unknown:
-        raise ConfigError(f"{where}: unknown phase(s) {['phases.' + u for u in unknown]}; "
-                          f"known phases: {list(PLAN_PHASES) + list(PHASE_ALIASES)}")
+        raise ConfigError(
+            f"{where}: unknown phase(s) {['phases.' + u for u in unknown]}; "
+            f"known phases: {list(PLAN_PHASES) + list(PHASE_ALIASES)}"
+        )
     if not phases:
         raise ConfigError(f"{where}: no [phases.*] table; give at least one of {list(PLAN_PHASES)}")
     kw: dict[str, Any] = {}
@@ -435,8 +447,9 @@ def parse_plan(d: Mapping[str, Any], *, where: str = "plan", source: str = "",
         ld = _lights_deg(w, ph, 0.0)
         if isinstance(ld, str):  # "table": the array follows the table, meaningless for calibration
             raise ConfigError(f"{w}.lights_deg: must be a number for calibration")
-        kw["calibration"] = CalibrationPhase(table_deg=angles, charuco=spec, level=_level(w, ph, 255),
-                                             lights_deg=ld, exposures_s=ph_exp(w, ph))
+        kw["calibration"] = CalibrationPhase(
+            table_deg=angles, charuco=spec, level=_level(w, ph, 255), lights_deg=ld, exposures_s=ph_exp(w, ph)
+        )
     if "matting" in phases:
         ph = ph_table("matting")
         w = f"{where}: [phases.matting]"
@@ -454,15 +467,16 @@ def parse_plan(d: Mapping[str, Any], *, where: str = "plan", source: str = "",
         ph = ph_table("lightfield")
         w = f"{where}: [phases.lightfield]"
         _check_keys(w, ph, {"level", "lights_deg", "exposures_s"})
-        kw["lightfield"] = LightfieldPhase(level=_level(w, ph, 255), lights_deg=_lights_deg(w, ph, "table"),
-                                           exposures_s=ph_exp(w, ph))
+        kw["lightfield"] = LightfieldPhase(
+            level=_level(w, ph, 255), lights_deg=_lights_deg(w, ph, "table"), exposures_s=ph_exp(w, ph)
+        )
     if "reflectance" in phases:
         ph = ph_table("reflectance")
         w = f"{where}: [phases.reflectance]"
-        _check_keys(w, ph, {"array_steps", "array_step_deg", "array_deg", "start_deg", "lights", "level",
-                            "exposures_s"})
-        arr = _sweep(w, ph, steps_key="array_steps", step_key="array_step_deg", list_key="array_deg",
-                     default_steps=1)
+        _check_keys(
+            w, ph, {"array_steps", "array_step_deg", "array_deg", "start_deg", "lights", "level", "exposures_s"}
+        )
+        arr = _sweep(w, ph, steps_key="array_steps", step_key="array_step_deg", list_key="array_deg", default_steps=1)
         lights = ph.get("lights")
         if lights is not None:
             if lights == "all":
@@ -470,9 +484,12 @@ def parse_plan(d: Mapping[str, Any], *, where: str = "plan", source: str = "",
             elif isinstance(lights, int) and not isinstance(lights, bool):
                 if lights <= 0:
                     raise ConfigError(f"{w}.lights: a light count must be > 0, got {lights}")
-            elif (not isinstance(lights, list) or not lights
-                  or not all(isinstance(x, int) and not isinstance(x, bool) for x in lights)):
-                raise ConfigError(f"{w}.lights: expected \"all\" or a non-empty list of light ids, got {lights!r}")
+            elif (
+                not isinstance(lights, list)
+                or not lights
+                or not all(isinstance(x, int) and not isinstance(x, bool) for x in lights)
+            ):
+                raise ConfigError(f'{w}.lights: expected "all" or a non-empty list of light ids, got {lights!r}')
             elif len(set(lights)) != len(lights):
                 raise ConfigError(f"{w}.lights: duplicate light id in {lights}")
             else:
@@ -482,9 +499,14 @@ def parse_plan(d: Mapping[str, Any], *, where: str = "plan", source: str = "",
             raise ConfigError(f"{w}.level: must be > 0 (one light at a time needs the light on)")
         kw["reflectance"] = ReflectancePhase(array_deg=arr, lights=lights, level=level, exposures_s=ph_exp(w, ph))
     if "envmatte" in phases:
-        kw["envmatte"] = _parse_natural(f"{where}: [phases.{phase_name.get('envmatte', 'envmatte')}]",
-                                        ph_table("envmatte"), seed=seed, base_dir=base_dir, exposures=ph_exp,
-                                        strict=phase_name.get("envmatte") == "natural")
+        kw["envmatte"] = _parse_natural(
+            f"{where}: [phases.{phase_name.get('envmatte', 'envmatte')}]",
+            ph_table("envmatte"),
+            seed=seed,
+            base_dir=base_dir,
+            exposures=ph_exp,
+            strict=phase_name.get("envmatte") == "natural",
+        )
 
     return CapturePlan(
         name=name,
@@ -522,12 +544,14 @@ def _user_image(w: str, s: Any, base_dir: Path | None) -> str:
     return str(pth)
 
 
-def _parse_natural(w: str, ph: Mapping, *, seed: int, base_dir: Path | None, exposures,
-                   strict: bool = True) -> NaturalPhase:
+def _parse_natural(
+    w: str, ph: Mapping, *, seed: int, base_dir: Path | None, exposures, strict: bool = True
+) -> NaturalPhase:
     """``strict`` (``[phases.natural]``): N >= K always; the older ``[phases.envmatte]``
     name only checks it when ``kernels`` is given (it was not made for estimation)."""
-    _check_keys(w, ph, {"images", "level", "seed", "lights_deg", "exposures_s", "sources", "user_images", "displays",
-                        "kernels"})
+    _check_keys(
+        w, ph, {"images", "level", "seed", "lights_deg", "exposures_s", "sources", "user_images", "displays", "kernels"}
+    )
     kernels = _int(w, ph, "kernels", 25, lo=1, hi=255)
     imgs = ph.get("images", kernels if strict or "kernels" in ph else 2)
     user: tuple[str, ...] = ()
@@ -541,10 +565,15 @@ def _parse_natural(w: str, ph: Mapping, *, seed: int, base_dir: Path | None, exp
     else:
         imgs = _int(w, ph, "images", 2, lo=1, hi=4000)
         src = ph.get("sources", ["probes", "noise"])
-        if (not isinstance(src, list) or not src or not all(isinstance(x, str) for x in src)
-                or len(set(src)) != len(src)):
-            raise ConfigError(f"{w}.sources: expected a non-empty list of distinct names from "
-                              f"{list(NATURAL_SOURCES)}, got {src!r}")
+        if (
+            not isinstance(src, list)
+            or not src
+            or not all(isinstance(x, str) for x in src)
+            or len(set(src)) != len(src)
+        ):
+            raise ConfigError(
+                f"{w}.sources: expected a non-empty list of distinct names from {list(NATURAL_SOURCES)}, got {src!r}"
+            )
         bad = [x for x in src if x not in NATURAL_SOURCES]
         if bad:
             raise ConfigError(f"{w}.sources: unknown source(s) {bad}; expected names from {list(NATURAL_SOURCES)}")
@@ -553,29 +582,46 @@ def _parse_natural(w: str, ph: Mapping, *, seed: int, base_dir: Path | None, exp
         if not isinstance(ui, list):
             raise ConfigError(f"{w}.user_images: expected a list of image paths, got {ui!r}")
         if ui and "user" not in sources:
-            raise ConfigError(f"{w}.user_images: given but \"user\" is not in sources {list(sources)}")
+            raise ConfigError(f'{w}.user_images: given but "user" is not in sources {list(sources)}')
         if "user" in sources and not ui:
-            raise ConfigError(f"{w}.sources: \"user\" needs user_images = [paths]")
+            raise ConfigError(f'{w}.sources: "user" needs user_images = [paths]')
         user = tuple(_user_image(f"{w}.user_images[{i}]", s, base_dir) for i, s in enumerate(ui))
         if len(user) > imgs:
             raise ConfigError(f"{w}: {len(user)} user_images but images = {imgs}; N must be >= the user images")
         if len(user) < imgs and sources == ("user",):
-            raise ConfigError(f"{w}: images = {imgs} but only {len(user)} user_images and no other source; "
-                              f"add \"probes\" or \"noise\" to sources or lower images")
+            raise ConfigError(
+                f"{w}: images = {imgs} but only {len(user)} user_images and no other source; "
+                f'add "probes" or "noise" to sources or lower images'
+            )
     n = imgs if isinstance(imgs, int) else len(imgs)
     if (strict or "kernels" in ph) and n < kernels:
-        raise ConfigError(f"{w}: images = {n} per display but kernels = {kernels}: the estimate needs N >= K "
-                          f"(the paper uses N = 200, K = 25); raise images or lower kernels")
+        raise ConfigError(
+            f"{w}: images = {n} per display but kernels = {kernels}: the estimate needs N >= K "
+            f"(the paper uses N = 200, K = 25); raise images or lower kernels"
+        )
     disp = ph.get("displays")
     if disp is not None:
-        if (disp != "all" and (not isinstance(disp, list) or not disp or not all(isinstance(x, str) and x for x in disp)
-                               or len(set(disp)) != len(disp))):
-            raise ConfigError(f"{w}.displays: expected \"all\" or a non-empty list of distinct display names, "
-                              f"got {disp!r}")
+        if disp != "all" and (
+            not isinstance(disp, list)
+            or not disp
+            or not all(isinstance(x, str) and x for x in disp)
+            or len(set(disp)) != len(disp)
+        ):
+            raise ConfigError(
+                f'{w}.displays: expected "all" or a non-empty list of distinct display names, got {disp!r}'
+            )
         disp = None if disp == "all" else tuple(disp)
-    return NaturalPhase(images=imgs, level=_level(w, ph, 0), seed=_int(w, ph, "seed", seed * 1000 + 2, lo=0),
-                        lights_deg=_lights_deg(w, ph, "table"), exposures_s=exposures(w, ph), sources=sources,
-                        user_images=user, displays=disp, kernels=kernels)
+    return NaturalPhase(
+        images=imgs,
+        level=_level(w, ph, 0),
+        seed=_int(w, ph, "seed", seed * 1000 + 2, lo=0),
+        lights_deg=_lights_deg(w, ph, "table"),
+        exposures_s=exposures(w, ph),
+        sources=sources,
+        user_images=user,
+        displays=disp,
+        kernels=kernels,
+    )
 
 
 def _plain(d):
@@ -592,8 +638,9 @@ def load_plan(spec: str | Path) -> CapturePlan:
     if s.startswith("builtin:"):
         name = s.split(":", 1)[1]
         if name not in BUILTIN_PLANS:
-            raise ConfigError(f"--plan {s}: no built-in plan {name!r}; built-ins: "
-                              + ", ".join(f"builtin:{n}" for n in BUILTIN_PLANS))
+            raise ConfigError(
+                f"--plan {s}: no built-in plan {name!r}; built-ins: " + ", ".join(f"builtin:{n}" for n in BUILTIN_PLANS)
+            )
         path = _BUILTIN_DIR / f"{name}.toml"
         return parse_plan(read_toml(path, error=ConfigError, what="built-in plan"), where=s, source=s)
     path = Path(s)

@@ -40,18 +40,32 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from .. import __version__
-from ..errors import (CaptureInterrupted, ConfigError, DeviceError, FormatError, InputError, OpacityHullError,
-                      Terminated, write_error)
+from ..errors import (
+    CaptureInterrupted,
+    ConfigError,
+    DeviceError,
+    FormatError,
+    InputError,
+    OpacityHullError,
+    Terminated,
+    write_error,
+)
 from ..rigs.interfaces import GroundTruthSource
 from ..session import Session, SessionWriter, sha256_file, toml_dumps
 from .exr import write_capture_exr
 from .patterns import Pattern, check_saved_patterns, plan_patterns, save_patterns
 from .plan import CapturePlan
-from .schedule import (Estimate, MotionRates, PlannedShot, Stage, estimate, expected_counts, image_bytes,
-                       schedule)
+from .schedule import Estimate, MotionRates, PlannedShot, Stage, estimate, expected_counts, image_bytes, schedule
 
-__all__ = ["CaptureResult", "DiskFull", "GroundTruthError", "run_capture", "resume_mismatch", "device_pattern_id",
-           "views_of"]
+__all__ = [
+    "CaptureResult",
+    "DiskFull",
+    "GroundTruthError",
+    "run_capture",
+    "resume_mismatch",
+    "device_pattern_id",
+    "views_of",
+]
 
 ProgressCallback = Callable[[int, int], None]
 
@@ -87,10 +101,20 @@ class CaptureResult:
     stopped: str = ""
 
     def to_dict(self) -> dict:
-        d = {"complete": self.complete, "images": self.images, "session": str(self.session),
-             "planned": self.planned, "taken": self.taken, "reshot": self.reshot, "per_phase": self.per_phase,
-             "planned_per_phase": self.planned_per_phase, "seconds": self.seconds,
-             "phase_seconds": self.phase_seconds, "bytes_written": self.bytes_written, "dry_run": self.dry_run}
+        d = {
+            "complete": self.complete,
+            "images": self.images,
+            "session": str(self.session),
+            "planned": self.planned,
+            "taken": self.taken,
+            "reshot": self.reshot,
+            "per_phase": self.per_phase,
+            "planned_per_phase": self.planned_per_phase,
+            "seconds": self.seconds,
+            "phase_seconds": self.phase_seconds,
+            "bytes_written": self.bytes_written,
+            "dry_run": self.dry_run,
+        }
         if self.estimate is not None:
             d["estimate"] = self.estimate.to_dict()
         if self.stopped:
@@ -191,8 +215,10 @@ class _SessionLock:
             f.seek(0)
             who = f.read().strip()
             f.close()
-            raise InputError(f"--out {self.path.parent}: another capture is writing this session (process {who or '?'},"
-                             f" lock {self.path}); wait for it to finish or stop it first") from None
+            raise InputError(
+                f"--out {self.path.parent}: another capture is writing this session (process {who or '?'},"
+                f" lock {self.path}); wait for it to finish or stop it first"
+            ) from None
         f.seek(0)
         f.truncate()
         f.write(f"{os.getpid()}\n")
@@ -233,8 +259,9 @@ class _PatternSlots:
     slot checked this run already holds is shown from that slot.
     """
 
-    def __init__(self, backdrops, patterns: dict[int, Pattern], displays: Sequence[str], log,
-                 capacity: int | None = None):
+    def __init__(
+        self, backdrops, patterns: dict[int, Pattern], displays: Sequence[str], log, capacity: int | None = None
+    ):
         from collections import OrderedDict
 
         self.bd = backdrops
@@ -306,7 +333,8 @@ class _PatternSlots:
                     raise ConfigError(
                         f"backdrops {getattr(self.bd, 'name', '?')}: the controller stores {self.capacity} "
                         f"patterns and none can be deleted to make room for pattern {slot} (one shot needs "
-                        f"{len(keep)}, or the device has no DELETE)")
+                        f"{len(keep)}, or the device has no DELETE)"
+                    )
         while True:
             try:
                 sent = self.bd.upload(display, slot, image)
@@ -416,8 +444,10 @@ class _RigDriver:
         la = rig.light_array
         if la is not None and shot.lights_deg is not None and self.array != shot.lights_deg:
             if la.rotation is None:
-                raise ConfigError(f"the plan asks for the light array at {shot.lights_deg} deg, but this rig's "
-                                  "light array has no rotation axis (check [light_array] rotation in the rig config)")
+                raise ConfigError(
+                    f"the plan asks for the light array at {shot.lights_deg} deg, but this rig's "
+                    "light array has no rotation axis (check [light_array] rotation in the rig config)"
+                )
             la.rotation.move_to(shot.lights_deg)
             self.array = shot.lights_deg
         if self.table != shot.table_deg:
@@ -575,9 +605,19 @@ class _ImageQueue:
 # --------------------------------------------------------------------------- main entry
 
 
-def run_capture(rig, plan: CapturePlan, out_dir, *, resume: bool = False, dry_run: bool = False,
-                progress: ProgressCallback | None = None, rig_source: str = "", fsync: bool = True,
-                log: Callable[[str], None] | None = None, queue_images: int = 4) -> CaptureResult:
+def run_capture(
+    rig,
+    plan: CapturePlan,
+    out_dir,
+    *,
+    resume: bool = False,
+    dry_run: bool = False,
+    progress: ProgressCallback | None = None,
+    rig_source: str = "",
+    fsync: bool = True,
+    log: Callable[[str], None] | None = None,
+    queue_images: int = 4,
+) -> CaptureResult:
     """Capture ``plan`` on ``rig`` into the session folder ``out_dir``.
 
     Parameters
@@ -631,16 +671,25 @@ def run_capture(rig, plan: CapturePlan, out_dir, *, resume: bool = False, dry_ru
     if dry_run:
         desc = rig.describe() if hasattr(rig, "describe") else {}
         est = estimate(plan, geometry, MotionRates.from_devices((desc or {}).get("devices")), stages)
-        return CaptureResult(session=out, complete=False, images=0, planned=n_planned, planned_per_phase=planned,
-                             estimate=est, dry_run=True)
+        return CaptureResult(
+            session=out,
+            complete=False,
+            images=0,
+            planned=n_planned,
+            planned_per_phase=planned,
+            estimate=est,
+            dry_run=True,
+        )
 
     patterns = plan_patterns(plan, geometry)
     existing = out.exists() and (not out.is_dir() or any(out.iterdir()))
     if out.exists() and not out.is_dir():
         raise InputError(f"--out {out}: exists and is not a folder")
     if existing and not resume:
-        raise InputError(f"--out {out}: the folder is not empty; use --resume to continue the session there, "
-                         "or choose an empty folder")
+        raise InputError(
+            f"--out {out}: the folder is not empty; use --resume to continue the session there, "
+            "or choose an empty folder"
+        )
 
     done: set[str] = set()
     corrupt: set[str] = set()
@@ -657,9 +706,24 @@ def run_capture(rig, plan: CapturePlan, out_dir, *, resume: bool = False, dry_ru
                 raise
 
         try:
-            return _capture(rig, plan, out, stages=stages, planned=planned, patterns=patterns, done=done,
-                            corrupt=corrupt, existing=existing, lock=lock, progress=progress, rig_source=rig_source,
-                            fsync=fsync, log=log, t_start=t_start, queue_images=queue_images)
+            return _capture(
+                rig,
+                plan,
+                out,
+                stages=stages,
+                planned=planned,
+                patterns=patterns,
+                done=done,
+                corrupt=corrupt,
+                existing=existing,
+                lock=lock,
+                progress=progress,
+                rig_source=rig_source,
+                fsync=fsync,
+                log=log,
+                t_start=t_start,
+                queue_images=queue_images,
+            )
         finally:
             lock.release()
 
@@ -690,8 +754,25 @@ def _verify_existing(out: Path, plan, geometry, patterns, log, *, rig_source: st
     return done, corrupt
 
 
-def _capture(rig, plan, out: Path, *, stages, planned, patterns, done, corrupt, existing, lock, progress,
-             rig_source, fsync, log, t_start, queue_images: int = 4) -> CaptureResult:
+def _capture(
+    rig,
+    plan,
+    out: Path,
+    *,
+    stages,
+    planned,
+    patterns,
+    done,
+    corrupt,
+    existing,
+    lock,
+    progress,
+    rig_source,
+    fsync,
+    log,
+    t_start,
+    queue_images: int = 4,
+) -> CaptureResult:
     geometry = rig.geometry
     n_planned = sum(planned.values())
 
@@ -712,12 +793,13 @@ def _capture(rig, plan, out: Path, *, stages, planned, patterns, done, corrupt, 
     free = _free_bytes(out)
     margin = 1 << 20
     if need_bytes + margin > free:
-        raise DiskFull(f"not enough free disk space for {out}: the capture needs about "
-                       f"{need_bytes / 1e6:.1f} MB ({n_planned - n_done} images), {free / 1e6:.1f} MB are free — "
-                       "free some space or choose another --out")
+        raise DiskFull(
+            f"not enough free disk space for {out}: the capture needs about "
+            f"{need_bytes / 1e6:.1f} MB ({n_planned - n_done} images), {free / 1e6:.1f} MB are free — "
+            "free some space or choose another --out"
+        )
 
-    result = CaptureResult(session=out, complete=False, images=n_done, planned=n_planned,
-                           planned_per_phase=planned)
+    result = CaptureResult(session=out, complete=False, images=n_done, planned=n_planned, planned_per_phase=planned)
     if progress is not None:
         progress(n_done, n_planned)
 
@@ -741,14 +823,14 @@ def _capture(rig, plan, out: Path, *, stages, planned, patterns, done, corrupt, 
                     writer.resume()
             except OSError as e:
                 if _is_disk_full(e):
-                    raise DiskFull(f"disk full while creating the session in {out} ({e}); free space and run "
-                                   "again with --resume") from None
+                    raise DiskFull(
+                        f"disk full while creating the session in {out} ({e}); free space and run again with --resume"
+                    ) from None
                 raise
             # The board may still be on the table when resuming a plan with calibration.
             drv.scene["board"] = None if (existing and plan.calibration is not None) else False
             with writer:
-                sink = _ImageQueue(writer, half=plan.half_float, compression=plan.exr_compression,
-                                   maxsize=queue_images)
+                sink = _ImageQueue(writer, half=plan.half_float, compression=plan.exr_compression, maxsize=queue_images)
 
                 def collect(report: bool = True) -> None:
                     """Count the images the writer has listed (capture thread only)."""
@@ -768,8 +850,10 @@ def _capture(rig, plan, out: Path, *, stages, planned, patterns, done, corrupt, 
                     collect(report=False)
                     if isinstance(e, (OSError, RuntimeError)) and _is_disk_full(e):
                         where = sink.failed.path if sink.failed is not None else out / "images"
-                        return DiskFull(f"disk full writing {where} ({e}); {result.images} of {n_planned} images "
-                                        "are in the session — free space and run again with --resume")
+                        return DiskFull(
+                            f"disk full writing {where} ({e}); {result.images} of {n_planned} images "
+                            "are in the session — free space and run again with --resume"
+                        )
                     return e
 
                 try:
@@ -792,19 +876,35 @@ def _capture(rig, plan, out: Path, *, stages, planned, patterns, done, corrupt, 
                                 except Exception as e:
                                     ki = _caused_by_interrupt(e)
                                     if ki is not None:  # keep its kind: SIGTERM must still exit 143
-                                        raise (Terminated(ki.signum) if isinstance(ki, Terminated)
-                                               else KeyboardInterrupt()) from e
+                                        raise (
+                                            Terminated(ki.signum) if isinstance(ki, Terminated) else KeyboardInterrupt()
+                                        ) from e
                                     raise
                                 img = _check_image(raw, spec, cam)
                                 if sink.queued and np.may_share_memory(img, raw):
                                     # a driver may hand out its frame buffer again for the next exposure
                                     img = img.copy()
-                                fields = dict(exposure_s=exp, lights_deg=shot.lights_deg, light=shot.light,
-                                              pattern=shot.pattern, object_present=shot.object_present,
-                                              extra=_extra(shot))
-                                job = _Job(path=out / shot.rel_path(i), image=img, id=iid, replace=iid in corrupt,
-                                           record=dict(shot=shot.key, phase=shot.phase, camera=shot.camera,
-                                                       table_deg=shot.table_deg, **fields))
+                                fields = dict(
+                                    exposure_s=exp,
+                                    lights_deg=shot.lights_deg,
+                                    light=shot.light,
+                                    pattern=shot.pattern,
+                                    object_present=shot.object_present,
+                                    extra=_extra(shot),
+                                )
+                                job = _Job(
+                                    path=out / shot.rel_path(i),
+                                    image=img,
+                                    id=iid,
+                                    replace=iid in corrupt,
+                                    record=dict(
+                                        shot=shot.key,
+                                        phase=shot.phase,
+                                        camera=shot.camera,
+                                        table_deg=shot.table_deg,
+                                        **fields,
+                                    ),
+                                )
                                 del img, raw
                                 try:
                                     sink.submit(job)
@@ -835,8 +935,7 @@ def _capture(rig, plan, out: Path, *, stages, planned, patterns, done, corrupt, 
             if drv.slots is not None:
                 log(f"backdrop patterns: {drv.slots.uploads} uploaded, {drv.slots.evictions} deleted to make room")
             result.complete = result.images == n_planned
-            if result.complete and isinstance(rig, GroundTruthSource) and \
-                    (taken or not (out / "groundtruth").is_dir()):
+            if result.complete and isinstance(rig, GroundTruthSource) and (taken or not (out / "groundtruth").is_dir()):
                 try:
                     rig.ground_truth(out, views_of(stages))
                 except (OpacityHullError, KeyboardInterrupt):
@@ -844,11 +943,14 @@ def _capture(rig, plan, out: Path, *, stages, planned, patterns, done, corrupt, 
                 except Exception as e:  # the simulator's failure must not read as a lost capture
                     raise GroundTruthError(
                         f"all {n_planned} images are captured in {out}, but the rig failed to write ground truth "
-                        f"({type(e).__name__}: {e}); `capture --resume` retries it") from e
+                        f"({type(e).__name__}: {e}); `capture --resume` retries it"
+                    ) from e
     except DeviceError as e:
         stopped = f"device error: {e}"
-        raise DeviceError(f"{e} — the rig was left safe; {result.images} of {n_planned} images are in {out}; "
-                          "fix the device and run again with --resume") from e
+        raise DeviceError(
+            f"{e} — the rig was left safe; {result.images} of {n_planned} images are in {out}; "
+            "fix the device and run again with --resume"
+        ) from e
     except CaptureInterrupted as e:
         stopped = str(e)
         raise
@@ -883,10 +985,19 @@ def _valid_per_phase(stages, done, result, taken) -> dict:
 
 
 def _append_run_log(out: Path, started: str, result: CaptureResult) -> None:
-    rec = {"started_utc": started, "seconds": round(result.seconds, 3), "taken": result.taken,
-           "reshot": result.reshot, "bytes": result.bytes_written, "images": result.images,
-           "planned": result.planned, "complete": result.complete, "phase_seconds": result.phase_seconds,
-           "stopped": result.stopped, "software_version": __version__}
+    rec = {
+        "started_utc": started,
+        "seconds": round(result.seconds, 3),
+        "taken": result.taken,
+        "reshot": result.reshot,
+        "bytes": result.bytes_written,
+        "images": result.images,
+        "planned": result.planned,
+        "complete": result.complete,
+        "phase_seconds": result.phase_seconds,
+        "stopped": result.stopped,
+        "software_version": __version__,
+    }
     try:
         with open(out / "runs.jsonl", "a") as f:
             f.write(json.dumps(rec, sort_keys=True) + "\n")
@@ -924,14 +1035,18 @@ def _mismatch(sess: Session, plan: CapturePlan, geometry, out: Path) -> str | No
     given = _roundtrip(plan.to_dict())
     if stored_plan and given != stored_plan:
         diff = "; ".join(_differences(stored_plan, given))
-        return (f"--plan {plan.source or plan.name}: differs from the plan of the session in {out} "
-                f"({sess.meta.get('session', {}).get('plan_source', '?')}): {diff}; resume with the same plan")
+        return (
+            f"--plan {plan.source or plan.name}: differs from the plan of the session in {out} "
+            f"({sess.meta.get('session', {}).get('plan_source', '?')}): {diff}; resume with the same plan"
+        )
     stored_rig = sess.meta.get("rig", {})
     given_rig = _roundtrip(geometry.to_dict())
     if given_rig != stored_rig:
         diff = "; ".join(_differences(stored_rig, given_rig))
-        return (f"--rig: its geometry differs from the rig recorded in {out / 'session.toml'}: {diff}; "
-                "resume on the same rig")
+        return (
+            f"--rig: its geometry differs from the rig recorded in {out / 'session.toml'}: {diff}; "
+            "resume on the same rig"
+        )
     return None
 
 
@@ -945,8 +1060,10 @@ def _check_resume_source(sess: Session, rig_source: str, out: Path) -> None:
     if not old or not rig_source or old == rig_source:
         return
     if old.startswith("sim:") or rig_source.startswith("sim:"):
-        raise ConfigError(f"--rig {rig_source}: {out / 'session.toml'} was captured with rig_source = {old!r}; "
-                          "resume it with the same --rig, or capture into a new folder")
+        raise ConfigError(
+            f"--rig {rig_source}: {out / 'session.toml'} was captured with rig_source = {old!r}; "
+            "resume it with the same --rig, or capture into a new folder"
+        )
 
 
 class terminate_as_interrupt:
@@ -1012,13 +1129,29 @@ def _session_meta(rig, cam_info, plan, geometry, stages, patterns, rig_source) -
         desc = {}
     cams = []
     for i, info in sorted(cam_info.items()):
-        cams.append({"index": i, "name": info.name, "width": info.width, "height": info.height, "model": info.model,
-                     "serial": info.serial, "white_level": float(info.white_level), "linear": bool(info.linear)})
+        cams.append(
+            {
+                "index": i,
+                "name": info.name,
+                "width": info.width,
+                "height": info.height,
+                "model": info.model,
+                "serial": info.serial,
+                "white_level": float(info.white_level),
+                "linear": bool(info.linear),
+            }
+        )
     used = {s.camera for st in stages for s in st.shots}
     white = min((c["white_level"] for c in cams if c["index"] in used), default=1.0)
     meta = {
-        "session": {"rig_source": rig_source, "plan_source": plan.source, "plan_name": plan.name,
-                    "seed": plan.seed, "white_level": white, "software_version": __version__},
+        "session": {
+            "rig_source": rig_source,
+            "plan_source": plan.source,
+            "plan_name": plan.name,
+            "seed": plan.seed,
+            "white_level": white,
+            "software_version": __version__,
+        },
         "rig": geometry.to_dict(),
         "devices": _strip_none(desc.get("devices", {})),
         "plan": plan.to_dict(),
@@ -1035,10 +1168,14 @@ def _session_meta(rig, cam_info, plan, geometry, stages, patterns, rig_source) -
     from .patterns import pattern_path
 
     for pid, p in sorted(patterns.items()):
-        entry = {"id": pid, "kind": p.kind, "phase": p.phase,
-                 "files": {d: pattern_path(d, pid) for d in p.images},
-                 "device_ids": {d: device_pattern_id(pid, i) for i, d in enumerate(p.images)},
-                 "pixels_sha256": {d: hashlib.sha256(img.tobytes()).hexdigest() for d, img in p.images.items()}}
+        entry = {
+            "id": pid,
+            "kind": p.kind,
+            "phase": p.phase,
+            "files": {d: pattern_path(d, pid) for d in p.images},
+            "device_ids": {d: device_pattern_id(pid, i) for i, d in enumerate(p.images)},
+            "pixels_sha256": {d: hashlib.sha256(img.tobytes()).hexdigest() for d, img in p.images.items()},
+        }
         if p.of is not None:
             entry["of"] = p.of
         if p.seed is not None:
@@ -1057,16 +1194,20 @@ def _pattern_slots(rig, patterns: dict[int, Pattern], displays: list[str], log) 
     if bd is None:
         raise ConfigError("the plan shows backdrop patterns but the rig has no backdrops device")
     slots = _PatternSlots(bd, patterns, displays, log)
-    log(f"{len(patterns)} pattern(s) on {len(displays)} display(s), uploaded as shown "
-        f"(controller capacity: {slots.capacity if slots.capacity is not None else 'not reported'} slots)")
+    log(
+        f"{len(patterns)} pattern(s) on {len(displays)} display(s), uploaded as shown "
+        f"(controller capacity: {slots.capacity if slots.capacity is not None else 'not reported'} slots)"
+    )
     return slots
 
 
 def _check_image(img, spec, cam) -> np.ndarray:
     a = np.asarray(img)
     if a.ndim != 3 or a.shape[2] not in (3, 4) or a.shape[:2] != (spec.height, spec.width):
-        raise DeviceError(f"camera {getattr(cam, 'name', spec.name)} returned an image of shape {a.shape}, expected "
-                          f"({spec.height}, {spec.width}, 3) as in the rig geometry")
+        raise DeviceError(
+            f"camera {getattr(cam, 'name', spec.name)} returned an image of shape {a.shape}, expected "
+            f"({spec.height}, {spec.width}, 3) as in the rig geometry"
+        )
     if not np.issubdtype(a.dtype, np.floating):
         a = a.astype(np.float32)
     return a

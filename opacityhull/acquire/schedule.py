@@ -58,8 +58,15 @@ class PlannedShot:
     def key(self) -> str:
         # The array angle names the shot only where it varies within a view (reflectance).
         ld = self.lights_deg if self.phase == "reflectance" else None
-        return shot_key(self.phase, self.camera, self.table_deg, lights_deg=ld, light=self.light,
-                        pattern=self.pattern, object_present=self.object_present)
+        return shot_key(
+            self.phase,
+            self.camera,
+            self.table_deg,
+            lights_deg=ld,
+            light=self.light,
+            pattern=self.pattern,
+            object_present=self.object_present,
+        )
 
     def ids(self) -> list[str]:
         return [f"{self.key}/e{i}" for i in range(len(self.exposures_s))]
@@ -92,8 +99,9 @@ def select_cameras(plan: CapturePlan, geometry: RigGeometry) -> tuple[int, ...]:
         return tuple(sorted({int(round(i * n / plan.cameras)) % n for i in range(plan.cameras)}))
     bad = [c for c in plan.cameras if c >= n]
     if bad:
-        raise ConfigError(f"{plan.source or 'plan'}: [plan].cameras: index {bad} not in the rig (it has {n} cameras: "
-                          f"0..{n - 1})")
+        raise ConfigError(
+            f"{plan.source or 'plan'}: [plan].cameras: index {bad} not in the rig (it has {n} cameras: 0..{n - 1})"
+        )
     return tuple(plan.cameras)
 
 
@@ -104,13 +112,15 @@ def select_lights(plan: CapturePlan, geometry: RigGeometry) -> tuple[int, ...]:
         return tuple(ids)
     if isinstance(ph.lights, int):
         if ph.lights > len(ids):
-            raise ConfigError(f"{plan.source or 'plan'}: [phases.reflectance].lights = {ph.lights} but the rig has "
-                              f"{len(ids)} lights")
+            raise ConfigError(
+                f"{plan.source or 'plan'}: [phases.reflectance].lights = {ph.lights} but the rig has {len(ids)} lights"
+            )
         return tuple(ids[int(round(i * len(ids) / ph.lights)) % len(ids)] for i in range(ph.lights))
     bad = [i for i in ph.lights if i not in ids]
     if bad:
-        raise ConfigError(f"{plan.source or 'plan'}: [phases.reflectance].lights: id(s) {bad} not in the rig "
-                          f"(light ids: {ids})")
+        raise ConfigError(
+            f"{plan.source or 'plan'}: [phases.reflectance].lights: id(s) {bad} not in the rig (light ids: {ids})"
+        )
     return tuple(ph.lights)
 
 
@@ -134,8 +144,9 @@ def schedule(plan: CapturePlan, geometry: RigGeometry) -> list[Stage]:
 
     def need_lights(phase: str, level: int):
         if level > 0 and not all_lights:
-            raise ConfigError(f"{plan.source or 'plan'}: [phases.{phase}].level = {level} but the rig has no lights "
-                              "(set level = 0)")
+            raise ConfigError(
+                f"{plan.source or 'plan'}: [phases.{phase}].level = {level} but the rig has no lights (set level = 0)"
+            )
 
     if plan.calibration is not None:
         ph = plan.calibration
@@ -144,8 +155,17 @@ def schedule(plan: CapturePlan, geometry: RigGeometry) -> list[Stage]:
         shots = []
         for a in sweep(ph.table_deg):
             for c in cams:
-                shots.append(PlannedShot("calibration", c, a, exps, lights_deg=ph.lights_deg if all_lights else None,
-                                         level=ph.level, lights_on=all_lights if ph.level else ()))
+                shots.append(
+                    PlannedShot(
+                        "calibration",
+                        c,
+                        a,
+                        exps,
+                        lights_deg=ph.lights_deg if all_lights else None,
+                        level=ph.level,
+                        lights_on=all_lights if ph.level else (),
+                    )
+                )
         stages.append(Stage("board", tuple(shots), charuco=ph.charuco))
 
     if plan.matting is not None and plan.matting.object_absent:
@@ -162,9 +182,19 @@ def schedule(plan: CapturePlan, geometry: RigGeometry) -> list[Stage]:
             ld = _lights_at(ph.lights_deg, a) if all_lights else None
             for pid in ph.pattern_ids:
                 for c in cams:
-                    shots.append(PlannedShot("matting", c, a, exps, lights_deg=ld, level=ph.level,
-                                             lights_on=all_lights if ph.level else (), pattern=pid,
-                                             object_present=False))
+                    shots.append(
+                        PlannedShot(
+                            "matting",
+                            c,
+                            a,
+                            exps,
+                            lights_deg=ld,
+                            level=ph.level,
+                            lights_on=all_lights if ph.level else (),
+                            pattern=pid,
+                            object_present=False,
+                        )
+                    )
         stages.append(Stage("empty", tuple(shots)))
 
     obj: list[PlannedShot] = []
@@ -178,8 +208,18 @@ def schedule(plan: CapturePlan, geometry: RigGeometry) -> list[Stage]:
             ld = _lights_at(ph.lights_deg, a) if all_lights else None
             for pid in (*ph.pattern_ids, None):
                 for c in cams:
-                    obj.append(PlannedShot("matting", c, a, exps, lights_deg=ld, level=ph.level,
-                                           lights_on=all_lights if ph.level else (), pattern=pid))
+                    obj.append(
+                        PlannedShot(
+                            "matting",
+                            c,
+                            a,
+                            exps,
+                            lights_deg=ld,
+                            level=ph.level,
+                            lights_on=all_lights if ph.level else (),
+                            pattern=pid,
+                        )
+                    )
     if plan.lightfield is not None:
         ph = plan.lightfield
         need_lights("lightfield", ph.level)
@@ -187,8 +227,17 @@ def schedule(plan: CapturePlan, geometry: RigGeometry) -> list[Stage]:
         for a in sweep(plan.table_deg):
             ld = _lights_at(ph.lights_deg, a) if all_lights else None
             for c in cams:
-                obj.append(PlannedShot("lightfield", c, a, exps, lights_deg=ld, level=ph.level,
-                                       lights_on=all_lights if ph.level else ()))
+                obj.append(
+                    PlannedShot(
+                        "lightfield",
+                        c,
+                        a,
+                        exps,
+                        lights_deg=ld,
+                        level=ph.level,
+                        lights_on=all_lights if ph.level else (),
+                    )
+                )
     if plan.reflectance is not None:
         ph = plan.reflectance
         if not all_lights:
@@ -202,8 +251,11 @@ def schedule(plan: CapturePlan, geometry: RigGeometry) -> list[Stage]:
             for ad in arr:
                 for lid in lights:
                     for c in cams:
-                        obj.append(PlannedShot("reflectance", c, a, exps, lights_deg=ad, light=lid, level=ph.level,
-                                               lights_on=(lid,)))
+                        obj.append(
+                            PlannedShot(
+                                "reflectance", c, a, exps, lights_deg=ad, light=lid, level=ph.level, lights_on=(lid,)
+                            )
+                        )
     if plan.envmatte is not None:
         ph = plan.envmatte
         need_lights("envmatte", ph.level)
@@ -215,8 +267,18 @@ def schedule(plan: CapturePlan, geometry: RigGeometry) -> list[Stage]:
             for dname, dids in ids.items():
                 for pid in dids:
                     for c in cams:
-                        obj.append(PlannedShot("envmatte", c, a, exps, lights_deg=ld, level=ph.level,
-                                               lights_on=all_lights if ph.level else (), pattern=pid))
+                        obj.append(
+                            PlannedShot(
+                                "envmatte",
+                                c,
+                                a,
+                                exps,
+                                lights_deg=ld,
+                                level=ph.level,
+                                lights_on=all_lights if ph.level else (),
+                                pattern=pid,
+                            )
+                        )
     if obj:
         stages.append(Stage("object", tuple(obj)))
     keys = [s.key for st in stages for s in st.shots]
@@ -239,8 +301,10 @@ def natural_displays(plan: CapturePlan, geometry: RigGeometry) -> tuple[str, ...
     names = tuple(d.name for d in geometry.displays)
     where = f"{plan.source or 'plan'}: [phases.natural]"
     if not names:
-        raise ConfigError(f"{where} needs backdrop displays to show the natural images; the rig has none "
-                          "(remove the phase or use a rig with displays)")
+        raise ConfigError(
+            f"{where} needs backdrop displays to show the natural images; the rig has none "
+            "(remove the phase or use a rig with displays)"
+        )
     if ph.displays is None:
         return names
     bad = [d for d in ph.displays if d not in names]
@@ -364,10 +428,22 @@ class Estimate:
             "images": self.total_images,
             "bytes": self.total_bytes,
             "seconds": self.total_s,
-            "per_phase": {p: {"images": self.images[p], "shots": self.shots[p], "bytes": self.bytes[p],
-                              "seconds": self.seconds[p]} for p in self.images},
-            "breakdown_s": {"moves": self.moves_s, "exposure": self.exposure_s, "overhead": self.overhead_s,
-                            "operator": self.operator_s, "pattern_upload": self.upload_s},
+            "per_phase": {
+                p: {
+                    "images": self.images[p],
+                    "shots": self.shots[p],
+                    "bytes": self.bytes[p],
+                    "seconds": self.seconds[p],
+                }
+                for p in self.images
+            },
+            "breakdown_s": {
+                "moves": self.moves_s,
+                "exposure": self.exposure_s,
+                "overhead": self.overhead_s,
+                "operator": self.operator_s,
+                "pattern_upload": self.upload_s,
+            },
             "pattern_uploads": {"count": self.uploads, "bytes": self.upload_bytes, "seconds": self.upload_s},
             "operator_steps": self.operator_steps,
         }
@@ -381,8 +457,14 @@ def image_bytes(width: int, height: int, *, half: bool = False, channels: int = 
     return int(width * height * channels * (2 if half else 4) + 1024)
 
 
-def estimate(plan: CapturePlan, geometry: RigGeometry, rates: MotionRates | None = None,
-             stages: Sequence[Stage] | None = None, *, upload_patterns: bool = True) -> Estimate:
+def estimate(
+    plan: CapturePlan,
+    geometry: RigGeometry,
+    rates: MotionRates | None = None,
+    stages: Sequence[Stage] | None = None,
+    *,
+    upload_patterns: bool = True,
+) -> Estimate:
     """Counts, bytes and time of a capture, walking the schedule like the runner does."""
     rates = rates or MotionRates()
     stages = list(stages) if stages is not None else schedule(plan, geometry)
@@ -446,8 +528,9 @@ def upload_wire_bytes(width: int, height: int, *, chunk_bytes: int = 512, escape
     return n + escape_rate * nbytes
 
 
-def _pattern_uploads(plan: CapturePlan, geometry: RigGeometry, stages: Sequence[Stage],
-                     rates: MotionRates) -> tuple[int, int]:
+def _pattern_uploads(
+    plan: CapturePlan, geometry: RigGeometry, stages: Sequence[Stage], rates: MotionRates
+) -> tuple[int, int]:
     """Uploads and link bytes of the runner's least-recently-used pattern store
     (``_PatternSlots`` in runner.py) over the schedule, on an empty controller.
 
@@ -514,4 +597,3 @@ def human_seconds(s: float) -> str:
     m, sec = divmod(int(round(s)), 60)
     h, m = divmod(m, 60)
     return f"{h} h {m:02d} min" if h else f"{m} min {sec:02d} s"
-

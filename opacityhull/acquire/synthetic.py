@@ -43,44 +43,92 @@ from ..session import SessionWriter, shot_key
 
 log = logging.getLogger(__name__)
 
-__all__ = ["SyntheticSessionConfig", "write_synthetic_session", "sphere_hit_t", "sphere_albedo", "pixel_rays",
-           "synthetic_rig", "CORE_R_M", "CENTRE_M"]
+__all__ = [
+    "SyntheticSessionConfig",
+    "write_synthetic_session",
+    "sphere_hit_t",
+    "sphere_albedo",
+    "pixel_rays",
+    "synthetic_rig",
+    "CORE_R_M",
+    "CENTRE_M",
+]
 
 #: Sphere radius and centre (object frame, metres): the analytic object.
 CORE_R_M = 0.04
 CENTRE_M = np.array([0.0, 0.06, 0.0])
 
 
-def synthetic_rig(n_cams: int = 3, width: int = 64, height: int = 48, *, fov_y_deg: float = 20.0,
-                  distance_m: float = 0.8, elevations=(15.0, 55.0), n_lights: int = 2,
-                  display_res: tuple[int, int] = (32, 32)) -> dict:
+def synthetic_rig(
+    n_cams: int = 3,
+    width: int = 64,
+    height: int = 48,
+    *,
+    fov_y_deg: float = 20.0,
+    distance_m: float = 0.8,
+    elevations=(15.0, 55.0),
+    n_lights: int = 2,
+    display_res: tuple[int, int] = (32, 32),
+) -> dict:
     """The ``[rig]`` geometry table of the synthetic rig: ``n_cams`` cameras on an arc of
     ``elevations`` (degrees), ``width × height`` px, two displays (bottom turning with the
     table, back fixed) of ``display_res`` texels (the back one 9/16 as tall), ``n_lights``
     lights on the array (2: the test rig's; otherwise spread in elevation 30–75° and
     azimuth)."""
     els = np.linspace(elevations[0], elevations[1], n_cams) if n_cams > 1 else np.array([elevations[0]])
-    cams = [{"name": f"cam{i}", "width": int(width), "height": int(height), "distance_m": distance_m,
-             "elevation_deg": float(e), "azimuth_deg": 0.0, "fov_y_deg": fov_y_deg} for i, e in enumerate(els)]
+    cams = [
+        {
+            "name": f"cam{i}",
+            "width": int(width),
+            "height": int(height),
+            "distance_m": distance_m,
+            "elevation_deg": float(e),
+            "azimuth_deg": 0.0,
+            "fov_y_deg": fov_y_deg,
+        }
+        for i, e in enumerate(els)
+    ]
     if n_lights == 2:
-        lights = [{"id": 0, "elevation_deg": 40.0, "azimuth_deg": 90.0, "distance_m": 1.0},
-                  {"id": 1, "elevation_deg": 70.0, "azimuth_deg": -60.0, "distance_m": 1.0}]
+        lights = [
+            {"id": 0, "elevation_deg": 40.0, "azimuth_deg": 90.0, "distance_m": 1.0},
+            {"id": 1, "elevation_deg": 70.0, "azimuth_deg": -60.0, "distance_m": 1.0},
+        ]
     else:
-        lights = [{"id": i, "elevation_deg": float(30.0 + 45.0 * i / max(n_lights - 1, 1)),
-                   "azimuth_deg": float(-180.0 + 360.0 * (i + 0.5) / n_lights), "distance_m": 1.0}
-                  for i in range(n_lights)]
+        lights = [
+            {
+                "id": i,
+                "elevation_deg": float(30.0 + 45.0 * i / max(n_lights - 1, 1)),
+                "azimuth_deg": float(-180.0 + 360.0 * (i + 0.5) / n_lights),
+                "distance_m": 1.0,
+            }
+            for i in range(n_lights)
+        ]
     dw, dh = display_res
     return {
         "target_m": [0.0, 0.06, 0.0],
         "cameras": cams,
         "lights": lights,
         "displays": [
-            {"name": "bottom", "centre_m": [0.0, 0.0, 0.0], "normal": [0.0, 1.0, 0.0], "up": [0.0, 0.0, -1.0],
-             "size_m": [1.0, 1.0], "resolution": [int(dw), int(dh)], "rotates_with_table": True,
-             "max_radiance": 1.0},
-            {"name": "back", "centre_m": [0.0, 0.28, -0.4], "normal": [0.0, 0.0, 1.0], "up": [0.0, 1.0, 0.0],
-             "size_m": [1.0, 0.56], "resolution": [int(dw), max(1, int(round(dh * 0.5625)))],
-             "rotates_with_table": False, "max_radiance": 1.0},
+            {
+                "name": "bottom",
+                "centre_m": [0.0, 0.0, 0.0],
+                "normal": [0.0, 1.0, 0.0],
+                "up": [0.0, 0.0, -1.0],
+                "size_m": [1.0, 1.0],
+                "resolution": [int(dw), int(dh)],
+                "rotates_with_table": True,
+                "max_radiance": 1.0,
+            },
+            {
+                "name": "back",
+                "centre_m": [0.0, 0.28, -0.4],
+                "normal": [0.0, 0.0, 1.0],
+                "up": [0.0, 1.0, 0.0],
+                "size_m": [1.0, 0.56],
+                "resolution": [int(dw), max(1, int(round(dh * 0.5625)))],
+                "rotates_with_table": False,
+                "max_radiance": 1.0,
+            },
         ],
     }
 
@@ -103,8 +151,10 @@ def sphere_hit_t(o: np.ndarray, d: np.ndarray, c: np.ndarray, r: float) -> np.nd
 
 def sphere_albedo(n: np.ndarray) -> np.ndarray:
     """A smooth colour texture on the sphere, from the object-frame normal (N, 3)."""
-    return np.stack([0.35 + 0.25 * np.sin(5 * n[:, 0]), 0.35 + 0.25 * np.cos(4 * n[:, 1]),
-                     0.3 + 0.2 * np.sin(3 * n[:, 2] + 1)], axis=1)
+    return np.stack(
+        [0.35 + 0.25 * np.sin(5 * n[:, 0]), 0.35 + 0.25 * np.cos(4 * n[:, 1]), 0.3 + 0.2 * np.sin(3 * n[:, 2] + 1)],
+        axis=1,
+    )
 
 
 @dataclass(frozen=True)
@@ -216,8 +266,12 @@ class SyntheticSessionConfig:
         return n, [0.0]
 
 
-def write_synthetic_session(root, config: SyntheticSessionConfig = SyntheticSessionConfig(), *,
-                            progress: Callable[[int, int], None] | None = None) -> dict:
+def write_synthetic_session(
+    root,
+    config: SyntheticSessionConfig = SyntheticSessionConfig(),
+    *,
+    progress: Callable[[int, int], None] | None = None,
+) -> dict:
     """Write the analytic sphere session of ``config`` into the empty folder ``root``.
 
     Returns
@@ -229,16 +283,21 @@ def write_synthetic_session(root, config: SyntheticSessionConfig = SyntheticSess
     root = Path(root)
     rng = np.random.default_rng(cfg.seed)
     n_lights, array_degs = cfg.light_layout()
-    rig = synthetic_rig(cfg.n_cameras, cfg.width_px, cfg.height_px, n_lights=n_lights,
-                        display_res=cfg.display_res)
+    rig = synthetic_rig(cfg.n_cameras, cfg.width_px, cfg.height_px, n_lights=n_lights, display_res=cfg.display_res)
     geo = RigGeometry.from_dict(rig)
     rig_cams = geo.nominal_cameras()
     angles = [360.0 * i / cfg.n_table for i in range(cfg.n_table)]
     views = [(c, a) for c in range(cfg.n_cameras) for a in angles]
     exposure_s, white_level = 1.0, 4.0
-    meta = {"session": {"rig_source": "synthetic:sphere", "plan_name": "synthetic-paper", "white_level": white_level,
-                        "seed": cfg.seed},
-            "rig": rig}
+    meta = {
+        "session": {
+            "rig_source": "synthetic:sphere",
+            "plan_name": "synthetic-paper",
+            "white_level": white_level,
+            "seed": cfg.seed,
+        },
+        "rig": rig,
+    }
     w = SessionWriter(root, fsync=cfg.fsync).create(meta)
     for cam in rig_cams:  # known rig cameras: build needs no calibration phase
         write_opencv_yaml(root / "calibration" / f"{cam.name}.yaml", cam, extra={"reproj_rms_px": 0.1})
@@ -254,8 +313,9 @@ def write_synthetic_session(root, config: SyntheticSessionConfig = SyntheticSess
             for name, img in imgs.items():
                 write_png(root / "patterns" / name / f"p{pid:03d}.png", img, linear=True)
             # what the display shows is the 8-bit pattern, not the float one
-            pats[pid] = {d.name: read_png(root / "patterns" / d.name / f"p{pid:03d}.png", linear=True)
-                         for d in geo.displays}
+            pats[pid] = {
+                d.name: read_png(root / "patterns" / d.name / f"p{pid:03d}.png", linear=True) for d in geo.displays
+            }
     H, W, ss = cfg.height_px, cfg.width_px, cfg.supersample
     S = ss * ss
     key_light = np.array([0.5, 0.8, 0.4]) / np.linalg.norm([0.5, 0.8, 0.4])
@@ -276,15 +336,23 @@ def write_synthetic_session(root, config: SyntheticSessionConfig = SyntheticSess
         made = []
 
         def add(img, phase, **kw):
-            key = shot_key(phase, c, a, lights_deg=kw.get("lights_deg"), light=kw.get("light"),
-                           pattern=kw.get("pattern"), object_present=kw.get("object_present", True))
+            key = shot_key(
+                phase,
+                c,
+                a,
+                lights_deg=kw.get("lights_deg"),
+                light=kw.get("light"),
+                pattern=kw.get("pattern"),
+                object_present=kw.get("object_present", True),
+            )
             if cfg.noise > 0:
                 img = img + vrng.normal(0.0, cfg.noise, img.shape).astype(np.float32)
             val = np.clip(img * exposure_s, 0.0, white_level).astype(np.float32)
             rel = f"images/{key}_e0.exr"
             write_exr(root / rel, val, half=cfg.half)
-            made.append((rel, dict(id=f"{key}/e0", shot=key, phase=phase, camera=c, table_deg=a,
-                                   exposure_s=exposure_s, **kw)))
+            made.append(
+                (rel, dict(id=f"{key}/e0", shot=key, phase=phase, camera=c, table_deg=a, exposure_s=exposure_s, **kw))
+            )
 
         o, d = pixel_rays(vcams[i], ss)
         t = sphere_hit_t(o, d, CENTRE_M, CORE_R_M)
@@ -303,8 +371,13 @@ def write_synthetic_session(root, config: SyntheticSessionConfig = SyntheticSess
         for b in array_degs:
             for lid in range(n_lights):
                 L = geo.light_direction_object(lid, a, b)
-                add(pix(alb * (0.85 * np.clip(nrm @ L, 0, None))[:, None]), "reflectance", light=lid,
-                    lights_deg=float(b), extra={"level": 255})
+                add(
+                    pix(alb * (0.85 * np.clip(nrm @ L, 0, None))[:, None]),
+                    "reflectance",
+                    light=lid,
+                    lights_deg=float(b),
+                    extra={"level": 255},
+                )
         if cfg.groundtruth:
             write_exr(root / "groundtruth" / "alpha" / f"{view_id(c, a)}.exr", alpha)
         return made, float(alpha.sum())

@@ -106,8 +106,18 @@ def session_info(root) -> dict:
     sess = Session.open(root)
     phases: dict[str, dict] = {}
     for r in sess.records:
-        ph = phases.setdefault(r.phase, {"images": 0, "hdr": 0, "bytes": 0, "views": set(), "exposures_s": set(),
-                                         "cameras": set(), "table_deg": set()})
+        ph = phases.setdefault(
+            r.phase,
+            {
+                "images": 0,
+                "hdr": 0,
+                "bytes": 0,
+                "views": set(),
+                "exposures_s": set(),
+                "cameras": set(),
+                "table_deg": set(),
+            },
+        )
         ph["hdr" if r.kind == "hdr" else "images"] += 1
         ph["bytes"] += int(r.bytes)
         ph["views"].add(r.view)
@@ -117,13 +127,22 @@ def session_info(root) -> dict:
             ph["exposures_s"].add(r.exposure_s)
     out_phases = {}
     for name, ph in phases.items():
-        out_phases[name] = {"images": ph["images"], "hdr": ph["hdr"], "bytes": ph["bytes"], "views": len(ph["views"]),
-                            "cameras": sorted(ph["cameras"]), "table_deg": sorted(ph["table_deg"]),
-                            "exposures_s": sorted(ph["exposures_s"])}
+        out_phases[name] = {
+            "images": ph["images"],
+            "hdr": ph["hdr"],
+            "bytes": ph["bytes"],
+            "views": len(ph["views"]),
+            "cameras": sorted(ph["cameras"]),
+            "table_deg": sorted(ph["table_deg"]),
+            "exposures_s": sorted(ph["exposures_s"]),
+        }
     try:
         geom = sess.geometry
-        rig = {"cameras": [c.name for c in geom.cameras], "lights": [L.id for L in geom.lights],
-               "displays": [d.name for d in geom.displays]}
+        rig = {
+            "cameras": [c.name for c in geom.cameras],
+            "lights": [L.id for L in geom.lights],
+            "displays": [d.name for d in geom.displays],
+        }
     except (FormatError, ConfigError) as e:
         rig = {"error": str(e)}
     s = sess.meta.get("session", {})

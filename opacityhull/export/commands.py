@@ -17,10 +17,13 @@ def register(app, groups) -> None:
         fmt: str = typer.Option(..., "--format", help="nerfstudio | colmap | ply | opencv."),
         out: Path = typer.Option(..., "--out", help="Output folder (created; must be empty unless --overwrite)."),
         overwrite: bool = typer.Option(False, "--overwrite", help="Replace a non-empty --out."),
-        sh_degree: int = typer.Option(3, "--sh-degree", help="ply: SH degree (1-3) of splats.ply's view-dependent colour."),
+        sh_degree: int = typer.Option(
+            3, "--sh-degree", help="ply: SH degree (1-3) of splats.ply's view-dependent colour."
+        ),
         max_points: int = typer.Option(50000, "--max-points", help="colmap: at most this many surfels as points3D."),
-        nerfstudio_alpha: str = typer.Option("rgba", "--nerfstudio-alpha",
-                                             help="nerfstudio: 'rgba' PNGs, or 'mask' (RGB + single-channel mask_path)."),
+        nerfstudio_alpha: str = typer.Option(
+            "rgba", "--nerfstudio-alpha", help="nerfstudio: 'rgba' PNGs, or 'mask' (RGB + single-channel mask_path)."
+        ),
         json_out: bool = typer.Option(False, "--json", help="Print a JSON summary on stdout."),
     ):
         """Export a model for other tools: nerfstudio, COLMAP (sparse/0 text+binary), PLY (points + 3DGS splats), OpenCV YAML."""
@@ -30,8 +33,11 @@ def register(app, groups) -> None:
             from ..errors import InputError
 
             raise InputError(f"--format {fmt!r}: expected one of {', '.join(FORMATS)}")
-        opts = {"ply": {"sh_degree": sh_degree}, "colmap": {"max_points": max_points},
-                "nerfstudio": {"alpha": nerfstudio_alpha}}.get(fmt, {})
+        opts = {
+            "ply": {"sh_degree": sh_degree},
+            "colmap": {"max_points": max_points},
+            "nerfstudio": {"alpha": nerfstudio_alpha},
+        }.get(fmt, {})
         summary = export_model(model, fmt, out, overwrite=overwrite, **opts)
 
         def human(s):

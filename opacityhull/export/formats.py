@@ -28,8 +28,16 @@ from ..model import OpacityHullModel
 
 log = logging.getLogger(__name__)
 
-__all__ = ["FORMATS", "ExportFormat", "export_model", "export_nerfstudio_model", "export_colmap_model",
-           "export_ply", "export_opencv", "splat_params"]
+__all__ = [
+    "FORMATS",
+    "ExportFormat",
+    "export_model",
+    "export_nerfstudio_model",
+    "export_colmap_model",
+    "export_ply",
+    "export_opencv",
+    "splat_params",
+]
 
 ExportFormat = Literal["nerfstudio", "colmap", "ply", "opencv"]
 FORMATS: tuple[str, ...] = ("nerfstudio", "colmap", "ply", "opencv")
@@ -62,8 +70,12 @@ def _points_ply(path: Path, pos, nrm, rgb_lin, alpha, *, with_alpha: bool = True
     if with_alpha:
         arr["alpha"] = np.round(np.clip(alpha, 0, 1) * 255).astype(np.uint8)
     with atomic_path(path) as tmp:
-        PlyData([PlyElement.describe(arr, "vertex")], text=False, byte_order="<",
-                comments=["opacityhull export: sRGB 8-bit colour, straight alpha"]).write(str(tmp))
+        PlyData(
+            [PlyElement.describe(arr, "vertex")],
+            text=False,
+            byte_order="<",
+            comments=["opacityhull export: sRGB 8-bit colour, straight alpha"],
+        ).write(str(tmp))
 
 
 # --------------------------------------------------------------------------- nerfstudio
@@ -100,9 +112,13 @@ def export_nerfstudio_model(model: OpacityHullModel, out: Path, *, alpha: Litera
     s = model.surfels
     rgb, a = mean_colours(s, [v.camera for v in model.views], _views(model))
     _points_ply(out / "sparse_pc.ply", s.positions, s.normals, rgb, a, with_alpha=False)
-    js = export_nerfstudio([v.camera for v in model.views], imgs, out / "transforms.json",
-                           mask_paths=masks if alpha == "mask" else None,
-                           extra={"ply_file_path": "sparse_pc.ply"})
+    js = export_nerfstudio(
+        [v.camera for v in model.views],
+        imgs,
+        out / "transforms.json",
+        mask_paths=masks if alpha == "mask" else None,
+        extra={"ply_file_path": "sparse_pc.ply"},
+    )
     return {"transforms": js, "images": len(imgs), "masks": len(masks), "points": len(s)}
 
 
@@ -137,8 +153,11 @@ def export_colmap_model(model: OpacityHullModel, out: Path, *, max_points: int =
     rec = pycolmap.Reconstruction(str(sparse))
     by_name = {rec.image(i).name: i for i in rec.images.keys()}
     n = len(s)
-    pick = np.unique(np.linspace(0, n - 1, min(n, max_points)).round().astype(np.int64)) if n and max_points else \
-        np.zeros(0, np.int64)
+    pick = (
+        np.unique(np.linspace(0, n - 1, min(n, max_points)).round().astype(np.int64))
+        if n and max_points
+        else np.zeros(0, np.int64)
+    )
     rgb, _ = mean_colours(s.subset(pick), cams, images)
     obs: list[tuple[int, np.ndarray, np.ndarray]] = []  # (view, local point index, uv)
     for smp in iter_view_samples(s, cams, images, subset=pick):
@@ -165,8 +184,12 @@ def export_colmap_model(model: OpacityHullModel, out: Path, *, max_points: int =
         f.unlink()
     rec.write_text(str(sparse))
     rec.write_binary(str(sparse))
-    return {"sparse": sparse, "images": len(names), "points3D": n_pts,
-            "observations": int(sum(len(t) for t in point_obs if len(t) >= 2))}
+    return {
+        "sparse": sparse,
+        "images": len(names),
+        "points3D": n_pts,
+        "observations": int(sum(len(t) for t in point_obs if len(t) >= 2)),
+    }
 
 
 # --------------------------------------------------------------------------- ply
@@ -236,8 +259,12 @@ def export_ply(model: OpacityHullModel, out: Path, *, sh_degree: int = 3) -> dic
         arr[f"rot_{i}"] = rot[:, i]
     with atomic_path(out / "splats.ply") as tmp:
         PlyData([PlyElement.describe(arr, "vertex")], text=False, byte_order="<").write(str(tmp))
-    return {"points": len(s), "sh_degree": int(sh_degree), "sh_rms": {str(k): v for k, v in fit.rms.items()},
-            "sh_observations": fit.n_obs}
+    return {
+        "points": len(s),
+        "sh_degree": int(sh_degree),
+        "sh_rms": {str(k): v for k, v in fit.rms.items()},
+        "sh_observations": fit.n_obs,
+    }
 
 
 # --------------------------------------------------------------------------- opencv
@@ -256,8 +283,11 @@ def export_opencv(model: OpacityHullModel, out: Path) -> dict:
             names[i] = c.name or f"cam{i}"
     done: set[int] = set()
     for v in model.views:
-        write_opencv_yaml(out / "views" / f"{v.id}.yaml", v.camera.with_name(v.id),
-                          extra={"table_deg": float(v.table_deg), "camera_index": int(v.camera_index)})
+        write_opencv_yaml(
+            out / "views" / f"{v.id}.yaml",
+            v.camera.with_name(v.id),
+            extra={"table_deg": float(v.table_deg), "camera_index": int(v.camera_index)},
+        )
         if v.camera_index in done:
             continue
         done.add(v.camera_index)
@@ -283,8 +313,12 @@ def export_model(model_dir, fmt: str, out, *, overwrite: bool = False, **options
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
         if not overwrite:
             raise InputError(f"--out {out}: exists and is not empty (pass --overwrite to replace it)")
-    fn = {"nerfstudio": export_nerfstudio_model, "colmap": export_colmap_model, "ply": export_ply,
-          "opencv": export_opencv}[fmt]
+    fn = {
+        "nerfstudio": export_nerfstudio_model,
+        "colmap": export_colmap_model,
+        "ply": export_ply,
+        "opencv": export_opencv,
+    }[fmt]
     with replacing_dir(out) as tmp:
         summary = fn(model, tmp, **options)
     summary = {k: (out / Path(v).relative_to(tmp) if isinstance(v, Path) else v) for k, v in summary.items()}

@@ -56,8 +56,9 @@ def _bilinear_premul(img_straight: np.ndarray, uv: np.ndarray) -> np.ndarray:
     return out
 
 
-def iter_view_samples(surfels: Surfels, cameras: Sequence[Camera], images: Sequence[np.ndarray],
-                      *, subset: np.ndarray | None = None) -> Iterator[ViewSamples]:
+def iter_view_samples(
+    surfels: Surfels, cameras: Sequence[Camera], images: Sequence[np.ndarray], *, subset: np.ndarray | None = None
+) -> Iterator[ViewSamples]:
     """Yield the samples of every view in turn.
 
     Parameters

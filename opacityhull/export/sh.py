@@ -21,8 +21,15 @@ __all__ = ["SH_C0", "sh_basis", "n_coeffs", "ShFit", "fit_sh", "eval_sh"]
 SH_C0 = 0.28209479177387814
 _C1 = 0.4886025119029199
 _C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792, 0.5462742152960396)
-_C3 = (-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325901154, -0.4570457994644658,
-       1.445305721320277, -0.5900435899266435)
+_C3 = (
+    -0.5900435899266435,
+    2.890611442640554,
+    -0.4570457994644658,
+    0.3731763325901154,
+    -0.4570457994644658,
+    1.445305721320277,
+    -0.5900435899266435,
+)
 
 
 def n_coeffs(degree: int) -> int:
@@ -42,9 +49,15 @@ def sh_basis(dirs: np.ndarray, degree: int) -> np.ndarray:
     if degree >= 2:
         cols += [_C2[0] * xy, _C2[1] * yz, _C2[2] * (2 * zz - xx - yy), _C2[3] * xz, _C2[4] * (xx - yy)]
     if degree >= 3:
-        cols += [_C3[0] * y * (3 * xx - yy), _C3[1] * xy * z, _C3[2] * y * (4 * zz - xx - yy),
-                 _C3[3] * z * (2 * zz - 3 * xx - 3 * yy), _C3[4] * x * (4 * zz - xx - yy),
-                 _C3[5] * z * (xx - yy), _C3[6] * x * (xx - 3 * yy)]
+        cols += [
+            _C3[0] * y * (3 * xx - yy),
+            _C3[1] * xy * z,
+            _C3[2] * y * (4 * zz - xx - yy),
+            _C3[3] * z * (2 * zz - 3 * xx - 3 * yy),
+            _C3[4] * x * (4 * zz - xx - yy),
+            _C3[5] * z * (xx - yy),
+            _C3[6] * x * (xx - 3 * yy),
+        ]
     return np.stack(cols, axis=1)
 
 
@@ -71,8 +84,15 @@ class ShFit:
     n_obs: int
 
 
-def fit_sh(surfels: Surfels, cameras: Sequence, images: Sequence[np.ndarray], *, degree: int = 3,
-           ridge: float = 1e-2, chunk: int = 65536) -> ShFit:
+def fit_sh(
+    surfels: Surfels,
+    cameras: Sequence,
+    images: Sequence[np.ndarray],
+    *,
+    degree: int = 3,
+    ridge: float = 1e-2,
+    chunk: int = 65536,
+) -> ShFit:
     """Least-squares SH colour per surfel from the views that saw it.
 
     Parameters
@@ -120,8 +140,7 @@ def fit_sh(surfels: Surfels, cameras: Sequence, images: Sequence[np.ndarray], *,
             A[:, np.arange(b), np.arange(b)] += reg
             X = np.linalg.solve(A, Atc[:, :b, :])
             # SSE = Σc² − 2 tr(Xᵀ Aᵀc) + tr(Xᵀ AᵀA X), from the normal equations alone
-            e = ctc - 2 * np.einsum("nbc,nbc->n", X, Atc[:, :b]) + np.einsum(
-                "nbc,nbk,nkc->n", X, AtA[:, :b, :b], X)
+            e = ctc - 2 * np.einsum("nbc,nbc->n", X, Atc[:, :b]) + np.einsum("nbc,nbk,nkc->n", X, AtA[:, :b, :b], X)
             sse[d] += float(np.sum(np.maximum(e, 0.0)))
             if d == degree:
                 coeffs[idx] = X.astype(np.float32)

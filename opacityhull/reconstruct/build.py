@@ -78,28 +78,65 @@ from ..errors import ConfigError, FormatError, InputError
 from ..model import LightSample, Surfels, ViewInfo, light_key, write_model
 from ..riggeometry import RigGeometry, view_id
 from ..session import Session, check_finite, require_manifest_ok
-from .hull import (EmptyHullError, HullGrid, carve_octree, hull_bounds, silhouette_from_alpha,
-                   carve_robust, undistort_silhouette, view_rejections)
+from .hull import (
+    EmptyHullError,
+    HullGrid,
+    carve_octree,
+    hull_bounds,
+    silhouette_from_alpha,
+    carve_robust,
+    undistort_silhouette,
+    view_rejections,
+)
 from .matting import MattingOptions, straight_from_premul
-from .matte_step import (_jsonable, _load_matte, _rgb, _stored_matte, load_matting_pairs,
-                         matte_for_build, store_matte)
+from .matte_step import _jsonable, _load_matte, _rgb, _stored_matte, load_matting_pairs, matte_for_build, store_matte
 from .surfels import sample_hull_surfels
 from .visibility import surfel_visibility
 
 log = logging.getLogger(__name__)
 
-__all__ = ["BuildConfig", "BuildReport", "build_model", "build_geometry", "choose_resolution", "Geometry",
-           "Resolution", "pixel_footprint_m", "view_list", "load_matting_pairs", "resolve_cameras",
-           "matte_for_build", "store_matte", "step_cameras", "step_matting", "step_geometry", "step_reflectance",
-           "Mattes", "BUILD_DIR"]
+__all__ = [
+    "BuildConfig",
+    "BuildReport",
+    "build_model",
+    "build_geometry",
+    "choose_resolution",
+    "Geometry",
+    "Resolution",
+    "pixel_footprint_m",
+    "view_list",
+    "load_matting_pairs",
+    "resolve_cameras",
+    "matte_for_build",
+    "store_matte",
+    "step_cameras",
+    "step_matting",
+    "step_geometry",
+    "step_reflectance",
+    "Mattes",
+    "BUILD_DIR",
+]
 
 CAMERA_SOURCES = ("auto", "groundtruth", "nominal")
 DriftMode = Literal["auto", "none", "gain", "affine", "field"]
 DRIFT_MODES: tuple[DriftMode, ...] = ("auto", "none", "gain", "affine", "field")
 BACKDROP_SOURCES = ("auto", "object-absent", "geometry")
-STEPS = ("verify", "cameras", "matting", "silhouettes", "hull", "surfels", "visibility", "refine", "views",
-         "reflectance", "natural", "write",
-         "pictures", "metrics")
+STEPS = (
+    "verify",
+    "cameras",
+    "matting",
+    "silhouettes",
+    "hull",
+    "surfels",
+    "visibility",
+    "refine",
+    "views",
+    "reflectance",
+    "natural",
+    "write",
+    "pictures",
+    "metrics",
+)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -208,8 +245,9 @@ class BuildConfig:
             raise ConfigError(f"max_hull_res must be in [8, 2048], got {self.max_hull_res}")
         if not (isinstance(self.surfels_per_pixel, (int, float)) and 0.1 <= self.surfels_per_pixel <= 8):
             raise ConfigError(f"surfels_per_pixel must be in [0.1, 8], got {self.surfels_per_pixel}")
-        if self.carve_tolerance is not None and not (isinstance(self.carve_tolerance, int)
-                                                     and self.carve_tolerance >= 0):
+        if self.carve_tolerance is not None and not (
+            isinstance(self.carve_tolerance, int) and self.carve_tolerance >= 0
+        ):
             raise ConfigError(f"carve_tolerance must be None or an integer >= 0, got {self.carve_tolerance!r}")
         if self.matting_drift not in DRIFT_MODES:
             raise ConfigError(f"matting_drift must be auto, none, gain, affine or field, got {self.matting_drift!r}")
@@ -228,7 +266,9 @@ class BuildConfig:
         if self.bounds_m is not None:
             b = np.asarray(self.bounds_m, dtype=np.float64)
             if b.shape != (2, 3) or not np.all(b[1] > b[0]):
-                raise ConfigError(f"bounds_m must be ((x0, y0, z0), (x1, y1, z1)) with x1 > x0 ..., got {self.bounds_m}")
+                raise ConfigError(
+                    f"bounds_m must be ((x0, y0, z0), (x1, y1, z1)) with x1 > x0 ..., got {self.bounds_m}"
+                )
         object.__setattr__(self, "exclude_views", tuple(self.exclude_views))
 
     def to_dict(self) -> dict:
@@ -260,12 +300,20 @@ class BuildReport:
 
     def summary(self) -> dict:
         """The ``--json`` object: views, surfels, seconds, metrics (+ where and how)."""
-        return {"views": self.views, "surfels": self.surfels, "seconds": dict(self.seconds),
-                "metrics": dict(self.metrics), "model": self.model_dir, "camera_source": self.camera_source,
-                "backdrop_source": self.backdrop_source, "resolution": self.hull.get("resolution"),
-                "carve_tolerance": self.hull.get("carve_tolerance"),
-                "views_disagreeing_with_hull": self.hull.get("views_disagreeing_with_hull", []),
-                "steps": dict(self.steps), "scheduler": self.scheduler}
+        return {
+            "views": self.views,
+            "surfels": self.surfels,
+            "seconds": dict(self.seconds),
+            "metrics": dict(self.metrics),
+            "model": self.model_dir,
+            "camera_source": self.camera_source,
+            "backdrop_source": self.backdrop_source,
+            "resolution": self.hull.get("resolution"),
+            "carve_tolerance": self.hull.get("carve_tolerance"),
+            "views_disagreeing_with_hull": self.hull.get("views_disagreeing_with_hull", []),
+            "steps": dict(self.steps),
+            "scheduler": self.scheduler,
+        }
 
 
 # --------------------------------------------------------------------------- helpers
@@ -332,8 +380,14 @@ class _Cameras:
     dropped_cameras: dict = field(default_factory=dict)
 
 
-def resolve_cameras(session: Session, views: Sequence[tuple[int, float]], *, source: str = "auto",
-                    progress=None, drop_uncalibrated: bool = True) -> _Cameras:
+def resolve_cameras(
+    session: Session,
+    views: Sequence[tuple[int, float]],
+    *,
+    source: str = "auto",
+    progress=None,
+    drop_uncalibrated: bool = True,
+) -> _Cameras:
     """Object-frame cameras of ``views`` (see the module docstring for the order).
 
     Returns an object with ``views`` (Camera per kept view, named by view id), ``kept``
@@ -363,20 +417,27 @@ def resolve_cameras(session: Session, views: Sequence[tuple[int, float]], *, sou
     if source == "nominal":
         g = session.geometry
         rig = g.nominal_cameras()
-        return _Cameras([RigGeometry.view_camera(rig[c], a, name=view_id(c, a)) for c, a in views], rig, {},
-                        "nominal (debug: the rig as designed, not calibrated)")
+        return _Cameras(
+            [RigGeometry.view_camera(rig[c], a, name=view_id(c, a)) for c, a in views],
+            rig,
+            {},
+            "nominal (debug: the rig as designed, not calibrated)",
+        )
     # auto
     if "calibration" in session.phases():
         from .calibration import CalibrationConfig, CalibrationError, calibrate_session, view_cameras
 
         try:
-            result = calibrate_session(session, progress=progress,
-                                       config=CalibrationConfig(skip_unusable_cameras=drop_uncalibrated))
+            result = calibrate_session(
+                session, progress=progress, config=CalibrationConfig(skip_unusable_cameras=drop_uncalibrated)
+            )
         except CalibrationError as e:
             # never fall back silently to another camera source: say what to do instead
-            raise CalibrationError(f"{e} — the session's calibration phase could not be used; fix the "
-                                   "calibration captures, or (debugging only) build with --cameras "
-                                   "groundtruth|nominal") from None
+            raise CalibrationError(
+                f"{e} — the session's calibration phase could not be used; fix the "
+                "calibration captures, or (debugging only) build with --cameras "
+                "groundtruth|nominal"
+            ) from None
         ok = set(result.camera_indices)
         kept = [(c, a) for c, a in views if c in ok]
         dropped = {}
@@ -387,11 +448,15 @@ def resolve_cameras(session: Session, views: Sequence[tuple[int, float]], *, sou
                 f"{session.root}: no camera could be calibrated from the calibration phase ("
                 + "; ".join(f"camera {c}: {why}" for c, why in dropped.items())
                 + ") — nothing to build. Fix the calibration captures, or (debugging only) build with "
-                "--cameras groundtruth|nominal")
+                "--cameras groundtruth|nominal"
+            )
         cams = view_cameras(result, kept)
         # only calibrated cameras have an RMS (uncalibrated ones report NaN)
-        rms = {c: float(result.reproj_rms_px[c]) for c in result.camera_indices
-               if math.isfinite(float(result.reproj_rms_px[c]))}
+        rms = {
+            c: float(result.reproj_rms_px[c])
+            for c in result.camera_indices
+            if math.isfinite(float(result.reproj_rms_px[c]))
+        }
         rig = [rc if i in ok else None for i, rc in enumerate(result.rig_cameras)]
         return _Cameras(list(cams), rig, rms, "calibration phase (calibrated)", result, kept, dropped)
     known = session.calibration_cameras()
@@ -407,12 +472,18 @@ def resolve_cameras(session: Session, views: Sequence[tuple[int, float]], *, sou
                 if r is not None:
                     if not (math.isfinite(r) and r >= 0):
                         # the silhouettes are dilated by this: an unknown RMS cannot size that
-                        raise FormatError(f"{p}: reproj_rms_px is {r}; expected a finite number >= 0 (or no "
-                                          "such key when the calibration error is unknown)")
+                        raise FormatError(
+                            f"{p}: reproj_rms_px is {r}; expected a finite number >= 0 (or no "
+                            "such key when the calibration error is unknown)"
+                        )
                     rms[i] = r
         rig = [known.get(i) for i in range(len(session.geometry.cameras))]
-        return _Cameras([RigGeometry.view_camera(known[c], a, name=view_id(c, a)) for c, a in views], rig, rms,
-                        "calibration/ (known rig cameras)")
+        return _Cameras(
+            [RigGeometry.view_camera(known[c], a, name=view_id(c, a)) for c, a in views],
+            rig,
+            rms,
+            "calibration/ (known rig cameras)",
+        )
     per_view = session.view_cameras()
     if per_view:
         missing = [v for v in vids if v not in per_view]
@@ -422,7 +493,8 @@ def resolve_cameras(session: Session, views: Sequence[tuple[int, float]], *, sou
     raise FormatError(
         f"{session.root}: no cameras — the session has no calibration phase, no calibration/<camera>.yaml and "
         "no cameras/ model. Capture the ChArUco board, add calibration files, or (debugging only) use "
-        "--cameras groundtruth|nominal")
+        "--cameras groundtruth|nominal"
+    )
 
 
 def _colour_shot(session: Session, camera: int, table_deg: float) -> tuple[str | None, str | None]:
@@ -554,19 +626,27 @@ def choose_resolution(lo, hi, cameras: Sequence[Camera], *, config: "BuildConfig
         spacing = ext / res / over
         why = f"--hull-res {res} (override)"
         if spacing > 1.5 * fp:
-            why += (f": surfel spacing {spacing * 1e3:.3g} mm is coarser than the pixel footprint "
-                    f"{fp * 1e3:.3g} mm")
-        return Resolution(hull_res=res, oversample=over, pixel_footprint_m=fp, voxel_m=ext / res,
-                          surfel_spacing_m=spacing, reason=why)
+            why += f": surfel spacing {spacing * 1e3:.3g} mm is coarser than the pixel footprint {fp * 1e3:.3g} mm"
+        return Resolution(
+            hull_res=res, oversample=over, pixel_footprint_m=fp, voxel_m=ext / res, surfel_spacing_m=spacing, reason=why
+        )
     want = max(8, int(math.ceil(ext / target - 1e-9)))
     res = min(want, int(config.max_hull_res))
     over = max(int(config.surfel_oversample), int(math.ceil(want / res - 1e-9)))
-    why = (f"auto: one surfel per {1.0 / config.surfels_per_pixel:.3g} projected pixel (footprint "
-           f"{fp * 1e3:.3g} mm over a {ext * 1e3:.3g} mm box)")
+    why = (
+        f"auto: one surfel per {1.0 / config.surfels_per_pixel:.3g} projected pixel (footprint "
+        f"{fp * 1e3:.3g} mm over a {ext * 1e3:.3g} mm box)"
+    )
     if res < want:
         why += f"; grid capped at {res} (max_hull_res), LDC rays oversampled {over}x to keep the spacing"
-    return Resolution(hull_res=res, oversample=over, pixel_footprint_m=fp, voxel_m=ext / res,
-                      surfel_spacing_m=ext / res / over, reason=why)
+    return Resolution(
+        hull_res=res,
+        oversample=over,
+        pixel_footprint_m=fp,
+        voxel_m=ext / res,
+        surfel_spacing_m=ext / res / over,
+        reason=why,
+    )
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -590,9 +670,19 @@ def _nullstep(name):
     return nullcontext()
 
 
-def build_geometry(alphas: Sequence[np.ndarray], cameras: Sequence[Camera], rms_px: Sequence[float],
-                   view_ids: Sequence[str], *, config: "BuildConfig", rig_session: bool = False,
-                   fallback_box=None, step=None, progress=None, images=None) -> Geometry:
+def build_geometry(
+    alphas: Sequence[np.ndarray],
+    cameras: Sequence[Camera],
+    rms_px: Sequence[float],
+    view_ids: Sequence[str],
+    *,
+    config: "BuildConfig",
+    rig_session: bool = False,
+    fallback_box=None,
+    step=None,
+    progress=None,
+    images=None,
+) -> Geometry:
     """Silhouettes → hull → surfels → visibility from per-view alphas and cameras.
 
     The build runs this once over all views; ``eval loo --holdout geometry`` runs it
@@ -617,19 +707,21 @@ def build_geometry(alphas: Sequence[np.ndarray], cameras: Sequence[Camera], rms_
             pin.append(pc)
         cover = float(np.median([s.mean() for s in sils]))
         if cover > 0.8:
-            notes.append(f"the silhouettes cover {100 * cover:.0f} % of the images (median): the mattes are nearly "
-                         "all opaque — were the backdrops lit in the object-present matting shots?")
+            notes.append(
+                f"the silhouettes cover {100 * cover:.0f} % of the images (median): the mattes are nearly "
+                "all opaque — were the backdrops lit in the object-present matting shots?"
+            )
         empty = [view_ids[i] for i, s in enumerate(sils) if not s.any()]
         if empty:
             raise EmptyHullError(
                 f"empty silhouette (alpha <= {config.alpha_threshold} everywhere) in view(s) {', '.join(empty[:10])}"
                 f"{' ...' if len(empty) > 10 else ''}: the visual hull would be empty. Check those images, lower "
-                "--alpha-threshold, or leave the views out with --exclude-view")
+                "--alpha-threshold, or leave the views out with --exclude-view"
+            )
         full = [view_ids[i] for i, s in enumerate(sils) if s.all()]
         if full:
             notes.append(f"view(s) {', '.join(full[:10])} are opaque everywhere (full mask): they carve nothing")
-    tol = config.carve_tolerance if config.carve_tolerance is not None else (
-        1 if (not rig_session and V >= 8) else 0)
+    tol = config.carve_tolerance if config.carve_tolerance is not None else (1 if (not rig_session and V >= 8) else 0)
     if tol >= V:
         raise ConfigError(f"carve_tolerance {tol} >= the {V} views: every voxel would survive")
     with step("hull"):
@@ -649,19 +741,31 @@ def build_geometry(alphas: Sequence[np.ndarray], cameras: Sequence[Camera], rms_
         strong = None
         if tol > 0:
             # return_stats=True: (occupancy, stats, strong silhouettes)
-            occ, ostats, strong = cast("tuple[np.ndarray, Any, Any]", carve_robust(
-                sils, pin, grid, tolerance=tol, root_cell=config.root_cell, return_stats=True))
+            occ, ostats, strong = cast(
+                "tuple[np.ndarray, Any, Any]",
+                carve_robust(sils, pin, grid, tolerance=tol, root_cell=config.root_cell, return_stats=True),
+            )
         else:
-            occ, ostats = cast("tuple[np.ndarray, Any]", carve_octree(sils, pin, grid, root_cell=config.root_cell,
-                                                                      return_stats=True))
+            occ, ostats = cast(
+                "tuple[np.ndarray, Any]", carve_octree(sils, pin, grid, root_cell=config.root_cell, return_stats=True)
+            )
         n_occ = int(occ.sum())
         if n_occ == 0:
-            raise EmptyHullError("the visual hull is empty: the silhouettes have no common volume "
-                                 "(inconsistent cameras or mattes?)")
-        info = {"dilate_px_per_view": dict(zip(view_ids, dil)), "grid_shape": list(grid.shape),
-                "voxel_m": grid.voxel_m, "lo_m": grid.lo.tolist(), "hi_m": grid.hi.tolist(),
-                "occupied_voxels": n_occ, "octree_cells": ostats.cells, "octree_tests": ostats.tests,
-                "resolution": res.to_dict(), "carve_tolerance": tol}
+            raise EmptyHullError(
+                "the visual hull is empty: the silhouettes have no common volume (inconsistent cameras or mattes?)"
+            )
+        info = {
+            "dilate_px_per_view": dict(zip(view_ids, dil)),
+            "grid_shape": list(grid.shape),
+            "voxel_m": grid.voxel_m,
+            "lo_m": grid.lo.tolist(),
+            "hi_m": grid.hi.tolist(),
+            "occupied_voxels": n_occ,
+            "octree_cells": ostats.cells,
+            "octree_tests": ostats.tests,
+            "resolution": res.to_dict(),
+            "carve_tolerance": tol,
+        }
         # where a view's mask disagrees with the hull (shadow holes, lit cloth, frame
         # edges): the share of the kept voxels it would have carved on its own
         idx = np.argwhere(occ)
@@ -672,22 +776,44 @@ def build_geometry(alphas: Sequence[np.ndarray], cameras: Sequence[Camera], rms_
         bad = [(view_ids[i], float(rej[i])) for i in np.argsort(-rej) if rej[i] > 0.01]
         info["views_disagreeing_with_hull"] = [v for v, _ in bad]
         if bad:
-            notes.append("mask(s) disagree with the hull the other views agree on (tolerant carve kept what "
-                         "they alone rejected): " + ", ".join(f"{v} ({100 * f:.1f} % of the hull)" for v, f in bad[:8])
-                         + (" ..." if len(bad) > 8 else ""))
+            notes.append(
+                "mask(s) disagree with the hull the other views agree on (tolerant carve kept what "
+                "they alone rejected): "
+                + ", ".join(f"{v} ({100 * f:.1f} % of the hull)" for v, f in bad[:8])
+                + (" ..." if len(bad) > 8 else "")
+            )
     with step("surfels"):
-        sample = sample_hull_surfels(occ, grid, sils, pin, oversample=res.oversample,
-                                     bisection_iters=config.bisection_iters, radius_scale=config.radius_scale,
-                                     normal_scale_vox=max(1.0, res.pixel_footprint_m / grid.voxel_m),
-                                     tolerance=tol, strong_silhouettes=strong)
+        sample = sample_hull_surfels(
+            occ,
+            grid,
+            sils,
+            pin,
+            oversample=res.oversample,
+            bisection_iters=config.bisection_iters,
+            radius_scale=config.radius_scale,
+            normal_scale_vox=max(1.0, res.pixel_footprint_m / grid.voxel_m),
+            tolerance=tol,
+            strong_silhouettes=strong,
+        )
         info.update({"pixel_footprint_m": res.pixel_footprint_m, "surfel_spacing_m": sample.spacing_m})
         if sample.spacing_m > 1.5 * res.pixel_footprint_m:
-            notes.append(f"surfel spacing {sample.spacing_m * 1e3:.2f} mm is coarser than the pixel footprint "
-                         f"{res.pixel_footprint_m * 1e3:.2f} mm (--hull-res {res.hull_res}): drop --hull-res "
-                         "for full capture resolution")
+            notes.append(
+                f"surfel spacing {sample.spacing_m * 1e3:.2f} mm is coarser than the pixel footprint "
+                f"{res.pixel_footprint_m * 1e3:.2f} mm (--hull-res {res.hull_res}): drop --hull-res "
+                "for full capture resolution"
+            )
     with step("visibility"):
-        vis = cast(np.ndarray, surfel_visibility(sample.positions, sample.normals, sample.radii, pin,
-                                                 depth_tol_m=config.depth_tol_m, facing_cos=config.facing_cos))
+        vis = cast(
+            np.ndarray,
+            surfel_visibility(
+                sample.positions,
+                sample.normals,
+                sample.radii,
+                pin,
+                depth_tol_m=config.depth_tol_m,
+                facing_cos=config.facing_cos,
+            ),
+        )
         surfels = Surfels.from_bool(sample.positions, sample.normals, sample.radii, vis)
         info["visible_views_per_surfel"] = float(vis.sum(1).mean()) if len(vis) else 0.0
         info["surfels_seen_by_no_view"] = int((~vis.any(1)).sum()) if len(vis) else 0
@@ -703,11 +829,14 @@ def build_geometry(alphas: Sequence[np.ndarray], cameras: Sequence[Camera], rms_
             # shading depth only: coverage and radii stay the hull's, so neither the outline
             # restoration nor the radius growth of moved surfels is needed
             pc = PhotoConfig() if move else PhotoConfig(keep_coverage=False, radius_neighbours=0)
-            pos, nrm, rad, st = refine_surfels(sample.positions, sample.normals, sample.radii, vis, pin, imgs,
-                                               list(alphas), config=pc)
+            pos, nrm, rad, st = refine_surfels(
+                sample.positions, sample.normals, sample.radii, vis, pin, imgs, list(alphas), config=pc
+            )
             if move:
-                vis = cast(np.ndarray, surfel_visibility(pos, nrm, rad, pin, depth_tol_m=config.depth_tol_m,
-                                                         facing_cos=config.facing_cos))
+                vis = cast(
+                    np.ndarray,
+                    surfel_visibility(pos, nrm, rad, pin, depth_tol_m=config.depth_tol_m, facing_cos=config.facing_cos),
+                )
                 surfels = Surfels.from_bool(pos, nrm, rad, vis)
             else:
                 surfels.depth_m = np.ascontiguousarray(st["depth_m"], np.float32)
@@ -723,8 +852,15 @@ BUILD_FORMAT = "opacityhull.build/1"
 
 #: BuildConfig fields that do not change a step's product (everything else does: a
 #: step is stale when any other field differs, which errs on the side of redoing)
-_NOT_GEOMETRY = ("reflectance", "pictures", "natural", "natural_kernels", "verify_checksums",
-                 "ground_truth_dilate_px", "alpha_eps")
+_NOT_GEOMETRY = (
+    "reflectance",
+    "pictures",
+    "natural",
+    "natural_kernels",
+    "verify_checksums",
+    "ground_truth_dilate_px",
+    "alpha_eps",
+)
 
 
 def _digest(obj) -> str:
@@ -786,25 +922,46 @@ class _StepStore:
             try:
                 d = json.loads(self.path.read_text())
             except (OSError, ValueError) as e:
-                raise FormatError(f"{self.path}: unreadable build manifest ({e}); delete {self.dir} or build "
-                                  "without --resume") from None
+                raise FormatError(
+                    f"{self.path}: unreadable build manifest ({e}); delete {self.dir} or build without --resume"
+                ) from None
             if not isinstance(d, dict) or d.get("format") != BUILD_FORMAT or not isinstance(d.get("steps"), dict):
-                raise FormatError(f"{self.path}: not an {BUILD_FORMAT} manifest (format "
-                                  f"{d.get('format') if isinstance(d, dict) else d!r}); delete {self.dir} or build "
-                                  "without --resume")
+                raise FormatError(
+                    f"{self.path}: not an {BUILD_FORMAT} manifest (format "
+                    f"{d.get('format') if isinstance(d, dict) else d!r}); delete {self.dir} or build "
+                    "without --resume"
+                )
             self.steps = dict(d["steps"])
 
     def fresh(self, name: str, key: str) -> bool:
         e = self.steps.get(name)
-        return bool(self.resume and isinstance(e, dict) and e.get("key") == key
-                    and all((self.model_dir / o).exists() for o in e.get("outputs", [])))
+        return bool(
+            self.resume
+            and isinstance(e, dict)
+            and e.get("key") == key
+            and all((self.model_dir / o).exists() for o in e.get("outputs", []))
+        )
 
-    def record(self, name: str, key: str, *, inputs: dict, params: dict, outputs: Sequence[str],
-               seconds: float, status: str = "ran") -> None:
+    def record(
+        self,
+        name: str,
+        key: str,
+        *,
+        inputs: dict,
+        params: dict,
+        outputs: Sequence[str],
+        seconds: float,
+        status: str = "ran",
+    ) -> None:
         from ..imageio import atomic_path
 
-        self.steps[name] = {"key": key, "inputs": inputs, "params": params, "outputs": list(outputs),
-                            "seconds": round(float(seconds), 4)}
+        self.steps[name] = {
+            "key": key,
+            "inputs": inputs,
+            "params": params,
+            "outputs": list(outputs),
+            "seconds": round(float(seconds), 4),
+        }
         self.status[name] = status
         self.dir.mkdir(parents=True, exist_ok=True)
         with atomic_path(self.path) as tmp:
@@ -878,17 +1035,24 @@ class _LazyViews(Sequence):
 def step_cameras(session: Session, config: BuildConfig, store: _StepStore, *, progress=None):
     """Step 1: (views kept, cameras, key, notes). Inputs: the calibration phase's images,
     ``calibration/``, ``cameras/``, the rig table and the view list."""
-    params = {"cameras": config.cameras, "drop_uncalibrated_cameras": config.drop_uncalibrated_cameras,
-              "exclude_views": list(config.exclude_views)}
+    params = {
+        "cameras": config.cameras,
+        "drop_uncalibrated_cameras": config.drop_uncalibrated_cameras,
+        "exclude_views": list(config.exclude_views),
+    }
     phases = session.phases()
-    inputs = {"calibration_images": _digest(_records_digest(session, session.select(phase="calibration", kind=None))
-                                            if "calibration" in phases else []),
-              "calibration_dir": _digest(_files_digest(session.root / "calibration")),
-              "cameras_dir": _digest(_files_digest(session.root / "cameras")),
-              "groundtruth_cameras": _digest(_files_digest(session.root / "groundtruth" / "cameras")
-                                             if config.cameras == "groundtruth" else []),
-              "rig": _digest(session.meta.get("rig")),
-              "views": _digest({ph: session.views(ph) for ph in ("lightfield", "matting", "mask") if ph in phases})}
+    inputs = {
+        "calibration_images": _digest(
+            _records_digest(session, session.select(phase="calibration", kind=None)) if "calibration" in phases else []
+        ),
+        "calibration_dir": _digest(_files_digest(session.root / "calibration")),
+        "cameras_dir": _digest(_files_digest(session.root / "cameras")),
+        "groundtruth_cameras": _digest(
+            _files_digest(session.root / "groundtruth" / "cameras") if config.cameras == "groundtruth" else []
+        ),
+        "rig": _digest(session.meta.get("rig")),
+        "views": _digest({ph: session.views(ph) for ph in ("lightfield", "matting", "mask") if ph in phases}),
+    }
     key = _digest({"inputs": inputs, "params": params})
     rel = f"{BUILD_DIR}/cameras.pkl"
     got = store.load(rel) if store.fresh("cameras", key) else None
@@ -898,8 +1062,9 @@ def step_cameras(session: Session, config: BuildConfig, store: _StepStore, *, pr
     else:
         t = time.perf_counter()
         views = view_list(session, exclude=config.exclude_views)
-        cams = resolve_cameras(session, views, source=config.cameras, progress=progress,
-                               drop_uncalibrated=config.drop_uncalibrated_cameras)
+        cams = resolve_cameras(
+            session, views, source=config.cameras, progress=progress, drop_uncalibrated=config.drop_uncalibrated_cameras
+        )
         store.save(rel, (views, cams))
         store.record("cameras", key, inputs=inputs, params=params, outputs=[rel], seconds=time.perf_counter() - t)
     notes = []
@@ -907,14 +1072,16 @@ def step_cameras(session: Session, config: BuildConfig, store: _StepStore, *, pr
         names = _camera_names(session)
         for c, why in cams.dropped_cameras.items():
             n = sum(1 for cc, _ in views if cc == c)
-            notes.append(f"camera {names.get(c, c)} could not be calibrated ({why}): its {n} view(s) were left "
-                         "out of the model")
+            notes.append(
+                f"camera {names.get(c, c)} could not be calibrated ({why}): its {n} view(s) were left out of the model"
+            )
         views = cams.kept
     return list(views), cams, key, notes
 
 
-def step_matting(session: Session, views, cams: _Cameras, config: BuildConfig, store: _StepStore, *,
-                 executor=None, progress=None) -> Mattes:
+def step_matting(
+    session: Session, views, cams: _Cameras, config: BuildConfig, store: _StepStore, *, executor=None, progress=None
+) -> Mattes:
     """Step 2: one alpha per view (triangulation matting, or the imported mask), each
     written to ``build/mattes/<view>.npy`` with its own key as it finishes, so a build
     killed mid-way keeps the views already matted. Views run through ``executor``
@@ -935,17 +1102,36 @@ def step_matting(session: Session, views, cams: _Cameras, config: BuildConfig, s
     tasks, keys, metas, alphas = [], [], {}, {}
     for i, ((c, a), cam) in enumerate(zip(views, cams.views)):
         recs = session.select(phase="mask" if use_masks else "matting", camera=c, table_deg=a, kind=None)
-        k = _digest({"images": _records_digest(session, recs), "camera": _camera_digest(cam), "patterns": patterns,
-                     "params": params})
+        k = _digest(
+            {
+                "images": _records_digest(session, recs),
+                "camera": _camera_digest(cam),
+                "patterns": patterns,
+                "params": params,
+            }
+        )
         keys.append(k)
         path = mdir / f"{vids[i]}.npy"
         got = _stored_matte(path, k, (cam.height, cam.width)) if store.resume else None
         if got is not None:
             alphas[i], metas[i] = got
             continue
-        tasks.append((i, BuildMatteTask(session_dir=str(session.root), camera=c, table_deg=a, view_camera=cam,
-                                        use_masks=use_masks, backdrops=config.backdrops, matting=mopts,
-                                        alpha_path=str(path), key=k)))
+        tasks.append(
+            (
+                i,
+                BuildMatteTask(
+                    session_dir=str(session.root),
+                    camera=c,
+                    table_deg=a,
+                    view_camera=cam,
+                    use_masks=use_masks,
+                    backdrops=config.backdrops,
+                    matting=mopts,
+                    alpha_path=str(path),
+                    key=k,
+                ),
+            )
+        )
     key = _digest(keys)
     t = time.perf_counter()
     if tasks:
@@ -965,18 +1151,42 @@ def step_matting(session: Session, views, cams: _Cameras, config: BuildConfig, s
             alphas[i] = _load_matte(mdir / f"{vids[i]}.npy", (cam.height, cam.width))
     reused = len(views) - len(tasks)
     status = "ran" if reused == 0 else ("reused" if not tasks else f"reused {reused} of {len(views)} views")
-    store.record("matting", key, inputs={"views": dict(zip(vids, keys))}, params=params,
-                 outputs=[f"{BUILD_DIR}/mattes/{v}.npy" for v in vids], seconds=time.perf_counter() - t,
-                 status=status)
+    store.record(
+        "matting",
+        key,
+        inputs={"views": dict(zip(vids, keys))},
+        params=params,
+        outputs=[f"{BUILD_DIR}/mattes/{v}.npy" for v in vids],
+        seconds=time.perf_counter() - t,
+        status=status,
+    )
     ordered = [metas[i] for i in range(len(views))]
     content = _digest([m["sha256"] for m in ordered])
-    return Mattes(alphas=[alphas[i] for i in range(len(views))], content=content, stats=[m["stats"] for m in ordered if m.get("stats")],
-                  sources={m["source"] for m in ordered}, nonfinite=[n for m in ordered for n in m.get("nonfinite", [])],
-                  key=key, use_masks=use_masks, drift_mode=drift_mode)
+    return Mattes(
+        alphas=[alphas[i] for i in range(len(views))],
+        content=content,
+        stats=[m["stats"] for m in ordered if m.get("stats")],
+        sources={m["source"] for m in ordered},
+        nonfinite=[n for m in ordered for n in m.get("nonfinite", [])],
+        key=key,
+        use_masks=use_masks,
+        drift_mode=drift_mode,
+    )
 
 
-def step_geometry(session: Session, views, cams: _Cameras, mattes: Mattes, cameras_key: str, config: BuildConfig,
-                  store: _StepStore, *, colour=None, step=None, progress=None) -> tuple[Geometry, str]:
+def step_geometry(
+    session: Session,
+    views,
+    cams: _Cameras,
+    mattes: Mattes,
+    cameras_key: str,
+    config: BuildConfig,
+    store: _StepStore,
+    *,
+    colour=None,
+    step=None,
+    progress=None,
+) -> tuple[Geometry, str]:
     """Steps 3-6 (silhouettes, hull, surfels, visibility, refine): :func:`build_geometry`
     over the mattes, stored as ``build/geometry.pkl``."""
     vids = [view_id(c, a) for c, a in views]
@@ -986,9 +1196,16 @@ def step_geometry(session: Session, views, cams: _Cameras, mattes: Mattes, camer
     fallback = _rig_volume(geo) if rig_session else None
     rms_per_view = [cams.rms_px.get(c, 0.0) for c, _ in views]
     params = {k: v for k, v in config.to_dict().items() if k not in _NOT_GEOMETRY}
-    inputs = {"mattes": mattes.content, "cameras": cameras_key, "rig_session": rig_session,
-              "colour": (_digest([_records_digest(session, session.select(shot=s, kind=None)) for s, _ in colour])
-                         if config.refine != "none" and colour else "")}
+    inputs = {
+        "mattes": mattes.content,
+        "cameras": cameras_key,
+        "rig_session": rig_session,
+        "colour": (
+            _digest([_records_digest(session, session.select(shot=s, kind=None)) for s, _ in colour])
+            if config.refine != "none" and colour
+            else ""
+        ),
+    }
     key = _digest({"inputs": inputs, "params": params})
     rel = f"{BUILD_DIR}/geometry.pkl"
     g = store.load(rel) if store.fresh("geometry", key) else None
@@ -1001,19 +1218,31 @@ def step_geometry(session: Session, views, cams: _Cameras, mattes: Mattes, camer
         shots = list(colour or [])
 
         def view_rgb(i: int) -> np.ndarray:
-            return _view_rgba(session, shots[i], mattes.alphas[i], use_masks=mattes.use_masks,
-                              alpha_eps=config.alpha_eps)[..., :3]
+            return _view_rgba(
+                session, shots[i], mattes.alphas[i], use_masks=mattes.use_masks, alpha_eps=config.alpha_eps
+            )[..., :3]
 
         images = view_rgb
-    g = build_geometry(mattes.alphas, cams.views, rms_per_view, vids, config=config, rig_session=rig_session,
-                       fallback_box=fallback, step=step, progress=progress, images=images)
+    g = build_geometry(
+        mattes.alphas,
+        cams.views,
+        rms_per_view,
+        vids,
+        config=config,
+        rig_session=rig_session,
+        fallback_box=fallback,
+        step=step,
+        progress=progress,
+        images=images,
+    )
     store.save(rel, g)
     store.record("geometry", key, inputs=inputs, params=params, outputs=[rel], seconds=time.perf_counter() - t)
     return g, key
 
 
-def _view_rgba(session: Session, shots: tuple, alpha: np.ndarray, *, use_masks: bool, alpha_eps: float,
-               finite=None) -> np.ndarray:
+def _view_rgba(
+    session: Session, shots: tuple, alpha: np.ndarray, *, use_masks: bool, alpha_eps: float, finite=None
+) -> np.ndarray:
     """Step 7 for one view: straight RGBA from its colour shot (minus the object-absent
     one) and its alpha."""
     finite = finite or (lambda img, where: img)
@@ -1057,15 +1286,18 @@ def step_reflectance(session: Session, views, vids, alphas, config: BuildConfig,
         except (TypeError, ValueError):
             lv = float("nan")
         if not (0 < lv <= 255):
-            raise FormatError(f"{session.root}: reflectance shot {r.shot} was taken at DMX level {lv!r}; "
-                              "expected 1..255 (the one-light image is normalised to full level)")
+            raise FormatError(
+                f"{session.root}: reflectance shot {r.shot} was taken at DMX level {lv!r}; "
+                "expected 1..255 (the one-light image is normalised to full level)"
+            )
         levels.setdefault(r.shot, lv)
     if unknown_level:
-        notes.append(f"reflectance: {unknown_level} one-light image(s) record no DMX level; taken as full "
-                     "level (255)")
+        notes.append(f"reflectance: {unknown_level} one-light image(s) record no DMX level; taken as full level (255)")
     if any(v != 255 for v in levels.values()):
-        notes.append("reflectance: one-light images taken below full DMX level were scaled by 255/level "
-                     "(the model stores radiance at full level)")
+        notes.append(
+            "reflectance: one-light images taken below full DMX level were scaled by 255/level "
+            "(the model stores radiance at full level)"
+        )
     common = set(samples)
     for c, a in views:
         common &= set(per_view.get((c, round(a % 360.0, 6)), {}))
@@ -1085,10 +1317,10 @@ def step_reflectance(session: Session, views, vids, alphas, config: BuildConfig,
         for L in lights:
             shot = shots[L.key]
             # radiance at full DMX level: a light dimmed to `level` emits level/255
-            img = finite(_rgb(session.load_radiance(shot)), f"view {vids[i]} one-light shot {shot}"
-                         ) * np.float32(255.0 / levels[shot])
-            outd[L.key] = np.where(mask, np.nan_to_num(img, nan=0.0, posinf=0.0, neginf=0.0), 0.0
-                                   ).astype(np.float32)
+            img = finite(_rgb(session.load_radiance(shot)), f"view {vids[i]} one-light shot {shot}") * np.float32(
+                255.0 / levels[shot]
+            )
+            outd[L.key] = np.where(mask, np.nan_to_num(img, nan=0.0, posinf=0.0, neginf=0.0), 0.0).astype(np.float32)
         return outd
 
     used = [r for r in refl if r.shot in levels]
@@ -1098,10 +1330,17 @@ def step_reflectance(session: Session, views, vids, alphas, config: BuildConfig,
 # --------------------------------------------------------------------------- runner
 
 
-def build_model(session_dir, out_dir, *, config: BuildConfig = BuildConfig(), ground_truth: bool = False,
-                progress: Callable[[int, int], None] | None = None,
-                on_step: Callable[[str], None] | None = None, resume: bool = False,
-                executor=None) -> BuildReport:
+def build_model(
+    session_dir,
+    out_dir,
+    *,
+    config: BuildConfig = BuildConfig(),
+    ground_truth: bool = False,
+    progress: Callable[[int, int], None] | None = None,
+    on_step: Callable[[str], None] | None = None,
+    resume: bool = False,
+    executor=None,
+) -> BuildReport:
     """Build the opacity-hull model of a session (see the module docstring).
 
     The build is a chain of steps (:func:`step_cameras`, :func:`step_matting`,
@@ -1143,8 +1382,11 @@ def build_model(session_dir, out_dir, *, config: BuildConfig = BuildConfig(), gr
     timer = _Timer(on_step)
     timer.seconds["verify"] = verify_s
     store = _StepStore(out, resume=resume)
-    notes: list[str] = [] if config.verify_checksums else [
-        "manifest checksums were not verified (verify_checksums=False): sizes and ids only"]
+    notes: list[str] = (
+        []
+        if config.verify_checksums
+        else ["manifest checksums were not verified (verify_checksums=False): sizes and ids only"]
+    )
     nonfinite: list[str] = []
 
     def finite(img, where):
@@ -1167,23 +1409,33 @@ def build_model(session_dir, out_dir, *, config: BuildConfig = BuildConfig(), gr
     nonfinite.extend(mattes.nonfinite[:1000])
     backdrop_source = ", ".join(sorted(mattes.sources))
     if any("display geometry" in s for s in mattes.sources):
-        notes.append("backdrops predicted from the display geometry (no object-absent captures): an "
-                     "approximation without display falloff or blur")
+        notes.append(
+            "backdrops predicted from the display geometry (no object-absent captures): an "
+            "approximation without display falloff or blur"
+        )
 
     view_infos = [ViewInfo(i, vids[i], c, float(a), cams.views[i]) for i, (c, a) in enumerate(views)]
     colour_shots = [_colour_shot(session, c, a) for c, a in views]
     missing_colour = [vids[i] for i, (s, _) in enumerate(colour_shots) if s is None]
     if missing_colour:
-        raise FormatError(f"{session.root}: no lightfield (or displays-off matting) image for views "
-                          f"{missing_colour[:5]}: nothing to colour the model with")
+        raise FormatError(
+            f"{session.root}: no lightfield (or displays-off matting) image for views "
+            f"{missing_colour[:5]}: nothing to colour the model with"
+        )
 
     def view_rgba(i: int) -> np.ndarray:
-        return _view_rgba(session, colour_shots[i], alphas[i], use_masks=mattes.use_masks,
-                          alpha_eps=config.alpha_eps,
-                          finite=lambda img, where: finite(img, f"view {vids[i]} {where.removeprefix('view ')}"))
+        return _view_rgba(
+            session,
+            colour_shots[i],
+            alphas[i],
+            use_masks=mattes.use_masks,
+            alpha_eps=config.alpha_eps,
+            finite=lambda img, where: finite(img, f"view {vids[i]} {where.removeprefix('view ')}"),
+        )
 
-    g, geometry_key = step_geometry(session, views, cams, mattes, cameras_key, config, store, colour=colour_shots,
-                                    step=timer.step, progress=prog)
+    g, geometry_key = step_geometry(
+        session, views, cams, mattes, cameras_key, config, store, colour=colour_shots, step=timer.step, progress=prog
+    )
     notes.extend(g.notes)
     sils, pin, occ, grid, surfels = g.sils, g.pin, g.occ, g.grid, g.surfels
     hull_info = dict(g.info)
@@ -1200,10 +1452,17 @@ def build_model(session_dir, out_dir, *, config: BuildConfig = BuildConfig(), gr
         if config.natural and ("envmatte" in session.phases() or "natural" in session.phases()):
             from .natural_field import estimate_session_natural
 
-            nat_recs = [r for ph in ("envmatte", "natural") if ph in session.phases()
-                        for r in session.select(phase=ph, kind=None)]
-            nat_in = {"images": _digest(_records_digest(session, nat_recs)), "mattes": mattes.content,
-                      "cameras": cameras_key}
+            nat_recs = [
+                r
+                for ph in ("envmatte", "natural")
+                if ph in session.phases()
+                for r in session.select(phase=ph, kind=None)
+            ]
+            nat_in = {
+                "images": _digest(_records_digest(session, nat_recs)),
+                "mattes": mattes.content,
+                "cameras": cameras_key,
+            }
             nat_p = {"n_kernels": config.natural_kernels}
             natural_key = _digest({"inputs": nat_in, "params": nat_p})
             rel = f"{BUILD_DIR}/natural.pkl"
@@ -1213,22 +1472,52 @@ def build_model(session_dir, out_dir, *, config: BuildConfig = BuildConfig(), gr
             else:
                 t = time.perf_counter()
                 out.mkdir(parents=True, exist_ok=True)
-                natural = estimate_session_natural(session, views, cams.views, alphas, out,
-                                                   n_kernels=config.natural_kernels, progress=prog)
+                natural = estimate_session_natural(
+                    session, views, cams.views, alphas, out, n_kernels=config.natural_kernels, progress=prog
+                )
                 store.save(rel, natural)
-                store.record("natural", natural_key, inputs=nat_in, params=nat_p, outputs=[rel, "natural"],
-                             seconds=time.perf_counter() - t)
+                store.record(
+                    "natural",
+                    natural_key,
+                    inputs=nat_in,
+                    params=nat_p,
+                    outputs=[rel, "natural"],
+                    seconds=time.perf_counter() - t,
+                )
 
-    report = BuildReport(model_dir=str(out), views=V, surfels=len(surfels), camera_source=cams.source,
-                         backdrop_source=backdrop_source, hull=hull_info, notes=notes)
-    provenance = {"session": str(session.root.resolve()), "rig_source": session.source,
-                  "camera_source": cams.source, "backdrop_source": backdrop_source,
-                  "reflectance_units": "radiance at full DMX level (one-light images scaled by 255/level)",
-                  "build_config": json.dumps(_jsonable(config.to_dict()), sort_keys=True)}
-    write_in = {"geometry": geometry_key, "mattes": mattes.content, "cameras": cameras_key, "natural": natural_key,
-                "colour": _digest([_records_digest(session, session.select(shot=s, kind=None))
-                                   for pair in colour_shots for s in pair if s is not None]),
-                "reflectance": refl_digest, "provenance": _digest(provenance)}
+    report = BuildReport(
+        model_dir=str(out),
+        views=V,
+        surfels=len(surfels),
+        camera_source=cams.source,
+        backdrop_source=backdrop_source,
+        hull=hull_info,
+        notes=notes,
+    )
+    provenance = {
+        "session": str(session.root.resolve()),
+        "rig_source": session.source,
+        "camera_source": cams.source,
+        "backdrop_source": backdrop_source,
+        "reflectance_units": "radiance at full DMX level (one-light images scaled by 255/level)",
+        "build_config": json.dumps(_jsonable(config.to_dict()), sort_keys=True),
+    }
+    write_in = {
+        "geometry": geometry_key,
+        "mattes": mattes.content,
+        "cameras": cameras_key,
+        "natural": natural_key,
+        "colour": _digest(
+            [
+                _records_digest(session, session.select(shot=s, kind=None))
+                for pair in colour_shots
+                for s in pair
+                if s is not None
+            ]
+        ),
+        "reflectance": refl_digest,
+        "provenance": _digest(provenance),
+    }
     write_key = _digest({"inputs": write_in})
     with timer.step("write"):
         if store.fresh("write", write_key) and (out / "model.toml").is_file():
@@ -1240,11 +1529,19 @@ def build_model(session_dir, out_dir, *, config: BuildConfig = BuildConfig(), gr
             (out / "model.toml").unlink(missing_ok=True)
             extra = None
             if natural is not None:
-                extra = {"natural": {"present": True, "format": "opacityhull.natural/1", "dir": "natural",
-                                     "n_kernels": int(natural["n_kernels"]),
-                                     "weights_dtype": str(natural.get("weights_dtype", "float16")),
-                                     "displays": {n: {"domain_hw": list(d["domain_hw"]), "images": int(d["images"])}
-                                                  for n, d in natural["displays"].items()}}}
+                extra = {
+                    "natural": {
+                        "present": True,
+                        "format": "opacityhull.natural/1",
+                        "dir": "natural",
+                        "n_kernels": int(natural["n_kernels"]),
+                        "weights_dtype": str(natural.get("weights_dtype", "float16")),
+                        "displays": {
+                            n: {"domain_hw": list(d["domain_hw"]), "images": int(d["images"])}
+                            for n, d in natural["displays"].items()
+                        },
+                    }
+                }
             outputs = ["model.toml"]
             if cams.rig:
                 from ..camera import write_opencv_yaml
@@ -1256,11 +1553,20 @@ def build_model(session_dir, out_dir, *, config: BuildConfig = BuildConfig(), gr
                     name = session.geometry.cameras[i].name if i < len(session.geometry.cameras) else f"cam{i}"
                     write_opencv_yaml(out / "calibration" / f"{name}.yaml", rc.with_name(name), extra=yx)
                     outputs.append(f"calibration/{name}.yaml")
-            write_model(out, views=view_infos, surfels=surfels, view_rgba=_LazyViews(view_rgba, V),
-                        rig=session.meta.get("rig"), provenance=provenance, reflectance=reflectance,
-                        extra_meta=extra, progress=prog)
-            store.record("write", write_key, inputs=write_in, params={}, outputs=outputs,
-                         seconds=time.perf_counter() - t)
+            write_model(
+                out,
+                views=view_infos,
+                surfels=surfels,
+                view_rgba=_LazyViews(view_rgba, V),
+                rig=session.meta.get("rig"),
+                provenance=provenance,
+                reflectance=reflectance,
+                extra_meta=extra,
+                progress=prog,
+            )
+            store.record(
+                "write", write_key, inputs=write_in, params={}, outputs=outputs, seconds=time.perf_counter() - t
+            )
     if natural is not None:
         report.hull["natural"] = {k: v for k, v in natural.items() if k != "files"}
 
@@ -1273,17 +1579,23 @@ def build_model(session_dir, out_dir, *, config: BuildConfig = BuildConfig(), gr
                 store.reuse("pictures")
             else:
                 t = time.perf_counter()
-                report.pictures = _pictures(out, session, views, vids, alphas, sils, pin, surfels, cams,
-                                            colour_shots)
-                store.record("pictures", pic_key, inputs={"write": write_key}, params={},
-                             outputs=report.pictures, seconds=time.perf_counter() - t)
+                report.pictures = _pictures(out, session, views, vids, alphas, sils, pin, surfels, cams, colour_shots)
+                store.record(
+                    "pictures",
+                    pic_key,
+                    inputs={"write": write_key},
+                    params={},
+                    outputs=report.pictures,
+                    seconds=time.perf_counter() - t,
+                )
 
     metrics: dict = {}
     if cams.calibration is not None:
         cal = cams.calibration
         metrics["reproj_rms_px"] = float(cal.rms_px)
-        metrics["reproj_rms_px_per_camera"] = {cal.rig_cameras[c].name: float(cal.reproj_rms_px[c])
-                                               for c in cal.camera_indices}
+        metrics["reproj_rms_px_per_camera"] = {
+            cal.rig_cameras[c].name: float(cal.reproj_rms_px[c]) for c in cal.camera_indices
+        }
         if cams.dropped_cameras:
             metrics["uncalibrated_cameras"] = {cal.rig_cameras[c].name: why for c, why in cams.dropped_cameras.items()}
     if mattes.stats:
@@ -1294,9 +1606,11 @@ def build_model(session_dir, out_dir, *, config: BuildConfig = BuildConfig(), gr
             metrics["matting_drift_gain_max_dev"] = drift["gain_max_dev"]
             metrics["matting_shift_px_max"] = drift["shift_px_max"]
             if drift["shifts_applied"]:
-                notes.append(f"matting: {drift['shifts_applied']} backdrop shot(s) were misregistered by >= "
-                             f"{config.matting.drift_options.apply_shift_px} px against their object shot and "
-                             "were resampled")
+                notes.append(
+                    f"matting: {drift['shifts_applied']} backdrop shot(s) were misregistered by >= "
+                    f"{config.matting.drift_options.apply_shift_px} px against their object shot and "
+                    "were resampled"
+                )
         else:
             notes.append(f"matting: photometric drift not corrected ({drift['why']})")
         metrics["matting_unknown_frac"] = float(np.mean([m["unknown_frac"] for m in mattes.stats]))
@@ -1304,11 +1618,13 @@ def build_model(session_dir, out_dir, *, config: BuildConfig = BuildConfig(), gr
         metrics["matting_backdrops_K"] = int(np.median([m["K"] for m in mattes.stats]))
     if ground_truth:
         with timer.step("metrics"):
-            metrics.update(_ground_truth_metrics(session, views, vids, alphas, occ, grid, cams, config, pin,
-                                                 dilations))
+            metrics.update(_ground_truth_metrics(session, views, vids, alphas, occ, grid, cams, config, pin, dilations))
     if nonfinite:
-        notes.append(f"{len(nonfinite)} image(s) held NaN or Inf pixels, set to 0 (black) where used: "
-                     + "; ".join(nonfinite[:3]) + (" ..." if len(nonfinite) > 3 else ""))
+        notes.append(
+            f"{len(nonfinite)} image(s) held NaN or Inf pixels, set to 0 (black) where used: "
+            + "; ".join(nonfinite[:3])
+            + (" ..." if len(nonfinite) > 3 else "")
+        )
         metrics["nonfinite_images"] = len(nonfinite)
     metrics["manifest_verified"] = "sha256" if config.verify_checksums else "sizes and ids only"
     report.metrics = metrics
@@ -1341,12 +1657,15 @@ def _pictures(out: Path, session, views, vids, alphas, sils, pin, surfels, cams,
     cal = cams.calibration
     p = None
     if cal is not None:
-        p = reprojection_histogram(pics / "reprojection.png", residuals_px=cal.residuals_px,
-                                   rms_per_camera={cal.rig_cameras[c].name: cal.reproj_rms_px[c]
-                                                   for c in cal.camera_indices})
+        p = reprojection_histogram(
+            pics / "reprojection.png",
+            residuals_px=cal.residuals_px,
+            rms_per_camera={cal.rig_cameras[c].name: cal.reproj_rms_px[c] for c in cal.camera_indices},
+        )
     elif cams.rms_px and cams.rig:
-        p = reprojection_histogram(pics / "reprojection.png",
-                                   rms_per_camera={f"cam{i}": r for i, r in cams.rms_px.items()})
+        p = reprojection_histogram(
+            pics / "reprojection.png", rms_per_camera={f"cam{i}": r for i, r in cams.rms_px.items()}
+        )
     if p is not None:
         made.append(p)
     return [str(Path(m).relative_to(out)) for m in made]
@@ -1382,9 +1701,12 @@ def _ground_truth_metrics(session, views, vids, alphas, occ, grid, cams, config,
         fr = [r for r in per_view if r["fractional_pixels"]]
         if fr:
             nf = np.array([r["fractional_pixels"] for r in fr], dtype=np.float64)
-            m["alpha_mae_fractional"] = float(np.sum([r["mae_fractional"] * r["fractional_pixels"] for r in fr]) / nf.sum())
+            m["alpha_mae_fractional"] = float(
+                np.sum([r["mae_fractional"] * r["fractional_pixels"] for r in fr]) / nf.sum()
+            )
             m["alpha_fractional_recovered"] = float(
-                np.sum([r["fractional_recovered"] * r["fractional_pixels"] for r in fr]) / nf.sum())
+                np.sum([r["fractional_recovered"] * r["fractional_pixels"] for r in fr]) / nf.sum()
+            )
             m["alpha_fractional_pixels"] = int(nf.sum())
         m["alpha_views_compared"] = len(per_view)
     mesh = gt / "object.ply"

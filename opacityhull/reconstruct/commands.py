@@ -96,8 +96,10 @@ def _parse_image_lists(args, flags) -> dict:
             cur = a.split("=", 1)[0]
             lists[cur].append(Path(a.split("=", 1)[1]))
         elif a.startswith("-") and len(a) > 1:
-            raise InputError(f"unknown option {a!r} (expected one of {', '.join(flags)}, --out, --over, --drift, "
-                             "--max-alpha-std, --json)")
+            raise InputError(
+                f"unknown option {a!r} (expected one of {', '.join(flags)}, --out, --over, --drift, "
+                "--max-alpha-std, --json)"
+            )
         elif cur is None:
             raise InputError(f"{a!r}: give image files after {' or '.join(flags)}")
         else:
@@ -111,13 +113,16 @@ def _parse_image_lists(args, flags) -> dict:
 def _human_matte(summary: dict) -> None:
     c = console()
     c.print(f"matte {summary['width']}x{summary['height']} from {summary['pairs']} pairs → {summary['out']}")
-    c.print(f"clear (alpha<0.05) {summary['clear_fraction']:.1%}, opaque (>0.95) {summary['opaque_fraction']:.1%}, "
-            f"fractional {summary['fractional_fraction']:.1%}, unknown {summary['unknown_fraction']:.2%}")
+    c.print(
+        f"clear (alpha<0.05) {summary['clear_fraction']:.1%}, opaque (>0.95) {summary['opaque_fraction']:.1%}, "
+        f"fractional {summary['fractional_fraction']:.1%}, unknown {summary['unknown_fraction']:.2%}"
+    )
     if summary["drift"]:
         for k, s in enumerate(summary["drift"]["shots"]):
             sh = s["shift_px"]
-            shift = "n/a" if sh is None else f"({sh[0]:+.2f}, {sh[1]:+.2f}) px" + (" applied" if s["shift_applied"]
-                                                                                 else "")
+            shift = (
+                "n/a" if sh is None else f"({sh[0]:+.2f}, {sh[1]:+.2f}) px" + (" applied" if s["shift_applied"] else "")
+            )
             c.print(f"pair {k}: drift gain R,G,B = {', '.join(f'{g:.3f}' for g in s['gain'])}; registration {shift}")
     for n in summary.get("notes", []):
         c.print(f"[yellow]note:[/] {n}")
@@ -131,70 +136,110 @@ def register(app, groups) -> None:
     def build(
         session: Path = typer.Argument(..., help="Session folder (from `capture` or `import colmap`)."),
         out: Path = typer.Option(..., "--out", help="Model folder to write (created; existing files are replaced)."),
-        hull_res: Optional[int] = typer.Option(None, "--hull-res",
-                                               help="Voxels along the longest side of the hull's box (default: "
-                                                    "from the photographs' pixel footprint, one surfel per "
-                                                    "projected pixel)."),
-        matting_drift: str = typer.Option("auto", "--matting-drift",
-                                          help="Correct photometric drift and misregistration between backdrop and "
-                                               "object shots: auto (field, except on a drift-free simulated rig) | "
-                                               "none | gain | affine | field."),
-        carve_tolerance: Optional[int] = typer.Option(None, "--carve-tolerance",
-                                                      help="A voxel survives when at most this many views reject "
-                                                           "it (imperfect masks). Default: 1 for imported sets "
-                                                           "of 8+ views, 0 for rig sessions."),
-        refine: Optional[str] = typer.Option(None, "--refine",
-                                             help="Photo-consistent depth inside the hull: shading (surfels stay "
-                                                  "on the hull and carry the depth the renderer shades at) | "
-                                                  "surfels (move the surfels there) | none. Default: "
-                                                  "BuildConfig.refine (shading)."),
-        ground_truth: bool = typer.Option(False, "--ground-truth",
-                                          help="Compare with the simulator's groundtruth/ (alpha MAE, hull IoU, "
-                                               "pose errors) and report the metrics."),
-        alpha_threshold: Optional[float] = typer.Option(None, "--alpha-threshold",
-                                                        help="Silhouette = alpha > threshold (default: "
-                                                             "BuildConfig.alpha_threshold)."),
-        cameras: str = typer.Option("auto", "--cameras",
-                                    help="auto (calibration phase → calibration/ → cameras/), or for debugging "
-                                         "only: groundtruth | nominal."),
-        backdrops: str = typer.Option("auto", "--backdrops",
-                                      help="Matting backdrops: auto (object-absent captures, else predicted from "
-                                           "the display geometry) | object-absent | geometry."),
-        exclude_view: Optional[List[str]] = typer.Option(None, "--exclude-view",
-                                                         help="Leave a view out (repeatable), e.g. c0_t030.000."),
-        bounds: Optional[str] = typer.Option(None, "--bounds",
-                                             help="Hull box x0,y0,z0,x1,y1,z1 in metres (object frame); "
-                                                  "default: from the silhouettes."),
-        oversample: Optional[int] = typer.Option(None, "--oversample",
-                                                 help="Surfel rays per voxel column per axis (default: "
-                                                      "BuildConfig.surfel_oversample)."),
-        max_alpha_std: Optional[float] = typer.Option(None, "--max-alpha-std",
-                                                      help="Matting: pixels whose predicted alpha std exceeds this "
-                                                           "are filled from their neighbours (default: "
-                                                           "MattingOptions.max_alpha_std)."),
-        require_all_cameras: bool = typer.Option(False, "--require-all-cameras",
-                                                 help="With a calibration phase: fail when a camera cannot be "
-                                                      "calibrated (default: leave it and its views out, with a "
-                                                      "note)."),
+        hull_res: Optional[int] = typer.Option(
+            None,
+            "--hull-res",
+            help="Voxels along the longest side of the hull's box (default: "
+            "from the photographs' pixel footprint, one surfel per "
+            "projected pixel).",
+        ),
+        matting_drift: str = typer.Option(
+            "auto",
+            "--matting-drift",
+            help="Correct photometric drift and misregistration between backdrop and "
+            "object shots: auto (field, except on a drift-free simulated rig) | "
+            "none | gain | affine | field.",
+        ),
+        carve_tolerance: Optional[int] = typer.Option(
+            None,
+            "--carve-tolerance",
+            help="A voxel survives when at most this many views reject "
+            "it (imperfect masks). Default: 1 for imported sets "
+            "of 8+ views, 0 for rig sessions.",
+        ),
+        refine: Optional[str] = typer.Option(
+            None,
+            "--refine",
+            help="Photo-consistent depth inside the hull: shading (surfels stay "
+            "on the hull and carry the depth the renderer shades at) | "
+            "surfels (move the surfels there) | none. Default: "
+            "BuildConfig.refine (shading).",
+        ),
+        ground_truth: bool = typer.Option(
+            False,
+            "--ground-truth",
+            help="Compare with the simulator's groundtruth/ (alpha MAE, hull IoU, pose errors) and report the metrics.",
+        ),
+        alpha_threshold: Optional[float] = typer.Option(
+            None, "--alpha-threshold", help="Silhouette = alpha > threshold (default: BuildConfig.alpha_threshold)."
+        ),
+        cameras: str = typer.Option(
+            "auto",
+            "--cameras",
+            help="auto (calibration phase → calibration/ → cameras/), or for debugging only: groundtruth | nominal.",
+        ),
+        backdrops: str = typer.Option(
+            "auto",
+            "--backdrops",
+            help="Matting backdrops: auto (object-absent captures, else predicted from "
+            "the display geometry) | object-absent | geometry.",
+        ),
+        exclude_view: Optional[List[str]] = typer.Option(
+            None, "--exclude-view", help="Leave a view out (repeatable), e.g. c0_t030.000."
+        ),
+        bounds: Optional[str] = typer.Option(
+            None, "--bounds", help="Hull box x0,y0,z0,x1,y1,z1 in metres (object frame); default: from the silhouettes."
+        ),
+        oversample: Optional[int] = typer.Option(
+            None, "--oversample", help="Surfel rays per voxel column per axis (default: BuildConfig.surfel_oversample)."
+        ),
+        max_alpha_std: Optional[float] = typer.Option(
+            None,
+            "--max-alpha-std",
+            help="Matting: pixels whose predicted alpha std exceeds this "
+            "are filled from their neighbours (default: "
+            "MattingOptions.max_alpha_std).",
+        ),
+        require_all_cameras: bool = typer.Option(
+            False,
+            "--require-all-cameras",
+            help="With a calibration phase: fail when a camera cannot be "
+            "calibrated (default: leave it and its views out, with a "
+            "note).",
+        ),
         no_reflectance: bool = typer.Option(False, "--no-reflectance", help="Do not attach one-light images."),
         no_pictures: bool = typer.Option(False, "--no-pictures", help="Skip the PNG pictures."),
-        resume: bool = typer.Option(False, "--resume",
-                                    help="Reuse the steps of an earlier (or interrupted) build into --out whose "
-                                         "inputs and options are unchanged (OUT/build/manifest.json); the report "
-                                         "says which steps were reused."),
-        scheduler: str = typer.Option("serial", "--scheduler",
-                                      help="Where the per-view steps run: serial | threads | processes | "
-                                           "tcp://HOST:PORT (a dask scheduler; see docs/distributed.md)."),
-        scheduler_timeout: float = typer.Option(10.0, "--scheduler-timeout",
-                                                help="Seconds to wait for a tcp:// scheduler to answer."),
-        workers: Optional[int] = typer.Option(None, "--workers",
-                                              help="threads/processes: pool size (default: the cores)."),
+        resume: bool = typer.Option(
+            False,
+            "--resume",
+            help="Reuse the steps of an earlier (or interrupted) build into --out whose "
+            "inputs and options are unchanged (OUT/build/manifest.json); the report "
+            "says which steps were reused.",
+        ),
+        scheduler: str = typer.Option(
+            "serial",
+            "--scheduler",
+            help="Where the per-view steps run: serial | threads | processes | "
+            "tcp://HOST:PORT (a dask scheduler; see docs/distributed.md).",
+        ),
+        scheduler_timeout: float = typer.Option(
+            10.0, "--scheduler-timeout", help="Seconds to wait for a tcp:// scheduler to answer."
+        ),
+        workers: Optional[int] = typer.Option(
+            None, "--workers", help="threads/processes: pool size (default: the cores)."
+        ),
         as_json: bool = typer.Option(False, "--json", help="Print one JSON object on stdout."),
     ):
         """Build the opacity hull of a session: cameras, matting, visual hull, surfels,
         visibility, per-view RGBA and reflectance, pictures (and ground-truth metrics)."""
-        from rich.progress import (BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn,
-                                   TimeRemainingColumn)
+        from rich.progress import (
+            BarColumn,
+            MofNCompleteColumn,
+            Progress,
+            TextColumn,
+            TimeElapsedColumn,
+            TimeRemainingColumn,
+        )
 
         from ..executor import open_executor, parse_scheduler
         from .build import DRIFT_MODES, BuildConfig, build_model
@@ -210,17 +255,33 @@ def register(app, groups) -> None:
         # options left out keep the config dataclasses' defaults (one place for them)
         d, dm = BuildConfig(), MattingOptions()
         matting = MattingOptions(max_alpha_std=dm.max_alpha_std if max_alpha_std is None else max_alpha_std)
-        cfg = BuildConfig(hull_res=hull_res, carve_tolerance=carve_tolerance, matting_drift=matting_drift,
-                          cameras=cameras, backdrops=backdrops,
-                          alpha_threshold=d.alpha_threshold if alpha_threshold is None else alpha_threshold,
-                          surfel_oversample=d.surfel_oversample if oversample is None else oversample,
-                          exclude_views=tuple(exclude_view or ()), bounds_m=_parse_bounds(bounds), matting=matting,
-                          reflectance=not no_reflectance, pictures=not no_pictures,
-                          drop_uncalibrated_cameras=not require_all_cameras,
-                          refine=d.refine if refine is None else cast(Literal["shading", "surfels", "none"], refine))
-        with Progress(TextColumn("[bold]build: {task.description}"), BarColumn(), MofNCompleteColumn(),
-                      TextColumn("elapsed"), TimeElapsedColumn(), TextColumn("eta"), TimeRemainingColumn(),
-                      console=console(), transient=False) as bar:
+        cfg = BuildConfig(
+            hull_res=hull_res,
+            carve_tolerance=carve_tolerance,
+            matting_drift=matting_drift,
+            cameras=cameras,
+            backdrops=backdrops,
+            alpha_threshold=d.alpha_threshold if alpha_threshold is None else alpha_threshold,
+            surfel_oversample=d.surfel_oversample if oversample is None else oversample,
+            exclude_views=tuple(exclude_view or ()),
+            bounds_m=_parse_bounds(bounds),
+            matting=matting,
+            reflectance=not no_reflectance,
+            pictures=not no_pictures,
+            drop_uncalibrated_cameras=not require_all_cameras,
+            refine=d.refine if refine is None else cast(Literal["shading", "surfels", "none"], refine),
+        )
+        with Progress(
+            TextColumn("[bold]build: {task.description}"),
+            BarColumn(),
+            MofNCompleteColumn(),
+            TextColumn("elapsed"),
+            TimeElapsedColumn(),
+            TextColumn("eta"),
+            TimeRemainingColumn(),
+            console=console(),
+            transient=False,
+        ) as bar:
             # one bar line per step: its description names the step, its count and ETA
             # are the step's (views matted, images calibrated, ...). A new task per step:
             # rich's update() ignores total=None, so resetting one task left the previous
@@ -235,8 +296,16 @@ def register(app, groups) -> None:
                 bar.update(tasks[-1], completed=done, total=total)
 
             with open_executor(scheduler, workers=workers, timeout_s=scheduler_timeout) as ex, writing_to(out):
-                report = build_model(session, out, config=cfg, ground_truth=ground_truth, progress=prog,
-                                     on_step=on_step, resume=resume, executor=ex)
+                report = build_model(
+                    session,
+                    out,
+                    config=cfg,
+                    ground_truth=ground_truth,
+                    progress=prog,
+                    on_step=on_step,
+                    resume=resume,
+                    executor=ex,
+                )
             bar.update(tasks[-1], description="done")
         summary = report.summary()
         summary["notes"] = list(report.notes)
@@ -246,16 +315,25 @@ def register(app, groups) -> None:
     @cli_errors
     def matte(
         ctx: typer.Context,
-        out: Path = typer.Option(..., "--out", help="Folder to write alpha.png, foreground_premul.png/.exr, "
-                                                     "composite.png and matte.json (created)."),
+        out: Path = typer.Option(
+            ...,
+            "--out",
+            help="Folder to write alpha.png, foreground_premul.png/.exr, composite.png and matte.json (created).",
+        ),
         over: Optional[Path] = typer.Option(None, "--over", help="New background for composite.png."),
-        drift: str = typer.Option("field", "--drift",
-                                  help="Photometric drift correction of the backdrops: field (smooth per-channel "
-                                       "gain over the frame) | affine (3x3 + offset) | gain | none."),
-        max_alpha_std: Optional[float] = typer.Option(None, "--max-alpha-std",
-                                                      help="Pixels whose predicted alpha std exceeds this are "
-                                                           "filled from their neighbours (default: "
-                                                           "MattingOptions.max_alpha_std)."),
+        drift: str = typer.Option(
+            "field",
+            "--drift",
+            help="Photometric drift correction of the backdrops: field (smooth per-channel "
+            "gain over the frame) | affine (3x3 + offset) | gain | none.",
+        ),
+        max_alpha_std: Optional[float] = typer.Option(
+            None,
+            "--max-alpha-std",
+            help="Pixels whose predicted alpha std exceeds this are "
+            "filled from their neighbours (default: "
+            "MattingOptions.max_alpha_std).",
+        ),
         as_json: bool = typer.Option(False, "--json", help="Print one JSON object on stdout."),
     ):
         """Triangulation matting of your own shots: --object A.jpg B.jpg [...] --backdrop A.jpg
@@ -264,6 +342,7 @@ def register(app, groups) -> None:
         from .matte_files import matte_files
 
         lists = _parse_image_lists(ctx.args, ("--object", "--backdrop"))
-        summary = matte_files(lists["--object"], lists["--backdrop"], out, over=over, drift=drift,
-                              max_alpha_std=max_alpha_std)
+        summary = matte_files(
+            lists["--object"], lists["--backdrop"], out, over=over, drift=drift, max_alpha_std=max_alpha_std
+        )
         emit(summary, as_json, _human_matte)

@@ -52,12 +52,16 @@ def export_opencv_yaml(result, out_dir) -> list[Path]:
         name = cam.name or f"cam{c}"
         n_views = sum(1 for v in result.used_views if v.startswith(f"c{c}_t"))
         p = out / f"{name}.yaml"
-        write_opencv_yaml(p, cam, extra={
-            "reproj_rms_px": float(rms),
-            "used_views": int(n_views),
-            "table_scale": float(result.table_scale),
-            "object_from_board": np.asarray(result.object_from_board, dtype=np.float64),
-        })
+        write_opencv_yaml(
+            p,
+            cam,
+            extra={
+                "reproj_rms_px": float(rms),
+                "used_views": int(n_views),
+                "table_scale": float(result.table_scale),
+                "object_from_board": np.asarray(result.object_from_board, dtype=np.float64),
+            },
+        )
         paths.append(p)
     return paths
 
@@ -72,8 +76,14 @@ def intrinsics_groups(cameras: Sequence[Camera]) -> list[int]:
     return out
 
 
-def export_colmap(cameras: Sequence[Camera], names: Sequence[str], out_dir, *,
-                  share_intrinsics: Sequence[int] | bool | None = True, points3d=None) -> Path:
+def export_colmap(
+    cameras: Sequence[Camera],
+    names: Sequence[str],
+    out_dir,
+    *,
+    share_intrinsics: Sequence[int] | bool | None = True,
+    points3d=None,
+) -> Path:
     """Write a COLMAP text model (``cameras.txt``, ``images.txt``, ``points3D.txt``).
 
     Parameters
@@ -132,8 +142,14 @@ def _rel_posix(path, base: Path) -> str:
     return Path(os.path.relpath(p, base)).as_posix()
 
 
-def export_nerfstudio(cameras: Sequence[Camera], image_paths: Sequence, out_path, *,
-                      mask_paths: Sequence | None = None, extra: dict | None = None) -> Path:
+def export_nerfstudio(
+    cameras: Sequence[Camera],
+    image_paths: Sequence,
+    out_path,
+    *,
+    mask_paths: Sequence | None = None,
+    extra: dict | None = None,
+) -> Path:
     """Write a nerfstudio ``transforms.json``.
 
     Parameters
@@ -226,8 +242,9 @@ def plot_reprojection_errors(result, out_path, *, bins: int = 40) -> Path:
     for c in result.camera_indices:
         cam = result.rig_cameras[c]
         sel = np.char.startswith(result.residual_views.astype(str), f"c{c}_t")
-        ax0.hist(err[sel], bins=edges, histtype="step", lw=1.5,
-                 label=f"{cam.name}: RMS {result.reproj_rms_px[c]:.3f} px")
+        ax0.hist(
+            err[sel], bins=edges, histtype="step", lw=1.5, label=f"{cam.name}: RMS {result.reproj_rms_px[c]:.3f} px"
+        )
     ax0.set_xlabel("corner reprojection error (px)")
     ax0.set_ylabel("corners")
     ax0.set_title(f"rig model, overall RMS {result.rms_px:.3f} px")

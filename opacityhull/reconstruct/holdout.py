@@ -93,13 +93,21 @@ def geometry_without(model: OpacityHullModel, *, config: BuildConfig | None = No
             c = replace(c, carve_tolerance=max(0, len(keep) - 2))
         images: Callable[[int], np.ndarray] | None = None
         if c.refine != "none":  # the photo-consistency cost never sees the held-out photograph
+
             def kept_rgb(q: int, keep=keep) -> np.ndarray:
                 return model.load_view_rgba(keep[q])[..., :3]
 
             images = kept_rgb
-        g = build_geometry([alphas[j] for j in keep], [cams[j] for j in keep], [rms[j] for j in keep],
-                           [model.views[j].id for j in keep], config=c, rig_session=rig_session,
-                           fallback_box=fallback, images=images)
+        g = build_geometry(
+            [alphas[j] for j in keep],
+            [cams[j] for j in keep],
+            [rms[j] for j in keep],
+            [model.views[j].id for j in keep],
+            config=c,
+            rig_session=rig_session,
+            fallback_box=fallback,
+            images=images,
+        )
         s = g.surfels
         vis = np.zeros((len(s), V), bool)
         vis[:, keep] = s.visible_bool()
@@ -142,14 +150,15 @@ class _Prefetched:
     def __call__(self, i: int) -> Surfels:
         if i not in self.cache:
             k = self.order.index(i) if i in self.order else None
-            todo = [i] if k is None else [j for j in self.order[k:k + self.batch] if j not in self.cache]
+            todo = [i] if k is None else [j for j in self.order[k : k + self.batch] if j not in self.cache]
             for j, s in zip(todo, self.ex.map(rebuild_without, [(self.root, j) for j in todo])):
                 self.cache[j] = s
         return self.cache.pop(i)
 
 
-def run_loo_holdouts(model_path, *, views=None, config=None, holdout: str = "both", out=None,
-                     progress=None, executor=None) -> dict:
+def run_loo_holdouts(
+    model_path, *, views=None, config=None, holdout: str = "both", out=None, progress=None, executor=None
+) -> dict:
     """``eval loo`` with ``--holdout blend|geometry|both``: the render stage's
     leave-one-out (:func:`opacityhull.render.evaluate.leave_one_out`) with the geometry
     rebuilt here. ``both`` reports both; the top-level figures are the geometry
@@ -174,8 +183,9 @@ def run_loo_holdouts(model_path, *, views=None, config=None, holdout: str = "bot
     out = Path(out) if out is not None else Path(model_path) / "pictures"
     pv = prepare_model_views(model)
     results = {}
-    kinds: list[Literal["blend", "geometry"]] = (["blend", "geometry"] if holdout == "both"
-                                                 else ["geometry" if holdout == "geometry" else "blend"])
+    kinds: list[Literal["blend", "geometry"]] = (
+        ["blend", "geometry"] if holdout == "both" else ["geometry" if holdout == "geometry" else "blend"]
+    )
     for kind in kinds:
         gw = None
         if kind == "geometry":
@@ -184,16 +194,27 @@ def run_loo_holdouts(model_path, *, views=None, config=None, holdout: str = "bot
             else:
                 gw = geometry_without(model)
         sheet = out / ("loo_sheet.png" if len(kinds) == 1 else f"loo_sheet_{kind}.png")
-        results[kind] = leave_one_out(model, views=idx, config=config, sheet_path=sheet, prepared=pv,
-                                      progress=progress, holdout=kind, geometry_without=gw)
+        results[kind] = leave_one_out(
+            model,
+            views=idx,
+            config=config,
+            sheet_path=sheet,
+            prepared=pv,
+            progress=progress,
+            holdout=kind,
+            geometry_without=gw,
+        )
     main = results["geometry" if "geometry" in results else "blend"]
     summary = dict(main)
     if len(results) > 1:
-        keys = [k for k in main if k.endswith("_mean") or k in ("alpha_mae", "coverage_iou_min", "ms_per_view",
-                                                                "rebuild_ms_per_view", "sheet")]
+        keys = [
+            k
+            for k in main
+            if k.endswith("_mean")
+            or k in ("alpha_mae", "coverage_iou_min", "ms_per_view", "rebuild_ms_per_view", "sheet")
+        ]
         summary["holdouts"] = {k: {kk: r.get(kk) for kk in keys} for k, r in results.items()}
     with atomic_path(out / "loo.json") as tmp:
-        tmp.write_text(json.dumps(to_jsonable({**summary, "all": results if len(results) > 1 else None}),
-                                  indent=1))
+        tmp.write_text(json.dumps(to_jsonable({**summary, "all": results if len(results) > 1 else None}), indent=1))
     summary["json"] = str(out / "loo.json")
     return summary

@@ -170,8 +170,9 @@ def undistort_silhouette(silhouette, camera: Camera) -> tuple[np.ndarray, Camera
     # unknown: mark them silhouette (not carved), as for pixels outside an image
     out = cv2.remap(sil.astype(np.uint8), mapx, mapy, cv2.INTER_NEAREST, borderMode=cv2.BORDER_CONSTANT, borderValue=1)
     out = cv2.dilate(out, np.ones((3, 3), np.uint8))
-    return out.astype(bool), Camera(K=camera.K, width=W, height=H, world_from_cam=camera.world_from_cam,
-                                     name=camera.name)
+    return out.astype(bool), Camera(
+        K=camera.K, width=W, height=H, world_from_cam=camera.world_from_cam, name=camera.name
+    )
 
 
 def projection_matrices(cameras) -> np.ndarray:
@@ -179,8 +180,9 @@ def projection_matrices(cameras) -> np.ndarray:
     Ps = []
     for c in cameras:
         if c.has_distortion:
-            raise InputError(f"camera {c.name!r} has lens distortion; undistort its silhouette first "
-                             "(hull.undistort_silhouette)")
+            raise InputError(
+                f"camera {c.name!r} has lens distortion; undistort its silhouette first (hull.undistort_silhouette)"
+            )
         Ps.append(c.projection_matrix())
     return np.ascontiguousarray(np.array(Ps, dtype=np.float64).reshape(-1, 3, 4))
 
@@ -226,8 +228,9 @@ def _robust_extent(sil: np.ndarray, min_component_frac: float):
     return np.array([y0, y1]), np.array([x0, x1])
 
 
-def hull_bounds(silhouettes, cameras, *, margin_px: float = 1.0, fallback=None,
-                min_component_frac: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+def hull_bounds(
+    silhouettes, cameras, *, margin_px: float = 1.0, fallback=None, min_component_frac: float = 0.0
+) -> tuple[np.ndarray, np.ndarray]:
     """Axis-aligned box containing the visual hull, by linear programming.
 
     Every point of the hull that is in front of camera v projects inside the bounding
@@ -279,7 +282,8 @@ def hull_bounds(silhouettes, cameras, *, margin_px: float = 1.0, fallback=None,
         raise EmptyHullError(
             f"empty silhouette in view(s) {', '.join(empty[:10])}{' ...' if len(empty) > 10 else ''}: "
             "the visual hull is empty; exclude those views (BuildConfig.exclude_views / --exclude-view) "
-            "or lower the alpha threshold")
+            "or lower the alpha threshold"
+        )
     active = {i for i, _, _ in rows}
     fb_lo = fb_hi = None
     if fallback is not None:
@@ -300,15 +304,23 @@ def hull_bounds(silhouettes, cameras, *, margin_px: float = 1.0, fallback=None,
             for sign, out in ((1.0, lo), (-1.0, hi)):
                 cvec = np.zeros(3)
                 cvec[ax] = sign
-                res = linprog(cvec, A_ub=np.array(A).reshape(-1, 3) if A else None, b_ub=np.array(b) if b else None,
-                              bounds=bounds, method="highs")
+                res = linprog(
+                    cvec,
+                    A_ub=np.array(A).reshape(-1, 3) if A else None,
+                    b_ub=np.array(b) if b else None,
+                    bounds=bounds,
+                    method="highs",
+                )
                 if res.status == 2:
-                    raise EmptyHullError("the silhouettes' bounding rectangles do not intersect in space: "
-                                         "the cameras or the silhouettes are inconsistent (wrong calibration?)")
+                    raise EmptyHullError(
+                        "the silhouettes' bounding rectangles do not intersect in space: "
+                        "the cameras or the silhouettes are inconsistent (wrong calibration?)"
+                    )
                 if res.status == 3:
                     raise InputError(
                         f"the visual hull is unbounded along {'xyz'[ax]} (silhouettes touch the image borders "
-                        "in every view on one side); give explicit bounds (BuildConfig.bounds_m / --bounds)")
+                        "in every view on one side); give explicit bounds (BuildConfig.bounds_m / --bounds)"
+                    )
                 if res.status != 0:
                     raise InputError(f"bounding-box LP failed: {res.message}")
                 out[ax] = res.x[ax]
@@ -380,11 +392,14 @@ def _dense_kernel(P, sil, sizes, lo, h, nx, ny, nz, tol, occ):
 def _check_tolerance(tolerance, n_views: int) -> int:
     t = int(tolerance) if isinstance(tolerance, (int, np.integer)) else -1
     if t < 0 or t != tolerance:
-        raise InputError(f"carve tolerance must be an integer >= 0 (views allowed to reject a kept voxel), "
-                         f"got {tolerance!r}")
+        raise InputError(
+            f"carve tolerance must be an integer >= 0 (views allowed to reject a kept voxel), got {tolerance!r}"
+        )
     if n_views and t >= n_views:
-        raise InputError(f"carve tolerance {t} would let every one of the {n_views} views reject a voxel and "
-                         f"keep it; expected 0 <= tolerance < {n_views}")
+        raise InputError(
+            f"carve tolerance {t} would let every one of the {n_views} views reject a voxel and "
+            f"keep it; expected 0 <= tolerance < {n_views}"
+        )
     return t
 
 
@@ -637,8 +652,9 @@ def enclosed_holes(silhouette) -> np.ndarray:
     return filled
 
 
-def carve_robust(silhouettes, cameras, grid: HullGrid, *, tolerance: int = 1, root_cell: int = 32,
-                 return_stats: bool = False):
+def carve_robust(
+    silhouettes, cameras, grid: HullGrid, *, tolerance: int = 1, root_cell: int = 32, return_stats: bool = False
+):
     """Confidence-weighted robust carve: a rejection by a view's outer contour is always
     trusted (the view saw background there), a rejection through an *enclosed hole* of
     its silhouette (:func:`enclosed_holes`) is doubtful, and a voxel is removed by one
@@ -658,16 +674,26 @@ def carve_robust(silhouettes, cameras, grid: HullGrid, *, tolerance: int = 1, ro
 
 
 @overload
-def carve_octree(silhouettes, cameras, grid: HullGrid, *, root_cell: int = 32,
-                 return_stats: Literal[False] = False, tolerance: int = 0) -> np.ndarray: ...
+def carve_octree(
+    silhouettes,
+    cameras,
+    grid: HullGrid,
+    *,
+    root_cell: int = 32,
+    return_stats: Literal[False] = False,
+    tolerance: int = 0,
+) -> np.ndarray: ...
 @overload
-def carve_octree(silhouettes, cameras, grid: HullGrid, *, root_cell: int = 32,
-                 return_stats: Literal[True], tolerance: int = 0) -> tuple[np.ndarray, OctreeStats]: ...
+def carve_octree(
+    silhouettes, cameras, grid: HullGrid, *, root_cell: int = 32, return_stats: Literal[True], tolerance: int = 0
+) -> tuple[np.ndarray, OctreeStats]: ...
 @overload
-def carve_octree(silhouettes, cameras, grid: HullGrid, *, root_cell: int = 32,
-                 return_stats: bool = False, tolerance: int = 0) -> np.ndarray | tuple[np.ndarray, OctreeStats]: ...
-def carve_octree(silhouettes, cameras, grid: HullGrid, *, root_cell: int = 32,
-                 return_stats: bool = False, tolerance: int = 0) -> np.ndarray | tuple[np.ndarray, OctreeStats]:
+def carve_octree(
+    silhouettes, cameras, grid: HullGrid, *, root_cell: int = 32, return_stats: bool = False, tolerance: int = 0
+) -> np.ndarray | tuple[np.ndarray, OctreeStats]: ...
+def carve_octree(
+    silhouettes, cameras, grid: HullGrid, *, root_cell: int = 32, return_stats: bool = False, tolerance: int = 0
+) -> np.ndarray | tuple[np.ndarray, OctreeStats]:
     """Octree visual-hull carve (numba, parallel over root cells); see the module docstring.
 
     Parameters

@@ -63,8 +63,9 @@ def matte_stats(alpha) -> dict:
     return {"clear_fraction": clear, "opaque_fraction": opaque, "fractional_fraction": 1.0 - clear - opaque}
 
 
-def matte_files(object_paths, backdrop_paths, out_dir, *, over=None, drift: str = "field",
-                max_alpha_std: float | None = None) -> dict:
+def matte_files(
+    object_paths, backdrop_paths, out_dir, *, over=None, drift: str = "field", max_alpha_std: float | None = None
+) -> dict:
     """Matte K (object, backdrop) image pairs and write the results to ``out_dir``.
 
     Parameters
@@ -87,28 +88,35 @@ def matte_files(object_paths, backdrop_paths, out_dir, *, over=None, drift: str 
     t0 = time.perf_counter()
     obj, back = [Path(p) for p in object_paths], [Path(p) for p in backdrop_paths]
     if len(obj) != len(back):
-        raise InputError(f"--object got {len(obj)} images but --backdrop got {len(back)}: pair k is "
-                         "(object k, backdrop k), the counts must match")
+        raise InputError(
+            f"--object got {len(obj)} images but --backdrop got {len(back)}: pair k is "
+            "(object k, backdrop k), the counts must match"
+        )
     if len(obj) < 2:
         raise InputError(f"triangulation matting needs at least 2 (object, backdrop) pairs, got {len(obj)}")
     # MattingOptions checks drift against DriftMode (ConfigError naming the value)
-    opts = MattingOptions(drift=cast(Any, drift),
-                          max_alpha_std=MattingOptions().max_alpha_std if max_alpha_std is None else max_alpha_std)
+    opts = MattingOptions(
+        drift=cast(Any, drift), max_alpha_std=MattingOptions().max_alpha_std if max_alpha_std is None else max_alpha_std
+    )
     C = [load_rgb(p, "--object") for p in obj]
     B = [load_rgb(p, "--backdrop") for p in back]
     ref_shape = C[0].shape
     for flag, paths, ims in (("--object", obj, C), ("--backdrop", back, B)):
         for p, im in zip(paths, ims):
             if im.shape != ref_shape:
-                raise InputError(f"{flag} {p}: size {im.shape[1]}x{im.shape[0]} differs from {obj[0]} "
-                                 f"({ref_shape[1]}x{ref_shape[0]}); every shot must be the same view")
+                raise InputError(
+                    f"{flag} {p}: size {im.shape[1]}x{im.shape[0]} differs from {obj[0]} "
+                    f"({ref_shape[1]}x{ref_shape[0]}); every shot must be the same view"
+                )
     C, B = np.stack(C), np.stack(B)
     spread = np.sqrt(np.mean((B - B.mean(axis=0)) ** 2, axis=(0, 3)))
     p99 = float(np.percentile(spread, 99))
     if not p99 > IDENTICAL_BACKDROP_LEVEL:
-        raise InputError(f"--backdrop {', '.join(map(str, back))}: the backdrops are identical (99th percentile "
-                         f"of their per-pixel spread {p99:.2e} <= {IDENTICAL_BACKDROP_LEVEL:g}); alpha is "
-                         "unobservable, shoot the object in front of backdrops that differ")
+        raise InputError(
+            f"--backdrop {', '.join(map(str, back))}: the backdrops are identical (99th percentile "
+            f"of their per-pixel spread {p99:.2e} <= {IDENTICAL_BACKDROP_LEVEL:g}); alpha is "
+            "unobservable, shoot the object in front of backdrops that differ"
+        )
     bg = None
     notes = []
     if over is not None:
@@ -120,8 +128,11 @@ def matte_files(object_paths, backdrop_paths, out_dir, *, over=None, drift: str 
     comp = None if bg is None else r.fg_premul + (1.0 - r.alpha[..., None]) * bg
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
-    files = {"alpha": out / "alpha.png", "foreground_premul_png": out / "foreground_premul.png",
-             "foreground_premul_exr": out / "foreground_premul.exr"}
+    files = {
+        "alpha": out / "alpha.png",
+        "foreground_premul_png": out / "foreground_premul.png",
+        "foreground_premul_exr": out / "foreground_premul.exr",
+    }
     write_png(files["alpha"], r.alpha, bits=16, linear=True)
     write_png(files["foreground_premul_png"], np.clip(r.fg_premul, 0.0, 1.0), bits=16)
     write_exr(files["foreground_premul_exr"], r.fg_premul)
@@ -129,13 +140,19 @@ def matte_files(object_paths, backdrop_paths, out_dir, *, over=None, drift: str 
         files["composite"] = out / "composite.png"
         write_png(files["composite"], np.clip(comp, 0.0, 1.0))
     summary = {
-        "out": str(out), "width": int(ref_shape[1]), "height": int(ref_shape[0]), "pairs": len(obj),
-        "objects": [str(p) for p in obj], "backdrops": [str(p) for p in back],
+        "out": str(out),
+        "width": int(ref_shape[1]),
+        "height": int(ref_shape[0]),
+        "pairs": len(obj),
+        "objects": [str(p) for p in obj],
+        "backdrops": [str(p) for p in back],
         **matte_stats(r.alpha),
-        "unknown_fraction": float(np.mean(r.unknown)), "noise_sigma": float(r.noise_sigma),
+        "unknown_fraction": float(np.mean(r.unknown)),
+        "noise_sigma": float(r.noise_sigma),
         "drift": None if r.drift is None else r.drift.to_dict(),
         "registration_px": [s.shift_px for s in r.drift.shots] if r.drift else [None] * len(obj),
-        "files": {k: str(v) for k, v in files.items()}, "notes": notes,
+        "files": {k: str(v) for k, v in files.items()},
+        "notes": notes,
         "seconds": time.perf_counter() - t0,
     }
     from ..cliutil import to_jsonable

@@ -40,8 +40,9 @@ def _rgb_clip(session: Session, shot: str) -> tuple[np.ndarray, float]:
     return _rgb(img), clip
 
 
-def load_matting_pairs(session: Session, camera: int, table_deg: float, view_cam: Camera | None = None, *,
-                       backdrops: str = "auto"):
+def load_matting_pairs(
+    session: Session, camera: int, table_deg: float, view_cam: Camera | None = None, *, backdrops: str = "auto"
+):
     """(C, B, c_clip, b_clip, source) of one view: observations (K, H, W, 3), backdrops,
     clip levels (K,), and where the backdrops came from.
 
@@ -58,8 +59,10 @@ def load_matting_pairs(session: Session, camera: int, table_deg: float, view_cam
     C, B, cc, bc = [], [], [], []
     paired = [p for p in sorted(with_obj, key=lambda x: -1 if x is None else x) if p in without]
     if backdrops == "object-absent" and len(paired) < 2:
-        raise FormatError(f"{session.root}: view {view_id(camera, table_deg)} has {len(paired)} backdrop pattern(s) "
-                          "shot with the object absent; triangulation matting needs at least 2")
+        raise FormatError(
+            f"{session.root}: view {view_id(camera, table_deg)} has {len(paired)} backdrop pattern(s) "
+            "shot with the object absent; triangulation matting needs at least 2"
+        )
     if len(paired) >= 2 and backdrops != "geometry":
         for p in paired:
             c_img, c_clip = _rgb_clip(session, with_obj[p])
@@ -74,9 +77,11 @@ def load_matting_pairs(session: Session, camera: int, table_deg: float, view_cam
             raise InputError("backdrops from display geometry need the view's camera")
         geo = session.geometry
         if not geo.displays:
-            raise FormatError(f"{session.root}: view {view_id(camera, table_deg)} has no object-absent backdrop "
-                              "shots and the rig has no displays to predict them from; object-absent backdrops "
-                              "are required")
+            raise FormatError(
+                f"{session.root}: view {view_id(camera, table_deg)} has no object-absent backdrop "
+                "shots and the rig has no displays to predict them from; object-absent backdrops "
+                "are required"
+            )
         for p in sorted(with_obj, key=lambda x: -1 if x is None else x):
             c_img, c_clip = _rgb_clip(session, with_obj[p])
             pats = {}
@@ -87,8 +92,10 @@ def load_matting_pairs(session: Session, camera: int, table_deg: float, view_cam
                         pats[d.name] = session.pattern_image(d.name, p)
             cam = view_cam
             if (cam.width, cam.height) != (c_img.shape[1], c_img.shape[0]):
-                raise FormatError(f"view {view_id(camera, table_deg)}: image is {c_img.shape[1]}x{c_img.shape[0]}, "
-                                  f"camera is {cam.width}x{cam.height}")
+                raise FormatError(
+                    f"view {view_id(camera, table_deg)}: image is {c_img.shape[1]}x{c_img.shape[0]}, "
+                    f"camera is {cam.width}x{cam.height}"
+                )
             B.append(backdrop_from_displays(cam, table_deg, geo, pats))
             C.append(c_img)
             cc.append(c_clip)
@@ -159,8 +166,11 @@ def _stored_matte(alpha_path: Path, key: str, shape: tuple[int, int]) -> tuple[n
         a = np.load(alpha_path, allow_pickle=False)
     except (OSError, ValueError, EOFError):
         return None
-    if (a.dtype != np.float32 or a.shape != tuple(shape)
-            or hashlib.sha256(np.ascontiguousarray(a).tobytes()).hexdigest() != meta.get("sha256")):
+    if (
+        a.dtype != np.float32
+        or a.shape != tuple(shape)
+        or hashlib.sha256(np.ascontiguousarray(a).tobytes()).hexdigest() != meta.get("sha256")
+    ):
         log.warning("%s: does not match its sidecar; the view is matted again", alpha_path)
         return None
     return a, meta
@@ -176,8 +186,16 @@ def _load_matte(alpha_path: Path, shape: tuple[int, int]) -> np.ndarray:
     return a
 
 
-def matte_for_build(session: Session, camera: int, table_deg: float, view_cam: Camera, *, use_masks: bool,
-                    backdrops: str, matting: MattingOptions) -> tuple[np.ndarray, dict]:
+def matte_for_build(
+    session: Session,
+    camera: int,
+    table_deg: float,
+    view_cam: Camera,
+    *,
+    use_masks: bool,
+    backdrops: str,
+    matting: MattingOptions,
+) -> tuple[np.ndarray, dict]:
     """The matting step of one view: (alpha (H, W) float32, meta) where meta has the
     backdrop ``source``, the matting ``stats`` (None for imported masks) and
     ``nonfinite`` (notes on NaN/Inf input pixels)."""
@@ -195,12 +213,17 @@ def matte_for_build(session: Session, camera: int, table_deg: float, view_cam: C
                 nonfinite.append(n)
         res = solve_matte(C, B, c_saturation=cc, b_saturation=bc, options=matting)
         alpha = res.alpha
-        stats = {"view": vid, "unknown_frac": float(res.unknown.mean()),
-                 "saturated_frac": float(res.saturated.mean()), "invalid_frac": float(res.invalid.mean()),
-                 "noise_sigma": res.noise_sigma, "K": int(C.shape[0]),
-                 "drift": res.drift.to_dict() if res.drift is not None else None}
+        stats = {
+            "view": vid,
+            "unknown_frac": float(res.unknown.mean()),
+            "saturated_frac": float(res.saturated.mean()),
+            "invalid_frac": float(res.invalid.mean()),
+            "noise_sigma": res.noise_sigma,
+            "K": int(C.shape[0]),
+            "drift": res.drift.to_dict() if res.drift is not None else None,
+        }
     if alpha.shape != (view_cam.height, view_cam.width):
-        raise FormatError(f"view {vid}: alpha is {alpha.shape[1]}x{alpha.shape[0]}, camera is "
-                          f"{view_cam.width}x{view_cam.height}")
-    return np.ascontiguousarray(alpha, np.float32), {"view": vid, "source": src, "stats": stats,
-                                                     "nonfinite": nonfinite}
+        raise FormatError(
+            f"view {vid}: alpha is {alpha.shape[1]}x{alpha.shape[0]}, camera is {view_cam.width}x{view_cam.height}"
+        )
+    return np.ascontiguousarray(alpha, np.float32), {"view": vid, "source": src, "stats": stats, "nonfinite": nonfinite}

@@ -150,8 +150,10 @@ class DriftOptions:
         if not (self.field_sigma_min_px > 0 and math.isfinite(self.field_sigma_min_px)):
             raise InputError(f"drift field_sigma_min_px must be > 0, got {self.field_sigma_min_px}")
         if not (0 <= self.object_low < self.object_seed <= 1):
-            raise InputError(f"drift needs 0 <= object_low < object_seed <= 1, got object_low="
-                             f"{self.object_low}, object_seed={self.object_seed}")
+            raise InputError(
+                f"drift needs 0 <= object_low < object_seed <= 1, got object_low="
+                f"{self.object_low}, object_seed={self.object_seed}"
+            )
         if not (0 <= self.object_margin_rel < 1):
             raise InputError(f"drift object_margin_rel must be in [0, 1), got {self.object_margin_rel}")
         if not (self.apply_shift_px >= 0):
@@ -363,7 +365,7 @@ def _matte_kernel(C, B, csat, bsat, alpha, fg, S_out, res2, dof, flags):
             fg[n, 1] = f1 if f1 > 0.0 else 0.0
             fg[n, 2] = f2 if f2 > 0.0 else 0.0
             if nobs < full:
-                flags[n] = _classify_dropped(C, B, csat, bsat, n, sw[j:j + 3], fg)
+                flags[n] = _classify_dropped(C, B, csat, bsat, n, sw[j : j + 3], fg)
             else:
                 flags[n] = 0
 
@@ -425,8 +427,9 @@ def _finish(alpha, fg, S, res2, dof, flags, B, H, W, options: MattingOptions) ->
     flags = np.ascontiguousarray(flags, dtype=np.uint8).copy()
     astd = np.empty(N, np.float32)
     conf = np.empty(N, np.float32)
-    _confidence_kernel(np.ascontiguousarray(S, dtype=np.float64), sigma_eff, float(options.max_alpha_std),
-                       flags, astd, conf)
+    _confidence_kernel(
+        np.ascontiguousarray(S, dtype=np.float64), sigma_eff, float(options.max_alpha_std), flags, astd, conf
+    )
     alpha = np.asarray(alpha, dtype=np.float32).reshape(H, W)  # no copy when already float32
     fg = np.asarray(fg, dtype=np.float32).reshape(H, W, 3)
     flags = flags.reshape(H, W)
@@ -436,12 +439,19 @@ def _finish(alpha, fg, S, res2, dof, flags, B, H, W, options: MattingOptions) ->
         filled = _fill_clean(vals, (~unknown).astype(np.float64))
         alpha = np.clip(filled[..., 0], 0.0, 1.0).astype(np.float32)
         fg = np.maximum(filled[..., 1:], 0.0).astype(np.float32)
-    return MatteResult(alpha=alpha, fg_premul=fg, alpha_std=astd.reshape(H, W), confidence=conf.reshape(H, W),
-                       flags=flags, noise_sigma=sigma_eff)
+    return MatteResult(
+        alpha=alpha,
+        fg_premul=fg,
+        alpha_std=astd.reshape(H, W),
+        confidence=conf.reshape(H, W),
+        flags=flags,
+        noise_sigma=sigma_eff,
+    )
 
 
-def solve_matte(observations, backdrops, *, c_saturation=None, b_saturation=None,
-                options: MattingOptions = MattingOptions()) -> MatteResult:
+def solve_matte(
+    observations, backdrops, *, c_saturation=None, b_saturation=None, options: MattingOptions = MattingOptions()
+) -> MatteResult:
     """Alpha and premultiplied foreground from K (object, backdrop) image pairs.
 
     Parameters
@@ -485,12 +495,14 @@ def _weights_and_flags(C, B, cs, bs):
     sat = (C >= cs[:, None, None]) | (B >= bs[:, None, None])
     w = (finite & ~sat).astype(np.float64)
     flags = np.where(np.any(~finite, axis=(0, 2)), FLAG_INVALID, 0) | np.where(
-        np.any(sat & finite, axis=(0, 2)), FLAG_SATURATED, 0)
+        np.any(sat & finite, axis=(0, 2)), FLAG_SATURATED, 0
+    )
     return w, flags.astype(np.uint8)
 
 
-def solve_matte_numpy(observations, backdrops, *, c_saturation=None, b_saturation=None,
-                      options: MattingOptions = MattingOptions()) -> MatteResult:
+def solve_matte_numpy(
+    observations, backdrops, *, c_saturation=None, b_saturation=None, options: MattingOptions = MattingOptions()
+) -> MatteResult:
     """The closed form of :func:`solve_matte`, vectorised in NumPy (float64)."""
     C, B, cs, bs = _prepare(observations, backdrops, c_saturation, b_saturation)
     B, drift = _drift_corrected(C, B, cs, bs, options)
@@ -523,12 +535,12 @@ def solve_matte_numpy(observations, backdrops, *, c_saturation=None, b_saturatio
         f = np.where(sw == 0, cmax, f)
         flags = flags | np.where(lost, FLAG_CHANNEL_LOST, 0).astype(np.uint8)
     dof = sw.sum(axis=1) - 4.0
-    return _with_drift(_finish(a, np.maximum(f, 0.0), S, res2, dof, flags, B.astype(np.float32), H, W, options),
-                       drift)
+    return _with_drift(_finish(a, np.maximum(f, 0.0), S, res2, dof, flags, B.astype(np.float32), H, W, options), drift)
 
 
-def solve_matte_reference(observations, backdrops, *, c_saturation=None, b_saturation=None,
-                          options: MattingOptions = MattingOptions()) -> MatteResult:
+def solve_matte_reference(
+    observations, backdrops, *, c_saturation=None, b_saturation=None, options: MattingOptions = MattingOptions()
+) -> MatteResult:
     """Slow oracle: every pixel's 3K×4 system ``[I3 | -B_k] [F'; alpha] = C_k - B_k``
     solved with ``numpy.linalg.lstsq`` (dropped rows removed; alpha clamped to [0, 1]
     then ``F'`` re-solved with alpha fixed). Use on small images only."""
@@ -710,8 +722,9 @@ def _pull_level(v, w, coarse):
                 continue
             x0, x1, fx = _upsample_taps(j, wc)
             for c in range(nc):
-                up = ((1 - fy) * ((1 - fx) * coarse[y0, x0, c] + fx * coarse[y0, x1, c])
-                      + fy * ((1 - fx) * coarse[y1, x0, c] + fx * coarse[y1, x1, c]))
+                up = (1 - fy) * ((1 - fx) * coarse[y0, x0, c] + fx * coarse[y0, x1, c]) + fy * (
+                    (1 - fx) * coarse[y1, x0, c] + fx * coarse[y1, x1, c]
+                )
                 v[i, j, c] = ww * v[i, j, c] + (1.0 - ww) * up
 
 
@@ -777,8 +790,9 @@ def straight_from_premul(premul, alpha, *, eps: float = 1e-3) -> np.ndarray:
     return np.nan_to_num(F, nan=0.0, posinf=0.0, neginf=0.0).astype(np.float32)
 
 
-def backdrop_from_displays(camera, table_deg: float, geometry, patterns: dict, *, supersample: int = 3,
-                           off_radiance: float = 0.0) -> np.ndarray:
+def backdrop_from_displays(
+    camera, table_deg: float, geometry, patterns: dict, *, supersample: int = 3, off_radiance: float = 0.0
+) -> np.ndarray:
     """Predict the backdrop a view sees from the shown patterns and the display geometry.
 
     The fallback source of backdrops when a plan has no object-absent captures (see the
@@ -904,8 +918,7 @@ class DriftReport:
 def _drift_corrected(C, B, cs, bs, options: MattingOptions):
     if options.drift == "none":
         return B, None
-    Bc, report = _correct(C, B, cs, bs, options.drift, options.drift_options,
-                          replace(options, drift="none"))
+    Bc, report = _correct(C, B, cs, bs, options.drift, options.drift_options, replace(options, drift="none"))
     return Bc, report
 
 
@@ -1009,7 +1022,7 @@ def _fit_poly_gain(c, b, w, iters, tc, deg=2, step=2):
     def basis(yy, xx):
         u = (xx.reshape(-1) + 0.5) / W * 2 - 1
         v = (yy.reshape(-1) + 0.5) / H * 2 - 1
-        return np.stack([u ** i * v ** j for i, j in terms], axis=1)
+        return np.stack([u**i * v**j for i, j in terms], axis=1)
 
     ys, xs = np.arange(0, H, step), np.arange(0, W, step)
     Phi = basis(*np.meshgrid(ys, xs, indexing="ij"))
@@ -1024,7 +1037,7 @@ def _fit_poly_gain(c, b, w, iters, tc, deg=2, step=2):
         if np.count_nonzero(ww) < 4 * Phi.shape[1]:
             break
         for ch in range(3):
-            A = Phi * bf[:, ch:ch + 1]
+            A = Phi * bf[:, ch : ch + 1]
             Aw = A * ww[:, None]
             M = Aw.T @ A
             rhs = Aw.T @ cf[:, ch]
@@ -1114,8 +1127,10 @@ def _estimate_shift(c, b, w, *, iters: int = 12, max_shift_px: float = 4.0, max_
 
     def sample(d):
         yy, xx = ys + d[1], xs + d[0]
-        bv = np.stack([ndimage.map_coordinates(coef[ch], [yy, xx], order=3, mode="nearest", prefilter=False)
-                       for ch in range(3)], -1)
+        bv = np.stack(
+            [ndimage.map_coordinates(coef[ch], [yy, xx], order=3, mode="nearest", prefilter=False) for ch in range(3)],
+            -1,
+        )
         return bv, yy, xx
 
     d = np.zeros(2)
@@ -1123,10 +1138,12 @@ def _estimate_shift(c, b, w, *, iters: int = 12, max_shift_px: float = 4.0, max_
         bv, yy, xx = sample(d)
         # the Jacobian only steers the iteration (the fixed point is set by bv): linear
         # interpolation of the gradient images is enough
-        gxv = np.stack([ndimage.map_coordinates(gx_img[..., ch], [yy, xx], order=1, mode="nearest")
-                        for ch in range(3)], -1)
-        gyv = np.stack([ndimage.map_coordinates(gy_img[..., ch], [yy, xx], order=1, mode="nearest")
-                        for ch in range(3)], -1)
+        gxv = np.stack(
+            [ndimage.map_coordinates(gx_img[..., ch], [yy, xx], order=1, mode="nearest") for ch in range(3)], -1
+        )
+        gyv = np.stack(
+            [ndimage.map_coordinates(gy_img[..., ch], [yy, xx], order=1, mode="nearest") for ch in range(3)], -1
+        )
         # photometry given the shift: per channel c = g b + o
         mb, mc = bv.mean(0), cs.mean(0)
         vb = ((bv - mb) ** 2).sum(0)
@@ -1162,10 +1179,16 @@ def shift_image(image, shift_px) -> np.ndarray:
     return ndimage.shift(a, sh, order=3, mode="nearest").astype(np.float32)
 
 
-def correct_photometric_drift(observations, backdrops, *, mode: DriftMode = "field",
-                              options: DriftOptions = DriftOptions(),
-                              matting: MattingOptions = MattingOptions(),
-                              c_saturation=None, b_saturation=None):
+def correct_photometric_drift(
+    observations,
+    backdrops,
+    *,
+    mode: DriftMode = "field",
+    options: DriftOptions = DriftOptions(),
+    matting: MattingOptions = MattingOptions(),
+    c_saturation=None,
+    b_saturation=None,
+):
     """Map each backdrop shot onto the photometry (and position) of its object shot.
 
     Real two-backdrop shots drift: the camera re-meters exposure and white balance
@@ -1239,8 +1262,9 @@ def _correct(C, B, cs, bs, mode, opts: DriftOptions, matting: MattingOptions):
             for k in range(K):
                 w = (valid[k] & ~obj).astype(np.float64)
                 if w.sum() < max(64, 1e-3 * H * W):
-                    notes.append(f"shot {k}: round {rnd}: only {int(w.sum())} backdrop pixels; kept the "
-                                 "previous correction")
+                    notes.append(
+                        f"shot {k}: round {rnd}: only {int(w.sum())} backdrop pixels; kept the previous correction"
+                    )
                     continue
                 masks[k] = w > 0
                 if rnd == 1 and opts.register:
@@ -1278,12 +1302,20 @@ def _correct(C, B, cs, bs, mode, opts: DriftOptions, matting: MattingOptions):
             gm = p5 = p95 = np.ones(3)
             res_b = res_a = float("nan")
         X = fits[k]["X"]
-        shots.append(ShotDrift(
-            gain=tuple(float(x) for x in gm), gain_p5=tuple(float(x) for x in p5),
-            gain_p95=tuple(float(x) for x in p95),
-            matrix=None if X is None else X[:3].T.tolist(),
-            offset=None if X is None else tuple(float(x) for x in X[3]),
-            shift_px=shifts[k], shift_applied=applied[k], ncc=nccs[k], residual_before=res_b,
-            residual_after=res_a, fit_fraction=float(m.mean())))
+        shots.append(
+            ShotDrift(
+                gain=tuple(float(x) for x in gm),
+                gain_p5=tuple(float(x) for x in p5),
+                gain_p95=tuple(float(x) for x in p95),
+                matrix=None if X is None else X[:3].T.tolist(),
+                offset=None if X is None else tuple(float(x) for x in X[3]),
+                shift_px=shifts[k],
+                shift_applied=applied[k],
+                ncc=nccs[k],
+                residual_before=res_b,
+                residual_after=res_a,
+                fit_fraction=float(m.mean()),
+            )
+        )
         log.info("drift shot %d: gain %s, shift %s (applied %s)", k, np.round(gm, 4), shifts[k], applied[k])
     return Bc, DriftReport(mode=mode, shots=shots, notes=notes)

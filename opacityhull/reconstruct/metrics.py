@@ -26,8 +26,7 @@ from numba import njit, prange
 from ..errors import FormatError, InputError, ShapeError
 from .hull import HullGrid
 
-__all__ = ["read_mesh_ply", "voxelize_mesh", "voxelize_mesh_reference", "hull_iou", "alpha_mae",
-           "object_region"]
+__all__ = ["read_mesh_ply", "voxelize_mesh", "voxelize_mesh_reference", "hull_iou", "alpha_mae", "object_region"]
 
 # ray offsets in voxels (irrational, tiny): no ray passes through a mesh edge or vertex
 _EPS_Y = 1e-4 * math.sqrt(2.0) / 7.0

@@ -31,8 +31,15 @@ from ..riggeometry import view_id
 
 log = logging.getLogger(__name__)
 
-__all__ = ["natural_shots", "estimate_view_natural", "estimate_session_natural", "natural_mask", "SESSION_PHASE",
-           "SESSION_PHASES", "has_natural_phase"]
+__all__ = [
+    "natural_shots",
+    "estimate_view_natural",
+    "estimate_session_natural",
+    "natural_mask",
+    "SESSION_PHASE",
+    "SESSION_PHASES",
+    "has_natural_phase",
+]
 
 #: the session phase the capture runner records the natural images under
 SESSION_PHASE = "envmatte"
@@ -61,8 +68,7 @@ def natural_shots(session, camera: int, table_deg: float) -> dict[str, list[tupl
             session._natural_domain_cache = cache
         except AttributeError:  # pragma: no cover - a frozen session object
             log.debug("%s: session object takes no cache; display domains are re-read per view", session.root)
-    recs = [r for ph in SESSION_PHASES for r in session.select(phase=ph, camera=camera, table_deg=table_deg,
-                                                                 kind=None)]
+    recs = [r for ph in SESSION_PHASES for r in session.select(phase=ph, camera=camera, table_deg=table_deg, kind=None)]
     for r in recs:
         if r.pattern is None or not r.object_present or r.shot in seen:
             continue
@@ -76,13 +82,24 @@ def natural_shots(session, camera: int, table_deg: float) -> dict[str, list[tupl
             continue
         out.setdefault(d, []).append((pid, r.shot))
     if skipped:
-        log.warning("%s: %d natural shot(s) of view %s light several displays at once; not used",
-                    session.root, skipped, view_id(camera, table_deg))
+        log.warning(
+            "%s: %d natural shot(s) of view %s light several displays at once; not used",
+            session.root,
+            skipped,
+            view_id(camera, table_deg),
+        )
     return {d: sorted(v) for d, v in out.items()}
 
 
-def estimate_view_natural(session, shots: Sequence[tuple[int, str]], display: str, mask: np.ndarray, *,
-                          n_kernels: int = 25, rel_tol: float = 1e-8):
+def estimate_view_natural(
+    session,
+    shots: Sequence[tuple[int, str]],
+    display: str,
+    mask: np.ndarray,
+    *,
+    n_kernels: int = 25,
+    rel_tol: float = 1e-8,
+):
     """One view and display: the field of the pixels where ``mask`` (H, W) is True.
 
     Returns a :class:`~opacityhull.relight.natural.NaturalField` with ``pixel_index``.
@@ -98,8 +115,10 @@ def estimate_view_natural(session, shots: Sequence[tuple[int, str]], display: st
     for j, (_, shot) in enumerate(shots):
         img = np.asarray(session.load_radiance(shot), np.float64)
         if img.shape[:2] != mask.shape:
-            raise FormatError(f"{session.root}: shot {shot} is {img.shape[1]}x{img.shape[0]}, the matte "
-                              f"{mask.shape[1]}x{mask.shape[0]}")
+            raise FormatError(
+                f"{session.root}: shot {shot} is {img.shape[1]}x{img.shape[0]}, the matte "
+                f"{mask.shape[1]}x{mask.shape[0]}"
+            )
         B[j] = img.reshape(-1, img.shape[2])[idx, :3]
     # A sensor's non-finite pixel (never expected from load_radiance) must not poison the solve.
     B = np.nan_to_num(B, nan=0.0, posinf=0.0, neginf=0.0)
@@ -122,10 +141,20 @@ def natural_mask(alpha: np.ndarray, *, alpha_min: float = 0.5, fill_holes: bool 
     return np.asarray(ndi.binary_fill_holes(m), bool) if fill_holes else m
 
 
-def estimate_session_natural(session, views: Sequence[tuple[int, float]], view_cameras, alphas: Sequence[np.ndarray],
-                             out_dir, *, n_kernels: int = 25, alpha_min: float = 0.5, fill_holes: bool = True,
-                             rel_tol: float = 1e-8, weights_dtype: str = "float16",
-                             progress: Callable[[int, int], None] | None = None) -> dict:
+def estimate_session_natural(
+    session,
+    views: Sequence[tuple[int, float]],
+    view_cameras,
+    alphas: Sequence[np.ndarray],
+    out_dir,
+    *,
+    n_kernels: int = 25,
+    alpha_min: float = 0.5,
+    fill_holes: bool = True,
+    rel_tol: float = 1e-8,
+    weights_dtype: str = "float16",
+    progress: Callable[[int, int], None] | None = None,
+) -> dict:
     """Estimate and write the natural-illumination field of every view and display.
 
     Parameters
@@ -163,25 +192,33 @@ def estimate_session_natural(session, views: Sequence[tuple[int, float]], view_c
     t0 = time.perf_counter()
     views = list(views)
     if len(alphas) != len(views) or (view_cameras is not None and len(view_cameras) != len(views)):
-        raise InputError(f"estimate_session_natural: {len(views)} views, {len(alphas)} mattes, "
-                         f"{None if view_cameras is None else len(view_cameras)} cameras: they must match")
+        raise InputError(
+            f"estimate_session_natural: {len(views)} views, {len(alphas)} mattes, "
+            f"{None if view_cameras is None else len(view_cameras)} cameras: they must match"
+        )
     if not has_natural_phase(session):
-        raise InputError(f"{session.root}: the session has no natural-illumination phase (no "
-                         f"{' or '.join(repr(p) for p in SESSION_PHASES)} images); capture it with a plan that has "
-                         "[phases.natural]")
+        raise InputError(
+            f"{session.root}: the session has no natural-illumination phase (no "
+            f"{' or '.join(repr(p) for p in SESSION_PHASES)} images); capture it with a plan that has "
+            "[phases.natural]"
+        )
     per_view = [natural_shots(session, c, a) for c, a in views]
     displays = sorted({d for pv in per_view for d in pv})
     if not displays:
-        raise InputError(f"{session.root}: no natural shot lights a single display (an older envmatte capture "
-                         "showing one image on every display cannot be split into illumination domains)")
+        raise InputError(
+            f"{session.root}: no natural shot lights a single display (an older envmatte capture "
+            "showing one image on every display cannot be split into illumination domains)"
+        )
     for (c, a), pv in zip(views, per_view):
         missing = [d for d in displays if d not in pv]
         if missing:
             raise InputError(f"{session.root}: view {view_id(c, a)} has no natural shots on display(s) {missing}")
         for d, shots in pv.items():
             if len(shots) < n_kernels:
-                raise InputError(f"{session.root}: view {view_id(c, a)}, display {d!r}: {len(shots)} natural "
-                                 f"images but n_kernels={n_kernels}; the estimate needs N >= K")
+                raise InputError(
+                    f"{session.root}: view {view_id(c, a)}, display {d!r}: {len(shots)} natural "
+                    f"images but n_kernels={n_kernels}; the estimate needs N >= K"
+                )
     out_dir = Path(out_dir)
     total = len(views) * len(displays)
     done = 0
@@ -192,9 +229,19 @@ def estimate_session_natural(session, views: Sequence[tuple[int, float]], view_c
         mask = natural_mask(alphas[i], alpha_min=alpha_min, fill_holes=fill_holes)
         for d in displays:
             f = estimate_view_natural(session, pv[d], d, mask, n_kernels=n_kernels, rel_tol=rel_tol)
-            f = dataclasses.replace(f, meta={"view_id": vid, "display": d, "n_kernels": n_kernels,
-                                             "alpha_min": alpha_min, "fill_holes": fill_holes, "rel_tol": rel_tol,
-                                             "patterns": [p for p, _ in pv[d]], "session": str(session.root)})
+            f = dataclasses.replace(
+                f,
+                meta={
+                    "view_id": vid,
+                    "display": d,
+                    "n_kernels": n_kernels,
+                    "alpha_min": alpha_min,
+                    "fill_holes": fill_holes,
+                    "rel_tol": rel_tol,
+                    "patterns": [p for p, _ in pv[d]],
+                    "session": str(session.root),
+                },
+            )
             path = save_field(field_path(out_dir, vid, d), f, weights_dtype=weights_dtype)
             files.append(str(path.relative_to(out_dir)))
             nbytes += path.stat().st_size

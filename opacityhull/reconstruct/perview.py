@@ -23,8 +23,16 @@ from .matting import MattingOptions, solve_matte
 
 log = logging.getLogger(__name__)
 
-__all__ = ["ViewTask", "matte_view", "matte_view_result", "matte_view_checksum", "view_tasks", "BuildMatteTask",
-           "build_matte", "run_build_matte"]
+__all__ = [
+    "ViewTask",
+    "matte_view",
+    "matte_view_result",
+    "matte_view_checksum",
+    "view_tasks",
+    "BuildMatteTask",
+    "build_matte",
+    "run_build_matte",
+]
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -68,13 +76,22 @@ def _open(root: str) -> Session:
     return _session(str(root), m)
 
 
-def view_tasks(session_dir, *, out_dir=None, backdrops: str = "auto",
-               matting: MattingOptions = MattingOptions()) -> list[ViewTask]:
+def view_tasks(
+    session_dir, *, out_dir=None, backdrops: str = "auto", matting: MattingOptions = MattingOptions()
+) -> list[ViewTask]:
     """One :class:`ViewTask` per view of the session's matting phase, in view order."""
     s = _open(str(session_dir))
-    return [ViewTask(session_dir=str(session_dir), camera=c, table_deg=a,
-                     out_dir=None if out_dir is None else str(out_dir), backdrops=backdrops, matting=matting)
-            for c, a in s.views("matting")]
+    return [
+        ViewTask(
+            session_dir=str(session_dir),
+            camera=c,
+            table_deg=a,
+            out_dir=None if out_dir is None else str(out_dir),
+            backdrops=backdrops,
+            matting=matting,
+        )
+        for c, a in s.views("matting")
+    ]
 
 
 def _view_camera(s: Session, camera: int, table_deg: float):
@@ -96,9 +113,16 @@ def matte_view_result(task: ViewTask) -> dict:
         cam = _view_camera(s, task.camera, task.table_deg)
     C, B, cc, bc, src = load_matting_pairs(s, task.camera, task.table_deg, cam, backdrops=task.backdrops)
     res = solve_matte(C, B, c_saturation=cc, b_saturation=bc, options=task.matting)
-    return {"view": task.view, "alpha": res.alpha, "unknown_frac": float(res.unknown.mean()),
-            "saturated_frac": float(res.saturated.mean()), "invalid_frac": float(res.invalid.mean()),
-            "noise_sigma": res.noise_sigma, "K": int(C.shape[0]), "source": src}
+    return {
+        "view": task.view,
+        "alpha": res.alpha,
+        "unknown_frac": float(res.unknown.mean()),
+        "saturated_frac": float(res.saturated.mean()),
+        "invalid_frac": float(res.invalid.mean()),
+        "noise_sigma": res.noise_sigma,
+        "K": int(C.shape[0]),
+        "source": src,
+    }
 
 
 def matte_view(task: ViewTask):
@@ -116,8 +140,13 @@ def matte_view(task: ViewTask):
 
     path = Path(task.out_dir) / f"{task.view}.exr"
     write_exr(path, r["alpha"])  # atomic: a killed worker leaves no half-written matte
-    return {"view": task.view, "path": str(path), "unknown_frac": r["unknown_frac"], "K": r["K"],
-            "bytes": path.stat().st_size}
+    return {
+        "view": task.view,
+        "path": str(path),
+        "unknown_frac": r["unknown_frac"],
+        "K": r["K"],
+        "bytes": path.stat().st_size,
+    }
 
 
 def matte_view_checksum(task: ViewTask) -> dict:
@@ -158,8 +187,15 @@ def run_build_matte(session: Session, task: BuildMatteTask) -> dict:
     pixels."""
     from .matte_step import matte_for_build, store_matte
 
-    alpha, meta = matte_for_build(session, task.camera, task.table_deg, task.view_camera, use_masks=task.use_masks,
-                                  backdrops=task.backdrops, matting=task.matting)
+    alpha, meta = matte_for_build(
+        session,
+        task.camera,
+        task.table_deg,
+        task.view_camera,
+        use_masks=task.use_masks,
+        backdrops=task.backdrops,
+        matting=task.matting,
+    )
     return store_matte(Path(task.alpha_path), alpha, {**meta, "key": task.key})
 
 

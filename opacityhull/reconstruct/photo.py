@@ -69,8 +69,7 @@ from numba import njit, prange
 from ..errors import ConfigError, InputError, ShapeError
 from .hull import point_in_hull, projection_matrices
 
-__all__ = ["PhotoConfig", "refine_surfels", "select_views", "cost_volume", "cost_volume_reference",
-           "tangent_frames"]
+__all__ = ["PhotoConfig", "refine_surfels", "select_views", "cost_volume", "cost_volume_reference", "tangent_frames"]
 
 log = logging.getLogger(__name__)
 
@@ -179,8 +178,10 @@ def _stack(name, arrays, cameras, channels):
         elif channels == 1 and a.ndim == 3 and a.shape[2] == 1:
             a = a[..., 0]
         if a.shape != (c.height, c.width):
-            raise ShapeError(f"{name}[{i}] ({c.name}) has shape {np.shape(arrays[i])}, expected "
-                             f"({c.height}, {c.width}{', 3' if channels == 3 else ''})")
+            raise ShapeError(
+                f"{name}[{i}] ({c.name}) has shape {np.shape(arrays[i])}, expected "
+                f"({c.height}, {c.width}{', 3' if channels == 3 else ''})"
+            )
         out[i, : c.height, : c.width] = a
     return out
 
@@ -195,7 +196,9 @@ def tangent_frames(normals) -> tuple[np.ndarray, np.ndarray]:
     return t1, t2
 
 
-def select_views(positions, normals, visibility, cameras, *, n_views: int, exclude_views: Sequence[int] = ()) -> np.ndarray:
+def select_views(
+    positions, normals, visibility, cameras, *, n_views: int, exclude_views: Sequence[int] = ()
+) -> np.ndarray:
     """(N, n_views) int64 view indices per surfel, most fronto-parallel first, −1 padded.
 
     Only views with the visibility bit set and not in ``exclude_views`` are chosen."""
@@ -250,8 +253,9 @@ def _project(P, v, x, y, z):
 
 
 @njit(cache=True, nogil=True)
-def _surfel_costs(n, P, grey, alpha, sizes, pos, nrm, t1, t2, views, step, spacing, D, K, eps2, athr, n_best, out, buf,
-                  nccs):
+def _surfel_costs(
+    n, P, grey, alpha, sizes, pos, nrm, t1, t2, views, step, spacing, D, K, eps2, athr, n_best, out, buf, nccs
+):
     m = 0
     for j in range(views.shape[1]):
         if views[n, j] >= 0:
@@ -356,8 +360,28 @@ def _cost_kernel(P, grey, alpha, sizes, pos, nrm, t1, t2, views, step, spacing, 
         buf = np.empty((views.shape[1], K * K), np.float64)
         nccs = np.empty(views.shape[1], np.float64)
         for n in range(c * per, min(N, (c + 1) * per)):
-            _surfel_costs(n, P, grey, alpha, sizes, pos, nrm, t1, t2, views, step, spacing, D, K, eps2, athr, n_best, out,
-                          buf, nccs)
+            _surfel_costs(
+                n,
+                P,
+                grey,
+                alpha,
+                sizes,
+                pos,
+                nrm,
+                t1,
+                t2,
+                views,
+                step,
+                spacing,
+                D,
+                K,
+                eps2,
+                athr,
+                n_best,
+                out,
+                buf,
+                nccs,
+            )
 
 
 def _kernel_inputs(positions, normals, cameras, grey, alpha, views, step_m, spacing_m):
@@ -366,14 +390,37 @@ def _kernel_inputs(positions, normals, cameras, grey, alpha, views, step_m, spac
     t1, t2 = tangent_frames(nrm)
     P = projection_matrices(cameras)
     sizes = np.array([(c.width, c.height) for c in cameras], dtype=np.int64).reshape(-1, 2)
-    return (P, np.ascontiguousarray(grey, dtype=np.float32), np.ascontiguousarray(alpha, dtype=np.float32), sizes,
-            pos, nrm, np.ascontiguousarray(t1), np.ascontiguousarray(t2),
-            np.ascontiguousarray(views, dtype=np.int64), np.ascontiguousarray(step_m, dtype=np.float64),
-            np.ascontiguousarray(spacing_m, dtype=np.float64))
+    return (
+        P,
+        np.ascontiguousarray(grey, dtype=np.float32),
+        np.ascontiguousarray(alpha, dtype=np.float32),
+        sizes,
+        pos,
+        nrm,
+        np.ascontiguousarray(t1),
+        np.ascontiguousarray(t2),
+        np.ascontiguousarray(views, dtype=np.int64),
+        np.ascontiguousarray(step_m, dtype=np.float64),
+        np.ascontiguousarray(spacing_m, dtype=np.float64),
+    )
 
 
-def cost_volume(positions, normals, cameras, grey, alpha, views, step_m, spacing_m, *, n_depths: int,
-                patch_size: int, texture_std: float, alpha_threshold: float, n_best: int = 0) -> np.ndarray:
+def cost_volume(
+    positions,
+    normals,
+    cameras,
+    grey,
+    alpha,
+    views,
+    step_m,
+    spacing_m,
+    *,
+    n_depths: int,
+    patch_size: int,
+    texture_std: float,
+    alpha_threshold: float,
+    n_best: int = 0,
+) -> np.ndarray:
     """Mean NCC (N, n_depths) of each surfel's candidates ``p − d·step_m·n`` (numba).
 
     Parameters
@@ -393,17 +440,33 @@ def cost_volume(positions, normals, cameras, grey, alpha, views, step_m, spacing
     args = _kernel_inputs(positions, normals, cameras, grey, alpha, views, step_m, spacing_m)
     out = np.empty((args[4].shape[0], int(n_depths)), np.float64)
     if out.size:
-        _cost_kernel(*args, int(n_depths), int(patch_size), float(texture_std) ** 2, float(alpha_threshold),
-                     int(n_best), out)
+        _cost_kernel(
+            *args, int(n_depths), int(patch_size), float(texture_std) ** 2, float(alpha_threshold), int(n_best), out
+        )
     return out
 
 
-def cost_volume_reference(positions, normals, cameras, grey, alpha, views, step_m, spacing_m, *, n_depths: int,
-                          patch_size: int, texture_std: float, alpha_threshold: float, n_best: int = 0) -> np.ndarray:
+def cost_volume_reference(
+    positions,
+    normals,
+    cameras,
+    grey,
+    alpha,
+    views,
+    step_m,
+    spacing_m,
+    *,
+    n_depths: int,
+    patch_size: int,
+    texture_std: float,
+    alpha_threshold: float,
+    n_best: int = 0,
+) -> np.ndarray:
     """NumPy oracle of :func:`cost_volume` (loop over surfels and depths; vectorised over
     the patch; small inputs only)."""
     P, grey, alpha, sizes, pos, nrm, t1, t2, views, step, spacing = _kernel_inputs(
-        positions, normals, cameras, grey, alpha, views, step_m, spacing_m)
+        positions, normals, cameras, grey, alpha, views, step_m, spacing_m
+    )
     K = int(patch_size)
     half = (K - 1) // 2
     ab = np.array([(a, b) for a in range(-half, half + 1) for b in range(-half, half + 1)], dtype=np.float64)
@@ -610,8 +673,18 @@ def _pca_normals(points, hull_normals, k):
     return nn / np.maximum(np.linalg.norm(nn, axis=1, keepdims=True), 1e-300)
 
 
-def refine_surfels(positions, normals, radii, visibility, cameras, images, alphas, *,
-                   config: PhotoConfig = PhotoConfig(), exclude_views: Sequence[int] = ()):
+def refine_surfels(
+    positions,
+    normals,
+    radii,
+    visibility,
+    cameras,
+    images,
+    alphas,
+    *,
+    config: PhotoConfig = PhotoConfig(),
+    exclude_views: Sequence[int] = (),
+):
     """Move hull surfels inward to their photo-consistent depth (see the module docstring).
 
     Parameters
@@ -654,7 +727,9 @@ def refine_surfels(positions, normals, radii, visibility, cameras, images, alpha
         raise InputError("refine_surfels: surfel positions or normals contain NaN/Inf")
     lens = np.linalg.norm(nrm, axis=1)
     if N and not np.all(np.abs(lens - 1) < 1e-3):
-        raise InputError(f"refine_surfels: normals must be unit length (found lengths in [{lens.min():.3g}, {lens.max():.3g}])")
+        raise InputError(
+            f"refine_surfels: normals must be unit length (found lengths in [{lens.min():.3g}, {lens.max():.3g}])"
+        )
     grey = _stack("images", list(images), cameras, 3)
     alpha = np.nan_to_num(_stack("alphas", list(alphas), cameras, 1), nan=0.0)
     sils = alpha > config.alpha_threshold
@@ -673,9 +748,21 @@ def refine_surfels(positions, normals, radii, visibility, cameras, images, alpha
     step = foot * config.depth_step_px
     spacing = foot * config.patch_step_px
     D = config.n_depths
-    scores = cost_volume(pos, nrm, cameras, grey, alpha, views, step, spacing, n_depths=D,
-                         patch_size=config.patch_size, texture_std=config.texture_std,
-                         alpha_threshold=config.alpha_threshold, n_best=config.n_best)
+    scores = cost_volume(
+        pos,
+        nrm,
+        cameras,
+        grey,
+        alpha,
+        views,
+        step,
+        spacing,
+        n_depths=D,
+        patch_size=config.patch_size,
+        texture_std=config.texture_std,
+        alpha_threshold=config.alpha_threshold,
+        n_best=config.n_best,
+    )
     t_cost = time.perf_counter() - t0
     sub, best, conf = best_depths(scores, min_ncc=config.min_ncc, peak_ratio=config.peak_ratio)
     conf &= foot > 0
@@ -760,6 +847,12 @@ def refine_surfels(positions, normals, radii, visibility, cameras, images, alpha
         "seconds_cost_volume": float(t_cost),
         "seconds": float(secs),
     }
-    log.info("photo refinement: %d/%d surfels confident, %d moved (mean %.3g m), %.2f s",
-             stats["n_confident"], N, stats["n_moved"], stats["mean_depth_moved_m"], secs)
+    log.info(
+        "photo refinement: %d/%d surfels confident, %d moved (mean %.3g m), %.2f s",
+        stats["n_confident"],
+        N,
+        stats["n_moved"],
+        stats["mean_depth_moved_m"],
+        secs,
+    )
     return new, out_n, out_r, stats

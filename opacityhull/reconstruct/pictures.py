@@ -29,8 +29,9 @@ def _resize(img: np.ndarray, h: int) -> np.ndarray:
     return cv2.resize(img, (w, h), interpolation=cv2.INTER_AREA)
 
 
-def matte_contact_sheet(alphas: Sequence[np.ndarray], names: Sequence[str], out_path, *, thumb_h: int = 120,
-                        max_views: int = 48) -> Path:
+def matte_contact_sheet(
+    alphas: Sequence[np.ndarray], names: Sequence[str], out_path, *, thumb_h: int = 120, max_views: int = 48
+) -> Path:
     """Grid of alpha mattes (white = opaque) labelled with view ids; PNG at ``out_path``."""
     idx = np.linspace(0, len(alphas) - 1, min(len(alphas), max_views)).round().astype(int) if len(alphas) else []
     tiles, labels = [], []
@@ -68,8 +69,15 @@ def surfel_mask(positions, radii, camera) -> np.ndarray:
     return m
 
 
-def hull_overlays(images: Sequence[np.ndarray], silhouettes: Sequence[np.ndarray], surfel_masks: Sequence[np.ndarray],
-                  names: Sequence[str], out_path, *, thumb_h: int = 240) -> Path:
+def hull_overlays(
+    images: Sequence[np.ndarray],
+    silhouettes: Sequence[np.ndarray],
+    surfel_masks: Sequence[np.ndarray],
+    names: Sequence[str],
+    out_path,
+    *,
+    thumb_h: int = 240,
+) -> Path:
     """Colour image (sRGB, normalised to its 99th percentile) with the silhouette outline
     in green and the splatted-surfel outline in red, one tile per given view."""
     import cv2

@@ -45,8 +45,14 @@ from numba import njit, prange
 from ..errors import InputError
 from .hull import HullGrid, _centre_carves, _proj, _stack_silhouettes, projection_matrices
 
-__all__ = ["SurfelSample", "sample_hull_surfels", "hull_normals", "hull_normals_reference",
-           "pooled_density", "silhouette_distance"]
+__all__ = [
+    "SurfelSample",
+    "sample_hull_surfels",
+    "hull_normals",
+    "hull_normals_reference",
+    "pooled_density",
+    "silhouette_distance",
+]
 
 
 @dataclass
@@ -111,8 +117,12 @@ def _candidate_views(P, sizes, edt, pa, pb, cand):
                 continue  # the whole segment projects inside the silhouette
         elif L < 1e6:
             # inside end off-image: the view matters only if the segment reaches the image
-            if (max(u0, u1) < -0.5 - 1.0 or min(u0, u1) > sizes[v, 0] - 0.5 + 1.0
-                    or max(t0, t1) < -0.5 - 1.0 or min(t0, t1) > sizes[v, 1] - 0.5 + 1.0):
+            if (
+                max(u0, u1) < -0.5 - 1.0
+                or min(u0, u1) > sizes[v, 0] - 0.5 + 1.0
+                or max(t0, t1) < -0.5 - 1.0
+                or min(t0, t1) > sizes[v, 1] - 0.5 + 1.0
+            ):
                 continue
         cand[n] = v
         n += 1
@@ -178,8 +188,9 @@ def _count_crossings(occ, axis, nb, nc, na, s, counts):
 
 
 @njit(cache=True, parallel=True, nogil=True)
-def _fill_crossings(occ, axis, nb, nc, na, s, offsets, lo, h, P, sil, strong, sizes, edt, iters, tol, pos, sign,
-                    status):
+def _fill_crossings(
+    occ, axis, nb, nc, na, s, offsets, lo, h, P, sil, strong, sizes, edt, iters, tol, pos, sign, status
+):
     V = P.shape[0]
     ax_b = 1 if axis == 0 else 0
     ax_c = 1 if axis == 2 else 2
@@ -335,7 +346,9 @@ def hull_normals_reference(occ, grid: HullGrid, points, *, sigma_vox: float = 1.
     for n, p in enumerate(pts):
         f = (p - grid.lo) / grid.voxel_m - 0.5
         c = np.floor(f + 0.5).astype(int)
-        idx = np.stack(np.meshgrid(*[np.arange(c[i] - r, c[i] + r + 1) for i in range(3)], indexing="ij"), -1).reshape(-1, 3)
+        idx = np.stack(np.meshgrid(*[np.arange(c[i] - r, c[i] + r + 1) for i in range(3)], indexing="ij"), -1).reshape(
+            -1, 3
+        )
         ok = np.all((idx >= 0) & (idx < np.array(grid.shape)), axis=1)
         idx = idx[ok]
         o = occ[idx[:, 0], idx[:, 1], idx[:, 2]]
@@ -345,9 +358,20 @@ def hull_normals_reference(occ, grid: HullGrid, points, *, sigma_vox: float = 1.
     return out
 
 
-def sample_hull_surfels(occ, grid: HullGrid, silhouettes, cameras, *, oversample: int = 1, bisection_iters: int = 10,
-                        radius_scale: float = 1.0, normal_scale_vox: float = 1.0,
-                        seam_overlap: float = 0.15, tolerance: int = 0, strong_silhouettes=None) -> SurfelSample:
+def sample_hull_surfels(
+    occ,
+    grid: HullGrid,
+    silhouettes,
+    cameras,
+    *,
+    oversample: int = 1,
+    bisection_iters: int = 10,
+    radius_scale: float = 1.0,
+    normal_scale_vox: float = 1.0,
+    seam_overlap: float = 0.15,
+    tolerance: int = 0,
+    strong_silhouettes=None,
+) -> SurfelSample:
     """Layered-depth-cube sampling of the visual hull into surfels (see module docstring).
 
     Parameters
@@ -385,7 +409,9 @@ def sample_hull_surfels(occ, grid: HullGrid, silhouettes, cameras, *, oversample
         raise InputError(f"seam_overlap must be in [0, 1), got {seam_overlap}")
     if not occ.any():
         empty = np.zeros((0, 3))
-        return SurfelSample(empty, empty.astype(np.float32), np.zeros(0, np.float32), np.zeros(0, np.uint8), grid.voxel_m / s)
+        return SurfelSample(
+            empty, empty.astype(np.float32), np.zeros(0, np.float32), np.zeros(0, np.uint8), grid.voxel_m / s
+        )
     sil, sizes = _stack_silhouettes(silhouettes, cameras)
     strong = sil if strong_silhouettes is None else _stack_silhouettes(strong_silhouettes, cameras)[0]
     if strong_silhouettes is not None and np.any(sil > strong):
@@ -406,8 +432,27 @@ def sample_hull_surfels(occ, grid: HullGrid, silhouettes, cameras, *, oversample
         pos = np.empty((total, 3))
         sign = np.empty(total, np.int8)
         status = np.empty(total, np.uint8)
-        _fill_crossings(occ, axis, nb, nc, na, s, offsets, grid.lo, h, P, sil, strong, sizes, edt,
-                        int(bisection_iters), int(tolerance), pos, sign, status)
+        _fill_crossings(
+            occ,
+            axis,
+            nb,
+            nc,
+            na,
+            s,
+            offsets,
+            grid.lo,
+            h,
+            P,
+            sil,
+            strong,
+            sizes,
+            edt,
+            int(bisection_iters),
+            int(tolerance),
+            pos,
+            sign,
+            status,
+        )
         all_pos.append(pos)
         all_axis.append(np.full(total, axis, np.uint8))
         all_sign.append(sign)

@@ -121,8 +121,9 @@ def _splat_view(P, R, t_cam, v, Kinv, pos, nrm, rad, f, W, H, zbuf):
 
 
 @njit(cache=True, parallel=True, nogil=True)
-def _visibility_kernel(P, R, t_cam, Kinv, C, sizes, f, pos, nrm, rad, tol, slope_px, facing_cos, Hm, Wm, vis, zbufs,
-                       keep_depth):
+def _visibility_kernel(
+    P, R, t_cam, Kinv, C, sizes, f, pos, nrm, rad, tol, slope_px, facing_cos, Hm, Wm, vis, zbufs, keep_depth
+):
     V = P.shape[0]
     N = pos.shape[0]
     for v in prange(V):
@@ -168,8 +169,17 @@ def _default_tol(rad: np.ndarray, depth_tol_m) -> float:
     return float(rad.max()) if rad.size else 0.0
 
 
-def surfel_visibility(positions, normals, radii, cameras, *, depth_tol_m: float | None = None,
-                      slope_px: float = 1.0, facing_cos: float = -0.1, return_depth: bool = False):
+def surfel_visibility(
+    positions,
+    normals,
+    radii,
+    cameras,
+    *,
+    depth_tol_m: float | None = None,
+    slope_px: float = 1.0,
+    facing_cos: float = -0.1,
+    return_depth: bool = False,
+):
     """Visibility of every surfel in every view by a z-buffer depth test (numba).
 
     Parameters
@@ -197,8 +207,26 @@ def surfel_visibility(positions, normals, radii, cameras, *, depth_tol_m: float 
     zb = np.full((V, Hm, Wm) if return_depth else (1, 1, 1), np.inf)
     if pos.shape[0] and V:
         R, t, Kinv = _frames(cameras)
-        _visibility_kernel(P, R, t, Kinv, C, sizes, f, pos, nrm, rad, tol, float(slope_px), float(facing_cos), Hm, Wm,
-                           vis, zb, return_depth)
+        _visibility_kernel(
+            P,
+            R,
+            t,
+            Kinv,
+            C,
+            sizes,
+            f,
+            pos,
+            nrm,
+            rad,
+            tol,
+            float(slope_px),
+            float(facing_cos),
+            Hm,
+            Wm,
+            vis,
+            zb,
+            return_depth,
+        )
     return (vis, zb) if return_depth else vis
 
 
@@ -208,8 +236,16 @@ def depth_maps(positions, radii, cameras) -> np.ndarray:
     return surfel_visibility(positions, n, radii, cameras, return_depth=True)[1]
 
 
-def surfel_visibility_reference(positions, normals, radii, cameras, *, depth_tol_m: float | None = None,
-                                slope_px: float = 1.0, facing_cos: float = -0.1) -> np.ndarray:
+def surfel_visibility_reference(
+    positions,
+    normals,
+    radii,
+    cameras,
+    *,
+    depth_tol_m: float | None = None,
+    slope_px: float = 1.0,
+    facing_cos: float = -0.1,
+) -> np.ndarray:
     """NumPy oracle of :func:`surfel_visibility` (the same rule, written per surfel with
     array maths over its footprint; small inputs)."""
     pos, nrm, rad, P, C, sizes, f = _inputs(positions, normals, radii, cameras)

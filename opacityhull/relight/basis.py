@@ -186,8 +186,13 @@ class LightSet:
 
     def subset(self, index) -> "LightSet":
         idx = np.arange(len(self))[index]
-        return LightSet(tuple(self.keys[i] for i in idx), self.light_ids[idx], self.array_deg[idx],
-                        self.directions_rig[idx], self.output_rgb[idx])
+        return LightSet(
+            tuple(self.keys[i] for i in idx),
+            self.light_ids[idx],
+            self.array_deg[idx],
+            self.directions_rig[idx],
+            self.output_rgb[idx],
+        )
 
 
 def light_set_from_geometry(geometry, samples: Sequence) -> LightSet:
@@ -234,8 +239,14 @@ def angular_spacing(directions) -> float:
 # --------------------------------------------------------------------------- kernels
 
 
-def partition_weights(light_dirs, query_dirs, *, kind: str = "vmf", sigma_rad: float | None = None,
-                      triangulation: "Triangulation | None" = None) -> np.ndarray:
+def partition_weights(
+    light_dirs,
+    query_dirs,
+    *,
+    kind: str = "vmf",
+    sigma_rad: float | None = None,
+    triangulation: "Triangulation | None" = None,
+) -> np.ndarray:
     """Partition-of-unity weights K_k(ω) of ``query_dirs`` (N, 3) over the K
     ``light_dirs`` → (N, K) float64, rows summing to 1.
 
@@ -265,8 +276,11 @@ def partition_weights(light_dirs, query_dirs, *, kind: str = "vmf", sigma_rad: f
     return z
 
 
-_GHOSTS = np.array([[0, -1, 0], [0, 1, 0], [1, 0, 0], [-1, 0, 0], [0, 0, 1], [0, 0, -1]] +
-                   [[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], np.float64)
+_GHOSTS = np.array(
+    [[0, -1, 0], [0, 1, 0], [1, 0, 0], [-1, 0, 0], [0, 0, 1], [0, 0, -1]]
+    + [[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)],
+    np.float64,
+)
 _GHOSTS /= np.linalg.norm(_GHOSTS, axis=1, keepdims=True)
 
 
@@ -378,8 +392,13 @@ def prepare_envmap(env: EnvironmentMap, *, config: KernelConfig = KernelConfig()
     return _prepare_map(env, config)
 
 
-def integrate_envmap(env: EnvironmentMap | None, light_dirs, *, config: KernelConfig = KernelConfig(),
-                     prepared: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+def integrate_envmap(
+    env: EnvironmentMap | None,
+    light_dirs,
+    *,
+    config: KernelConfig = KernelConfig(),
+    prepared: tuple[np.ndarray, np.ndarray] | None = None,
+) -> np.ndarray:
     """Irradiance W_k = ∫ K_k(ω) L(ω) dω each light receives, (K, 3) float64.
 
     ``light_dirs`` (K, 3) are in the map's frame (the object frame). Σ_k W_k equals
@@ -474,8 +493,9 @@ def _linear_weights_slow(tri: Triangulation, w: np.ndarray) -> np.ndarray:
             if best is None or m > best[0]:
                 best = (m, face, x)
     if best is None:
-        raise InputError(f"direction {w.tolist()} lies in no facet of the light triangulation (not enclosing "
-                         "the origin?)")
+        raise InputError(
+            f"direction {w.tolist()} lies in no facet of the light triangulation (not enclosing the origin?)"
+        )
     _, face, x = best
     x = np.clip(x, 0, None)
     x = x / x.sum()
@@ -491,7 +511,9 @@ def _linear_weights_slow(tri: Triangulation, w: np.ndarray) -> np.ndarray:
     return out
 
 
-def directional_light_weights(light_dirs, directions, irradiance_rgb, *, config: KernelConfig = KernelConfig()) -> np.ndarray:
+def directional_light_weights(
+    light_dirs, directions, irradiance_rgb, *, config: KernelConfig = KernelConfig()
+) -> np.ndarray:
     """(K, 3) weights of M directional lights: light m (unit ``directions[m]``, RGB
     irradiance at normal incidence ``irradiance_rgb[m]``) is split over the captured
     lights with the same partition of unity as an environment map, i.e. the limit of
@@ -527,7 +549,9 @@ def parse_lights(spec: str, *, flag: str = "--lights") -> tuple[np.ndarray, np.n
         except ValueError:
             raise InputError(f"{flag}: light {i + 1} {item!r} is not six numbers 'dx,dy,dz,r,g,b'") from None
         if len(vals) != 6 or not all(math.isfinite(v) for v in vals):
-            raise InputError(f"{flag}: light {i + 1} {item!r} has {len(vals)} values, expected six finite numbers 'dx,dy,dz,r,g,b'")
+            raise InputError(
+                f"{flag}: light {i + 1} {item!r} has {len(vals)} values, expected six finite numbers 'dx,dy,dz,r,g,b'"
+            )
         v = np.array(vals[:3])
         n = float(np.linalg.norm(v))
         if n < 1e-12:

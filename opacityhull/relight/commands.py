@@ -22,8 +22,11 @@ def _config(kernel: str, kernel_width: float, lower_hemisphere: str, near_light:
 
     # the flags arrive as plain strings; KernelConfig.__post_init__ checks them (ConfigError naming the value)
     kind, lower = cast(Any, kernel), cast(Any, lower_hemisphere)
-    return RelightConfig(kernel=KernelConfig(kind=kind, width=kernel_width, lower_hemisphere=lower),
-                         near_light=near_light, pca_rank=pca_rank)
+    return RelightConfig(
+        kernel=KernelConfig(kind=kind, width=kernel_width, lower_hemisphere=lower),
+        near_light=near_light,
+        pca_rank=pca_rank,
+    )
 
 
 def _probe_format(value: str):
@@ -37,11 +40,17 @@ def _probe_format(value: str):
     return cast(ProbeFormat, value)
 
 
-_ENVMAP_HELP = ("Environment map: equirectangular .exr or Radiance .hdr (+Y up, centre column along +Z), or "
-                "builtin:NAME for a shipped probe (ennis, grace, pisa, uffizi, wells).")
-_YAW_HELP = ("Rotate the map about +Y by this many degrees after reading (ICT probes put their centre at -Z: use 180). "
-             "Default: 180 for builtin: probes, else 0.")
-_FORMAT_HELP = "Layout of the map: latlong (equirectangular), angular (Debevec light probe) or mirror (mirror-ball image)."
+_ENVMAP_HELP = (
+    "Environment map: equirectangular .exr or Radiance .hdr (+Y up, centre column along +Z), or "
+    "builtin:NAME for a shipped probe (ennis, grace, pisa, uffizi, wells)."
+)
+_YAW_HELP = (
+    "Rotate the map about +Y by this many degrees after reading (ICT probes put their centre at -Z: use 180). "
+    "Default: 180 for builtin: probes, else 0."
+)
+_FORMAT_HELP = (
+    "Layout of the map: latlong (equirectangular), angular (Debevec light probe) or mirror (mirror-ball image)."
+)
 
 
 #: Fewer captured light directions than this and ``eval relight`` warns: the light
@@ -63,30 +72,52 @@ def register(app, groups) -> None:
     @cli_errors
     def relight(
         model: Path = typer.Argument(..., help="Model folder written by `opacityhull build` (with reflectance data)."),
-        out: Path = typer.Option(..., "--out", help="Output folder (EXR + PNG per image, contact sheets, GIF, relight.json)."),
+        out: Path = typer.Option(
+            ..., "--out", help="Output folder (EXR + PNG per image, contact sheets, GIF, relight.json)."
+        ),
         envmap: Optional[str] = typer.Option(None, "--envmap", help=_ENVMAP_HELP),
         yaw_deg: Optional[float] = typer.Option(None, "--env-yaw-deg", help=_YAW_HELP),
-        yaw_deg_alias: Optional[float] = typer.Option(None, "--yaw-deg", hidden=True,
-                                                      help="Old name of --env-yaw-deg."),
+        yaw_deg_alias: Optional[float] = typer.Option(
+            None, "--yaw-deg", hidden=True, help="Old name of --env-yaw-deg."
+        ),
         probe_format: str = typer.Option("latlong", "--probe-format", help=_FORMAT_HELP),
         flip_u: bool = typer.Option(False, "--flip-u", help="The lat-long map is stored mirrored left-right."),
         lights: Optional[str] = typer.Option(
-            None, "--lights",
+            None,
+            "--lights",
             help="Directional lights 'dx,dy,dz,r,g,b;...' (direction towards the light in the object frame, RGB "
-                 "irradiance), or 'point:x,y,z,r,g,b' (position in metres, RGB intensity). Adds to --envmap."),
-        view: Optional[str] = typer.Option(None, "--view", help="Also render camera CAM at table angle DEG: 'CAM,DEG'."),
+            "irradiance), or 'point:x,y,z,r,g,b' (position in metres, RGB intensity). Adds to --envmap.",
+        ),
+        view: Optional[str] = typer.Option(
+            None, "--view", help="Also render camera CAM at table angle DEG: 'CAM,DEG'."
+        ),
         orbit: Optional[int] = typer.Option(None, "--orbit", help="Also render an orbit of N frames (PNGs + GIF)."),
         fps: float = typer.Option(12.0, "--fps", help="Frame rate of the orbit GIF (> 0; GIF stores 1/100 s delays)."),
-        kernel: str = typer.Option("vmf", "--kernel",
-                                   help="Light-cell partition: vmf (smooth, default), linear (barycentric on the "
-                                        "lights' triangulation) or voronoi (nearest light)."),
-        kernel_width: float = typer.Option(0.25, "--kernel-width", help="vMF kernel sigma as a fraction of the light spacing."),
-        lower_hemisphere: str = typer.Option("drop", "--lower-hemisphere",
-                                             help="Light from below the table plane: drop (the table blocks it) or nearest."),
-        near_light: bool = typer.Option(True, "--near-light/--no-near-light",
-                                        help="Correct the one-light images for the lights' finite distance (1/r^2 at the hull surface)."),
-        pca_rank: Optional[int] = typer.Option(None, "--pca-rank", help="Relight from a rank-R PCA of each view's data (reports its error)."),
-        exposure: Optional[float] = typer.Option(None, "--exposure", help="PNG exposure multiplier (default: automatic, key 0.18)."),
+        kernel: str = typer.Option(
+            "vmf",
+            "--kernel",
+            help="Light-cell partition: vmf (smooth, default), linear (barycentric on the "
+            "lights' triangulation) or voronoi (nearest light).",
+        ),
+        kernel_width: float = typer.Option(
+            0.25, "--kernel-width", help="vMF kernel sigma as a fraction of the light spacing."
+        ),
+        lower_hemisphere: str = typer.Option(
+            "drop",
+            "--lower-hemisphere",
+            help="Light from below the table plane: drop (the table blocks it) or nearest.",
+        ),
+        near_light: bool = typer.Option(
+            True,
+            "--near-light/--no-near-light",
+            help="Correct the one-light images for the lights' finite distance (1/r^2 at the hull surface).",
+        ),
+        pca_rank: Optional[int] = typer.Option(
+            None, "--pca-rank", help="Relight from a rank-R PCA of each view's data (reports its error)."
+        ),
+        exposure: Optional[float] = typer.Option(
+            None, "--exposure", help="PNG exposure multiplier (default: automatic, key 0.18)."
+        ),
         no_views: bool = typer.Option(False, "--no-views", help="Do not write the relit captured views."),
         json_out: bool = typer.Option(False, "--json", help="Print a JSON summary on stdout."),
     ):
@@ -111,22 +142,41 @@ def register(app, groups) -> None:
             raise InputError("give --envmap X.exr|X.hdr or --lights 'dx,dy,dz,r,g,b;...'")
         env = None
         if envmap is not None:
-            env = load_envmap(envmap, yaw_deg=default_yaw_deg(envmap) if yaw_deg is None else yaw_deg,
-                              probe_format=_probe_format(probe_format), flip_u=flip_u)
+            env = load_envmap(
+                envmap,
+                yaw_deg=default_yaw_deg(envmap) if yaw_deg is None else yaw_deg,
+                probe_format=_probe_format(probe_format),
+                flip_u=flip_u,
+            )
         light_arrays = parse_lights(lights) if lights else None
         with progress("relight", enabled=not json_out) as cb:
             with writing_to(out):
-                s = relight_model(model, out=out, envmap=env, lights=light_arrays, view=v, orbit=orbit, fps=fps,
-                                  config=cfg, exposure=exposure, write_views=not no_views, progress=cb)
+                s = relight_model(
+                    model,
+                    out=out,
+                    envmap=env,
+                    lights=light_arrays,
+                    view=v,
+                    orbit=orbit,
+                    fps=fps,
+                    config=cfg,
+                    exposure=exposure,
+                    write_views=not no_views,
+                    progress=cb,
+                )
 
         def human(s):
             c = console()
-            c.print(f"relit {s['n_views']} views of {s['model']} ({s['n_lights_captured']} captured lights, "
-                    f"{s['relit_views_per_s']:.1f} views/s)")
+            c.print(
+                f"relit {s['n_views']} views of {s['model']} ({s['n_lights_captured']} captured lights, "
+                f"{s['relit_views_per_s']:.1f} views/s)"
+            )
             if "pca" in s:
                 p = s["pca"]
-                c.print(f"PCA rank {p['rank']}: {p['compression_ratio']:.1f}x smaller, reflectance error "
-                        f"{100 * p['reflectance_rel_error_mean']:.2f} % (max {100 * p['reflectance_rel_error_max']:.2f} %)")
+                c.print(
+                    f"PCA rank {p['rank']}: {p['compression_ratio']:.1f}x smaller, reflectance error "
+                    f"{100 * p['reflectance_rel_error_mean']:.2f} % (max {100 * p['reflectance_rel_error_max']:.2f} %)"
+                )
             if "views_sheet" in s:
                 c.print(f"relit views: {s['views_dir']}  contact sheet: {s['views_sheet']}")
             if "view" in s:
@@ -143,20 +193,33 @@ def register(app, groups) -> None:
         model: Path = typer.Argument(..., help="Model folder built from a simulated session (with reflectance data)."),
         envmap: str = typer.Option(..., "--envmap", help=_ENVMAP_HELP),
         yaw_deg: Optional[float] = typer.Option(None, "--env-yaw-deg", help=_YAW_HELP),
-        yaw_deg_alias: Optional[float] = typer.Option(None, "--yaw-deg", hidden=True,
-                                                      help="Old name of --env-yaw-deg."),
+        yaw_deg_alias: Optional[float] = typer.Option(
+            None, "--yaw-deg", hidden=True, help="Old name of --env-yaw-deg."
+        ),
         probe_format: str = typer.Option("latlong", "--probe-format", help=_FORMAT_HELP),
-        out: Optional[Path] = typer.Option(None, "--out", help="Folder for the contact sheet and per-view EXRs (default "
-                                           "./MODELNAME_eval_relight in the current folder: an evaluation never "
-                                           "writes into the model)."),
+        out: Optional[Path] = typer.Option(
+            None,
+            "--out",
+            help="Folder for the contact sheet and per-view EXRs (default "
+            "./MODELNAME_eval_relight in the current folder: an evaluation never "
+            "writes into the model).",
+        ),
         spp: int = typer.Option(64, "--spp", help="Samples per pixel of Mitsuba's ground-truth render."),
-        max_views: Optional[int] = typer.Option(None, "--max-views", help="Evaluate at most this many views (spread evenly)."),
+        max_views: Optional[int] = typer.Option(
+            None, "--max-views", help="Evaluate at most this many views (spread evenly)."
+        ),
         kernel: str = typer.Option("vmf", "--kernel", help="Light-cell partition: vmf, linear or voronoi."),
-        kernel_width: float = typer.Option(0.25, "--kernel-width", help="vMF kernel sigma as a fraction of the light spacing."),
+        kernel_width: float = typer.Option(
+            0.25, "--kernel-width", help="vMF kernel sigma as a fraction of the light spacing."
+        ),
         lower_hemisphere: str = typer.Option("drop", "--lower-hemisphere", help="drop or nearest."),
-        near_light: bool = typer.Option(True, "--near-light/--no-near-light", help="Near-light correction (1/r^2 at the hull surface)."),
+        near_light: bool = typer.Option(
+            True, "--near-light/--no-near-light", help="Near-light correction (1/r^2 at the hull surface)."
+        ),
         pca_rank: Optional[int] = typer.Option(None, "--pca-rank", help="Evaluate rank-R PCA relighting."),
-        json_out: bool = typer.Option(False, "--json", help='Print {"psnr_mean", "rel_err_mean", "per_view", ...} on stdout.'),
+        json_out: bool = typer.Option(
+            False, "--json", help='Print {"psnr_mean", "rel_err_mean", "per_view", ...} on stdout.'
+        ),
     ):
         """Relit captured views of a simulated model against Mitsuba's direct render of the same object under the
         same environment map from the same cameras: PSNR and relative error inside the mask, and a contact sheet
@@ -174,8 +237,11 @@ def register(app, groups) -> None:
             # not inside MODEL: a model is an input here (it may be shared or read-only)
             out = Path(f"{model.resolve().name}_eval_relight")
         cfg = _config(kernel, kernel_width, lower_hemisphere, near_light, pca_rank)
-        env = load_envmap(envmap, yaw_deg=default_yaw_deg(envmap) if yaw_deg is None else yaw_deg,
-                          probe_format=_probe_format(probe_format))
+        env = load_envmap(
+            envmap,
+            yaw_deg=default_yaw_deg(envmap) if yaw_deg is None else yaw_deg,
+            probe_format=_probe_format(probe_format),
+        )
         with progress("eval relight", enabled=not json_out) as cb:
             s = eval_relight(model, envmap=env, out=out, spp=spp, max_views=max_views, config=cfg, progress=cb)
 
@@ -184,12 +250,15 @@ def register(app, groups) -> None:
             s.setdefault("warnings", []).append(
                 f"only {n_lights} captured light direction(s): relighting sums one-light images, so an environment "
                 f"map is seen through {n_lights} cell(s) of the sphere — expect large errors (the tiny plan's 2 "
-                f"lights measured 58-82 %); capture with more lights (plan [phases.reflectance] lights/array_steps)")
+                f"lights measured 58-82 %); capture with more lights (plan [phases.reflectance] lights/array_steps)"
+            )
 
         def human(s):
             c = console()
-            c.print(f"relighting vs Mitsuba over {len(s['per_view'])} views: PSNR {s['psnr_mean']:.2f} dB, "
-                    f"relative error {100 * s['rel_err_mean']:.2f} %")
+            c.print(
+                f"relighting vs Mitsuba over {len(s['per_view'])} views: PSNR {s['psnr_mean']:.2f} dB, "
+                f"relative error {100 * s['rel_err_mean']:.2f} %"
+            )
             c.print(f"contact sheet (truth | relit | error): {s['sheet']}")
             for w in s.get("warnings", []):
                 c.print(f"[yellow]warning:[/] {escape(w)}", highlight=False)

@@ -270,7 +270,9 @@ def _supersampled_inverse_map(out_h: int, out_w: int, fetch, *, ss: int = 4) -> 
             theta = (np.arange(out_h) + (i + 0.5) / ss) * (math.pi / out_h)
             phi = (np.arange(out_w) + (j + 0.5) / ss) * (2 * math.pi / out_w)
             st, ct = np.sin(theta)[:, None], np.cos(theta)[:, None]
-            d = np.stack(np.broadcast_arrays(st * np.sin(phi)[None], ct * np.ones((1, out_w)), -st * np.cos(phi)[None]), -1)
+            d = np.stack(
+                np.broadcast_arrays(st * np.sin(phi)[None], ct * np.ones((1, out_w)), -st * np.cos(phi)[None]), -1
+            )
             # sub-texels are weighted by their own solid angle (∝ sin θ) so that the
             # texel value is the area mean
             acc += fetch(d) * st[..., None]
@@ -302,12 +304,14 @@ def angular_to_latlong(img: np.ndarray, *, width: int | None = None, supersample
 
     Each output texel is the area mean of ``supersample²`` bilinear lookups.
     """
-    return _disc_probe_to_latlong(img, "angular map", lambda angle: angle / math.pi, width=width,
-                                  supersample=supersample)
+    return _disc_probe_to_latlong(
+        img, "angular map", lambda angle: angle / math.pi, width=width, supersample=supersample
+    )
 
 
-def _disc_probe_to_latlong(img: np.ndarray, what: str, radius_of_angle, *, width: int | None,
-                           supersample: int) -> np.ndarray:
+def _disc_probe_to_latlong(
+    img: np.ndarray, what: str, radius_of_angle, *, width: int | None, supersample: int
+) -> np.ndarray:
     """A square probe image whose disc holds direction d at radius ``radius_of_angle(angle(d, +Z))``
     (1 on the rim) along the direction of (dx, dy), +X right, +Y up → lat-long (H, 2H, 3)."""
     S = img.shape[0]
@@ -345,8 +349,9 @@ def mirrorball_to_latlong(img: np.ndarray, *, width: int | None = None, supersam
     """Mirror-ball image (square, ball touching the edges, orthographic view from +Z:
     the centre reflects +Z, the rim −Z, +X right, +Y up) → lat-long (H, 2H, 3)."""
     # the normal bisects d and the view direction +Z: |(u, v)| = sin(angle(d, +Z) / 2)
-    return _disc_probe_to_latlong(img, "mirror-ball image", lambda angle: np.sin(0.5 * angle), width=width,
-                                  supersample=supersample)
+    return _disc_probe_to_latlong(
+        img, "mirror-ball image", lambda angle: np.sin(0.5 * angle), width=width, supersample=supersample
+    )
 
 
 def downsample_latlong(radiance: np.ndarray, factor: int, *, dtype: type[np.floating] = np.float32) -> np.ndarray:

@@ -102,8 +102,12 @@ def _truth_renderer(model, kind, ref, *, spp: int) -> Callable:
         from .synthetic import SphereScene, sphere_groundtruth
 
         sph = ref.get("sphere", {})
-        scene = SphereScene(centre_m=tuple(sph.get("centre_m", (0, 0.1, 0))), radius_m=float(sph.get("radius_m", 0.08)),
-                            albedo_rgb=tuple(sph.get("albedo_rgb", (0.75, 0.55, 0.35))), texture=float(sph.get("texture", 0.3)))
+        scene = SphereScene(
+            centre_m=tuple(sph.get("centre_m", (0, 0.1, 0))),
+            radius_m=float(sph.get("radius_m", 0.08)),
+            albedo_rgb=tuple(sph.get("albedo_rgb", (0.75, 0.55, 0.35))),
+            texture=float(sph.get("texture", 0.3)),
+        )
 
         def analytic_truth(i, env):
             from .synthetic import sphere_hits
@@ -116,7 +120,9 @@ def _truth_renderer(model, kind, ref, *, spp: int) -> Callable:
         from ..sim.groundtruth import render_under_envmap
         from ..sim.scenes import load_scene
     except ImportError as e:
-        raise InputError(f"eval relight needs the simulator's ground-truth renderer (opacityhull.sim.groundtruth): {e}") from None
+        raise InputError(
+            f"eval relight needs the simulator's ground-truth renderer (opacityhull.sim.groundtruth): {e}"
+        ) from None
     spec, _sess = ref
     scene = load_scene(spec)
     geom = model.geometry
@@ -142,8 +148,12 @@ def _truth_renderer(model, kind, ref, *, spp: int) -> Callable:
         if cam is None:
             raise FormatError(f"{model.root}: view {v.id} has no camera to render its truth from")
         # a writable copy: Mitsuba's Bitmap refuses read-only arrays
-        img = np.asarray(render_under_envmap(scene, cam, np.array(env.radiance), spp=spp, rig=geom,
-                                             table_deg=v.table_deg, renderer=renderer), np.float32)
+        img = np.asarray(
+            render_under_envmap(
+                scene, cam, np.array(env.radiance), spp=spp, rig=geom, table_deg=v.table_deg, renderer=renderer
+            ),
+            np.float32,
+        )
         return img[..., :3] * img[..., 3:4], img[..., 3]  # premultiplied by the true coverage
 
     return truth
@@ -177,8 +187,11 @@ def _natural_eval(model, kind, ref) -> dict | None:
         v = model.views[i]
         return render_envmap_on_displays(rig, v.camera_index, v.table_deg, env, displays, centre_m=centre, seed=11)
 
-    info = {"displays": displays, "centre_m": [float(x) for x in centre],
-            "truth": "mitsuba: each field's display showing the map over its solid angle (two 8-bit layers, summed)"}
+    info = {
+        "displays": displays,
+        "centre_m": [float(x) for x in centre],
+        "truth": "mitsuba: each field's display showing the map over its solid angle (two 8-bit layers, summed)",
+    }
     return {"part": part, "truth": truth, "info": info}
 
 
@@ -270,21 +283,30 @@ def eval_relight(
         raise InputError(f"{model.root}: no view has pixels fully covered by the object (matte >= {MASK_ALPHA})")
     summary = {
         "model": str(model.root),
-        "truth": "analytic quadrature" if kind == "analytic" else f"mitsuba render_under_envmap (scene {ref[0]}, spp {spp})",
+        "truth": "analytic quadrature"
+        if kind == "analytic"
+        else f"mitsuba render_under_envmap (scene {ref[0]}, spp {spp})",
         "envmap": env.stats(),
         "psnr_mean": float(np.mean([p["psnr"] for p in good])),
         "rel_err_mean": float(np.mean([p["rel_err"] for p in good])),
         "rel_err_max": float(np.max([p["rel_err"] for p in good])),
         "per_view": per_view,
         "n_lights_captured": len(R.lights),
-        "natural": None if natural is None else dict(
+        "natural": None
+        if natural is None
+        else dict(
             natural["info"],
             display_part_psnr_mean=float(np.mean([p["display_part"]["psnr"] for p in good])),
             display_part_rel_err_mean=float(np.mean([p["display_part"]["rel_err"] for p in good])),
-            truth_outside_fields_mean=float(np.mean([p["truth_outside_fields"] for p in good]))),
-        "config": {"kernel": R.config.kernel.kind, "width": R.config.kernel.width,
-                   "lower_hemisphere": R.config.kernel.lower_hemisphere, "near_light": R.near_light,
-                   "pca_rank": R.config.pca_rank},
+            truth_outside_fields_mean=float(np.mean([p["truth_outside_fields"] for p in good])),
+        ),
+        "config": {
+            "kernel": R.config.kernel.kind,
+            "width": R.config.kernel.width,
+            "lower_hemisphere": R.config.kernel.lower_hemisphere,
+            "near_light": R.near_light,
+            "pca_rank": R.config.pca_rank,
+        },
         "relight_s": t_relight,
         "truth_s": t_truth,
         "total_s": time.perf_counter() - t0,
@@ -295,12 +317,22 @@ def eval_relight(
         exposure = auto_exposure(ref_img[0], ref_img[2].astype(np.float32))
         for (truth, rgba, mask), p in zip(rows, per_view):
             err = np.abs(rgba[..., :3] - truth) * mask[..., None]
-            tiles += [to_srgb8(truth, exposure=exposure), to_srgb8(rgba[..., :3], exposure=exposure),
-                      to_srgb8(err, exposure=4 * exposure)]
+            tiles += [
+                to_srgb8(truth, exposure=exposure),
+                to_srgb8(rgba[..., :3], exposure=exposure),
+                to_srgb8(err, exposure=4 * exposure),
+            ]
             labels += [str(p["view"]), "", f"rel. err {100 * p['rel_err']:.1f}%"]
-        write_sheet(out / "eval_relight.png", contact_sheet(tiles[: 3 * 24], columns=3, labels=labels[: 3 * 24],
-                                                            headers=["truth", "relit", "|relit - truth| x4"],
-                                                            min_width=160))
+        write_sheet(
+            out / "eval_relight.png",
+            contact_sheet(
+                tiles[: 3 * 24],
+                columns=3,
+                labels=labels[: 3 * 24],
+                headers=["truth", "relit", "|relit - truth| x4"],
+                min_width=160,
+            ),
+        )
         summary["sheet"] = str(out / "eval_relight.png")
         with atomic_path(out / "eval_relight.json") as tmp:
             tmp.write_text(json.dumps(to_jsonable(summary), indent=2))

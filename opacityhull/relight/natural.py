@@ -265,7 +265,6 @@ def box_means(sat: np.ndarray, boxes) -> np.ndarray:
 # --------------------------------------------------------------------------- numba kernels
 
 
-
 @njit(cache=True)
 def nnls_gram(G, h, bb, m, x, passive, excluded, s, Lw, idx):  # pragma: no cover - compiled
     """Lawson–Hanson on the normal equations of an m-column problem, warm started
@@ -379,6 +378,7 @@ def nnls_gram(G, h, bb, m, x, passive, excluded, s, Lw, idx):  # pragma: no cove
                     r += x[j] * G[j, t] * x[t]
     return max(r, 0.0)
 
+
 @njit(cache=True)
 def box_col(sat, x0, y0, x1, y1, out):  # pragma: no cover - compiled
     N = sat.shape[2]
@@ -388,6 +388,7 @@ def box_col(sat, x0, y0, x1, y1, out):  # pragma: no cover - compiled
         for c in range(C):
             out[j, c] = (sat[y1, x1, j, c] - sat[y0, x1, j, c] - sat[y1, x0, j, c] + sat[y0, x0, j, c]) * inv
 
+
 @njit(cache=True)
 def dot_cols(a, b, c):  # pragma: no cover - compiled
     v = 0.0
@@ -395,8 +396,11 @@ def dot_cols(a, b, c):  # pragma: no cover - compiled
         v += a[j, c] * b[j, c]
     return v
 
+
 @njit(cache=True)
-def prep_candidate(sat, boxes, cols, b, k, o, m, cL, cR, valid, frac, dL, dR, dLL, dRR, dLR, hL, hR):  # pragma: no cover - compiled
+def prep_candidate(
+    sat, boxes, cols, b, k, o, m, cL, cR, valid, frac, dL, dR, dLL, dRR, dLR, hL, hR
+):  # pragma: no cover - compiled
     """Columns of kernel k's two halves for cut o and their dots with the m columns and b."""
     X0, Y0, X1, Y1 = boxes[k, 0], boxes[k, 1], boxes[k, 2], boxes[k, 3]
     if o == 0:
@@ -615,6 +619,7 @@ def fit_batch(sat, obs, K, rel_tol, boxes, m0, w_out, n_out, res_out):  # pragma
         n_out[p] = m
         res_out[p] = err / bb if bb > 0.0 else 0.0
 
+
 @njit(cache=True, parallel=True)
 def relight_batch(sat, boxes, weights, n_used, out):  # pragma: no cover - compiled
     P = boxes.shape[0]
@@ -636,6 +641,7 @@ def relight_batch(sat, boxes, weights, n_used, out):  # pragma: no cover - compi
                 mean = (sat[y1, x1, cs] - sat[y0, x1, cs] - sat[y1, x0, cs] + sat[y0, x0, cs]) * inv
                 out[p, c] += weights[p, k, c] * mean
 
+
 @njit(cache=True)
 def nnls_single(G, h, bb, x):  # pragma: no cover - compiled
     m = G.shape[0]
@@ -647,8 +653,7 @@ def nnls_single(G, h, bb, x):  # pragma: no cover - compiled
     return nnls_gram(G, h, bb, m, x, passive, excluded, s, Lw, idx)
 
 
-_KERNELS = {"fit_batch": fit_batch, "relight_batch": relight_batch, "nnls_single": nnls_single,
-            "fit_pixel": fit_pixel}
+_KERNELS = {"fit_batch": fit_batch, "relight_batch": relight_batch, "nnls_single": nnls_single, "fit_pixel": fit_pixel}
 
 
 def _kernels():
@@ -705,8 +710,9 @@ def _prepare(images, observations):
     _check_finite("natural images", L)
     obs = np.asarray(observations)
     if obs.ndim < 2 or not np.issubdtype(obs.dtype, np.number) or np.issubdtype(obs.dtype, np.complexfloating):
-        raise ShapeError(f"observations have shape {obs.shape} and dtype {obs.dtype}, expected real (N, *pixels, C) "
-                         f"or (N, P)")
+        raise ShapeError(
+            f"observations have shape {obs.shape} and dtype {obs.dtype}, expected real (N, *pixels, C) or (N, P)"
+        )
     N = L.shape[0]
     if obs.shape[0] != N:
         raise ShapeError(f"observations have {obs.shape[0]} images, natural images {N}: they must match")
@@ -749,9 +755,15 @@ def _make_field(boxes, w, n, res, domain_hw, pixels_shape, N) -> NaturalField:
     used = np.arange(K)[None, :] < n[:, None]
     b = np.where(used[..., None], boxes, 0).astype(np.uint16)
     ww = np.where(used[..., None], w, 0.0).astype(np.float32)
-    return NaturalField(boxes=b, weights=ww, n_kernels=n.astype(np.uint8), residual=res.astype(np.float32),
-                        domain_hw=tuple(int(v) for v in domain_hw), pixels_shape=tuple(pixels_shape),
-                        n_images=int(N))
+    return NaturalField(
+        boxes=b,
+        weights=ww,
+        n_kernels=n.astype(np.uint8),
+        residual=res.astype(np.float32),
+        domain_hw=tuple(int(v) for v in domain_hw),
+        pixels_shape=tuple(pixels_shape),
+        n_images=int(N),
+    )
 
 
 def estimate_natural(images, observations, *, config: NaturalConfig = NaturalConfig()) -> NaturalField:
@@ -780,8 +792,9 @@ def estimate_natural(images, observations, *, config: NaturalConfig = NaturalCon
     N, H, W = L.shape[:3]
     K = int(config.n_kernels)
     if N < K:
-        raise InputError(f"natural estimation with n_kernels={K} needs at least {K} images, got N={N}: "
-                         f"add images or lower n_kernels")
+        raise InputError(
+            f"natural estimation with n_kernels={K} needs at least {K} images, got N={N}: add images or lower n_kernels"
+        )
     _check_domain(H, W)
     sat = _broadcast_sat(summed_area_tables(L), C)
     P = obs.shape[0]
@@ -815,10 +828,16 @@ class NaturalEstimator:
         L, obs, pixels_shape, C = _prepare(images, observations)
         if self._images:
             L0 = self._images[0]
-            if L.shape[1:] != L0.shape[1:] or obs.shape[0] != self._obs[0].shape[0] or obs.shape[2] != self._obs[0].shape[2]:
-                raise ShapeError(f"batch with images {L.shape[1:]} and {obs.shape[0]} pixels × {obs.shape[2]} "
-                                 f"channels does not match the first batch ({L0.shape[1:]}, "
-                                 f"{self._obs[0].shape[0]} × {self._obs[0].shape[2]})")
+            if (
+                L.shape[1:] != L0.shape[1:]
+                or obs.shape[0] != self._obs[0].shape[0]
+                or obs.shape[2] != self._obs[0].shape[2]
+            ):
+                raise ShapeError(
+                    f"batch with images {L.shape[1:]} and {obs.shape[0]} pixels × {obs.shape[2]} "
+                    f"channels does not match the first batch ({L0.shape[1:]}, "
+                    f"{self._obs[0].shape[0]} × {self._obs[0].shape[2]})"
+                )
         self._pixels_shape = pixels_shape
         self._images.append(L)
         self._obs.append(obs)
@@ -854,8 +873,10 @@ def _check_field_image(field: NaturalField, image) -> np.ndarray:
     if L.ndim == 2:
         L = L[..., None]
     if L.ndim != 3 or tuple(L.shape[:2]) != tuple(field.domain_hw) or L.shape[2] not in (1, field.channels):
-        raise ShapeError(f"illumination image has shape {L.shape}, expected {tuple(field.domain_hw)} "
-                         f"× 1 or {field.channels} channels (the field's display domain)")
+        raise ShapeError(
+            f"illumination image has shape {L.shape}, expected {tuple(field.domain_hw)} "
+            f"× 1 or {field.channels} channels (the field's display domain)"
+        )
     L = L.astype(np.float64)
     _check_finite("illumination image", L)
     return L
@@ -912,8 +933,9 @@ def transport_matrix(field: NaturalField) -> np.ndarray:
 # --------------------------------------------------------------------------- reference
 
 
-def estimate_natural_reference(images, observations, *, config: NaturalConfig = NaturalConfig(),
-                               columns: str = "direct") -> NaturalField:
+def estimate_natural_reference(
+    images, observations, *, config: NaturalConfig = NaturalConfig(), columns: str = "direct"
+) -> NaturalField:
     """Slow, obviously-correct reference of :func:`estimate_natural`.
 
     The same subdivision rule, with ``scipy.optimize.nnls`` solving every candidate from
@@ -970,8 +992,8 @@ def estimate_natural_reference(images, observations, *, config: NaturalConfig = 
                         lo, hi = (x0, y0, x1, mid), (x0, mid, x1, y1)
                     else:
                         continue
-                    cand = bx[:k] + [lo] + bx[k + 1:] + [hi]
-                    ccols = cols[:k] + [col(lo)] + cols[k + 1:] + [col(hi)]
+                    cand = bx[:k] + [lo] + bx[k + 1 :] + [hi]
+                    ccols = cols[:k] + [col(lo)] + cols[k + 1 :] + [col(hi)]
                     e, wc = solve(ccols, b)
                     if e < best[0]:
                         best = (e, cand, ccols, wc)
@@ -1008,11 +1030,17 @@ def save_field(path, field: NaturalField, *, weights_dtype: str = "float32") -> 
         if big.any():
             log.warning("%s: %d weights beyond float16 range clamped to ±65504", path, int(big.sum()))
         w = np.clip(w, -65504, 65504)
-    arrays: dict[str, np.ndarray] = dict(format=np.array(FORMAT), domain_hw=np.array(field.domain_hw, np.int64),
-                  pixels_shape=np.array(field.pixels_shape, np.int64), boxes=field.boxes.astype(np.uint16),
-                  weights=w.astype(weights_dtype), n_kernels=field.n_kernels.astype(np.uint8),
-                  residual=field.residual.astype(np.float32), n_images=np.array(field.n_images, np.int64),
-                  meta=np.array(json.dumps(field.meta, sort_keys=True)))
+    arrays: dict[str, np.ndarray] = dict(
+        format=np.array(FORMAT),
+        domain_hw=np.array(field.domain_hw, np.int64),
+        pixels_shape=np.array(field.pixels_shape, np.int64),
+        boxes=field.boxes.astype(np.uint16),
+        weights=w.astype(weights_dtype),
+        n_kernels=field.n_kernels.astype(np.uint8),
+        residual=field.residual.astype(np.float32),
+        n_images=np.array(field.n_images, np.int64),
+        meta=np.array(json.dumps(field.meta, sort_keys=True)),
+    )
     if field.pixel_index is not None:
         arrays["pixel_index"] = np.asarray(field.pixel_index, np.int32)
         arrays["image_hw"] = np.array(field.image_hw, np.int64)
@@ -1052,10 +1080,14 @@ def load_field(path) -> NaturalField:
     if boxes.dtype != np.uint16 or boxes.ndim != 3 or boxes.shape[0] != P or boxes.shape[2] != 4:
         raise FormatError(f"natural field {path}: boxes {boxes.dtype} {boxes.shape}, expected uint16 ({P}, K, 4)")
     if w.ndim != 3 or w.shape[:2] != boxes.shape[:2] or w.dtype not in (np.float16, np.float32):
-        raise FormatError(f"natural field {path}: weights {w.dtype} {w.shape}, expected float16/32 {boxes.shape[:2]} × C")
+        raise FormatError(
+            f"natural field {path}: weights {w.dtype} {w.shape}, expected float16/32 {boxes.shape[:2]} × C"
+        )
     if n.shape != (P,) or int(n.max(initial=0)) > boxes.shape[1]:
-        raise FormatError(f"natural field {path}: n_kernels shape {n.shape} or max {int(n.max(initial=0))} "
-                          f"inconsistent with K={boxes.shape[1]}")
+        raise FormatError(
+            f"natural field {path}: n_kernels shape {n.shape} or max {int(n.max(initial=0))} "
+            f"inconsistent with K={boxes.shape[1]}"
+        )
     b = boxes.astype(np.int64)
     used = np.arange(boxes.shape[1])[None, :] < n[:, None]
     ok = (b[..., 0] <= b[..., 2]) & (b[..., 1] <= b[..., 3]) & (b[..., 2] <= W) & (b[..., 3] <= H)
@@ -1072,11 +1104,21 @@ def load_field(path) -> NaturalField:
         idx = d["pixel_index"].astype(np.int64)
         ihw = tuple(int(v) for v in d.get("image_hw", np.zeros(0)))
         if len(ihw) != 2 or idx.shape != (P,) or (P and (idx.min() < 0 or idx.max() >= ihw[0] * ihw[1])):
-            raise FormatError(f"natural field {path}: pixel_index {idx.shape} / image_hw {ihw} inconsistent with "
-                              f"{P} pixels")
-    return NaturalField(boxes=boxes, weights=w.astype(np.float32), n_kernels=n.astype(np.uint8),
-                        residual=d["residual"].astype(np.float32), domain_hw=(H, W), pixels_shape=pshape,
-                        n_images=int(d["n_images"]), meta=meta, pixel_index=idx, image_hw=ihw)
+            raise FormatError(
+                f"natural field {path}: pixel_index {idx.shape} / image_hw {ihw} inconsistent with {P} pixels"
+            )
+    return NaturalField(
+        boxes=boxes,
+        weights=w.astype(np.float32),
+        n_kernels=n.astype(np.uint8),
+        residual=d["residual"].astype(np.float32),
+        domain_hw=(H, W),
+        pixels_shape=pshape,
+        n_images=int(d["n_images"]),
+        meta=meta,
+        pixel_index=idx,
+        image_hw=ihw,
+    )
 
 
 def scatter_pixels(field: NaturalField, values) -> np.ndarray:
@@ -1123,8 +1165,9 @@ def display_directions(display, table_deg: float, *, centre_m=(0.0, 0.0, 0.0), s
     return d / np.linalg.norm(d, axis=-1, keepdims=True)
 
 
-def envmap_display_image(envmap, display, table_deg: float, *, centre_m=(0.0, 0.0, 0.0),
-                         supersample: int = 3) -> np.ndarray:
+def envmap_display_image(
+    envmap, display, table_deg: float, *, centre_m=(0.0, 0.0, 0.0), supersample: int = 3
+) -> np.ndarray:
     """The image a display would show so that it sends the object what ``envmap`` sends
     from the display's solid angle: float64 (H_d, W_d, 3), in the envmap's radiance units.
 
@@ -1142,8 +1185,9 @@ def envmap_display_image(envmap, display, table_deg: float, *, centre_m=(0.0, 0.
     return rad.mean(axis=2)[..., :3]
 
 
-def relight_view_natural(fields: dict, envmap, geometry, table_deg: float, *, centre_m=(0.0, 0.0, 0.0),
-                         supersample: int = 3) -> np.ndarray | None:
+def relight_view_natural(
+    fields: dict, envmap, geometry, table_deg: float, *, centre_m=(0.0, 0.0, 0.0), supersample: int = 3
+) -> np.ndarray | None:
     """The display-domain part of one relit view under an environment map: the sum over
     illumination domains of :func:`relight_natural` under :func:`envmap_display_image`.
 
@@ -1161,11 +1205,13 @@ def relight_view_natural(fields: dict, envmap, geometry, table_deg: float, *, ce
     """
     out = None
     for name, f in sorted(fields.items()):
-        L = envmap_display_image(envmap, geometry.display(name), table_deg, centre_m=centre_m,
-                                 supersample=supersample)
+        L = envmap_display_image(envmap, geometry.display(name), table_deg, centre_m=centre_m, supersample=supersample)
         vals = relight_natural(f, L)
-        img = scatter_pixels(f, vals)[..., :3] if f.pixel_index is not None else vals.reshape(
-            tuple(f.pixels_shape) + (-1,))[..., :3]
+        img = (
+            scatter_pixels(f, vals)[..., :3]
+            if f.pixel_index is not None
+            else vals.reshape(tuple(f.pixels_shape) + (-1,))[..., :3]
+        )
         out = img.astype(np.float32) if out is None else out + img
     return out
 

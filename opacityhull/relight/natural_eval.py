@@ -30,8 +30,17 @@ from ..errors import InputError
 
 log = logging.getLogger(__name__)
 
-__all__ = ["sim_rig_for_session", "render_display_image", "held_out_images", "bar_patterns", "masked_envmap",
-           "compare", "envmap_display_layers", "render_envmap_on_displays", "natural_part_of_view"]
+__all__ = [
+    "sim_rig_for_session",
+    "render_display_image",
+    "held_out_images",
+    "bar_patterns",
+    "masked_envmap",
+    "compare",
+    "envmap_display_layers",
+    "render_envmap_on_displays",
+    "natural_part_of_view",
+]
 
 
 def sim_rig_for_session(session):
@@ -44,8 +53,9 @@ def sim_rig_for_session(session):
     return open_sim_rig(str(src), open=False)
 
 
-def render_display_image(rig, camera: int, table_deg: float, display: str, pattern_u8: np.ndarray, *,
-                         seed: int = 0) -> np.ndarray:
+def render_display_image(
+    rig, camera: int, table_deg: float, display: str, pattern_u8: np.ndarray, *, seed: int = 0
+) -> np.ndarray:
     """Mitsuba radiance (H, W, 3) of camera ``camera`` at ``table_deg`` with
     ``pattern_u8`` (uint8 (rows, cols, 3)) on ``display`` and every other display black,
     the object on the table, lights off — a capture of the natural phase without the
@@ -76,8 +86,10 @@ def bar_patterns(display, n_positions: int = 16, *, bar_fraction: float = 0.125)
     from .natural_synthetic import white_bar
 
     w, h = display.resolution
-    return [np.round(white_bar(k, n_positions, height=h, width=w, bar_fraction=bar_fraction) * 255).astype(np.uint8)
-            for k in range(n_positions)]
+    return [
+        np.round(white_bar(k, n_positions, height=h, width=w, bar_fraction=bar_fraction) * 255).astype(np.uint8)
+        for k in range(n_positions)
+    ]
 
 
 def masked_envmap(envmap, geometry, table_deg: float, *, centre_m, displays: Sequence[str] | None = None):
@@ -103,8 +115,9 @@ def compare(est: np.ndarray, truth: np.ndarray, mask: np.ndarray | None = None) 
     return relight_metrics(est[..., :3], truth[..., :3], m)
 
 
-def envmap_display_layers(envmap, display, table_deg: float, *, centre_m, supersample: int = 3,
-                          layers: int = 2) -> list[tuple[np.ndarray, float]]:
+def envmap_display_layers(
+    envmap, display, table_deg: float, *, centre_m, supersample: int = 3, layers: int = 2
+) -> list[tuple[np.ndarray, float]]:
     """What a display shows to stand in for ``envmap`` over its solid angle, as 8-bit
     layers: ``[(pattern uint8 (rows, cols, 3), to_env), ...]`` whose emitted radiance,
     each times its ``to_env``, sums to :func:`~opacityhull.relight.natural.envmap_display_image`
@@ -136,8 +149,18 @@ def envmap_display_layers(envmap, display, table_deg: float, *, centre_m, supers
     return out
 
 
-def render_envmap_on_displays(rig, camera: int, table_deg: float, envmap, displays: Sequence[str], *, centre_m,
-                              seed: int = 0, supersample: int = 3, layers: int = 2) -> np.ndarray:
+def render_envmap_on_displays(
+    rig,
+    camera: int,
+    table_deg: float,
+    envmap,
+    displays: Sequence[str],
+    *,
+    centre_m,
+    seed: int = 0,
+    supersample: int = 3,
+    layers: int = 2,
+) -> np.ndarray:
     """Mitsuba radiance (H, W, 3), in the map's units, of camera ``camera`` at
     ``table_deg`` with each display in ``displays`` showing ``envmap`` over its solid
     angle (:func:`envmap_display_layers`) and the others black: the display-lit half of
@@ -150,8 +173,9 @@ def render_envmap_on_displays(rig, camera: int, table_deg: float, envmap, displa
     out = None
     for name in displays:
         d = rig.geometry.display(name)
-        for pat, to_env in envmap_display_layers(envmap, d, table_deg, centre_m=centre_m, supersample=supersample,
-                                                 layers=layers):
+        for pat, to_env in envmap_display_layers(
+            envmap, d, table_deg, centre_m=centre_m, supersample=supersample, layers=layers
+        ):
             img = np.asarray(render_display_image(rig, camera, table_deg, name, pat, seed=seed), np.float64)[..., :3]
             img = img * to_env
             out = img if out is None else out + img
@@ -170,5 +194,4 @@ def natural_part_of_view(model, index: int, envmap, *, centre_m, supersample: in
     fields = load_view_fields(model.root, v.id)
     if not fields:
         return None
-    return relight_view_natural(fields, envmap, model.geometry, v.table_deg, centre_m=centre_m,
-                                supersample=supersample)
+    return relight_view_natural(fields, envmap, model.geometry, v.table_deg, centre_m=centre_m, supersample=supersample)

@@ -23,8 +23,17 @@ import numpy as np
 
 from ..errors import InputError
 
-__all__ = ["KINDS", "transport_row", "transport_rows", "noise_images", "probe_crops", "natural_images", "glass_scene",
-           "white_bar", "apply_transport"]
+__all__ = [
+    "KINDS",
+    "transport_row",
+    "transport_rows",
+    "noise_images",
+    "probe_crops",
+    "natural_images",
+    "glass_scene",
+    "white_bar",
+    "apply_transport",
+]
 
 KINDS = ("boxes", "diffuse", "glossy", "refraction", "shadowed")
 
@@ -70,7 +79,7 @@ def transport_row(kind: str, rng: np.random.Generator, *, height: int, width: in
         cx, cy = rng.uniform(0.3, 0.7) * W, rng.uniform(0.3, 0.7) * H
         T = _gauss(H, W, cx, cy, rng.uniform(0.25, 0.4) * max(H, W)) + 0.1
         x0, y0 = int(rng.integers(0, W // 2)), int(rng.integers(0, H // 2))
-        T[y0:y0 + H // 2, x0:x0 + W // 2] = 0.0
+        T[y0 : y0 + H // 2, x0 : x0 + W // 2] = 0.0
     T = T / T.sum() * (rng.uniform(0.3, 0.9) if kind != "refraction" else 0.9)
     return T
 
@@ -115,23 +124,29 @@ def probe_crops(n: int, rng: np.random.Generator, *, height: int, width: int) ->
         ch, cw = max(int(ph * s), 2), max(int(pw * s * width / max(height, 1) * ph / pw), 2)
         cw = min(cw, pw)
         y0, x0 = int(rng.integers(0, ph - ch + 1)), int(rng.integers(0, pw - cw + 1))
-        crop = np.ascontiguousarray(img[y0:y0 + ch, x0:x0 + cw])
+        crop = np.ascontiguousarray(img[y0 : y0 + ch, x0 : x0 + cw])
         crop = cv2.resize(crop, (width, height), interpolation=cv2.INTER_AREA).astype(np.float64)
         out[j] = np.clip(crop / max(float(crop.mean()), 1e-12) * 0.4, 0.0, 1.0)
     return out
 
 
-def natural_images(n: int, rng: np.random.Generator, *, height: int, width: int,
-                   probe_fraction: float = 0.5) -> np.ndarray:
+def natural_images(
+    n: int, rng: np.random.Generator, *, height: int, width: int, probe_fraction: float = 0.5
+) -> np.ndarray:
     """A shuffled mix of 1/f noise and probe crops, float64 (n, height, width, 3)."""
     n_probe = int(round(n * probe_fraction))
-    imgs = np.concatenate([noise_images(n - n_probe, rng, height=height, width=width),
-                           probe_crops(n_probe, rng, height=height, width=width)])
+    imgs = np.concatenate(
+        [
+            noise_images(n - n_probe, rng, height=height, width=width),
+            probe_crops(n_probe, rng, height=height, width=width),
+        ]
+    )
     return imgs[rng.permutation(n)]
 
 
-def white_bar(position: int, n_positions: int, *, height: int, width: int, bar_fraction: float = 0.125,
-              value: float = 1.0) -> np.ndarray:
+def white_bar(
+    position: int, n_positions: int, *, height: int, width: int, bar_fraction: float = 0.125, value: float = 1.0
+) -> np.ndarray:
     """The moving white bar: a vertical bar ``bar_fraction`` of the width on black, at
     step ``position`` of ``n_positions`` evenly spaced from the left to the right edge.
 
@@ -143,7 +158,7 @@ def white_bar(position: int, n_positions: int, *, height: int, width: int, bar_f
     span = width - bw
     x0 = int(round(position * span / max(n_positions - 1, 1)))
     img = np.zeros((height, width, 3))
-    img[:, x0:x0 + bw] = value
+    img[:, x0 : x0 + bw] = value
     return img
 
 

@@ -38,8 +38,14 @@ from typing import Callable, Sequence
 import numpy as np
 
 from ..errors import FormatError, InputError, ShapeError
-from .basis import (KernelConfig, LightSet, directional_light_weights, integrate_envmap, light_set_from_model,
-                    prepare_envmap)
+from .basis import (
+    KernelConfig,
+    LightSet,
+    directional_light_weights,
+    integrate_envmap,
+    light_set_from_model,
+    prepare_envmap,
+)
 from .envmap import EnvironmentMap
 
 __all__ = [
@@ -280,7 +286,7 @@ def compress_reflectance(stack, rank: int) -> CompressedReflectance:
     V = evecs[:, order[: int(rank)]]
     basis = (V.T.astype(np.float32) @ Mt).reshape((int(rank),) + s.shape[1:])
     total = float(evals.sum())
-    rel = math.sqrt(max(0.0, float(evals[int(rank):].sum())) / total) if total > 0 else 0.0
+    rel = math.sqrt(max(0.0, float(evals[int(rank) :].sum())) / total) if total > 0 else 0.0
     return CompressedReflectance(basis.astype(np.float32), V, np.sqrt(evals), rel)
 
 
@@ -427,8 +433,11 @@ class Relighter:
         (summed)."""
         if envmap is None and lights is None:
             raise InputError("relighting needs an environment map (--envmap) or lights (--lights)")
-        key = (envmap, None if lights is None else (np.asarray(lights[0]).tobytes(), np.asarray(lights[1]).tobytes()),
-               round(float(table_deg) % 360.0, 9))
+        key = (
+            envmap,
+            None if lights is None else (np.asarray(lights[0]).tobytes(), np.asarray(lights[1]).tobytes()),
+            round(float(table_deg) % 360.0, 9),
+        )
         if key not in self._wcache:
             dirs = self.lights.directions_object(table_deg)
             w = np.zeros((len(self.lights), 3))
@@ -450,14 +459,18 @@ class Relighter:
         for k, key in enumerate(self.lights.keys):
             a = imgs[key]
             if a.shape != first.shape:
-                raise FormatError(f"{self.model.root}: view {self.model.views[i].id} one-light image {key} has shape "
-                                  f"{a.shape}, others {first.shape}")
+                raise FormatError(
+                    f"{self.model.root}: view {self.model.views[i].id} one-light image {key} has shape "
+                    f"{a.shape}, others {first.shape}"
+                )
             stack[k] = a
         bad = ~np.isfinite(stack)
         if bad.any():
             k = int(np.argwhere(bad)[0][0])
-            raise FormatError(f"{self.model.root}: view {self.model.views[i].id} one-light image {self.lights.keys[k]} "
-                              f"has {int(bad[k].sum())} NaN/Inf values")
+            raise FormatError(
+                f"{self.model.root}: view {self.model.views[i].id} one-light image {self.lights.keys[k]} "
+                f"has {int(bad[k].sum())} NaN/Inf values"
+            )
         return stack
 
     def matte(self, i: int) -> np.ndarray:
@@ -465,8 +478,9 @@ class Relighter:
         return self.model.load_view_rgba(i)[..., 3]
 
     # ---- relighting
-    def relight_view(self, i: int, *, envmap: EnvironmentMap | None = None, lights=None, weights=None,
-                     stack=None, alpha=None) -> np.ndarray:
+    def relight_view(
+        self, i: int, *, envmap: EnvironmentMap | None = None, lights=None, weights=None, stack=None, alpha=None
+    ) -> np.ndarray:
         """(H, W, 4) float32 premultiplied RGBA of view i relit: RGB = Σ_k w_k O_k,
         A = the view's matte; colour where the matte is 0 is zeroed (premultiplied
         colour must vanish with alpha). ``weights`` may be (M, K, 3) → (M, H, W, 4)."""
@@ -483,16 +497,25 @@ class Relighter:
         if self.config.pca_rank is not None:
             comp = compress_reflectance(s if pts is None else _near_scaled(s, pts, lp), self.config.pca_rank)
             rgb = comp.relight(w)
-            self.pca_stats[i] = {"rank": comp.rank, "rel_error": comp.rel_error,
-                                 "compression_ratio": comp.compression_ratio}
+            self.pca_stats[i] = {
+                "rank": comp.rank,
+                "rel_error": comp.rel_error,
+                "compression_ratio": comp.compression_ratio,
+            }
         else:
             rgb = relight_stack(s, w, points=pts, light_positions=lp)
         rgb = np.where((a > 0)[..., None], rgb, np.float32(0))
         aa = np.broadcast_to(a[..., None], rgb.shape[:-1] + (1,))
         return np.concatenate([rgb, aa], axis=-1).astype(np.float32)
 
-    def relight_views(self, indices: Sequence[int] | None = None, *, envmap: EnvironmentMap | None = None,
-                      lights=None, progress: Callable[[int, int], None] | None = None) -> list[np.ndarray]:
+    def relight_views(
+        self,
+        indices: Sequence[int] | None = None,
+        *,
+        envmap: EnvironmentMap | None = None,
+        lights=None,
+        progress: Callable[[int, int], None] | None = None,
+    ) -> list[np.ndarray]:
         """Relit premultiplied RGBA of the views ``indices`` (default all), in order."""
         idx = list(range(len(self.model.views))) if indices is None else list(indices)
         out = []

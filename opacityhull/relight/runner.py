@@ -136,9 +136,12 @@ def relight_model(
     summary: dict = {
         "model": str(model.root),
         "out": str(out),
-        "lighting": {"envmap": env.stats() if env is not None else None,
-                     "lights": None if light_list is None else
-                     [{"direction": d.tolist(), "irradiance_rgb": e.tolist()} for d, e in zip(*light_list)]},
+        "lighting": {
+            "envmap": env.stats() if env is not None else None,
+            "lights": None
+            if light_list is None
+            else [{"direction": d.tolist(), "irradiance_rgb": e.tolist()} for d, e in zip(*light_list)],
+        },
         "n_lights_captured": len(R.lights),
         "light_spacing_deg": math.degrees(R.lights.spacing_rad()),
         "config": {"kernel": asdict(config.kernel), "near_light": R.near_light, "pca_rank": config.pca_rank},
@@ -166,10 +169,12 @@ def relight_model(
     summary["relit_views_per_s"] = n / max(summary["relit_views_s"], 1e-9)
     if config.pca_rank is not None and R.pca_stats:
         st = list(R.pca_stats.values())
-        summary["pca"] = {"rank": config.pca_rank,
-                          "reflectance_rel_error_mean": float(np.mean([s["rel_error"] for s in st])),
-                          "reflectance_rel_error_max": float(np.max([s["rel_error"] for s in st])),
-                          "compression_ratio": float(np.mean([s["compression_ratio"] for s in st]))}
+        summary["pca"] = {
+            "rank": config.pca_rank,
+            "reflectance_rel_error_mean": float(np.mean([s["rel_error"] for s in st])),
+            "reflectance_rel_error_max": float(np.max([s["rel_error"] for s in st])),
+            "compression_ratio": float(np.mean([s["compression_ratio"] for s in st])),
+        }
 
     # one exposure for everything written, from the captured views (no flicker)
     if exposure is None:
@@ -190,8 +195,9 @@ def relight_model(
             write_png(out / "views" / f"{vid}.png", _display(over, exposure))
             tiles.append(_display(over, exposure))
             labels.append(vid)
-        write_sheet(out / "views.png", contact_sheet([to_srgb8(t) for t in tiles[:64]], labels=labels[:64],
-                                                     min_width=160))
+        write_sheet(
+            out / "views.png", contact_sheet([to_srgb8(t) for t in tiles[:64]], labels=labels[:64], min_width=160)
+        )
         summary["views_dir"] = str(out / "views")
         summary["views_sheet"] = str(out / "views.png")
 
@@ -212,8 +218,12 @@ def relight_model(
             img = res.over(bg)
             write_exr(out / f"view_{cam.name}.exr", res.rgba)
             write_png(out / f"view_{cam.name}.png", _display(img, exposure))
-            summary["view"] = {"camera": cam.name, "exr": str(out / f"view_{cam.name}.exr"),
-                               "png": str(out / f"view_{cam.name}.png"), "ms": res.stats.get("ms", {}).get("total")}
+            summary["view"] = {
+                "camera": cam.name,
+                "exr": str(out / f"view_{cam.name}.exr"),
+                "png": str(out / f"view_{cam.name}.png"),
+                "ms": res.stats.get("ms", {}).get("total"),
+            }
             done += 1
             if progress:
                 progress(done, total)
@@ -232,11 +242,22 @@ def relight_model(
             orbit_s = time.perf_counter() - t3
             write_gif(out / "orbit.gif", frames, fps=fps)
             step = max(1, len(frames) // 16)
-            write_sheet(out / "orbit.png", contact_sheet([to_srgb8(f) for f in frames[::step]], min_width=160,
-                                                         labels=[f"{k * step}" for k in range(len(frames[::step]))]))
-            summary["orbit"] = {"frames": orbit, "dir": str(out / "orbit"), "gif": str(out / "orbit.gif"),
-                                "sheet": str(out / "orbit.png"), "render_s": orbit_s,
-                                "total_s": orbit_s + summary["relit_views_s"]}
+            write_sheet(
+                out / "orbit.png",
+                contact_sheet(
+                    [to_srgb8(f) for f in frames[::step]],
+                    min_width=160,
+                    labels=[f"{k * step}" for k in range(len(frames[::step]))],
+                ),
+            )
+            summary["orbit"] = {
+                "frames": orbit,
+                "dir": str(out / "orbit"),
+                "gif": str(out / "orbit.gif"),
+                "sheet": str(out / "orbit.png"),
+                "render_s": orbit_s,
+                "total_s": orbit_s + summary["relit_views_s"],
+            }
         summary["render_s"] = time.perf_counter() - t2
     summary["total_s"] = time.perf_counter() - t0
     with atomic_path(out / "relight.json") as tmp:
@@ -254,8 +275,15 @@ def _straight(rgba_premul: np.ndarray) -> np.ndarray:
     return out
 
 
-def demo_step(model_dir, out_dir, *, probe: str = "grace", orbit: int = 24, eval_views: int | None = 6,
-              progress: Callable[[int, int], None] | None = None) -> dict:
+def demo_step(
+    model_dir,
+    out_dir,
+    *,
+    probe: str = "grace",
+    orbit: int = 24,
+    eval_views: int | None = 6,
+    progress: Callable[[int, int], None] | None = None,
+) -> dict:
     """The relighting step of ``opacityhull demo``: relight the captured model under a
     shipped probe (``builtin:<probe>``, ICT yaw applied), render an orbit of ``orbit``
     frames over the probe, and — for a simulated model — compare ``eval_views`` relit
@@ -263,9 +291,15 @@ def demo_step(model_dir, out_dir, *, probe: str = "grace", orbit: int = 24, eval
     with the paths to show the user."""
     out = Path(out_dir)
     s = relight_model(model_dir, out=out, envmap=builtin_envmap(probe), orbit=orbit, progress=progress)
-    res = {"probe": probe, "out": str(out), "gif": s["orbit"]["gif"], "sheet": s["orbit"]["sheet"],
-           "views_sheet": s.get("views_sheet"), "relit_views_per_s": s["relit_views_per_s"],
-           "orbit_s": s["orbit"]["total_s"]}
+    res = {
+        "probe": probe,
+        "out": str(out),
+        "gif": s["orbit"]["gif"],
+        "sheet": s["orbit"]["sheet"],
+        "views_sheet": s.get("views_sheet"),
+        "relit_views_per_s": s["relit_views_per_s"],
+        "orbit_s": s["orbit"]["total_s"],
+    }
     if eval_views:
         from .evaluate import eval_relight
 

@@ -46,9 +46,15 @@ class SphereScene:
         return m[..., None] * np.asarray(self.albedo_rgb)
 
 
-def paper_light_rig(n_lights: int = 4, n_positions: int = 15, *, elevations_deg: Sequence[float] | None = None,
-                    distance_m: float = 1.2, intensities: Sequence[float] | None = None,
-                    colours: Sequence[Sequence[float]] | None = None) -> tuple[list[dict], list[float]]:
+def paper_light_rig(
+    n_lights: int = 4,
+    n_positions: int = 15,
+    *,
+    elevations_deg: Sequence[float] | None = None,
+    distance_m: float = 1.2,
+    intensities: Sequence[float] | None = None,
+    colours: Sequence[Sequence[float]] | None = None,
+) -> tuple[list[dict], list[float]]:
     """Light table entries of an overhead array of ``n_lights`` on an arc and the
     ``n_positions`` array angles (the paper: 4 × 15, 24° apart)."""
     if elevations_deg is None:
@@ -56,32 +62,49 @@ def paper_light_rig(n_lights: int = 4, n_positions: int = 15, *, elevations_deg:
         elevations_deg = [90.0 * (j + 0.5) / n_lights for j in range(n_lights)]
     lights = []
     for j, el in enumerate(elevations_deg):
-        lights.append({
-            "id": j,
-            "elevation_deg": float(el),
-            "azimuth_deg": 0.0 if j % 2 == 0 else 180.0 / max(1, n_positions),  # stagger rings
-            "distance_m": distance_m,
-            "intensity": float(intensities[j]) if intensities is not None else 1.0,
-            "colour": list(colours[j]) if colours is not None else [1.0, 1.0, 1.0],
-        })
+        lights.append(
+            {
+                "id": j,
+                "elevation_deg": float(el),
+                "azimuth_deg": 0.0 if j % 2 == 0 else 180.0 / max(1, n_positions),  # stagger rings
+                "distance_m": distance_m,
+                "intensity": float(intensities[j]) if intensities is not None else 1.0,
+                "colour": list(colours[j]) if colours is not None else [1.0, 1.0, 1.0],
+            }
+        )
     positions = [360.0 * p / n_positions for p in range(n_positions)]
     return lights, positions
 
 
-def sphere_rig(*, width: int = 48, height: int = 40, n_lights: int = 4, n_positions: int = 15,
-               camera_elevations_deg: Sequence[float] = (10.0, 40.0), calibrated: bool = True,
-               light_elevations_deg: Sequence[float] | None = None) -> tuple[dict, list[float]]:
+def sphere_rig(
+    *,
+    width: int = 48,
+    height: int = 40,
+    n_lights: int = 4,
+    n_positions: int = 15,
+    camera_elevations_deg: Sequence[float] = (10.0, 40.0),
+    calibrated: bool = True,
+    light_elevations_deg: Sequence[float] | None = None,
+) -> tuple[dict, list[float]]:
     """Rig table (riggeometry schema) and array angles for the sphere model."""
     intens = colours = None
     if calibrated:
         # lights of unequal output and tint: relighting must divide them out
         intens = [0.8 + 0.15 * j for j in range(n_lights)]
         colours = [[1.0, 0.9 + 0.03 * j, 0.8 + 0.05 * j] for j in range(n_lights)]
-    lights, positions = paper_light_rig(n_lights, n_positions, elevations_deg=light_elevations_deg,
-                                        intensities=intens, colours=colours)
+    lights, positions = paper_light_rig(
+        n_lights, n_positions, elevations_deg=light_elevations_deg, intensities=intens, colours=colours
+    )
     cams = [
-        {"name": f"cam{i}", "width": width, "height": height, "distance_m": 0.6, "elevation_deg": float(e),
-         "azimuth_deg": 0.0, "fov_y_deg": 25.0}
+        {
+            "name": f"cam{i}",
+            "width": width,
+            "height": height,
+            "distance_m": 0.6,
+            "elevation_deg": float(e),
+            "azimuth_deg": 0.0,
+            "fov_y_deg": 25.0,
+        }
         for i, e in enumerate(camera_elevations_deg)
     ]
     return {"target_m": [0.0, 0.1, 0.0], "cameras": cams, "lights": lights}, positions
@@ -118,19 +141,36 @@ def _one_light_images(normals, hits, albedo, dirs, irr) -> np.ndarray:
     return np.einsum("khws,hwsc,kc->khwc", cos, albedo / math.pi, irr).astype(np.float32) / hits.shape[2]
 
 
-def write_sphere_model(root, *, scene: SphereScene = SphereScene(), width: int = 48, height: int = 40,
-                       n_lights: int = 4, n_positions: int = 15, table_degs: Sequence[float] = (0.0, 90.0, 180.0, 270.0),
-                       camera_elevations_deg: Sequence[float] = (10.0, 40.0), ss: int = 2, calibrated: bool = True,
-                       light_elevations_deg: Sequence[float] | None = None, n_surfels: int = 4000,
-                       drop_light: tuple[int, str] | None = None) -> Path:
+def write_sphere_model(
+    root,
+    *,
+    scene: SphereScene = SphereScene(),
+    width: int = 48,
+    height: int = 40,
+    n_lights: int = 4,
+    n_positions: int = 15,
+    table_degs: Sequence[float] = (0.0, 90.0, 180.0, 270.0),
+    camera_elevations_deg: Sequence[float] = (10.0, 40.0),
+    ss: int = 2,
+    calibrated: bool = True,
+    light_elevations_deg: Sequence[float] | None = None,
+    n_surfels: int = 4000,
+    drop_light: tuple[int, str] | None = None,
+) -> Path:
     """Write the sphere as a model folder (views, surfels, reflectance, rig).
 
     ``drop_light = (view index, key)`` leaves that one-light image out of that view's
     reflectance file (the missing-data hard case).
     """
-    rig, positions = sphere_rig(width=width, height=height, n_lights=n_lights, n_positions=n_positions,
-                                camera_elevations_deg=camera_elevations_deg, calibrated=calibrated,
-                                light_elevations_deg=light_elevations_deg)
+    rig, positions = sphere_rig(
+        width=width,
+        height=height,
+        n_lights=n_lights,
+        n_positions=n_positions,
+        camera_elevations_deg=camera_elevations_deg,
+        calibrated=calibrated,
+        light_elevations_deg=light_elevations_deg,
+    )
     geom = RigGeometry.from_dict(rig)
     rig_cams = geom.nominal_cameras()
     views = []
@@ -170,12 +210,26 @@ def write_sphere_model(root, *, scene: SphereScene = SphereScene(), width: int =
         return {s.key: olat[k] for k, s in enumerate(samples)}
 
     root = Path(root)
-    prov = {"generator": "opacityhull.relight.synthetic.write_sphere_model", "scene": "analytic:lambertian-sphere",
-            "light_model": "directional",
-            "sphere": {"centre_m": list(scene.centre_m), "radius_m": scene.radius_m,
-                       "albedo_rgb": list(scene.albedo_rgb), "texture": scene.texture}}
-    write_model(root, views=views, surfels=surfels, view_rgba=rgba, rig=rig, provenance=prov,
-                reflectance={"lights": samples, "images": images})
+    prov = {
+        "generator": "opacityhull.relight.synthetic.write_sphere_model",
+        "scene": "analytic:lambertian-sphere",
+        "light_model": "directional",
+        "sphere": {
+            "centre_m": list(scene.centre_m),
+            "radius_m": scene.radius_m,
+            "albedo_rgb": list(scene.albedo_rgb),
+            "texture": scene.texture,
+        },
+    }
+    write_model(
+        root,
+        views=views,
+        surfels=surfels,
+        view_rgba=rgba,
+        rig=rig,
+        provenance=prov,
+        reflectance={"lights": samples, "images": images},
+    )
     if drop_light is not None:
         # the file exists but one sample is stored under another name, as a capture
         # that lost one image would leave it
@@ -189,8 +243,9 @@ def write_sphere_model(root, *, scene: SphereScene = SphereScene(), width: int =
     return root
 
 
-def sphere_groundtruth(cam: Camera, scene: SphereScene, env: EnvironmentMap, *, ss: int = 2,
-                       upper_only: bool = True, chunk: int = 4096) -> np.ndarray:
+def sphere_groundtruth(
+    cam: Camera, scene: SphereScene, env: EnvironmentMap, *, ss: int = 2, upper_only: bool = True, chunk: int = 4096
+) -> np.ndarray:
     """Exact premultiplied relit image of the sphere under ``env`` (H, W, 3) float32:
     mean over sub-pixel rays of ρ/π Σ_j max(0, n·ω_j) L_j Δω_j over the map's texels
     (the upper hemisphere only when ``upper_only``, matching a table that blocks light

@@ -18,8 +18,15 @@ from typing import TYPE_CHECKING
 if TYPE_CHECKING:  # what the lazy __getattr__ below resolves, for type checkers
     from .background import EnvMap, composite_over, envmap_lookup
     from .config import RenderConfig
-    from .renderer import (RenderResult, UlrWeights, prepare_model_views, render_image, render_model,
-                           spatially_sorted, ulr_weights)
+    from .renderer import (
+        RenderResult,
+        UlrWeights,
+        prepare_model_views,
+        render_image,
+        render_model,
+        spatially_sorted,
+        ulr_weights,
+    )
     from .views import PreparedViews, prepare_views
 
 _EXPORTS = {

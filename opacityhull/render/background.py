@@ -23,8 +23,14 @@ from ..camera import Camera, rot_y
 from ..envmap import direction_to_uv, uv_to_direction
 from ..errors import InputError, ShapeError
 
-__all__ = ["EnvMap", "envmap_lookup", "direction_to_equirect", "equirect_to_direction", "resolve_background",
-           "composite_over"]
+__all__ = [
+    "EnvMap",
+    "envmap_lookup",
+    "direction_to_equirect",
+    "equirect_to_direction",
+    "resolve_background",
+    "composite_over",
+]
 
 
 def direction_to_equirect(directions) -> tuple[np.ndarray, np.ndarray]:
@@ -77,8 +83,12 @@ def envmap_lookup(image, directions, *, yaw_deg: float = 0.0) -> np.ndarray:
     xb = np.mod(x0 + 1, w)
     ya = np.clip(y0, 0, h - 1)  # clamp at the poles
     yb = np.clip(y0 + 1, 0, h - 1)
-    out = (env[ya, xa] * (1 - ax) * (1 - ay) + env[ya, xb] * ax * (1 - ay)
-           + env[yb, xa] * (1 - ax) * ay + env[yb, xb] * ax * ay)
+    out = (
+        env[ya, xa] * (1 - ax) * (1 - ay)
+        + env[ya, xb] * ax * (1 - ay)
+        + env[yb, xa] * (1 - ax) * ay
+        + env[yb, xb] * ax * ay
+    )
     return out.astype(np.float32)
 
 
@@ -134,9 +144,7 @@ def resolve_background(background, camera: Camera) -> np.ndarray:
         return np.broadcast_to(a, (H, W, 3)).copy()
     if a.ndim == 3 and a.shape[:2] == (H, W) and a.shape[2] in (3, 4):
         return np.ascontiguousarray(a[:, :, :3])
-    raise InputError(
-        f"background of shape {a.shape}: expected a colour (3,), an image ({H}, {W}, 3|4) or an EnvMap"
-    )
+    raise InputError(f"background of shape {a.shape}: expected a colour (3,), an image ({H}, {W}, 3|4) or an EnvMap")
 
 
 def composite_over(rgba_straight, background_rgb) -> np.ndarray:
@@ -182,7 +190,8 @@ def load_background(spec: str, *, yaw_deg: float = 0.0, kind: str = "auto"):
     if kind not in ("auto", "image", "envmap"):
         raise InputError(f"--background-kind {kind!r}: expected auto, image or envmap")
     is_env = kind == "envmap" or (
-        kind == "auto" and (p.suffix.lower() in (".hdr", ".pic") or (p.suffix.lower() == ".exr" and img.shape[1] == 2 * img.shape[0]))
+        kind == "auto"
+        and (p.suffix.lower() in (".hdr", ".pic") or (p.suffix.lower() == ".exr" and img.shape[1] == 2 * img.shape[0]))
     )
     if is_env:
         return EnvMap(img, yaw_deg=yaw_deg)
@@ -198,4 +207,6 @@ def fit_image(image: np.ndarray, camera: Camera) -> np.ndarray:
     if image.shape[:2] == (camera.height, camera.width):
         return image
     shrink = image.shape[0] > camera.height
-    return cv2.resize(image, (camera.width, camera.height), interpolation=cv2.INTER_AREA if shrink else cv2.INTER_LINEAR)
+    return cv2.resize(
+        image, (camera.width, camera.height), interpolation=cv2.INTER_AREA if shrink else cv2.INTER_LINEAR
+    )

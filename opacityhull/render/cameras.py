@@ -11,8 +11,16 @@ import numpy as np
 from ..camera import Camera, look_at_world_from_cam, object_from_rig, rig_from_object
 from ..errors import InputError
 
-__all__ = ["resize_camera", "look_at_camera", "captured_view_camera", "scene_target", "orbit_cameras",
-           "parse_view_spec", "parse_look_at", "mean_fov_y_deg"]
+__all__ = [
+    "resize_camera",
+    "look_at_camera",
+    "captured_view_camera",
+    "scene_target",
+    "orbit_cameras",
+    "parse_view_spec",
+    "parse_look_at",
+    "mean_fov_y_deg",
+]
 
 
 def resize_camera(cam: Camera, width: int | None = None, height: int | None = None) -> Camera:
@@ -45,8 +53,9 @@ def look_at_camera(eye, target, *, fov_y_deg: float, width: int, height: int, na
         raise InputError(f"field of view {fov_y_deg} deg: expected 0 < fov < 180")
     f = height / (2.0 * math.tan(math.radians(fov_y_deg) / 2.0))
     K = np.array([[f, 0, (width - 1) / 2.0], [0, f, (height - 1) / 2.0], [0, 0, 1.0]])
-    return Camera(K=K, width=int(width), height=int(height), world_from_cam=look_at_world_from_cam(eye, target),
-                  name=name)
+    return Camera(
+        K=K, width=int(width), height=int(height), world_from_cam=look_at_world_from_cam(eye, target), name=name
+    )
 
 
 def mean_fov_y_deg(cameras: Sequence[Camera]) -> float:
@@ -90,9 +99,17 @@ def scene_target(cameras: Sequence[Camera], fallback=None) -> np.ndarray:
     return np.linalg.solve(A, b)
 
 
-def orbit_cameras(cameras: Sequence[Camera], n: int, *, width: int | None = None, height: int | None = None,
-                  target=None, elevation_deg: float | None = None, distance_m: float | None = None,
-                  fov_y_deg: float | None = None) -> list[Camera]:
+def orbit_cameras(
+    cameras: Sequence[Camera],
+    n: int,
+    *,
+    width: int | None = None,
+    height: int | None = None,
+    target=None,
+    elevation_deg: float | None = None,
+    distance_m: float | None = None,
+    fov_y_deg: float | None = None,
+) -> list[Camera]:
     """``n`` cameras on a circle about the vertical (+Y) axis through the target, at the
     captured cameras' mean elevation and distance (unless given), starting at the first
     captured camera's azimuth, looking at the target.

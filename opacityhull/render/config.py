@@ -169,7 +169,9 @@ class RenderConfig:
             if not (isinstance(v, (int, float, np.number)) and math.isfinite(v) and v > 0):
                 raise InputError(f"RenderConfig.{name} = {v!r}: expected a finite number > 0")
         if not (isinstance(self.coverage_threshold, (int, float, np.number)) and 0 < self.coverage_threshold <= 1):
-            raise InputError(f"RenderConfig.coverage_threshold = {self.coverage_threshold!r}: expected a number in (0, 1]")
+            raise InputError(
+                f"RenderConfig.coverage_threshold = {self.coverage_threshold!r}: expected a number in (0, 1]"
+            )
         if self.threads is not None and not (isinstance(self.threads, (int, np.integer)) and self.threads >= 1):
             raise InputError(f"RenderConfig.threads = {self.threads!r}: expected None or an integer >= 1")
         if not (isinstance(self.min_coverage, (int, float, np.number)) and 0 <= self.min_coverage <= 1):
@@ -179,7 +181,9 @@ class RenderConfig:
         if self.shading not in get_args(Shading):
             raise InputError(f"RenderConfig.shading = {self.shading!r}: expected one of {', '.join(get_args(Shading))}")
         if self.shading_surface not in get_args(ShadingSurface):
-            raise InputError(f"RenderConfig.shading_surface = {self.shading_surface!r}: expected one of "
-                             f"{', '.join(get_args(ShadingSurface))}")
+            raise InputError(
+                f"RenderConfig.shading_surface = {self.shading_surface!r}: expected one of "
+                f"{', '.join(get_args(ShadingSurface))}"
+            )
         if not (isinstance(self.band_rows, (int, np.integer)) and self.band_rows >= 1):
             raise InputError(f"RenderConfig.band_rows = {self.band_rows!r}: expected an integer >= 1")

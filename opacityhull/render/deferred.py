@@ -39,8 +39,17 @@ from numba import njit
 
 from . import kernels as K
 
-__all__ = ["MIN_COVERAGE", "MIN_VIEW_COS", "TILE", "close_gbuffer", "rasterize_geometry", "geometry_frame",
-           "backproject", "pixel_order", "deferred_shade"]
+__all__ = [
+    "MIN_COVERAGE",
+    "MIN_VIEW_COS",
+    "TILE",
+    "close_gbuffer",
+    "rasterize_geometry",
+    "geometry_frame",
+    "backproject",
+    "pixel_order",
+    "deferred_shade",
+]
 
 MIN_COVERAGE = 0.5
 """Default of :func:`deferred_shade`: EWA coverage (fraction of full, see
@@ -130,8 +139,26 @@ def geometry_frame(splat, draw, height, width, cutoff, band_h, *, threads: int =
         rasterize_geometry(splat, lists, counts, height, width, cutoff, band_h, lut, geo, zlim, winner, wbest, 0, 1)
     else:
         T = min(threads, nb)
-        futs = [K._pool().submit(rasterize_geometry, splat, lists, counts, height, width, cutoff, band_h, lut, geo,
-                                 zlim, winner, wbest, t, T) for t in range(T)]
+        futs = [
+            K._pool().submit(
+                rasterize_geometry,
+                splat,
+                lists,
+                counts,
+                height,
+                width,
+                cutoff,
+                band_h,
+                lut,
+                geo,
+                zlim,
+                winner,
+                wbest,
+                t,
+                T,
+            )
+            for t in range(T)
+        ]
         for f in futs:
             f.result()
     return geo, winner
@@ -166,11 +193,11 @@ def close_gbuffer(depth, wsum, coverage, winner, *, size: int = 3):
         best = np.zeros((H, W), np.float32)
         for dy in range(size):
             for dx in range(size):
-                w = pad_w[dy:dy + H, dx:dx + W]
-                take = hole & (w > best) & (pad_s[dy:dy + H, dx:dx + W] >= 0)
+                w = pad_w[dy : dy + H, dx : dx + W]
+                take = hole & (w > best) & (pad_s[dy : dy + H, dx : dx + W] >= 0)
                 best = np.where(take, w, best)
-                depth = np.where(take, pad_z[dy:dy + H, dx:dx + W], depth)
-                winner = np.where(take, pad_s[dy:dy + H, dx:dx + W], winner)
+                depth = np.where(take, pad_z[dy : dy + H, dx : dx + W], depth)
+                winner = np.where(take, pad_s[dy : dy + H, dx : dx + W], winner)
         cov = np.where((winner < 0), np.float32(0.0), cov).astype(np.float32)
     return depth, cov, winner
 
@@ -187,8 +214,23 @@ def pixel_order(shaded: np.ndarray, *, tile: int = TILE) -> np.ndarray:
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def backproject(pix, depth, winner, cam, visibility, normals, view_centres, min_view_cos, allowed, fallback, out_points,
-                out_vis, out_ok, i0, i1):
+def backproject(
+    pix,
+    depth,
+    winner,
+    cam,
+    visibility,
+    normals,
+    view_centres,
+    min_view_cos,
+    allowed,
+    fallback,
+    out_points,
+    out_vis,
+    out_ok,
+    i0,
+    i1,
+):
     """Surface points of pixels ``pix[i0:i1]`` (flat indices into (H, W)) of the pinhole
     camera ``cam`` (packed row, distortion ignored), and their candidate views.
 
@@ -258,8 +300,15 @@ def backproject(pix, depth, winner, cam, visibility, normals, view_centres, min_
                 for v in range(V):
                     if allowed[v] == 0:
                         continue
-                    if has_n and not (n0 * (view_centres[v, 0] - px) + n1 * (view_centres[v, 1] - py)
-                                      + n2 * (view_centres[v, 2] - pz)) > 0.0:
+                    if (
+                        has_n
+                        and not (
+                            n0 * (view_centres[v, 0] - px)
+                            + n1 * (view_centres[v, 1] - py)
+                            + n2 * (view_centres[v, 2] - pz)
+                        )
+                        > 0.0
+                    ):
                         continue
                     out_vis[i, v >> 3] |= np.uint8(1 << (v & 7))
         if min_view_cos <= -1.0 or not has_n:
@@ -283,9 +332,23 @@ def backproject(pix, depth, winner, cam, visibility, normals, view_centres, min_
                 break
 
 
-def deferred_shade(depth, coverage, winner, cam_row, desired_centre, visibility, normals, views, allowed, *, k: int,
-                   min_coverage: float = MIN_COVERAGE, min_view_cos: float = MIN_VIEW_COS, fallback: bool = False,
-                   threads: int = 1) -> tuple[np.ndarray, int]:
+def deferred_shade(
+    depth,
+    coverage,
+    winner,
+    cam_row,
+    desired_centre,
+    visibility,
+    normals,
+    views,
+    allowed,
+    *,
+    k: int,
+    min_coverage: float = MIN_COVERAGE,
+    min_view_cos: float = MIN_VIEW_COS,
+    fallback: bool = False,
+    threads: int = 1,
+) -> tuple[np.ndarray, int]:
     """Per-pixel ULR shading (the fast twin of
     :func:`~opacityhull.render.reference.deferred_shade_reference`).
 
@@ -323,17 +386,54 @@ def deferred_shade(depth, coverage, winner, cam_row, desired_centre, visibility,
     points = np.empty((P, 3), np.float64)
     pvis = np.empty((P, vis.shape[1]), np.uint8)
     pok = np.empty(P, np.bool_)
-    K.parallel_for(backproject, P, (pix, np.ascontiguousarray(depth), np.ascontiguousarray(winner), cam_row, vis,
-                                    np.ascontiguousarray(normals), views.centres, float(min_view_cos),
-                                    np.ascontiguousarray(allowed, np.uint8), bool(fallback), points, pvis, pok),
-                   threads=threads)
+    K.parallel_for(
+        backproject,
+        P,
+        (
+            pix,
+            np.ascontiguousarray(depth),
+            np.ascontiguousarray(winner),
+            cam_row,
+            vis,
+            np.ascontiguousarray(normals),
+            views.centres,
+            float(min_view_cos),
+            np.ascontiguousarray(allowed, np.uint8),
+            bool(fallback),
+            points,
+            pvis,
+            pok,
+        ),
+        threads=threads,
+    )
     rgba = np.zeros((P, 4), np.float32)
     ok = np.zeros(P, np.bool_)
     order, s_lb = np.arange(views.n_views, dtype=np.int64), np.zeros(views.n_views)
     C = np.asarray(desired_centre, np.float64).reshape(3)
-    K.parallel_for(K.ulr_shade, P, (points, pvis, pok, allowed, C, views.centres, views.cams, views.sizes,
-                                    views.offsets, views.texels, order, s_lb, views.tie_rank, int(k), rgba, 0, ok),
-                   threads=threads)
+    K.parallel_for(
+        K.ulr_shade,
+        P,
+        (
+            points,
+            pvis,
+            pok,
+            allowed,
+            C,
+            views.centres,
+            views.cams,
+            views.sizes,
+            views.offsets,
+            views.texels,
+            order,
+            s_lb,
+            views.tie_rank,
+            int(k),
+            rgba,
+            0,
+            ok,
+        ),
+        threads=threads,
+    )
     flat = out.reshape(-1, 4)
     flat[pix[ok]] = rgba[ok]
     return out, int(ok.sum())

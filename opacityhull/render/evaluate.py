@@ -76,8 +76,14 @@ def _psnr_ssim(dp: np.ndarray, dr: np.ndarray, sel: np.ndarray, smap: np.ndarray
     return psnr, ssim
 
 
-def loo_metrics(photo_rgba: np.ndarray, render_rgba: np.ndarray, *, alpha_threshold: float = ALPHA_THRESHOLD,
-                band_px: int = 3, coverage: np.ndarray | None = None) -> dict:
+def loo_metrics(
+    photo_rgba: np.ndarray,
+    render_rgba: np.ndarray,
+    *,
+    alpha_threshold: float = ALPHA_THRESHOLD,
+    band_px: int = 3,
+    coverage: np.ndarray | None = None,
+) -> dict:
     """Metrics of a rendering against a photograph (both (H, W, 4) straight RGBA).
 
     ``psnr``/``ssim``/``alpha_mae`` inside the union of the masks (α > ``alpha_threshold``);
@@ -102,15 +108,29 @@ def loo_metrics(photo_rgba: np.ndarray, render_rgba: np.ndarray, *, alpha_thresh
     n = int(mask.sum())
     nan = float("nan")
     if n == 0:
-        return {"psnr": nan, "ssim": nan, "alpha_mae": nan, "mask_px": 0, "psnr_interior": nan,
-                "ssim_interior": nan, "psnr_band": nan, "ssim_band": nan, "coverage_iou": nan, "spill_px": 0,
-                "interior_alpha": nan, "interior_alpha_deficit": nan, "interior_alpha_covered": nan}
+        return {
+            "psnr": nan,
+            "ssim": nan,
+            "alpha_mae": nan,
+            "mask_px": 0,
+            "psnr_interior": nan,
+            "ssim_interior": nan,
+            "psnr_band": nan,
+            "ssim_band": nan,
+            "coverage_iou": nan,
+            "spill_px": 0,
+            "interior_alpha": nan,
+            "interior_alpha_deficit": nan,
+            "interior_alpha_covered": nan,
+        }
     dp, dr = _display(p), _display(r)
     win = min(7, min(p.shape[:2]) // 2 * 2 - 1)
     smap = None
     if win >= 3:
-        _, smap = cast(tuple[float, np.ndarray], structural_similarity(dp, dr, channel_axis=2, data_range=1.0,
-                                                                        full=True, win_size=win))
+        _, smap = cast(
+            tuple[float, np.ndarray],
+            structural_similarity(dp, dr, channel_axis=2, data_range=1.0, full=True, win_size=win),
+        )
         smap = smap.mean(axis=2) if smap.ndim == 3 else smap
     psnr, ssim = _psnr_ssim(dp, dr, mask, smap)
     pa = np.clip(p[..., 3], 0, 1)
@@ -133,10 +153,21 @@ def loo_metrics(photo_rgba: np.ndarray, render_rgba: np.ndarray, *, alpha_thresh
             raise InputError(f"coverage {np.shape(coverage)} must be (H, W) = {pa.shape}")
         sel = reg["opaque"] & (np.nan_to_num(np.asarray(coverage, np.float32)) >= 0.5)
         iac = float(ra[sel].mean()) if sel.any() else nan
-    return {"psnr": psnr, "ssim": ssim, "alpha_mae": amae, "mask_px": n, "psnr_interior": psnr_i,
-            "ssim_interior": ssim_i, "psnr_band": psnr_b, "ssim_band": ssim_b, "coverage_iou": iou,
-            "spill_px": spill, "interior_alpha": ia, "interior_alpha_deficit": (1.0 - ia) if ia == ia else nan,
-            "interior_alpha_covered": iac}
+    return {
+        "psnr": psnr,
+        "ssim": ssim,
+        "alpha_mae": amae,
+        "mask_px": n,
+        "psnr_interior": psnr_i,
+        "ssim_interior": ssim_i,
+        "psnr_band": psnr_b,
+        "ssim_band": ssim_b,
+        "coverage_iou": iou,
+        "spill_px": spill,
+        "interior_alpha": ia,
+        "interior_alpha_deficit": (1.0 - ia) if ia == ia else nan,
+        "interior_alpha_covered": iac,
+    }
 
 
 def select_views(model: OpacityHullModel, spec: str | Sequence | None) -> list[int]:
@@ -181,8 +212,14 @@ def select_views(model: OpacityHullModel, spec: str | Sequence | None) -> list[i
     return sorted(set(out), key=out.index)
 
 
-def contact_sheet(rows: Sequence[tuple[str, np.ndarray, np.ndarray, str]], path, *, error_scale: float = 4.0,
-                  background=(0.5, 0.5, 0.5), max_width: int = 1800) -> Path:
+def contact_sheet(
+    rows: Sequence[tuple[str, np.ndarray, np.ndarray, str]],
+    path,
+    *,
+    error_scale: float = 4.0,
+    background=(0.5, 0.5, 0.5),
+    max_width: int = 1800,
+) -> Path:
     """Write a PNG with one row per view: photograph | rendering | error, colour over a
     grey backdrop; the error panel is mean |Δ| of the displayed colour plus |Δα| in the
     inferno colour map, saturating at ``1 / error_scale`` (the colour bar says so).
@@ -198,10 +235,15 @@ def contact_sheet(rows: Sequence[tuple[str, np.ndarray, np.ndarray, str]], path,
         err = np.abs(_display(photo) - _display(render)).mean(axis=2) + np.abs(ap[..., 0] - ar[..., 0])
         tiles += [encoded_to_u8(dp), encoded_to_u8(dr), heat(err, vmin=0.0, vmax=1.0 / error_scale)]
         labels += [f"{label}  {note}", "", ""]
-    img = sheet(tiles, columns=3, labels=labels, headers=["photo", "render", f"error x{error_scale:g}"],
-                colorbar=ColorBar(cmap="inferno", vmin=0.0, vmax=1.0 / error_scale,
-                                  label="mean |d sRGB| + |d alpha|"),
-                min_width=128, max_width=max(1, max_width // 3))
+    img = sheet(
+        tiles,
+        columns=3,
+        labels=labels,
+        headers=["photo", "render", f"error x{error_scale:g}"],
+        colorbar=ColorBar(cmap="inferno", vmin=0.0, vmax=1.0 / error_scale, label="mean |d sRGB| + |d alpha|"),
+        min_width=128,
+        max_width=max(1, max_width // 3),
+    )
     return write_sheet(path, img)
 
 
@@ -251,15 +293,23 @@ def leave_one_out(
             use = geometry_without(i)
             build_ms.append(1e3 * (time.perf_counter() - t0))
             if use.n_views != len(cams):
-                raise InputError(f"geometry_without({i}) gave visibility over {use.n_views} views, expected "
-                                 f"{len(cams)}")
+                raise InputError(
+                    f"geometry_without({i}) gave visibility over {use.n_views} views, expected {len(cams)}"
+                )
         t0 = time.perf_counter()
         res = render_image(use, cams, pv, cams[i], config=config, exclude_views=[i])
         ms = 1e3 * (time.perf_counter() - t0)
         photo = model.load_view_rgba(i)
         m = loo_metrics(photo, res.rgba, alpha_threshold=alpha_threshold, coverage=res.coverage)
-        per_view.append({"view": model.views[i].id, "index": i, **m, "ms": ms,
-                         **({"rebuild_ms": build_ms[-1], "surfels": len(use)} if build_ms else {})})
+        per_view.append(
+            {
+                "view": model.views[i].id,
+                "index": i,
+                **m,
+                "ms": ms,
+                **({"rebuild_ms": build_ms[-1], "surfels": len(use)} if build_ms else {}),
+            }
+        )
         if j in sheet_pick:
             rows.append((model.views[i].id, photo, res.rgba, f"PSNR {m['psnr']:.1f} dB  SSIM {m['ssim']:.3f}"))
         if progress:
@@ -276,19 +326,38 @@ def leave_one_out(
         "psnr_mean": mean("psnr"),
         "ssim_mean": mean("ssim"),
         "alpha_mae": mean("alpha_mae"),
-        **{f"{k}_mean": mean(k) for k in ("psnr_interior", "ssim_interior", "psnr_band", "ssim_band",
-                                          "coverage_iou", "interior_alpha", "interior_alpha_deficit",
-                                          "interior_alpha_covered", "spill_px")},
+        **{
+            f"{k}_mean": mean(k)
+            for k in (
+                "psnr_interior",
+                "ssim_interior",
+                "psnr_band",
+                "ssim_band",
+                "coverage_iou",
+                "interior_alpha",
+                "interior_alpha_deficit",
+                "interior_alpha_covered",
+                "spill_px",
+            )
+        },
         "coverage_iou_min": float(np.nanmin([p["coverage_iou"] for p in per_view])) if per_view else float("nan"),
         "per_view": per_view,
         "ms_per_view": float(np.mean([p["ms"] for p in per_view])),
-        "config": {"k": config.k, "filter": config.filter, "sigma_radius": config.sigma_radius,
-                   "cutoff_sigma": config.cutoff_sigma, "epsilon_z": config.epsilon_z,
-                   "shading": getattr(config, "shading", "surfel")},
-        "held_out_from": ("ULR blending only (hull and visibility were built with all views)" if holdout == "blend"
-                          else "ULR blending, hull, surfels and visibility (rebuilt without the held-out view)"),
+        "config": {
+            "k": config.k,
+            "filter": config.filter,
+            "sigma_radius": config.sigma_radius,
+            "cutoff_sigma": config.cutoff_sigma,
+            "epsilon_z": config.epsilon_z,
+            "shading": getattr(config, "shading", "surfel"),
+        },
+        "held_out_from": (
+            "ULR blending only (hull and visibility were built with all views)"
+            if holdout == "blend"
+            else "ULR blending, hull, surfels and visibility (rebuilt without the held-out view)"
+        ),
         "metric_space": "sRGB-encoded colour over black, inside the union of photo and render masks "
-                        "(interior: photo mask eroded 3 px; band: the 7-px band around its silhouette)",
+        "(interior: photo mask eroded 3 px; band: the 7-px band around its silhouette)",
     }
     if build_ms:
         summary["rebuild_ms_per_view"] = float(np.mean(build_ms))

@@ -291,9 +291,33 @@ def block_bounds(positions, i0, i1, desired_centre, view_centres, order, s_lb):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def ulr_kernel(positions, visibility, drawable, allowed, desired_centre, view_centres, view_cams, view_sizes,
-               view_offsets, texels, order, s_lb, tie_rank, k, shade, out_rgba, rgba_col, ok,
-               out_idx, out_w, out_uv, out_count, block, i0, i1):
+def ulr_kernel(
+    positions,
+    visibility,
+    drawable,
+    allowed,
+    desired_centre,
+    view_centres,
+    view_cams,
+    view_sizes,
+    view_offsets,
+    texels,
+    order,
+    s_lb,
+    tie_rank,
+    k,
+    shade,
+    out_rgba,
+    rgba_col,
+    ok,
+    out_idx,
+    out_w,
+    out_uv,
+    out_count,
+    block,
+    i0,
+    i1,
+):
     """ULR blending of surfels ``i0:i1``: the weights (``shade=False``) or the blended
     RGBA (``shade=True``). One kernel for both, so it compiles once.
 
@@ -451,8 +475,9 @@ def ulr_kernel(positions, visibility, drawable, allowed, desired_centre, view_ce
         for j in range(m):
             if w[j] > 0.0:
                 v = best_v[j]
-                c0, c1, c2, c3 = _bilinear(texels, view_offsets[v], view_sizes[v, 0], view_sizes[v, 1],
-                                           best_u[j], best_y[j])
+                c0, c1, c2, c3 = _bilinear(
+                    texels, view_offsets[v], view_sizes[v, 0], view_sizes[v, 1], best_u[j], best_y[j]
+                )
                 a0 += w[j] * c0
                 a1 += w[j] * c1
                 a2 += w[j] * c2
@@ -473,20 +498,107 @@ _NO_TEX = np.zeros((0, 4), np.float32)
 _NO_OFF = np.zeros(0, np.int64)
 
 
-def ulr_select(positions, visibility, drawable, allowed, desired_centre, view_centres, view_cams, view_sizes,
-               order, s_lb, tie_rank, k, out_idx, out_w, out_uv, out_count, i0, i1, block=ULR_BLOCK):
+def ulr_select(
+    positions,
+    visibility,
+    drawable,
+    allowed,
+    desired_centre,
+    view_centres,
+    view_cams,
+    view_sizes,
+    order,
+    s_lb,
+    tie_rank,
+    k,
+    out_idx,
+    out_w,
+    out_uv,
+    out_count,
+    i0,
+    i1,
+    block=ULR_BLOCK,
+):
     """ULR weights of surfels ``i0:i1`` (see :func:`ulr_kernel`, ``shade=False``)."""
-    ulr_kernel(positions, visibility, drawable, allowed, desired_centre, view_centres, view_cams, view_sizes,
-               _NO_OFF, _NO_TEX, order, s_lb, tie_rank, k, False, _NO_F32_2, 0, _NO_BOOL,
-               out_idx, out_w, out_uv, out_count, block, i0, i1)
+    ulr_kernel(
+        positions,
+        visibility,
+        drawable,
+        allowed,
+        desired_centre,
+        view_centres,
+        view_cams,
+        view_sizes,
+        _NO_OFF,
+        _NO_TEX,
+        order,
+        s_lb,
+        tie_rank,
+        k,
+        False,
+        _NO_F32_2,
+        0,
+        _NO_BOOL,
+        out_idx,
+        out_w,
+        out_uv,
+        out_count,
+        block,
+        i0,
+        i1,
+    )
 
 
-def ulr_shade(positions, visibility, drawable, allowed, desired_centre, view_centres, view_cams, view_sizes,
-              view_offsets, texels, order, s_lb, tie_rank, k, out_rgba, rgba_col, ok, i0, i1, block=ULR_BLOCK):
+def ulr_shade(
+    positions,
+    visibility,
+    drawable,
+    allowed,
+    desired_centre,
+    view_centres,
+    view_cams,
+    view_sizes,
+    view_offsets,
+    texels,
+    order,
+    s_lb,
+    tie_rank,
+    k,
+    out_rgba,
+    rgba_col,
+    ok,
+    i0,
+    i1,
+    block=ULR_BLOCK,
+):
     """ULR-blended premultiplied RGBA of surfels ``i0:i1`` (see :func:`ulr_kernel`, ``shade=True``)."""
-    ulr_kernel(positions, visibility, drawable, allowed, desired_centre, view_centres, view_cams, view_sizes,
-               view_offsets, texels, order, s_lb, tie_rank, k, True, out_rgba, rgba_col, ok,
-               _NO_I32, _NO_F32_2, _NO_F32_3, _NO_I32_1, block, i0, i1)
+    ulr_kernel(
+        positions,
+        visibility,
+        drawable,
+        allowed,
+        desired_centre,
+        view_centres,
+        view_cams,
+        view_sizes,
+        view_offsets,
+        texels,
+        order,
+        s_lb,
+        tie_rank,
+        k,
+        True,
+        out_rgba,
+        rgba_col,
+        ok,
+        _NO_I32,
+        _NO_F32_2,
+        _NO_F32_3,
+        _NO_I32_1,
+        block,
+        i0,
+        i1,
+    )
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
@@ -501,8 +613,24 @@ def bilinear_fetch(texels, offset, width, height, uv, out):
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def splat_setup(positions, normals, radii, areas, cam, width, height, sigma_radius, filter_var, cutoff, eps_z,
-                cull_backfaces, out_splat, valid, i0, i1):
+def splat_setup(
+    positions,
+    normals,
+    radii,
+    areas,
+    cam,
+    width,
+    height,
+    sigma_radius,
+    filter_var,
+    cutoff,
+    eps_z,
+    cull_backfaces,
+    out_splat,
+    valid,
+    i0,
+    i1,
+):
     """EWA resampling kernel of every surfel in the desired (pinhole) camera.
 
     The surfel's tangent disc carries an isotropic Gaussian ``V = (sigma_radius·r)² I``.
@@ -685,9 +813,20 @@ def _splat_geometry(splat, i):
     clamp range and column range, as the rasteriser's two passes both need them."""
     z0 = np.float64(splat[i, S_Z])
     dev = np.float64(splat[i, S_ZDEV])
-    return (np.float64(splat[i, S_X]), np.float64(splat[i, S_Y]), z0, np.float64(splat[i, S_A]),
-            2.0 * np.float64(splat[i, S_B]), np.float64(splat[i, S_C]), np.float64(splat[i, S_DZX]),
-            np.float64(splat[i, S_DZY]), z0 - dev, z0 + dev, int(splat[i, S_BX0]), int(splat[i, S_BX1]))
+    return (
+        np.float64(splat[i, S_X]),
+        np.float64(splat[i, S_Y]),
+        z0,
+        np.float64(splat[i, S_A]),
+        2.0 * np.float64(splat[i, S_B]),
+        np.float64(splat[i, S_C]),
+        np.float64(splat[i, S_DZX]),
+        np.float64(splat[i, S_DZY]),
+        z0 - dev,
+        z0 + dev,
+        int(splat[i, S_BX0]),
+        int(splat[i, S_BX1]),
+    )
 
 
 @njit(cache=True, inline="always", error_model="numpy")
@@ -915,8 +1054,10 @@ def splat_frame(splat, draw, height, width, cutoff, band_h, *, threads: int = 1,
     else:
         # interleaved bands balance the load when the object fills only part of the frame
         T = min(threads, nb)
-        futs = [_pool().submit(rasterize, splat, lists, counts, height, width, cutoff, band_h, lut, accum, zlim, t, T)
-                for t in range(T)]
+        futs = [
+            _pool().submit(rasterize, splat, lists, counts, height, width, cutoff, band_h, lut, accum, zlim, t, T)
+            for t in range(T)
+        ]
         for f in futs:
             f.result()
     return accum, zlim

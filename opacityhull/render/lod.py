@@ -83,7 +83,9 @@ def build_point_tree(surfels: Surfels, areas: np.ndarray | None = None, *, depth
         raise InputError("build_point_tree: no surfels")
     P = surfels.positions.astype(np.float64)
     if not np.all(np.isfinite(P)):
-        raise InputError(f"build_point_tree: {int((~np.isfinite(P).all(axis=1)).sum())} surfels have non-finite positions")
+        raise InputError(
+            f"build_point_tree: {int((~np.isfinite(P).all(axis=1)).sum())} surfels have non-finite positions"
+        )
     if not 1 <= depth <= 21:
         raise InputError(f"build_point_tree: depth {depth}, expected 1..21")
     A = (np.pi * surfels.radii.astype(np.float64) ** 2) if areas is None else np.asarray(areas, np.float64)

@@ -17,8 +17,16 @@ import numpy as np
 from ..camera import Camera
 from . import kernels as K
 
-__all__ = ["ulr_weights_ref", "bilinear_ref", "shade_ref", "splat_setup_ref", "rasterize_ref", "render_image_ref",
-           "rasterize_geometry_ref", "deferred_shade_reference"]
+__all__ = [
+    "ulr_weights_ref",
+    "bilinear_ref",
+    "shade_ref",
+    "splat_setup_ref",
+    "rasterize_ref",
+    "render_image_ref",
+    "rasterize_geometry_ref",
+    "deferred_shade_reference",
+]
 
 
 def _ulr_row(s_sorted: list[float], k: int) -> list[float]:
@@ -48,8 +56,15 @@ def _ulr_row(s_sorted: list[float], k: int) -> list[float]:
     return w
 
 
-def ulr_weights_ref(positions, visible_bool, view_cameras: Sequence[Camera], desired_centre, *, k: int = 4,
-                    exclude_views: Sequence[int] = ()) -> np.ndarray:
+def ulr_weights_ref(
+    positions,
+    visible_bool,
+    view_cameras: Sequence[Camera],
+    desired_centre,
+    *,
+    k: int = 4,
+    exclude_views: Sequence[int] = (),
+) -> np.ndarray:
     """Dense (N, V) ULR weight matrix, one surfel at a time.
 
     For surfel p, the candidates are the views v with the visibility bit set, not
@@ -103,11 +118,14 @@ def bilinear_ref(image, uv) -> np.ndarray:
     img = np.asarray(image, dtype=np.float64)
     uv = np.asarray(uv, dtype=np.float64)
     coords = [uv[:, 1], uv[:, 0]]
-    return np.stack([map_coordinates(img[:, :, c], coords, order=1, mode="nearest") for c in range(img.shape[2])],
-                    axis=1)
+    return np.stack(
+        [map_coordinates(img[:, :, c], coords, order=1, mode="nearest") for c in range(img.shape[2])], axis=1
+    )
 
 
-def shade_ref(positions, weights_dense, view_cameras: Sequence[Camera], view_rgba_premul: Sequence[np.ndarray]) -> np.ndarray:
+def shade_ref(
+    positions, weights_dense, view_cameras: Sequence[Camera], view_rgba_premul: Sequence[np.ndarray]
+) -> np.ndarray:
     """(N, 4) premultiplied RGBA: Σ_v w_v · bilinear(view v, project_v(p))."""
     P = np.asarray(positions, dtype=np.float64)
     out = np.zeros((P.shape[0], 4))
@@ -116,7 +134,9 @@ def shade_ref(positions, weights_dense, view_cameras: Sequence[Camera], view_rgb
         if rows.size == 0:
             continue
         uv, _ = cam.project(P[rows])
-        out[rows] += weights_dense[rows, v, None] * bilinear_ref(np.nan_to_num(img, nan=0.0, posinf=0.0, neginf=0.0), uv)
+        out[rows] += weights_dense[rows, v, None] * bilinear_ref(
+            np.nan_to_num(img, nan=0.0, posinf=0.0, neginf=0.0), uv
+        )
     return out
 
 
@@ -127,8 +147,19 @@ def _tangent_frame(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return tu, np.cross(n, tu)
 
 
-def splat_setup_ref(positions, normals, radii, areas, camera: Camera, *, sigma_radius: float, filter_var: float,
-                    cutoff: float, eps_z: float, cull_backfaces: bool = True) -> tuple[np.ndarray, np.ndarray]:
+def splat_setup_ref(
+    positions,
+    normals,
+    radii,
+    areas,
+    camera: Camera,
+    *,
+    sigma_radius: float,
+    filter_var: float,
+    cutoff: float,
+    eps_z: float,
+    cull_backfaces: bool = True,
+) -> tuple[np.ndarray, np.ndarray]:
     """EWA resampling kernels (Zwicker 2001), one surfel at a time, with an explicit
     tangent frame: ``J = ∂(pinhole projection)/∂(u, v)`` at the surfel,
     ``M = J V Jᵀ + H``, ``V = (sigma_radius·r)² I``, ``H = filter_var·I`` (+ the numerical
@@ -188,9 +219,23 @@ def splat_setup_ref(positions, normals, radii, areas, camera: Camera, *, sigma_r
         else:
             dzx = dzy = 0.0
         foot = cutoff * math.sqrt(np.linalg.eigvalsh(M).max()) * Z / ((fx + fy) / 2)
-        rec[i, : K.S_RGBA] = [x0, y0, Z, Minv[0, 0], Minv[0, 1], Minv[1, 1],
-                              abs(np.linalg.det(J)) / (2 * math.pi * math.sqrt(detM)), dzx, dzy,
-                              K.ZDEV_FOOTPRINTS * foot, eps_z * foot, bx0, bx1, by0, by1]
+        rec[i, : K.S_RGBA] = [
+            x0,
+            y0,
+            Z,
+            Minv[0, 0],
+            Minv[0, 1],
+            Minv[1, 1],
+            abs(np.linalg.det(J)) / (2 * math.pi * math.sqrt(detM)),
+            dzx,
+            dzy,
+            K.ZDEV_FOOTPRINTS * foot,
+            eps_z * foot,
+            bx0,
+            bx1,
+            by0,
+            by1,
+        ]
         rec[i, K.S_AREA] = areas[i]
         valid[i] = True
     return valid, rec
@@ -238,8 +283,16 @@ def rasterize_ref(records, draw, height: int, width: int, cutoff: float) -> tupl
     return accum, zlim
 
 
-def render_image_ref(surfels, view_cameras, view_rgba_premul, camera: Camera, *, config=None,
-                     exclude_views: Sequence[int] = (), return_margin: bool = False):
+def render_image_ref(
+    surfels,
+    view_cameras,
+    view_rgba_premul,
+    camera: Camera,
+    *,
+    config=None,
+    exclude_views: Sequence[int] = (),
+    return_margin: bool = False,
+):
     """The whole of :func:`opacityhull.render.render_image` from the references
     (distortion-free desired cameras only). Returns (rgba straight, depth, weight), and
     with ``return_margin`` (pixel shading) also the (H, W) bool map of pixels whose
@@ -249,32 +302,58 @@ def render_image_ref(surfels, view_cameras, view_rgba_premul, camera: Camera, *,
     cfg = config or RenderConfig()
     if camera.has_distortion:
         raise NotImplementedError("render_image_ref: distortion-free desired cameras only")
-    valid, rec = splat_setup_ref(surfels.positions, surfels.normals, surfels.radii, surfel_areas(surfels), camera,
-                                 sigma_radius=cfg.sigma_radius, filter_var=cfg.filter, cutoff=cfg.cutoff_sigma,
-                                 eps_z=cfg.epsilon_z, cull_backfaces=cfg.backface_cull)
+    valid, rec = splat_setup_ref(
+        surfels.positions,
+        surfels.normals,
+        surfels.radii,
+        surfel_areas(surfels),
+        camera,
+        sigma_radius=cfg.sigma_radius,
+        filter_var=cfg.filter,
+        cutoff=cfg.cutoff_sigma,
+        eps_z=cfg.epsilon_z,
+        cull_backfaces=cfg.backface_cull,
+    )
     if cfg.shading == "pixel":
         from .deferred import close_gbuffer
 
-        geo, winner, best, second = rasterize_geometry_ref(rec, np.flatnonzero(valid), camera.height, camera.width,
-                                                           cfg.cutoff_sigma)
+        geo, winner, best, second = rasterize_geometry_ref(
+            rec, np.flatnonzero(valid), camera.height, camera.width, cfg.cutoff_sigma
+        )
         wsum = geo[..., 0]
         has = wsum > 0
         depth = np.where(has, geo[..., 1] / np.where(has, wsum, 1.0), np.inf).astype(np.float32)
         cov = coverage_from(geo[..., 2], wsum, cfg)
         if cfg.close_holes:
             depth, cov, winner = close_gbuffer(depth, wsum, cov, winner)
-        premul = deferred_shade_reference(depth, cov, winner, camera, surfels.visible_bool(), view_cameras,
-                                          view_rgba_premul, normals=surfels.normals, k=cfg.k,
-                                          exclude_views=exclude_views, min_coverage=cfg.min_coverage,
-                                          min_view_cos=cfg.min_view_cos)
+        premul = deferred_shade_reference(
+            depth,
+            cov,
+            winner,
+            camera,
+            surfels.visible_bool(),
+            view_cameras,
+            view_rgba_premul,
+            normals=surfels.normals,
+            k=cfg.k,
+            exclude_views=exclude_views,
+            min_coverage=cfg.min_coverage,
+            min_view_cos=cfg.min_view_cos,
+        )
         if cfg.coverage_clip:
             a = premul[..., 3]
             clipped = np.minimum(a, cov)
             premul = premul * np.where(a > clipped, clipped / np.where(a > 0, a, 1.0), 1.0)[..., None]
         out = (straight_from_premul(premul.astype(np.float32)), depth, wsum)
         return out + (best > second * (1 + 1e-4),) if return_margin else out
-    Wd = ulr_weights_ref(surfels.positions, surfels.visible_bool(), view_cameras, camera.centre_world, k=cfg.k,
-                         exclude_views=exclude_views)
+    Wd = ulr_weights_ref(
+        surfels.positions,
+        surfels.visible_bool(),
+        view_cameras,
+        camera.centre_world,
+        k=cfg.k,
+        exclude_views=exclude_views,
+    )
     rgba = shade_ref(surfels.positions, Wd, view_cameras, view_rgba_premul)
     drawn = valid & (Wd.sum(axis=1) > 0)
     rec[:, K.S_RGBA : K.S_RGBA + 4] = rgba
@@ -321,10 +400,22 @@ def rasterize_geometry_ref(records, draw, height: int, width: int, cutoff: float
     return accum[..., 4:7].copy(), winner, best, second
 
 
-def deferred_shade_reference(depth, coverage, winner, camera: Camera, visible_bool, view_cameras: Sequence[Camera],
-                             view_rgba_premul: Sequence[np.ndarray], *, normals=None, k: int = 4,
-                             exclude_views: Sequence[int] = (), min_coverage: float = 0.5,
-                             min_view_cos: float = -1.0, fallback: bool = False) -> np.ndarray:
+def deferred_shade_reference(
+    depth,
+    coverage,
+    winner,
+    camera: Camera,
+    visible_bool,
+    view_cameras: Sequence[Camera],
+    view_rgba_premul: Sequence[np.ndarray],
+    *,
+    normals=None,
+    k: int = 4,
+    exclude_views: Sequence[int] = (),
+    min_coverage: float = 0.5,
+    min_view_cos: float = -1.0,
+    fallback: bool = False,
+) -> np.ndarray:
     """Per-pixel ULR shading, one pixel at a time from independent parts (twin of
     :func:`opacityhull.render.deferred.deferred_shade`).
 

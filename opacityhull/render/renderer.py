@@ -42,8 +42,7 @@ from .background import composite_over, resolve_background
 from .config import RenderConfig
 from .views import PreparedViews, pack_camera, prepare_views, scan_order
 
-__all__ = ["RenderConfig", "RenderResult", "UlrWeights", "render_image", "render_model", "ulr_weights",
-           "ALPHA_MIN"]
+__all__ = ["RenderConfig", "RenderResult", "UlrWeights", "render_image", "render_model", "ulr_weights", "ALPHA_MIN"]
 
 ALPHA_MIN = 1.0 / 4096
 """Below this alpha a pixel's straight colour is reported as 0 (premultiplied colour / α
@@ -143,8 +142,15 @@ def _as_prepared(view_cameras, view_rgba_premul) -> PreparedViews:
     return prepare_views(view_cameras, view_rgba_premul)
 
 
-def ulr_weights(surfels: Surfels, view_cameras: Sequence[Camera] | PreparedViews, desired_centre, *, k: int = 4,
-                exclude_views: Sequence[int] = (), threads: int | None = 1) -> UlrWeights:
+def ulr_weights(
+    surfels: Surfels,
+    view_cameras: Sequence[Camera] | PreparedViews,
+    desired_centre,
+    *,
+    k: int = 4,
+    exclude_views: Sequence[int] = (),
+    threads: int | None = 1,
+) -> UlrWeights:
     """Unstructured-Lumigraph blending weights of every surfel (no culling, no images).
 
     Parameters
@@ -170,9 +176,29 @@ def ulr_weights(surfels: Surfels, view_cameras: Sequence[Camera] | PreparedViews
     uv = np.empty((N, k, 2), np.float32)
     count = np.empty(N, np.int32)
     drawable = np.ones(N, np.bool_)
-    K.parallel_for(K.ulr_select, N, (surfels.positions, surfels.visibility, drawable, allowed, C, pv.centres, pv.cams,
-                                     pv.sizes, order, s_lb, pv.tie_rank, int(k), idx, w, uv, count),
-                   threads=cfg.n_threads)
+    K.parallel_for(
+        K.ulr_select,
+        N,
+        (
+            surfels.positions,
+            surfels.visibility,
+            drawable,
+            allowed,
+            C,
+            pv.centres,
+            pv.cams,
+            pv.sizes,
+            order,
+            s_lb,
+            pv.tie_rank,
+            int(k),
+            idx,
+            w,
+            uv,
+            count,
+        ),
+        threads=cfg.n_threads,
+    )
     return UlrWeights(idx, w, uv, count)
 
 
@@ -197,8 +223,13 @@ def _pinhole_for(camera: Camera) -> tuple[Camera, np.ndarray | None]:
     Kp = camera.K.copy()
     Kp[0, 2] -= lo_u
     Kp[1, 2] -= lo_v
-    pin = Camera(K=Kp, width=int(hi_u - lo_u) + 1, height=int(hi_v - lo_v) + 1,
-                 world_from_cam=camera.world_from_cam, name=camera.name)
+    pin = Camera(
+        K=Kp,
+        width=int(hi_u - lo_u) + 1,
+        height=int(hi_v - lo_v) + 1,
+        world_from_cam=camera.world_from_cam,
+        name=camera.name,
+    )
     grid = np.stack([pu - lo_u, pv - lo_v], axis=1).reshape(camera.height, camera.width, 2).astype(np.float32)
     return pin, grid
 
@@ -206,15 +237,25 @@ def _pinhole_for(camera: Camera) -> tuple[Camera, np.ndarray | None]:
 def _remap(img: np.ndarray, grid: np.ndarray, *, nearest: bool = False, border=0.0) -> np.ndarray:
     import cv2
 
-    return cv2.remap(img, grid[..., 0], grid[..., 1], cv2.INTER_NEAREST if nearest else cv2.INTER_LINEAR,
-                     borderMode=cv2.BORDER_CONSTANT, borderValue=border)
+    return cv2.remap(
+        img,
+        grid[..., 0],
+        grid[..., 1],
+        cv2.INTER_NEAREST if nearest else cv2.INTER_LINEAR,
+        borderMode=cv2.BORDER_CONSTANT,
+        borderValue=border,
+    )
 
 
 def _remap_buffers(premul, wsum, cov, depth, grid):
     """The rendered buffers resampled through the distortion ``grid``; depth by nearest
     neighbour (blending depths across a silhouette would invent surfaces), inf outside."""
-    return (_remap(premul, grid), _remap(np.ascontiguousarray(wsum), grid), _remap(cov, grid),
-            _remap(depth, grid, nearest=True, border=float("inf")))
+    return (
+        _remap(premul, grid),
+        _remap(np.ascontiguousarray(wsum), grid),
+        _remap(cov, grid),
+        _remap(depth, grid, nearest=True, border=float("inf")),
+    )
 
 
 def _stage_ms(t0: float, **ends: float) -> dict:
@@ -228,8 +269,16 @@ def _stage_ms(t0: float, **ends: float) -> dict:
 
 def _view_stats(camera, config, threads, exclude_views, pv, valid, draw) -> dict:
     """The stats entries both shading modes report alike."""
-    return {"splats_setup": int(valid.sum()), "splats_drawn": int(draw.size), "width": camera.width, "height": camera.height, "k": int(config.k), "threads": threads,
-            "excluded_views": [int(v) for v in exclude_views], "nonfinite_texels": pv.nonfinite_texels}
+    return {
+        "splats_setup": int(valid.sum()),
+        "splats_drawn": int(draw.size),
+        "width": camera.width,
+        "height": camera.height,
+        "k": int(config.k),
+        "threads": threads,
+        "excluded_views": [int(v) for v in exclude_views],
+        "nonfinite_texels": pv.nonfinite_texels,
+    }
 
 
 def render_image(
@@ -279,39 +328,97 @@ def render_image(
     splat = scratch.get("splat", (N, K.SPLAT_FIELDS), np.float32)
     areas = surfel_areas(surfels)
     valid = scratch.get("valid", (N,), np.bool_)
-    K.parallel_for(K.splat_setup, N, (surfels.positions, surfels.normals, surfels.radii, areas, cam_row, W, H,
-                                      float(config.sigma_radius), float(config.filter), float(config.cutoff_sigma),
-                                      float(config.epsilon_z), bool(config.backface_cull), splat, valid),
-                   threads=threads)
+    K.parallel_for(
+        K.splat_setup,
+        N,
+        (
+            surfels.positions,
+            surfels.normals,
+            surfels.radii,
+            areas,
+            cam_row,
+            W,
+            H,
+            float(config.sigma_radius),
+            float(config.filter),
+            float(config.cutoff_sigma),
+            float(config.epsilon_z),
+            bool(config.backface_cull),
+            splat,
+            valid,
+        ),
+        threads=threads,
+    )
     t_setup = time.perf_counter()
     if progress:
         progress(1, 3)
 
     if config.shading == "pixel":
-        return _render_deferred(surfels, pv, allowed, camera, pin, grid, cam_row, C, splat, valid, config,
-                                exclude_views, progress, (t0, t_prep, t_setup))
+        return _render_deferred(
+            surfels,
+            pv,
+            allowed,
+            camera,
+            pin,
+            grid,
+            cam_row,
+            C,
+            splat,
+            valid,
+            config,
+            exclude_views,
+            progress,
+            (t0, t_prep, t_setup),
+        )
 
     # the kernel bounds each block of surfels itself (K.ULR_BLOCK): no per-frame scan order
     order, s_lb = np.arange(pv.n_views, dtype=np.int64), np.zeros(pv.n_views)
     ok = scratch.get("ok", (N,), np.bool_)
-    K.parallel_for(K.ulr_shade, N, (surfels.positions, surfels.visibility, valid, allowed, C, pv.centres, pv.cams,
-                                    pv.sizes, pv.offsets, pv.texels, order, s_lb, pv.tie_rank, int(config.k), splat,
-                                    K.S_RGBA, ok), threads=threads)
+    K.parallel_for(
+        K.ulr_shade,
+        N,
+        (
+            surfels.positions,
+            surfels.visibility,
+            valid,
+            allowed,
+            C,
+            pv.centres,
+            pv.cams,
+            pv.sizes,
+            pv.offsets,
+            pv.texels,
+            order,
+            s_lb,
+            pv.tie_rank,
+            int(config.k),
+            splat,
+            K.S_RGBA,
+            ok,
+        ),
+        threads=threads,
+    )
     t_shade = time.perf_counter()
     if progress:
         progress(2, 3)
 
     draw = np.flatnonzero(ok).astype(np.int64)
-    accum, _ = K.splat_frame(splat, draw, H, W, float(config.cutoff_sigma), int(config.band_rows), threads=threads,
-                             scratch=scratch)
+    accum, _ = K.splat_frame(
+        splat, draw, H, W, float(config.cutoff_sigma), int(config.band_rows), threads=threads, scratch=scratch
+    )
     t_raster = time.perf_counter()
 
     rgba_img = np.empty((H, W, 4), np.float32)
     depth = np.empty((H, W), np.float32)
     wsum = np.empty((H, W), np.float32)
     cov = np.empty((H, W), np.float32)
-    K.parallel_for(K.resolve, H, (accum, coverage_full(config), bool(config.edge_coverage), ALPHA_MIN, rgba_img, depth,
-                                  wsum, cov), threads=threads, chunk=64)
+    K.parallel_for(
+        K.resolve,
+        H,
+        (accum, coverage_full(config), bool(config.edge_coverage), ALPHA_MIN, rgba_img, depth, wsum, cov),
+        threads=threads,
+        chunk=64,
+    )
     if grid is not None:
         premul = rgba_img.copy()
         premul[..., :3] *= premul[..., 3:4]
@@ -330,8 +437,9 @@ def render_image(
     return RenderResult(rgba_img, depth, np.ascontiguousarray(wsum), cov, camera, config, stats)
 
 
-def _render_deferred(surfels, pv, allowed, camera, pin, grid, cam_row, C, splat, valid, config, exclude_views,
-                     progress, times) -> RenderResult:
+def _render_deferred(
+    surfels, pv, allowed, camera, pin, grid, cam_row, C, splat, valid, config, exclude_views, progress, times
+) -> RenderResult:
     """The rest of :func:`render_image` with ``shading="pixel"``: geometry-only EWA pass
     (depth, coverage, winning surfel), then per-pixel ULR shading (:mod:`.deferred`).
     Every valid splat is geometry, whether or not a view sees it: visibility is decided
@@ -343,8 +451,9 @@ def _render_deferred(surfels, pv, allowed, camera, pin, grid, cam_row, C, splat,
     threads = config.n_threads
     scratch = K.SCRATCH
     draw = np.flatnonzero(valid).astype(np.int64)
-    geo, winner = D.geometry_frame(splat, draw, H, W, float(config.cutoff_sigma), int(config.band_rows),
-                                   threads=threads, scratch=scratch)
+    geo, winner = D.geometry_frame(
+        splat, draw, H, W, float(config.cutoff_sigma), int(config.band_rows), threads=threads, scratch=scratch
+    )
     wsum = geo[..., 0].copy()
     has = wsum > 0
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -358,10 +467,22 @@ def _render_deferred(surfels, pv, allowed, camera, pin, grid, cam_row, C, splat,
     t_raster = time.perf_counter()
     if progress:
         progress(2, 3)
-    premul, n_shaded = D.deferred_shade(depth, cov, winner, cam_row, C, surfels.visibility, surfels.normals, pv,
-                                        allowed, k=int(config.k), min_coverage=float(config.min_coverage),
-                                        min_view_cos=float(config.min_view_cos),
-                                        fallback=bool(config.fallback_views), threads=threads)
+    premul, n_shaded = D.deferred_shade(
+        depth,
+        cov,
+        winner,
+        cam_row,
+        C,
+        surfels.visibility,
+        surfels.normals,
+        pv,
+        allowed,
+        k=int(config.k),
+        min_coverage=float(config.min_coverage),
+        min_view_cos=float(config.min_view_cos),
+        fallback=bool(config.fallback_views),
+        threads=threads,
+    )
     if config.coverage_clip:
         a = premul[..., 3]
         clipped = np.minimum(a, cov)
@@ -386,8 +507,9 @@ def _render_deferred(surfels, pv, allowed, camera, pin, grid, cam_row, C, splat,
     return RenderResult(rgba_img, depth, np.ascontiguousarray(wsum, dtype=np.float32), cov, camera, config, stats)
 
 
-def _shading_depth(surfels: Surfels, cam_row, W: int, H: int, hull_depth: np.ndarray, config: RenderConfig,
-                   threads: int, scratch) -> np.ndarray:
+def _shading_depth(
+    surfels: Surfels, cam_row, W: int, H: int, hull_depth: np.ndarray, config: RenderConfig, threads: int, scratch
+) -> np.ndarray:
     """Per-pixel depth of the photo-consistent surface: a second geometry-only EWA pass of
     the surfels displaced to ``positions − depth_m·normals``. Pixels it leaves empty keep
     the hull's depth; a displaced point is never in front of the hull (it lies inside it),
@@ -400,14 +522,32 @@ def _shading_depth(surfels: Surfels, cam_row, W: int, H: int, hull_depth: np.nda
     shade_at = surfels.shading_positions()
     splat = scratch.get("splat_shade", (N, K.SPLAT_FIELDS), np.float32)
     valid = scratch.get("valid_shade", (N,), np.bool_)
-    K.parallel_for(K.splat_setup, N, (shade_at, surfels.normals, surfels.radii, surfel_areas(surfels), cam_row, W, H,
-                                      float(config.sigma_radius), float(config.filter), float(config.cutoff_sigma),
-                                      float(config.epsilon_z), bool(config.backface_cull), splat, valid),
-                   threads=threads)
+    K.parallel_for(
+        K.splat_setup,
+        N,
+        (
+            shade_at,
+            surfels.normals,
+            surfels.radii,
+            surfel_areas(surfels),
+            cam_row,
+            W,
+            H,
+            float(config.sigma_radius),
+            float(config.filter),
+            float(config.cutoff_sigma),
+            float(config.epsilon_z),
+            bool(config.backface_cull),
+            splat,
+            valid,
+        ),
+        threads=threads,
+    )
     draw = np.flatnonzero(valid).astype(np.int64)
     # no scratch here: the hull pass's winner may still live in the scratch buffers
-    geo, winner = D.geometry_frame(splat, draw, H, W, float(config.cutoff_sigma), int(config.band_rows),
-                                   threads=threads)
+    geo, winner = D.geometry_frame(
+        splat, draw, H, W, float(config.cutoff_sigma), int(config.band_rows), threads=threads
+    )
     wsum = geo[..., 0]
     has = wsum > 0
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -446,8 +586,9 @@ def coverage_from(area_sum: np.ndarray, wsum: np.ndarray, config: RenderConfig) 
     return np.where(wsum > 0, cov, np.float32(0.0)).astype(np.float32)
 
 
-def normalise(acc: np.ndarray, wsum: np.ndarray, zsum: np.ndarray, coverage: np.ndarray | None = None
-              ) -> tuple[np.ndarray, np.ndarray]:
+def normalise(
+    acc: np.ndarray, wsum: np.ndarray, zsum: np.ndarray, coverage: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """EWA normalisation (NumPy reference of :func:`~opacityhull.render.kernels.resolve`):
     premultiplied RGBA Σw·c / Σw (times ``coverage`` when given) → straight RGBA; depth
     Σw·z / Σw (inf where Σw = 0) — the depth is not scaled by the coverage."""
@@ -503,8 +644,13 @@ def surfel_areas(surfels: Surfels, *, neighbours: int = 12) -> np.ndarray:
 
 def _part1by2(x: np.ndarray) -> np.ndarray:
     x = x.astype(np.uint64) & np.uint64(0x1FFFFF)
-    for shift, mask in ((32, 0x1F00000000FFFF), (16, 0x1F0000FF0000FF), (8, 0x100F00F00F00F00F),
-                        (4, 0x10C30C30C30C30C3), (2, 0x1249249249249249)):
+    for shift, mask in (
+        (32, 0x1F00000000FFFF),
+        (16, 0x1F0000FF0000FF),
+        (8, 0x100F00F00F00F00F),
+        (4, 0x10C30C30C30C30C3),
+        (2, 0x1249249249249249),
+    ):
         x = (x | (x << np.uint64(shift))) & np.uint64(mask)
     return x
 
@@ -553,8 +699,15 @@ def render_model(
     cams = [v.camera for v in model.views]
     if views_rgba_premul is None:
         views_rgba_premul = prepare_views(cams, model.load_views_premul())
-    return render_image(model_surfels(model), cams, views_rgba_premul, camera, config=config,
-                        exclude_views=exclude_views, progress=progress)
+    return render_image(
+        model_surfels(model),
+        cams,
+        views_rgba_premul,
+        camera,
+        config=config,
+        exclude_views=exclude_views,
+        progress=progress,
+    )
 
 
 def prepare_model_views(model: OpacityHullModel) -> PreparedViews:

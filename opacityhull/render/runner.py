@@ -17,11 +17,19 @@ from ..errors import InputError
 from ..imageio import write_exr, write_png
 from ..model import OpacityHullModel, Surfels
 from .background import EnvMap, fit_image, load_background
-from .cameras import (captured_view_camera, look_at_camera, mean_fov_y_deg, orbit_cameras, resize_camera,
-                      scene_target)
+from .cameras import captured_view_camera, look_at_camera, mean_fov_y_deg, orbit_cameras, resize_camera, scene_target
 from .renderer import RenderConfig, RenderResult, model_surfels, prepare_model_views, render_image
 
-__all__ = ["choose_cameras", "check_budget", "LodCuts", "render_frames", "run_render", "run_loo", "run_demo_step", "write_frame"]
+__all__ = [
+    "choose_cameras",
+    "check_budget",
+    "LodCuts",
+    "render_frames",
+    "run_render",
+    "run_loo",
+    "run_demo_step",
+    "write_frame",
+]
 
 _SUFFIXES = (".png", ".exr")
 
@@ -32,8 +40,15 @@ LookAt = tuple[np.ndarray, np.ndarray, "float | None"]
 """(eye, target, vertical field of view in degrees or None): :func:`.cameras.parse_look_at`."""
 
 
-def choose_cameras(model: OpacityHullModel, *, view: tuple[int, float] | None = None, look_at: LookAt | None = None,
-                   orbit: int | None = None, width: int | None = None, height: int | None = None) -> list[Camera]:
+def choose_cameras(
+    model: OpacityHullModel,
+    *,
+    view: tuple[int, float] | None = None,
+    look_at: LookAt | None = None,
+    orbit: int | None = None,
+    width: int | None = None,
+    height: int | None = None,
+) -> list[Camera]:
     """The cameras to render: captured camera ``view = (camera index, table_deg)``, a
     ``look_at`` camera, or an ``orbit`` of that many frames (at most one of them;
     default: the first captured view), at ``width`` x ``height`` px when given."""
@@ -49,8 +64,9 @@ def choose_cameras(model: OpacityHullModel, *, view: tuple[int, float] | None = 
         ref = cams[0]
         w = int(width) if width else ref.width
         h = int(height) if height else (ref.height if not width else max(1, round(ref.height * w / ref.width)))
-        return [look_at_camera(eye, target, fov_y_deg=fov if fov is not None else mean_fov_y_deg(cams), width=w,
-                               height=h)]
+        return [
+            look_at_camera(eye, target, fov_y_deg=fov if fov is not None else mean_fov_y_deg(cams), width=w, height=h)
+        ]
     if view is not None:
         c, a = view
         cam = captured_view_camera(model.views, int(c), float(a))
@@ -135,10 +151,18 @@ class LodCuts:
         inv[perm] = np.arange(len(perm))
         par = tree.parent[perm]
         self.tree = replace(
-            tree, positions=tree.positions[perm], normals=tree.normals[perm], radii=tree.radii[perm],
-            areas=tree.areas[perm], visibility=np.ascontiguousarray(tree.visibility[perm]), r_min=tree.r_min[perm],
-            r_max=tree.r_max[perm], parent=np.where(par >= 0, inv[np.maximum(par, 0)], -1),
-            is_leaf=tree.is_leaf[perm], leaf_index=tree.leaf_index[perm])
+            tree,
+            positions=tree.positions[perm],
+            normals=tree.normals[perm],
+            radii=tree.radii[perm],
+            areas=tree.areas[perm],
+            visibility=np.ascontiguousarray(tree.visibility[perm]),
+            r_min=tree.r_min[perm],
+            r_max=tree.r_max[perm],
+            parent=np.where(par >= 0, inv[np.maximum(par, 0)], -1),
+            is_leaf=tree.is_leaf[perm],
+            leaf_index=tree.leaf_index[perm],
+        )
         self.ms_build = 1e3 * (time.perf_counter() - t)
 
     def cut(self, camera: Camera, budget: int | None):
@@ -231,9 +255,18 @@ def _worker_state(model_path) -> tuple[_FrameState, bool]:
         return st, True
 
 
-def _render_chunk(st: _FrameState, cams: Sequence[Camera], *, config: RenderConfig, exclude: Sequence[int],
-                  budget: int | None, paths: Sequence[str], background, anim_background,
-                  progress: Callable[[int, int], None] | None = None) -> dict:
+def _render_chunk(
+    st: _FrameState,
+    cams: Sequence[Camera],
+    *,
+    config: RenderConfig,
+    exclude: Sequence[int],
+    budget: int | None,
+    paths: Sequence[str],
+    background,
+    anim_background,
+    progress: Callable[[int, int], None] | None = None,
+) -> dict:
     """Render ``cams`` with an opened state, write frame i to ``paths[i]``; the GIF frame
     (8-bit sRGB over ``anim_background``) when that is given."""
     from ..pictures import to_srgb8
@@ -280,18 +313,39 @@ def render_frames(task: tuple) -> dict:
     """
     model_path, cams, config, exclude, budget, paths, background, anim_background = task
     st, loaded = _worker_state(model_path)
-    out = _render_chunk(st, cams, config=config, exclude=exclude, budget=budget, paths=paths,
-                        background=background, anim_background=anim_background)
+    out = _render_chunk(
+        st,
+        cams,
+        config=config,
+        exclude=exclude,
+        budget=budget,
+        paths=paths,
+        background=background,
+        anim_background=anim_background,
+    )
     out["ms_load"] = st.ms_load if loaded else 0.0
     return out
 
 
-def run_render(model_path, out, *, view: tuple[int, float] | None = None, look_at: LookAt | None = None,
-               orbit: int | None = None, width: int | None = None, height: int | None = None,
-               config: RenderConfig = RenderConfig(), background: str | None = None, background_kind: str = "auto",
-               env_yaw_deg: float = 0.0, exclude: Sequence[str] = (), fps: float = 12.0,
-               budget: int | None = None, progress: Callable[[int, int], None] | None = None,
-               executor=None) -> dict:
+def run_render(
+    model_path,
+    out,
+    *,
+    view: tuple[int, float] | None = None,
+    look_at: LookAt | None = None,
+    orbit: int | None = None,
+    width: int | None = None,
+    height: int | None = None,
+    config: RenderConfig = RenderConfig(),
+    background: str | None = None,
+    background_kind: str = "auto",
+    env_yaw_deg: float = 0.0,
+    exclude: Sequence[str] = (),
+    fps: float = 12.0,
+    budget: int | None = None,
+    progress: Callable[[int, int], None] | None = None,
+    executor=None,
+) -> dict:
     """Render one frame or an orbit of a model folder to ``out`` (``.png`` or ``.exr``).
 
     ``budget``: at most this many splats per frame, from a view-dependent cut of the
@@ -321,8 +375,19 @@ def run_render(model_path, out, *, view: tuple[int, float] | None = None, look_a
     anim_bg = None if orbit is None else (bg if bg is not None else (0.18, 0.18, 0.18))
     if executor is None:
         st = _FrameState(model_path, model)
-        parts = [_render_chunk(st, cams, config=config, exclude=excl, budget=budget, paths=paths, background=bg,
-                               anim_background=anim_bg, progress=progress)]
+        parts = [
+            _render_chunk(
+                st,
+                cams,
+                config=config,
+                exclude=excl,
+                budget=budget,
+                paths=paths,
+                background=bg,
+                anim_background=anim_bg,
+                progress=progress,
+            )
+        ]
         t_load_ms = st.ms_load
         scheduler = "serial"
     else:
@@ -330,9 +395,19 @@ def run_render(model_path, out, *, view: tuple[int, float] | None = None, look_a
         # about two chunks per worker slot: few tasks (each ships the cameras and the
         # background), yet a slow worker does not hold up the whole orbit
         per = max(1, -(-len(cams) // max(1, 2 * int(getattr(executor, "n_workers", 1)))))
-        tasks = [(str(Path(model_path).resolve()), cams[i:i + per], config, excl, budget,
-                  [str(Path(p).resolve()) for p in paths[i:i + per]], bg, anim_bg)
-                 for i in range(0, len(cams), per)]
+        tasks = [
+            (
+                str(Path(model_path).resolve()),
+                cams[i : i + per],
+                config,
+                excl,
+                budget,
+                [str(Path(p).resolve()) for p in paths[i : i + per]],
+                bg,
+                anim_bg,
+            )
+            for i in range(0, len(cams), per)
+        ]
         prog = None if progress is None else (lambda done, total: progress(min(done * per, len(cams)), len(cams)))
         parts = executor.map(render_frames, tasks, progress=prog)
         t_load_ms = max(p["ms_load"] for p in parts)
@@ -363,8 +438,14 @@ def run_render(model_path, out, *, view: tuple[int, float] | None = None, look_a
     return summary
 
 
-def run_loo(model_path, *, views=None, config: RenderConfig = RenderConfig(), out=None,
-            progress: Callable[[int, int], None] | None = None) -> dict:
+def run_loo(
+    model_path,
+    *,
+    views=None,
+    config: RenderConfig = RenderConfig(),
+    out=None,
+    progress: Callable[[int, int], None] | None = None,
+) -> dict:
     """Leave-one-out evaluation of a model folder; writes ``loo.json`` and
     ``loo_sheet.png`` to ``out`` (default ``MODEL/pictures``)."""
     import json
@@ -383,8 +464,15 @@ def run_loo(model_path, *, views=None, config: RenderConfig = RenderConfig(), ou
     return summary
 
 
-def run_demo_step(model_path, out, *, frames: int = 24, loo_views: str | None = "every:2",
-                  background: str = "grey", progress: Callable[[int, int], None] | None = None) -> dict:
+def run_demo_step(
+    model_path,
+    out,
+    *,
+    frames: int = 24,
+    loo_views: str | None = "every:2",
+    background: str = "grey",
+    progress: Callable[[int, int], None] | None = None,
+) -> dict:
     """The renderer's part of ``opacityhull demo``: an orbit of the model (PNG frames +
     GIF) and a leave-one-out evaluation (JSON + contact sheet) under ``out``. Returns a
     summary with the paths, ready for the demo's report."""

@@ -28,8 +28,14 @@ from ..errors import InputError
 from ..model import Surfels, ViewInfo, write_model
 from ..riggeometry import RigGeometry, view_id
 
-__all__ = ["AnalyticSphere", "SyntheticModel", "make_sphere_model", "write_sphere_model", "fibonacci_sphere",
-           "rig_dict"]
+__all__ = [
+    "AnalyticSphere",
+    "SyntheticModel",
+    "make_sphere_model",
+    "write_sphere_model",
+    "fibonacci_sphere",
+    "rig_dict",
+]
 
 
 def fibonacci_sphere(n: int) -> np.ndarray:
@@ -64,11 +70,14 @@ class AnalyticSphere:
     def albedo(self, p) -> np.ndarray:
         _, lon, lat = self._local(p)
         f = self.texture_freq
-        a = np.stack([
-            0.5 + 0.35 * np.sin(5 * f * lon) * np.cos(4 * f * lat),
-            0.5 + 0.35 * np.sin(3 * f * lon + 1.0) * np.sin(5 * f * lat),
-            0.5 + 0.35 * np.cos(4 * f * lon - 3 * f * lat),
-        ], axis=-1)
+        a = np.stack(
+            [
+                0.5 + 0.35 * np.sin(5 * f * lon) * np.cos(4 * f * lat),
+                0.5 + 0.35 * np.sin(3 * f * lon + 1.0) * np.sin(5 * f * lat),
+                0.5 + 0.35 * np.cos(4 * f * lon - 3 * f * lat),
+            ],
+            axis=-1,
+        )
         return np.clip(a, 0.05, 0.95)
 
     def alpha(self, p) -> np.ndarray:
@@ -128,14 +137,22 @@ class AnalyticSphere:
         return out
 
 
-def rig_dict(*, elevations_deg=(5.0, 35.0, 65.0), distance_m=0.5, target=(0.0, 0.1, 0.0), width=96, height=72,
-             fov_y_deg=30.0) -> dict:
+def rig_dict(
+    *, elevations_deg=(5.0, 35.0, 65.0), distance_m=0.5, target=(0.0, 0.1, 0.0), width=96, height=72, fov_y_deg=30.0
+) -> dict:
     """A rig geometry table (riggeometry schema) with one camera per elevation."""
     return {
         "target_m": list(map(float, target)),
         "cameras": [
-            {"name": f"cam{i}", "width": int(width), "height": int(height), "distance_m": float(distance_m),
-             "elevation_deg": float(e), "azimuth_deg": 0.0, "fov_y_deg": float(fov_y_deg)}
+            {
+                "name": f"cam{i}",
+                "width": int(width),
+                "height": int(height),
+                "distance_m": float(distance_m),
+                "elevation_deg": float(e),
+                "azimuth_deg": 0.0,
+                "fov_y_deg": float(fov_y_deg),
+            }
             for i, e in enumerate(elevations_deg)
         ],
     }
@@ -185,13 +202,28 @@ def make_sphere_model(
     elevation), exact photographs, Fibonacci surfels with radius
     ``radius_factor · √(area per surfel)`` (0.62 would just cover a hexagonal lattice)."""
     scene = AnalyticSphere(fuzzy=fuzzy, specular=specular, texture_freq=texture_freq)
-    rig = rig_dict(elevations_deg=elevations_deg, distance_m=distance_m, target=scene.centre, width=width,
-                   height=height, fov_y_deg=fov_y_deg)
+    rig = rig_dict(
+        elevations_deg=elevations_deg,
+        distance_m=distance_m,
+        target=scene.centre,
+        width=width,
+        height=height,
+        fov_y_deg=fov_y_deg,
+    )
     geo = RigGeometry.from_dict(rig)
     rig_cams = geo.nominal_cameras()
     if distortion is not None:
-        rig_cams = [Camera(K=c.K, width=c.width, height=c.height, world_from_cam=c.world_from_cam,
-                           dist=np.asarray(distortion, float), name=c.name) for c in rig_cams]
+        rig_cams = [
+            Camera(
+                K=c.K,
+                width=c.width,
+                height=c.height,
+                world_from_cam=c.world_from_cam,
+                dist=np.asarray(distortion, float),
+                name=c.name,
+            )
+            for c in rig_cams
+        ]
     views = []
     n_steps = int(round(360.0 / table_step_deg))
     for t in range(n_steps):
@@ -211,13 +243,20 @@ def make_sphere_model(
         uv, z = cam.project(pos)
         vis[:, v.index] = facing & (z > 0) & cam.in_image(uv)
     surfels = Surfels.from_bool(pos, dirs, radii, vis)
-    prov = {"synthetic": "analytic sphere", "n_surfels": n_surfels, "fuzzy": fuzzy, "specular": specular,
-            "supersample": supersample}
+    prov = {
+        "synthetic": "analytic sphere",
+        "n_surfels": n_surfels,
+        "fuzzy": fuzzy,
+        "specular": specular,
+        "supersample": supersample,
+    }
     return SyntheticModel(scene, views, surfels, imgs, rig, prov)
 
 
 def write_sphere_model(root, **kwargs) -> tuple[Path, SyntheticModel]:
     """Write :func:`make_sphere_model` as a model folder; returns (path, the in-memory model)."""
     m = make_sphere_model(**kwargs)
-    path = write_model(root, views=m.views, surfels=m.surfels, view_rgba=m.view_rgba, rig=m.rig, provenance=m.provenance)
+    path = write_model(
+        root, views=m.views, surfels=m.surfels, view_rgba=m.view_rgba, rig=m.rig, provenance=m.provenance
+    )
     return path, m

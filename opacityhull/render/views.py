@@ -70,7 +70,9 @@ class PreparedViews:
         return self.texels[o : o + w * h].reshape(h, w, 4)
 
 
-def prepare_views(view_cameras: Sequence[Camera], view_rgba_premul: Sequence[np.ndarray] | None = None) -> PreparedViews:
+def prepare_views(
+    view_cameras: Sequence[Camera], view_rgba_premul: Sequence[np.ndarray] | None = None
+) -> PreparedViews:
     """Pack cameras and (optionally) premultiplied RGBA images.
 
     Parameters

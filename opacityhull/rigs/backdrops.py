@@ -71,9 +71,18 @@ class DisplayController(OverTransport):
     No I/O happens in ``__init__``; the port opens in :meth:`open` (or on first use).
     """
 
-    def __init__(self, transport: Transport, *, outputs: Mapping[str, int], name: str | None = None,
-                 timeout_s: float = 2.0, retries: int = 3, chunk_bytes: int = 512, reconnect_attempts: int = 2,
-                 reconnect_delay_s: float = 0.2):
+    def __init__(
+        self,
+        transport: Transport,
+        *,
+        outputs: Mapping[str, int],
+        name: str | None = None,
+        timeout_s: float = 2.0,
+        retries: int = 3,
+        chunk_bytes: int = 512,
+        reconnect_attempts: int = 2,
+        reconnect_delay_s: float = 0.2,
+    ):
         name = driver_name(transport, name, driver="DisplayController", fallback="backdrops")
         _check_display_options(name, outputs, chunk_bytes)
         self.name = name
@@ -90,15 +99,32 @@ class DisplayController(OverTransport):
         self.last_error: str | None = None
 
     @classmethod
-    def from_url(cls, url: str, *, outputs: Mapping[str, int], name: str = "backdrops", timeout_s: float = 2.0,
-                 baudrate: int = 115200, retries: int = 3, chunk_bytes: int = 512, reconnect_attempts: int = 2,
-                 reconnect_delay_s: float = 0.2) -> "DisplayController":
+    def from_url(
+        cls,
+        url: str,
+        *,
+        outputs: Mapping[str, int],
+        name: str = "backdrops",
+        timeout_s: float = 2.0,
+        baudrate: int = 115200,
+        retries: int = 3,
+        chunk_bytes: int = 512,
+        reconnect_attempts: int = 2,
+        reconnect_delay_s: float = 0.2,
+    ) -> "DisplayController":
         """A controller on a serial URL; ``timeout_s`` bounds every reply and every write."""
         _check_display_options(name, outputs, chunk_bytes)
         transport = SerialTransport(url, name=name, baudrate=baudrate, timeout_s=timeout_s, write_timeout_s=timeout_s)
-        return cls(transport, outputs=outputs, name=name, timeout_s=timeout_s, retries=retries,
-                   chunk_bytes=chunk_bytes, reconnect_attempts=reconnect_attempts,
-                   reconnect_delay_s=reconnect_delay_s)
+        return cls(
+            transport,
+            outputs=outputs,
+            name=name,
+            timeout_s=timeout_s,
+            retries=retries,
+            chunk_bytes=chunk_bytes,
+            reconnect_attempts=reconnect_attempts,
+            reconnect_delay_s=reconnect_delay_s,
+        )
 
     # ---- lifecycle
     def open(self) -> "DisplayController":
@@ -126,8 +152,10 @@ class DisplayController(OverTransport):
                 return
             except DeviceGone as e:
                 last = e
-        raise DeviceGone(f"{self.name}: port {self.url} did not come back after {max(1, n)} attempt(s) ({last}) — "
-                         "check the cable and that the controller is powered") from None
+        raise DeviceGone(
+            f"{self.name}: port {self.url} did not come back after {max(1, n)} attempt(s) ({last}) — "
+            "check the cable and that the controller is powered"
+        ) from None
 
     # ---- protocol core
     def _next_seq(self) -> int:
@@ -151,8 +179,14 @@ class DisplayController(OverTransport):
         attempt = 0
         while attempt <= self.retries:
             if problems:
-                log.info("%s: %s: resending (attempt %d of %d) after %s", self.name, what, attempt + 1,
-                         self.retries + 1, problems[-1])
+                log.info(
+                    "%s: %s: resending (attempt %d of %d) after %s",
+                    self.name,
+                    what,
+                    attempt + 1,
+                    self.retries + 1,
+                    problems[-1],
+                )
             try:
                 if not self.transport.is_open:
                     self.open()
@@ -268,8 +302,15 @@ class DisplayController(OverTransport):
         except InputError as e:
             raise ProtocolError(f"{self.name}: malformed PATTERN_INFO reply ({e})") from None
 
-    def upload(self, display: str, pattern_id: int, image_rgb8: np.ndarray, *, skip_if_stored: bool = True,
-               progress: Callable[[int, int], None] | None = None) -> bool:
+    def upload(
+        self,
+        display: str,
+        pattern_id: int,
+        image_rgb8: np.ndarray,
+        *,
+        skip_if_stored: bool = True,
+        progress: Callable[[int, int], None] | None = None,
+    ) -> bool:
         """Store ``image_rgb8`` (uint8 (rows, cols, 3)) as pattern ``pattern_id``.
 
         Patterns are stored in the controller, not per output; ``display`` only checks
@@ -299,7 +340,7 @@ class DisplayController(OverTransport):
         self._transact(*dp.upload_begin(pid, w, h), what=f"UPLOAD_BEGIN {pid} ({w}x{h})")
         total = len(data)
         for off, n in dp.pattern_chunks(total, self.chunk_bytes):
-            self._transact(*dp.upload_data(pid, off, data[off:off + n]), what=f"UPLOAD_DATA {pid} @{off}")
+            self._transact(*dp.upload_data(pid, off, data[off : off + n]), what=f"UPLOAD_DATA {pid} @{off}")
             if progress is not None:
                 progress(off + n, total)
         self._transact(*dp.upload_end(pid, crc), what=f"UPLOAD_END {pid}")
@@ -312,8 +353,9 @@ class DisplayController(OverTransport):
             self._transact(*dp.show(out, pattern_id), what=f"SHOW {pattern_id} on {display}")
         except DisplayNak as e:
             if e.reason == dp.NAK_NO_PATTERN:
-                raise DisplayNak(f"{self.name}: pattern {pattern_id} is not stored in the controller — "
-                                 "upload it first", e.reason) from None
+                raise DisplayNak(
+                    f"{self.name}: pattern {pattern_id} is not stored in the controller — upload it first", e.reason
+                ) from None
             raise
 
     def blank(self, display: str | None = None) -> None:
@@ -334,8 +376,10 @@ class DisplayController(OverTransport):
         out = {}
         for disp, idx in self.outputs.items():
             if idx >= len(st.shown):
-                raise ProtocolError(f"{self.name}: controller reports {len(st.shown)} outputs, "
-                                    f"display {disp!r} is configured on output {idx}")
+                raise ProtocolError(
+                    f"{self.name}: controller reports {len(st.shown)} outputs, "
+                    f"display {disp!r} is configured on output {idx}"
+                )
             out[disp] = st.shown[idx] if st.power[idx] else None
         return out
 
@@ -361,6 +405,11 @@ class DisplayController(OverTransport):
             "url": self.url,
         }
         if missing:
-            return DeviceInfo(self.name, False, f"controller has {len(st.power)} outputs; configured displays "
-                              f"{missing} are beyond that", ident, state)
+            return DeviceInfo(
+                self.name,
+                False,
+                f"controller has {len(st.power)} outputs; configured displays {missing} are beyond that",
+                ident,
+                state,
+            )
         return DeviceInfo(self.name, True, f"{ident}; {len(st.stored)} stored pattern(s)", ident, state)

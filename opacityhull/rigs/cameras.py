@@ -38,8 +38,12 @@ _LINEARIZE = ("srgb", "none")
 
 
 def _check_exposure(name: str, exposure_s) -> float:
-    if isinstance(exposure_s, bool) or not isinstance(exposure_s, (int, float, np.floating)) \
-            or not np.isfinite(exposure_s) or exposure_s <= 0:
+    if (
+        isinstance(exposure_s, bool)
+        or not isinstance(exposure_s, (int, float, np.floating))
+        or not np.isfinite(exposure_s)
+        or exposure_s <= 0
+    ):
         raise InputError(f"camera {name}: exposure_s must be a positive number of seconds, got {exposure_s!r}")
     return float(exposure_s)
 
@@ -109,9 +113,21 @@ class OpenCVCamera(OpenClose):
     (``v4l2-ctl``); this driver only controls exposure.
     """
 
-    def __init__(self, device, *, name: str = "camera", width: int, height: int, linearize: str = "srgb",
-                 white_level: float = 1.0, timeout_s: float = 5.0, fourcc: str | None = None,
-                 backend: str | None = None, exposure_control: bool = True, discard_frames: int | None = None):
+    def __init__(
+        self,
+        device,
+        *,
+        name: str = "camera",
+        width: int,
+        height: int,
+        linearize: str = "srgb",
+        white_level: float = 1.0,
+        timeout_s: float = 5.0,
+        fourcc: str | None = None,
+        backend: str | None = None,
+        exposure_control: bool = True,
+        discard_frames: int | None = None,
+    ):
         if isinstance(device, str) and device.strip().isdigit():
             device = int(device)
         if isinstance(device, bool) or not isinstance(device, (int, str, os.PathLike)):
@@ -130,8 +146,11 @@ class OpenCVCamera(OpenClose):
         self.fourcc = fourcc
         self.backend = backend
         self.exposure_control = bool(exposure_control)
-        self.discard_frames = (2 if isinstance(self.device, int) or str(self.device).startswith("/dev/") else 0) \
-            if discard_frames is None else int(discard_frames)
+        self.discard_frames = (
+            (2 if isinstance(self.device, int) or str(self.device).startswith("/dev/") else 0)
+            if discard_frames is None
+            else int(discard_frames)
+        )
         self._cap = None
         self._exposure_s: float | None = None
         self._lock = threading.Lock()
@@ -143,8 +162,15 @@ class OpenCVCamera(OpenClose):
 
         if self.backend is None:
             return cv2.CAP_ANY
-        names = {"v4l2": "CAP_V4L2", "ffmpeg": "CAP_FFMPEG", "gstreamer": "CAP_GSTREAMER", "dshow": "CAP_DSHOW",
-                 "msmf": "CAP_MSMF", "images": "CAP_IMAGES", "any": "CAP_ANY"}
+        names = {
+            "v4l2": "CAP_V4L2",
+            "ffmpeg": "CAP_FFMPEG",
+            "gstreamer": "CAP_GSTREAMER",
+            "dshow": "CAP_DSHOW",
+            "msmf": "CAP_MSMF",
+            "images": "CAP_IMAGES",
+            "any": "CAP_ANY",
+        }
         if self.backend.lower() not in names:
             raise ConfigError(f"camera {self.name}: unknown backend {self.backend!r} (one of {sorted(names)})")
         return getattr(cv2, names[self.backend.lower()])
@@ -159,10 +185,15 @@ class OpenCVCamera(OpenClose):
 
         if self._cap is not None:
             return self
-        if isinstance(self.device, str) and not self.device.startswith(("/dev/", "rtsp:", "http:", "https:")) \
-                and "%" not in self.device and not Path(self.device).exists():
-            raise DeviceGone(f"camera {self.name}: {self.device} does not exist — check the device path in "
-                             "[[devices.cameras]]")
+        if (
+            isinstance(self.device, str)
+            and not self.device.startswith(("/dev/", "rtsp:", "http:", "https:"))
+            and "%" not in self.device
+            and not Path(self.device).exists()
+        ):
+            raise DeviceGone(
+                f"camera {self.name}: {self.device} does not exist — check the device path in [[devices.cameras]]"
+            )
         ms = int(self.timeout_s * 1000)
         params = [cv2.CAP_PROP_OPEN_TIMEOUT_MSEC, ms, cv2.CAP_PROP_READ_TIMEOUT_MSEC, ms]
         cap = cv2.VideoCapture(self.device, self._api(), params)
@@ -240,22 +271,27 @@ class OpenCVCamera(OpenClose):
         t.join(self.timeout_s)
         if t.is_alive():
             self._cap = None  # the reader thread still owns it; open a fresh one next time
-            raise DeviceTimeout(f"camera {self.name}: no frame from {self._where()} within {self.timeout_s} s — "
-                                "is the camera still connected (check dmesg) and the USB bandwidth sufficient?")
+            raise DeviceTimeout(
+                f"camera {self.name}: no frame from {self._where()} within {self.timeout_s} s — "
+                "is the camera still connected (check dmesg) and the USB bandwidth sufficient?"
+            )
         if "e" in box:
             raise DeviceError(f"camera {self.name}: reading {self._where()} failed ({box['e']})")
         ok, frame = box["r"]
         if not ok or frame is None:
-            raise DeviceGone(f"camera {self.name}: {self._where()} delivered no frame (end of stream, or the device "
-                             "was unplugged)")
+            raise DeviceGone(
+                f"camera {self.name}: {self._where()} delivered no frame (end of stream, or the device was unplugged)"
+            )
         return frame
 
     def _convert(self, frame: np.ndarray) -> np.ndarray:
         if frame.ndim == 2:
             frame = frame[:, :, None]
         if frame.shape[0] != self.height or frame.shape[1] != self.width:
-            raise DeviceError(f"camera {self.name}: {self._where()} delivers {frame.shape[1]}x{frame.shape[0]} frames, "
-                              f"the config asks for {self.width}x{self.height} — pick a size the camera supports")
+            raise DeviceError(
+                f"camera {self.name}: {self._where()} delivers {frame.shape[1]}x{frame.shape[0]} frames, "
+                f"the config asks for {self.width}x{self.height} — pick a size the camera supports"
+            )
         if frame.shape[2] >= 3:
             frame = frame[:, :, [2, 1, 0]]  # OpenCV delivers BGR
         maxv = float(np.iinfo(frame.dtype).max) if np.issubdtype(frame.dtype, np.integer) else 1.0
@@ -281,9 +317,15 @@ class OpenCVCamera(OpenClose):
             return img
 
     def info(self) -> CameraInfo:
-        return CameraInfo(name=self.name, width=self.width, height=self.height,
-                          model=f"OpenCV VideoCapture {self.backend_name or self.backend or 'auto'}",
-                          serial=str(self.device), white_level=self.white_level, linear=True)
+        return CameraInfo(
+            name=self.name,
+            width=self.width,
+            height=self.height,
+            model=f"OpenCV VideoCapture {self.backend_name or self.backend or 'auto'}",
+            serial=str(self.device),
+            white_level=self.white_level,
+            linear=True,
+        )
 
     def check(self) -> DeviceInfo:
         """Open the device and read one frame (no exposure change); never raises."""
@@ -298,8 +340,9 @@ class OpenCVCamera(OpenClose):
         detail = f"{self.backend_name} {self._where()}: {w}x{h} frames"
         if not ok:
             detail += f", config asks for {self.width}x{self.height}"
-        return DeviceInfo(self.name, ok, detail, identity=f"{self.backend_name}:{self.device}",
-                          state={"width": w, "height": h})
+        return DeviceInfo(
+            self.name, ok, detail, identity=f"{self.backend_name}:{self.device}", state={"width": w, "height": h}
+        )
 
 
 # =========================================================================== tethered (folder)
@@ -312,7 +355,7 @@ def expand_braces(pattern: str) -> list[str]:
         return [pattern]
     out = []
     for alt in m.group(1).split(","):
-        out += expand_braces(pattern[: m.start()] + alt + pattern[m.end():])
+        out += expand_braces(pattern[: m.start()] + alt + pattern[m.end() :])
     return out
 
 
@@ -352,15 +395,29 @@ class DirectoryCamera:
         ``"growing"``, ``"unreadable"``, ``"done"`` (progress display, tests).
     """
 
-    def __init__(self, folder, *, name: str = "camera", pattern: str = "*.{exr,png,jpg,jpeg,tif,tiff}",
-                 timeout_s: float = 30.0, settle_s: float = 0.2, trigger: Sequence[str] | Callable | None = None,
-                 width: int | None = None, height: int | None = None, linearize: str = "srgb",
-                 white_level: float = 1.0, poll_s: float = 0.01,
-                 on_wait: Callable[[str, Path | None, int], None] | None = None):
+    def __init__(
+        self,
+        folder,
+        *,
+        name: str = "camera",
+        pattern: str = "*.{exr,png,jpg,jpeg,tif,tiff}",
+        timeout_s: float = 30.0,
+        settle_s: float = 0.2,
+        trigger: Sequence[str] | Callable | None = None,
+        width: int | None = None,
+        height: int | None = None,
+        linearize: str = "srgb",
+        white_level: float = 1.0,
+        poll_s: float = 0.01,
+        on_wait: Callable[[str, Path | None, int], None] | None = None,
+    ):
         if linearize not in _LINEARIZE:
             raise ConfigError(f"camera {name}: linearize must be one of {_LINEARIZE}, got {linearize!r}")
-        if trigger is not None and not callable(trigger) and (
-                isinstance(trigger, str) or not all(isinstance(x, str) for x in trigger)):
+        if (
+            trigger is not None
+            and not callable(trigger)
+            and (isinstance(trigger, str) or not all(isinstance(x, str) for x in trigger))
+        ):
             raise ConfigError(f"camera {name}: trigger must be a list of strings (a command), got {trigger!r}")
         self.folder = Path(folder)
         self.name = name
@@ -380,8 +437,10 @@ class DirectoryCamera:
 
     def open(self) -> "DirectoryCamera":
         if not self.folder.is_dir():
-            raise DeviceGone(f"camera {self.name}: folder {self.folder} does not exist — create it and point the "
-                             "tethering software at it")
+            raise DeviceGone(
+                f"camera {self.name}: folder {self.folder} does not exist — create it and point the "
+                "tethering software at it"
+            )
         return self
 
     def close(self) -> None:
@@ -421,18 +480,21 @@ class DirectoryCamera:
         if callable(self.trigger):
             self.trigger(exposure_s)
             return
-        cmd = [a.replace("{exposure_s}", f"{exposure_s:g}").replace("{folder}", str(self.folder))
-               for a in self.trigger]
+        cmd = [a.replace("{exposure_s}", f"{exposure_s:g}").replace("{folder}", str(self.folder)) for a in self.trigger]
         try:
             r = subprocess.run(cmd, capture_output=True, text=True, timeout=self.timeout_s)
         except FileNotFoundError:
             raise DeviceError(f"camera {self.name}: trigger command {cmd[0]!r} not found — is it installed?") from None
         except subprocess.TimeoutExpired:
-            raise DeviceTimeout(f"camera {self.name}: trigger command {' '.join(cmd)} did not finish within "
-                                f"{self.timeout_s} s — is the camera connected and awake?") from None
+            raise DeviceTimeout(
+                f"camera {self.name}: trigger command {' '.join(cmd)} did not finish within "
+                f"{self.timeout_s} s — is the camera connected and awake?"
+            ) from None
         if r.returncode != 0:
-            raise DeviceError(f"camera {self.name}: trigger command {' '.join(cmd)} failed with exit code "
-                              f"{r.returncode}: {r.stderr.strip()[-300:]}")
+            raise DeviceError(
+                f"camera {self.name}: trigger command {' '.join(cmd)} failed with exit code "
+                f"{r.returncode}: {r.stderr.strip()[-300:]}"
+            )
 
     def _notify(self, state: str, path: Path | None, size: int) -> None:
         if self.on_wait is not None:
@@ -498,25 +560,35 @@ class DirectoryCamera:
             raise DeviceTimeout(
                 f"camera {self.name}: new file(s) {names} in {self.folder} did not become a complete, readable image "
                 f"within {self.timeout_s} s — is the camera software still writing, or saving a format other than "
-                f"{self.pattern}?")
+                f"{self.pattern}?"
+            )
         raise DeviceTimeout(
             f"camera {self.name}: no new image matching {self.pattern} appeared in {self.folder} within "
-            f"{self.timeout_s} s — is the tethering software running, the camera on, and saving into this folder?")
+            f"{self.timeout_s} s — is the tethering software running, the camera on, and saving into this folder?"
+        )
 
     def _finish(self, path: Path, img: np.ndarray, exposure_s: float) -> np.ndarray:
         rgb = _to_rgb(self.name, img)
         if self.width is not None and self.height is not None and rgb.shape[:2] != (self.height, self.width):
-            raise DeviceError(f"camera {self.name}: {path} is {rgb.shape[1]}x{rgb.shape[0]}, the config asks for "
-                              f"{self.width}x{self.height} — check the camera's image size setting")
+            raise DeviceError(
+                f"camera {self.name}: {path} is {rgb.shape[1]}x{rgb.shape[0]}, the config asks for "
+                f"{self.width}x{self.height} — check the camera's image size setting"
+            )
         self.last_path = path
         self.last_exposure_s = exposure_s
         self._notify("done", path, path.stat().st_size)
         return rgb
 
     def info(self) -> CameraInfo:
-        return CameraInfo(name=self.name, width=int(self.width or 0), height=int(self.height or 0),
-                          model=f"tethered camera writing to {self.folder}", serial="", white_level=self.white_level,
-                          linear=True)
+        return CameraInfo(
+            name=self.name,
+            width=int(self.width or 0),
+            height=int(self.height or 0),
+            model=f"tethered camera writing to {self.folder}",
+            serial="",
+            white_level=self.white_level,
+            linear=True,
+        )
 
     def check(self) -> DeviceInfo:
         """The folder exists and is writable (the camera itself is only seen when it shoots)."""
@@ -525,5 +597,10 @@ class DirectoryCamera:
         if not os.access(self.folder, os.W_OK | os.X_OK):
             return DeviceInfo(self.name, False, f"folder {self.folder} is not writable")
         n = len(self._scan())
-        return DeviceInfo(self.name, True, f"watching {self.folder} ({n} image(s) there now)",
-                          identity=f"directory:{self.folder}", state={"files": n})
+        return DeviceInfo(
+            self.name,
+            True,
+            f"watching {self.folder} ({n} image(s) there now)",
+            identity=f"directory:{self.folder}",
+            state={"files": n},
+        )

@@ -22,16 +22,23 @@ def register(app, groups) -> None:
     @cli_errors
     def emulate(
         config: Path = typer.Option(..., "--config", help="Rig TOML whose emulator:KIND URLs to serve."),
-        write_config: Path = typer.Option(..., "--write-config",
-                                          help="Where to write the runtime rig TOML (same rig, real URLs)."),
-        tcp: bool = typer.Option(False, "--tcp", help="Serve on TCP sockets (socket://127.0.0.1:PORT) instead of "
-                                                      "ptys (/dev/pts/N)."),
-        time_scale: float = typer.Option(0.0, "--time-scale", min=0.0,
-                                         help="Real seconds per physical second of motion (0 = instant, 1 = real)."),
-        fault: List[str] = typer.Option([], "--fault", help="DEVICE:KIND[:ARGS] (repeatable): inject a fault, e.g. "
-                                        "turntable:babble:5000, backdrops:garble:3, light_array:vanish:10; kinds: "
-                                        "drop, garble, truncate, late, delay, silent, babble, vanish "
-                                        "(docs/emulator-faults.md)."),
+        write_config: Path = typer.Option(
+            ..., "--write-config", help="Where to write the runtime rig TOML (same rig, real URLs)."
+        ),
+        tcp: bool = typer.Option(
+            False, "--tcp", help="Serve on TCP sockets (socket://127.0.0.1:PORT) instead of ptys (/dev/pts/N)."
+        ),
+        time_scale: float = typer.Option(
+            0.0, "--time-scale", min=0.0, help="Real seconds per physical second of motion (0 = instant, 1 = real)."
+        ),
+        fault: List[str] = typer.Option(
+            [],
+            "--fault",
+            help="DEVICE:KIND[:ARGS] (repeatable): inject a fault, e.g. "
+            "turntable:babble:5000, backdrops:garble:3, light_array:vanish:10; kinds: "
+            "drop, garble, truncate, late, delay, silent, babble, vanish "
+            "(docs/emulator-faults.md).",
+        ),
         json_out: bool = typer.Option(False, "--json", help="Print {config, devices} as one JSON line."),
     ):
         """Start an emulator for every `emulator:` device of a rig TOML and serve until Ctrl-C / SIGTERM.
@@ -67,8 +74,13 @@ def register(app, groups) -> None:
         try:
             with start_emulators(cfg, kind="tcp" if tcp else "pty", time_scale=time_scale, faults=faults) as emus:
                 emus.config.write(write_config)
-                summary = {"config": str(write_config), "devices": emus.devices(),
-                           "transport": "tcp" if tcp else "pty", "time_scale": time_scale, "faults": faults}
+                summary = {
+                    "config": str(write_config),
+                    "devices": emus.devices(),
+                    "transport": "tcp" if tcp else "pty",
+                    "time_scale": time_scale,
+                    "faults": faults,
+                }
 
                 def human(s):  # human text on stderr, like every command (stdout is for --json)
                     typer.echo(f"runtime config: {s['config']}", err=True)
@@ -104,8 +116,10 @@ def register(app, groups) -> None:
         summary = {
             "ok": ok,
             "config": str(config),
-            "devices": [{"name": i.name, "ok": i.ok, "detail": i.detail, "identity": i.identity, "state": i.state}
-                        for i in infos],
+            "devices": [
+                {"name": i.name, "ok": i.ok, "detail": i.detail, "identity": i.identity, "state": i.state}
+                for i in infos
+            ],
         }
 
         def human(s):

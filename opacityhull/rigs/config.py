@@ -49,8 +49,17 @@ EMULATOR_KINDS = ("grbl", "enttec", "display")
 CAMERA_DRIVERS = ("opencv", "directory", "sim")
 GRBL_AXES = ("X", "Y", "Z", "A", "B", "C")
 
-_AXIS_KEYS = {"url", "axis", "steps_per_deg", "max_rate_deg_s", "accel_deg_s2", "backlash_deg", "soft_limits_deg",
-              "timeout_s", "baudrate"}
+_AXIS_KEYS = {
+    "url",
+    "axis",
+    "steps_per_deg",
+    "max_rate_deg_s",
+    "accel_deg_s2",
+    "backlash_deg",
+    "soft_limits_deg",
+    "timeout_s",
+    "baudrate",
+}
 _LIGHT_KEYS = {"url", "timeout_s", "baudrate", "rotation", "channels"}
 _BACKDROP_KEYS = {"url", "timeout_s", "baudrate", "outputs", "retries", "chunk_bytes", "slots"}
 _CAMERA_COMMON = {"name", "driver", "device"}
@@ -67,7 +76,7 @@ def parse_emulator_url(url: str) -> tuple[str, str] | None:
     of the kind or the tag."""
     if not isinstance(url, str) or not url.startswith("emulator:"):
         return None
-    rest = url[len("emulator:"):].partition("?")[0]
+    rest = url[len("emulator:") :].partition("?")[0]
     kind, _, tag = rest.partition("#")
     return kind, tag
 
@@ -84,8 +93,9 @@ def emulator_url_faults(url: str) -> list[str]:
             continue
         key, eq, val = item.partition("=")
         if key != "fault" or not eq:
-            raise ConfigError(f"{url!r}: unknown query {item!r} (expected fault=KIND[:ARGS], see "
-                              "docs/emulator-faults.md)")
+            raise ConfigError(
+                f"{url!r}: unknown query {item!r} (expected fault=KIND[:ARGS], see docs/emulator-faults.md)"
+            )
         out.append(val)
     return out
 
@@ -221,10 +231,17 @@ class RigConfig:
         la_cfg = self.light_array
         if la_cfg is not None:
             rot = la_cfg.rotation
-            la_cfg = replace(la_cfg, url=sub(la_cfg.url), rotation=None if rot is None else replace(rot, url=sub(rot.url)))
+            la_cfg = replace(
+                la_cfg, url=sub(la_cfg.url), rotation=None if rot is None else replace(rot, url=sub(rot.url))
+            )
         bd = self.backdrops if self.backdrops is None else replace(self.backdrops, url=sub(self.backdrops.url))
-        return replace(self, turntable=replace(self.turntable, url=sub(self.turntable.url)), light_array=la_cfg,
-                       backdrops=bd, raw=raw)
+        return replace(
+            self,
+            turntable=replace(self.turntable, url=sub(self.turntable.url)),
+            light_array=la_cfg,
+            backdrops=bd,
+            raw=raw,
+        )
 
     def to_dict(self) -> dict:
         """The TOML content (``rig``, ``devices``, ``geometry`` tables)."""
@@ -264,11 +281,15 @@ class _Ctx(TomlContext):
         if em is not None:
             k, _tag = em
             if k not in EMULATOR_KINDS:
-                raise self.err(f"{key}.url", f"unknown emulator kind {k!r} in {u!r} (expected emulator:KIND[#tag] "
-                                             f"with KIND one of {list(EMULATOR_KINDS)})")
+                raise self.err(
+                    f"{key}.url",
+                    f"unknown emulator kind {k!r} in {u!r} (expected emulator:KIND[#tag] "
+                    f"with KIND one of {list(EMULATOR_KINDS)})",
+                )
             if k != kind:
-                raise self.err(f"{key}.url", f"{u!r} emulates a {k} device, but this device is a {kind} "
-                                             f"(use emulator:{kind})")
+                raise self.err(
+                    f"{key}.url", f"{u!r} emulates a {k} device, but this device is a {kind} (use emulator:{kind})"
+                )
             from .emulators.faults import parse_fault
 
             try:
@@ -288,9 +309,12 @@ def _axis(ctx: _Ctx, key: str, name: str, d, defaults: AxisConfig | None = None)
         raise ctx.err(f"{key}.axis", f"expected a GRBL axis letter {list(GRBL_AXES)}, got {axis!r}")
     limits = d.get("soft_limits_deg")
     if limits is not None:
-        if (not isinstance(limits, list) or len(limits) != 2
-                or not all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in limits)
-                or not limits[0] < limits[1]):
+        if (
+            not isinstance(limits, list)
+            or len(limits) != 2
+            or not all(isinstance(x, (int, float)) and not isinstance(x, bool) for x in limits)
+            or not limits[0] < limits[1]
+        ):
             raise ctx.err(f"{key}.soft_limits_deg", f"expected [min_deg, max_deg] with min < max, got {limits!r}")
         limits = (float(limits[0]), float(limits[1]))
     return AxisConfig(
@@ -372,18 +396,26 @@ def parse_rig_config(data: Mapping[str, Any], *, source: str = "<rig config>", b
             channels[lid] = v
         for i, lid in enumerate(light_ids):
             if lid not in channels:
-                raise ctx.err(f"{key}.channels", f"no DMX channel for light {lid} (geometry.lights[{i}]); "
-                                                 f"add '{lid} = <channel>'")
+                raise ctx.err(
+                    f"{key}.channels", f"no DMX channel for light {lid} (geometry.lights[{i}]); add '{lid} = <channel>'"
+                )
         rotation = None
         if "rotation" in la:
             rotation = _axis(ctx, f"{key}.rotation", "light_array.rotation", la["rotation"])
         light_array = LightArrayConfig(
-            name="light_array", url=url, channels=tuple(sorted(channels.items())), rotation=rotation,
+            name="light_array",
+            url=url,
+            channels=tuple(sorted(channels.items())),
+            rotation=rotation,
             timeout_s=ctx.num(key, la, "timeout_s", 2.0, positive=True),
-            baudrate=ctx.int_(key, la, "baudrate", 57600, 300, 4_000_000), key=key)
+            baudrate=ctx.int_(key, la, "baudrate", 57600, 300, 4_000_000),
+            key=key,
+        )
     elif light_ids:
-        raise ctx.err("devices", f"geometry.lights has {len(light_ids)} light(s) but there is no "
-                                 "[devices.light_array] to switch them")
+        raise ctx.err(
+            "devices",
+            f"geometry.lights has {len(light_ids)} light(s) but there is no [devices.light_array] to switch them",
+        )
 
     # ---- backdrops
     backdrops = None
@@ -402,8 +434,9 @@ def parse_rig_config(data: Mapping[str, Any], *, source: str = "<rig config>", b
         outputs: dict[str, int] = {}
         for k, v in out_tab.items():
             if k not in display_names:
-                raise ctx.err(f"{key}.outputs.{k}", f"no display named {k!r} in geometry.displays "
-                                                    f"(names: {display_names})")
+                raise ctx.err(
+                    f"{key}.outputs.{k}", f"no display named {k!r} in geometry.displays (names: {display_names})"
+                )
             if isinstance(v, bool) or not isinstance(v, int) or not 0 <= v <= 254:
                 raise ctx.err(f"{key}.outputs.{k}", f"expected a controller output index 0..254, got {v!r}")
             if v in outputs.values():
@@ -412,17 +445,25 @@ def parse_rig_config(data: Mapping[str, Any], *, source: str = "<rig config>", b
             outputs[k] = v
         for i, dn in enumerate(display_names):
             if dn not in outputs:
-                raise ctx.err(f"{key}.outputs", f"no controller output for display {dn!r} (geometry.displays[{i}]); "
-                                                f"add '{dn} = <output>'")
+                raise ctx.err(
+                    f"{key}.outputs",
+                    f"no controller output for display {dn!r} (geometry.displays[{i}]); add '{dn} = <output>'",
+                )
         backdrops = BackdropsConfig(
-            name="backdrops", url=url, outputs=tuple((n, outputs[n]) for n in display_names),
+            name="backdrops",
+            url=url,
+            outputs=tuple((n, outputs[n]) for n in display_names),
             timeout_s=ctx.num(key, bd, "timeout_s", 2.0, positive=True),
             baudrate=ctx.int_(key, bd, "baudrate", 115200, 300, 4_000_000),
             retries=ctx.int_(key, bd, "retries", 3, 0, 100),
-            chunk_bytes=ctx.int_(key, bd, "chunk_bytes", 512, 1, 1024), key=key)
+            chunk_bytes=ctx.int_(key, bd, "chunk_bytes", 512, 1, 1024),
+            key=key,
+        )
     elif display_names:
-        raise ctx.err("devices", f"geometry.displays has {len(display_names)} display(s) but there is no "
-                                 "[devices.backdrops] to drive them")
+        raise ctx.err(
+            "devices",
+            f"geometry.displays has {len(display_names)} display(s) but there is no [devices.backdrops] to drive them",
+        )
 
     # ---- cameras
     cameras: list[CameraConfig] = []
@@ -463,15 +504,26 @@ def parse_rig_config(data: Mapping[str, Any], *, source: str = "<rig config>", b
             raise ctx.err(f"{key}.linearize", f"expected 'srgb' or 'none', got {opts['linearize']!r}")
         if "exposure_control" in opts and not isinstance(opts["exposure_control"], bool):
             raise ctx.err(f"{key}.exposure_control", f"expected true or false, got {opts['exposure_control']!r}")
-        if "trigger" in opts and (not isinstance(opts["trigger"], list)
-                                  or not all(isinstance(a, str) for a in opts["trigger"]) or not opts["trigger"]):
+        if "trigger" in opts and (
+            not isinstance(opts["trigger"], list)
+            or not all(isinstance(a, str) for a in opts["trigger"])
+            or not opts["trigger"]
+        ):
             raise ctx.err(f"{key}.trigger", f"expected a command as a list of strings, got {opts['trigger']!r}")
         if "pattern" in opts and not isinstance(opts["pattern"], str):
             raise ctx.err(f"{key}.pattern", f"expected a glob string, got {opts['pattern']!r}")
         spec = geometry.cameras[i] if i < len(geometry.cameras) else None
-        cameras.append(CameraConfig(name=cname, driver=driver, device=device,
-                                    width=spec.width if spec else 0, height=spec.height if spec else 0,
-                                    options=tuple(sorted(opts.items())), key=key))
+        cameras.append(
+            CameraConfig(
+                name=cname,
+                driver=driver,
+                device=device,
+                width=spec.width if spec else 0,
+                height=spec.height if spec else 0,
+                options=tuple(sorted(opts.items())),
+                key=key,
+            )
+        )
     if raw_cams:
         names = [c.name for c in cameras]
         if names != geo_names:
@@ -484,13 +536,16 @@ def parse_rig_config(data: Mapping[str, Any], *, source: str = "<rig config>", b
                 why.append(f"not in geometry.cameras: {extra}")
             if not why:
                 why.append("same names in a different order")
-            raise ctx.err("devices.cameras", f"camera names {names} must match geometry.cameras {geo_names} in "
-                                             f"name and order ({'; '.join(why)})")
+            raise ctx.err(
+                "devices.cameras",
+                f"camera names {names} must match geometry.cameras {geo_names} in name and order ({'; '.join(why)})",
+            )
 
     # ---- ports shared between devices
     kinds: dict[str, tuple[str, str]] = {}  # url -> (kind, key)
     entries: list[tuple[str, str, str, AxisConfig | LightArrayConfig | BackdropsConfig]] = [
-        (turntable.url, "grbl", turntable.key, turntable)]
+        (turntable.url, "grbl", turntable.key, turntable)
+    ]
     if light_array is not None:
         entries.append((light_array.url, "enttec", light_array.key, light_array))
         if light_array.rotation is not None:
@@ -501,21 +556,37 @@ def parse_rig_config(data: Mapping[str, Any], *, source: str = "<rig config>", b
     axes_on: dict[str, AxisConfig] = {}
     for url, kind, key, obj in entries:
         if url in kinds and kinds[url][0] != kind:
-            raise ctx.err(f"{key}.url", f"{url!r} is also {kinds[url][1]}.url (a {kinds[url][0]} device); one port "
-                                        f"cannot be a {kind} device too")
+            raise ctx.err(
+                f"{key}.url",
+                f"{url!r} is also {kinds[url][1]}.url (a {kinds[url][0]} device); one port "
+                f"cannot be a {kind} device too",
+            )
         if url in kinds and kind != "grbl":
             raise ctx.err(f"{key}.url", f"{url!r} is also {kinds[url][1]}.url; give each device its own port")
         kinds.setdefault(url, (kind, key))
         if isinstance(obj, AxisConfig):
             prev = axes_on.get(url + "|" + obj.axis)
             if prev is not None:
-                raise ctx.err(f"{key}.axis", f"axis {obj.axis} of the controller at {url!r} is already "
-                                             f"{prev.key}; use another axis letter")
+                raise ctx.err(
+                    f"{key}.axis",
+                    f"axis {obj.axis} of the controller at {url!r} is already {prev.key}; use another axis letter",
+                )
             axes_on[url + "|" + obj.axis] = obj
             for other in axes_on.values():
                 if other.url == url and other.baudrate != obj.baudrate:
-                    raise ctx.err(f"{key}.baudrate", f"{obj.baudrate} differs from {other.key}.baudrate "
-                                                     f"{other.baudrate} on the same controller {url!r}")
+                    raise ctx.err(
+                        f"{key}.baudrate",
+                        f"{obj.baudrate} differs from {other.key}.baudrate "
+                        f"{other.baudrate} on the same controller {url!r}",
+                    )
 
-    return RigConfig(name=name, turntable=turntable, geometry=geometry, light_array=light_array,
-                     backdrops=backdrops, cameras=tuple(cameras), raw=raw, source=source)
+    return RigConfig(
+        name=name,
+        turntable=turntable,
+        geometry=geometry,
+        light_array=light_array,
+        backdrops=backdrops,
+        cameras=tuple(cameras),
+        raw=raw,
+        source=source,
+    )

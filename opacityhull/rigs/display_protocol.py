@@ -45,19 +45,67 @@ from ..errors import InputError, ShapeError
 log = logging.getLogger(__name__)
 
 __all__ = [
-    "FLAG", "ESC", "MAX_PAYLOAD", "MAX_CHUNK", "NO_PATTERN", "ALL_OUTPUTS",
-    "CMD_IDENTIFY", "CMD_STATE", "CMD_POWER", "CMD_SHOW", "CMD_BLANK", "CMD_UPLOAD_BEGIN",
-    "CMD_UPLOAD_DATA", "CMD_UPLOAD_END", "CMD_PATTERN_INFO", "CMD_DELETE", "ACK", "NAK",
-    "COMMAND_NAMES", "NAK_REASONS", "RETRYABLE_NAKS",
-    "NAK_BAD_FRAME", "NAK_BAD_LENGTH", "NAK_UNKNOWN_CMD", "NAK_BAD_OUTPUT", "NAK_NO_PATTERN",
-    "NAK_OUT_OF_RANGE", "NAK_NO_UPLOAD", "NAK_BUSY", "NAK_STORAGE_FULL", "NAK_INCOMPLETE",
-    "NAK_IMAGE_CRC", "NAK_TOO_LARGE",
-    "crc16_ccitt", "image_crc32", "encode_frame", "Frame", "FrameError", "FrameDecoder",
-    "ControllerState", "PatternInfo",
-    "identify", "query_state", "power", "show", "blank", "upload_begin", "upload_data", "upload_end",
-    "pattern_info", "delete", "ack", "nak",
-    "parse_state", "encode_state", "parse_pattern_info", "encode_pattern_info", "parse_nak",
-    "pattern_bytes", "pattern_chunks", "nearest_resize",
+    "FLAG",
+    "ESC",
+    "MAX_PAYLOAD",
+    "MAX_CHUNK",
+    "NO_PATTERN",
+    "ALL_OUTPUTS",
+    "CMD_IDENTIFY",
+    "CMD_STATE",
+    "CMD_POWER",
+    "CMD_SHOW",
+    "CMD_BLANK",
+    "CMD_UPLOAD_BEGIN",
+    "CMD_UPLOAD_DATA",
+    "CMD_UPLOAD_END",
+    "CMD_PATTERN_INFO",
+    "CMD_DELETE",
+    "ACK",
+    "NAK",
+    "COMMAND_NAMES",
+    "NAK_REASONS",
+    "RETRYABLE_NAKS",
+    "NAK_BAD_FRAME",
+    "NAK_BAD_LENGTH",
+    "NAK_UNKNOWN_CMD",
+    "NAK_BAD_OUTPUT",
+    "NAK_NO_PATTERN",
+    "NAK_OUT_OF_RANGE",
+    "NAK_NO_UPLOAD",
+    "NAK_BUSY",
+    "NAK_STORAGE_FULL",
+    "NAK_INCOMPLETE",
+    "NAK_IMAGE_CRC",
+    "NAK_TOO_LARGE",
+    "crc16_ccitt",
+    "image_crc32",
+    "encode_frame",
+    "Frame",
+    "FrameError",
+    "FrameDecoder",
+    "ControllerState",
+    "PatternInfo",
+    "identify",
+    "query_state",
+    "power",
+    "show",
+    "blank",
+    "upload_begin",
+    "upload_data",
+    "upload_end",
+    "pattern_info",
+    "delete",
+    "ack",
+    "nak",
+    "parse_state",
+    "encode_state",
+    "parse_pattern_info",
+    "encode_pattern_info",
+    "parse_nak",
+    "pattern_bytes",
+    "pattern_chunks",
+    "nearest_resize",
 ]
 
 FLAG = 0x7E
@@ -84,23 +132,32 @@ ACK = 0x06
 NAK = 0x15
 
 COMMAND_NAMES = {
-    CMD_IDENTIFY: "IDENTIFY", CMD_STATE: "STATE", CMD_POWER: "POWER", CMD_SHOW: "SHOW", CMD_BLANK: "BLANK",
-    CMD_UPLOAD_BEGIN: "UPLOAD_BEGIN", CMD_UPLOAD_DATA: "UPLOAD_DATA", CMD_UPLOAD_END: "UPLOAD_END",
-    CMD_PATTERN_INFO: "PATTERN_INFO", CMD_DELETE: "DELETE", ACK: "ACK", NAK: "NAK",
+    CMD_IDENTIFY: "IDENTIFY",
+    CMD_STATE: "STATE",
+    CMD_POWER: "POWER",
+    CMD_SHOW: "SHOW",
+    CMD_BLANK: "BLANK",
+    CMD_UPLOAD_BEGIN: "UPLOAD_BEGIN",
+    CMD_UPLOAD_DATA: "UPLOAD_DATA",
+    CMD_UPLOAD_END: "UPLOAD_END",
+    CMD_PATTERN_INFO: "PATTERN_INFO",
+    CMD_DELETE: "DELETE",
+    ACK: "ACK",
+    NAK: "NAK",
 }
 
-NAK_BAD_FRAME = 0x01      # CRC mismatch or framing error: resend
-NAK_BAD_LENGTH = 0x02     # payload length wrong for the command
+NAK_BAD_FRAME = 0x01  # CRC mismatch or framing error: resend
+NAK_BAD_LENGTH = 0x02  # payload length wrong for the command
 NAK_UNKNOWN_CMD = 0x03
-NAK_BAD_OUTPUT = 0x04     # output index not present on this controller
-NAK_NO_PATTERN = 0x05     # pattern id not stored
-NAK_OUT_OF_RANGE = 0x06   # chunk beyond the pattern's size, or bad dimensions
-NAK_NO_UPLOAD = 0x07      # UPLOAD_DATA/END without a matching UPLOAD_BEGIN (e.g. after a power cycle)
-NAK_BUSY = 0x08           # controller busy (panel switching): resend
+NAK_BAD_OUTPUT = 0x04  # output index not present on this controller
+NAK_NO_PATTERN = 0x05  # pattern id not stored
+NAK_OUT_OF_RANGE = 0x06  # chunk beyond the pattern's size, or bad dimensions
+NAK_NO_UPLOAD = 0x07  # UPLOAD_DATA/END without a matching UPLOAD_BEGIN (e.g. after a power cycle)
+NAK_BUSY = 0x08  # controller busy (panel switching): resend
 NAK_STORAGE_FULL = 0x09
-NAK_INCOMPLETE = 0x0A     # UPLOAD_END before every byte arrived
-NAK_IMAGE_CRC = 0x0B      # UPLOAD_END: CRC-32 of the received image differs
-NAK_TOO_LARGE = 0x0C      # pattern larger than the controller's maximum
+NAK_INCOMPLETE = 0x0A  # UPLOAD_END before every byte arrived
+NAK_IMAGE_CRC = 0x0B  # UPLOAD_END: CRC-32 of the received image differs
+NAK_TOO_LARGE = 0x0C  # pattern larger than the controller's maximum
 
 NAK_REASONS = {
     NAK_BAD_FRAME: "bad frame (checksum)",

@@ -69,9 +69,17 @@ LABEL_RECEIVED_DMX = 5
 LABEL_SEND_DMX = 6
 LABEL_GET_SERIAL = 10
 LABEL_NAMES = {
-    1: "Reprogram Firmware", 2: "Program Flash Page", 3: "Get Widget Parameters", 4: "Set Widget Parameters",
-    5: "Received DMX Packet", 6: "Output Only Send DMX Packet", 7: "Send RDM Packet", 8: "Receive DMX on Change",
-    9: "Received DMX Change Of State", 10: "Get Widget Serial Number", 11: "Send RDM Discovery Request",
+    1: "Reprogram Firmware",
+    2: "Program Flash Page",
+    3: "Get Widget Parameters",
+    4: "Set Widget Parameters",
+    5: "Received DMX Packet",
+    6: "Output Only Send DMX Packet",
+    7: "Send RDM Packet",
+    8: "Receive DMX on Change",
+    9: "Received DMX Change Of State",
+    10: "Get Widget Serial Number",
+    11: "Send RDM Discovery Request",
 }
 #: Channels in one DMX512 universe.
 DMX_CHANNELS = 512
@@ -174,13 +182,21 @@ def encode_get_widget_parameters(user_config_size: int = 0) -> bytes:
 def encode_widget_parameters_reply(p: WidgetParameters) -> bytes:
     """Label 3 reply (what the widget — or the emulator — sends)."""
     msb, lsb = p.firmware
-    data = bytes((_u8("firmware lsb", lsb), _u8("firmware msb", msb), _u8("break time", p.break_time),
-                  _u8("MAB time", p.mab_time), _u8("rate", p.rate_hz))) + bytes(p.user_config)
+    data = bytes(
+        (
+            _u8("firmware lsb", lsb),
+            _u8("firmware msb", msb),
+            _u8("break time", p.break_time),
+            _u8("MAB time", p.mab_time),
+            _u8("rate", p.rate_hz),
+        )
+    ) + bytes(p.user_config)
     return encode(LABEL_GET_PARAMS, data)
 
 
-def encode_set_widget_parameters(break_time: int = 9, mab_time: int = 1, rate_hz: int = 40,
-                                 user_config: bytes = b"") -> bytes:
+def encode_set_widget_parameters(
+    break_time: int = 9, mab_time: int = 1, rate_hz: int = 40, user_config: bytes = b""
+) -> bytes:
     """Label 4: user-config size LSB/MSB, break time, MAB time, rate, user config."""
     _u8("break time", break_time, 9, 127)
     _u8("MAB time", mab_time, 1, 127)
@@ -204,18 +220,23 @@ def encode_serial_reply(serial_bcd: int) -> bytes:
 def parse_widget_parameters(frame: Frame) -> WidgetParameters:
     """Decode a label-3 reply; :class:`ProtocolError` quoting the bytes if it is not one."""
     if frame.label != LABEL_GET_PARAMS or len(frame.data) < 5:
-        raise ProtocolError(f"not a Get Widget Parameters reply: label {frame.label}, data {frame.data!r} "
-                            "(expected label 3 with at least 5 bytes)")
+        raise ProtocolError(
+            f"not a Get Widget Parameters reply: label {frame.label}, data {frame.data!r} "
+            "(expected label 3 with at least 5 bytes)"
+        )
     d = frame.data
-    return WidgetParameters(firmware=(d[1], d[0]), break_time=d[2], mab_time=d[3], rate_hz=d[4],
-                            user_config=bytes(d[5:]))
+    return WidgetParameters(
+        firmware=(d[1], d[0]), break_time=d[2], mab_time=d[3], rate_hz=d[4], user_config=bytes(d[5:])
+    )
 
 
 def parse_serial(frame: Frame) -> str:
     """Decode a label-10 reply to its printed form (BCD, most significant digit first)."""
     if frame.label != LABEL_GET_SERIAL or len(frame.data) != 4:
-        raise ProtocolError(f"not a Get Widget Serial Number reply: label {frame.label}, data {frame.data!r} "
-                            "(expected label 10 with 4 bytes)")
+        raise ProtocolError(
+            f"not a Get Widget Serial Number reply: label {frame.label}, data {frame.data!r} "
+            "(expected label 10 with 4 bytes)"
+        )
     return "".join(f"{b:02x}" for b in reversed(frame.data))
 
 
@@ -224,8 +245,10 @@ def decode_one(data: bytes) -> Frame:
     p = FrameParser()
     frames = p.feed(data)
     if len(frames) != 1 or p.bad or p.pending:
-        raise ProtocolError(f"{bytes(data)[:40]!r} is not exactly one Enttec frame "
-                            f"({len(frames)} frames, {len(p.bad)} bad, {p.pending} bytes pending)")
+        raise ProtocolError(
+            f"{bytes(data)[:40]!r} is not exactly one Enttec frame "
+            f"({len(frames)} frames, {len(p.bad)} bad, {p.pending} bytes pending)"
+        )
     return frames[0]
 
 
@@ -296,7 +319,7 @@ class FrameParser:
                 self._reject("end", buf[: n + 5])
                 del buf[:1]  # a real frame may start inside this one
                 continue
-            out.append(Frame(buf[1], bytes(buf[4: n + 4])))
+            out.append(Frame(buf[1], bytes(buf[4 : n + 4])))
             self.frames_count += 1
             del buf[: n + 5]
         return out

@@ -91,89 +91,173 @@ MAX_ABS_COORD = 1.0e5
 # grbl/doc/csv/error_codes_en_US.csv and alarm_codes_en_US.csv (GRBL 1.1); ALARM:10 is
 # the dual-axis homing alarm of 1.1g+; the hints are ours, for a rotary rig.
 ERROR_CODES: dict[int, tuple[str, str, str]] = {
-    1: ("Expected command letter", "G-code words consist of a letter and a value; the letter was not found",
-        "the line sent is not G-code — check what the driver wrote"),
-    2: ("Bad number format", "missing the expected G-code word value or the numeric format is not valid",
-        "a number in the line is malformed (e.g. 'X1.2.3' or 'X'); check the value sent"),
-    3: ("Invalid statement", "GRBL '$' system command was not recognized or supported",
-        "the '$' command or setting number is not supported by this firmware"),
-    4: ("Value < 0", "negative value received for an expected positive value",
-        "settings such as steps per degree, rates and accelerations must be positive"),
-    5: ("Setting disabled", "homing cycle is not enabled via settings",
-        "enable homing with $22=1 (and fit a home switch) or do not call home()"),
-    6: ("Value < 3 usec", "minimum step pulse time must be greater than 3 microseconds",
-        "set $0 to 3 or more"),
-    7: ("EEPROM read fail", "an EEPROM read failed; settings were restored to defaults",
-        "the controller lost its settings: re-apply them ($$) and check its power supply"),
-    8: ("Not idle", "GRBL '$' command cannot be used unless GRBL is IDLE",
-        "wait for the move to finish (or stop and reset) before changing settings or homing"),
-    9: ("G-code lock", "G-code commands are locked out during alarm or jog state",
-        "clear the alarm first: home() ($H) or unlock ($X)"),
-    10: ("Homing not enabled", "soft limits cannot be enabled without homing also enabled",
-         "set $22=1 before $20=1"),
-    11: ("Line overflow", "max characters per line exceeded; the line was not executed",
-         f"keep lines under {LINE_BUFFER_SIZE} characters"),
-    12: ("Step rate > 30kHz", "the '$' setting value makes the step rate exceed the maximum supported",
-         "lower steps_per_deg x max_rate_deg_s below 30000 steps/s"),
-    13: ("Check Door", "safety door detected as opened and door state initiated",
-         "close the enclosure door and resume"),
-    14: ("Line length exceeded", "build info or startup line exceeded the EEPROM line length limit",
-         "shorten the stored line"),
-    15: ("Travel exceeded", "jog target exceeds machine travel; the command was ignored",
-         "check the jog target against $130-$132"),
-    16: ("Invalid jog command", "jog command has no '=' or contains prohibited g-code",
-         "jog lines look like '$J=G91 X10 F600'"),
-    17: ("Setting disabled", "laser mode requires PWM output",
-         "this firmware build has no variable spindle; leave $32=0"),
-    20: ("Unsupported command", "unsupported or invalid g-code command found in block",
-         "the controller does not know this G/M code or axis letter; check the axis configured for this device"),
-    21: ("Modal group violation", "more than one g-code command from the same modal group found in block",
-         "send one motion mode (G0/G1) per line"),
-    22: ("Undefined feed rate", "feed rate has not yet been set or is undefined",
-         "G1 needs an F word"),
+    1: (
+        "Expected command letter",
+        "G-code words consist of a letter and a value; the letter was not found",
+        "the line sent is not G-code — check what the driver wrote",
+    ),
+    2: (
+        "Bad number format",
+        "missing the expected G-code word value or the numeric format is not valid",
+        "a number in the line is malformed (e.g. 'X1.2.3' or 'X'); check the value sent",
+    ),
+    3: (
+        "Invalid statement",
+        "GRBL '$' system command was not recognized or supported",
+        "the '$' command or setting number is not supported by this firmware",
+    ),
+    4: (
+        "Value < 0",
+        "negative value received for an expected positive value",
+        "settings such as steps per degree, rates and accelerations must be positive",
+    ),
+    5: (
+        "Setting disabled",
+        "homing cycle is not enabled via settings",
+        "enable homing with $22=1 (and fit a home switch) or do not call home()",
+    ),
+    6: ("Value < 3 usec", "minimum step pulse time must be greater than 3 microseconds", "set $0 to 3 or more"),
+    7: (
+        "EEPROM read fail",
+        "an EEPROM read failed; settings were restored to defaults",
+        "the controller lost its settings: re-apply them ($$) and check its power supply",
+    ),
+    8: (
+        "Not idle",
+        "GRBL '$' command cannot be used unless GRBL is IDLE",
+        "wait for the move to finish (or stop and reset) before changing settings or homing",
+    ),
+    9: (
+        "G-code lock",
+        "G-code commands are locked out during alarm or jog state",
+        "clear the alarm first: home() ($H) or unlock ($X)",
+    ),
+    10: ("Homing not enabled", "soft limits cannot be enabled without homing also enabled", "set $22=1 before $20=1"),
+    11: (
+        "Line overflow",
+        "max characters per line exceeded; the line was not executed",
+        f"keep lines under {LINE_BUFFER_SIZE} characters",
+    ),
+    12: (
+        "Step rate > 30kHz",
+        "the '$' setting value makes the step rate exceed the maximum supported",
+        "lower steps_per_deg x max_rate_deg_s below 30000 steps/s",
+    ),
+    13: (
+        "Check Door",
+        "safety door detected as opened and door state initiated",
+        "close the enclosure door and resume",
+    ),
+    14: (
+        "Line length exceeded",
+        "build info or startup line exceeded the EEPROM line length limit",
+        "shorten the stored line",
+    ),
+    15: (
+        "Travel exceeded",
+        "jog target exceeds machine travel; the command was ignored",
+        "check the jog target against $130-$132",
+    ),
+    16: (
+        "Invalid jog command",
+        "jog command has no '=' or contains prohibited g-code",
+        "jog lines look like '$J=G91 X10 F600'",
+    ),
+    17: (
+        "Setting disabled",
+        "laser mode requires PWM output",
+        "this firmware build has no variable spindle; leave $32=0",
+    ),
+    20: (
+        "Unsupported command",
+        "unsupported or invalid g-code command found in block",
+        "the controller does not know this G/M code or axis letter; check the axis configured for this device",
+    ),
+    21: (
+        "Modal group violation",
+        "more than one g-code command from the same modal group found in block",
+        "send one motion mode (G0/G1) per line",
+    ),
+    22: ("Undefined feed rate", "feed rate has not yet been set or is undefined", "G1 needs an F word"),
     23: ("Invalid gcode ID:23", "g-code command in block requires an integer value", "check the G/M number"),
-    24: ("Invalid gcode ID:24", "more than one g-code command that requires axis words found in block",
-         "split the line"),
+    24: (
+        "Invalid gcode ID:24",
+        "more than one g-code command that requires axis words found in block",
+        "split the line",
+    ),
     25: ("Invalid gcode ID:25", "repeated g-code word found in block", "each word once per line"),
-    26: ("Invalid gcode ID:26", "no axis words found in block for g-code command or current modal state which "
-         "requires them", "add the axis word"),
+    26: (
+        "Invalid gcode ID:26",
+        "no axis words found in block for g-code command or current modal state which requires them",
+        "add the axis word",
+    ),
     27: ("Invalid gcode ID:27", "line number value is invalid", "N must be 1..9999999"),
     28: ("Invalid gcode ID:28", "g-code command is missing a required value word", "e.g. G4 needs P"),
     29: ("Invalid gcode ID:29", "G59.x work coordinate systems are not supported", "use G54-G59"),
     30: ("Invalid gcode ID:30", "G53 only allowed with G0 and G1 motion modes", "use G53 with G0/G1"),
-    31: ("Invalid gcode ID:31", "axis words found in block when no command or current modal state uses them",
-         "G80 is active: give a motion mode"),
+    31: (
+        "Invalid gcode ID:31",
+        "axis words found in block when no command or current modal state uses them",
+        "G80 is active: give a motion mode",
+    ),
     32: ("Invalid gcode ID:32", "G2 and G3 arcs require at least one in-plane axis word", "fix the arc"),
     33: ("Invalid gcode ID:33", "motion command target is invalid", "fix the arc or probe target"),
     34: ("Invalid gcode ID:34", "arc radius value is invalid", "fix the arc"),
     35: ("Invalid gcode ID:35", "G2 and G3 arcs require at least one in-plane offset word", "fix the arc"),
     36: ("Invalid gcode ID:36", "unused value words found in block", "remove the extra words"),
-    37: ("Invalid gcode ID:37", "G43.1 dynamic tool length offset is not assigned to the configured tool length "
-         "axis", "not used by a rotary rig"),
+    37: (
+        "Invalid gcode ID:37",
+        "G43.1 dynamic tool length offset is not assigned to the configured tool length axis",
+        "not used by a rotary rig",
+    ),
     38: ("Invalid gcode ID:38", "tool number greater than max supported value", "not used by a rotary rig"),
 }
 
 ALARM_CODES: dict[int, tuple[str, str, str]] = {
-    1: ("Hard limit", "hard limit triggered; machine position is likely lost due to the sudden halt",
+    1: (
+        "Hard limit",
+        "hard limit triggered; machine position is likely lost due to the sudden halt",
         "check the limit switch and its wiring (is something blocking the table?), then reset() and "
-        "re-home ($H) or unlock ($X)"),
-    2: ("Soft limit", "G-code motion target exceeds machine travel; machine position retained",
-        "check the commanded angle against soft_limits_deg and $130-$132, then reset() and unlock ($X)"),
-    3: ("Abort during cycle", "reset while in motion; machine position is likely lost",
+        "re-home ($H) or unlock ($X)",
+    ),
+    2: (
+        "Soft limit",
+        "G-code motion target exceeds machine travel; machine position retained",
+        "check the commanded angle against soft_limits_deg and $130-$132, then reset() and unlock ($X)",
+    ),
+    3: (
+        "Abort during cycle",
+        "reset while in motion; machine position is likely lost",
         "something sent a soft reset (or the reset button was pressed) during a move: re-home ($H), or unlock "
-        "($X) and verify the angle"),
-    4: ("Probe fail", "probe is not in the expected initial state before starting the probe cycle",
-        "the rig does not probe: check what sent G38"),
-    5: ("Probe fail", "probe did not contact the workpiece within the programmed travel",
-        "the rig does not probe: check what sent G38"),
+        "($X) and verify the angle",
+    ),
+    4: (
+        "Probe fail",
+        "probe is not in the expected initial state before starting the probe cycle",
+        "the rig does not probe: check what sent G38",
+    ),
+    5: (
+        "Probe fail",
+        "probe did not contact the workpiece within the programmed travel",
+        "the rig does not probe: check what sent G38",
+    ),
     6: ("Homing fail", "the active homing cycle was reset", "do not reset during homing; run $H again"),
     7: ("Homing fail", "safety door was opened during the homing cycle", "close the door and run $H again"),
-    8: ("Homing fail", "pull-off travel failed to clear the limit switch",
-        "increase the pull-off $27 or check the home switch wiring"),
-    9: ("Homing fail", "could not find the limit switch within the search distance",
-        "check the home switch and its wiring, the seek rate $25 and the max travel $130-$132"),
-    10: ("Homing fail", "on dual-axis machines, could not find the second limit switch for self-squaring",
-         "check the second home switch"),
+    8: (
+        "Homing fail",
+        "pull-off travel failed to clear the limit switch",
+        "increase the pull-off $27 or check the home switch wiring",
+    ),
+    9: (
+        "Homing fail",
+        "could not find the limit switch within the search distance",
+        "check the home switch and its wiring, the seek rate $25 and the max travel $130-$132",
+    ),
+    10: (
+        "Homing fail",
+        "on dual-axis machines, could not find the second limit switch for self-squaring",
+        "check the second home switch",
+    ),
 }
 
 #: Alarms after which GRBL ignores everything (status queries included) until a soft reset.
@@ -330,8 +414,7 @@ def encode_line(line: str | bytes) -> bytes:
             "would be executed by GRBL immediately, not as part of the line"
         )
     if len(line) >= LINE_BUFFER_SIZE:
-        raise InputError(f"GRBL line {line!r} is {len(line)} characters; GRBL accepts at most "
-                         f"{LINE_BUFFER_SIZE - 1}")
+        raise InputError(f"GRBL line {line!r} is {len(line)} characters; GRBL accepts at most {LINE_BUFFER_SIZE - 1}")
     return line.encode("ascii") + b"\n"
 
 
@@ -348,8 +431,9 @@ def _check_coord(axis: str, value, limits: Mapping[str, tuple[float, float]] | N
     if not math.isfinite(v):
         raise InputError(f"axis {axis}: angle {value!r} is not a finite number of degrees")
     if abs(v) > MAX_ABS_COORD:
-        raise InputError(f"axis {axis}: angle {v} deg is beyond +-{MAX_ABS_COORD:g} deg, which GRBL cannot "
-                         "represent to 0.001 deg")
+        raise InputError(
+            f"axis {axis}: angle {v} deg is beyond +-{MAX_ABS_COORD:g} deg, which GRBL cannot represent to 0.001 deg"
+        )
     if limits is not None and axis in limits:
         lo, hi = limits[axis]
         if not lo <= v <= hi:
@@ -357,8 +441,13 @@ def _check_coord(axis: str, value, limits: Mapping[str, tuple[float, float]] | N
     return v
 
 
-def move_abs(axis_deg: Mapping[str, float], feed_deg_min: float | None = None, *,
-             limits: Mapping[str, tuple[float, float]] | None = None, decimals: int = 3) -> bytes:
+def move_abs(
+    axis_deg: Mapping[str, float],
+    feed_deg_min: float | None = None,
+    *,
+    limits: Mapping[str, tuple[float, float]] | None = None,
+    decimals: int = 3,
+) -> bytes:
     """Absolute move ``G90 G0 X12.500`` (rapid, at ``$110``) or ``G90 G1 X12.500 F600.0``.
 
     Absolute moves make a retried command idempotent. Every angle is validated (finite,
@@ -440,8 +529,7 @@ def _text(line: bytes | str) -> str:
         try:
             text = bytes(line).decode("ascii")
         except UnicodeDecodeError:
-            raise ProtocolError(f"GRBL reply {bytes(line)!r} is not ASCII — wrong baud rate or line noise?") \
-                from None
+            raise ProtocolError(f"GRBL reply {bytes(line)!r} is not ASCII — wrong baud rate or line noise?") from None
     else:
         text = line
     return text.strip("\r\n")

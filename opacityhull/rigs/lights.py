@@ -29,10 +29,14 @@ __all__ = ["EnttecDmx", "DmxLightArray"]
 
 
 def _check_dmx_options(name: str, timeout_s: float, universe_size: int) -> None:
-    if isinstance(universe_size, bool) or not isinstance(universe_size, int) \
-            or not ep.MIN_DMX_CHANNELS <= universe_size <= ep.DMX_CHANNELS:
-        raise ConfigError(f"{name}: universe_size = {universe_size!r}, expected an integer "
-                          f"{ep.MIN_DMX_CHANNELS}..{ep.DMX_CHANNELS}")
+    if (
+        isinstance(universe_size, bool)
+        or not isinstance(universe_size, int)
+        or not ep.MIN_DMX_CHANNELS <= universe_size <= ep.DMX_CHANNELS
+    ):
+        raise ConfigError(
+            f"{name}: universe_size = {universe_size!r}, expected an integer {ep.MIN_DMX_CHANNELS}..{ep.DMX_CHANNELS}"
+        )
     if not (isinstance(timeout_s, (int, float)) and math.isfinite(timeout_s) and timeout_s > 0):
         raise ConfigError(f"{name}: timeout_s = {timeout_s!r}, expected a number > 0")
 
@@ -51,8 +55,15 @@ class EnttecDmx(OverTransport):
         Open DMX (no processor, never answers) fails at once.
     """
 
-    def __init__(self, transport: Transport, *, name: str | None = None, timeout_s: float = 2.0,
-                 universe_size: int = 512, verify_on_open: bool = True):
+    def __init__(
+        self,
+        transport: Transport,
+        *,
+        name: str | None = None,
+        timeout_s: float = 2.0,
+        universe_size: int = 512,
+        verify_on_open: bool = True,
+    ):
         name = driver_name(transport, name, driver="EnttecDmx", fallback="dmx")
         _check_dmx_options(name, timeout_s, universe_size)
         self.name = name
@@ -72,14 +83,24 @@ class EnttecDmx(OverTransport):
         self.serial_number: str | None = None
 
     @classmethod
-    def from_url(cls, url: str, *, name: str = "dmx", timeout_s: float = 2.0, universe_size: int = 512,
-                 baudrate: int = 57600, verify_on_open: bool = True) -> "EnttecDmx":
+    def from_url(
+        cls,
+        url: str,
+        *,
+        name: str = "dmx",
+        timeout_s: float = 2.0,
+        universe_size: int = 512,
+        baudrate: int = 57600,
+        verify_on_open: bool = True,
+    ) -> "EnttecDmx":
         """A widget on a serial URL; ``timeout_s`` bounds every reply and every write."""
         _check_dmx_options(name, timeout_s, universe_size)
-        transport = SerialTransport(url, name=name, baudrate=baudrate, timeout_s=float(timeout_s),
-                                    write_timeout_s=float(timeout_s))
-        return cls(transport, name=name, timeout_s=timeout_s, universe_size=universe_size,
-                   verify_on_open=verify_on_open)
+        transport = SerialTransport(
+            url, name=name, baudrate=baudrate, timeout_s=float(timeout_s), write_timeout_s=float(timeout_s)
+        )
+        return cls(
+            transport, name=name, timeout_s=timeout_s, universe_size=universe_size, verify_on_open=verify_on_open
+        )
 
     # ------------------------------------------------------------------ lifecycle
     def open(self) -> "EnttecDmx":
@@ -172,14 +193,17 @@ class EnttecDmx(OverTransport):
                     bad = self._parser.bad[-1:]
                     raise DeviceTimeout(
                         f"{self.name}: no {what} reply (label {reply_label}) within {self.timeout_s:.2f} s on "
-                        f"{self.url}" + (f" (last bad bytes: {bad[0].data[:24]!r})" if bad else "") +
-                        f"; {self.transport.heard_since(mark)} — is it an Enttec DMX USB Pro (an Open DMX USB has "
-                        "no processor and never answers), plugged in, and not used by another program?")
+                        f"{self.url}"
+                        + (f" (last bad bytes: {bad[0].data[:24]!r})" if bad else "")
+                        + f"; {self.transport.heard_since(mark)} — is it an Enttec DMX USB Pro (an Open DMX USB has "
+                        "no processor and never answers), plugged in, and not used by another program?"
+                    )
 
     def get_widget_parameters(self, user_config_size: int = 0) -> ep.WidgetParameters:
         """Label 3: firmware version, break/MAB times, output rate."""
-        f = self._request(ep.encode_get_widget_parameters(user_config_size), ep.LABEL_GET_PARAMS,
-                          "Get Widget Parameters")
+        f = self._request(
+            ep.encode_get_widget_parameters(user_config_size), ep.LABEL_GET_PARAMS, "Get Widget Parameters"
+        )
         self.parameters = ep.parse_widget_parameters(f)
         return self.parameters
 
@@ -237,12 +261,21 @@ class EnttecDmx(OverTransport):
         sn = self.get_serial_number()
         fw = {1: "DMX", 2: "RDM", 3: "RDM sniffer"}.get(p.firmware[0], "unknown")
         return DeviceInfo(
-            self.name, p.firmware[0] in (1, 2),
+            self.name,
+            p.firmware[0] in (1, 2),
             f"firmware {p.firmware_version} ({fw}), break {p.break_us:.0f} us, MAB {p.mab_us:.0f} us, "
             f"{p.rate_hz or 'max'} packets/s on {self.url}",
             identity=f"Enttec DMX USB Pro serial {sn}",
-            state={"serial": sn, "firmware": p.firmware_version, "break_us": p.break_us, "mab_us": p.mab_us,
-                   "rate_hz": p.rate_hz, "url": self.url, "packets_sent": self.packets_sent})
+            state={
+                "serial": sn,
+                "firmware": p.firmware_version,
+                "break_us": p.break_us,
+                "mab_us": p.mab_us,
+                "rate_hz": p.rate_hz,
+                "url": self.url,
+                "packets_sent": self.packets_sent,
+            },
+        )
 
 
 class DmxLightArray:
@@ -258,8 +291,14 @@ class DmxLightArray:
     name : device name in messages.
     """
 
-    def __init__(self, dmx: EnttecDmx, *, channels: Mapping[int, int], rotation: RotaryAxis | None = None,
-                 name: str = "light_array"):
+    def __init__(
+        self,
+        dmx: EnttecDmx,
+        *,
+        channels: Mapping[int, int],
+        rotation: RotaryAxis | None = None,
+        name: str = "light_array",
+    ):
         self.name = name
         if not isinstance(channels, Mapping) or not channels:
             raise ConfigError(f"{name}: channels must be a non-empty table light id -> DMX channel, got {channels!r}")

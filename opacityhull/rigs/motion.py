@@ -83,8 +83,9 @@ class GrblCommandError(DeviceError):
 class GrblAlarm(DeviceError):
     """GRBL is in the alarm state (``ALARM:N``); motion is locked until reset/``$X``/``$H``."""
 
-    def __init__(self, message: str, *, code: int | None, meaning: str, position_deg: float | None = None,
-                 critical: bool = False):
+    def __init__(
+        self, message: str, *, code: int | None, meaning: str, position_deg: float | None = None, critical: bool = False
+    ):
         super().__init__(message)
         self.code = code
         self.meaning = meaning
@@ -136,8 +137,15 @@ class GrblController(OverTransport):
     No I/O happens in ``__init__``. Use as a context manager or :meth:`open`/:meth:`close`.
     """
 
-    def __init__(self, transport: Transport, *, name: str | None = None, timeout_s: float = 2.0,
-                 poll_s: float = 0.02, boot_timeout_s: float | None = None):
+    def __init__(
+        self,
+        transport: Transport,
+        *,
+        name: str | None = None,
+        timeout_s: float = 2.0,
+        poll_s: float = 0.02,
+        boot_timeout_s: float | None = None,
+    ):
         name = driver_name(transport, name, driver="GrblController", fallback="grbl")
         if not (isinstance(timeout_s, (int, float)) and timeout_s > 0 and math.isfinite(timeout_s)):
             raise ConfigError(f"{name}: timeout_s must be a number > 0, got {timeout_s!r}")
@@ -165,14 +173,23 @@ class GrblController(OverTransport):
         self.last_stop_error: Exception | None = None
 
     @classmethod
-    def from_url(cls, url: str, *, name: str = "grbl", baudrate: int = 115200, timeout_s: float = 2.0,
-                 poll_s: float = 0.02, boot_timeout_s: float | None = None) -> "GrblController":
+    def from_url(
+        cls,
+        url: str,
+        *,
+        name: str = "grbl",
+        baudrate: int = 115200,
+        timeout_s: float = 2.0,
+        poll_s: float = 0.02,
+        boot_timeout_s: float | None = None,
+    ) -> "GrblController":
         """A controller on a serial URL (``/dev/ttyUSB0``, ``socket://host:port``, a pty
         path); GRBL 1.1 talks at 115200 baud."""
         if not (isinstance(timeout_s, (int, float)) and timeout_s > 0 and math.isfinite(timeout_s)):
             raise ConfigError(f"{name}: timeout_s must be a number > 0, got {timeout_s!r}")
-        transport = SerialTransport(url, name=name, baudrate=int(baudrate), timeout_s=float(timeout_s),
-                                    write_timeout_s=float(timeout_s))
+        transport = SerialTransport(
+            url, name=name, baudrate=int(baudrate), timeout_s=float(timeout_s), write_timeout_s=float(timeout_s)
+        )
         return cls(transport, name=name, timeout_s=timeout_s, poll_s=poll_s, boot_timeout_s=boot_timeout_s)
 
     # ------------------------------------------------------------------ lifecycle
@@ -198,8 +215,10 @@ class GrblController(OverTransport):
 
     def _register(self, axis: "GrblAxis") -> None:
         if axis.axis in self._axes and self._axes[axis.axis] is not axis:
-            raise ConfigError(f"{self.name}: axis {axis.axis} on {self.url} is already used by "
-                              f"{self._axes[axis.axis].name!r}; give {axis.name!r} another axis letter")
+            raise ConfigError(
+                f"{self.name}: axis {axis.axis} on {self.url} is already used by "
+                f"{self._axes[axis.axis].name!r}; give {axis.name!r} another axis letter"
+            )
         self._axes[axis.axis] = axis
 
     def open(self, *, unlock: bool = False, reset: bool = False) -> "GrblController":
@@ -239,7 +258,9 @@ class GrblController(OverTransport):
                     raise GrblInterrupted(
                         f"{self.name}: controller on {self.url} is busy (state {st.state}) — another program may "
                         "be driving it; stop it, or open with reset=True (a soft reset: cancels motion, wakes it "
-                        "from sleep, leaves check mode)", state=st.state)
+                        "from sleep, leaves check mode)",
+                        state=st.state,
+                    )
                 self.read_settings()
                 if int(self.settings.get(13, 0)) == 1:  # inch reports would scale our degrees by 1/25.4
                     self.write_setting(13, 0)
@@ -256,8 +277,9 @@ class GrblController(OverTransport):
         """Close the port (no lock: may be called while another thread is blocked in a move)."""
         self.transport.close()
 
-    def reconnect(self, max_attempts: int = 5, delay_s: float = 0.5, *, url: str | None = None,
-                  unlock: bool = False) -> "GrblController":
+    def reconnect(
+        self, max_attempts: int = 5, delay_s: float = 0.5, *, url: str | None = None, unlock: bool = False
+    ) -> "GrblController":
         """Reopen the port after :class:`DeviceGone` and re-read state and settings.
 
         Tries ``max_attempts`` times, ``delay_s`` apart; ``url`` replaces the port (a
@@ -276,8 +298,10 @@ class GrblController(OverTransport):
                 last = e
                 if attempt + 1 < max_attempts:
                     time.sleep(delay_s)
-        raise DeviceGone(f"{self.name}: could not reconnect to {self.url} after {max_attempts} attempts "
-                         f"({last}) — check the USB cable and the controller's power, then reconnect")
+        raise DeviceGone(
+            f"{self.name}: could not reconnect to {self.url} after {max_attempts} attempts "
+            f"({last}) — check the USB cable and the controller's power, then reconnect"
+        )
 
     def _require_open(self) -> None:
         if not self.is_open:
@@ -374,8 +398,10 @@ class GrblController(OverTransport):
     def _explain_timeout(self, e: DeviceTimeout) -> DeviceError:
         if self.halted:
             return self._alarm_error(self.last_alarm, requery=False)
-        return DeviceTimeout(f"{e} [GRBL at {self.baudrate} baud; check the USB cable, the controller's power "
-                             "and that no other program holds the port]")
+        return DeviceTimeout(
+            f"{e} [GRBL at {self.baudrate} baud; check the USB cable, the controller's power "
+            "and that no other program holds the port]"
+        )
 
     def send_line(self, line: str | bytes, *, timeout_s: float | None = None) -> list:
         """Send one line and wait for its ``ok``; return the push messages that came with it
@@ -423,7 +449,8 @@ class GrblController(OverTransport):
             except ProtocolError:
                 raise ProtocolError(
                     f"{self.name}: garbled reply {raw!r} to {text!r} on {self.url} — check the baud rate "
-                    f"({self.baudrate}), the USB cable and the grounding of the stepper supply") from None
+                    f"({self.baudrate}), the USB cable and the grounding of the stepper supply"
+                ) from None
             if isinstance(r, gp.Ok):
                 self._line_dirty = False
                 return pushes
@@ -431,7 +458,10 @@ class GrblController(OverTransport):
                 self._line_dirty = False
                 raise GrblCommandError(
                     f"{self.name}: {text!r} rejected with error:{r.code} ({r.meaning}) — {r.hint}",
-                    code=r.code, meaning=r.meaning, line=text)
+                    code=r.code,
+                    meaning=r.meaning,
+                    line=text,
+                )
             if isinstance(r, gp.Alarm):
                 self._note(r)
                 raise self._alarm_error(r, doing=f"sending {text!r}")
@@ -440,7 +470,8 @@ class GrblController(OverTransport):
                 raise GrblInterrupted(
                     f"{self.name}: the controller reset while {text!r} was pending (got {r.text!r}) — the line "
                     "was discarded and the position may be lost; check its power supply and reset wiring",
-                    state="reset")
+                    state="reset",
+                )
             if isinstance(r, gp.Status):
                 self._note(r)
                 self._status_stale = False
@@ -449,8 +480,9 @@ class GrblController(OverTransport):
             self._note(r)
             pushes.append(r)
 
-    def _alarm_error(self, a: gp.Alarm | None, *, doing: str = "", axis: str | None = None,
-                     requery: bool = True) -> GrblAlarm:
+    def _alarm_error(
+        self, a: gp.Alarm | None, *, doing: str = "", axis: str | None = None, requery: bool = True
+    ) -> GrblAlarm:
         """A :class:`GrblAlarm` for ``a``, with the position re-queried when GRBL still answers."""
         pos = None
         if requery and axis is not None and not (a is not None and a.critical):
@@ -462,13 +494,21 @@ class GrblController(OverTransport):
         where = f" (axis {axis} now at {pos:.3f} deg)" if pos is not None else ""
         ctx = f" while {doing}" if doing else ""
         if a is None:
-            return GrblAlarm(f"{self.name}: controller is in ALARM{ctx}{where} — home ($H) or unlock ($X) after "
-                             "checking the axis", code=None, meaning="alarm state", position_deg=pos)
+            return GrblAlarm(
+                f"{self.name}: controller is in ALARM{ctx}{where} — home ($H) or unlock ($X) after checking the axis",
+                code=None,
+                meaning="alarm state",
+                position_deg=pos,
+            )
         short = gp.ALARM_CODES.get(a.code, ("alarm", "", ""))[0].lower()
-        halt = (" GRBL now ignores everything until a soft reset (reset())." if a.critical and self.halted
-                else "")
-        return GrblAlarm(f"{self.name}: ALARM:{a.code} {short}{ctx} — {a.meaning}; {a.hint}{where}.{halt}",
-                         code=a.code, meaning=a.meaning, position_deg=pos, critical=a.critical)
+        halt = " GRBL now ignores everything until a soft reset (reset())." if a.critical and self.halted else ""
+        return GrblAlarm(
+            f"{self.name}: ALARM:{a.code} {short}{ctx} — {a.meaning}; {a.hint}{where}.{halt}",
+            code=a.code,
+            meaning=a.meaning,
+            position_deg=pos,
+            critical=a.critical,
+        )
 
     # ------------------------------------------------------------------ status
     def status(self, *, timeout_s: float | None = None) -> gp.Status:
@@ -504,7 +544,8 @@ class GrblController(OverTransport):
                 self._status_stale = True
                 raise ProtocolError(
                     f"{self.name}: garbled status report {raw!r} on {self.url} — check the baud rate "
-                    f"({self.baudrate}), the USB cable and the grounding of the stepper supply") from None
+                    f"({self.baudrate}), the USB cable and the grounding of the stepper supply"
+                ) from None
             if isinstance(r, gp.Status):
                 self._note(r)
                 return r
@@ -557,7 +598,8 @@ class GrblController(OverTransport):
                 raise DeviceTimeout(
                     f"{self.name}: no answer to '?' nor a welcome banner after a soft reset on {self.url}; "
                     f"{self.transport.heard_since(mark)} — check that the controller is powered, runs GRBL 1.1 at "
-                    f"{self.baudrate} baud, and that no other program holds the port") from None
+                    f"{self.baudrate} baud, and that no other program holds the port"
+                ) from None
             r = self._parse_or_discard(raw)
             if r is None:
                 continue
@@ -648,9 +690,13 @@ class GrblController(OverTransport):
         st = self.status()
         ok = st.state in ("Idle", "Run", "Jog", "Home")
         alarm = f" ALARM:{self.last_alarm.code}" if st.state == "Alarm" and self.last_alarm else ""
-        return DeviceInfo(self.name, ok, f"{st.state}{alarm} on {self.url}",
-                          identity=f"Grbl {self.version or '?'} ({self.build or 'build ?'})",
-                          state={"state": st.state, "position": st.position(self._wco), "url": self.url})
+        return DeviceInfo(
+            self.name,
+            ok,
+            f"{st.state}{alarm} on {self.url}",
+            identity=f"Grbl {self.version or '?'} ({self.build or 'build ?'})",
+            state={"state": st.state, "position": st.position(self._wco), "url": self.url},
+        )
 
 
 class GrblAxis:
@@ -676,11 +722,22 @@ class GrblAxis:
     settings.
     """
 
-    def __init__(self, controller: GrblController, *, axis: str = "X", steps_per_deg: float,
-                 max_rate_deg_s: float, accel_deg_s2: float | None = None, backlash_deg: float = 0.0,
-                 soft_limits_deg: tuple[float, float] | None = None, name: str | None = None,
-                 continuous: bool | None = None, tolerance_deg: float | None = None, retries: int = 1,
-                 homing_timeout_s: float = 120.0):
+    def __init__(
+        self,
+        controller: GrblController,
+        *,
+        axis: str = "X",
+        steps_per_deg: float,
+        max_rate_deg_s: float,
+        accel_deg_s2: float | None = None,
+        backlash_deg: float = 0.0,
+        soft_limits_deg: tuple[float, float] | None = None,
+        name: str | None = None,
+        continuous: bool | None = None,
+        tolerance_deg: float | None = None,
+        retries: int = 1,
+        homing_timeout_s: float = 120.0,
+    ):
         self.name = name or f"{controller.name}.{axis}"
         if not isinstance(axis, str) or axis.upper() not in gp.AXES or len(axis) != 1:
             raise ConfigError(f"{self.name}: axis = {axis!r} is not a GRBL axis letter ({', '.join(gp.AXES)})")
@@ -695,10 +752,16 @@ class GrblAxis:
         self.max_rate_deg_s = positive("max_rate_deg_s", max_rate_deg_s)
         self.accel_deg_s2 = None if accel_deg_s2 is None else positive("accel_deg_s2", accel_deg_s2)
         if self.steps_per_deg * self.max_rate_deg_s > 30000.0:
-            raise ConfigError(f"{self.name}: steps_per_deg x max_rate_deg_s = "
-                              f"{self.steps_per_deg * self.max_rate_deg_s:.0f} steps/s exceeds GRBL's 30 kHz")
-        if isinstance(backlash_deg, bool) or not isinstance(backlash_deg, (int, float)) \
-                or not math.isfinite(backlash_deg) or not 0 <= backlash_deg < 90:
+            raise ConfigError(
+                f"{self.name}: steps_per_deg x max_rate_deg_s = "
+                f"{self.steps_per_deg * self.max_rate_deg_s:.0f} steps/s exceeds GRBL's 30 kHz"
+            )
+        if (
+            isinstance(backlash_deg, bool)
+            or not isinstance(backlash_deg, (int, float))
+            or not math.isfinite(backlash_deg)
+            or not 0 <= backlash_deg < 90
+        ):
             raise ConfigError(f"{self.name}: backlash_deg = {backlash_deg!r}, expected 0 <= value < 90")
         self.backlash_deg = float(backlash_deg)
         if soft_limits_deg is not None:
@@ -733,8 +796,10 @@ class GrblAxis:
         for n, v in want.items():
             have = c.settings.get(n)
             if have is None:
-                raise DeviceError(f"{c.name}: controller on {c.url} has no setting ${n} — is axis {self.axis} "
-                                  "enabled in this GRBL build?")
+                raise DeviceError(
+                    f"{c.name}: controller on {c.url} has no setting ${n} — is axis {self.axis} "
+                    "enabled in this GRBL build?"
+                )
             if abs(have - v) > 5e-4 + 1e-7 * abs(v):
                 c.write_setting(n, v)
         self._configured = True
@@ -766,15 +831,19 @@ class GrblAxis:
         if self.soft_limits_deg is not None:
             lo, hi = self.soft_limits_deg
             if not lo - 1e-9 <= target <= hi + 1e-9:
-                raise InputError(f"{self.name}: angle {requested:g} deg is outside soft_limits_deg "
-                                 f"[{lo:g}, {hi:g}] (controller target {target:g} deg)")
+                raise InputError(
+                    f"{self.name}: angle {requested:g} deg is outside soft_limits_deg "
+                    f"[{lo:g}, {hi:g}] (controller target {target:g} deg)"
+                )
 
     def _pos(self, st: gp.Status) -> float:
         try:
             return st.position(self.controller._wco)[self.axis]
         except KeyError:
-            raise ProtocolError(f"{self.controller.name}: status {st.raw!r} has no position for axis {self.axis} "
-                                "— is that axis enabled in the firmware?") from None
+            raise ProtocolError(
+                f"{self.controller.name}: status {st.raw!r} has no position for axis {self.axis} "
+                "— is that axis enabled in the firmware?"
+            ) from None
 
     def _at(self, pos: float, target: float) -> bool:
         return abs(pos - target) <= self.tolerance_deg
@@ -784,20 +853,28 @@ class GrblAxis:
         if c.alarm_seq > mark[0]:
             raise c._alarm_error(c.last_alarm, doing=doing, axis=self.axis)
         if c.resets_seen > mark[1]:
-            raise GrblInterrupted(f"{self.name}: the controller reset while {doing} — the move was discarded and "
-                                  "the position may be lost; home or check the angle", state="reset")
+            raise GrblInterrupted(
+                f"{self.name}: the controller reset while {doing} — the move was discarded and "
+                "the position may be lost; home or check the angle",
+                state="reset",
+            )
         if st is None:
             return
         if st.state == "Alarm":
             raise c._alarm_error(c.last_alarm, doing=doing, axis=self.axis)
         if st.state in ("Hold", "Door", "Sleep", "Check"):
-            what = {"Hold": "a feed hold (stop() or the hold button) — resume() continues, reset() cancels",
-                    "Door": "the safety door is open — close it and resume()",
-                    "Sleep": "the controller is asleep ($SLP) — reset() it",
-                    "Check": "the controller is in check mode ($C): nothing moves — send $C again"}[st.state]
-            raise GrblInterrupted(f"{self.name}: {doing} interrupted by {what} (state {st.state}"
-                                  f"{'' if st.substate is None else ':' + str(st.substate)}, "
-                                  f"at {self._pos(st):.3f} deg)", state=st.state)
+            what = {
+                "Hold": "a feed hold (stop() or the hold button) — resume() continues, reset() cancels",
+                "Door": "the safety door is open — close it and resume()",
+                "Sleep": "the controller is asleep ($SLP) — reset() it",
+                "Check": "the controller is in check mode ($C): nothing moves — send $C again",
+            }[st.state]
+            raise GrblInterrupted(
+                f"{self.name}: {doing} interrupted by {what} (state {st.state}"
+                f"{'' if st.substate is None else ':' + str(st.substate)}, "
+                f"at {self._pos(st):.3f} deg)",
+                state=st.state,
+            )
 
     # ------------------------------------------------------------------ RotaryAxis
     def move_to(self, angle_deg: float, *, timeout_s: float | None = None) -> float:
@@ -819,8 +896,13 @@ class GrblAxis:
             st = c.status()
             self._check_interrupts(st, (c.alarm_seq, c.resets_seen), doing)
             if st.state in ("Run", "Jog", "Home"):
-                st = self._wait_idle(self._pos(st), time.monotonic() + max(c.timeout_s * 5, 30.0),
-                                     (c.alarm_seq, c.resets_seen), doing, settle_only=True)
+                st = self._wait_idle(
+                    self._pos(st),
+                    time.monotonic() + max(c.timeout_s * 5, 30.0),
+                    (c.alarm_seq, c.resets_seen),
+                    doing,
+                    settle_only=True,
+                )
             cur = self._pos(st)
             # nearest angle congruent to a (mod 360): a itself when no turn is involved, exactly
             target = a - 360.0 * math.floor((a - cur) / 360.0 + 0.5) if self.continuous else a
@@ -869,16 +951,20 @@ class GrblAxis:
                     if self._at(pos, target):
                         return pos
                     if attempts > self.retries:
-                        raise DeviceTimeout(f"{self.name}: {doing}: {e} — the controller is idle at {pos:.3f} deg, "
-                                            f"so the line never arrived ({attempts} attempts)") from None
+                        raise DeviceTimeout(
+                            f"{self.name}: {doing}: {e} — the controller is idle at {pos:.3f} deg, "
+                            f"so the line never arrived ({attempts} attempts)"
+                        ) from None
                     continue  # it never arrived: the absolute move is safe to send again
                 # Run/Jog: the line got through and is executing; wait for it below
             st = self._wait_idle(target, deadline, mark, doing)
             pos = self._pos(st)
             if self._at(pos, target):
                 return pos
-            raise DeviceError(f"{self.name}: {doing}: the controller stopped at {pos:.3f} deg instead of "
-                              f"{target:.3f} deg without an alarm — was the motion cancelled (jog cancel, reset)?")
+            raise DeviceError(
+                f"{self.name}: {doing}: the controller stopped at {pos:.3f} deg instead of "
+                f"{target:.3f} deg without an alarm — was the motion cancelled (jog cancel, reset)?"
+            )
 
     def _wait_idle(self, target: float, deadline: float, mark, doing: str, *, settle_only: bool = False):
         c = self.controller
@@ -911,7 +997,8 @@ class GrblAxis:
                 raise DeviceTimeout(
                     f"{self.name}: {doing}: not finished by the deadline (state {st.state}, at "
                     f"{self._pos(st):.3f} deg, target {target:.3f} deg) on {c.url} — is the axis stalled, or "
-                    f"slower than max_rate_deg_s = {self.max_rate_deg_s:g}?")
+                    f"slower than max_rate_deg_s = {self.max_rate_deg_s:g}?"
+                )
             time.sleep(c.poll_s)
 
     def position_deg(self) -> float:
@@ -952,9 +1039,18 @@ class GrblAxis:
                 a = c.last_alarm
                 alarm = f" ALARM:{a.code} ({a.meaning}) — {a.hint}" if a else " — home() or unlock"
             return DeviceInfo(
-                self.name, ok, f"{st.state}{alarm}; axis {self.axis} at {pos:.3f} deg on {c.url}",
+                self.name,
+                ok,
+                f"{st.state}{alarm}; axis {self.axis} at {pos:.3f} deg on {c.url}",
                 identity=f"Grbl {c.version or '?'} ({c.build or 'build ?'}) axis {self.axis}",
-                state={"state": st.state, "substate": st.substate, "position_deg": pos, "axis": self.axis,
-                       "url": c.url, "alarm": c.last_alarm.code if c.last_alarm and st.state == "Alarm" else None})
+                state={
+                    "state": st.state,
+                    "substate": st.substate,
+                    "position_deg": pos,
+                    "axis": self.axis,
+                    "url": c.url,
+                    "alarm": c.last_alarm.code if c.last_alarm and st.state == "Alarm" else None,
+                },
+            )
         except DeviceError as e:
             return DeviceInfo(self.name, False, str(e), state={"axis": self.axis, "url": c.url})

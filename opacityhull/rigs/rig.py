@@ -36,8 +36,15 @@ if TYPE_CHECKING:  # cameras.py imports the image codecs: only when a camera is 
 
 log = logging.getLogger(__name__)
 
-__all__ = ["HardwareRig", "open_rig", "build_rig", "check_rig_config", "OperatorActionRequired", "OPERATOR_PROMPTS",
-           "SIM_CAMERA_DETAIL"]
+__all__ = [
+    "HardwareRig",
+    "open_rig",
+    "build_rig",
+    "check_rig_config",
+    "OperatorActionRequired",
+    "OPERATOR_PROMPTS",
+    "SIM_CAMERA_DETAIL",
+]
 
 SIM_CAMERA_DETAIL = "simulated: checked by sim"
 
@@ -59,8 +66,10 @@ def _board_text(details: dict) -> str:
     if spec is None:
         return ""
     try:
-        return (f" ({spec.squares_x}x{spec.squares_y} squares of {spec.square_m * 1000:g} mm, {spec.dictionary}"
-                f", offset {tuple(spec.offset_m)} m, yaw {spec.yaw_deg:g}°)")
+        return (
+            f" ({spec.squares_x}x{spec.squares_y} squares of {spec.square_m * 1000:g} mm, {spec.dictionary}"
+            f", offset {tuple(spec.offset_m)} m, yaw {spec.yaw_deg:g}°)"
+        )
     except AttributeError:
         return f" ({spec})"
 
@@ -92,11 +101,22 @@ class HardwareRig(OpenClose):
         hold has decelerated to ``Hold:0``).
     """
 
-    def __init__(self, config: RigConfig, *, turntable: Turntable, light_array: LightArray | None = None,
-                 backdrops: Backdrops | None = None, cameras: Sequence[CameraDevice] = (), ports: Sequence[Port] = (),
-                 interactive: bool | None = None, assume_ready: bool = False, reconnect_attempts: int = 3,
-                 reconnect_delay_s: float = 0.5, input_fn: Callable[[str], str] | None = None,
-                 clear_hold: bool = True):
+    def __init__(
+        self,
+        config: RigConfig,
+        *,
+        turntable: Turntable,
+        light_array: LightArray | None = None,
+        backdrops: Backdrops | None = None,
+        cameras: Sequence[CameraDevice] = (),
+        ports: Sequence[Port] = (),
+        interactive: bool | None = None,
+        assume_ready: bool = False,
+        reconnect_attempts: int = 3,
+        reconnect_delay_s: float = 0.5,
+        input_fn: Callable[[str], str] | None = None,
+        clear_hold: bool = True,
+    ):
         self.config = config
         self.geometry = config.geometry
         self.turntable = turntable
@@ -112,8 +132,9 @@ class HardwareRig(OpenClose):
         self._ports: list[Port] = []
         for p in ports:
             if not isinstance(p, Port):
-                raise ConfigError(f"rig {config.name}: ports: {type(p).__name__} is not a Port (name, url, is_open, "
-                                  "open(), close())")
+                raise ConfigError(
+                    f"rig {config.name}: ports: {type(p).__name__} is not a Port (name, url, is_open, open(), close())"
+                )
             if all(p is not q for q in self._ports):
                 self._ports.append(p)
         self._open = False
@@ -150,8 +171,9 @@ class HardwareRig(OpenClose):
                 return
             except DeviceGone as e:
                 last = e
-        raise DeviceGone(f"{port.name}: could not open {port.url} after {max(1, attempts)} attempt(s) "
-                         f"({last})") from None
+        raise DeviceGone(
+            f"{port.name}: could not open {port.url} after {max(1, attempts)} attempt(s) ({last})"
+        ) from None
 
     def open(self) -> "HardwareRig":
         """Open every port (each retried up to ``reconnect_attempts`` times); on failure the ports
@@ -189,8 +211,9 @@ class HardwareRig(OpenClose):
                     log.warning("%s: close failed: %s", c.name, e)
         self._open = False
 
-    def reconnect(self, device: str | None = None, *, max_attempts: int | None = None,
-                  delay_s: float | None = None) -> None:
+    def reconnect(
+        self, device: str | None = None, *, max_attempts: int | None = None, delay_s: float | None = None
+    ) -> None:
         """Close and re-open one port (by device name) or all, up to ``max_attempts`` tries
         each; raise :class:`DeviceGone` naming the device if it does not come back."""
         n = self.reconnect_attempts if max_attempts is None else int(max_attempts)
@@ -266,8 +289,10 @@ class HardwareRig(OpenClose):
             if self.safe_errors:
                 text = "; ".join(f"{s}: {e}" for s, e in self.safe_errors)
                 if ok and not pending:
-                    raise DeviceError(f"rig {self.name}: could not make the rig safe ({text}) — "
-                                      "switch the lights and displays off and stop the motors by hand")
+                    raise DeviceError(
+                        f"rig {self.name}: could not make the rig safe ({text}) — "
+                        "switch the lights and displays off and stop the motors by hand"
+                    )
                 warnings.warn(f"rig {self.name}: clean-up incomplete: {text}", RuntimeWarning, stacklevel=3)
             if pending and ok:
                 if pending[0] == signal.SIGINT:
@@ -300,8 +325,11 @@ class HardwareRig(OpenClose):
         what to do.
         """
         template = OPERATOR_PROMPTS.get(action)
-        text = template.format(board=_board_text(details)) if template else \
-            f"Operator action {action!r}" + (f": {details}" if details else "") + "."
+        text = (
+            template.format(board=_board_text(details))
+            if template
+            else f"Operator action {action!r}" + (f": {details}" if details else "") + "."
+        )
         self.operator_log.append((action, dict(details)))
         interactive = self.interactive if self.interactive is not None else _stdin_is_tty()
         if not interactive:
@@ -339,8 +367,9 @@ def _sigint_deferred():
         return
     # SIGTERM/SIGHUP too: a capture turns them into an interrupt (acquire.runner), and
     # one arriving mid-clean-up must not cut the lights-off short either
-    sigs = [s for s in (signal.SIGINT, getattr(signal, "SIGTERM", None), getattr(signal, "SIGHUP", None))
-            if s is not None]
+    sigs = [
+        s for s in (signal.SIGINT, getattr(signal, "SIGTERM", None), getattr(signal, "SIGHUP", None)) if s is not None
+    ]
     old = {}
     try:
         for s in sigs:
@@ -376,8 +405,13 @@ def _camera_check(cam, cfg: CameraConfig | None) -> DeviceInfo:
         info = cam.info()
     except Exception as e:
         return DeviceInfo(name, False, f"{type(e).__name__}: {e}")
-    return DeviceInfo(name, True, f"{info.model or type(cam).__name__} {info.width}x{info.height}",
-                      identity=info.model, state={"width": info.width, "height": info.height})
+    return DeviceInfo(
+        name,
+        True,
+        f"{info.model or type(cam).__name__} {info.width}x{info.height}",
+        identity=info.model,
+        state={"width": info.width, "height": info.height},
+    )
 
 
 # --------------------------------------------------------------------------- building drivers
@@ -414,16 +448,27 @@ def _build_devices(config: RigConfig, *, timeout_s: float | None = None) -> _Dev
         if ax.url not in controllers:
             _check_runnable_url(ax.url, ax.key, config.source)
             names = [a.name for a in config.grbl_ports()[ax.url]]
-            c = GrblController.from_url(ax.url, name="+".join(names) if len(names) > 1 else ax.name,
-                                        baudrate=ax.baudrate, timeout_s=ax.timeout_s if timeout_s is None else timeout_s)
+            c = GrblController.from_url(
+                ax.url,
+                name="+".join(names) if len(names) > 1 else ax.name,
+                baudrate=ax.baudrate,
+                timeout_s=ax.timeout_s if timeout_s is None else timeout_s,
+            )
             controllers[ax.url] = c
             ports.append(c)
         return controllers[ax.url]
 
     def axis(ax: AxisConfig) -> GrblAxis:
-        a = GrblAxis(controller(ax), axis=ax.axis, steps_per_deg=ax.steps_per_deg,
-                     max_rate_deg_s=ax.max_rate_deg_s, accel_deg_s2=ax.accel_deg_s2,
-                     backlash_deg=ax.backlash_deg, soft_limits_deg=ax.soft_limits_deg, name=ax.name)
+        a = GrblAxis(
+            controller(ax),
+            axis=ax.axis,
+            steps_per_deg=ax.steps_per_deg,
+            max_rate_deg_s=ax.max_rate_deg_s,
+            accel_deg_s2=ax.accel_deg_s2,
+            backlash_deg=ax.backlash_deg,
+            soft_limits_deg=ax.soft_limits_deg,
+            name=ax.name,
+        )
         checks.append((a, a.controller))
         return a
 
@@ -432,8 +477,12 @@ def _build_devices(config: RigConfig, *, timeout_s: float | None = None) -> _Dev
     if config.light_array is not None:
         la = config.light_array
         _check_runnable_url(la.url, la.key, config.source)
-        dmx = EnttecDmx.from_url(la.url, name=f"{la.name}.dmx",
-                                 timeout_s=la.timeout_s if timeout_s is None else timeout_s, baudrate=la.baudrate)
+        dmx = EnttecDmx.from_url(
+            la.url,
+            name=f"{la.name}.dmx",
+            timeout_s=la.timeout_s if timeout_s is None else timeout_s,
+            baudrate=la.baudrate,
+        )
         ports.append(dmx)
         rotation = axis(la.rotation) if la.rotation is not None else None
         light_array = DmxLightArray(dmx, channels=la.channel_map, rotation=rotation, name=la.name)
@@ -443,10 +492,16 @@ def _build_devices(config: RigConfig, *, timeout_s: float | None = None) -> _Dev
         bd = config.backdrops
         _check_runnable_url(bd.url, bd.key, config.source)
         quick = timeout_s is not None
-        backdrops = DisplayController.from_url(bd.url, outputs=bd.output_map, name=bd.name,
-                                               timeout_s=bd.timeout_s if timeout_s is None else timeout_s,
-                                               baudrate=bd.baudrate, retries=0 if quick else bd.retries,
-                                               chunk_bytes=bd.chunk_bytes, reconnect_attempts=0 if quick else 2)
+        backdrops = DisplayController.from_url(
+            bd.url,
+            outputs=bd.output_map,
+            name=bd.name,
+            timeout_s=bd.timeout_s if timeout_s is None else timeout_s,
+            baudrate=bd.baudrate,
+            retries=0 if quick else bd.retries,
+            chunk_bytes=bd.chunk_bytes,
+            reconnect_attempts=0 if quick else 2,
+        )
         ports.append(backdrops)
         checks.append((backdrops, backdrops))
     return _Devices(turntable=turntable, light_array=light_array, backdrops=backdrops, ports=ports, checks=checks)
@@ -461,8 +516,8 @@ def _build_camera(c: CameraConfig, source: str) -> OpenCVCamera | DirectoryCamer
     if c.driver == "directory":
         return DirectoryCamera(c.device, name=c.name, width=c.width, height=c.height, **opts)
     raise ConfigError(
-        f"{source}: {c.key}.driver = \"sim\": simulated cameras render through the simulator — use "
-        "`--rig sim:SCENE` (or pass cameras= to open_rig), or give this camera driver = \"opencv\" or \"directory\""
+        f'{source}: {c.key}.driver = "sim": simulated cameras render through the simulator — use '
+        '`--rig sim:SCENE` (or pass cameras= to open_rig), or give this camera driver = "opencv" or "directory"'
     )
 
 
@@ -474,16 +529,26 @@ def build_rig(config_or_path, *, cameras: Sequence[CameraDevice] | None = None, 
         cams = list(cameras)
         names = [getattr(c, "name", None) for c in cams]
         if names != geo_names:
-            raise ConfigError(f"{config.source}: injected cameras {names} must match geometry.cameras {geo_names} "
-                              "in name and order")
+            raise ConfigError(
+                f"{config.source}: injected cameras {names} must match geometry.cameras {geo_names} in name and order"
+            )
     else:
         if not config.cameras:
-            raise ConfigError(f"{config.source}: devices.cameras: no [[devices.cameras]] entries — add one per "
-                              f"geometry camera {geo_names}, or pass cameras= to open_rig")
+            raise ConfigError(
+                f"{config.source}: devices.cameras: no [[devices.cameras]] entries — add one per "
+                f"geometry camera {geo_names}, or pass cameras= to open_rig"
+            )
         cams = [_build_camera(c, config.source) for c in config.cameras]
     d = _build_devices(config)
-    return HardwareRig(config, turntable=d.turntable, light_array=d.light_array, backdrops=d.backdrops, cameras=cams,
-                       ports=d.ports, **rig_kwargs)
+    return HardwareRig(
+        config,
+        turntable=d.turntable,
+        light_array=d.light_array,
+        backdrops=d.backdrops,
+        cameras=cams,
+        ports=d.ports,
+        **rig_kwargs,
+    )
 
 
 def open_rig(config_or_path, *, cameras: Sequence[CameraDevice] | None = None, **rig_kwargs) -> HardwareRig:
@@ -524,7 +589,8 @@ def check_rig_config(config_or_path, *, timeout_s: float = 1.0) -> list[DeviceIn
     if emulated:
         raise ConfigError(
             f"{config.source}: {', '.join(emulated)} have emulator:KIND URLs, which only `opacityhull rig emulate "
-            f"--config {config.source} --write-config RUNTIME.toml` can serve; check RUNTIME.toml instead")
+            f"--config {config.source} --write-config RUNTIME.toml` can serve; check RUNTIME.toml instead"
+        )
     d = _build_devices(config, timeout_s=timeout_s)
     port_failed: dict[int, DeviceInfo | None] = {}
     for p in d.ports:

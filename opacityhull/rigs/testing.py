@@ -41,8 +41,7 @@ from .transport import Transport
 
 log = logging.getLogger(__name__)
 
-__all__ = ["ExpectedExchangeTransport", "expected_exchange", "LabRig", "SynthCamera", "LAB_GEOMETRY",
-           "LAB_RIG_CONFIG"]
+__all__ = ["ExpectedExchangeTransport", "expected_exchange", "LabRig", "SynthCamera", "LAB_GEOMETRY", "LAB_RIG_CONFIG"]
 
 Pair = tuple[bytes | None, bytes | None]
 D = TypeVar("D")
@@ -77,8 +76,16 @@ class ExpectedExchangeTransport(Transport):
     raises) cannot hide it: :meth:`verify` raises it again.
     """
 
-    def __init__(self, pairs: Sequence[Pair], *, name: str = "device", url: str = "memory://expected",
-                 baudrate: int = 115200, timeout_s: float = 0.5, write_timeout_s: float = 0.5):
+    def __init__(
+        self,
+        pairs: Sequence[Pair],
+        *,
+        name: str = "device",
+        url: str = "memory://expected",
+        baudrate: int = 115200,
+        timeout_s: float = 0.5,
+        write_timeout_s: float = 0.5,
+    ):
         super().__init__(url, name=name, baudrate=baudrate, timeout_s=timeout_s, write_timeout_s=write_timeout_s)
         self.pairs: list[tuple[bytes | None, bytes]] = []
         for k, pair in enumerate(pairs):
@@ -120,11 +127,15 @@ class ExpectedExchangeTransport(Transport):
             raise self.mismatch
         if self.used < len(self.pairs):
             out, reply = self.pairs[self.used]
-            got = f"; {len(self._partial)} byte(s) of it were written: {_show(bytes(self._partial))}" \
-                if self._partial else ""
+            got = (
+                f"; {len(self._partial)} byte(s) of it were written: {_show(bytes(self._partial))}"
+                if self._partial
+                else ""
+            )
             raise AssertionError(
                 f"{self.name}: pair #{self.used} of {len(self.pairs)} was never used: ({_show(out)}, {_show(reply)})"
-                f"{got}; writes so far: {[_show(w, 40) for w in self.written[-5:]]}")
+                f"{got}; writes so far: {[_show(w, 40) for w in self.written[-5:]]}"
+            )
 
     # ---- Transport primitives
     @property
@@ -146,18 +157,20 @@ class ExpectedExchangeTransport(Transport):
         rest = data
         while rest:
             if self.used >= len(self.pairs):
-                raise self._fail(f"unexpected write {_show(data)}: all {len(self.pairs)} expected pairs were "
-                                 "already used")
+                raise self._fail(
+                    f"unexpected write {_show(data)}: all {len(self.pairs)} expected pairs were already used"
+                )
             expected = self.pairs[self.used][0]
             assert expected is not None  # leading (None, reply) pairs are delivered before this
-            want = expected[len(self._partial):]
+            want = expected[len(self._partial) :]
             take = rest[: len(want)]
             if not want.startswith(take):
                 raise self._fail(
                     f"write {_show(data)} differs from pair #{self.used}: expected {_show(expected)}"
-                    + (f" (of which {_show(bytes(self._partial))} was already written)" if self._partial else ""))
+                    + (f" (of which {_show(bytes(self._partial))} was already written)" if self._partial else "")
+                )
             self._partial += take
-            rest = rest[len(take):]
+            rest = rest[len(take) :]
             if bytes(self._partial) == expected:
                 self._inbox += self.pairs[self.used][1]
                 self._partial.clear()
@@ -176,8 +189,14 @@ class ExpectedExchangeTransport(Transport):
 
 
 @contextmanager
-def expected_exchange(driver: Callable[..., D], pairs: Sequence[Pair], *, name: str | None = None,
-                      transport_timeout_s: float = 0.5, **driver_kwargs: Any) -> Iterator[D]:
+def expected_exchange(
+    driver: Callable[..., D],
+    pairs: Sequence[Pair],
+    *,
+    name: str | None = None,
+    transport_timeout_s: float = 0.5,
+    **driver_kwargs: Any,
+) -> Iterator[D]:
     """``with expected_exchange(Driver, [(bytes_out, bytes_in), ...], **kw) as dev:``
 
     Builds ``driver(transport, **kw)`` on an :class:`ExpectedExchangeTransport` (``driver``
@@ -200,8 +219,9 @@ def expected_exchange(driver: Callable[..., D], pairs: Sequence[Pair], *, name: 
     ------
     The driver; its transport is ``dev.transport`` for drivers that keep it.
     """
-    transport = ExpectedExchangeTransport(pairs, name=name or "device", timeout_s=transport_timeout_s,
-                                          write_timeout_s=transport_timeout_s)
+    transport = ExpectedExchangeTransport(
+        pairs, name=name or "device", timeout_s=transport_timeout_s, write_timeout_s=transport_timeout_s
+    )
     dev = driver(transport, **driver_kwargs)
     try:
         yield dev
@@ -219,28 +239,65 @@ def expected_exchange(driver: Callable[..., D], pairs: Sequence[Pair], *, name: 
 LAB_GEOMETRY: dict[str, Any] = {
     "target_m": [0.0, 0.08, 0.0],
     "cameras": [
-        {"name": f"cam{i}", "width": 24, "height": 18, "distance_m": 1.0, "elevation_deg": 10.0 + 15 * i,
-         "azimuth_deg": 0.0, "fov_y_deg": 30.0, "gain": 1.0}
+        {
+            "name": f"cam{i}",
+            "width": 24,
+            "height": 18,
+            "distance_m": 1.0,
+            "elevation_deg": 10.0 + 15 * i,
+            "azimuth_deg": 0.0,
+            "fov_y_deg": 30.0,
+            "gain": 1.0,
+        }
         for i in range(3)
     ],
     "lights": [{"id": i, "elevation_deg": 45.0, "azimuth_deg": 90.0 * i, "distance_m": 1.2} for i in range(4)],
     "displays": [
-        {"name": "bottom", "centre_m": [0.0, 0.0, 0.0], "normal": [0.0, 1.0, 0.0], "up": [0.0, 0.0, -1.0],
-         "size_m": [0.6, 0.6], "resolution": [16, 16], "rotates_with_table": True},
-        {"name": "back", "centre_m": [0.0, 0.3, -0.4], "normal": [0.0, 0.0, 1.0], "up": [0.0, 1.0, 0.0],
-         "size_m": [0.8, 0.6], "resolution": [16, 12], "rotates_with_table": False},
+        {
+            "name": "bottom",
+            "centre_m": [0.0, 0.0, 0.0],
+            "normal": [0.0, 1.0, 0.0],
+            "up": [0.0, 0.0, -1.0],
+            "size_m": [0.6, 0.6],
+            "resolution": [16, 16],
+            "rotates_with_table": True,
+        },
+        {
+            "name": "back",
+            "centre_m": [0.0, 0.3, -0.4],
+            "normal": [0.0, 0.0, 1.0],
+            "up": [0.0, 1.0, 0.0],
+            "size_m": [0.8, 0.6],
+            "resolution": [16, 12],
+            "rotates_with_table": False,
+        },
     ],
 }
 
 LAB_RIG_CONFIG: dict[str, Any] = {
     "rig": {"name": "lab rig (tests)"},
     "devices": {
-        "turntable": {"url": "emulator:grbl", "axis": "X", "steps_per_deg": 80.0, "max_rate_deg_s": 90.0,
-                      "accel_deg_s2": 180.0, "timeout_s": 2.0},
-        "light_array": {"url": "emulator:enttec", "timeout_s": 2.0,
-                        "rotation": {"url": "emulator:grbl", "axis": "Y", "steps_per_deg": 80.0,
-                                     "max_rate_deg_s": 45.0, "accel_deg_s2": 90.0, "timeout_s": 2.0},
-                        "channels": {"0": 1, "1": 2, "2": 3, "3": 4}},
+        "turntable": {
+            "url": "emulator:grbl",
+            "axis": "X",
+            "steps_per_deg": 80.0,
+            "max_rate_deg_s": 90.0,
+            "accel_deg_s2": 180.0,
+            "timeout_s": 2.0,
+        },
+        "light_array": {
+            "url": "emulator:enttec",
+            "timeout_s": 2.0,
+            "rotation": {
+                "url": "emulator:grbl",
+                "axis": "Y",
+                "steps_per_deg": 80.0,
+                "max_rate_deg_s": 45.0,
+                "accel_deg_s2": 90.0,
+                "timeout_s": 2.0,
+            },
+            "channels": {"0": 1, "1": 2, "2": 3, "3": 4},
+        },
         "backdrops": {"url": "emulator:display", "timeout_s": 1.0, "outputs": {"bottom": 0, "back": 1}},
         "cameras": [{"name": f"cam{i}", "driver": "sim"} for i in range(3)],
     },
@@ -266,8 +323,9 @@ class SynthCamera:
         self.before_capture: Callable[[SynthCamera], object] | None = None
 
     def info(self) -> CameraInfo:
-        return CameraInfo(name=self.name, width=self.width, height=self.height, model="synth", white_level=1.0,
-                          linear=True)
+        return CameraInfo(
+            name=self.name, width=self.width, height=self.height, model="synth", white_level=1.0, linear=True
+        )
 
     def radiance(self) -> np.ndarray:
         """Linear radiance (H, W, 3) float32 of what the camera sees now."""
@@ -333,8 +391,14 @@ class LabRig:
         self.grbl_server = self.emulators.servers["emulator:grbl"]
         self.geometry = cfg.geometry
         self.cameras = [SynthCamera(self, i) for i in range(len(self.geometry.cameras))]
-        self.hw = build_rig(self.emulators.config, cameras=self.cameras, interactive=False, assume_ready=True,
-                            reconnect_attempts=1, reconnect_delay_s=0.01)
+        self.hw = build_rig(
+            self.emulators.config,
+            cameras=self.cameras,
+            interactive=False,
+            assume_ready=True,
+            reconnect_attempts=1,
+            reconnect_delay_s=0.01,
+        )
         self.turntable = self.hw.turntable
         self.light_array = self.hw.light_array
         self.backdrops = self.hw.backdrops

@@ -93,8 +93,10 @@ def driver_name(transport: Any, name: str | None, *, driver: str, fallback: str)
     ``transport`` is not a :class:`Transport`, e.g. a URL string passed by mistake.
     """
     if not isinstance(transport, Transport):
-        raise ConfigError(f"{name or fallback}: expected a Transport, got {type(transport).__name__} "
-                          f"(use {driver}.from_url({transport!r}, ...) for a serial URL)")
+        raise ConfigError(
+            f"{name or fallback}: expected a Transport, got {type(transport).__name__} "
+            f"(use {driver}.from_url({transport!r}, ...) for a serial URL)"
+        )
     return transport.name if name is None else name
 
 
@@ -159,8 +161,15 @@ class Transport(OpenClose):
     is safe: it is one ``write(2)`` call.
     """
 
-    def __init__(self, url: str, *, name: str = "device", baudrate: int = 115200, timeout_s: float = 2.0,
-                 write_timeout_s: float = 2.0):
+    def __init__(
+        self,
+        url: str,
+        *,
+        name: str = "device",
+        baudrate: int = 115200,
+        timeout_s: float = 2.0,
+        write_timeout_s: float = 2.0,
+    ):
         self.url = url
         self.name = name
         self.baudrate = int(baudrate)
@@ -252,8 +261,10 @@ class Transport(OpenClose):
         n = self.bytes_read - mark[0]
         dt = time.monotonic() - mark[1]
         if n > 0:
-            return (f"{n} byte(s) arrived in {dt:.2f} s but none formed a valid reply: garbled — check the baud "
-                    f"rate ({self.baudrate}), the cable and for electrical noise")
+            return (
+                f"{n} byte(s) arrived in {dt:.2f} s but none formed a valid reply: garbled — check the baud "
+                f"rate ({self.baudrate}), the cable and for electrical noise"
+            )
         return f"not a single byte arrived in {dt:.2f} s: silent — is it powered, connected and on this port?"
 
     # ---- reading
@@ -377,8 +388,15 @@ class Transport(OpenClose):
             log.debug("%s: discarded %d late byte(s)", self.name, len(out))
         return out
 
-    def query(self, data: bytes, *, terminator: bytes = b"\n", timeout_s: float | None = None,
-              what: str = "reply", accept: Callable[[bytes], bool] | None = None) -> bytes:
+    def query(
+        self,
+        data: bytes,
+        *,
+        terminator: bytes = b"\n",
+        timeout_s: float | None = None,
+        what: str = "reply",
+        accept: Callable[[bytes], bool] | None = None,
+    ) -> bytes:
         """Flush input, send ``data``, return the first line ``accept`` takes (default: any)."""
         self.flush_input()
         self.write(data)
@@ -407,8 +425,16 @@ class SerialTransport(Transport):
         Request exclusive access (POSIX ports only; ignored for sockets).
     """
 
-    def __init__(self, url: str, *, name: str = "device", baudrate: int = 115200, timeout_s: float = 2.0,
-                 write_timeout_s: float = 2.0, exclusive: bool = True):
+    def __init__(
+        self,
+        url: str,
+        *,
+        name: str = "device",
+        baudrate: int = 115200,
+        timeout_s: float = 2.0,
+        write_timeout_s: float = 2.0,
+        exclusive: bool = True,
+    ):
         super().__init__(url, name=name, baudrate=baudrate, timeout_s=timeout_s, write_timeout_s=write_timeout_s)
         self.exclusive = exclusive
         self._port: Any = None

@@ -75,21 +75,28 @@ def register(app, groups) -> None:
         scene: str = typer.Option(..., "--scene", help="Scene: builtin:NAME or a scene TOML path."),
         camera: str = typer.Option("0", "--camera", help="Camera name or index in the rig."),
         table_deg: float = typer.Option(0.0, "--table-deg", help="Turntable angle (degrees)."),
-        light: Optional[list[int]] = typer.Option(None, "--light", help="Light id to switch on at full level "
-                                                                         "(repeatable; default: all lights)."),
+        light: Optional[list[int]] = typer.Option(
+            None, "--light", help="Light id to switch on at full level (repeatable; default: all lights)."
+        ),
         lights_off: bool = typer.Option(False, "--lights-off", help="Switch every light off."),
         array_deg: float = typer.Option(0.0, "--array-deg", help="Light-array rotation (degrees)."),
-        pattern: Optional[str] = typer.Option(None, "--pattern",
-                                              help=f"Show a pattern on every display: {', '.join(PATTERNS)} or an "
-                                                   "image file (default: displays blank)."),
-        board: bool = typer.Option(False, "--board", help="Put the scene's (or a default) ChArUco board on the "
-                                                          "table instead of the object."),
+        pattern: Optional[str] = typer.Option(
+            None,
+            "--pattern",
+            help=f"Show a pattern on every display: {', '.join(PATTERNS)} or an image file (default: displays blank).",
+        ),
+        board: bool = typer.Option(
+            False, "--board", help="Put the scene's (or a default) ChArUco board on the table instead of the object."
+        ),
         rig: Optional[Path] = typer.Option(None, "--rig", help="Rig TOML (default: the built-in simulated rig)."),
         scale: float = typer.Option(1.0, "--scale", min=0.01, help="Multiply the camera resolution."),
         spp: Optional[int] = typer.Option(None, "--spp", min=1, help="Samples per pixel (default: effect selection)."),
         seed: int = typer.Option(0, "--seed", help="Render seed."),
-        out: Optional[Path] = typer.Option(None, "--out", help="Output image (.exr linear radiance; .png sRGB "
-                                                               "preview; an .exr also gets a .png preview beside it)."),
+        out: Optional[Path] = typer.Option(
+            None,
+            "--out",
+            help="Output image (.exr linear radiance; .png sRGB preview; an .exr also gets a .png preview beside it).",
+        ),
         json_out: bool = typer.Option(False, "--json", help="Print a one-line JSON summary."),
     ):
         """Render one camera of the simulated rig in a given state (no emulators involved).
@@ -129,8 +136,13 @@ def register(app, groups) -> None:
         if pattern is not None:
             for d in geometry.displays:
                 displays[d.name] = make_pattern(pattern, d.resolution[0], d.resolution[1], seed=seed)
-        state = SimState(table_deg=table_deg, array_deg=array_deg, light_levels=levels, displays=displays,
-                         content="board" if board else "object")
+        state = SimState(
+            table_deg=table_deg,
+            array_deg=array_deg,
+            light_levels=levels,
+            displays=displays,
+            content="board" if board else "object",
+        )
         r = SimRenderer(sc, geometry, overrides={"spp": spp} if spp else None)
         eff = r.effects_for(state)
         passes = r.passes_for(state)
@@ -138,11 +150,23 @@ def register(app, groups) -> None:
         img = r.render(geometry.nominal_cameras()[ci], state, seed=seed)
         dt = time.perf_counter() - t0
         summary = {
-            "scene": sc.source, "camera": geometry.cameras[ci].name, "table_deg": table_deg, "array_deg": array_deg,
-            "lights": sorted(k for k, v in levels.items() if v > 0), "pattern": pattern, "board": board,
-            "width": img.shape[1], "height": img.shape[0], "variant": r.mi.variant(),
-            "effects": eff.to_json(), "passes": [p.to_json() for p in passes], "seconds": dt, "mean_radiance": float(np.mean(img)),
-            "max_radiance": float(np.max(img)), "out": None, "preview": None,
+            "scene": sc.source,
+            "camera": geometry.cameras[ci].name,
+            "table_deg": table_deg,
+            "array_deg": array_deg,
+            "lights": sorted(k for k, v in levels.items() if v > 0),
+            "pattern": pattern,
+            "board": board,
+            "width": img.shape[1],
+            "height": img.shape[0],
+            "variant": r.mi.variant(),
+            "effects": eff.to_json(),
+            "passes": [p.to_json() for p in passes],
+            "seconds": dt,
+            "mean_radiance": float(np.mean(img)),
+            "max_radiance": float(np.max(img)),
+            "out": None,
+            "preview": None,
         }
         if out is not None:
             write_image(out, img)
@@ -155,14 +179,23 @@ def register(app, groups) -> None:
 
         def human(s):
             e = s["effects"]
-            console().print(f"{s['scene']} from {s['camera']} at table {s['table_deg']:g}°: {s['width']}x{s['height']}"
-                            f" in {s['seconds']:.3f} s ({s['variant']}); phase {e['phase']}, "
-                            f"{len(s['passes'])} Mitsuba pass(es): "
-                            + (", ".join(f"{p['group']}{'' if p['light'] is None else ' ' + str(p['light'][0])} "
-                                         f"{p['integrator']} d{p['max_depth']} {p['spp']} spp" for p in s["passes"])
-                               or "none (nothing emits)")
-                            + f"; mean radiance {s['mean_radiance']:.4g}" + (f" → {s['out']}" if s["out"] else ""),
-                            highlight=False, markup=False)
+            console().print(
+                f"{s['scene']} from {s['camera']} at table {s['table_deg']:g}°: {s['width']}x{s['height']}"
+                f" in {s['seconds']:.3f} s ({s['variant']}); phase {e['phase']}, "
+                f"{len(s['passes'])} Mitsuba pass(es): "
+                + (
+                    ", ".join(
+                        f"{p['group']}{'' if p['light'] is None else ' ' + str(p['light'][0])} "
+                        f"{p['integrator']} d{p['max_depth']} {p['spp']} spp"
+                        for p in s["passes"]
+                    )
+                    or "none (nothing emits)"
+                )
+                + f"; mean radiance {s['mean_radiance']:.4g}"
+                + (f" → {s['out']}" if s["out"] else ""),
+                highlight=False,
+                markup=False,
+            )
 
         emit(summary, json_out, human)
 
@@ -170,8 +203,9 @@ def register(app, groups) -> None:
     @cli_errors
     def explain(
         scene: str = typer.Option(..., "--scene", help="Scene: builtin:NAME or a scene TOML path."),
-        phase: str = typer.Option(..., "--phase", help="calibration, matting, lightfield, reflectance, envmatte "
-                                                       "or groundtruth."),
+        phase: str = typer.Option(
+            ..., "--phase", help="calibration, matting, lightfield, reflectance, envmatte or groundtruth."
+        ),
         json_out: bool = typer.Option(False, "--json", help="Print the selection as one JSON line."),
     ):
         """Say which effects the simulator renders for a scene in a capture phase, and why;
@@ -182,8 +216,12 @@ def register(app, groups) -> None:
 
         sc = load_scene(scene)
         cfg = select_effects(sc, phase)
-        summary = {"scene": sc.source, **cfg.to_json(), "expected_cost": expected_cost(sc, phase),
-                   "variant": variant_report()}
+        summary = {
+            "scene": sc.source,
+            **cfg.to_json(),
+            "expected_cost": expected_cost(sc, phase),
+            "variant": variant_report(),
+        }
         if phase == "matting":
             # what a displays-on shot gets when the capture does not declare its phase
             und = select_effects(sc, phase, declared=False)
@@ -191,25 +229,32 @@ def register(app, groups) -> None:
 
         def human(s):
             c = console()
-            c.print(f"[bold]{escape(str(s['scene']))}[/] — phase [bold]{s['phase']}[/]: {s['integrator']} "
-                    f"(max_depth {s['max_depth']}), {s['spp']} spp ({s['sampler']}), "
-                    f"emitters {s['emitters'] or 'none'}, shapes {s['shapes']}; promises {s['error_metric']} "
-                    f"<= {s['error_bound']} against the full-effects reference")
+            c.print(
+                f"[bold]{escape(str(s['scene']))}[/] — phase [bold]{s['phase']}[/]: {s['integrator']} "
+                f"(max_depth {s['max_depth']}), {s['spp']} spp ({s['sampler']}), "
+                f"emitters {s['emitters'] or 'none'}, shapes {s['shapes']}; promises {s['error_metric']} "
+                f"<= {s['error_bound']} against the full-effects reference"
+            )
             ec = s["expected_cost"]
             if ec.get("vs_reference") == 0:
                 c.print(f"  expected cost: nothing is rendered (provably black; {ec['measured']})", highlight=False)
             elif ec.get("vs_reference") is not None:
-                c.print(f"  expected cost: {ec['vs_reference']:.2f}x the reference's time "
-                        f"({1.0 / ec['vs_reference']:.1f}x faster; {ec['measured']})", highlight=False)
+                c.print(
+                    f"  expected cost: {ec['vs_reference']:.2f}x the reference's time "
+                    f"({1.0 / ec['vs_reference']:.1f}x faster; {ec['measured']})",
+                    highlight=False,
+                )
             else:
                 c.print(f"  expected cost: not measured ({ec['measured']})", highlight=False)
             if "undeclared" in s:
                 u = s["undeclared"]
-                c.print(f"  a shot whose capture does not declare the phase (it may be envmatte): {u['integrator']} "
-                        f"(max_depth {u['max_depth']}), {u['spp']} spp", highlight=False)
+                c.print(
+                    f"  a shot whose capture does not declare the phase (it may be envmatte): {u['integrator']} "
+                    f"(max_depth {u['max_depth']}), {u['spp']} spp",
+                    highlight=False,
+                )
             v = s["variant"]
-            c.print(f"  Mitsuba variant: {v['variant']}{' (GPU)' if v['gpu'] else ''} — {v['source']}",
-                    highlight=False)
+            c.print(f"  Mitsuba variant: {v['variant']}{' (GPU)' if v['gpu'] else ''} — {v['source']}", highlight=False)
             for r in s["reasons"]:
                 c.print(f"  • {r}", highlight=False, markup=False)
 
@@ -224,8 +269,15 @@ def register(app, groups) -> None:
         items = []
         for n in builtin_names():
             s = load_scene(f"builtin:{n}")
-            items.append({"name": f"builtin:{n}", "description": s.description,
-                          "effect_classes": sorted(s.effect_classes), "parts": [p.kind for p in s.parts]})
+            items.append(
+                {
+                    "name": f"builtin:{n}",
+                    "description": s.description,
+                    "effect_classes": sorted(s.effect_classes),
+                    "parts": [p.kind for p in s.parts],
+                }
+            )
+
         def human(s: dict) -> None:
             for i in s["scenes"]:
                 console().print(f"[bold]{escape(i['name'])}[/]: {escape(i['description'])}", highlight=False)

@@ -46,10 +46,23 @@ from typing import Any, Mapping
 from ..errors import ConfigError
 from .scenes import SceneSpec
 
-__all__ = ["EffectConfig", "select_effects", "reference_effects", "backdrop_only_effects", "scene_kind", "expected_cost",
-           "cheapest_within", "MATTING_CANDIDATES", "MATTING_MARGIN", "Candidate",
-           "MEASURED_COST", "BACKDROP_SPP", "PHASES",
-           "ERROR_METRICS", "PHASE_EMITTERS"]
+__all__ = [
+    "EffectConfig",
+    "select_effects",
+    "reference_effects",
+    "backdrop_only_effects",
+    "scene_kind",
+    "expected_cost",
+    "cheapest_within",
+    "MATTING_CANDIDATES",
+    "MATTING_MARGIN",
+    "Candidate",
+    "MEASURED_COST",
+    "BACKDROP_SPP",
+    "PHASES",
+    "ERROR_METRICS",
+    "PHASE_EMITTERS",
+]
 
 #: Phases the simulator knows; the first five are capture phases of ``acquire``.
 PHASES = ("calibration", "matting", "lightfield", "reflectance", "envmatte", "groundtruth")
@@ -79,8 +92,17 @@ PHASE_EMITTERS = {
 }
 
 _INTEGRATORS = ("direct", "path", "aov")
-_OVERRIDABLE = ("integrator", "max_depth", "spp", "emitters", "shapes", "resolution_scale", "sampler", "crop",
-                "backdrop_spp")
+_OVERRIDABLE = (
+    "integrator",
+    "max_depth",
+    "spp",
+    "emitters",
+    "shapes",
+    "resolution_scale",
+    "sampler",
+    "crop",
+    "backdrop_spp",
+)
 
 #: Samples per pixel of the backdrop-only shots (nothing on the table) of a selection:
 #: depth 1 is exact at any spp; the samples only anti-alias the panels' texel edges.
@@ -171,8 +193,9 @@ def _check_phase(phase: str) -> None:
         raise ConfigError(f"phase {phase!r}: expected one of {list(PHASES)}")
 
 
-def select_effects(scene: SceneSpec, phase: str, *, overrides: Mapping[str, Any] | None = None,
-                   declared: bool = True) -> EffectConfig:
+def select_effects(
+    scene: SceneSpec, phase: str, *, overrides: Mapping[str, Any] | None = None, declared: bool = True
+) -> EffectConfig:
     """Choose the cheapest rendering that is faithful for ``scene`` in ``phase``.
 
     Parameters
@@ -202,14 +225,19 @@ def select_effects(scene: SceneSpec, phase: str, *, overrides: Mapping[str, Any]
 
     if phase == "groundtruth":
         spp = 64
-        reasons.append("ground truth: aov integrator (coverage alpha, depth, normals, shape index) "
-                       "on the object alone, no emitters, no displays")
+        reasons.append(
+            "ground truth: aov integrator (coverage alpha, depth, normals, shape index) "
+            "on the object alone, no emitters, no displays"
+        )
         reasons.append("8x8 stratified samples per pixel: coverage error at edges ~1/64")
         if fine:
-            reasons.append("fibres thinner than a pixel: stratified sampling keeps their fractional coverage "
-                           "within ~0.02 per covered pixel at 64 spp (256 spp halves it at 2.5x the time)")
-        cfg = EffectConfig("aov", 1, spp, (), ("object",), 1.0, (), "stratified", phase, metric,
-                           0.04 if fine else 0.01, crop=False)
+            reasons.append(
+                "fibres thinner than a pixel: stratified sampling keeps their fractional coverage "
+                "within ~0.02 per covered pixel at 64 spp (256 spp halves it at 2.5x the time)"
+            )
+        cfg = EffectConfig(
+            "aov", 1, spp, (), ("object",), 1.0, (), "stratified", phase, metric, 0.04 if fine else 0.01, crop=False
+        )
         return _apply_overrides(replace(cfg, reasons=tuple(reasons)), overrides)
 
     # --- emitters and shapes
@@ -224,15 +252,18 @@ def select_effects(scene: SceneSpec, phase: str, *, overrides: Mapping[str, Any]
     else:  # lightfield, reflectance
         emitters = ("light_array",)
         shapes = ("object", "displays")
-        reasons.append(f"{phase}: light-array point lights only; displays are black panels "
-                       "(kept as geometry: they shadow)")
+        reasons.append(
+            f"{phase}: light-array point lights only; displays are black panels (kept as geometry: they shadow)"
+        )
     reasons.append("emitters that are off are left out of the scene entirely")
     skipped: tuple[str, ...] = ()
     if phase in ("lightfield", "reflectance") and scene.delta_only and not board:
         emitters, skipped = (), ("light_array",)
-        reasons.append("every material is a delta BSDF (smooth dielectric or polished conductor) and the panels "
-                       "are black: no path joins a point light to the camera (a ray cannot hit a point, light "
-                       "sampling cannot leave a delta surface) — the image is exactly black; nothing is rendered")
+        reasons.append(
+            "every material is a delta BSDF (smooth dielectric or polished conductor) and the panels "
+            "are black: no path joins a point light to the camera (a ray cannot hit a point, light "
+            "sampling cannot leave a delta surface) — the image is exactly black; nothing is rendered"
+        )
 
     # --- integrator, depth, samples: a table measured by benchmarks/sim_effects.py
     # (errors against path tracing at depth 16, 1024 spp; see _TABLE)
@@ -254,24 +285,48 @@ def select_effects(scene: SceneSpec, phase: str, *, overrides: Mapping[str, Any]
                 f"matting: the cheapest measured candidate inside the crop whose alpha error is within "
                 f"{MATTING_MARGIN:g} x the bound {bound:g} — {c.integrator} d{c.max_depth} {c.spp} spp, measured "
                 f"{c.error:.4f} at {c.seconds:.3f} s per object + backdrop shot pair (candidates: "
-                + ", ".join(f"{k.integrator} d{k.max_depth} {k.spp}: {k.error:.4f}, {k.seconds:.3f} s"
-                            for k in MATTING_CANDIDATES[kind]) + f"; {MATTING_SOURCE})")
+                + ", ".join(
+                    f"{k.integrator} d{k.max_depth} {k.spp}: {k.error:.4f}, {k.seconds:.3f} s"
+                    for k in MATTING_CANDIDATES[kind]
+                )
+                + f"; {MATTING_SOURCE})"
+            )
         else:
             spp = max(spp, env_spp)
-            reasons.append(f"the capture did not declare its phase: an envmatte shot looks the same to the rig "
-                           f"(displays on, lights off), so the envmatte selection's {env_spp} spp keep it within "
-                           "the envmatte bound too (benchmarks/sim_effects.py: 'envmatte (captured as matting)')")
-    reasons.append(f"stratified samples ({spp} = {int(round(spp ** 0.5))}x{int(round(spp ** 0.5))} per pixel)")
-    reasons.append("only the pixels whose rays can meet the " + ("board" if board else "object")
-                   + " are rendered (its projected bounding box + the box filter's 0.5 px support; pinhole: no "
-                   "depth of field); every other ray sees only the panels: the exact backdrop-only render (path "
-                   "depth 1) where they emit, exactly 0 under the lights")
+            reasons.append(
+                f"the capture did not declare its phase: an envmatte shot looks the same to the rig "
+                f"(displays on, lights off), so the envmatte selection's {env_spp} spp keep it within "
+                "the envmatte bound too (benchmarks/sim_effects.py: 'envmatte (captured as matting)')"
+            )
+    reasons.append(f"stratified samples ({spp} = {int(round(spp**0.5))}x{int(round(spp**0.5))} per pixel)")
+    reasons.append(
+        "only the pixels whose rays can meet the "
+        + ("board" if board else "object")
+        + " are rendered (its projected bounding box + the box filter's 0.5 px support; pinhole: no "
+        "depth of field); every other ray sees only the panels: the exact backdrop-only render (path "
+        "depth 1) where they emit, exactly 0 under the lights"
+    )
     if phase in ("matting", "envmatte"):
-        reasons.append(f"backdrop-only shots (nothing on the table): path depth 1, exact at any spp; "
-                       f"{BACKDROP_SPP} spp anti-alias the panels' texel edges (measured: the matte error rises "
-                       f"0.0093 -> 0.0106 from 64 spp, at a quarter of the samples)")
-    cfg = EffectConfig(integrator, depth, spp, emitters, shapes, 1.0, tuple(reasons), "stratified", phase,
-                       metric, bound, skipped, backdrop_spp=min(BACKDROP_SPP, spp))
+        reasons.append(
+            f"backdrop-only shots (nothing on the table): path depth 1, exact at any spp; "
+            f"{BACKDROP_SPP} spp anti-alias the panels' texel edges (measured: the matte error rises "
+            f"0.0093 -> 0.0106 from 64 spp, at a quarter of the samples)"
+        )
+    cfg = EffectConfig(
+        integrator,
+        depth,
+        spp,
+        emitters,
+        shapes,
+        1.0,
+        tuple(reasons),
+        "stratified",
+        phase,
+        metric,
+        bound,
+        skipped,
+        backdrop_spp=min(BACKDROP_SPP, spp),
+    )
     return _apply_overrides(cfg, overrides)
 
 
@@ -323,52 +378,121 @@ def backdrop_only_effects(cfg: EffectConfig) -> EffectConfig:
         return cfg
     reasons = cfg.reasons + (
         "nothing on the table: only the emitting panels are seen (black everywhere else, nothing to bounce "
-        "off) — path depth 1 is exact; the light array adds nothing and is not rendered",)
+        "off) — path depth 1 is exact; the light array adds nothing and is not rendered",
+    )
     spp = cfg.spp if cfg.backdrop_spp is None else min(cfg.spp, int(cfg.backdrop_spp))
-    return replace(cfg, integrator="path", max_depth=1, spp=spp, crop=False,
-                   emitters=tuple(e for e in cfg.emitters if e == "displays"),
-                   shapes=("displays",), skipped=tuple(sorted(set(cfg.skipped) | {"light_array"})),
-                   reasons=reasons)
+    return replace(
+        cfg,
+        integrator="path",
+        max_depth=1,
+        spp=spp,
+        crop=False,
+        emitters=tuple(e for e in cfg.emitters if e == "displays"),
+        shapes=("displays",),
+        skipped=tuple(sorted(set(cfg.skipped) | {"light_array"})),
+        reasons=reasons,
+    )
 
 
-_WHY_DIRECT_DIFFUSE = ("diffuse opaque materials: direct lighting only (light -> surface -> camera); "
-                       "interreflection in concavities is the error left (about -6% of the energy for the cup)",)
-_WHY_GLASS = ("dielectric: rays cross >= 2 interfaces before they reach a backdrop or a light; direct lighting "
-              "leaves glass black (needs >= 3); depth 8 matches 16 within noise",)
-_WHY_GLOSSY = ("glossy materials: highlights reflect other parts of the object — one indirect bounce (depth 3) "
-               "measures the same as depth 6",)
-_WHY_FIBRES = ("fibres: light scatters from fibre to fibre (direct lighting loses ~20% of the energy, "
-               "depth 6 ~2%)",)
+_WHY_DIRECT_DIFFUSE = (
+    "diffuse opaque materials: direct lighting only (light -> surface -> camera); "
+    "interreflection in concavities is the error left (about -6% of the energy for the cup)",
+)
+_WHY_GLASS = (
+    "dielectric: rays cross >= 2 interfaces before they reach a backdrop or a light; direct lighting "
+    "leaves glass black (needs >= 3); depth 8 matches 16 within noise",
+)
+_WHY_GLOSSY = (
+    "glossy materials: highlights reflect other parts of the object — one indirect bounce (depth 3) "
+    "measures the same as depth 6",
+)
+_WHY_FIBRES = ("fibres: light scatters from fibre to fibre (direct lighting loses ~20% of the energy, depth 6 ~2%)",)
 
 #: (kind, phase group) -> (integrator, max_depth, spp, error bound, reasons). Bounds are
 #: the measured errors (benchmarks/out/sim_effects.md) with margin for Monte-Carlo noise,
 #: the reference's included.
 _TABLE: dict[tuple[str, str], tuple] = {
-    ("board", "calibration"): ("direct", 2, 16, 0.15, (
-        "board is printed paper (diffuse, flat): direct lighting only",
-        "the corners OpenCV finds move < 0.1 px against the reference at 16 spp")),
-    ("diffuse", "backdrop"): ("direct", 2, 64, {"matting": 0.025, "envmatte": 0.08}, _WHY_DIRECT_DIFFUSE + (
-        "the displays are large textured area emitters that also light the object: 64 spp keep the "
-        "matte noise near 0.01",)),
-    ("diffuse", "lights"): ("direct", 2, 16, 0.18, _WHY_DIRECT_DIFFUSE + (
-        "point lights with direct lighting are noise-free: the samples only anti-alias edges and texture",)),
-    ("glossy", "backdrop"): ("path", 3, 64, {"matting": 0.03, "envmatte": 0.1}, _WHY_GLOSSY + (
-        "backdrops are reflected in the glossy surfaces and light them: 64 spp",)),
+    ("board", "calibration"): (
+        "direct",
+        2,
+        16,
+        0.15,
+        (
+            "board is printed paper (diffuse, flat): direct lighting only",
+            "the corners OpenCV finds move < 0.1 px against the reference at 16 spp",
+        ),
+    ),
+    ("diffuse", "backdrop"): (
+        "direct",
+        2,
+        64,
+        {"matting": 0.025, "envmatte": 0.08},
+        _WHY_DIRECT_DIFFUSE
+        + (
+            "the displays are large textured area emitters that also light the object: 64 spp keep the "
+            "matte noise near 0.01",
+        ),
+    ),
+    ("diffuse", "lights"): (
+        "direct",
+        2,
+        16,
+        0.18,
+        _WHY_DIRECT_DIFFUSE
+        + ("point lights with direct lighting are noise-free: the samples only anti-alias edges and texture",),
+    ),
+    ("glossy", "backdrop"): (
+        "path",
+        3,
+        64,
+        {"matting": 0.03, "envmatte": 0.1},
+        _WHY_GLOSSY + ("backdrops are reflected in the glossy surfaces and light them: 64 spp",),
+    ),
     ("glossy", "lights"): ("path", 3, 36, 0.1, _WHY_GLOSSY + ("the indirect bounce is sampled: 36 spp",)),
-    ("transmissive", "backdrop"): ("path", 8, 64, {"matting": 0.04, "envmatte": 0.07}, _WHY_GLASS + (
-        "the backdrop seen through glass (Fresnel reflection/refraction split): 64 spp",)),
-    ("transmissive", "lights"): ("path", 8, 64, 0.1, _WHY_GLASS + (
-        "point lights seen through smooth glass are delta paths no integrator finds: under the light array "
-        "a glass object shows only what it refracts of lit surfaces",)),
-    ("fibres", "backdrop"): ("path", 6, 64, {"matting": 0.05, "envmatte": 0.1}, _WHY_FIBRES + (
-        "sub-pixel fibres: 64 spp resolve their fractional coverage",)),
-    ("fibres", "lights"): ("path", 6, 64, 0.2, _WHY_FIBRES + (
-        "sub-pixel fibres: 64 spp; per-pixel noise stays ~0.15 (their coverage varies within a pixel)",)),
+    ("transmissive", "backdrop"): (
+        "path",
+        8,
+        64,
+        {"matting": 0.04, "envmatte": 0.07},
+        _WHY_GLASS + ("the backdrop seen through glass (Fresnel reflection/refraction split): 64 spp",),
+    ),
+    ("transmissive", "lights"): (
+        "path",
+        8,
+        64,
+        0.1,
+        _WHY_GLASS
+        + (
+            "point lights seen through smooth glass are delta paths no integrator finds: under the light array "
+            "a glass object shows only what it refracts of lit surfaces",
+        ),
+    ),
+    ("fibres", "backdrop"): (
+        "path",
+        6,
+        64,
+        {"matting": 0.05, "envmatte": 0.1},
+        _WHY_FIBRES + ("sub-pixel fibres: 64 spp resolve their fractional coverage",),
+    ),
+    ("fibres", "lights"): (
+        "path",
+        6,
+        64,
+        0.2,
+        _WHY_FIBRES + ("sub-pixel fibres: 64 spp; per-pixel noise stays ~0.15 (their coverage varies within a pixel)",),
+    ),
 }
-_FIBRES_MATTING = ("direct", 2, 64, 0.05, (
-    "fibres in the matting phase: the alpha matte depends on coverage; scattering between fibres changes "
-    "the foreground colour alike over both backdrops and measures the same as depth 6 — direct lighting",
-    "sub-pixel fibres: 64 spp resolve their fractional coverage"))
+_FIBRES_MATTING = (
+    "direct",
+    2,
+    64,
+    0.05,
+    (
+        "fibres in the matting phase: the alpha matte depends on coverage; scattering between fibres changes "
+        "the foreground colour alike over both backdrops and measures the same as depth 6 — direct lighting",
+        "sub-pixel fibres: 64 spp resolve their fractional coverage",
+    ),
+)
 
 
 @dataclass(frozen=True)
@@ -392,11 +516,12 @@ def cheapest_within(candidates, bound: float, *, margin: float | None = None) ->
     margin = MATTING_MARGIN if margin is None else float(margin)
     if not (math.isfinite(bound) and bound > 0 and math.isfinite(margin) and 0 < margin <= 1):
         raise ConfigError(f"cheapest_within: bound {bound!r} must be > 0 and margin {margin!r} in (0, 1]")
-    ok = [c for c in candidates if math.isfinite(c.error) and math.isfinite(c.seconds)
-          and c.error <= margin * bound]
+    ok = [c for c in candidates if math.isfinite(c.error) and math.isfinite(c.seconds) and c.error <= margin * bound]
     if not ok:
-        raise ConfigError(f"cheapest_within: no candidate within {margin:g} x bound {bound:g} "
-                          f"(errors: {[round(c.error, 4) for c in candidates]})")
+        raise ConfigError(
+            f"cheapest_within: no candidate within {margin:g} x bound {bound:g} "
+            f"(errors: {[round(c.error, 4) for c in candidates]})"
+        )
     return min(ok, key=lambda c: (c.seconds, c.spp))
 
 
@@ -406,11 +531,13 @@ def cheapest_within(candidates, bound: float, *, margin: float | None = None) ->
 MATTING_MARGIN = 0.85
 
 #: Where :data:`MATTING_CANDIDATES` comes from.
-MATTING_SOURCE = ("benchmarks/sim_effects.py --quick (its matting candidates, 2 rounds): error = the worst of "
-                  "camera 2 of the default rig (200x150) and the 64x48 test camera (evaluate.eval_camera; it measures "
-                  "1.3-1.9x the error of the rig camera), table 20 deg, 256-spp reference, mean of 2 seeds; seconds = "
-                  "median CPU time of an object + backdrop shot pair of the rig camera, candidates measured "
-                  "alternately, contended 2-core machine (path d2 and direct d2 are within that noise of each other)")
+MATTING_SOURCE = (
+    "benchmarks/sim_effects.py --quick (its matting candidates, 2 rounds): error = the worst of "
+    "camera 2 of the default rig (200x150) and the 64x48 test camera (evaluate.eval_camera; it measures "
+    "1.3-1.9x the error of the rig camera), table 20 deg, 256-spp reference, mean of 2 seeds; seconds = "
+    "median CPU time of an object + backdrop shot pair of the rig camera, candidates measured "
+    "alternately, contended 2-core machine (path d2 and direct d2 are within that noise of each other)"
+)
 #: kind -> matting candidates measured inside the crop (:data:`MATTING_SOURCE`): the worst
 #: error and the slowest object + backdrop shot pair among the built-in scenes of that
 #: kind (diffuse: builtin:diffuse and builtin:sphere) and the two cameras. The selection for a declared
@@ -461,10 +588,21 @@ def reference_effects(scene: SceneSpec, phase: str, *, spp: int = 512) -> Effect
     if phase == "groundtruth":
         return replace(sel, spp=spp, reasons=("reference: aov at high spp",))
     # every emitter group of the phase, including those the selection proves black
-    return replace(sel, integrator="path", max_depth=16, spp=spp, sampler="independent",
-                   emitters=PHASE_EMITTERS[phase], skipped=(), crop=False, backdrop_spp=None,
-                   reasons=("reference: path tracing, max_depth 16, high spp (independent samples), every emitter "
-                            "group of the phase, the whole frame",))
+    return replace(
+        sel,
+        integrator="path",
+        max_depth=16,
+        spp=spp,
+        sampler="independent",
+        emitters=PHASE_EMITTERS[phase],
+        skipped=(),
+        crop=False,
+        backdrop_spp=None,
+        reasons=(
+            "reference: path tracing, max_depth 16, high spp (independent samples), every emitter "
+            "group of the phase, the whole frame",
+        ),
+    )
 
 
 def _apply_overrides(cfg: EffectConfig, overrides: Mapping[str, Any] | None) -> EffectConfig:
@@ -494,15 +632,18 @@ def _apply_overrides(cfg: EffectConfig, overrides: Mapping[str, Any] | None) -> 
         kw["max_depth"] = 2
     reasons = cfg.reasons + tuple(f"override: {k} = {v!r}" for k, v in kw.items())
     out = replace(cfg, reasons=reasons, **kw)
-    if out.sampler == "stratified" and round(out.spp ** 0.5) ** 2 != out.spp:
-        out = replace(out, sampler="independent",
-                      reasons=out.reasons + (f"{out.spp} spp is not a square: independent samples",))
+    if out.sampler == "stratified" and round(out.spp**0.5) ** 2 != out.spp:
+        out = replace(
+            out, sampler="independent", reasons=out.reasons + (f"{out.spp} spp is not a square: independent samples",)
+        )
     return out
 
 
 #: Where :data:`MEASURED_COST` comes from.
-MEASURED_COST_SOURCE = ("benchmarks/out/sim_effects.md (quick: 256-spp reference, camera 2 of the default rig, "
-                        "200x150, contended 2-core machine; matting: the declared selection)")
+MEASURED_COST_SOURCE = (
+    "benchmarks/out/sim_effects.md (quick: 256-spp reference, camera 2 of the default rig, "
+    "200x150, contended 2-core machine; matting: the declared selection)"
+)
 
 #: (built-in scene, phase) -> time of the selection / time of the reference (path depth
 #: 16, whole frame) at equal error where measured (the reference's spp interpolated to the
@@ -511,62 +652,62 @@ MEASURED_COST_SOURCE = ("benchmarks/out/sim_effects.md (quick: 256-spp reference
 #: ``.venv/bin/python benchmarks/sim_effects.py --quick --json`` (the matting rows re-measured
 #: with ``--phases matting`` after the candidates table changed, merged with ``--merge``).
 MEASURED_COST: dict[tuple[str, str], float] = {
-    ('charuco', 'calibration'): 0.062,
-    ('charuco', 'groundtruth'): 0.133,
-    ('diffuse', 'envmatte'): 0.241,
-    ('diffuse', 'groundtruth'): 0.128,
-    ('diffuse', 'lightfield'): 1.291,
-    ('diffuse', 'matting'): 0.558,
-    ('diffuse', 'reflectance'): 0.565,
-    ('fuzzy', 'envmatte'): 0.568,
-    ('fuzzy', 'groundtruth'): 0.067,
-    ('fuzzy', 'lightfield'): 0.612,
-    ('fuzzy', 'matting'): 0.449,
-    ('fuzzy', 'reflectance'): 0.598,
-    ('glass', 'envmatte'): 0.516,
-    ('glass', 'groundtruth'): 0.113,
-    ('glass', 'lightfield'): 0.0,
-    ('glass', 'matting'): 0.391,
-    ('glass', 'reflectance'): 0.0,
-    ('glossy', 'envmatte'): 0.573,
-    ('glossy', 'groundtruth'): 0.127,
-    ('glossy', 'lightfield'): 1.094,
-    ('glossy', 'matting'): 0.524,
-    ('glossy', 'reflectance'): 0.58,
-    ('sphere', 'envmatte'): 0.345,
-    ('sphere', 'groundtruth'): 0.129,
-    ('sphere', 'lightfield'): 0.864,
-    ('sphere', 'matting'): 0.788,
-    ('sphere', 'reflectance'): 0.205,
+    ("charuco", "calibration"): 0.062,
+    ("charuco", "groundtruth"): 0.133,
+    ("diffuse", "envmatte"): 0.241,
+    ("diffuse", "groundtruth"): 0.128,
+    ("diffuse", "lightfield"): 1.291,
+    ("diffuse", "matting"): 0.558,
+    ("diffuse", "reflectance"): 0.565,
+    ("fuzzy", "envmatte"): 0.568,
+    ("fuzzy", "groundtruth"): 0.067,
+    ("fuzzy", "lightfield"): 0.612,
+    ("fuzzy", "matting"): 0.449,
+    ("fuzzy", "reflectance"): 0.598,
+    ("glass", "envmatte"): 0.516,
+    ("glass", "groundtruth"): 0.113,
+    ("glass", "lightfield"): 0.0,
+    ("glass", "matting"): 0.391,
+    ("glass", "reflectance"): 0.0,
+    ("glossy", "envmatte"): 0.573,
+    ("glossy", "groundtruth"): 0.127,
+    ("glossy", "lightfield"): 1.094,
+    ("glossy", "matting"): 0.524,
+    ("glossy", "reflectance"): 0.58,
+    ("sphere", "envmatte"): 0.345,
+    ("sphere", "groundtruth"): 0.129,
+    ("sphere", "lightfield"): 0.864,
+    ("sphere", "matting"): 0.788,
+    ("sphere", "reflectance"): 0.205,
 }
 
 #: (built-in scene, phase) -> scene_kind, for scenes that are not built-ins.
 _BUILTIN_KIND: dict[tuple[str, str], str] = {
-    ('charuco', 'calibration'): 'board',
-    ('charuco', 'groundtruth'): 'diffuse',
-    ('diffuse', 'envmatte'): 'diffuse',
-    ('diffuse', 'groundtruth'): 'diffuse',
-    ('diffuse', 'lightfield'): 'diffuse',
-    ('diffuse', 'matting'): 'diffuse',
-    ('diffuse', 'reflectance'): 'diffuse',
-    ('fuzzy', 'envmatte'): 'fibres',
-    ('fuzzy', 'groundtruth'): 'fibres',
-    ('fuzzy', 'lightfield'): 'fibres',
-    ('fuzzy', 'matting'): 'fibres',
-    ('fuzzy', 'reflectance'): 'fibres',
-    ('glass', 'envmatte'): 'transmissive',
-    ('glass', 'groundtruth'): 'transmissive',
-    ('glass', 'lightfield'): 'transmissive',
-    ('glass', 'matting'): 'transmissive',
-    ('glass', 'reflectance'): 'transmissive',
-    ('glossy', 'envmatte'): 'glossy',
-    ('glossy', 'groundtruth'): 'glossy',
-    ('glossy', 'lightfield'): 'glossy',
-    ('glossy', 'matting'): 'glossy',
-    ('glossy', 'reflectance'): 'glossy',
-    ('sphere', 'envmatte'): 'diffuse',
-    ('sphere', 'groundtruth'): 'diffuse',
-    ('sphere', 'lightfield'): 'diffuse',
-    ('sphere', 'matting'): 'diffuse',
-    ('sphere', 'reflectance'): 'diffuse',
+    ("charuco", "calibration"): "board",
+    ("charuco", "groundtruth"): "diffuse",
+    ("diffuse", "envmatte"): "diffuse",
+    ("diffuse", "groundtruth"): "diffuse",
+    ("diffuse", "lightfield"): "diffuse",
+    ("diffuse", "matting"): "diffuse",
+    ("diffuse", "reflectance"): "diffuse",
+    ("fuzzy", "envmatte"): "fibres",
+    ("fuzzy", "groundtruth"): "fibres",
+    ("fuzzy", "lightfield"): "fibres",
+    ("fuzzy", "matting"): "fibres",
+    ("fuzzy", "reflectance"): "fibres",
+    ("glass", "envmatte"): "transmissive",
+    ("glass", "groundtruth"): "transmissive",
+    ("glass", "lightfield"): "transmissive",
+    ("glass", "matting"): "transmissive",
+    ("glass", "reflectance"): "transmissive",
+    ("glossy", "envmatte"): "glossy",
+    ("glossy", "groundtruth"): "glossy",
+    ("glossy", "lightfield"): "glossy",
+    ("glossy", "matting"): "glossy",
+    ("glossy", "reflectance"): "glossy",
+    ("sphere", "envmatte"): "diffuse",
+    ("sphere", "groundtruth"): "diffuse",
+    ("sphere", "lightfield"): "diffuse",
+    ("sphere", "matting"): "diffuse",
+    ("sphere", "reflectance"): "diffuse",
 }

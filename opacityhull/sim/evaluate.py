@@ -56,22 +56,56 @@ class PhaseError:
         return bool(self.error <= self.bound)
 
     def to_json(self) -> dict:
-        return {"scene": self.scene, "phase": self.phase, "metric": self.metric, "error": self.error,
-                "bound": self.bound, "within_bound": self.within_bound, "seconds_selected": self.seconds_selected,
-                "seconds_reference": self.seconds_reference, "speedup": self.seconds_reference
-                / max(self.seconds_selected, 1e-9), "selected": self.selected.to_json(),
-                "reference": {"integrator": self.reference.integrator, "max_depth": self.reference.max_depth,
-                              "spp": self.reference.spp},
-                "also": [{"integrator": c.integrator, "max_depth": c.max_depth, "spp": c.spp, "crop": c.crop,
-                          "error": e, "seconds": t} for c, e, t in self.also]}
+        return {
+            "scene": self.scene,
+            "phase": self.phase,
+            "metric": self.metric,
+            "error": self.error,
+            "bound": self.bound,
+            "within_bound": self.within_bound,
+            "seconds_selected": self.seconds_selected,
+            "seconds_reference": self.seconds_reference,
+            "speedup": self.seconds_reference / max(self.seconds_selected, 1e-9),
+            "selected": self.selected.to_json(),
+            "reference": {
+                "integrator": self.reference.integrator,
+                "max_depth": self.reference.max_depth,
+                "spp": self.reference.spp,
+            },
+            "also": [
+                {
+                    "integrator": c.integrator,
+                    "max_depth": c.max_depth,
+                    "spp": c.spp,
+                    "crop": c.crop,
+                    "error": e,
+                    "seconds": t,
+                }
+                for c, e, t in self.also
+            ],
+        }
 
 
-def eval_camera(width: int = 64, height: int = 48, *, elevation_deg: float = 30.0, distance_m: float = 0.6,
-                fov_y_deg: float = 26.0, target_m=(0.0, 0.08, 0.0)) -> Camera:
+def eval_camera(
+    width: int = 64,
+    height: int = 48,
+    *,
+    elevation_deg: float = 30.0,
+    distance_m: float = 0.6,
+    fov_y_deg: float = 26.0,
+    target_m=(0.0, 0.08, 0.0),
+) -> Camera:
     """A small camera framing the ~0.2 m object volume (rig frame)."""
     f = height / (2.0 * np.tan(np.radians(fov_y_deg) / 2.0))
-    spec = CameraSpec(name="eval", width=width, height=height, distance_m=distance_m, elevation_deg=elevation_deg,
-                      azimuth_deg=0.0, focal_px=f)
+    spec = CameraSpec(
+        name="eval",
+        width=width,
+        height=height,
+        distance_m=distance_m,
+        elevation_deg=elevation_deg,
+        azimuth_deg=0.0,
+        focal_px=f,
+    )
     return spec.nominal_camera(np.asarray(target_m, dtype=np.float64))
 
 
@@ -108,8 +142,9 @@ def corner_error(img: np.ndarray, ref: np.ndarray, charuco: CharucoSpec) -> floa
     return float(np.mean([np.linalg.norm(a[i] - b[i]) for i in common]))
 
 
-def triangulation_alpha(c1: np.ndarray, c2: np.ndarray, b1: np.ndarray, b2: np.ndarray, *,
-                        eps: float = 1e-6) -> np.ndarray:
+def triangulation_alpha(
+    c1: np.ndarray, c2: np.ndarray, b1: np.ndarray, b2: np.ndarray, *, eps: float = 1e-6
+) -> np.ndarray:
     """Smith–Blinn triangulation matting: ``alpha = 1 - <C1 - C2, B1 - B2> / |B1 - B2|^2``
     per pixel, clipped to [0, 1]; (H, W, 3) inputs → (H, W). Where the backdrops agree
     (``|B1 - B2|^2 < eps``) alpha is undefined and returned as 1 if the captures differ
@@ -157,10 +192,21 @@ def _timed(fn):
     return out, _clock() - t0
 
 
-def phase_error(scene: SceneSpec, phase: str, *, geometry: RigGeometry, camera: Camera | None = None,
-                ref_spp: int = 256, seed: int = 0, table_deg: float = 20.0, renderer: SimRenderer | None = None,
-                warm: bool = False, selected: EffectConfig | None = None,
-                also: Sequence[EffectConfig] = (), clock: Callable[[], float] | None = None) -> PhaseError:
+def phase_error(
+    scene: SceneSpec,
+    phase: str,
+    *,
+    geometry: RigGeometry,
+    camera: Camera | None = None,
+    ref_spp: int = 256,
+    seed: int = 0,
+    table_deg: float = 20.0,
+    renderer: SimRenderer | None = None,
+    warm: bool = False,
+    selected: EffectConfig | None = None,
+    also: Sequence[EffectConfig] = (),
+    clock: Callable[[], float] | None = None,
+) -> PhaseError:
     """Error of the effect selection for ``phase`` against the reference (see module doc).
 
     Parameters
@@ -181,14 +227,26 @@ def phase_error(scene: SceneSpec, phase: str, *, geometry: RigGeometry, camera: 
     global _clock
     previous, _clock = _clock, (clock or time.perf_counter)
     try:
-        return _phase_error(scene, phase, geometry=geometry, camera=camera, ref_spp=ref_spp, seed=seed,
-                            table_deg=table_deg, renderer=renderer, warm=warm, selected=selected, also=also)
+        return _phase_error(
+            scene,
+            phase,
+            geometry=geometry,
+            camera=camera,
+            ref_spp=ref_spp,
+            seed=seed,
+            table_deg=table_deg,
+            renderer=renderer,
+            warm=warm,
+            selected=selected,
+            also=also,
+        )
     finally:
         _clock = previous
 
 
-def _phase_error(scene, phase, *, geometry, camera, ref_spp, seed, table_deg, renderer, warm, selected,
-                 also) -> PhaseError:
+def _phase_error(
+    scene, phase, *, geometry, camera, ref_spp, seed, table_deg, renderer, warm, selected, also
+) -> PhaseError:
     from .groundtruth import render_ground_truth
 
     r = renderer or SimRenderer(scene, geometry)
@@ -237,12 +295,17 @@ def _phase_error(scene, phase, *, geometry, camera, ref_spp, seed, table_deg, re
                 disp[d.name] = np.repeat(np.tile(stripes, (h, 1))[:, :, None], 3, axis=2)
             states = [SimState(table_deg=table_deg, displays=disp)]
         elif phase == "matting":
-            p1 = {d.name: rng.integers(0, 256, (d.resolution[1], d.resolution[0], 3), dtype=np.uint8)
-                  for d in geometry.displays}
+            p1 = {
+                d.name: rng.integers(0, 256, (d.resolution[1], d.resolution[0], 3), dtype=np.uint8)
+                for d in geometry.displays
+            }
             p2 = {k: (255 - v).astype(np.uint8) for k, v in p1.items()}
-            states = [SimState(table_deg=table_deg, displays=p1), SimState(table_deg=table_deg, displays=p2),
-                      SimState(table_deg=table_deg, displays=p1, content="none"),
-                      SimState(table_deg=table_deg, displays=p2, content="none")]
+            states = [
+                SimState(table_deg=table_deg, displays=p1),
+                SimState(table_deg=table_deg, displays=p2),
+                SimState(table_deg=table_deg, displays=p1, content="none"),
+                SimState(table_deg=table_deg, displays=p2, content="none"),
+            ]
         else:
             raise ValueError(f"phase {phase!r}")
 
@@ -283,5 +346,6 @@ def _phase_error(scene, phase, *, geometry, camera, ref_spp, seed, table_deg, re
             run(c, seed + 300 + i)
         out_c, t_c = _timed(lambda c=c, i=i: run(c, seed + 2000 + 10 * i))
         extra.append((c, error(out_c), t_c))
-    return PhaseError(scene.source, phase, sel.error_metric, error(out_sel), sel.error_bound, t_sel, t_ref, sel, ref,
-                      tuple(extra))
+    return PhaseError(
+        scene.source, phase, sel.error_metric, error(out_sel), sel.error_bound, t_sel, t_ref, sel, ref, tuple(extra)
+    )

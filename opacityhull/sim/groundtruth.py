@@ -101,9 +101,15 @@ def _renderer(scene: SceneSpec, geometry: RigGeometry | None, renderer: SimRende
     return r
 
 
-def render_ground_truth(scene: SceneSpec, camera: Camera, *, spp: int | None = None,
-                        parts: Sequence[Part] | None = None, renderer: SimRenderer | None = None,
-                        seed: int = 0) -> dict:
+def render_ground_truth(
+    scene: SceneSpec,
+    camera: Camera,
+    *,
+    spp: int | None = None,
+    parts: Sequence[Part] | None = None,
+    renderer: SimRenderer | None = None,
+    seed: int = 0,
+) -> dict:
     """Coverage alpha, depth, normals and shape ids of the object alone.
 
     Parameters
@@ -139,8 +145,12 @@ def render_ground_truth(scene: SceneSpec, camera: Camera, *, spp: int | None = N
     parts = tuple(scene.parts if parts is None else parts)
     H, W = camera.height, camera.width
     if not parts:
-        return {"alpha": np.zeros((H, W), np.float32), "depth": np.full((H, W), np.nan, np.float32),
-                "normals": np.zeros((H, W, 3), np.float32), "shape_id": np.zeros((H, W), np.int32)}
+        return {
+            "alpha": np.zeros((H, W), np.float32),
+            "depth": np.full((H, W), np.nan, np.float32),
+            "normals": np.zeros((H, W, 3), np.float32),
+            "shape_id": np.zeros((H, W), np.int32),
+        }
     r = _renderer(scene, None, renderer)
     integ = {"type": "aov", "aovs": "dd:depth,nn:sh_normal,si:shape_index", "inner": {"type": "direct"}}
     img = r.render_rgba(camera, parts, integrator=integ, spp=spp, sampler="stratified", seed=seed, key=("gt",))
@@ -158,8 +168,16 @@ def render_ground_truth(scene: SceneSpec, camera: Camera, *, spp: int | None = N
     nrm = np.linalg.norm(n_sum, axis=2, keepdims=True)
     normals = np.where(covered[..., None] & (nrm > 1e-12), n_sum / np.maximum(nrm, 1e-12), 0.0).astype(np.float32)
     # shape ids: one sample per pixel so the index is not averaged with its neighbours
-    one, shape_names = r.render_rgba(camera, parts, integrator=integ, spp=1, sampler="independent",
-                                     seed=seed + 1, key=("gt1",), with_shape_names=True)
+    one, shape_names = r.render_rgba(
+        camera,
+        parts,
+        integrator=integ,
+        spp=1,
+        sampler="independent",
+        seed=seed + 1,
+        key=("gt1",),
+        with_shape_names=True,
+    )
     sid_raw = np.rint(one[:, :, 8]).astype(np.int32)
     shape_id = np.zeros_like(sid_raw)
     for i, name in shape_names.items():
@@ -186,8 +204,17 @@ def _as_geometry(rig) -> RigGeometry:
     raise InputError(f"rig: expected a RigGeometry, a rig TOML path or a rig with .geometry, got {type(rig).__name__}")
 
 
-def render_under_envmap(scene: SceneSpec, camera: Camera, envmap_rgb: np.ndarray, *, spp: int = 64, rig=None,
-                        table_deg: float = 0.0, seed: int = 0, renderer: SimRenderer | None = None) -> np.ndarray:
+def render_under_envmap(
+    scene: SceneSpec,
+    camera: Camera,
+    envmap_rgb: np.ndarray,
+    *,
+    spp: int = 64,
+    rig=None,
+    table_deg: float = 0.0,
+    seed: int = 0,
+    renderer: SimRenderer | None = None,
+) -> np.ndarray:
     """The object as it sits on the rig, lit by an environment map: straight RGBA.
 
     Parameters
@@ -236,11 +263,21 @@ def render_under_envmap(scene: SceneSpec, camera: Camera, envmap_rgb: np.ndarray
     # a new map is a new scene (its sampling distribution is built at load); table angle
     # and camera only update parameters
     h = hashlib.sha1(env.tobytes()).hexdigest()[:16]
-    dsig = hashlib.sha1(np.concatenate([display_to_world(d, 0.0).ravel() for d in geometry.displays]
-                                       or [np.zeros(1)]).tobytes()).hexdigest()[:16]
+    dsig = hashlib.sha1(
+        np.concatenate([display_to_world(d, 0.0).ravel() for d in geometry.displays] or [np.zeros(1)]).tobytes()
+    ).hexdigest()[:16]
     key = ("envmap", h, env.shape, dsig, repr(integ))
-    img = r.render_rgba(camera, scene.parts, extra=extra, integrator=integ, spp=spp, sampler="stratified",
-                        seed=seed, key=key, updates=updates)
+    img = r.render_rgba(
+        camera,
+        scene.parts,
+        extra=extra,
+        integrator=integ,
+        spp=spp,
+        sampler="stratified",
+        seed=seed,
+        key=key,
+        updates=updates,
+    )
     rgb = img[:, :, :3]
     gt = render_ground_truth(scene, camera, spp=spp, renderer=r, seed=seed)
     alpha = gt["alpha"]
@@ -252,9 +289,17 @@ def render_under_envmap(scene: SceneSpec, camera: Camera, envmap_rgb: np.ndarray
 # --------------------------------------------------------------------------- session ground truth
 
 
-def write_ground_truth(root, *, scene: SceneSpec, geometry: RigGeometry, views: Sequence[tuple[int, float]],
-                       renderer: SimRenderer | None = None, rig_cameras: Sequence[Camera] | None = None,
-                       progress=None, spp: int | None = None) -> Path:
+def write_ground_truth(
+    root,
+    *,
+    scene: SceneSpec,
+    geometry: RigGeometry,
+    views: Sequence[tuple[int, float]],
+    renderer: SimRenderer | None = None,
+    rig_cameras: Sequence[Camera] | None = None,
+    progress=None,
+    spp: int | None = None,
+) -> Path:
     """Write ``root/groundtruth/`` for the given views (camera index, table angle).
 
     Layout::
@@ -294,11 +339,15 @@ def write_ground_truth(root, *, scene: SceneSpec, geometry: RigGeometry, views: 
     lights = {
         "frame": "rig frame at light-array angle 0; rotate about +Y by the array angle",
         "model": "point lights; a light of intensity 1 gives irradiance 1 at the rig origin; "
-                 "DMX level L scales it by L/255",
+        "DMX level L scales it by L/255",
         "lights": [
-            {"id": L.id, "position_m": [float(v) for v in L.position_m], "intensity": float(L.intensity),
-             "colour": [float(v) for v in L.colour],
-             "mitsuba_intensity_at_full_level": [float(v) for v in light_intensity(geometry, L.id, 255)]}
+            {
+                "id": L.id,
+                "position_m": [float(v) for v in L.position_m],
+                "intensity": float(L.intensity),
+                "colour": [float(v) for v in L.colour],
+                "mitsuba_intensity_at_full_level": [float(v) for v in light_intensity(geometry, L.id, 255)],
+            }
             for L in geometry.lights
         ],
     }

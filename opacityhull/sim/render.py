@@ -170,8 +170,14 @@ def footprint_window(camera: Camera, lo, hi, *, margin_px: float = CROP_MARGIN_P
     return (x0, y0, x1, y1)
 
 
-def crop_window(window: tuple[int, int, int, int], width: int, height: int, *,
-                steps: int = CROP_STEPS, min_size: tuple[int, int] = (0, 0)) -> tuple[int, int, int, int]:
+def crop_window(
+    window: tuple[int, int, int, int],
+    width: int,
+    height: int,
+    *,
+    steps: int = CROP_STEPS,
+    min_size: tuple[int, int] = (0, 0),
+) -> tuple[int, int, int, int]:
     """The render window ``(x0, y0, w, h)`` for a footprint ``(x0, y0, x1, y1)``: each side
     at least ``min_size``, rounded up to a multiple of ``max(8, ceil(side / steps))`` px
     (at most the frame), kept centred on the footprint and inside the frame, so it
@@ -206,8 +212,14 @@ def crop_camera(camera: Camera, x0: int, y0: int, w: int, h: int) -> Camera:
     K = np.array(camera.K, dtype=np.float64)
     K[0, 2] -= x0
     K[1, 2] -= y0
-    return Camera(K=K, width=int(w), height=int(h), world_from_cam=camera.world_from_cam, dist=camera.dist,
-                  name=f"{camera.name}[{x0}:{x0 + w},{y0}:{y0 + h}]")
+    return Camera(
+        K=K,
+        width=int(w),
+        height=int(h),
+        world_from_cam=camera.world_from_cam,
+        dist=camera.dist,
+        name=f"{camera.name}[{x0}:{x0 + w},{y0}:{y0 + h}]",
+    )
 
 
 # --------------------------------------------------------------------------- state
@@ -285,9 +297,16 @@ class RenderPass:
 
     def to_json(self) -> dict:
         e = self.effects
-        return {"group": self.group, "light": None if self.light is None else list(self.light),
-                "phase": e.phase, "integrator": e.integrator, "max_depth": e.max_depth, "spp": e.spp,
-                "sampler": e.sampler, "resolution_scale": e.resolution_scale}
+        return {
+            "group": self.group,
+            "light": None if self.light is None else list(self.light),
+            "phase": e.phase,
+            "integrator": e.integrator,
+            "max_depth": e.max_depth,
+            "spp": e.spp,
+            "sampler": e.sampler,
+            "resolution_scale": e.resolution_scale,
+        }
 
 
 def light_intensity(geometry: RigGeometry, light_id: int, level: int) -> np.ndarray:
@@ -342,8 +361,9 @@ def _geometry_file(kind: str, payload: np.ndarray, writer) -> str:
 
 
 def _mesh_file(mesh: S.TriMesh) -> str:
-    payload = np.concatenate([mesh.vertices.ravel(), mesh.normals.ravel(), mesh.uv.ravel(),
-                              mesh.faces.ravel().astype(np.float64)])
+    payload = np.concatenate(
+        [mesh.vertices.ravel(), mesh.normals.ravel(), mesh.uv.ravel(), mesh.faces.ravel().astype(np.float64)]
+    )
     return _geometry_file("mesh", payload, lambda p: S.write_ply_mesh(p, mesh))
 
 
@@ -422,11 +442,19 @@ def part_dicts(mi, parts: Sequence[Part]) -> dict:
             continue
         mat = p.need(p.material, "material")
         if p.kind == "mesh":
-            out[key] = {"type": "ply", "filename": _mesh_file(p.need(p.mesh, "mesh")), "face_normals": False,
-                        "bsdf": bsdf_dict(mi, mat)}
+            out[key] = {
+                "type": "ply",
+                "filename": _mesh_file(p.need(p.mesh, "mesh")),
+                "face_normals": False,
+                "bsdf": bsdf_dict(mi, mat),
+            }
         elif p.kind == "sphere":
-            out[key] = {"type": "sphere", "center": [float(v) for v in p.need(p.centre_m, "centre_m")],
-                        "radius": float(p.need(p.radius_m, "radius_m")), "bsdf": bsdf_dict(mi, mat)}
+            out[key] = {
+                "type": "sphere",
+                "center": [float(v) for v in p.need(p.centre_m, "centre_m")],
+                "radius": float(p.need(p.radius_m, "radius_m")),
+                "bsdf": bsdf_dict(mi, mat),
+            }
         elif p.kind == "disk":
             T = np.eye(4)
             # local +z -> +Y
@@ -434,8 +462,11 @@ def part_dicts(mi, parts: Sequence[Part]) -> dict:
             T[:3, 3] = p.need(p.centre_m, "centre_m")
             out[key] = {"type": "disk", "to_world": mi.ScalarTransform4f(T), "bsdf": bsdf_dict(mi, mat)}
         elif p.kind == "curves":
-            out[key] = {"type": "linearcurve", "filename": _curves_file(p.need(p.fibres, "fibres")),
-                        "bsdf": bsdf_dict(mi, mat)}
+            out[key] = {
+                "type": "linearcurve",
+                "filename": _curves_file(p.need(p.fibres, "fibres")),
+                "bsdf": bsdf_dict(mi, mat),
+            }
         else:
             raise InputError(f"part {p.name!r}: unknown kind {p.kind!r}")
     return out
@@ -495,8 +526,14 @@ def _sensor_dict(mi, cam: Camera, sampler: str, spp: int) -> dict:
         "near_clip": NEAR_CLIP_M,
         "far_clip": 100.0,
         "to_world": mi.ScalarTransform4f(np.asarray(p["to_world"])),
-        "film": {"type": "hdrfilm", "width": cam.width, "height": cam.height, "rfilter": {"type": "box"},
-                 "pixel_format": "rgba", "sample_border": False},
+        "film": {
+            "type": "hdrfilm",
+            "width": cam.width,
+            "height": cam.height,
+            "rfilter": {"type": "box"},
+            "pixel_format": "rgba",
+            "sample_border": False,
+        },
         "sampler": smp,
     }
 
@@ -540,8 +577,13 @@ class _Loaded:
 
 #: The only parameters a capture changes. ``params.update()`` schedules every parameter
 #: it holds (meshes, textures...); keeping just these makes an update cost what changed.
-_PARAM_KEEP = [r"sensor\..*", r"display_\d+\.to_world", r"display_\d+\.emitter\.radiance\.data",
-               r"light\.position", r"light\.intensity\.value"]
+_PARAM_KEEP = [
+    r"sensor\..*",
+    r"display_\d+\.to_world",
+    r"display_\d+\.emitter\.radiance\.data",
+    r"light\.position",
+    r"light\.intensity\.value",
+]
 
 
 def _traverse(mi, scene):
@@ -569,8 +611,15 @@ class SimRenderer:
     rewritten per render).
     """
 
-    def __init__(self, scene: SceneSpec, geometry: RigGeometry, *, variant: str | None = None,
-                 overrides: Mapping | None = None, cache_mb: float = 256.0):
+    def __init__(
+        self,
+        scene: SceneSpec,
+        geometry: RigGeometry,
+        *,
+        variant: str | None = None,
+        overrides: Mapping | None = None,
+        cache_mb: float = 256.0,
+    ):
         self.scene = scene
         self.geometry = geometry
         self.variant = variant
@@ -613,9 +662,12 @@ class SimRenderer:
         if state.displays_on() and "displays" not in cfg.emitters and "displays" not in cfg.skipped:
             extra.append("displays")
         if extra:
-            cfg = replace(cfg, emitters=cfg.emitters + tuple(extra),
-                          reasons=cfg.reasons + (f"also switched on at capture time: {', '.join(extra)} "
-                                                 "(rendered with that group's own selection)",))
+            cfg = replace(
+                cfg,
+                emitters=cfg.emitters + tuple(extra),
+                reasons=cfg.reasons
+                + (f"also switched on at capture time: {', '.join(extra)} (rendered with that group's own selection)",),
+            )
         return cfg
 
     def passes_for(self, state: SimState, effects: EffectConfig | None = None) -> list[RenderPass]:
@@ -644,8 +696,11 @@ class SimRenderer:
         else:
             # a declared envmatte shot gets its own selection; every other displays pass
             # the matting one (at both phases' samples unless matting was declared)
-            cfg_d = (self._select("envmatte") if state.phase == "envmatte"
-                     else self._select("matting", declared=state.phase == "matting"))
+            cfg_d = (
+                self._select("envmatte")
+                if state.phase == "envmatte"
+                else self._select("matting", declared=state.phase == "matting")
+            )
             cfg_l = self._select("reflectance" if len(lights) == 1 else "lightfield")
         if state.content == "none":
             cfg_d, cfg_l = backdrop_only_effects(cfg_d), None
@@ -656,8 +711,15 @@ class SimRenderer:
             passes.extend(RenderPass("light", cfg_l, (lid, level)) for lid, level in sorted(lights.items()))
         return passes
 
-    def render(self, rig_camera: Camera, state: SimState, *, effects: EffectConfig | None = None,
-               seed: int = 0, use_cache: bool = True) -> np.ndarray:
+    def render(
+        self,
+        rig_camera: Camera,
+        state: SimState,
+        *,
+        effects: EffectConfig | None = None,
+        seed: int = 0,
+        use_cache: bool = True,
+    ) -> np.ndarray:
         """Radiance image (H, W, 3) float32 of ``rig_camera`` (pose in the rig frame) in
         ``state``: the sum of :meth:`passes_for` ``(state, effects)``.
 
@@ -694,8 +756,9 @@ class SimRenderer:
     def _select(self, phase: str, *, declared: bool = True) -> EffectConfig:
         return select_effects(self.scene, phase, overrides=self.overrides or None, declared=declared)
 
-    def _render_pass(self, rig_camera: Camera, state: SimState, p: RenderPass, parts, seed: int, *,
-                     use_cache: bool = True) -> np.ndarray:
+    def _render_pass(
+        self, rig_camera: Camera, state: SimState, p: RenderPass, parts, seed: int, *, use_cache: bool = True
+    ) -> np.ndarray:
         cfg = p.effects
         cam = self._render_camera(rig_camera, cfg)
         view = RigGeometry.view_camera(cam, state.table_deg)
@@ -728,13 +791,15 @@ class SimRenderer:
             loaded = self._get(cfg, parts, state, cam, mode=("light",))
             img = self._run(loaded, view, state, cfg, seed, light=p.light)
         if win is not None:
-            out[y0:y0 + h, x0:x0 + w] = img
+            out[y0 : y0 + h, x0 : x0 + w] = img
             img = out
         if cam.size != rig_camera.size:
             img = _downsample(img, rig_camera.width, rig_camera.height)
         return img
 
-    def crop_for(self, rig_camera: Camera, state: SimState, cfg: EffectConfig, parts) -> tuple[int, int, int, int] | None:
+    def crop_for(
+        self, rig_camera: Camera, state: SimState, cfg: EffectConfig, parts
+    ) -> tuple[int, int, int, int] | None:
         """The window ``(x0, y0, w, h)`` a pass renders of ``rig_camera`` (rig frame) in
         ``state``, or None for the whole frame: no crop asked for (``cfg.crop``),
         supersampling (``resolution_scale`` != 1: the box-filtered downsampling would mix
@@ -772,8 +837,12 @@ class SimRenderer:
 
     def _pass_key(self, cam: Camera, state: SimState, p: RenderPass) -> tuple:
         e = p.effects
-        cam_key = (cam.width, cam.height, np.asarray(cam.K, np.float64).tobytes(),
-                   np.asarray(cam.world_from_cam, np.float64).tobytes())
+        cam_key = (
+            cam.width,
+            cam.height,
+            np.asarray(cam.K, np.float64).tobytes(),
+            np.asarray(cam.world_from_cam, np.float64).tobytes(),
+        )
         content = (state.content, repr(state.charuco) if state.content == "board" else None)
         if p.group == "displays":
             what = tuple((n, _digest(img)) for n, img in sorted(state.displays_on().items()) if self._has_display(n))
@@ -812,21 +881,51 @@ class SimRenderer:
             self._radiance_bytes = 0
 
     @overload
-    def render_rgba(self, camera_object: Camera, parts: Sequence[Part], *, extra: Mapping | None = None,
-                    integrator: dict, spp: int, sampler: str = "stratified", seed: int = 0,
-                    key: tuple = (), with_shape_names: Literal[False] = False,
-                    updates: Mapping | None = None) -> np.ndarray: ...
+    def render_rgba(
+        self,
+        camera_object: Camera,
+        parts: Sequence[Part],
+        *,
+        extra: Mapping | None = None,
+        integrator: dict,
+        spp: int,
+        sampler: str = "stratified",
+        seed: int = 0,
+        key: tuple = (),
+        with_shape_names: Literal[False] = False,
+        updates: Mapping | None = None,
+    ) -> np.ndarray: ...
 
     @overload
-    def render_rgba(self, camera_object: Camera, parts: Sequence[Part], *, extra: Mapping | None = None,
-                    integrator: dict, spp: int, sampler: str = "stratified", seed: int = 0,
-                    key: tuple = (), with_shape_names: Literal[True],
-                    updates: Mapping | None = None) -> tuple[np.ndarray, dict[int, str]]: ...
+    def render_rgba(
+        self,
+        camera_object: Camera,
+        parts: Sequence[Part],
+        *,
+        extra: Mapping | None = None,
+        integrator: dict,
+        spp: int,
+        sampler: str = "stratified",
+        seed: int = 0,
+        key: tuple = (),
+        with_shape_names: Literal[True],
+        updates: Mapping | None = None,
+    ) -> tuple[np.ndarray, dict[int, str]]: ...
 
-    def render_rgba(self, camera_object: Camera, parts: Sequence[Part], *, extra: Mapping | None = None,
-                    integrator: dict, spp: int, sampler: str = "stratified", seed: int = 0,
-                    key: tuple = (), with_shape_names: bool = False,
-                    updates: Mapping | None = None) -> np.ndarray | tuple[np.ndarray, dict[int, str]]:
+    def render_rgba(
+        self,
+        camera_object: Camera,
+        parts: Sequence[Part],
+        *,
+        extra: Mapping | None = None,
+        integrator: dict,
+        spp: int,
+        sampler: str = "stratified",
+        seed: int = 0,
+        key: tuple = (),
+        with_shape_names: bool = False,
+        updates: Mapping | None = None,
+    ) -> np.ndarray | tuple[np.ndarray, dict[int, str]]:
         """Low-level: render ``parts`` (plus ``extra`` Mitsuba dict entries) from a camera
         posed in the object frame with the given integrator; returns the raw film
         channels (H, W, C) — and, with ``with_shape_names``, the map from aov
@@ -840,8 +939,15 @@ class SimRenderer:
         if sampler == "stratified":
             spp = math.isqrt(max(int(spp), 1) - 1) + 1
             spp *= spp
-        full_key = ("raw", key, _camera_key(camera_object), sampler, spp, tuple(p.name for p in parts),
-                    repr(integrator))
+        full_key = (
+            "raw",
+            key,
+            _camera_key(camera_object),
+            sampler,
+            spp,
+            tuple(p.name for p in parts),
+            repr(integrator),
+        )
         with self._cache_lock:
             loaded = self._cache.get(full_key)
             if loaded is None:
@@ -858,8 +964,12 @@ class SimRenderer:
                 loaded.assign(k, _signature(v), lambda v=v: v)
             loaded.params.update()
             # the stubs type seed as mi.UInt32; Mitsuba converts a Python int
-            img = mi.render(loaded.scene, loaded.params, seed=int(seed) & 0x7FFFFFFF,  # pyright: ignore[reportArgumentType]
-                            spp=int(spp))
+            img = mi.render(
+                loaded.scene,
+                loaded.params,
+                seed=int(seed) & 0x7FFFFFFF,  # pyright: ignore[reportArgumentType]
+                spp=int(spp),
+            )
             self.renders += 1
             out = np.array(img, dtype=np.float32)
             if with_shape_names:
@@ -868,9 +978,14 @@ class SimRenderer:
 
     def cache_info(self) -> dict:
         """Mitsuba scenes loaded and renders run; radiance-cache entries, bytes and hits."""
-        return {"scenes": len(self._cache), "loads": self.loads, "renders": self.renders,
-                "radiance_entries": len(self._radiance), "radiance_bytes": self._radiance_bytes,
-                "radiance_hits": self.cache_hits}
+        return {
+            "scenes": len(self._cache),
+            "loads": self.loads,
+            "renders": self.renders,
+            "radiance_entries": len(self._radiance),
+            "radiance_bytes": self._radiance_bytes,
+            "radiance_hits": self.cache_hits,
+        }
 
     # ---- internals
     def _has_display(self, name: str) -> bool:
@@ -893,8 +1008,10 @@ class SimRenderer:
         return rig_camera if abs(s - 1.0) < 1e-9 else rig_camera.scaled(s)
 
     def _get(self, cfg: EffectConfig, parts, state: SimState, cam: Camera, mode: tuple) -> _Loaded:
-        content_key = (state.content, None if state.charuco is None or state.content != "board"
-                       else repr(state.charuco))
+        content_key = (
+            state.content,
+            None if state.charuco is None or state.content != "board" else repr(state.charuco),
+        )
         key = ("capture", cfg.key(), cfg.spp, content_key, _camera_key(cam), mode)
         with self._cache_lock:
             loaded = self._cache.get(key)
@@ -905,25 +1022,36 @@ class SimRenderer:
 
     def _build(self, cfg: EffectConfig, parts, cam: Camera, mode: tuple) -> _Loaded:
         mi = self.mi
-        d: dict = {"type": "scene", "integrator": _integrator_dict(cfg),
-                   "sensor": _sensor_dict(mi, cam, cfg.sampler, cfg.spp)}
+        d: dict = {
+            "type": "scene",
+            "integrator": _integrator_dict(cfg),
+            "sensor": _sensor_dict(mi, cam, cfg.sampler, cfg.spp),
+        }
         d.update(part_dicts(mi, parts))
         emitting = set(mode[1]) if mode[0] == "displays" else set()
         keys: dict = {"displays": {}}
         if "displays" in cfg.shapes or emitting:
             for i, disp in enumerate(self.geometry.displays):
                 k = f"display_{i}"
-                entry = {"type": "rectangle", "to_world": mi.ScalarTransform4f(display_to_world(disp, 0.0)),
-                         "bsdf": _black()}
+                entry = {
+                    "type": "rectangle",
+                    "to_world": mi.ScalarTransform4f(display_to_world(disp, 0.0)),
+                    "bsdf": _black(),
+                }
                 if disp.name in emitting:
                     w, h = disp.resolution
-                    entry["emitter"] = {"type": "area",
-                                        "radiance": _texture(mi, np.zeros((h, w, 3), np.float32), nearest=True)}
+                    entry["emitter"] = {
+                        "type": "area",
+                        "radiance": _texture(mi, np.zeros((h, w, 3), np.float32), nearest=True),
+                    }
                 d[k] = entry
                 keys["displays"][disp.name] = k
         if mode[0] == "light":
-            d["light"] = {"type": "point", "position": [0.0, 1.0, 0.0],
-                          "intensity": {"type": "rgb", "value": [1.0, 1.0, 1.0]}}
+            d["light"] = {
+                "type": "point",
+                "position": [0.0, 1.0, 0.0],
+                "intensity": {"type": "rgb", "value": [1.0, 1.0, 1.0]},
+            }
         sc = mi.load_dict(d, optimize=False)  # keep shapes separate: their params are rewritten
         self.loads += 1
         return _Loaded(sc, _traverse(mi, sc), keys)
@@ -955,8 +1083,17 @@ class SimRenderer:
             s = sensors[key] = _Loaded(sensor, params, {})
         return s
 
-    def _run(self, loaded: _Loaded, view: Camera, state: SimState, cfg: EffectConfig, seed: int, *,
-             displays: Mapping[str, np.ndarray] | None = None, light: tuple[int, int] | None = None) -> np.ndarray:
+    def _run(
+        self,
+        loaded: _Loaded,
+        view: Camera,
+        state: SimState,
+        cfg: EffectConfig,
+        seed: int,
+        *,
+        displays: Mapping[str, np.ndarray] | None = None,
+        light: tuple[int, int] | None = None,
+    ) -> np.ndarray:
         mi = self.mi
         with loaded.lock:
             params = loaded.params
@@ -977,8 +1114,11 @@ class SimRenderer:
                 loaded.assign(f"{k}.to_world", T.tobytes(), lambda T=T: mi.AffineTransform4f(T))
                 if displays is not None and disp.name in displays:
                     pat = displays[disp.name]
-                    loaded.assign(f"{k}.emitter.radiance.data", _digest(pat),
-                                  lambda disp=disp, pat=pat: _tensor(mi, display_radiance(disp, pat)[::-1]))
+                    loaded.assign(
+                        f"{k}.emitter.radiance.data",
+                        _digest(pat),
+                        lambda disp=disp, pat=pat: _tensor(mi, display_radiance(disp, pat)[::-1]),
+                    )
             if light is not None:
                 lid, level = light
                 pos_rig = self.geometry.light(lid).position_rig(state.array_deg)
@@ -988,8 +1128,13 @@ class SimRenderer:
                 loaded.assign("light.intensity.value", rgb, lambda: mi.Color3f(*rgb))
             params.update()
             # the stubs type seed as mi.UInt32; Mitsuba converts a Python int
-            img = mi.render(loaded.scene, params, sensor=sensor, seed=int(seed) & 0x7FFFFFFF,  # pyright: ignore[reportArgumentType]
-                            spp=int(cfg.spp))
+            img = mi.render(
+                loaded.scene,
+                params,
+                sensor=sensor,
+                seed=int(seed) & 0x7FFFFFFF,  # pyright: ignore[reportArgumentType]
+                spp=int(cfg.spp),
+            )
             self.renders += 1
             return np.array(img, dtype=np.float32)[:, :, :3]
 

@@ -94,8 +94,9 @@ SHAPE_KEYS: dict[str, frozenset] = {
     "dome": frozenset({"radius_m", "height_m", "segments"}),
     "bottle": frozenset({"radius_m", "height_m", "neck_radius_m", "segments"}),
     "torus": frozenset({"major_m", "minor_m", "centre_m"}),
-    "fibres": frozenset({"count", "length_m", "radius_m", "core_radii_m", "core_centre_m", "droop",
-                         "points_per_fibre", "seed"}),
+    "fibres": frozenset(
+        {"count", "length_m", "radius_m", "core_radii_m", "core_centre_m", "droop", "points_per_fibre", "seed"}
+    ),
     "mesh": frozenset({"file", "scale", "offset_m"}),
     "board": frozenset(CharucoSpec.__dataclass_fields__),
 }
@@ -217,8 +218,12 @@ class Part:
         if self.kind == "mesh":
             return self.need(self.mesh, "mesh")
         if self.kind == "sphere":
-            return S.uv_sphere_mesh(radius_m=self.need(self.radius_m, "radius_m"),
-                                    centre_m=self.need(self.centre_m, "centre_m"), segments=128, rings=64)
+            return S.uv_sphere_mesh(
+                radius_m=self.need(self.radius_m, "radius_m"),
+                centre_m=self.need(self.centre_m, "centre_m"),
+                segments=128,
+                rings=64,
+            )
         if self.kind == "curves":
             return S.tube_mesh(self.need(self.fibres, "fibres"))
         if self.kind == "disk":
@@ -317,7 +322,6 @@ class SceneSpec:
         return d
 
 
-
 def parts_bounds(parts) -> tuple[np.ndarray, np.ndarray]:
     """Axis-aligned bounds (lo, hi) of ``parts`` (metres, object frame): exact for
     spheres, disks and meshes, fibre polylines padded by their radius.
@@ -347,6 +351,7 @@ def parts_bounds(parts) -> tuple[np.ndarray, np.ndarray]:
             hi.append(m.vertices.max(0))
     return np.min(lo, axis=0), np.max(hi, axis=0)
 
+
 def _deepcopy(x: Any) -> Any:
     if isinstance(x, dict):
         return {k: _deepcopy(v) for k, v in x.items()}
@@ -375,7 +380,7 @@ def load_scene(spec: str | Path) -> SceneSpec:
     """
     s = str(spec)
     if s.startswith("builtin:"):
-        name = s[len("builtin:"):]
+        name = s[len("builtin:") :]
         path = _SCENES_DIR / f"{name}.toml"
         if not path.is_file():
             raise ConfigError(f"scene {s!r}: no built-in scene {name!r} (built-ins: {builtin_names()})")
@@ -383,8 +388,9 @@ def load_scene(spec: str | Path) -> SceneSpec:
     else:
         path = Path(s)
         if not path.is_file():
-            raise ConfigError(f"scene file {path} not found (give a TOML path or builtin:NAME, "
-                              f"built-ins: {builtin_names()})")
+            raise ConfigError(
+                f"scene file {path} not found (give a TOML path or builtin:NAME, built-ins: {builtin_names()})"
+            )
         source = str(path)
     try:
         raw = tomllib.loads(path.read_text(encoding="utf-8"))
@@ -504,9 +510,7 @@ def parse_scene(raw: Mapping, *, where: str = "scene", source: str = "", base_di
     mats_raw = raw.get("materials", {})
     if not isinstance(mats_raw, Mapping):
         raise ConfigError(f"{where}: [materials] must be a table of named materials")
-    materials = tuple(
-        _parse_material(f"{where}: materials.{n}", n, m, base_dir) for n, m in mats_raw.items()
-    )
+    materials = tuple(_parse_material(f"{where}: materials.{n}", n, m, base_dir) for n, m in mats_raw.items())
     names = {m.name for m in materials}
     objs_raw = raw.get("objects", [])
     if not isinstance(objs_raw, list) or not objs_raw:
@@ -528,13 +532,15 @@ def parse_scene(raw: Mapping, *, where: str = "scene", source: str = "", base_di
         mat = o.get("material")
         if shape == "board":
             if mat is not None:
-                raise ConfigError(f"{w}.material: a board is printed paper (diffuse, from its ChArUco image); "
-                                  "remove the material key")
+                raise ConfigError(
+                    f"{w}.material: a board is printed paper (diffuse, from its ChArUco image); remove the material key"
+                )
         elif mat is None:
             raise ConfigError(f"{w}.material: missing (one of {sorted(names)})")
         elif mat not in names:
-            raise ConfigError(f"{w}.material: material {mat!r} is not defined under [materials] "
-                              f"(defined: {sorted(names)})")
+            raise ConfigError(
+                f"{w}.material: material {mat!r} is not defined under [materials] (defined: {sorted(names)})"
+            )
         params = {k: v for k, v in o.items() if k not in _COMMON_OBJECT_KEYS}
         objects.append(ObjectSpec(name=oname, shape=shape, material=mat, params=params))
     spec = SceneSpec(
@@ -595,19 +601,29 @@ def _build_part_uncached(scene: SceneSpec, o: ObjectSpec) -> Part:
         c = _vec3(f"{where}.centre_m", p["centre_m"]) if "centre_m" in p else np.array([0.0, radii[1], 0.0])
         return Part(o.name, "mesh", mat, mesh=S.ellipsoid_mesh(radii_m=radii, centre_m=c, segments=96, rings=48))
     if o.shape == "cup":
-        m = S.cup_mesh(radius_m=num("radius_m", 0.06, lo=1e-3), height_m=num("height_m", 0.15, lo=1e-3),
-                       wall_m=num("wall_m", 0.012, lo=1e-4), flutes=num("flutes", 7, lo=0, hi=64, integer=True),
-                       flute_depth=num("flute_depth", 0.12, lo=0.0, hi=0.5),
-                       segments=num("segments", 112, lo=8, hi=1024, integer=True))
+        m = S.cup_mesh(
+            radius_m=num("radius_m", 0.06, lo=1e-3),
+            height_m=num("height_m", 0.15, lo=1e-3),
+            wall_m=num("wall_m", 0.012, lo=1e-4),
+            flutes=num("flutes", 7, lo=0, hi=64, integer=True),
+            flute_depth=num("flute_depth", 0.12, lo=0.0, hi=0.5),
+            segments=num("segments", 112, lo=8, hi=1024, integer=True),
+        )
         return Part(o.name, "mesh", mat, mesh=m)
     if o.shape == "dome":
-        m = S.dome_mesh(radius_m=num("radius_m", 0.065, lo=1e-3), height_m=num("height_m", 0.16, lo=1e-3),
-                        segments=num("segments", 96, lo=8, hi=1024, integer=True))
+        m = S.dome_mesh(
+            radius_m=num("radius_m", 0.065, lo=1e-3),
+            height_m=num("height_m", 0.16, lo=1e-3),
+            segments=num("segments", 96, lo=8, hi=1024, integer=True),
+        )
         return Part(o.name, "mesh", mat, mesh=m)
     if o.shape == "bottle":
-        m = S.bottle_mesh(radius_m=num("radius_m", 0.055, lo=1e-3), height_m=num("height_m", 0.17, lo=1e-3),
-                          neck_radius_m=num("neck_radius_m", 0.022, lo=1e-4),
-                          segments=num("segments", 96, lo=8, hi=1024, integer=True))
+        m = S.bottle_mesh(
+            radius_m=num("radius_m", 0.055, lo=1e-3),
+            height_m=num("height_m", 0.17, lo=1e-3),
+            neck_radius_m=num("neck_radius_m", 0.022, lo=1e-4),
+            segments=num("segments", 96, lo=8, hi=1024, integer=True),
+        )
         return Part(o.name, "mesh", mat, mesh=m)
     if o.shape == "torus":
         c = _vec3(f"{where}.centre_m", p.get("centre_m", [0.0, 0.01, 0.0]))

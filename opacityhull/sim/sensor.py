@@ -100,6 +100,11 @@ class SensorModel:
         return v.astype(np.float32)
 
     def to_dict(self) -> dict:
-        return {"full_well_e": self.full_well_e, "read_noise": self.read_noise, "white_level": self.white_level,
-                "bit_depth": int(self.bit_depth), "exposure_drift_sigma": self.exposure_drift_sigma,
-                "white_balance_drift_sigma": self.white_balance_drift_sigma}
+        return {
+            "full_well_e": self.full_well_e,
+            "read_noise": self.read_noise,
+            "white_level": self.white_level,
+            "bit_depth": int(self.bit_depth),
+            "exposure_drift_sigma": self.exposure_drift_sigma,
+            "white_balance_drift_sigma": self.white_balance_drift_sigma,
+        }

@@ -190,13 +190,22 @@ def _profile(*pieces):
 # --------------------------------------------------------------------------- shapes
 
 
-def cup_mesh(*, radius_m: float = 0.06, height_m: float = 0.15, wall_m: float = 0.012,
-             flutes: int = 7, flute_depth: float = 0.12, segments: int = 112) -> TriMesh:
+def cup_mesh(
+    *,
+    radius_m: float = 0.06,
+    height_m: float = 0.15,
+    wall_m: float = 0.012,
+    flutes: int = 7,
+    flute_depth: float = 0.12,
+    segments: int = 112,
+) -> TriMesh:
     """An open fluted cup: outer wall with ``flutes`` vertical grooves (concave between
     the lobes), rounded rim, an inner cavity — concavities no visual hull recovers."""
     if not (0 < wall_m < radius_m and radius_m > 0 and height_m > 2 * wall_m):
-        raise InputError(f"cup: need 0 < wall_m < radius_m and height_m > 2*wall_m, got "
-                         f"radius_m={radius_m}, height_m={height_m}, wall_m={wall_m}")
+        raise InputError(
+            f"cup: need 0 < wall_m < radius_m and height_m > 2*wall_m, got "
+            f"radius_m={radius_m}, height_m={height_m}, wall_m={wall_m}"
+        )
     R, H, w = radius_m, height_m, wall_m
     fr = min(0.25 * R, 0.3 * H)  # foot fillet
     n_out = 2
@@ -239,8 +248,9 @@ def dome_mesh(*, radius_m: float = 0.065, height_m: float = 0.16, segments: int 
     return lathe(rr, yy, segments=segments)
 
 
-def bottle_mesh(*, radius_m: float = 0.055, height_m: float = 0.17, neck_radius_m: float = 0.022,
-                segments: int = 96) -> TriMesh:
+def bottle_mesh(
+    *, radius_m: float = 0.055, height_m: float = 0.17, neck_radius_m: float = 0.022, segments: int = 96
+) -> TriMesh:
     """A closed solid glass bottle (rounded base, shoulder, neck, rounded lip)."""
     R, H, n = radius_m, height_m, neck_radius_m
     if not 0 < n < R:
@@ -256,15 +266,30 @@ def bottle_mesh(*, radius_m: float = 0.055, height_m: float = 0.17, neck_radius_
     shoulder_r = n + (R - n) * 0.5 * (1 + np.cos(np.pi * t))
     shoulder_y = body_h + (0.25 * H) * t
     lip = 0.01 * H / 0.17
-    r = np.concatenate([prof[0], shoulder_r, np.full(6, n)[1:], _arc(n - lip, H - lip, lip, 0.0, math.pi / 2, 6)[0],
-                        np.linspace(n - lip, 0.0, 5)[1:]])
-    y = np.concatenate([prof[1], shoulder_y, np.linspace(body_h + 0.25 * H, H - lip, 6)[1:],
-                        _arc(n - lip, H - lip, lip, 0.0, math.pi / 2, 6)[1], np.full(4, H)])
+    r = np.concatenate(
+        [
+            prof[0],
+            shoulder_r,
+            np.full(6, n)[1:],
+            _arc(n - lip, H - lip, lip, 0.0, math.pi / 2, 6)[0],
+            np.linspace(n - lip, 0.0, 5)[1:],
+        ]
+    )
+    y = np.concatenate(
+        [
+            prof[1],
+            shoulder_y,
+            np.linspace(body_h + 0.25 * H, H - lip, 6)[1:],
+            _arc(n - lip, H - lip, lip, 0.0, math.pi / 2, 6)[1],
+            np.full(4, H),
+        ]
+    )
     return lathe(r, y, segments=segments)
 
 
-def torus_mesh(*, major_m: float, minor_m: float, centre_m=(0.0, 0.0, 0.0), segments: int = 96,
-               sides: int = 32) -> TriMesh:
+def torus_mesh(
+    *, major_m: float, minor_m: float, centre_m=(0.0, 0.0, 0.0), segments: int = 96, sides: int = 32
+) -> TriMesh:
     """A torus about +Y (ring in the XZ plane) centred at ``centre_m``."""
     if not 0 < minor_m < major_m:
         raise InputError(f"torus: need 0 < minor_m < major_m, got {minor_m}, {major_m}")
@@ -296,9 +321,17 @@ def ellipsoid_mesh(*, radii_m, centre_m=(0.0, 0.0, 0.0), segments: int = 64, rin
     return TriMesh(V, m.faces, _vertex_normals(V, m.faces), m.uv)
 
 
-def fibre_tuft(*, count: int = 1500, length_m: float = 0.07, radius_m: float = 0.0003,
-               core_radii_m=(0.045, 0.035, 0.045), core_centre_m=(0.0, 0.035, 0.0),
-               droop: float = 0.5, points_per_fibre: int = 6, seed: int = 0) -> Fibres:
+def fibre_tuft(
+    *,
+    count: int = 1500,
+    length_m: float = 0.07,
+    radius_m: float = 0.0003,
+    core_radii_m=(0.045, 0.035, 0.045),
+    core_centre_m=(0.0, 0.035, 0.0),
+    droop: float = 0.5,
+    points_per_fibre: int = 6,
+    seed: int = 0,
+) -> Fibres:
     """Fibres rooted on the upper part of an ellipsoidal core, leaving along the surface
     normal and drooping under gravity: a fur tuft whose silhouette is mostly sub-pixel
     strands (fractional alpha)."""
@@ -340,7 +373,7 @@ def tube_mesh(fibres: Fibres, *, sides: int = 3) -> TriMesh:
     b1 /= np.linalg.norm(b1, axis=2, keepdims=True)
     b2 = np.cross(tang, b1)
     ang = np.linspace(0, 2 * math.pi, sides, endpoint=False)
-    ring = (np.cos(ang)[None, None, :, None] * b1[:, :, None, :] + np.sin(ang)[None, None, :, None] * b2[:, :, None, :])
+    ring = np.cos(ang)[None, None, :, None] * b1[:, :, None, :] + np.sin(ang)[None, None, :, None] * b2[:, :, None, :]
     V = (P[:, :, None, :] + fibres.radius_m * ring).reshape(-1, 3)
     faces = []
     for k in range(K - 1):

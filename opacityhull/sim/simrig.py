@@ -47,8 +47,15 @@ if TYPE_CHECKING:
     from ..rigs.emulators.enttec import EnttecEmulator
     from ..rigs.emulators.grbl import GrblEmulator
 
-__all__ = ["SimRig", "SimCamera", "open_sim_rig", "sim_rig_config", "parse_sim_spec", "DEFAULT_RIG_TOML",
-           "OPERATOR_ACTIONS"]
+__all__ = [
+    "SimRig",
+    "SimCamera",
+    "open_sim_rig",
+    "sim_rig_config",
+    "parse_sim_spec",
+    "DEFAULT_RIG_TOML",
+    "OPERATOR_ACTIONS",
+]
 
 DEFAULT_RIG_TOML = DATA_DIR / "rig.toml"
 OPERATOR_ACTIONS = ("place_board", "remove_board", "remove_object", "place_object")
@@ -90,21 +97,37 @@ def _default_devices(geometry: dict) -> dict:
     lights = geometry.get("lights", [])
     displays = geometry.get("displays", [])
     dev: dict = {
-        "turntable": {"url": "emulator:grbl", "axis": "X", "steps_per_deg": 80.0, "max_rate_deg_s": 30.0,
-                      "accel_deg_s2": 60.0, "timeout_s": 2.0},
+        "turntable": {
+            "url": "emulator:grbl",
+            "axis": "X",
+            "steps_per_deg": 80.0,
+            "max_rate_deg_s": 30.0,
+            "accel_deg_s2": 60.0,
+            "timeout_s": 2.0,
+        },
     }
     if lights:
         dev["light_array"] = {
-            "url": "emulator:enttec", "timeout_s": 2.0,
-            "rotation": {"url": "emulator:grbl", "axis": "Y", "steps_per_deg": 80.0, "max_rate_deg_s": 30.0,
-                         "timeout_s": 2.0},
+            "url": "emulator:enttec",
+            "timeout_s": 2.0,
+            "rotation": {
+                "url": "emulator:grbl",
+                "axis": "Y",
+                "steps_per_deg": 80.0,
+                "max_rate_deg_s": 30.0,
+                "timeout_s": 2.0,
+            },
             "channels": {str(int(L.get("id", i))): i + 1 for i, L in enumerate(lights)},
         }
     if displays:
-        dev["backdrops"] = {"url": "emulator:display", "timeout_s": 2.0,
-                            "outputs": {str(d.get("name", f"display{i}")): i for i, d in enumerate(displays)}}
-    dev["cameras"] = [{"name": str(c.get("name", f"cam{i}")), "driver": "sim"}
-                      for i, c in enumerate(geometry.get("cameras", []))]
+        dev["backdrops"] = {
+            "url": "emulator:display",
+            "timeout_s": 2.0,
+            "outputs": {str(d.get("name", f"display{i}")): i for i, d in enumerate(displays)},
+        }
+    dev["cameras"] = [
+        {"name": str(c.get("name", f"cam{i}")), "driver": "sim"} for i, c in enumerate(geometry.get("cameras", []))
+    ]
     return dev
 
 
@@ -173,12 +196,16 @@ def sim_rig_config(spec: str | None = None, *, rig_toml: str | Path | None = Non
         urls.append(("devices.light_array.rotation.url", la["rotation"]["url"]))
     for key, url in urls:
         if not (isinstance(url, str) and url.startswith("emulator:")):
-            raise ConfigError(f"{path}: {key} = {url!r}: a simulated rig drives emulators only "
-                              "(use emulator:grbl, emulator:enttec, emulator:display)")
+            raise ConfigError(
+                f"{path}: {key} = {url!r}: a simulated rig drives emulators only "
+                "(use emulator:grbl, emulator:enttec, emulator:display)"
+            )
     for i, c in enumerate(dev.get("cameras", [])):
         if isinstance(c, dict) and c.get("driver", "sim") != "sim":
-            raise ConfigError(f"{path}: devices.cameras[{i}].driver = {c.get('driver')!r}: a simulated rig renders "
-                              "its cameras (driver = \"sim\")")
+            raise ConfigError(
+                f"{path}: devices.cameras[{i}].driver = {c.get('driver')!r}: a simulated rig renders "
+                'its cameras (driver = "sim")'
+            )
     raw.setdefault("rig", {}).setdefault("name", f"simulated rig ({path.name})")
     return raw
 
@@ -212,8 +239,12 @@ class SimCamera:
         return self._rig.true_cameras[self.index]
 
     def capture(self, exposure_s: float) -> np.ndarray:
-        if isinstance(exposure_s, bool) or not isinstance(exposure_s, (int, float, np.floating)) \
-                or not math.isfinite(exposure_s) or exposure_s <= 0:
+        if (
+            isinstance(exposure_s, bool)
+            or not isinstance(exposure_s, (int, float, np.floating))
+            or not math.isfinite(exposure_s)
+            or exposure_s <= 0
+        ):
             raise InputError(f"camera {self.name}: exposure_s must be a positive number of seconds, got {exposure_s!r}")
         rig = self._rig
         state = rig.state()
@@ -231,14 +262,24 @@ class SimCamera:
         return value.astype(np.float32, copy=False)
 
     def info(self) -> CameraInfo:
-        return CameraInfo(name=self.name, width=self.spec.width, height=self.spec.height,
-                          model=f"opacityhull sim camera (Mitsuba {self._rig.variant})", serial=f"sim-{self.index}",
-                          white_level=1.0, linear=True)
+        return CameraInfo(
+            name=self.name,
+            width=self.spec.width,
+            height=self.spec.height,
+            model=f"opacityhull sim camera (Mitsuba {self._rig.variant})",
+            serial=f"sim-{self.index}",
+            white_level=1.0,
+            linear=True,
+        )
 
     def check(self) -> DeviceInfo:
-        return DeviceInfo(self.name, True, f"simulated {self.spec.width}x{self.spec.height}, "
-                                           f"Mitsuba {self._rig.variant}", identity="sim",
-                          state={"width": self.spec.width, "height": self.spec.height, "captures": self._captures})
+        return DeviceInfo(
+            self.name,
+            True,
+            f"simulated {self.spec.width}x{self.spec.height}, Mitsuba {self._rig.variant}",
+            identity="sim",
+            state={"width": self.spec.width, "height": self.spec.height, "captures": self._captures},
+        )
 
     def close(self) -> None:
         return None
@@ -256,9 +297,19 @@ class SimRig:
     :class:`~opacityhull.sim.render.SimRenderer`.
     """
 
-    def __init__(self, scene: SceneSpec, config_dict: dict, *, source: str, time_scale: float = 0.0,
-                 sensor_noise: bool = False, seed: int = 0, variant: str | None = None,
-                 overrides: dict | None = None, sensor: SensorModel | None = None):
+    def __init__(
+        self,
+        scene: SceneSpec,
+        config_dict: dict,
+        *,
+        source: str,
+        time_scale: float = 0.0,
+        sensor_noise: bool = False,
+        seed: int = 0,
+        variant: str | None = None,
+        overrides: dict | None = None,
+        sensor: SensorModel | None = None,
+    ):
         from ..rigs.config import parse_rig_config
 
         self.scene = scene
@@ -359,8 +410,13 @@ class SimRig:
         """The rig TOML content with ``emulator:`` URLs (reproducible), plus a ``[sim]``
         table naming the scene, seed, sensor model and Mitsuba variant."""
         d = copy.deepcopy(self.config_dict)
-        d["sim"] = {"scene": self.scene.source, "seed": self.seed, "sensor_noise": self.sensor is not None,
-                    "variant": self.variant, "time_scale": self.time_scale}
+        d["sim"] = {
+            "scene": self.scene.source,
+            "seed": self.seed,
+            "sensor_noise": self.sensor is not None,
+            "variant": self.variant,
+            "time_scale": self.time_scale,
+        }
         if self.sensor is not None:
             d["sim"]["sensor"] = self.sensor.to_dict()
         return d
@@ -427,8 +483,15 @@ class SimRig:
             content = "object"
         else:
             content = "none"
-        return SimState(table_deg=float(table), array_deg=float(array), light_levels=levels, displays=displays,
-                        content=content, charuco=self.charuco, phase=self.phase)
+        return SimState(
+            table_deg=float(table),
+            array_deg=float(array),
+            light_levels=levels,
+            displays=displays,
+            content=content,
+            charuco=self.charuco,
+            phase=self.phase,
+        )
 
     def note_phase(self, phase: str | None) -> None:
         """Declare the capture phase of the shots that follow (None: undeclared).
@@ -474,13 +537,29 @@ class SimRig:
         :func:`opacityhull.sim.groundtruth.write_ground_truth`."""
         from .groundtruth import write_ground_truth
 
-        return write_ground_truth(root, scene=self.scene, geometry=self.geometry, views=list(views),
-                                  renderer=self.renderer, rig_cameras=self.true_cameras, progress=progress)
+        return write_ground_truth(
+            root,
+            scene=self.scene,
+            geometry=self.geometry,
+            views=list(views),
+            renderer=self.renderer,
+            rig_cameras=self.true_cameras,
+            progress=progress,
+        )
 
 
-def open_sim_rig(spec: str, *, rig_toml: str | Path | None = None, scale: float | None = None,
-                 time_scale: float = 0.0, sensor_noise: bool = False, seed: int = 0, variant: str | None = None,
-                 overrides: dict | None = None, open: bool = True) -> SimRig:
+def open_sim_rig(
+    spec: str,
+    *,
+    rig_toml: str | Path | None = None,
+    scale: float | None = None,
+    time_scale: float = 0.0,
+    sensor_noise: bool = False,
+    seed: int = 0,
+    variant: str | None = None,
+    overrides: dict | None = None,
+    open: bool = True,
+) -> SimRig:
     """Build the simulated rig named by ``spec`` and (by default) open it.
 
     Parameters
@@ -508,9 +587,16 @@ def open_sim_rig(spec: str, *, rig_toml: str | Path | None = None, scale: float 
     scene = load_scene(scene_spec)
     rig_path = rig_toml if rig_toml is not None else rig_from_spec
     cfg = sim_rig_config(None, rig_toml=rig_path, scale=scale if scale is not None else opts.get("scale", 1.0))
-    rig = SimRig(scene, cfg, source=spec, time_scale=opts.get("time_scale", time_scale),
-                 sensor_noise=bool(opts.get("noise", sensor_noise)), seed=int(opts.get("seed", seed)),
-                 variant=variant, overrides=overrides)
+    rig = SimRig(
+        scene,
+        cfg,
+        source=spec,
+        time_scale=opts.get("time_scale", time_scale),
+        sensor_noise=bool(opts.get("noise", sensor_noise)),
+        seed=int(opts.get("seed", seed)),
+        variant=variant,
+        overrides=overrides,
+    )
     if open:
         rig.open()
     return rig

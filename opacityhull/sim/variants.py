@@ -29,8 +29,15 @@ from pathlib import Path
 
 from ..errors import ConfigError
 
-__all__ = ["choose_variant", "select_variant", "variant_report", "probe_variant", "use_mitsuba", "ENV_VARIANT",
-           "SUPPORTED_VARIANTS"]
+__all__ = [
+    "choose_variant",
+    "select_variant",
+    "variant_report",
+    "probe_variant",
+    "use_mitsuba",
+    "ENV_VARIANT",
+    "SUPPORTED_VARIANTS",
+]
 
 ENV_VARIANT = "OPACITYHULL_MITSUBA_VARIANT"
 SUPPORTED_VARIANTS = ("cuda_ad_rgb", "llvm_ad_rgb", "scalar_rgb")
@@ -138,8 +145,11 @@ def choose_variant(*, refresh: bool = False) -> str:
                 data = json.loads(path.read_text())
                 if data.get("key") == key and data.get("variant") in SUPPORTED_VARIANTS:
                     chosen = _chosen = str(data["variant"])
-                    _report = {"variant": chosen, "source": f"cached probe {path}",
-                               "probes": dict(data.get("probes", {}))}
+                    _report = {
+                        "variant": chosen,
+                        "source": f"cached probe {path}",
+                        "probes": dict(data.get("probes", {})),
+                    }
                     return chosen
             except (OSError, ValueError):
                 pass
@@ -161,8 +171,11 @@ def variant_report() -> dict:
     """How :func:`choose_variant` chose: ``{"variant", "source", "probes"}`` (probes:
     variant → rendered in the probe; a GPU shows as ``"cuda_ad_rgb": true``)."""
     v = choose_variant()
-    rep = dict(_report) if _report is not None and _report.get("variant") == v else {
-        "variant": v, "source": "chosen earlier in this process", "probes": {}}
+    rep = (
+        dict(_report)
+        if _report is not None and _report.get("variant") == v
+        else {"variant": v, "source": "chosen earlier in this process", "probes": {}}
+    )
     rep["gpu"] = v.startswith("cuda")
     return rep
 

@@ -14,10 +14,21 @@ import numpy as np
 
 __all__ = ["find_chromium", "open_browser", "close_browser", "canvas_rgb", "wait_ready"]
 
-CHROMIUM_FLAGS = ("--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-                  "--disable-background-networking", "--disable-component-update", "--disable-sync",
-                  "--use-gl=angle", "--use-angle=swiftshader", "--enable-unsafe-swiftshader",
-                  "--disable-dev-shm-usage", "--window-size=800,600")
+CHROMIUM_FLAGS = (
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-quic",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+    "--use-gl=angle",
+    "--use-angle=swiftshader",
+    "--enable-unsafe-swiftshader",
+    "--disable-dev-shm-usage",
+    "--window-size=800,600",
+)
 
 
 def find_chromium() -> tuple[str | None, str | None, str]:
@@ -66,7 +77,8 @@ def wait_ready(drv, timeout_s: float = 60.0) -> dict:
         "const done = arguments[arguments.length - 1];"
         "const t = () => { if (!window.opacityhull) return setTimeout(t, 20);"
         " window.opacityhull.ready.then(() => done({ok: true, error: null}),"
-        " (e) => done({ok: false, error: String(e && e.message || e)})); }; t();")
+        " (e) => done({ok: false, error: String(e && e.message || e)})); }; t();"
+    )
 
 
 def canvas_rgb(drv) -> np.ndarray:

@@ -69,8 +69,16 @@ def record_bytes(n_views: int) -> tuple[int, int]:
 
 
 def _attr_dtype(words: int) -> np.dtype:
-    return np.dtype([("nrm", "<f4", 3), ("radius", "<f4"), ("area", "<f4"), ("r_min", "<f4"), ("r_max", "<f4"),
-                     ("vis", "<u4", words)])
+    return np.dtype(
+        [
+            ("nrm", "<f4", 3),
+            ("radius", "<f4"),
+            ("area", "<f4"),
+            ("r_min", "<f4"),
+            ("r_max", "<f4"),
+            ("vis", "<u4", words),
+        ]
+    )
 
 
 def _chunk_sizes(n: int, first: int) -> list[int]:
@@ -94,9 +102,20 @@ def _static_dir() -> Path:
     return Path(str(resources.files("opacityhull.view") / "static"))
 
 
-def write_bundle(model_dir, out, *, k: int = 4, background=(0.0, 0.0, 0.0), first_chunk: int | None = None,
-                 envmap: str | None = None, env_yaw_deg: float | None = None, overwrite: bool = True,
-                 position_cell_m: float | None = None, offset_bits: int = 3, progress=None) -> dict:
+def write_bundle(
+    model_dir,
+    out,
+    *,
+    k: int = 4,
+    background=(0.0, 0.0, 0.0),
+    first_chunk: int | None = None,
+    envmap: str | None = None,
+    env_yaw_deg: float | None = None,
+    overwrite: bool = True,
+    position_cell_m: float | None = None,
+    offset_bits: int = 3,
+    progress=None,
+) -> dict:
     """Write the viewer bundle of a model folder.
 
     Parameters
@@ -160,12 +179,28 @@ def write_bundle(model_dir, out, *, k: int = 4, background=(0.0, 0.0, 0.0), firs
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
         # replace only an earlier bundle, never a folder of something else
         if not overwrite or not _is_bundle(out):
-            raise InputError(f"--out {out}: exists and is not an earlier viewer bundle (no manifest.json of "
-                             f"format {VIEWER_FORMAT}); choose an empty or new folder")
+            raise InputError(
+                f"--out {out}: exists and is not an earlier viewer bundle (no manifest.json of "
+                f"format {VIEWER_FORMAT}); choose an empty or new folder"
+            )
     with replacing_dir(out) as tmp:
-        summary = _write(tmp, model, s, V, k, bg, first_chunk, progress, srgb_encode, RenderConfig(),
-                         ALPHA_MIN, coverage_full, surfel_areas, position_cell_m,
-                         int(offset_bits))
+        summary = _write(
+            tmp,
+            model,
+            s,
+            V,
+            k,
+            bg,
+            first_chunk,
+            progress,
+            srgb_encode,
+            RenderConfig(),
+            ALPHA_MIN,
+            coverage_full,
+            surfel_areas,
+            position_cell_m,
+            int(offset_bits),
+        )
         if env is not None:
             summary["envmap"] = _write_envmap(tmp, env, str(envmap))
     summary["out"] = str(out)
@@ -176,9 +211,15 @@ def write_bundle(model_dir, out, *, k: int = 4, background=(0.0, 0.0, 0.0), firs
 def _write_envmap(tmp: Path, env, spec: str) -> dict:
     img = np.ascontiguousarray(env.image[:, :, :3], dtype="<f4")
     (tmp / "envmap.bin").write_bytes(img.tobytes())
-    meta = {"file": "envmap.bin", "width": int(img.shape[1]), "height": int(img.shape[0]), "bytes": img.nbytes,
-            "yaw_deg": float(env.yaw_deg), "source": spec,
-            "encoding": "float32 linear RGB, equirectangular (render/background.py convention)"}
+    meta = {
+        "file": "envmap.bin",
+        "width": int(img.shape[1]),
+        "height": int(img.shape[0]),
+        "bytes": img.nbytes,
+        "yaw_deg": float(env.yaw_deg),
+        "source": spec,
+        "encoding": "float32 linear RGB, equirectangular (render/background.py convention)",
+    }
     mp = tmp / "manifest.json"
     man = json.loads(mp.read_text())
     man["envmap"] = meta
@@ -186,15 +227,33 @@ def _write_envmap(tmp: Path, env, spec: str) -> dict:
     return meta
 
 
-def _write(tmp, model, s, V, k, bg, first_chunk, progress, srgb_encode, cfg, alpha_min, coverage_full,
-           surfel_areas, position_cell_m, offset_bits) -> dict:
+def _write(
+    tmp,
+    model,
+    s,
+    V,
+    k,
+    bg,
+    first_chunk,
+    progress,
+    srgb_encode,
+    cfg,
+    alpha_min,
+    coverage_full,
+    surfel_areas,
+    position_cell_m,
+    offset_bits,
+) -> dict:
     from .lod import build_point_tree
 
     words, rec = record_bytes(V)
     fin = np.all(np.isfinite(s.positions), axis=1) & np.isfinite(s.radii) & (s.radii > 0)
     if not fin.all():
-        log.warning("%s: %d surfels with non-finite position or radius left out of the viewer bundle",
-                    model.root, int((~fin).sum()))
+        log.warning(
+            "%s: %d surfels with non-finite position or radius left out of the viewer bundle",
+            model.root,
+            int((~fin).sum()),
+        )
         s = s.subset(fin)
         if len(s) == 0:
             raise InputError(f"{model.root}/surfels.ply: no surfel has a finite position and radius")
@@ -234,11 +293,18 @@ def _write(tmp, model, s, V, k, bg, first_chunk, progress, srgb_encode, cfg, alp
     P32 = tree.positions.astype("<f4")
     for ci, n in enumerate(sizes):
         name = f"surfels_{ci:03d}.bin"
-        sel = float_idx[first: first + n]
+        sel = float_idx[first : first + n]
         data = P32[sel].tobytes() + recs[sel].tobytes()
         (tmp / name).write_bytes(data)
-        chunks.append({"file": name, "first": first, "count": n, "bytes": len(data),
-                       "r_max_last": min(float(tree.r_max[sel[-1]]), 3e38)})  # JSON has no Infinity
+        chunks.append(
+            {
+                "file": name,
+                "first": first,
+                "count": n,
+                "bytes": len(data),
+                "r_max_last": min(float(tree.r_max[sel[-1]]), 3e38),
+            }
+        )  # JSON has no Infinity
         first += n
         done += 1
         if progress:
@@ -268,17 +334,30 @@ def _write(tmp, model, s, V, k, bg, first_chunk, progress, srgb_encode, cfg, alp
             (tmp / "offsets.oct").write_bytes(off_z)
         data = recs[sel].tobytes()
         (tmp / "leaves.bin").write_bytes(data)
-        leaves_meta = {"file": "leaves.bin", "first": n_float, "count": n_coded, "bytes": len(data),
-                       "r_max_max": t_leaf}
+        leaves_meta = {
+            "file": "leaves.bin",
+            "first": n_float,
+            "count": n_coded,
+            "bytes": len(data),
+            "r_max_max": t_leaf,
+        }
         pos_bits = 8.0 * (len(codes_z) + len(counts_z)) / n_coded
-        pos_meta = {**head, "cell_m": float(h), "codes_file": "positions.oct",
-                    "codes_bytes": len(codes_z), "counts_file": "counts.oct" if counts_z else None,
-                    "counts_bytes": len(counts_z), "bits_per_point": pos_bits,
-                    "offset_bits": offset_bits, "offsets_file": "offsets.oct" if off_z else None,
-                    "offsets_bytes": len(off_z), "offset_bits_per_point": 8.0 * len(off_z) / n_coded,
-                    "encoding": "Botsch et al. 2002 breadth-first octree byte codes (bit c = child octant "
-                                "x + 2y + 4z), deflate (zlib); counts: uint8 points per leaf cell, deflate; "
-                                "offsets: uint8 bin of λ in [-√3/2, √3/2] cell edges along the normal, deflate"}
+        pos_meta = {
+            **head,
+            "cell_m": float(h),
+            "codes_file": "positions.oct",
+            "codes_bytes": len(codes_z),
+            "counts_file": "counts.oct" if counts_z else None,
+            "counts_bytes": len(counts_z),
+            "bits_per_point": pos_bits,
+            "offset_bits": offset_bits,
+            "offsets_file": "offsets.oct" if off_z else None,
+            "offsets_bytes": len(off_z),
+            "offset_bits_per_point": 8.0 * len(off_z) / n_coded,
+            "encoding": "Botsch et al. 2002 breadth-first octree byte codes (bit c = child octant "
+            "x + 2y + 4z), deflate (zlib); counts: uint8 points per leaf cell, deflate; "
+            "offsets: uint8 bin of λ in [-√3/2, √3/2] cell edges along the normal, deflate",
+        }
         done += 1
         if progress:
             progress(done, total_steps)
@@ -297,12 +376,20 @@ def _write(tmp, model, s, V, k, bg, first_chunk, progress, srgb_encode, cfg, alp
             layer[:h, :w, 3] = np.round(a * 255)
             f.write(layer.tobytes())
             cam = v.camera
-            layers.append({
-                "id": v.id, "width": cam.width, "height": cam.height,
-                "fx": cam.fx, "fy": cam.fy, "cx": cam.cx, "cy": cam.cy, "dist": [float(d) for d in cam.dist],
-                "world_from_cam": [float(x) for x in np.asarray(cam.world_from_cam).ravel()],
-                "centre": [float(x) for x in cam.centre_world],
-            })
+            layers.append(
+                {
+                    "id": v.id,
+                    "width": cam.width,
+                    "height": cam.height,
+                    "fx": cam.fx,
+                    "fy": cam.fy,
+                    "cx": cam.cx,
+                    "cy": cam.cy,
+                    "dist": [float(d) for d in cam.dist],
+                    "world_from_cam": [float(x) for x in np.asarray(cam.world_from_cam).ravel()],
+                    "centre": [float(x) for x in cam.centre_world],
+                }
+            )
             done += 1
             if progress:
                 progress(done, total_steps)
@@ -328,13 +415,31 @@ def _write(tmp, model, s, V, k, bg, first_chunk, progress, srgb_encode, cfg, alp
         "chunks": chunks,
         "leaves": leaves_meta,
         "positions": pos_meta,
-        "views": {"file": "views.bin", "layer_width": Wp, "layer_height": Hp, "bytes": Wp * Hp * 4 * V,
-                  "encoding": "rgba8: sRGB-encoded premultiplied colour, linear alpha", "layers": layers},
-        "bounds": {"min": lo.tolist(), "max": hi.tolist(), "centre": centre.tolist(),
-                   "radius": float(0.5 * np.linalg.norm(hi - lo))},
-        "render": {"k": int(k), "sigma_radius": cfg.sigma_radius, "filter": cfg.filter, "cutoff": cfg.cutoff_sigma,
-                   "epsilon_z": cfg.epsilon_z, "coverage_full": coverage_full(cfg), "alpha_min": alpha_min,
-                   "m_floor": 1e-6, "zdev_footprints": 4.0},
+        "views": {
+            "file": "views.bin",
+            "layer_width": Wp,
+            "layer_height": Hp,
+            "bytes": Wp * Hp * 4 * V,
+            "encoding": "rgba8: sRGB-encoded premultiplied colour, linear alpha",
+            "layers": layers,
+        },
+        "bounds": {
+            "min": lo.tolist(),
+            "max": hi.tolist(),
+            "centre": centre.tolist(),
+            "radius": float(0.5 * np.linalg.norm(hi - lo)),
+        },
+        "render": {
+            "k": int(k),
+            "sigma_radius": cfg.sigma_radius,
+            "filter": cfg.filter,
+            "cutoff": cfg.cutoff_sigma,
+            "epsilon_z": cfg.epsilon_z,
+            "coverage_full": coverage_full(cfg),
+            "alpha_min": alpha_min,
+            "m_floor": 1e-6,
+            "zdev_footprints": 4.0,
+        },
         "background": [float(x) for x in bg],
     }
     (tmp / "manifest.json").write_text(json.dumps(manifest, indent=1) + "\n")
@@ -343,14 +448,25 @@ def _write(tmp, model, s, V, k, bg, first_chunk, progress, srgb_encode, cfg, alp
     total = sum(p.stat().st_size for p in tmp.iterdir())
     model_bytes = sum(c["bytes"] for c in chunks)
     if pos_meta is not None and leaves_meta is not None:
-        model_bytes += leaves_meta["bytes"] + pos_meta["codes_bytes"] + pos_meta["counts_bytes"] + pos_meta["offsets_bytes"]
+        model_bytes += (
+            leaves_meta["bytes"] + pos_meta["codes_bytes"] + pos_meta["counts_bytes"] + pos_meta["offsets_bytes"]
+        )
     n_leaves = int(tree.is_leaf.sum())
-    return {"surfels": n_leaves, "nodes": M, "views": V, "chunks": len(chunks), "bytes": total,
-            "bytes_per_surfel": model_bytes / n_leaves, "bytes_per_node": rec, "bytes_per_view": Wp * Hp * 4,
-            "octree_coded_surfels": n_coded, "float_nodes": n_float,
-            "position_bits_per_coded_surfel": pos_meta["bits_per_point"] if pos_meta else None,
-            "position_offset_bits_per_coded_surfel": pos_meta["offset_bits_per_point"] if pos_meta else None,
-            "position_cell_m": pos_meta["cell_m"] if pos_meta else None}
+    return {
+        "surfels": n_leaves,
+        "nodes": M,
+        "views": V,
+        "chunks": len(chunks),
+        "bytes": total,
+        "bytes_per_surfel": model_bytes / n_leaves,
+        "bytes_per_node": rec,
+        "bytes_per_view": Wp * Hp * 4,
+        "octree_coded_surfels": n_coded,
+        "float_nodes": n_float,
+        "position_bits_per_coded_surfel": pos_meta["bits_per_point"] if pos_meta else None,
+        "position_offset_bits_per_coded_surfel": pos_meta["offset_bits_per_point"] if pos_meta else None,
+        "position_cell_m": pos_meta["cell_m"] if pos_meta else None,
+    }
 
 
 def read_bundle(bundle_dir) -> tuple[dict, np.ndarray, np.ndarray]:
@@ -376,7 +492,7 @@ def read_bundle(bundle_dir) -> tuple[dict, np.ndarray, np.ndarray]:
         if len(raw) != n * (12 + dt.itemsize):
             raise FormatError(f"{root}/{c['file']}: {len(raw)} bytes, expected {n * (12 + dt.itemsize)}")
         pos.append(np.frombuffer(raw[: 12 * n], "<f4").reshape(n, 3).astype(np.float64))
-        att.append(np.frombuffer(raw[12 * n:], dt))
+        att.append(np.frombuffer(raw[12 * n :], dt))
     if man.get("leaves"):
         L, H = man["leaves"], man["positions"]
         codes = (root / H["codes_file"]).read_bytes()

@@ -37,23 +37,47 @@ def register(app, groups) -> None:
     @cli_errors
     def view_cmd(
         model: Path = typer.Argument(..., help="Model folder (model.toml, surfels.ply, views/)."),
-        out: Optional[Path] = typer.Option(None, "--out", help="Write the static web bundle here. Alone (without "
-                                           "--port) it only writes the bundle, for any static web host."),
-        port: Optional[int] = typer.Option(None, "--port", help="Serve on 127.0.0.1:PORT (0: any free port; "
-                                           "default 8765 when --out is not given)."),
+        out: Optional[Path] = typer.Option(
+            None,
+            "--out",
+            help="Write the static web bundle here. Alone (without "
+            "--port) it only writes the bundle, for any static web host.",
+        ),
+        port: Optional[int] = typer.Option(
+            None, "--port", help="Serve on 127.0.0.1:PORT (0: any free port; default 8765 when --out is not given)."
+        ),
         k: int = typer.Option(4, "--k", help="Initial ULR k of the page (1-8; the page has a slider)."),
-        background: str = typer.Option("black", "--background", help="Initial background: black | white | grey | R,G,B."),
-        envmap: Optional[str] = typer.Option(None, "--envmap", help="Environment map the page can show behind the "
-                                             "model: an equirectangular .hdr/.exr, or builtin:NAME (ennis grace pisa "
-                                             "uffizi wells)."),
-        env_yaw_deg: Optional[float] = typer.Option(None, "--env-yaw-deg", help="Its rotation about +Y (default 180 "
-                                                    "for builtin: probes, else 0); the page has a slider."),
-        position_cell_m: Optional[float] = typer.Option(None, "--position-cell-m", help="Leaf cell edge (m) of the "
-                                                        "octree position code (default: the surfels' median spacing; "
-                                                        "smaller is more exact and costs more bits)."),
-        offset_bits: int = typer.Option(3, "--offset-bits", help="Bits of the per-surfel offset along the normal "
-                                        "that refines the octree cell centre (0-8; 0: cell centres)."),
-        json_out: bool = typer.Option(False, "--json", help="Print a JSON summary (bundle path, bytes, URL) on stdout."),
+        background: str = typer.Option(
+            "black", "--background", help="Initial background: black | white | grey | R,G,B."
+        ),
+        envmap: Optional[str] = typer.Option(
+            None,
+            "--envmap",
+            help="Environment map the page can show behind the "
+            "model: an equirectangular .hdr/.exr, or builtin:NAME (ennis grace pisa "
+            "uffizi wells).",
+        ),
+        env_yaw_deg: Optional[float] = typer.Option(
+            None,
+            "--env-yaw-deg",
+            help="Its rotation about +Y (default 180 for builtin: probes, else 0); the page has a slider.",
+        ),
+        position_cell_m: Optional[float] = typer.Option(
+            None,
+            "--position-cell-m",
+            help="Leaf cell edge (m) of the "
+            "octree position code (default: the surfels' median spacing; "
+            "smaller is more exact and costs more bits).",
+        ),
+        offset_bits: int = typer.Option(
+            3,
+            "--offset-bits",
+            help="Bits of the per-surfel offset along the normal "
+            "that refines the octree cell centre (0-8; 0: cell centres).",
+        ),
+        json_out: bool = typer.Option(
+            False, "--json", help="Print a JSON summary (bundle path, bytes, URL) on stdout."
+        ),
     ):
         """Open a model in the browser: write a WebGL2 bundle (ULR-blended EWA splats) and serve it on 127.0.0.1."""
         import tempfile
@@ -69,13 +93,27 @@ def register(app, groups) -> None:
         target = out if out is not None else Path(tempfile.mkdtemp(prefix="opacityhull-view-")) / "bundle"
         try:
             with progress("writing viewer bundle", enabled=not json_out) as cb:
-                summary = write_bundle(model, target, k=k, background=bg, envmap=envmap, env_yaw_deg=env_yaw_deg,
-                                       position_cell_m=position_cell_m, offset_bits=offset_bits, progress=cb)
+                summary = write_bundle(
+                    model,
+                    target,
+                    k=k,
+                    background=bg,
+                    envmap=envmap,
+                    env_yaw_deg=env_yaw_deg,
+                    position_cell_m=position_cell_m,
+                    offset_bits=offset_bits,
+                    progress=cb,
+                )
             if not serve:
-                emit(summary, json_out, lambda s: console().print(
-                    f"wrote viewer bundle {s['out']} ({s['bytes'] / 1e6:.1f} MB, {s['surfels']} surfels, "
-                    f"{s['views']} views; positions {_bits(s)}); serve it with any static web server, e.g. "
-                    f"python -m http.server -b 127.0.0.1 -d {s['out']} 8765"))
+                emit(
+                    summary,
+                    json_out,
+                    lambda s: console().print(
+                        f"wrote viewer bundle {s['out']} ({s['bytes'] / 1e6:.1f} MB, {s['surfels']} surfels, "
+                        f"{s['views']} views; positions {_bits(s)}); serve it with any static web server, e.g. "
+                        f"python -m http.server -b 127.0.0.1 -d {s['out']} 8765"
+                    ),
+                )
                 return
             from .server import BundleServer
 
@@ -87,8 +125,9 @@ def register(app, groups) -> None:
             summary["url"] = srv.url
             try:  # serving until Ctrl-C / SIGTERM is the normal end: exit 0
                 emit(summary, json_out, lambda s: None)
-                console().print(f"serving {target} at [bold]{srv.url}[/] — open it in a browser; Ctrl-C stops",
-                                highlight=False)
+                console().print(
+                    f"serving {target} at [bold]{srv.url}[/] — open it in a browser; Ctrl-C stops", highlight=False
+                )
                 while True:
                     time.sleep(3600)
             except KeyboardInterrupt:

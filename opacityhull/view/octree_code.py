@@ -22,8 +22,18 @@ import numpy as np
 
 from ..errors import FormatError, InputError
 
-__all__ = ["OctreeCode", "encode_positions", "decode_positions", "depth_for_spacing", "median_spacing",
-           "pack", "unpack", "encode_offsets", "apply_offsets", "OFFSET_RANGE"]
+__all__ = [
+    "OctreeCode",
+    "encode_positions",
+    "decode_positions",
+    "depth_for_spacing",
+    "median_spacing",
+    "pack",
+    "unpack",
+    "encode_offsets",
+    "apply_offsets",
+    "OFFSET_RANGE",
+]
 
 
 @dataclass(frozen=True)
@@ -109,8 +119,14 @@ def encode_positions(positions, depth: int | None = None, *, cell_m: float | Non
     cnt = counts.astype(np.int64)
     if np.any(cnt > 255):
         raise InputError(f"encode_positions: {int(cnt.max())} surfels in one cell at depth {D}; use a deeper grid")
-    return OctreeCode(lo, size, D, np.concatenate(out).astype(np.uint8),
-                      cnt.astype(np.uint8) if np.any(cnt > 1) else np.zeros(0, np.uint8), order.astype(np.int64))
+    return OctreeCode(
+        lo,
+        size,
+        D,
+        np.concatenate(out).astype(np.uint8),
+        cnt.astype(np.uint8) if np.any(cnt > 1) else np.zeros(0, np.uint8),
+        order.astype(np.int64),
+    )
 
 
 def decode_positions(oc: OctreeCode) -> np.ndarray:
@@ -122,7 +138,7 @@ def decode_positions(oc: OctreeCode) -> np.ndarray:
         n = len(cells)
         if pos + n > len(codes):
             raise FormatError(f"octree code stream ends at level {level}: {len(codes)} bytes, need {pos + n}")
-        b = codes[pos: pos + n]
+        b = codes[pos : pos + n]
         pos += n
         bits = np.unpackbits(b[:, None], axis=1, bitorder="little").astype(bool)  # (n, 8) child octants
         if not bits.any(axis=1).all():
@@ -162,8 +178,14 @@ def pack(oc: OctreeCode) -> tuple[dict, bytes, bytes]:
     leaf cell holds one point.
     """
     n_cells = len(oc.counts) if len(oc.counts) else len(oc.order)
-    head = {"origin": [float(x) for x in oc.origin], "size": float(oc.size), "depth": int(oc.depth),
-            "n_codes": int(len(oc.codes)), "n_cells": int(n_cells), "n_points": int(len(oc.order))}
+    head = {
+        "origin": [float(x) for x in oc.origin],
+        "size": float(oc.size),
+        "depth": int(oc.depth),
+        "n_codes": int(len(oc.codes)),
+        "n_cells": int(n_cells),
+        "n_points": int(len(oc.order)),
+    }
     counts = zlib.compress(oc.counts.tobytes(), 9) if len(oc.counts) else b""
     return head, zlib.compress(oc.codes.tobytes(), 9), counts
 

@@ -16,8 +16,12 @@ __all__ = ["BundleServer"]
 
 
 class _Handler(http.server.SimpleHTTPRequestHandler):
-    extensions_map = {**http.server.SimpleHTTPRequestHandler.extensions_map, ".js": "text/javascript",
-                      ".json": "application/json", ".bin": "application/octet-stream"}
+    extensions_map = {
+        **http.server.SimpleHTTPRequestHandler.extensions_map,
+        ".js": "text/javascript",
+        ".json": "application/json",
+        ".bin": "application/octet-stream",
+    }
 
     def log_message(self, fmt, *args):  # requests go to the log, not to stderr
         log.debug("%s " + fmt, self.address_string(), *args)

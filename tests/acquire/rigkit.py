@@ -76,8 +76,10 @@ def _child(argv):
         return 0 if res.complete else 5
     except KeyboardInterrupt:
         rig.settle()
-        sys.stdout.write(f"interrupted lights={rig.dmx_levels()} shown={rig.display_emulator.is_lit()} "
-                         f"moving={rig.grbl.is_moving} feed_hold_sent={b'!' in rig.grbl.received}\n")
+        sys.stdout.write(
+            f"interrupted lights={rig.dmx_levels()} shown={rig.display_emulator.is_lit()} "
+            f"moving={rig.grbl.is_moving} feed_hold_sent={b'!' in rig.grbl.received}\n"
+        )
         sys.stdout.flush()
         return 130
     except CaptureInterrupted:

@@ -61,8 +61,9 @@ def test_dry_run_paper_never_opens_the_rig(runner, tmp_path):
 
 
 def test_capture_argument_errors(runner, tmp_path):
-    res = runner.invoke(app, ["capture", "--rig", str(tmp_path / "none.toml"), "--plan", "builtin:tiny",
-                              "--out", str(tmp_path / "o")])
+    res = runner.invoke(
+        app, ["capture", "--rig", str(tmp_path / "none.toml"), "--plan", "builtin:tiny", "--out", str(tmp_path / "o")]
+    )
     assert res.exit_code == 2 and "none.toml" in res.output
     bad = tmp_path / "plan.toml"
     bad.write_text("[plan]\nname='x'\n[phases.teleport]\n")
@@ -118,8 +119,20 @@ def test_import_colmap_cli(runner, tmp_path):
     from test_acq_import import _synthetic_set
 
     _synthetic_set(tmp_path, n=3)
-    res = runner.invoke(app, ["import", "colmap", "--model", str(tmp_path / "model"), "--images",
-                              str(tmp_path / "images"), "--out", str(tmp_path / "s"), "--json"])
+    res = runner.invoke(
+        app,
+        [
+            "import",
+            "colmap",
+            "--model",
+            str(tmp_path / "model"),
+            "--images",
+            str(tmp_path / "images"),
+            "--out",
+            str(tmp_path / "s"),
+            "--json",
+        ],
+    )
     assert res.exit_code == 0, res.output
     assert _json(res)["images"] == 3
     res = runner.invoke(app, ["session", "verify", str(tmp_path / "s"), "--json"])

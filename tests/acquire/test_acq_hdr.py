@@ -8,8 +8,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from opacityhull.acquire.hdr import (hdr_session, merge_debevec, merge_linear, merge_linear_reference,
-                                     recover_response)
+from opacityhull.acquire.hdr import hdr_session, merge_debevec, merge_linear, merge_linear_reference, recover_response
 from opacityhull.errors import InputError, ShapeError
 from opacityhull.session import Session, SessionWriter
 
@@ -121,18 +120,33 @@ def test_debevec_recovers_response_and_radiance():
 
 
 def _bracketed_session(tmp_path, L, times, *, linear=True, gain=1.0):
-    geo = {"target_m": [0, 0, 0], "cameras": [{"name": "c", "width": L.shape[1], "height": L.shape[0],
-                                                "distance_m": 1.0, "gain": gain}]}
-    meta = {"rig": geo, "session": {"white_level": 1.0},
-            "camera_info": [{"index": 0, "name": "c", "white_level": 1.0, "linear": linear}]}
+    geo = {
+        "target_m": [0, 0, 0],
+        "cameras": [{"name": "c", "width": L.shape[1], "height": L.shape[0], "distance_m": 1.0, "gain": gain}],
+    }
+    meta = {
+        "rig": geo,
+        "session": {"white_level": 1.0},
+        "camera_info": [{"index": 0, "name": "c", "white_level": 1.0, "linear": linear}],
+    }
     root = tmp_path / "s"
     with SessionWriter(root).create(meta) as w:
         for shot_i, scale in enumerate((1.0, 0.5)):
             shot = f"reflectance/c0_t000.000/a000.000_l{shot_i}"
             for k, t in enumerate(times):
                 img = _expose(L * scale, t, gain=gain) if linear else _gamma_camera(L * scale, t)
-                w.add_image(img, id=f"{shot}/e{k}", shot=shot, phase="reflectance", camera=0, table_deg=0.0,
-                            rel_path=f"images/{shot}_e{k}.exr", exposure_s=t, lights_deg=0.0, light=shot_i)
+                w.add_image(
+                    img,
+                    id=f"{shot}/e{k}",
+                    shot=shot,
+                    phase="reflectance",
+                    camera=0,
+                    table_deg=0.0,
+                    rel_path=f"images/{shot}_e{k}.exr",
+                    exposure_s=t,
+                    lights_deg=0.0,
+                    light=shot_i,
+                )
     return root
 
 
@@ -177,9 +191,19 @@ def test_hdr_remerges_when_a_bracket_was_reshot(tmp_path):
     assert hdr_session(root)["merged"] == 2
     shot = "reflectance/c0_t000.000/a000.000_l1"
     with SessionWriter(root).resume() as w:  # a re-shoot of bracket 1 (e.g. its file was corrupt)
-        w.add_image(_expose(L, TIMES[1]), id=f"{shot}/e1", shot=shot, phase="reflectance", camera=0,
-                    table_deg=0.0, rel_path=f"images/{shot}_e1.exr", exposure_s=TIMES[1], lights_deg=0.0, light=1,
-                    replace=True)
+        w.add_image(
+            _expose(L, TIMES[1]),
+            id=f"{shot}/e1",
+            shot=shot,
+            phase="reflectance",
+            camera=0,
+            table_deg=0.0,
+            rel_path=f"images/{shot}_e1.exr",
+            exposure_s=TIMES[1],
+            lights_deg=0.0,
+            light=1,
+            replace=True,
+        )
     rep = hdr_session(root)
     assert rep["merged"] == 1 and rep["skipped"] == 1
     s = Session.open(root)

@@ -30,8 +30,13 @@ def _synthetic_set(tmp_path, n=5, *, rgba_every=2, masks=False, size=(40, 30)):
         az = 2 * np.pi * i / n
         eye = TARGET + np.array([1.5 * np.sin(az), 0.3 + 0.1 * i, 1.5 * np.cos(az)])
         K = np.array([[50.0 + i, 0, (w - 1) / 2 + 0.5 * i], [0, 50.0 + i, (h - 1) / 2], [0, 0, 1]])
-        cam = Camera(K=K, width=w, height=h, world_from_cam=look_at_world_from_cam(eye, TARGET),
-                     dist=[0.01 * i, 0, 0, 0, 0] if i == 1 else np.zeros(5))
+        cam = Camera(
+            K=K,
+            width=w,
+            height=h,
+            world_from_cam=look_at_world_from_cam(eye, TARGET),
+            dist=[0.01 * i, 0, 0, 0, 0] if i == 1 else np.zeros(5),
+        )
         name = f"sub/img_{i:02d}.png" if i == 3 else f"img_{i:02d}.png"
         cams.append(cam)
         names.append(name)

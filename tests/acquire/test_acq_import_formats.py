@@ -20,8 +20,7 @@ import pytest
 from typer.testing import CliRunner
 
 from opacityhull.acquire.importers import import_colmap, import_nerfstudio
-from opacityhull.camera import (Camera, colmap_model_kind, look_at_world_from_cam, read_colmap_model,
-                               write_colmap_text)
+from opacityhull.camera import Camera, colmap_model_kind, look_at_world_from_cam, read_colmap_model, write_colmap_text
 from opacityhull.cli import app
 from opacityhull.errors import FormatError, InputError
 from opacityhull.session import Session
@@ -63,7 +62,7 @@ def _sphere_alpha(cam: Camera) -> np.ndarray:
     o, d = cam.pixel_rays()
     oc = o - CENTRE
     b = d @ oc
-    disc = b * b - (oc @ oc - RADIUS ** 2)
+    disc = b * b - (oc @ oc - RADIUS**2)
     return (disc > 0).astype(np.float32)
 
 
@@ -84,8 +83,19 @@ def _write_png(path: Path, rgb8: np.ndarray, alpha: np.ndarray | None = None) ->
 def _ns_frame_intrinsics(cam: Camera) -> dict:
     """nerfstudio keys written by hand from the camera (principal point +0.5)."""
     k1, k2, p1, p2, k3 = cam.dist
-    return {"fl_x": cam.fx, "fl_y": cam.fy, "cx": cam.cx + 0.5, "cy": cam.cy + 0.5, "w": W, "h": H,
-            "k1": k1, "k2": k2, "k3": k3, "p1": p1, "p2": p2}
+    return {
+        "fl_x": cam.fx,
+        "fl_y": cam.fy,
+        "cx": cam.cx + 0.5,
+        "cy": cam.cy + 0.5,
+        "w": W,
+        "h": H,
+        "k1": k1,
+        "k2": k2,
+        "k3": k3,
+        "p1": p1,
+        "p2": p2,
+    }
 
 
 def _gl_project(T_gl: np.ndarray, intr: dict, X: np.ndarray) -> np.ndarray:
@@ -112,8 +122,15 @@ def _nerfstudio_set(tmp_path, *, style="nerfstudio", applied=False, dist=False):
     cams = _cams(dist=dists)
     if style == "blender":  # one focal length from camera_angle_x, principal point at the centre
         f = 45.0
-        cams = [Camera(K=np.array([[f, 0, (W - 1) / 2], [0, f, (H - 1) / 2], [0, 0, 1]]), width=W, height=H,
-                       world_from_cam=c.world_from_cam) for c in cams]
+        cams = [
+            Camera(
+                K=np.array([[f, 0, (W - 1) / 2], [0, f, (H - 1) / 2], [0, 0, 1]]),
+                width=W,
+                height=H,
+                world_from_cam=c.world_from_cam,
+            )
+            for c in cams
+        ]
     elif style == "nerfstudio" and not dist:  # shared intrinsics at the top level
         cams = [Camera(K=cams[0].K, width=W, height=H, world_from_cam=c.world_from_cam) for c in cams]
     root = tmp_path / "ns"
@@ -149,8 +166,21 @@ def _nerfstudio_set(tmp_path, *, style="nerfstudio", applied=False, dist=False):
         meta["camera_angle_x"] = 2 * np.arctan(0.5 * W / f)  # no fl_x, no w/h, no cx/cy
         truth = [(T, {"fl_x": f, "fl_y": f, "cx": W / 2, "cy": H / 2}) for T, _ in truth]
     elif style == "nerfstudio" and not dist:
-        meta.update({"camera_model": "OPENCV", "fl_x": cams[0].fx, "fl_y": cams[0].fy, "cx": cams[0].cx + 0.5,
-                     "cy": cams[0].cy + 0.5, "w": W, "h": H, "k1": 0.0, "k2": 0.0, "p1": 0.0, "p2": 0.0})
+        meta.update(
+            {
+                "camera_model": "OPENCV",
+                "fl_x": cams[0].fx,
+                "fl_y": cams[0].fy,
+                "cx": cams[0].cx + 0.5,
+                "cy": cams[0].cy + 0.5,
+                "w": W,
+                "h": H,
+                "k1": 0.0,
+                "k2": 0.0,
+                "p1": 0.0,
+                "p2": 0.0,
+            }
+        )
     if applied:
         meta["applied_transform"] = NS_APPLIED.tolist()
     path = root / "transforms.json"
@@ -170,8 +200,9 @@ def _check_projection(out: Path, truth):
 # --------------------------------------------------------------------------- nerfstudio
 
 
-@pytest.mark.parametrize("style,dist", [("nerfstudio", False), ("nerfstudio", True), ("blender", False),
-                                        ("mask_path", False)])
+@pytest.mark.parametrize(
+    "style,dist", [("nerfstudio", False), ("nerfstudio", True), ("blender", False), ("mask_path", False)]
+)
 def test_import_nerfstudio_projects_like_the_source(tmp_path, style, dist):
     path, cams, truth, alphas = _nerfstudio_set(tmp_path, style=style, dist=dist)
     out = tmp_path / "S"
@@ -221,8 +252,9 @@ def test_nerfstudio_and_colmap_imports_agree(tmp_path):
 
 def test_import_nerfstudio_cli_json(runner, tmp_path):
     path, *_ = _nerfstudio_set(tmp_path, style="blender")
-    res = runner.invoke(app, ["import", "nerfstudio", "--transforms", str(path), "--out", str(tmp_path / "S"),
-                              "--json"])
+    res = runner.invoke(
+        app, ["import", "nerfstudio", "--transforms", str(path), "--out", str(tmp_path / "S"), "--json"]
+    )
     assert res.exit_code == 0, res.output
     d = json.loads(res.stdout.strip())
     assert d["images"] == 4 and d["masks"] == 4
@@ -242,25 +274,38 @@ def _del(d, k):
 
 NS_BAD = {
     # name: (edit, exit code, words the message must contain)
-    "missing_transform_matrix": (lambda m: _del(m["frames"][2], "transform_matrix"), 4,
-                                 ["frame 2", "'transform_matrix'"]),
+    "missing_transform_matrix": (
+        lambda m: _del(m["frames"][2], "transform_matrix"),
+        4,
+        ["frame 2", "'transform_matrix'"],
+    ),
     "missing_file_path": (lambda m: _del(m["frames"][1], "file_path"), 4, ["frame 1", "'file_path'"]),
     "missing_focal": (lambda m: _del(m, "fl_x"), 4, ["frame 0", "fl_x", "camera_angle_x"]),
     "missing_frames": (lambda m: _del(m, "frames"), 4, ["'frames'"]),
     "image_size": (lambda m: m.update(w=W + 2), 2, ["frame_00000.png", f"{W}x{H}", f"{W + 2}x{H}"]),
-    "nan_matrix": (lambda m: m["frames"][3]["transform_matrix"][0].__setitem__(3, float("nan")), 4,
-                   ["frame 3", "NaN"]),
-    "non_rigid": (lambda m: m["frames"][1].update(
-        transform_matrix=(np.asarray(m["frames"][1]["transform_matrix"]) @ np.diag([2.0, 2, 2, 1])).tolist()),
-        4, ["frame 1", "not rigid"]),
-    "mirrored": (lambda m: m["frames"][0].update(
-        transform_matrix=(np.asarray(m["frames"][0]["transform_matrix"]) @ np.diag([-1.0, 1, 1, 1])).tolist()),
-        4, ["frame 0", "not rigid"]),
+    "nan_matrix": (lambda m: m["frames"][3]["transform_matrix"][0].__setitem__(3, float("nan")), 4, ["frame 3", "NaN"]),
+    "non_rigid": (
+        lambda m: m["frames"][1].update(
+            transform_matrix=(np.asarray(m["frames"][1]["transform_matrix"]) @ np.diag([2.0, 2, 2, 1])).tolist()
+        ),
+        4,
+        ["frame 1", "not rigid"],
+    ),
+    "mirrored": (
+        lambda m: m["frames"][0].update(
+            transform_matrix=(np.asarray(m["frames"][0]["transform_matrix"]) @ np.diag([-1.0, 1, 1, 1])).tolist()
+        ),
+        4,
+        ["frame 0", "not rigid"],
+    ),
     "fisheye": (lambda m: m.update(camera_model="OPENCV_FISHEYE"), 4, ["OPENCV_FISHEYE"]),
     "k4": (lambda m: m.update(k4=0.01), 4, ["k4"]),
     "missing_image": (lambda m: m["frames"][2].update(file_path="images/nope.png"), 2, ["frame 2", "nope.png"]),
-    "bad_applied": (lambda m: m.update(applied_transform=[[2, 0, 0, 0], [0, 2, 0, 0], [0, 0, 2, 0]]), 4,
-                    ["applied_transform"]),
+    "bad_applied": (
+        lambda m: m.update(applied_transform=[[2, 0, 0, 0], [0, 2, 0, 0], [0, 0, 2, 0]]),
+        4,
+        ["applied_transform"],
+    ),
 }
 
 
@@ -306,17 +351,34 @@ def _colmap_set(tmp_path, *, masks=True):
 
 
 def _cli_colmap(runner, tmp_path, out, *extra):
-    return runner.invoke(app, ["import", "colmap", "--model", str(tmp_path / "model"), "--images",
-                               str(tmp_path / "images"), "--masks", str(tmp_path / "masks"), "--out", str(out),
-                               "--json", *extra])
+    return runner.invoke(
+        app,
+        [
+            "import",
+            "colmap",
+            "--model",
+            str(tmp_path / "model"),
+            "--images",
+            str(tmp_path / "images"),
+            "--masks",
+            str(tmp_path / "masks"),
+            "--out",
+            str(out),
+            "--json",
+            *extra,
+        ],
+    )
 
 
 @pytest.mark.parametrize("case", ["empty", "full", "wrong_size"])
 def test_import_colmap_bad_masks(runner, tmp_path, case):
     cams, names = _colmap_set(tmp_path)
     bad = tmp_path / "masks" / (names[2] + ".png")
-    m = {"empty": np.zeros((H, W), np.uint8), "full": np.full((H, W), 255, np.uint8),
-         "wrong_size": np.zeros((H + 1, W), np.uint8)}[case]
+    m = {
+        "empty": np.zeros((H, W), np.uint8),
+        "full": np.full((H, W), 255, np.uint8),
+        "wrong_size": np.zeros((H + 1, W), np.uint8),
+    }[case]
     cv2.imwrite(str(bad), m)
     out = tmp_path / "S"
     res = _cli_colmap(runner, tmp_path, out)
@@ -383,8 +445,12 @@ def _to_binary(text_dir: Path, bin_dir: Path) -> None:
 
 
 def test_import_colmap_binary_wins_over_text(tmp_path):
-    dists = [np.zeros(5), np.array([-0.04, 0, 0, 0, 0]), np.array([-0.05, 0.01, 0, 0, 0]),
-             np.array([-0.05, 0.01, 0.001, -0.002, 0])]
+    dists = [
+        np.zeros(5),
+        np.array([-0.04, 0, 0, 0, 0]),
+        np.array([-0.05, 0.01, 0, 0, 0]),
+        np.array([-0.05, 0.01, 0.001, -0.002, 0]),
+    ]
     cams, names = _colmap_set(tmp_path)
     cams = [Camera(K=c.K, width=W, height=H, world_from_cam=c.world_from_cam, dist=d) for c, d in zip(cams, dists)]
     write_colmap_text(tmp_path / "true_txt", cams, names=names)
@@ -394,9 +460,12 @@ def test_import_colmap_binary_wins_over_text(tmp_path):
     f = [42.0, 43.0, 44.0, 46.0]
     for i, c in enumerate(cams):
         cx, cy = c.cx + 0.5, c.cy + 0.5
-        body[i] = [f"1 SIMPLE_PINHOLE {W} {H} {f[0]} {cx} {cy}", f"2 SIMPLE_RADIAL {W} {H} {f[1]} {cx} {cy} -0.04",
-                   f"3 RADIAL {W} {H} {f[2]} {cx} {cy} -0.05 0.01",
-                   f"4 OPENCV {W} {H} {f[3]} {f[3]} {cx} {cy} -0.05 0.01 0.001 -0.002"][i]
+        body[i] = [
+            f"1 SIMPLE_PINHOLE {W} {H} {f[0]} {cx} {cy}",
+            f"2 SIMPLE_RADIAL {W} {H} {f[1]} {cx} {cy} -0.04",
+            f"3 RADIAL {W} {H} {f[2]} {cx} {cy} -0.05 0.01",
+            f"4 OPENCV {W} {H} {f[3]} {f[3]} {cx} {cy} -0.05 0.01 0.001 -0.002",
+        ][i]
     (tmp_path / "true_txt" / "cameras.txt").write_text("\n".join(body) + "\n")
     model = tmp_path / "model"
     shutil.rmtree(model)
@@ -430,13 +499,25 @@ def _bad_quaternion_model(tmp_path, q) -> Path:
     return k + 1
 
 
-@pytest.mark.parametrize("q,words", [((0, 0, 0, 0), "is zero"), ((2, 0, 0, 0), "has length 2"),
-                                     ((float("nan"), 0, 0, 1), "not finite")])
+@pytest.mark.parametrize(
+    "q,words", [((0, 0, 0, 0), "is zero"), ((2, 0, 0, 0), "has length 2"), ((float("nan"), 0, 0, 1), "not finite")]
+)
 def test_bad_quaternion_text_and_binary(runner, tmp_path, q, words):
     lineno = _bad_quaternion_model(tmp_path, q)
     out = tmp_path / "S"
-    res = runner.invoke(app, ["import", "colmap", "--model", str(tmp_path / "model"), "--images",
-                              str(tmp_path / "images"), "--out", str(out)])
+    res = runner.invoke(
+        app,
+        [
+            "import",
+            "colmap",
+            "--model",
+            str(tmp_path / "model"),
+            "--images",
+            str(tmp_path / "images"),
+            "--out",
+            str(out),
+        ],
+    )
     assert res.exit_code == 4, res.output
     assert f"images.txt:{lineno}" in _err(res) and "'img_1.png'" in _err(res) and words in _err(res)
     assert not out.exists()
@@ -500,8 +581,12 @@ def test_import_middlebury_temple_text_and_binary(temple, tmp_path):
         assert np.all(z > 0)
         m = s.load_image(s.select(phase="mask", camera=i)[0])[..., 0] >= 0.5
         v, u = np.nonzero(m)
-        inside = (u >= uv[:, 0].min() - 3) & (u <= uv[:, 0].max() + 3) & (v >= uv[:, 1].min() - 3) & \
-                 (v <= uv[:, 1].max() + 3)
+        inside = (
+            (u >= uv[:, 0].min() - 3)
+            & (u <= uv[:, 0].max() + 3)
+            & (v >= uv[:, 1].min() - 3)
+            & (v <= uv[:, 1].max() + 3)
+        )
         fractions.append(inside.mean())
         c, _ = cam.project(((lo + hi) / 2)[None])
         assert u.min() <= c[0, 0] <= u.max() and v.min() <= c[0, 1] <= v.max()
@@ -525,8 +610,9 @@ def test_build_imported_temple(temple, tmp_path):
     from opacityhull.model import read_surfels_ply
 
     _, out, _ = temple
-    res = CliRunner().invoke(app, ["build", str(out), "--out", str(tmp_path / "M"), "--hull-res", "64",
-                                   "--no-pictures", "--json"])
+    res = CliRunner().invoke(
+        app, ["build", str(out), "--out", str(tmp_path / "M"), "--hull-res", "64", "--no-pictures", "--json"]
+    )
     assert res.exit_code == 0, res.output
     rep = json.loads(res.stdout.strip().splitlines()[-1])
     assert rep["views"] == 16 and rep["surfels"] > 1000

@@ -26,18 +26,33 @@ def _session(tmp_path):
     reflectance shot, of known radiance."""
     h, w = 6, 8
     geo = {"target_m": [0, 0, 0], "cameras": [{"name": "c", "width": w, "height": h, "distance_m": 1.0}]}
-    meta = {"rig": geo, "session": {"white_level": 1.0},
-            "camera_info": [{"index": 0, "name": "c", "white_level": 1.0, "linear": True}]}
+    meta = {
+        "rig": geo,
+        "session": {"white_level": 1.0},
+        "camera_info": [{"index": 0, "name": "c", "white_level": 1.0, "linear": True}],
+    }
     root = tmp_path / "s"
     L = np.full((h, w, 3), 3.0, np.float32)
     with SessionWriter(root).create(meta) as wr:
-        shots = [("envmatte", dict(pattern=3)), ("envmatte", dict(pattern=4)),
-                 ("reflectance", dict(lights_deg=0.0, light=0))]
+        shots = [
+            ("envmatte", dict(pattern=3)),
+            ("envmatte", dict(pattern=4)),
+            ("reflectance", dict(lights_deg=0.0, light=0)),
+        ]
         for phase, kw in shots:
             shot = shot_key(phase, 0, 0.0, **kw)
             for k, t in enumerate(TIMES):
-                wr.add_image(np.clip(t * L, 0, 1).astype(np.float32), id=f"{shot}/e{k}", shot=shot, phase=phase,
-                             camera=0, table_deg=0.0, rel_path=f"images/{shot}_e{k}.exr", exposure_s=t, **kw)
+                wr.add_image(
+                    np.clip(t * L, 0, 1).astype(np.float32),
+                    id=f"{shot}/e{k}",
+                    shot=shot,
+                    phase=phase,
+                    camera=0,
+                    table_deg=0.0,
+                    rel_path=f"images/{shot}_e{k}.exr",
+                    exposure_s=t,
+                    **kw,
+                )
     return root, L
 
 
@@ -103,12 +118,15 @@ def test_upload_wire_bytes_equals_what_the_driver_sends_to_the_emulator():
 def _plan(n, steps, displays):
     from opacityhull.acquire.plan import parse_plan
 
-    return parse_plan({
-        "plan": {"name": "lru", "seed": 3, "cameras": [0]},
-        "table": {"steps": steps},
-        "exposures": {"default_s": [0.5]},
-        "phases": {"natural": {"images": n, "kernels": 4, "sources": ["noise"], "displays": displays}},
-    }, where="lru")
+    return parse_plan(
+        {
+            "plan": {"name": "lru", "seed": 3, "cameras": [0]},
+            "table": {"steps": steps},
+            "exposures": {"default_s": [0.5]},
+            "phases": {"natural": {"images": n, "kernels": 4, "sources": ["noise"], "displays": displays}},
+        },
+        where="lru",
+    )
 
 
 def test_estimate_counts_the_lru_reuploads_the_runner_makes(tmp_path):

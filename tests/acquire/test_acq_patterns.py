@@ -7,8 +7,14 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from opacityhull.acquire.patterns import (check_saved_patterns, complement, natural_image, plan_patterns,
-                                          random_pattern, save_patterns)
+from opacityhull.acquire.patterns import (
+    check_saved_patterns,
+    complement,
+    natural_image,
+    plan_patterns,
+    random_pattern,
+    save_patterns,
+)
 from opacityhull.errors import InputError
 from opacityhull.riggeometry import RigGeometry
 
@@ -115,9 +121,21 @@ def test_natural_sources_mix_probes_noise_and_user_images(tmp_path):
     cv2.imwrite(str(tmp_path / "u.png"), src)
     geo = RigGeometry.from_dict(GEOMETRY)
     name = geo.displays[0].name
-    plan = parse_plan({"plan": {"name": "e"}, "phases": {"natural": {
-        "images": 6, "kernels": 4, "sources": ["user", "probes", "noise"], "user_images": ["u.png"],
-        "displays": [name]}}}, base_dir=tmp_path)
+    plan = parse_plan(
+        {
+            "plan": {"name": "e"},
+            "phases": {
+                "natural": {
+                    "images": 6,
+                    "kernels": 4,
+                    "sources": ["user", "probes", "noise"],
+                    "user_images": ["u.png"],
+                    "displays": [name],
+                }
+            },
+        },
+        base_dir=tmp_path,
+    )
     pats = plan_patterns(plan, geo)
     assert sorted(pats) == list(range(1, 7))
     kinds = [pats[k].source.split(":")[1] for k in sorted(pats)]

@@ -10,8 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from opacityhull.acquire.plan import load_plan, parse_plan
-from opacityhull.acquire.schedule import (MotionRates, estimate, expected_counts, move_time_s, schedule,
-                                          select_cameras)
+from opacityhull.acquire.schedule import MotionRates, estimate, expected_counts, move_time_s, schedule, select_cameras
 from opacityhull.errors import ConfigError
 from opacityhull.riggeometry import RigGeometry
 
@@ -19,8 +18,18 @@ from rigkit import GEOMETRY, TINY_PLAN
 
 PAPER_GEOMETRY = {
     "target_m": [0.0, 0.1, 0.0],
-    "cameras": [{"name": f"cam{i}", "width": 1300, "height": 1030, "distance_m": 1.2, "elevation_deg": 10.0 * i,
-                 "azimuth_deg": 0.0, "fov_y_deg": 30.0} for i in range(6)],
+    "cameras": [
+        {
+            "name": f"cam{i}",
+            "width": 1300,
+            "height": 1030,
+            "distance_m": 1.2,
+            "elevation_deg": 10.0 * i,
+            "azimuth_deg": 0.0,
+            "fov_y_deg": 30.0,
+        }
+        for i in range(6)
+    ],
     "lights": [{"id": i, "elevation_deg": 40.0, "azimuth_deg": 90.0 * i, "distance_m": 1.5} for i in range(4)],
     "displays": GEOMETRY["displays"],
 }
@@ -38,27 +47,34 @@ def test_tiny_lab_plan_counts():
     geo = RigGeometry.from_dict(GEOMETRY)
     counts = expected_counts(schedule(plan, geo))
     # 3 cameras; calibration 2 angles; 4 table angles; 2 pattern pairs
-    assert counts == {"calibration": 3 * 2, "matting": 3 * 4 * (4 + 1) + 3 * 4 * 4, "lightfield": 3 * 4,
-                      "reflectance": 3 * 4 * 2 * 2 * 2}
+    assert counts == {
+        "calibration": 3 * 2,
+        "matting": 3 * 4 * (4 + 1) + 3 * 4 * 4,
+        "lightfield": 3 * 4,
+        "reflectance": 3 * 4 * 2 * 2 * 2,
+    }
 
 
-@pytest.mark.parametrize("mod, key", [
-    (lambda d: d["phases"].__setitem__("holography", {}), "phases.holography"),
-    (lambda d: d["table"].__setitem__("steps", -4), "[table].steps"),
-    (lambda d: d["table"].update({"step_deg": -5.0}) or d["table"].pop("steps"), "[table].step_deg"),
-    (lambda d: d["exposures"].__setitem__("default_s", []), "[exposures].default_s"),
-    (lambda d: d["phases"]["reflectance"].__setitem__("exposures_s", []), "[phases.reflectance].exposures_s"),
-    (lambda d: d["phases"]["reflectance"].__setitem__("array_steps", 0), "[phases.reflectance].array_steps"),
-    (lambda d: d["phases"]["matting"].__setitem__("patterns", 0), "[phases.matting].patterns"),
-    (lambda d: d["phases"]["matting"].__setitem__("colour", 1), "[phases.matting]"),
-    (lambda d: d["phases"]["lightfield"].__setitem__("level", 300), "[phases.lightfield].level"),
-    (lambda d: d["exposures"].__setitem__("default_s", [0.1, -0.1]), "[exposures].default_s[1]"),
-    (lambda d: d["phases"]["calibration"]["charuco"].__setitem__("marker_m", 0.5), "marker_m"),
-    (lambda d: d["plan"].__setitem__("seed", "x"), "[plan].seed"),
-    (lambda d: d.__setitem__("extras", {}), "extras"),
-    (lambda d: d["plan"].__setitem__("exr_compression", "lzma"), "[plan].exr_compression"),
-    (lambda d: d["phases"]["reflectance"].__setitem__("level", 0), "[phases.reflectance].level"),
-])
+@pytest.mark.parametrize(
+    "mod, key",
+    [
+        (lambda d: d["phases"].__setitem__("holography", {}), "phases.holography"),
+        (lambda d: d["table"].__setitem__("steps", -4), "[table].steps"),
+        (lambda d: d["table"].update({"step_deg": -5.0}) or d["table"].pop("steps"), "[table].step_deg"),
+        (lambda d: d["exposures"].__setitem__("default_s", []), "[exposures].default_s"),
+        (lambda d: d["phases"]["reflectance"].__setitem__("exposures_s", []), "[phases.reflectance].exposures_s"),
+        (lambda d: d["phases"]["reflectance"].__setitem__("array_steps", 0), "[phases.reflectance].array_steps"),
+        (lambda d: d["phases"]["matting"].__setitem__("patterns", 0), "[phases.matting].patterns"),
+        (lambda d: d["phases"]["matting"].__setitem__("colour", 1), "[phases.matting]"),
+        (lambda d: d["phases"]["lightfield"].__setitem__("level", 300), "[phases.lightfield].level"),
+        (lambda d: d["exposures"].__setitem__("default_s", [0.1, -0.1]), "[exposures].default_s[1]"),
+        (lambda d: d["phases"]["calibration"]["charuco"].__setitem__("marker_m", 0.5), "marker_m"),
+        (lambda d: d["plan"].__setitem__("seed", "x"), "[plan].seed"),
+        (lambda d: d.__setitem__("extras", {}), "extras"),
+        (lambda d: d["plan"].__setitem__("exr_compression", "lzma"), "[plan].exr_compression"),
+        (lambda d: d["phases"]["reflectance"].__setitem__("level", 0), "[phases.reflectance].level"),
+    ],
+)
 def test_bad_plans_name_the_key(mod, key):
     with pytest.raises(ConfigError) as e:
         _plan(mod)
@@ -216,15 +232,18 @@ def test_natural_phase_is_envmatte_one_display_at_a_time():
     assert est.upload_s == pytest.approx(round(wire) / MotionRates().serial_bytes_s)
 
 
-@pytest.mark.parametrize("ph, match", [
-    ({"images": 10}, r"\[phases\.natural\].*images = 10.*kernels = 25.*N >= K"),
-    ({"images": 30, "kernels": 40}, r"kernels = 40"),
-    ({"images": 30, "sources": ["sky"]}, r"\[phases\.natural\]\.sources.*'sky'"),
-    ({"images": 30, "sources": ["user"]}, r"user_images"),
-    ({"images": 30, "user_images": ["x.png"]}, r"user_images.*not in sources"),
-    ({"images": 30, "displays": "back"}, r"\[phases\.natural\]\.displays"),
-    ({"images": 30, "resolution": 3}, r"unknown key"),
-])
+@pytest.mark.parametrize(
+    "ph, match",
+    [
+        ({"images": 10}, r"\[phases\.natural\].*images = 10.*kernels = 25.*N >= K"),
+        ({"images": 30, "kernels": 40}, r"kernels = 40"),
+        ({"images": 30, "sources": ["sky"]}, r"\[phases\.natural\]\.sources.*'sky'"),
+        ({"images": 30, "sources": ["user"]}, r"user_images"),
+        ({"images": 30, "user_images": ["x.png"]}, r"user_images.*not in sources"),
+        ({"images": 30, "displays": "back"}, r"\[phases\.natural\]\.displays"),
+        ({"images": 30, "resolution": 3}, r"unknown key"),
+    ],
+)
 def test_bad_natural_phases_name_the_key(ph, match):
     with pytest.raises(ConfigError, match=match) as e:
         _natural(ph)
@@ -234,12 +253,20 @@ def test_bad_natural_phases_name_the_key(ph, match):
 def test_natural_user_image_that_is_not_an_image(tmp_path):
     (tmp_path / "notes.png").write_text("not a picture")
     with pytest.raises(ConfigError, match=r"user_images\[0\].*notes\.png.*not an image"):
-        parse_plan({"plan": {"name": "n"}, "phases": {"natural": {
-            "images": 30, "sources": ["user", "noise"], "user_images": ["notes.png"]}}},
-            where="n.toml", base_dir=tmp_path)
+        parse_plan(
+            {
+                "plan": {"name": "n"},
+                "phases": {"natural": {"images": 30, "sources": ["user", "noise"], "user_images": ["notes.png"]}},
+            },
+            where="n.toml",
+            base_dir=tmp_path,
+        )
     with pytest.raises(ConfigError, match=r"images\[0\].*missing\.png.*not found"):
-        parse_plan({"plan": {"name": "n"}, "phases": {"envmatte": {"images": ["missing.png"]}}},
-                   where="n.toml", base_dir=tmp_path)
+        parse_plan(
+            {"plan": {"name": "n"}, "phases": {"envmatte": {"images": ["missing.png"]}}},
+            where="n.toml",
+            base_dir=tmp_path,
+        )
 
 
 def test_natural_phase_on_a_rig_without_displays_or_unknown_display():

@@ -106,8 +106,9 @@ def test_images_show_the_rig_state(captured):
     want = nearest_resize(pat, 24, 18).astype(np.float32) / 255 * rec.exposure_s
     np.testing.assert_allclose(img, want, atol=1e-6)
     # reflectance: one light on -> radiance proportional to one light; brackets agree once divided by t
-    recs = sorted(sess.select(phase="reflectance", camera=1, table_deg=0.0, light=0, lights_deg=0.0),
-                  key=lambda q: q.exposure_s)
+    recs = sorted(
+        sess.select(phase="reflectance", camera=1, table_deg=0.0, light=0, lights_deg=0.0), key=lambda q: q.exposure_s
+    )
     assert [q.exposure_s for q in recs] == [0.25, 1.0]
     a, b = (sess.load_image(q) / q.exposure_s for q in recs[:2])
     np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-6)
@@ -218,8 +219,10 @@ def test_display_vanishes_mid_run(tmp_path):
     out = tmp_path / "s"
     with LabRig() as rig:
         _on_capture(rig, 40, rig.display_server.vanish)
-        with pytest.raises(DeviceError, match="--resume"), \
-                pytest.warns(RuntimeWarning, match="clean-up incomplete: backdrops"):
+        with (
+            pytest.raises(DeviceError, match="--resume"),
+            pytest.warns(RuntimeWarning, match="clean-up incomplete: backdrops"),
+        ):
             run_capture(rig, tiny_plan(), out)
         rig.settle()
         assert all(v == 0 for v in rig.dmx_levels().values())
@@ -292,8 +295,13 @@ def test_disk_fills_up_mid_run(rig, small_fs):
 
 def _child(out: Path, *args):
     env = dict(os.environ, PYTHONPATH=str(HERE) + os.pathsep + os.environ.get("PYTHONPATH", ""))
-    return subprocess.Popen([sys.executable, str(HERE / "rigkit.py"), str(out), *args], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, env=env)
+    return subprocess.Popen(
+        [sys.executable, str(HERE / "rigkit.py"), str(out), *args],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
+    )
 
 
 def _run_until(proc, n_images: int, sig) -> None:

@@ -13,22 +13,51 @@ GEO = {"target_m": [0, 0, 0], "cameras": [{"name": "c", "width": 4, "height": 3,
 
 
 def _new(tmp_path):
-    w = SessionWriter(tmp_path / "s").create({"rig": GEO, "session": {"white_level": 0.5},
-                                              "charuco": {"squares_x": 5, "squares_y": 4, "square_m": 0.04,
-                                                          "marker_m": 0.03}})
+    w = SessionWriter(tmp_path / "s").create(
+        {
+            "rig": GEO,
+            "session": {"white_level": 0.5},
+            "charuco": {"squares_x": 5, "squares_y": 4, "square_m": 0.04, "marker_m": 0.03},
+        }
+    )
     return w
 
 
 def test_last_record_of_an_id_wins(tmp_path):
     w = _new(tmp_path)
     img = np.full((3, 4, 3), 0.25, np.float32)
-    w.add_image(img, id="lightfield/c0_t000.000/img/e0", shot="lightfield/c0_t000.000/img", phase="lightfield",
-                camera=0, table_deg=0.0, rel_path="images/a.exr", exposure_s=0.5)
+    w.add_image(
+        img,
+        id="lightfield/c0_t000.000/img/e0",
+        shot="lightfield/c0_t000.000/img",
+        phase="lightfield",
+        camera=0,
+        table_deg=0.0,
+        rel_path="images/a.exr",
+        exposure_s=0.5,
+    )
     with pytest.raises(InputError, match="already in"):
-        w.add_image(img, id="lightfield/c0_t000.000/img/e0", shot="lightfield/c0_t000.000/img", phase="lightfield",
-                    camera=0, table_deg=0.0, rel_path="images/a.exr", exposure_s=0.5)
-    w.add_image(img * 2, id="lightfield/c0_t000.000/img/e0", shot="lightfield/c0_t000.000/img", phase="lightfield",
-                camera=0, table_deg=0.0, rel_path="images/a.exr", exposure_s=0.5, replace=True)
+        w.add_image(
+            img,
+            id="lightfield/c0_t000.000/img/e0",
+            shot="lightfield/c0_t000.000/img",
+            phase="lightfield",
+            camera=0,
+            table_deg=0.0,
+            rel_path="images/a.exr",
+            exposure_s=0.5,
+        )
+    w.add_image(
+        img * 2,
+        id="lightfield/c0_t000.000/img/e0",
+        shot="lightfield/c0_t000.000/img",
+        phase="lightfield",
+        camera=0,
+        table_deg=0.0,
+        rel_path="images/a.exr",
+        exposure_s=0.5,
+        replace=True,
+    )
     w.close()
     s = Session.open(tmp_path / "s")
     assert len(s.records) == 1 and s.superseded == 1
@@ -43,8 +72,9 @@ def test_torn_tail_is_cut_on_resume(tmp_path):
     w = _new(tmp_path)
     img = np.zeros((3, 4, 3), np.float32)
     for i in range(2):
-        w.add_image(img, id=f"x{i}", shot=f"s{i}", phase="lightfield", camera=0, table_deg=0.0,
-                    rel_path=f"images/{i}.exr")
+        w.add_image(
+            img, id=f"x{i}", shot=f"s{i}", phase="lightfield", camera=0, table_deg=0.0, rel_path=f"images/{i}.exr"
+        )
     w.close()
     m = tmp_path / "s" / "manifest.jsonl"
     good = m.read_bytes()

@@ -117,8 +117,11 @@ def test_writer_disk_full_mid_stage_is_raised_and_nothing_half_written(tmp_path,
     order = _capture_order()
     with LabRig() as rig:
         n = _count_captures(rig)
-        with pytest.raises(DiskFull, match=rf"disk full writing \S+ \(.*\); {at - 1} of {len(order)} images are in "
-                                           r"the session.*--resume"):
+        with pytest.raises(
+            DiskFull,
+            match=rf"disk full writing \S+ \(.*\); {at - 1} of {len(order)} images are in "
+            r"the session.*--resume",
+        ):
             run_capture(rig, tiny_plan(), out, queue_images=4)
         _assert_safe(rig)
         # raised at the next enqueue: the rig ran at most the queue (plus the one in the writer
@@ -126,7 +129,7 @@ def test_writer_disk_full_mid_stage_is_raised_and_nothing_half_written(tmp_path,
         assert at <= n["k"] <= at + 4 + 2
     assert len(failed) == 1 and not failed[0].exists()  # the failing image is not left unlisted
     ids = [r["id"] for r in _records(out)]
-    assert ids == order[:at - 1]  # exactly the images before the failing one, in order
+    assert ids == order[: at - 1]  # exactly the images before the failing one, in order
     assert verify_session(out)["ok"]
     _no_temporaries(out)
     monkeypatch.undo()
@@ -214,9 +217,15 @@ def test_image_queue_unit(tmp_path):
     sink = _ImageQueue(w, half=False, compression="rle", maxsize=2)
     rng = np.random.default_rng(0)
     for k in range(7):
-        sink.submit(_Job(path=tmp_path / "u" / "images" / f"{k}.exr", image=rng.random((3, 4, 3), np.float32),
-                         id=f"i{k}", replace=False, record=dict(shot=f"i{k}", phase="lightfield", camera=0,
-                                                                table_deg=0.0)))
+        sink.submit(
+            _Job(
+                path=tmp_path / "u" / "images" / f"{k}.exr",
+                image=rng.random((3, 4, 3), np.float32),
+                id=f"i{k}",
+                replace=False,
+                record=dict(shot=f"i{k}", phase="lightfield", camera=0, table_deg=0.0),
+            )
+        )
         assert sink._q is not None and sink._q.qsize() <= 2  # bounded
     sink.flush()
     assert [j.id for j, _ in sink.done] == [f"i{k}" for k in range(7)]

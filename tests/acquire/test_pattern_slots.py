@@ -24,12 +24,15 @@ from opacityhull.session import Session
 
 
 def natural_plan(n: int, *, steps: int = 1):
-    return parse_plan({
-        "plan": {"name": "lab-natural", "seed": 3, "cameras": [0]},
-        "table": {"steps": steps},
-        "exposures": {"default_s": [0.5]},
-        "phases": {"natural": {"images": n, "kernels": 4, "sources": ["noise", "probes"], "displays": ["back"]}},
-    }, where="lab-natural")
+    return parse_plan(
+        {
+            "plan": {"name": "lab-natural", "seed": 3, "cameras": [0]},
+            "table": {"steps": steps},
+            "exposures": {"default_s": [0.5]},
+            "phases": {"natural": {"images": n, "kernels": 4, "sources": ["noise", "probes"], "displays": ["back"]}},
+        },
+        where="lab-natural",
+    )
 
 
 class Watch:
@@ -59,7 +62,7 @@ def _expected_bytes(img) -> bytes:
 
 
 def _check_shown(watch: Watch, sess: Session, patterns, start: int = 0) -> None:
-    recs = [r for r in sess.records if r.kind == "raw"][start:start + len(watch.seen)]
+    recs = [r for r in sess.records if r.kind == "raw"][start : start + len(watch.seen)]
     assert len(recs) == len(watch.seen)
     for rec, shot in zip(recs, watch.seen):
         for i, name in enumerate(("bottom", "back")):
@@ -161,10 +164,16 @@ def test_lru_without_reported_capacity_evicts_least_recently_shown():
     s = device_pattern_id
     # 1,2,3 fill it; 1 is re-shown (no upload); 4 evicts 2 (least recent); 2 evicts 3; 5 evicts 1
     assert [x for x in bd.log if x[0] != "show"] == [
-        ("upload", s(1, 0)), ("upload", s(2, 0)), ("upload", s(3, 0)),
-        ("delete", s(2, 0)), ("upload", s(4, 0)),
-        ("delete", s(3, 0)), ("upload", s(2, 0)),
-        ("delete", s(1, 0)), ("upload", s(5, 0))]
+        ("upload", s(1, 0)),
+        ("upload", s(2, 0)),
+        ("upload", s(3, 0)),
+        ("delete", s(2, 0)),
+        ("upload", s(4, 0)),
+        ("delete", s(3, 0)),
+        ("upload", s(2, 0)),
+        ("delete", s(1, 0)),
+        ("upload", s(5, 0)),
+    ]
     assert sorted(bd.store) == sorted([s(4, 0), s(2, 0), s(5, 0)])
     assert slots.uploads == 6 and slots.evictions == 3
 

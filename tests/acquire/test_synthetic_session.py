@@ -34,8 +34,9 @@ def test_defaults_are_the_paper_layout():
     assert SyntheticSessionConfig(n_light_dirs=6).light_layout() == (6, [0.0])
 
 
-@pytest.mark.parametrize("bad", [dict(n_cameras=0), dict(width_px=2.5), dict(n_light_dirs=-1),
-                                 dict(noise=float("nan"))])
+@pytest.mark.parametrize(
+    "bad", [dict(n_cameras=0), dict(width_px=2.5), dict(n_light_dirs=-1), dict(noise=float("nan"))]
+)
 def test_bad_config_names_the_field(bad):
     with pytest.raises(InputError, match=next(iter(bad))):
         SyntheticSessionConfig(**bad)
@@ -48,8 +49,12 @@ def test_writes_every_phase_and_session_verify_accepts_it(tiny):
     assert info["n_images"] == 8 * (4 + 1 + 8)
     for cam in ("cam0", "cam1"):
         assert (root / "calibration" / f"{cam}.yaml").is_file()
-    r = subprocess.run([str(Path(sys.executable).with_name("opacityhull")), "session", "verify", str(root), "--json"],
-                       capture_output=True, text=True, env={**os.environ, "NUMBA_NUM_THREADS": "1"})
+    r = subprocess.run(
+        [str(Path(sys.executable).with_name("opacityhull")), "session", "verify", str(root), "--json"],
+        capture_output=True,
+        text=True,
+        env={**os.environ, "NUMBA_NUM_THREADS": "1"},
+    )
     assert r.returncode == 0, r.stderr
     out = json.loads(r.stdout)
     assert out["ok"] is True

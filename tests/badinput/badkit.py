@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
+
 @dataclass(frozen=True)
 class Case:
     """One bad input: ``argv`` may contain ``{S}`` (the session copy), ``{M}`` (the model
@@ -83,5 +84,3 @@ def run_case(case: Case, *, inputs: dict[str, Path], tmp_path: Path):
         for k, r in roots.items():
             assert tree_digest(r) == before[k], f"{argv}: changed files in {k}"
     return res
-
-

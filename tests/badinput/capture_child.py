@@ -51,8 +51,10 @@ def main(argv) -> int:
             sys.stdout.write("done " + json.dumps(res.to_dict()) + "\n")
         finally:
             rig.settle()
-            sys.stdout.write(f"state lights={rig.dmx_levels()} shown={rig.display_emulator.is_lit()} "
-                             f"moving={rig.grbl.is_moving} feed_hold_sent={b'!' in rig.grbl.received}\n")
+            sys.stdout.write(
+                f"state lights={rig.dmx_levels()} shown={rig.display_emulator.is_lit()} "
+                f"moving={rig.grbl.is_moving} feed_hold_sent={b'!' in rig.grbl.received}\n"
+            )
             sys.stdout.flush()
 
     try:

@@ -16,6 +16,7 @@ def _make_file(rel: str):
         p = root.parent / rel
         p.parent.mkdir(parents=True, exist_ok=True)
         p.write_text("not a model folder\n")
+
     return setup
 
 
@@ -23,30 +24,64 @@ def _set_white_level(value: str):
     def setup(root: Path):
         p = root / "session.toml"
         p.write_text(re.sub(r"(?m)^white_level = .*$", f"white_level = {value}", p.read_text()))
+
     return setup
 
 
 CASES = [
-    Case("out-is-a-file", ("build", "{S}", "--out", "{T}/model.txt"), 2,
-         r"--out .*model.txt: is an existing file, expected a model folder", setup=_make_file("model.txt")),
-    Case("out-is-the-session", ("build", "{S}", "--out", "{S}"), 2,
-         r"--out .*S: is the session folder"),
-    Case("out-inside-the-session", ("build", "{S}", "--out", "{S}/model"), 2,
-         r"--out .*S/model: is inside the session folder", must_not_exist=("{S}/model",)),
-    Case("out-contains-the-session", ("build", "{S}", "--out", "{T}"), 2,
-         r"contains the session folder"),
-    Case("session-missing", ("build", "{T}/nosuch", "--out", "{T}/m"), 2, r"nosuch: no such session folder",
-         must_not_exist=("{T}/m",)),
-    Case("white-level-text", ("build", "{S}", "--out", "{T}/m", "--no-pictures"), 4,
-         r"session.toml: \[session\] white_level = \"bright\", expected a finite number > 0",
-         setup=_set_white_level('"bright"'), must_not_exist=("{T}/m/model.toml",)),
-    Case("white-level-zero", ("build", "{S}", "--out", "{T}/m", "--no-pictures"), 4,
-         r"session.toml: \[session\] white_level = 0, expected a finite number > 0",
-         setup=_set_white_level("0"), must_not_exist=("{T}/m/model.toml",)),
-    Case("bounds-not-numbers", ("build", "{S}", "--out", "{T}/m", "--bounds", "a,b"), 2,
-         r"--bounds 'a,b': expected six numbers", must_not_exist=("{T}/m",)),
-    Case("refine-unknown", ("build", "{S}", "--out", "{T}/m", "--refine", "deep"), 2,
-         r"--refine 'deep': expected shading, surfels or none", must_not_exist=("{T}/m",)),
+    Case(
+        "out-is-a-file",
+        ("build", "{S}", "--out", "{T}/model.txt"),
+        2,
+        r"--out .*model.txt: is an existing file, expected a model folder",
+        setup=_make_file("model.txt"),
+    ),
+    Case("out-is-the-session", ("build", "{S}", "--out", "{S}"), 2, r"--out .*S: is the session folder"),
+    Case(
+        "out-inside-the-session",
+        ("build", "{S}", "--out", "{S}/model"),
+        2,
+        r"--out .*S/model: is inside the session folder",
+        must_not_exist=("{S}/model",),
+    ),
+    Case("out-contains-the-session", ("build", "{S}", "--out", "{T}"), 2, r"contains the session folder"),
+    Case(
+        "session-missing",
+        ("build", "{T}/nosuch", "--out", "{T}/m"),
+        2,
+        r"nosuch: no such session folder",
+        must_not_exist=("{T}/m",),
+    ),
+    Case(
+        "white-level-text",
+        ("build", "{S}", "--out", "{T}/m", "--no-pictures"),
+        4,
+        r"session.toml: \[session\] white_level = \"bright\", expected a finite number > 0",
+        setup=_set_white_level('"bright"'),
+        must_not_exist=("{T}/m/model.toml",),
+    ),
+    Case(
+        "white-level-zero",
+        ("build", "{S}", "--out", "{T}/m", "--no-pictures"),
+        4,
+        r"session.toml: \[session\] white_level = 0, expected a finite number > 0",
+        setup=_set_white_level("0"),
+        must_not_exist=("{T}/m/model.toml",),
+    ),
+    Case(
+        "bounds-not-numbers",
+        ("build", "{S}", "--out", "{T}/m", "--bounds", "a,b"),
+        2,
+        r"--bounds 'a,b': expected six numbers",
+        must_not_exist=("{T}/m",),
+    ),
+    Case(
+        "refine-unknown",
+        ("build", "{S}", "--out", "{T}/m", "--refine", "deep"),
+        2,
+        r"--refine 'deep': expected shading, surfels or none",
+        must_not_exist=("{T}/m",),
+    ),
 ]
 
 
@@ -69,8 +104,15 @@ def test_build_progress_starts_each_step_with_its_own_count(monkeypatch, session
         notes = []
 
         def summary(self):
-            return {"model": str(tmp_path / "m"), "views": 6, "surfels": 0, "seconds": {}, "metrics": {},
-                    "camera_source": "x", "backdrop_source": "y"}
+            return {
+                "model": str(tmp_path / "m"),
+                "views": 6,
+                "surfels": 0,
+                "seconds": {},
+                "metrics": {},
+                "camera_source": "x",
+                "backdrop_source": "y",
+            }
 
     def fake_build(session, out, *, config, ground_truth, progress, on_step, **_):
         on_step("matting")

@@ -26,10 +26,14 @@ def _child(out: Path, *args, hold: str | None = None):
     if hold:
         env["OPACITYHULL_TEST_HOLD_AT"] = hold
     # default dispositions: a suite started in the background inherits SIGINT/SIGHUP ignored
-    return subprocess.Popen([sys.executable, str(HERE / "capture_child.py"), str(out), *args], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, env=env,
-                            preexec_fn=lambda: [signal.signal(s, signal.SIG_DFL) for s in (signal.SIGHUP,
-                                                                                           signal.SIGTERM)])
+    return subprocess.Popen(
+        [sys.executable, str(HERE / "capture_child.py"), str(out), *args],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
+        preexec_fn=lambda: [signal.signal(s, signal.SIG_DFL) for s in (signal.SIGHUP, signal.SIGTERM)],
+    )
 
 
 @pytest.mark.parametrize("sig, code", [(signal.SIGTERM, 143), (signal.SIGHUP, 129)])

@@ -29,15 +29,26 @@ bogus = 3
 def _write(name: str, text: str):
     def setup(root):
         (root / name).write_text(text)
+
     return setup
 
 
 CASES = [
     # rich would eat "[[rig.cameras]]" / "[phases.matting]" as markup: the user saw "at least one [] entry"
-    Case("markup-double-brackets", ("capture", "--rig", "{T}/rig.toml", "--plan", "builtin:tiny", "--dry-run"), 2,
-         r"at least one \[\[.*geometry.cameras\]\] entry is required", setup=_write("rig.toml", GEOMETRY_NO_CAMERAS)),
-    Case("markup-plan-table", ("capture", "--rig", "sim:builtin:diffuse", "--plan", "{T}/plan.toml", "--dry-run"), 2,
-         r"plan.toml: \[phases.matting\]: unknown key\(s\) \['bogus'\]", setup=_write("plan.toml", PLAN_UNKNOWN_KEY)),
+    Case(
+        "markup-double-brackets",
+        ("capture", "--rig", "{T}/rig.toml", "--plan", "builtin:tiny", "--dry-run"),
+        2,
+        r"at least one \[\[.*geometry.cameras\]\] entry is required",
+        setup=_write("rig.toml", GEOMETRY_NO_CAMERAS),
+    ),
+    Case(
+        "markup-plan-table",
+        ("capture", "--rig", "sim:builtin:diffuse", "--plan", "{T}/plan.toml", "--dry-run"),
+        2,
+        r"plan.toml: \[phases.matting\]: unknown key\(s\) \['bogus'\]",
+        setup=_write("plan.toml", PLAN_UNKNOWN_KEY),
+    ),
     Case("json-bad-word", ("session", "info", "{T}/nosuch", "--json=maybe"), 2, r"(?i)json"),
 ]
 
@@ -47,8 +58,17 @@ def test_bad_cli_input(case, tmp_path):
     run_case(case, inputs={}, tmp_path=tmp_path)
 
 
-@pytest.mark.parametrize("words, is_json", [(["--json"], True), (["--json", "true"], True), (["--json=yes"], True),
-                                            (["--json", "false"], False), (["--json=0"], False), ([], False)])
+@pytest.mark.parametrize(
+    "words, is_json",
+    [
+        (["--json"], True),
+        (["--json", "true"], True),
+        (["--json=yes"], True),
+        (["--json", "false"], False),
+        (["--json=0"], False),
+        ([], False),
+    ],
+)
 def test_json_accepts_a_boolean_word(session_dir, words, is_json):
     r = invoke(["session", "info", session_dir, *words])
     assert r.exit_code == 0, r.output
@@ -120,6 +140,7 @@ def test_terminated_maps_to_128_plus_signal():
     from opacityhull.errors import Terminated
 
     for sig, code in ((signal.SIGTERM, 143), (signal.SIGHUP, 129)):
+
         @cli_errors
         def cmd():
             raise Terminated(sig)

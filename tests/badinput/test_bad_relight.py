@@ -11,22 +11,61 @@ from badkit import Case, invoke, run_case
 OUT = "{T}/relit"
 
 CASES = [
-    Case("exposure-negative", ("relight", "{M}", "--out", OUT, "--envmap", "builtin:grace", "--exposure", "-1"), 2,
-         r"--exposure -1.0: expected a multiplier > 0", must_not_exist=(OUT,)),
-    Case("exposure-zero", ("relight", "{M}", "--out", OUT, "--envmap", "builtin:grace", "--exposure", "0"), 2,
-         r"--exposure 0.0: expected a multiplier > 0", must_not_exist=(OUT,)),
-    Case("exposure-nan", ("relight", "{M}", "--out", OUT, "--envmap", "builtin:grace", "--exposure", "nan"), 2,
-         r"--exposure nan", must_not_exist=(OUT,)),
-    Case("orbit-zero", ("relight", "{M}", "--out", OUT, "--envmap", "builtin:grace", "--orbit", "0"), 2,
-         r"--orbit 0: expected at least 1 frame", must_not_exist=(OUT,)),
-    Case("model-missing", ("relight", "{T}/nosuch", "--out", OUT, "--envmap", "builtin:grace"), 2,
-         r"nosuch: no such model folder", must_not_exist=(OUT,)),
-    Case("eval-spp-zero", ("eval", "relight", "{M}", "--envmap", "builtin:grace", "--spp", "0", "--out", OUT), 2,
-         r"--spp 0: expected at least 1 sample per pixel", must_not_exist=(OUT,)),
-    Case("eval-max-views-zero", ("eval", "relight", "{M}", "--envmap", "builtin:grace", "--max-views", "0",
-                                 "--out", OUT), 2, r"--max-views 0: expected at least 1", must_not_exist=(OUT,)),
-    Case("eval-model-missing", ("eval", "relight", "{T}/nosuch", "--envmap", "builtin:grace"), 2,
-         r"nosuch: no such model folder"),
+    Case(
+        "exposure-negative",
+        ("relight", "{M}", "--out", OUT, "--envmap", "builtin:grace", "--exposure", "-1"),
+        2,
+        r"--exposure -1.0: expected a multiplier > 0",
+        must_not_exist=(OUT,),
+    ),
+    Case(
+        "exposure-zero",
+        ("relight", "{M}", "--out", OUT, "--envmap", "builtin:grace", "--exposure", "0"),
+        2,
+        r"--exposure 0.0: expected a multiplier > 0",
+        must_not_exist=(OUT,),
+    ),
+    Case(
+        "exposure-nan",
+        ("relight", "{M}", "--out", OUT, "--envmap", "builtin:grace", "--exposure", "nan"),
+        2,
+        r"--exposure nan",
+        must_not_exist=(OUT,),
+    ),
+    Case(
+        "orbit-zero",
+        ("relight", "{M}", "--out", OUT, "--envmap", "builtin:grace", "--orbit", "0"),
+        2,
+        r"--orbit 0: expected at least 1 frame",
+        must_not_exist=(OUT,),
+    ),
+    Case(
+        "model-missing",
+        ("relight", "{T}/nosuch", "--out", OUT, "--envmap", "builtin:grace"),
+        2,
+        r"nosuch: no such model folder",
+        must_not_exist=(OUT,),
+    ),
+    Case(
+        "eval-spp-zero",
+        ("eval", "relight", "{M}", "--envmap", "builtin:grace", "--spp", "0", "--out", OUT),
+        2,
+        r"--spp 0: expected at least 1 sample per pixel",
+        must_not_exist=(OUT,),
+    ),
+    Case(
+        "eval-max-views-zero",
+        ("eval", "relight", "{M}", "--envmap", "builtin:grace", "--max-views", "0", "--out", OUT),
+        2,
+        r"--max-views 0: expected at least 1",
+        must_not_exist=(OUT,),
+    ),
+    Case(
+        "eval-model-missing",
+        ("eval", "relight", "{T}/nosuch", "--envmap", "builtin:grace"),
+        2,
+        r"nosuch: no such model folder",
+    ),
 ]
 
 
@@ -35,8 +74,7 @@ def test_bad_relight_input(case, relight_model_dir, tmp_path):
     run_case(case, inputs={"M": relight_model_dir}, tmp_path=tmp_path)
 
 
-def test_eval_relight_default_out_is_outside_the_model_and_old_yaw_flag_works(relight_model_dir, tmp_path,
-                                                                              monkeypatch):
+def test_eval_relight_default_out_is_outside_the_model_and_old_yaw_flag_works(relight_model_dir, tmp_path, monkeypatch):
     import opacityhull.relight.evaluate as ev
 
     got = {}

@@ -20,30 +20,69 @@ EXAMPLE = ROOT / "examples" / "rig-emulated.toml"
 def _rig_with_url(old: str, new: str):
     def setup(root):
         (root / "rig.toml").write_text(EXAMPLE.read_text().replace(f'url = "{old}"', f'url = "{new}"', 1))
+
     return setup
 
 
 EMULATE = ("rig", "emulate", "--config", str(EXAMPLE), "--write-config", "{T}/rt.toml")
 CASES = [
-    Case("fault-unknown-kind", (*EMULATE, "--fault", "turntable:explode"), 2,
-         r"--fault turntable:explode: unknown fault 'explode' .* expected one of drop, garble",
-         must_not_exist=("{T}/rt.toml",)),
-    Case("fault-unknown-device", (*EMULATE, "--fault", "kettle:silent"), 2,
-         r"no emulated device 'kettle' .* \(emulated: turntable", must_not_exist=("{T}/rt.toml",)),
-    Case("fault-no-kind", (*EMULATE, "--fault", "turntable"), 2, r"--fault 'turntable': expected DEVICE:KIND",
-         must_not_exist=("{T}/rt.toml",)),
-    Case("fault-bad-count", (*EMULATE, "--fault", "backdrops:garble:many"), 2,
-         r"'garble:many': COUNT = 'many' is not an integer", must_not_exist=("{T}/rt.toml",)),
-    Case("fault-zero-count", (*EMULATE, "--fault", "backdrops:drop:0"), 2, r"COUNT must be > 0, got 0",
-         must_not_exist=("{T}/rt.toml",)),
-    Case("fault-too-many-args", (*EMULATE, "--fault", "turntable:silent:3"), 2, r"silent takes at most 0 argument",
-         must_not_exist=("{T}/rt.toml",)),
-    Case("url-fault-unknown", ("rig", "emulate", "--config", "{T}/rig.toml", "--write-config", "{T}/rt.toml"), 2,
-         r"rig.toml: devices.backdrops.url: .*unknown fault 'fizz'",
-         setup=_rig_with_url("emulator:display", "emulator:display?fault=fizz"), must_not_exist=("{T}/rt.toml",)),
-    Case("url-query-unknown", ("rig", "check", "--config", "{T}/rig.toml"), 2,
-         r"devices.light_array.url: .*unknown query 'speed=3'",
-         setup=_rig_with_url("emulator:enttec", "emulator:enttec?speed=3")),
+    Case(
+        "fault-unknown-kind",
+        (*EMULATE, "--fault", "turntable:explode"),
+        2,
+        r"--fault turntable:explode: unknown fault 'explode' .* expected one of drop, garble",
+        must_not_exist=("{T}/rt.toml",),
+    ),
+    Case(
+        "fault-unknown-device",
+        (*EMULATE, "--fault", "kettle:silent"),
+        2,
+        r"no emulated device 'kettle' .* \(emulated: turntable",
+        must_not_exist=("{T}/rt.toml",),
+    ),
+    Case(
+        "fault-no-kind",
+        (*EMULATE, "--fault", "turntable"),
+        2,
+        r"--fault 'turntable': expected DEVICE:KIND",
+        must_not_exist=("{T}/rt.toml",),
+    ),
+    Case(
+        "fault-bad-count",
+        (*EMULATE, "--fault", "backdrops:garble:many"),
+        2,
+        r"'garble:many': COUNT = 'many' is not an integer",
+        must_not_exist=("{T}/rt.toml",),
+    ),
+    Case(
+        "fault-zero-count",
+        (*EMULATE, "--fault", "backdrops:drop:0"),
+        2,
+        r"COUNT must be > 0, got 0",
+        must_not_exist=("{T}/rt.toml",),
+    ),
+    Case(
+        "fault-too-many-args",
+        (*EMULATE, "--fault", "turntable:silent:3"),
+        2,
+        r"silent takes at most 0 argument",
+        must_not_exist=("{T}/rt.toml",),
+    ),
+    Case(
+        "url-fault-unknown",
+        ("rig", "emulate", "--config", "{T}/rig.toml", "--write-config", "{T}/rt.toml"),
+        2,
+        r"rig.toml: devices.backdrops.url: .*unknown fault 'fizz'",
+        setup=_rig_with_url("emulator:display", "emulator:display?fault=fizz"),
+        must_not_exist=("{T}/rt.toml",),
+    ),
+    Case(
+        "url-query-unknown",
+        ("rig", "check", "--config", "{T}/rig.toml"),
+        2,
+        r"devices.light_array.url: .*unknown query 'speed=3'",
+        setup=_rig_with_url("emulator:enttec", "emulator:enttec?speed=3"),
+    ),
 ]
 
 
@@ -79,8 +118,9 @@ def test_url_faults_are_applied_by_start_emulators():
         assert all(not u.startswith("emulator:") for u in emus.devices().values())
 
 
-@pytest.mark.parametrize("fault, words", [("babble:20000", "garbled — check the baud rate"),
-                                          ("silent", "not a single byte arrived")])
+@pytest.mark.parametrize(
+    "fault, words", [("babble:20000", "garbled — check the baud rate"), ("silent", "not a single byte arrived")]
+)
 @pytest.mark.parametrize("device", ["turntable", "light_array", "backdrops"])
 def test_rig_check_tells_garbled_from_silent(device, fault, words):
     from opacityhull.rigs.config import load_rig_config
@@ -125,14 +165,34 @@ def test_rig_emulate_fault_flag_end_to_end(tmp_path):
     """`rig emulate --fault turntable:silent` in one process, `rig check` in another."""
     runtime = tmp_path / "rt.toml"
     cli = [sys.executable, "-m", "opacityhull.cli"]
-    proc = subprocess.Popen([*cli, "rig", "emulate", "--config", str(EXAMPLE), "--write-config", str(runtime), "--json",
-                             "--fault", "turntable:silent"], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            cwd=ROOT)
+    proc = subprocess.Popen(
+        [
+            *cli,
+            "rig",
+            "emulate",
+            "--config",
+            str(EXAMPLE),
+            "--write-config",
+            str(runtime),
+            "--json",
+            "--fault",
+            "turntable:silent",
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=ROOT,
+    )
     try:
         info = json.loads(proc.stdout.readline())
         assert info["faults"] == {"turntable": ["silent"]}
-        r = subprocess.run([*cli, "rig", "check", "--config", str(runtime), "--timeout", "0.2", "--json"],
-                           capture_output=True, text=True, cwd=ROOT, timeout=60)
+        r = subprocess.run(
+            [*cli, "rig", "check", "--config", str(runtime), "--timeout", "0.2", "--json"],
+            capture_output=True,
+            text=True,
+            cwd=ROOT,
+            timeout=60,
+        )
         assert r.returncode == 3, r.stderr
         by = {d["name"]: d for d in json.loads(r.stdout)["devices"]}
         assert not by["turntable"]["ok"] and "silent" in by["turntable"]["detail"]

@@ -21,6 +21,7 @@ def _set_session_key(key: str, value: str):
         if n == 0:
             text = text.replace("[session]\n", f"[session]\n{key} = {value}\n", 1)
         p.write_text(text)
+
     return setup
 
 
@@ -32,33 +33,73 @@ def _edit_record(index: int, **changes):
         d.update(changes)
         lines[index] = json.dumps(d)
         p.write_text("\n".join(lines) + "\n")
+
     return setup
 
 
 CASES = [
     Case("verify-missing-folder", ("session", "verify", "{T}/nosuch"), 2, r"nosuch: no such session folder"),
     Case("info-missing-folder", ("session", "info", "{T}/nosuch", "--json"), 2, r"nosuch: no such session folder"),
-    Case("verify-a-file", ("session", "verify", "{S}/session.toml"), 2,
-         r"session.toml is a file, expected a session folder"),
-    Case("verify-table-deg-not-a-number", ("session", "verify", "{S}"), 4,
-         r"NOT OK.*invalid records 1.*manifest.jsonl:3: record .*table_deg = \"ninety\", expected a finite number",
-         setup=_edit_record(2, table_deg="ninety")),
-    Case("verify-camera-negative", ("session", "verify", "{S}"), 4, r"camera = -1, expected an integer >= 0",
-         setup=_edit_record(0, camera=-1)),
-    Case("verify-phase-unknown", ("session", "verify", "{S}"), 4, r"phase = \"nosuch\", expected one of calibration",
-         setup=_edit_record(1, phase="nosuch")),
-    Case("verify-white-level-text", ("session", "verify", "{S}"), 4,
-         r"session.toml: \[session\] white_level = \"bright\", expected a finite number > 0",
-         setup=_set_session_key("white_level", '"bright"')),
-    Case("info-white-level-zero", ("session", "info", "{S}"), 4,
-         r"session.toml: \[session\] white_level = 0, expected a finite number > 0",
-         setup=_set_session_key("white_level", "0")),
-    Case("hdr-unknown-phase", ("session", "hdr", "{S}", "--phase", "nosuch"), 2,
-         r"--phase 'nosuch': not a phase; expected one of calibration"),
-    Case("hdr-absent-phase", ("session", "hdr", "{S}", "--phase", "envmatte"), 2,
-         r"--phase 'envmatte': .* has no images of that phase"),
-    Case("hdr-white-level-text", ("session", "hdr", "{S}"), 4, r"white_level = \"bright\"",
-         setup=_set_session_key("white_level", '"bright"')),
+    Case(
+        "verify-a-file",
+        ("session", "verify", "{S}/session.toml"),
+        2,
+        r"session.toml is a file, expected a session folder",
+    ),
+    Case(
+        "verify-table-deg-not-a-number",
+        ("session", "verify", "{S}"),
+        4,
+        r"NOT OK.*invalid records 1.*manifest.jsonl:3: record .*table_deg = \"ninety\", expected a finite number",
+        setup=_edit_record(2, table_deg="ninety"),
+    ),
+    Case(
+        "verify-camera-negative",
+        ("session", "verify", "{S}"),
+        4,
+        r"camera = -1, expected an integer >= 0",
+        setup=_edit_record(0, camera=-1),
+    ),
+    Case(
+        "verify-phase-unknown",
+        ("session", "verify", "{S}"),
+        4,
+        r"phase = \"nosuch\", expected one of calibration",
+        setup=_edit_record(1, phase="nosuch"),
+    ),
+    Case(
+        "verify-white-level-text",
+        ("session", "verify", "{S}"),
+        4,
+        r"session.toml: \[session\] white_level = \"bright\", expected a finite number > 0",
+        setup=_set_session_key("white_level", '"bright"'),
+    ),
+    Case(
+        "info-white-level-zero",
+        ("session", "info", "{S}"),
+        4,
+        r"session.toml: \[session\] white_level = 0, expected a finite number > 0",
+        setup=_set_session_key("white_level", "0"),
+    ),
+    Case(
+        "hdr-unknown-phase",
+        ("session", "hdr", "{S}", "--phase", "nosuch"),
+        2,
+        r"--phase 'nosuch': not a phase; expected one of calibration",
+    ),
+    Case(
+        "hdr-absent-phase",
+        ("session", "hdr", "{S}", "--phase", "envmatte"),
+        2,
+        r"--phase 'envmatte': .* has no images of that phase",
+    ),
+    Case(
+        "hdr-white-level-text",
+        ("session", "hdr", "{S}"),
+        4,
+        r"white_level = \"bright\"",
+        setup=_set_session_key("white_level", '"bright"'),
+    ),
 ]
 
 

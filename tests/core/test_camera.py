@@ -28,7 +28,9 @@ from opacityhull.errors import FormatError, InputError, ShapeError
 
 def make_cam(dist=(0, 0, 0, 0, 0), eye=(0.3, 0.4, 1.0), fx=300.0, fy=300.0, name="c"):
     K = np.array([[fx, 0, 79.3], [0, fy, 61.7], [0, 0, 1]])
-    return Camera(K=K, width=160, height=120, dist=dist, world_from_cam=look_at_world_from_cam(eye, (0, 0.05, 0)), name=name)
+    return Camera(
+        K=K, width=160, height=120, dist=dist, world_from_cam=look_at_world_from_cam(eye, (0, 0.05, 0)), name=name
+    )
 
 
 def test_project_matches_opencv_with_distortion():
@@ -74,7 +76,7 @@ def test_supersampled_rays_are_stratified_and_pixel_major():
     assert d.shape == (120 * 160 * 4, 3)
     # samples 4k..4k+3 belong to pixel k (row-major); sample (i, j) is at (u + offs[j], v + offs[i])
     k = 91 * 160 + 37
-    uv, _ = cam.project(o + 0.8 * d[4 * k: 4 * k + 4])
+    uv, _ = cam.project(o + 0.8 * d[4 * k : 4 * k + 4])
     np.testing.assert_allclose(uv, [[36.75, 90.75], [37.25, 90.75], [36.75, 91.25], [37.25, 91.25]], atol=1e-6)
     np.testing.assert_allclose(cam.supersampled_rays(1)[1], cam.pixel_rays()[1].reshape(-1, 3), atol=1e-12)
 
@@ -118,7 +120,10 @@ def test_scaled_camera_projects_consistently():
 def test_colmap_roundtrip_and_pycolmap_agrees(tmp_path, dist):
     import pycolmap
 
-    cams = [make_cam(dist=dist, eye=(0.5 * math.sin(a), 0.3, 0.5 * math.cos(a)), name=f"v{i}") for i, a in enumerate([0, 1, 2])]
+    cams = [
+        make_cam(dist=dist, eye=(0.5 * math.sin(a), 0.3, 0.5 * math.cos(a)), name=f"v{i}")
+        for i, a in enumerate([0, 1, 2])
+    ]
     write_colmap_text(tmp_path, cams, share_intrinsics=[0, 0, 0], points3d=np.zeros((1, 3)))
     back = dict(read_colmap_text(tmp_path))
     for c in cams:
@@ -185,8 +190,12 @@ def test_nerfstudio_matrix_is_opengl_convention():
 
 @settings(max_examples=40, deadline=None)
 @given(
-    st.floats(-0.3, 0.3), st.floats(-0.1, 0.1), st.floats(-0.005, 0.005), st.floats(-0.005, 0.005),
-    st.floats(-0.9, 0.9), st.floats(-0.9, 0.9),
+    st.floats(-0.3, 0.3),
+    st.floats(-0.1, 0.1),
+    st.floats(-0.005, 0.005),
+    st.floats(-0.005, 0.005),
+    st.floats(-0.9, 0.9),
+    st.floats(-0.9, 0.9),
 )
 def test_undistort_inverts_distort(k1, k2, p1, p2, x, y):
     cam = make_cam(dist=(k1, k2, p1, p2, 0.0))

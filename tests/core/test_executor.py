@@ -13,8 +13,7 @@ import numpy as np
 import pytest
 
 from opacityhull.errors import FormatError, InputError
-from opacityhull.executor import (WorkerLost, always_die, die_once, open_executor, parse_scheduler,
-                                  worker_info)
+from opacityhull.executor import WorkerLost, always_die, die_once, open_executor, parse_scheduler, worker_info
 
 distributed = pytest.importorskip("distributed")
 
@@ -27,8 +26,9 @@ def cluster():
     from distributed import LocalCluster
 
     with dask.config.set({"distributed.scheduler.allowed-failures": 1}):
-        lc = LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
-                          dashboard_address=None, silence_logs=40)
+        lc = LocalCluster(
+            n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1", dashboard_address=None, silence_logs=40
+        )
         try:
             yield lc.scheduler_address
         finally:
@@ -59,8 +59,9 @@ def session(tmp_path_factory):
     from opacityhull.acquire.synthetic import SyntheticSessionConfig, write_synthetic_session
 
     root = tmp_path_factory.mktemp("exec") / "session"
-    write_synthetic_session(root, SyntheticSessionConfig(n_cameras=2, n_table=3, width_px=48, height_px=36,
-                                                          noise=0.002, groundtruth=True))
+    write_synthetic_session(
+        root, SyntheticSessionConfig(n_cameras=2, n_table=3, width_px=48, height_px=36, noise=0.002, groundtruth=True)
+    )
     return root
 
 
@@ -126,8 +127,10 @@ def test_task_errors_keep_their_type_and_message(scheduler, executor, session):
     every scheduler: the worker's exception is re-raised, not wrapped or swallowed."""
     from opacityhull.reconstruct.perview import ViewTask, matte_view
 
-    tasks = [ViewTask(session_dir=str(session), camera=0, table_deg=0.0),
-             ViewTask(session_dir=str(session), camera=1, table_deg=7.0)]
+    tasks = [
+        ViewTask(session_dir=str(session), camera=0, table_deg=0.0),
+        ViewTask(session_dir=str(session), camera=1, table_deg=7.0),
+    ]
     with pytest.raises(FormatError, match=r"c1_t007\.000"):
         executor.map(matte_view, tasks)
 

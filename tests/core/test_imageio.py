@@ -63,7 +63,10 @@ def test_exr_noncontiguous_input_written_correctly(tmp_path):
 
 
 def test_exr_layers_roundtrip(tmp_path):
-    layers = {"a000p000_l0": RNG.random((5, 6, 3)).astype(np.float32), "a045p000_l1": RNG.random((5, 6, 3)).astype(np.float32)}
+    layers = {
+        "a000p000_l0": RNG.random((5, 6, 3)).astype(np.float32),
+        "a045p000_l1": RNG.random((5, 6, 3)).astype(np.float32),
+    }
     write_exr_layers(tmp_path / "r.exr", layers)
     back = read_exr_layers(tmp_path / "r.exr")
     assert set(back) == set(layers)

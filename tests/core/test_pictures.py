@@ -147,8 +147,12 @@ def test_contact_sheet_labels_headers_colorbar():
     assert lab.shape == plain.shape
     assert (lab[2:8, 2:62] != 200).any()  # band darkened / text drawn on tile 0
     np.testing.assert_array_equal(lab[2:42, 64:124], plain[2:42, 64:124])  # tile 1 unlabelled
-    full = contact_sheet(tiles, columns=3, headers=["photo", "render", "error"],
-                         colorbar=ColorBar(cmap="inferno", vmin=0.0, vmax=0.25, label="|d| x4"))
+    full = contact_sheet(
+        tiles,
+        columns=3,
+        headers=["photo", "render", "error"],
+        colorbar=ColorBar(cmap="inferno", vmin=0.0, vmax=0.25, label="|d| x4"),
+    )
     assert full.shape[1] == plain.shape[1] and full.shape[0] > plain.shape[0] + 20
     top = full.shape[0] - plain.shape[0]
     # the header strip carries white text over each column
@@ -158,8 +162,9 @@ def test_contact_sheet_labels_headers_colorbar():
     # the colour bar ramps from inferno(0) to inferno(1) across the bottom strip
     import matplotlib
 
-    row = next(y for y in range(full.shape[0] - 1, 0, -1)
-               if (full[y, 6] == heat(np.zeros((1, 1)), vmax=1.0)[0, 0]).all())
+    row = next(
+        y for y in range(full.shape[0] - 1, 0, -1) if (full[y, 6] == heat(np.zeros((1, 1)), vmax=1.0)[0, 0]).all()
+    )
     right = full[row, full.shape[1] - 7]
     np.testing.assert_array_equal(right, np.round(np.asarray(matplotlib.colormaps["inferno"](1.0)[:3]) * 255))
 

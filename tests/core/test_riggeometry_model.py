@@ -28,10 +28,23 @@ GEOM = {
     ],
     "lights": [{"id": i, "elevation_deg": 40.0 + 10 * i, "azimuth_deg": 0.0, "distance_m": 1.2} for i in range(4)],
     "displays": [
-        {"name": "bottom", "centre_m": [0, 0, 0], "normal": [0, 1, 0], "up": [0, 0, -1], "size_m": [0.6, 0.6],
-         "resolution": [32, 32], "rotates_with_table": True},
-        {"name": "back", "centre_m": [0, 0.2, -0.35], "normal": [0, 0, 1], "up": [0, 1, 0], "size_m": [0.8, 0.45],
-         "resolution": [64, 36]},
+        {
+            "name": "bottom",
+            "centre_m": [0, 0, 0],
+            "normal": [0, 1, 0],
+            "up": [0, 0, -1],
+            "size_m": [0.6, 0.6],
+            "resolution": [32, 32],
+            "rotates_with_table": True,
+        },
+        {
+            "name": "back",
+            "centre_m": [0, 0.2, -0.35],
+            "normal": [0, 0, 1],
+            "up": [0, 1, 0],
+            "size_m": [0.8, 0.45],
+            "resolution": [64, 36],
+        },
     ],
 }
 
@@ -128,15 +141,24 @@ def test_surfels_ply_roundtrip_keeps_visibility_bits(tmp_path):
 def test_model_roundtrip(tmp_path):
     g = RigGeometry.from_dict(GEOM)
     cams = g.nominal_cameras()
-    views = [ViewInfo(i, view_id(c, a), c, a, g.view_camera(cams[c], a, view_id(c, a)))
-             for i, (c, a) in enumerate([(0, 0.0), (1, 0.0), (0, 90.0)])]
+    views = [
+        ViewInfo(i, view_id(c, a), c, a, g.view_camera(cams[c], a, view_id(c, a)))
+        for i, (c, a) in enumerate([(0, 0.0), (1, 0.0), (0, 90.0)])
+    ]
     rng = np.random.default_rng(3)
     rgba = [rng.random((48, 64, 4)).astype(np.float32) for _ in views]
     lights = [LightSample(light_key(lt, b), lt, b) for lt in range(2) for b in (0.0, 22.5)]
     refl = {i: {L.key: rng.random((48, 64, 3)).astype(np.float32) for L in lights} for i in range(3)}
     s = _surfels(v=3)
-    write_model(tmp_path / "m", views=views, surfels=s, view_rgba=rgba, rig=g.to_dict(),
-                provenance={"session": "x"}, reflectance={"lights": lights, "images": lambda i: refl[i]})
+    write_model(
+        tmp_path / "m",
+        views=views,
+        surfels=s,
+        view_rgba=rgba,
+        rig=g.to_dict(),
+        provenance={"session": "x"},
+        reflectance={"lights": lights, "images": lambda i: refl[i]},
+    )
     m = OpacityHullModel.open(tmp_path / "m")
     assert [v.id for v in m.views] == [v.id for v in views]
     for v, w in zip(m.views, views):
@@ -159,8 +181,10 @@ def test_model_roundtrip(tmp_path):
 def _small_model(tmp_path, *, alpha_zero_corner=True):
     g = RigGeometry.from_dict(GEOM)
     cams = g.nominal_cameras()
-    views = [ViewInfo(i, view_id(c, a), c, a, g.view_camera(cams[c], a, view_id(c, a)))
-             for i, (c, a) in enumerate([(0, 0.0), (1, 135.0)])]
+    views = [
+        ViewInfo(i, view_id(c, a), c, a, g.view_camera(cams[c], a, view_id(c, a)))
+        for i, (c, a) in enumerate([(0, 0.0), (1, 135.0)])
+    ]
     rng = np.random.default_rng(5)
     rgba = [rng.random((48, 64, 4)).astype(np.float32) for _ in views]
     if alpha_zero_corner:
@@ -168,8 +192,14 @@ def _small_model(tmp_path, *, alpha_zero_corner=True):
             a[:4, :4, 3] = 0.0  # straight colour there is undefined
     lights = [LightSample(light_key(lt, b), lt, b) for lt in (1, 3) for b in (0.0, 40.0)]
     refl = {i: {L.key: rng.random((48, 64, 3)).astype(np.float32) for L in lights} for i in range(2)}
-    write_model(tmp_path / "m", views=views, surfels=_surfels(v=2), view_rgba=rgba, rig=g.to_dict(),
-                reflectance={"lights": lights, "images": lambda i: refl[i]})
+    write_model(
+        tmp_path / "m",
+        views=views,
+        surfels=_surfels(v=2),
+        view_rgba=rgba,
+        rig=g.to_dict(),
+        reflectance={"lights": lights, "images": lambda i: refl[i]},
+    )
     return tmp_path / "m", g, views, rgba, lights
 
 
@@ -212,8 +242,9 @@ def test_reflectance_layers_carry_their_light(tmp_path):
         # the direction relight uses for this view (table 135 deg): object frame, b - a matters
         np.testing.assert_allclose(d, m.light_direction(1, L), atol=1e-6)
         np.testing.assert_allclose(d, g.light_direction_object(L.light_id, 0.0, L.array_deg - 135.0), atol=1e-6)
-        np.testing.assert_allclose(np.asarray(h[f"{L.key}.lightPosition"]),
-                                   g.light_position_object(L.light_id, 135.0, L.array_deg), atol=1e-6)
+        np.testing.assert_allclose(
+            np.asarray(h[f"{L.key}.lightPosition"]), g.light_position_object(L.light_id, 135.0, L.array_deg), atol=1e-6
+        )
         assert h[f"{L.key}.lightId"] == L.light_id and h[f"{L.key}.arrayAngleDeg"] == L.array_deg
         assert h[f"{L.key}.lightIntensity"] == pytest.approx(1.0)
     meta = m.reflectance_metadata(0)
@@ -246,8 +277,13 @@ def test_model_missing_light_named(tmp_path):
     g = RigGeometry.from_dict(GEOM)
     cam = g.view_camera(g.nominal_cameras()[0], 0.0, "c0_t000.000")
     lights = [LightSample(light_key(0, 0.0), 0, 0.0)]
-    write_model(tmp_path / "m", views=[ViewInfo(0, "c0_t000.000", 0, 0.0, cam)], surfels=_surfels(v=1), rig=g.to_dict(),
-                reflectance={"lights": lights, "images": lambda i: {lights[0].key: np.zeros((48, 64, 3), np.float32)}})
+    write_model(
+        tmp_path / "m",
+        views=[ViewInfo(0, "c0_t000.000", 0, 0.0, cam)],
+        surfels=_surfels(v=1),
+        rig=g.to_dict(),
+        reflectance={"lights": lights, "images": lambda i: {lights[0].key: np.zeros((48, 64, 3), np.float32)}},
+    )
     import tomllib
 
     from opacityhull.session import toml_dumps

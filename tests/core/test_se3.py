@@ -45,8 +45,9 @@ def test_rotation_angle_is_accurate_near_0_and_180(angle_deg):
 
 def test_axis_rotation_is_right_handed():
     # +90 deg about +Y turns +Z towards +X (the rig's table convention).
-    np.testing.assert_allclose(se3.axis_rotation([0.0, 1.0, 0.0], math.pi / 2) @ [0.0, 0.0, 1.0],
-                               [1.0, 0.0, 0.0], atol=1e-15)
+    np.testing.assert_allclose(
+        se3.axis_rotation([0.0, 1.0, 0.0], math.pi / 2) @ [0.0, 0.0, 1.0], [1.0, 0.0, 0.0], atol=1e-15
+    )
 
 
 def test_project_to_so3_fixes_reflections_and_noise():
@@ -73,5 +74,6 @@ def test_mean_pose_of_identical_and_symmetric_poses():
 
 
 def test_wrap_deg():
-    np.testing.assert_array_equal(se3.wrap_deg([-180.0, 180.0, 190.0, -190.0, 359.0, 0.0]),
-                                  [-180.0, -180.0, -170.0, 170.0, -1.0, 0.0])
+    np.testing.assert_array_equal(
+        se3.wrap_deg([-180.0, 180.0, 190.0, -190.0, 359.0, 0.0]), [-180.0, -180.0, -170.0, 170.0, -1.0, 0.0]
+    )

@@ -14,10 +14,13 @@ def test_read_toml_parses(tmp_path):
     assert read_toml(p) == {"x": 1, "t": {"y": "z"}}
 
 
-@pytest.mark.parametrize("content,match", [
-    (b"x = = 1\n", "invalid TOML"),
-    (b"x = \"\xff\xfe\"\n", "not a text file"),
-])
+@pytest.mark.parametrize(
+    "content,match",
+    [
+        (b"x = = 1\n", "invalid TOML"),
+        (b'x = "\xff\xfe"\n', "not a text file"),
+    ],
+)
 def test_read_toml_bad_content_names_file(tmp_path, content, match):
     p = tmp_path / "bad.toml"
     p.write_bytes(content)

@@ -44,7 +44,9 @@ def test_build_json_summary_and_files(session):
     p = run("build", session / "session", "--out", out, "--hull-res", 48, "--ground-truth", "--json")
     s = json.loads(p.stdout)
     assert s["views"] == 12 and s["surfels"] > 500
-    assert set(s["seconds"]) >= {"cameras", "matting", "silhouettes", "hull", "surfels", "visibility", "views"} - {"views"}
+    assert set(s["seconds"]) >= {"cameras", "matting", "silhouettes", "hull", "surfels", "visibility", "views"} - {
+        "views"
+    }
     assert s["metrics"]["alpha_mae"] < 0.01 and s["metrics"]["hull_object_in_hull"] > 0.999
     assert "build" in p.stderr  # progress went to stderr
     m = OpacityHullModel.open(out)
@@ -87,8 +89,18 @@ def test_imported_colmap_set_builds_without_calibration(tmp_path):
             cams.append(cam)
             names.append(name)
     write_colmap_text(tmp_path / "colmap", cams, names)
-    run("import", "colmap", "--model", tmp_path / "colmap", "--images", tmp_path / "images", "--masks",
-        tmp_path / "masks", "--out", tmp_path / "session")
+    run(
+        "import",
+        "colmap",
+        "--model",
+        tmp_path / "colmap",
+        "--images",
+        tmp_path / "images",
+        "--masks",
+        tmp_path / "masks",
+        "--out",
+        tmp_path / "session",
+    )
     p = run("build", tmp_path / "session", "--out", tmp_path / "model", "--hull-res", 48, "--json")
     s = json.loads(p.stdout)
     assert s["views"] == 12

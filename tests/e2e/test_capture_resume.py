@@ -40,9 +40,14 @@ def _default_sigint() -> None:
 
 
 def _start(out: Path, *extra) -> subprocess.Popen:
-    return subprocess.Popen(_cli("capture", "--rig", RIG, "--plan", PLAN, "--out", str(out), "--json", *extra),
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-                            env=dict(os.environ, PYTHONUNBUFFERED="1"), preexec_fn=_default_sigint)
+    return subprocess.Popen(
+        _cli("capture", "--rig", RIG, "--plan", PLAN, "--out", str(out), "--json", *extra),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=dict(os.environ, PYTHONUNBUFFERED="1"),
+        preexec_fn=_default_sigint,
+    )
 
 
 def _signal_after(proc: subprocess.Popen, out: Path, n_images: int, sig, deadline_s: float = 240.0) -> None:
@@ -59,8 +64,12 @@ def _signal_after(proc: subprocess.Popen, out: Path, n_images: int, sig, deadlin
 
 
 def test_capture_interrupt_kill_resume_verify(tmp_path):
-    dry = subprocess.run(_cli("capture", "--rig", RIG, "--plan", PLAN, "--dry-run", "--json"), capture_output=True,
-                         text=True, timeout=120)
+    dry = subprocess.run(
+        _cli("capture", "--rig", RIG, "--plan", PLAN, "--dry-run", "--json"),
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert dry.returncode == 0, dry.stderr
     planned = json.loads(dry.stdout)["planned_per_phase"]
     total = sum(planned.values())

@@ -126,8 +126,14 @@ def test_points_ply_colour_alpha_normals(diffuse_model, tmp_path):
     got = np.stack([v["red"], v["green"], v["blue"]], 1) / 255.0
     # surfels some view sees within 60° of the normal (the rest only appear on silhouettes)
     vis = m.surfels.visible_bool()
-    cos = np.stack([((v_.camera.centre_world - xyz) * m.surfels.normals).sum(1)
-                    / np.linalg.norm(v_.camera.centre_world - xyz, axis=1) for v_ in m.views], 1)
+    cos = np.stack(
+        [
+            ((v_.camera.centre_world - xyz) * m.surfels.normals).sum(1)
+            / np.linalg.norm(v_.camera.centre_world - xyz, axis=1)
+            for v_ in m.views
+        ],
+        1,
+    )
     well = np.max(np.where(vis, cos, -1), axis=1) > 0.5
     assert well.mean() > 0.8
     assert np.percentile(np.abs(got - exp)[well], 95) < 0.03
@@ -143,8 +149,11 @@ def test_splats_ply_3dgs_layout(glossy_model, tmp_path):
     v = PlyData.read(str(tmp_path / "p" / "splats.ply"))["vertex"].data
     names = v.dtype.names
     # the property list 3DGS's load_ply reads, degree 3: 45 rest coefficients
-    expect = ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"] + [f"f_rest_{i}" for i in range(45)] + \
-        ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
+    expect = (
+        ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
+        + [f"f_rest_{i}" for i in range(45)]
+        + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
+    )
     assert list(names) == expect
     assert all(v[n].dtype == np.float32 for n in names)
     q = np.stack([v[f"rot_{i}"] for i in range(4)], 1).astype(np.float64)  # w, x, y, z
@@ -231,13 +240,19 @@ def test_bad_input(diffuse_model, tmp_path):
 def test_cli_exit_codes(diffuse_model, tmp_path):
     root, _ = diffuse_model
     exe = [sys.executable, "-m", "opacityhull.cli", "export"]
-    r = subprocess.run(exe + [str(tmp_path / "nomodel"), "--format", "ply", "--out", str(tmp_path / "o")],
-                       capture_output=True, text=True)
+    r = subprocess.run(
+        exe + [str(tmp_path / "nomodel"), "--format", "ply", "--out", str(tmp_path / "o")],
+        capture_output=True,
+        text=True,
+    )
     assert r.returncode == 4 and "model.toml" in r.stderr and "Traceback" not in r.stderr
-    r = subprocess.run(exe + [str(root), "--format", "obj", "--out", str(tmp_path / "o")], capture_output=True, text=True)
+    r = subprocess.run(
+        exe + [str(root), "--format", "obj", "--out", str(tmp_path / "o")], capture_output=True, text=True
+    )
     assert r.returncode == 2 and "--format" in r.stderr
-    r = subprocess.run(exe + [str(root), "--format", "opencv", "--out", str(tmp_path / "o"), "--json"],
-                       capture_output=True, text=True)
+    r = subprocess.run(
+        exe + [str(root), "--format", "opencv", "--out", str(tmp_path / "o"), "--json"], capture_output=True, text=True
+    )
     assert r.returncode == 0, r.stderr
     summary = json.loads(r.stdout)
     assert summary["format"] == "opencv" and summary["cameras"] == 3

@@ -34,18 +34,46 @@ HALO_ALPHA = 0.35
 
 def rig_dict(n_cams=3, width=64, height=48, *, fov_y_deg=20.0, distance_m=0.8, elevations=(15.0, 55.0)):
     els = np.linspace(elevations[0], elevations[1], n_cams)
-    cams = [{"name": f"cam{i}", "width": width, "height": height, "distance_m": distance_m,
-             "elevation_deg": float(e), "azimuth_deg": 0.0, "fov_y_deg": fov_y_deg} for i, e in enumerate(els)]
+    cams = [
+        {
+            "name": f"cam{i}",
+            "width": width,
+            "height": height,
+            "distance_m": distance_m,
+            "elevation_deg": float(e),
+            "azimuth_deg": 0.0,
+            "fov_y_deg": fov_y_deg,
+        }
+        for i, e in enumerate(els)
+    ]
     return {
         "target_m": [0.0, 0.06, 0.0],
         "cameras": cams,
-        "lights": [{"id": 0, "elevation_deg": 40.0, "azimuth_deg": 90.0, "distance_m": 1.0},
-                   {"id": 1, "elevation_deg": 70.0, "azimuth_deg": -60.0, "distance_m": 1.0}],
+        "lights": [
+            {"id": 0, "elevation_deg": 40.0, "azimuth_deg": 90.0, "distance_m": 1.0},
+            {"id": 1, "elevation_deg": 70.0, "azimuth_deg": -60.0, "distance_m": 1.0},
+        ],
         "displays": [
-            {"name": "bottom", "centre_m": [0.0, 0.0, 0.0], "normal": [0.0, 1.0, 0.0], "up": [0.0, 0.0, -1.0],
-             "size_m": [1.0, 1.0], "resolution": [32, 32], "rotates_with_table": True, "max_radiance": 1.0},
-            {"name": "back", "centre_m": [0.0, 0.28, -0.4], "normal": [0.0, 0.0, 1.0], "up": [0.0, 1.0, 0.0],
-             "size_m": [1.0, 0.56], "resolution": [32, 18], "rotates_with_table": False, "max_radiance": 1.0},
+            {
+                "name": "bottom",
+                "centre_m": [0.0, 0.0, 0.0],
+                "normal": [0.0, 1.0, 0.0],
+                "up": [0.0, 0.0, -1.0],
+                "size_m": [1.0, 1.0],
+                "resolution": [32, 32],
+                "rotates_with_table": True,
+                "max_radiance": 1.0,
+            },
+            {
+                "name": "back",
+                "centre_m": [0.0, 0.28, -0.4],
+                "normal": [0.0, 0.0, 1.0],
+                "up": [0.0, 1.0, 0.0],
+                "size_m": [1.0, 0.56],
+                "resolution": [32, 18],
+                "rotates_with_table": False,
+                "max_radiance": 1.0,
+            },
         ],
     }
 
@@ -81,8 +109,18 @@ def _display_radiance(o, d, table_deg, geo: RigGeometry, patterns: dict | None):
     return out
 
 
-def render_view(cam: Camera, table_deg: float, geo: RigGeometry, *, kind="sphere", patterns=None,
-                light_dir=None, ss=3, rays=None, hide_object=False):
+def render_view(
+    cam: Camera,
+    table_deg: float,
+    geo: RigGeometry,
+    *,
+    kind="sphere",
+    patterns=None,
+    light_dir=None,
+    ss=3,
+    rays=None,
+    hide_object=False,
+):
     """(colour (H, W, 3), alpha (H, W)) of the object in front of the displays showing
     ``patterns`` ({display: (rows, cols, 3)} or None = dark), lit by a directional
     ``light_dir`` (object frame) plus ambient (None: a fixed key light)."""
@@ -152,10 +190,31 @@ def write_ply(path, V, F):
     PlyData([PlyElement.describe(v, "vertex"), PlyElement.describe(f, "face")]).write(str(path))
 
 
-def make_session(root, *, kind="sphere", n_cams=3, n_angles=6, width=64, height=48, n_patterns=2,
-                 object_absent=True, off_shots=True, reflectance=True, cameras="yaml", noise=0.002, seed=0,
-                 ss=3, exposure_s=1.0, white_level=4.0, rms_px=0.3, hide_object_in=(), calibration_phase=False,
-                 elevations=(15.0, 55.0), board_hidden_from=(), reflectance_level=255):
+def make_session(
+    root,
+    *,
+    kind="sphere",
+    n_cams=3,
+    n_angles=6,
+    width=64,
+    height=48,
+    n_patterns=2,
+    object_absent=True,
+    off_shots=True,
+    reflectance=True,
+    cameras="yaml",
+    noise=0.002,
+    seed=0,
+    ss=3,
+    exposure_s=1.0,
+    white_level=4.0,
+    rms_px=0.3,
+    hide_object_in=(),
+    calibration_phase=False,
+    elevations=(15.0, 55.0),
+    board_hidden_from=(),
+    reflectance_level=255,
+):
     """Write a session folder; returns a dict with geometry, views, true alphas, cameras.
 
     ``cameras``: "yaml" (calibration/<cam>.yaml), "none" (no camera source at all).
@@ -175,9 +234,15 @@ def make_session(root, *, kind="sphere", n_cams=3, n_angles=6, width=64, height=
     rig_cams = geo.nominal_cameras()
     angles = [360.0 * i / n_angles for i in range(n_angles)]
     views = [(c, a) for c in range(n_cams) for a in angles]
-    meta = {"session": {"rig_source": f"synthetic:{kind}", "plan_name": "synthetic", "white_level": white_level,
-                        "seed": seed},
-            "rig": rig}
+    meta = {
+        "session": {
+            "rig_source": f"synthetic:{kind}",
+            "plan_name": "synthetic",
+            "white_level": white_level,
+            "seed": seed,
+        },
+        "rig": rig,
+    }
     if calibration_phase:
         from opacityhull.charuco import CharucoSpec
 
@@ -194,17 +259,34 @@ def make_session(root, *, kind="sphere", n_cams=3, n_angles=6, width=64, height=
         for pid, imgs in ((2 * k + 1, base), (2 * k + 2, {n: 1.0 - x for n, x in base.items()})):
             for name, img in imgs.items():
                 write_png(root / "patterns" / name / f"p{pid:03d}.png", img, linear=True)
-            pats[pid] = {d.name: read_png(root / "patterns" / d.name / f"p{pid:03d}.png", linear=True)
-                         for d in geo.displays}
+            pats[pid] = {
+                d.name: read_png(root / "patterns" / d.name / f"p{pid:03d}.png", linear=True) for d in geo.displays
+            }
     gain = 1.0
 
     def add(img, phase, c, a, **kw):
-        key = shot_key(phase, c, a, lights_deg=kw.get("lights_deg"), light=kw.get("light"),
-                       pattern=kw.get("pattern"), object_present=kw.get("object_present", True))
+        key = shot_key(
+            phase,
+            c,
+            a,
+            lights_deg=kw.get("lights_deg"),
+            light=kw.get("light"),
+            pattern=kw.get("pattern"),
+            object_present=kw.get("object_present", True),
+        )
         img = img + rng.normal(0.0, noise, img.shape).astype(np.float32)
         val = np.minimum(img * gain * exposure_s, white_level).astype(np.float32)
-        w.add_image(val, id=f"{key}/e0", shot=key, phase=phase, camera=c, table_deg=a,
-                    rel_path=f"images/{key}_e0.exr", exposure_s=exposure_s, **kw)
+        w.add_image(
+            val,
+            id=f"{key}/e0",
+            shot=key,
+            phase=phase,
+            camera=c,
+            table_deg=a,
+            rel_path=f"images/{key}_e0.exr",
+            exposure_s=exposure_s,
+            **kw,
+        )
 
     if calibration_phase:
         from opacityhull.reconstruct.calibration import render_charuco_view
@@ -215,8 +297,9 @@ def make_session(root, *, kind="sphere", n_cams=3, n_angles=6, width=64, height=
                 if c in board_hidden_from:
                     img = np.full((height, width), 0.4, np.float32)
                 else:
-                    img = render_charuco_view(cam, world_from_board=spec.object_from_board(), charuco=spec,
-                                              px_per_square=48)
+                    img = render_charuco_view(
+                        cam, world_from_board=spec.object_from_board(), charuco=spec, px_per_square=48
+                    )
                 img = np.asarray(img, np.float32)
                 if img.ndim == 2:
                     img = np.repeat(img[..., None], 3, axis=2)
@@ -243,8 +326,15 @@ def make_session(root, *, kind="sphere", n_cams=3, n_angles=6, width=64, height=
             for lid in (0, 1):
                 Ld = geo.light_direction_object(lid, a, 0.0)
                 colL, _ = render_view(cam, a, geo, patterns=None, light_dir=Ld, **kw)
-                add(colL * np.float32(reflectance_level / 255.0), "reflectance", c, a, light=lid, lights_deg=0.0,
-                    extra={"level": int(reflectance_level)})
+                add(
+                    colL * np.float32(reflectance_level / 255.0),
+                    "reflectance",
+                    c,
+                    a,
+                    light=lid,
+                    lights_deg=0.0,
+                    extra={"level": int(reflectance_level)},
+                )
     w.close()
     if cameras == "yaml":
         for cam in rig_cams:
@@ -257,8 +347,14 @@ def make_session(root, *, kind="sphere", n_cams=3, n_angles=6, width=64, height=
         write_exr(gt / "alpha" / f"{vid}.exr", al)
     V, F = uv_sphere(CENTRE, CORE_R)
     write_ply(gt / "object.ply", V, F)
-    return {"geometry": geo, "views": views, "alpha": true_alpha, "view_cameras": vcams, "rig_cameras": rig_cams,
-            "patterns": pats}
+    return {
+        "geometry": geo,
+        "views": views,
+        "alpha": true_alpha,
+        "view_cameras": vcams,
+        "rig_cameras": rig_cams,
+        "patterns": pats,
+    }
 
 
 def built_sphere(tmp_path_factory, tag: str, config, *, reflectance: bool, seed: int):

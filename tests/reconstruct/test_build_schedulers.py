@@ -59,8 +59,9 @@ def assert_same_model(a, b):
 
 
 @pytest.mark.parametrize("scheduler", ["threads", "cluster"])
-def test_build_through_a_scheduler_equals_the_serial_build_bit_for_bit(scheduler, cluster, session, serial_model,
-                                                                       tmp_path):
+def test_build_through_a_scheduler_equals_the_serial_build_bit_for_bit(
+    scheduler, cluster, session, serial_model, tmp_path
+):
     out = tmp_path / "model"
     with open_executor(cluster if scheduler == "cluster" else scheduler, workers=2) as ex:
         rep = build_model(session, out, config=CFG, executor=ex)
@@ -76,8 +77,7 @@ def test_geometry_holdout_through_the_cluster_equals_serial(cluster, serial_mode
 
     a = run_loo_holdouts(serial_model, views="every:3", holdout="geometry", out=tmp_path / "serial")
     with open_executor(cluster) as ex:
-        b = run_loo_holdouts(serial_model, views="every:3", holdout="geometry", out=tmp_path / "cluster",
-                             executor=ex)
+        b = run_loo_holdouts(serial_model, views="every:3", holdout="geometry", out=tmp_path / "cluster", executor=ex)
     assert [r["view"] for r in a["per_view"]] == [r["view"] for r in b["per_view"]]
     assert len(a["per_view"]) == 4
     for ra, rb in zip(a["per_view"], b["per_view"]):
@@ -103,9 +103,11 @@ def _invoke(argv):
 def test_an_address_that_does_not_answer_is_a_named_error(command, session, serial_model, tmp_path):
     addr = _dead_address()
     opts = ["--scheduler", addr, "--scheduler-timeout", "1.5"]
-    argv = {"build": ["build", session, "--out", tmp_path / "m", *opts],
-            "loo": ["eval", "loo", serial_model, "--holdout", "geometry", "--out", tmp_path / "loo", *opts],
-            "render": ["render", serial_model, "--out", tmp_path / "r.png", *opts]}[command]
+    argv = {
+        "build": ["build", session, "--out", tmp_path / "m", *opts],
+        "loo": ["eval", "loo", serial_model, "--holdout", "geometry", "--out", tmp_path / "loo", *opts],
+        "render": ["render", serial_model, "--out", tmp_path / "r.png", *opts],
+    }[command]
     res = _invoke(argv)
     text = " ".join(res.stderr.split())
     assert res.exit_code == 2, res.output
@@ -116,19 +118,23 @@ def test_an_address_that_does_not_answer_is_a_named_error(command, session, seri
 
 @pytest.mark.parametrize("command", ["build", "loo", "render"])
 def test_a_malformed_scheduler_is_named(command, session, serial_model, tmp_path):
-    argv = {"build": ["build", session, "--out", tmp_path / "m"],
-            "loo": ["eval", "loo", serial_model, "--out", tmp_path / "loo"],
-            "render": ["render", serial_model, "--out", tmp_path / "r.png"]}[command]
+    argv = {
+        "build": ["build", session, "--out", tmp_path / "m"],
+        "loo": ["eval", "loo", serial_model, "--out", tmp_path / "loo"],
+        "render": ["render", serial_model, "--out", tmp_path / "r.png"],
+    }[command]
     res = _invoke([*argv, "--scheduler", "tcp://nohost"])
     assert res.exit_code == 2, res.output
     assert "--scheduler 'tcp://nohost': expected serial, threads, processes or tcp://HOST:PORT" in " ".join(
-        res.stderr.split())
+        res.stderr.split()
+    )
     assert not (tmp_path / "m").exists()
 
 
 def test_a_scheduler_with_nothing_to_distribute_is_refused_not_ignored(serial_model, tmp_path):
-    res = _invoke(["eval", "loo", serial_model, "--holdout", "blend", "--out", tmp_path / "loo",
-                   "--scheduler", "threads"])
+    res = _invoke(
+        ["eval", "loo", serial_model, "--holdout", "blend", "--out", tmp_path / "loo", "--scheduler", "threads"]
+    )
     assert res.exit_code == 2, res.output
     assert "--scheduler threads: with --holdout blend there is no per-view rebuild" in " ".join(res.stderr.split())
     assert not (tmp_path / "loo").exists()

@@ -62,6 +62,7 @@ def stop_at(name):
     def on_step(step):
         if step == name:
             raise Stop(step)
+
     return on_step
 
 
@@ -105,8 +106,7 @@ def test_interrupted_after_matting_resumes_without_matting_again(session, refere
     assert_same_model(out, reference[0])
 
 
-def test_interrupted_while_writing_leaves_no_model_toml_and_resumes_the_write(session, reference, tmp_path,
-                                                                              solves):
+def test_interrupted_while_writing_leaves_no_model_toml_and_resumes_the_write(session, reference, tmp_path, solves):
     out = tmp_path / "model"
     build_model(session, out, config=CFG)
     assert (out / "model.toml").is_file()
@@ -120,8 +120,9 @@ def test_interrupted_while_writing_leaves_no_model_toml_and_resumes_the_write(se
     build_mod.write_model = boom
     try:
         with pytest.raises(Stop):
-            build_model(session, out, config=BuildConfig(hull_res=32, pictures=False, alpha_threshold=0.45),
-                        resume=True)
+            build_model(
+                session, out, config=BuildConfig(hull_res=32, pictures=False, alpha_threshold=0.45), resume=True
+            )
     finally:
         build_mod.write_model = real
     assert not (out / "model.toml").exists()
@@ -153,8 +154,12 @@ def test_a_changed_parameter_redoes_only_the_steps_it_feeds(session, tmp_path, s
     assert manifest(out)["steps"]["geometry"]["params"]["hull_res"] == 28
     from opacityhull.reconstruct.matting import MattingOptions
 
-    rep = build_model(session, out, config=BuildConfig(hull_res=28, pictures=False,
-                                                       matting=MattingOptions(max_alpha_std=0.04)), resume=True)
+    rep = build_model(
+        session,
+        out,
+        config=BuildConfig(hull_res=28, pictures=False, matting=MattingOptions(max_alpha_std=0.04)),
+        resume=True,
+    )
     assert solves["calls"] == V
     assert rep.steps["cameras"] == "reused" and rep.steps["matting"] == "ran" and rep.steps["geometry"] == "ran"
 

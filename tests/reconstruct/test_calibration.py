@@ -51,8 +51,15 @@ def geometry_dict(elevations=(40.0, 52.0, 65.0, 18.0), azimuths=(0.0, 120.0, -12
     return {
         "target_m": [0.0, 0.02, 0.0],
         "cameras": [
-            {"name": f"cam{i}", "width": W, "height": H, "distance_m": 0.5, "elevation_deg": el,
-             "azimuth_deg": az, "focal_px": focal_px}
+            {
+                "name": f"cam{i}",
+                "width": W,
+                "height": H,
+                "distance_m": 0.5,
+                "elevation_deg": el,
+                "azimuth_deg": az,
+                "focal_px": focal_px,
+            }
             for i, (el, az) in enumerate(zip(elevations, azimuths))
         ],
     }
@@ -74,8 +81,11 @@ def perturbed(nominal: list[Camera], rng, *, focal_scale=1.045, dists=None) -> l
         K[0, 0] *= focal_scale
         K[1, 1] *= focal_scale
         d = np.zeros(5) if dists is None else dists[i]
-        out.append(Camera(K=K, dist=d, width=cam.width, height=cam.height, world_from_cam=cam.world_from_cam @ dT,
-                          name=cam.name))
+        out.append(
+            Camera(
+                K=K, dist=d, width=cam.width, height=cam.height, world_from_cam=cam.world_from_cam @ dT, name=cam.name
+            )
+        )
     return out
 
 
@@ -84,8 +94,9 @@ def board_points_rig(place: CharucoSpec, table_deg: float, obj: np.ndarray, tilt
     return obj @ T[:3, :3].T + T[:3, 3]
 
 
-def exact_observations(cams, *, angles=ANGLES, sigma=0.0, rng=None, place=TRUE_PLACE, obj_from_board=None,
-                       angle_record_scale=1.0):
+def exact_observations(
+    cams, *, angles=ANGLES, sigma=0.0, rng=None, place=TRUE_PLACE, obj_from_board=None, angle_record_scale=1.0
+):
     """All 24 inner corners projected exactly (+ Gaussian noise of ``sigma`` px)."""
     obj = board_corners()
     ids = np.arange(obj.shape[0])
@@ -117,8 +128,13 @@ def rendered():
     images, obs, held = {}, [], []
     for c, cam in enumerate(true):
         for a in list(ANGLES) + (list(HELD_OUT) if c < 3 else []):
-            img = render_charuco_view(cam, world_from_board=rig_from_object(a) @ TRUE_PLACE.object_from_board(),
-                                      charuco=SPEC, noise_sigma=0.004, rng=rng)
+            img = render_charuco_view(
+                cam,
+                world_from_board=rig_from_object(a) @ TRUE_PLACE.object_from_board(),
+                charuco=SPEC,
+                noise_sigma=0.004,
+                rng=rng,
+            )
             o = detect_charuco(img, charuco=SPEC, camera=c, table_deg=a, upscale=(1, 2))
             if a in HELD_OUT:
                 held.append(o)
@@ -127,10 +143,12 @@ def rendered():
                 obs.append(o)
     sizes = [(W, H)] * len(true)
     res = calibrate_observations(obs, image_sizes=sizes, charuco=SPEC, nominal=nominal)
-    res_norefine = calibrate_observations(obs, image_sizes=sizes, charuco=SPEC, nominal=nominal,
-                                          config=CalibrationConfig(refine=False))
-    return dict(geom=geom, nominal=nominal, true=true, images=images, obs=obs, held=held, res=res,
-                res_norefine=res_norefine)
+    res_norefine = calibrate_observations(
+        obs, image_sizes=sizes, charuco=SPEC, nominal=nominal, config=CalibrationConfig(refine=False)
+    )
+    return dict(
+        geom=geom, nominal=nominal, true=true, images=images, obs=obs, held=held, res=res, res_norefine=res_norefine
+    )
 
 
 def test_detection_matches_projected_truth(rendered):
@@ -169,7 +187,12 @@ def test_rendered_calibration_recovers_rig(rendered):
     assert all("cx" in res.fixed_intrinsics[c] for c in range(4))
     assert any("principal point" in n for n in res.notes)
     s = res.summary()
-    assert s["used_views"] == len(res.used_views) and set(s["reproj_rms_px_per_camera"]) == {"cam0", "cam1", "cam2", "cam3"}
+    assert s["used_views"] == len(res.used_views) and set(s["reproj_rms_px_per_camera"]) == {
+        "cam0",
+        "cam1",
+        "cam2",
+        "cam3",
+    }
 
 
 def test_grazing_views_are_dropped_with_reasons(rendered):
@@ -205,7 +228,7 @@ def test_refinement_lowers_the_rig_model_error(rendered):
     res, base = rendered["res"], rendered["res_norefine"]
     assert base.initial_rms_px == pytest.approx(base.reproj_rms_px)
     assert res.initial_rms_px == pytest.approx(base.reproj_rms_px, rel=1e-6)
-    total = lambda r: float(np.sum(r.residuals_px ** 2))  # noqa: E731
+    total = lambda r: float(np.sum(r.residuals_px**2))  # noqa: E731
     assert total(res) < total(base)
     assert res.seconds["refine"] > 0 and "intrinsics" in res.seconds
 
@@ -234,8 +257,10 @@ def test_rig_model_beats_per_view_pnp_on_held_out_views(rendered):
             rot.append(se3.rotation_angle_deg(T[:3, :3].T @ truth[:3, :3]))
             pos.append(1000.0 * np.linalg.norm(T[:3, 3] - truth[:3, 3]))
     assert len(rot_model) >= 8
-    msg = (f"rotation: model {np.median(rot_model):.4f} vs PnP {np.median(rot_pnp):.4f} deg (median); "
-           f"position: model {np.median(pos_model):.2f} vs PnP {np.median(pos_pnp):.2f} mm")
+    msg = (
+        f"rotation: model {np.median(rot_model):.4f} vs PnP {np.median(rot_pnp):.4f} deg (median); "
+        f"position: model {np.median(pos_model):.2f} vs PnP {np.median(pos_pnp):.2f} mm"
+    )
     assert np.median(rot_model) < 0.7 * np.median(rot_pnp), msg
     assert np.mean(np.array(rot_model) < np.array(rot_pnp)) >= 0.75, msg
     assert max(pos_model) < 4.0, msg
@@ -265,12 +290,28 @@ def test_calibrate_session_reads_images_and_board(rendered, tmp_path):
             for (c, a), img in rendered["images"].items():
                 if c in cams:
                     key = shot_key("calibration", c, a)
-                    wr.add_image(img, id=key + "/e0", shot=key, phase="calibration", camera=c, table_deg=a,
-                                 rel_path=f"images/{key}.exr", exposure_s=1.0)
+                    wr.add_image(
+                        img,
+                        id=key + "/e0",
+                        shot=key,
+                        phase="calibration",
+                        camera=c,
+                        table_deg=a,
+                        rel_path=f"images/{key}.exr",
+                        exposure_s=1.0,
+                    )
             if lightfield_of is not None:
                 key = shot_key("lightfield", lightfield_of, 0.0)
-                wr.add_image(rendered["images"][(0, 0.0)], id=key + "/e0", shot=key, phase="lightfield",
-                             camera=lightfield_of, table_deg=0.0, rel_path=f"images/{key}.exr", exposure_s=1.0)
+                wr.add_image(
+                    rendered["images"][(0, 0.0)],
+                    id=key + "/e0",
+                    shot=key,
+                    phase="lightfield",
+                    camera=lightfield_of,
+                    table_deg=0.0,
+                    rel_path=f"images/{key}.exr",
+                    exposure_s=1.0,
+                )
         return Session.open(root)
 
     s = write(tmp_path / "s", {0, 1, 2}, lightfield_of=3)
@@ -279,8 +320,11 @@ def test_calibrate_session_reads_images_and_board(rendered, tmp_path):
         calibrate_session(s, config=CalibrationConfig(detect_upscale=(1,)))
     # ... unless the caller chooses to leave such a camera out (it stays nominal).
     calls = []
-    res = calibrate_session(s, progress=lambda d, t: calls.append((d, t)),
-                            config=CalibrationConfig(detect_upscale=(1, 2), skip_unusable_cameras=True))
+    res = calibrate_session(
+        s,
+        progress=lambda d, t: calls.append((d, t)),
+        config=CalibrationConfig(detect_upscale=(1, 2), skip_unusable_cameras=True),
+    )
     assert calls[-1] == (24, 24) and len(calls) >= 24  # calibration shots only
     assert res.camera_indices == (0, 1, 2) and len(res.rig_cameras) == 4
     assert "only 0 usable" in res.uncalibrated[3] and "cam3" in res.summary()["uncalibrated"]
@@ -289,8 +333,12 @@ def test_calibrate_session_reads_images_and_board(rendered, tmp_path):
     with pytest.raises(InputError, match="camera 3 was not calibrated"):
         view_cameras(res, [(3, 0.0)])
     assert pose_errors(res, rendered["true"])["cameras"] == [0, 1, 2]
-    ref = calibrate_observations([o for o in rendered["obs"] if o.camera < 3], image_sizes={c: (W, H) for c in range(3)},
-                                 charuco=SPEC, nominal=rendered["nominal"])
+    ref = calibrate_observations(
+        [o for o in rendered["obs"] if o.camera < 3],
+        image_sizes={c: (W, H) for c in range(3)},
+        charuco=SPEC,
+        nominal=rendered["nominal"],
+    )
     for a, b in zip(res.rig_cameras, ref.rig_cameras):
         np.testing.assert_allclose(a.world_from_cam, b.world_from_cam, atol=1e-7)  # same images, same fit
         np.testing.assert_allclose(a.K, b.K, rtol=1e-7)
@@ -322,8 +370,13 @@ def _n_params(res: CalibrationResult) -> int:
     n = 4  # board: two tilts, centre x, z
     for c in range(len(res.rig_cameras)):
         held = res.fixed_intrinsics[c]
-        n += 6 + (1 if "fx/fy" in held else 2) + (0 if "cx" in held else 2) + 5 - sum(
-            k in held for k in ("k1", "k2", "k3", "p1", "p2"))
+        n += (
+            6
+            + (1 if "fx/fy" in held else 2)
+            + (0 if "cx" in held else 2)
+            + 5
+            - sum(k in held for k in ("k1", "k2", "k3", "p1", "p2"))
+        )
     return n
 
 
@@ -352,8 +405,9 @@ def test_reprojection_rms_matches_injected_noise(exact_rig, sigma, seed):
     nominal, true = exact_rig
     rng = np.random.default_rng(seed)
     obs = exact_observations(true, sigma=sigma, rng=rng)
-    res = calibrate_observations(obs, image_sizes=[(W, H)] * 3, charuco=SPEC, nominal=nominal,
-                                 config=CalibrationConfig(max_view_rms_px=50.0))
+    res = calibrate_observations(
+        obs, image_sizes=[(W, H)] * 3, charuco=SPEC, nominal=nominal, config=CalibrationConfig(max_view_rms_px=50.0)
+    )
     n_obs = sum(len(o) for o in obs)
     # Expected RMS of the 2-D error of a least-squares fit: sigma * sqrt(2 (1 - p / 2N)).
     expected = sigma * math.sqrt(2.0 * (1.0 - _n_params(res) / (2.0 * n_obs)))
@@ -365,8 +419,9 @@ def test_collinear_views_are_dropped_with_reason(exact_rig):
     nominal, true = exact_rig
     obs = exact_observations(true)
     row = obs[3].object_points[:, 1] == obs[3].object_points[0, 1]  # one row of corners
-    obs[3] = CharucoObservation(obs[3].camera, obs[3].table_deg, obs[3].ids[row], obs[3].image_points[row],
-                                obs[3].object_points[row])
+    obs[3] = CharucoObservation(
+        obs[3].camera, obs[3].table_deg, obs[3].ids[row], obs[3].image_points[row], obs[3].object_points[row]
+    )
     assert row.sum() >= 6
     cfg = CalibrationConfig(min_corners=4)
     res = calibrate_observations(obs, image_sizes=[(W, H)] * 3, charuco=SPEC, nominal=nominal, config=cfg)
@@ -375,8 +430,13 @@ def test_collinear_views_are_dropped_with_reason(exact_rig):
     assert max(res.reproj_rms_px) < 1e-6
     # OpenCV itself cannot take that view: the screening is what keeps calibrateCamera alive.
     with pytest.raises(cv2.error):
-        cv2.calibrateCamera([obs[3].object_points.astype(np.float32)] * 3,
-                            [obs[3].image_points.astype(np.float32)] * 3, (W, H), None, None)
+        cv2.calibrateCamera(
+            [obs[3].object_points.astype(np.float32)] * 3,
+            [obs[3].image_points.astype(np.float32)] * 3,
+            (W, H),
+            None,
+            None,
+        )
 
 
 def test_fewer_than_three_usable_views_is_a_clear_error(exact_rig):
@@ -390,8 +450,9 @@ def test_fewer_than_three_usable_views_is_a_clear_error(exact_rig):
     row = o.object_points[:, 1] == o.object_points[0, 1]
     obs[cam2[1]] = CharucoObservation(2, o.table_deg, o.ids[row], o.image_points[row], o.object_points[row])
     with pytest.raises(CalibrationError) as ei:
-        calibrate_observations(obs, image_sizes=[(W, H)] * 3, charuco=SPEC, nominal=nominal,
-                               config=CalibrationConfig(min_corners=5))
+        calibrate_observations(
+            obs, image_sizes=[(W, H)] * 3, charuco=SPEC, nominal=nominal, config=CalibrationConfig(min_corners=5)
+        )
     msg = str(ei.value)
     assert "camera 2 (cam2): only 2 usable calibration view(s), need at least 3" in msg
     assert f"{view_id(2, 0.0)}: only 4 corners detected (min_corners=5)" in msg
@@ -421,8 +482,13 @@ def test_misdetected_views_are_dropped_and_can_leave_a_camera_unusable(exact_rig
     few[j] = _misdetected(few[j])
     with pytest.raises(CalibrationError, match=r"camera 2 \(cam2\): only 2 usable calibration view\(s\)"):
         calibrate_observations(few, image_sizes=[(W, H)] * 3, charuco=SPEC, nominal=nominal)
-    res = calibrate_observations(few, image_sizes=[(W, H)] * 3, charuco=SPEC, nominal=nominal,
-                                 config=CalibrationConfig(skip_unusable_cameras=True))
+    res = calibrate_observations(
+        few,
+        image_sizes=[(W, H)] * 3,
+        charuco=SPEC,
+        nominal=nominal,
+        config=CalibrationConfig(skip_unusable_cameras=True),
+    )
     assert res.camera_indices == (0, 1) and "misdetection" in res.uncalibrated[2]
     assert res.rig_cameras[2] is nominal[2] and math.isnan(res.reproj_rms_px[2])
 
@@ -450,8 +516,10 @@ def test_edge_on_board_is_screened():
     assert "edge-on" in (screen_observation(o, charuco=SPEC) or "")
     bad = CharucoObservation(0, 0.0, np.arange(obj.shape[0]), np.full((obj.shape[0], 2), np.nan), obj)
     assert "non-finite" in (screen_observation(bad, charuco=SPEC) or "")
-    assert screen_observation(CharucoObservation(0, 0.0, np.zeros(0), np.zeros((0, 2)), np.zeros((0, 3))),
-                              charuco=SPEC) == "no ChArUco corners detected"
+    assert (
+        screen_observation(CharucoObservation(0, 0.0, np.zeros(0), np.zeros((0, 2)), np.zeros((0, 3))), charuco=SPEC)
+        == "no ChArUco corners detected"
+    )
 
 
 def test_tilted_board_frees_the_principal_point(exact_rig):
@@ -487,8 +555,9 @@ def test_table_angle_scale_is_estimated(exact_rig):
     nominal, true = exact_rig
     rng = np.random.default_rng(3)
     obs = exact_observations(true, sigma=0.05, rng=rng, angle_record_scale=1.01)  # recorded = true / 1.01
-    res = calibrate_observations(obs, image_sizes=[(W, H)] * 3, charuco=SPEC, nominal=nominal,
-                                 config=CalibrationConfig(fit_table_scale=True))
+    res = calibrate_observations(
+        obs, image_sizes=[(W, H)] * 3, charuco=SPEC, nominal=nominal, config=CalibrationConfig(fit_table_scale=True)
+    )
     assert res.table_scale == pytest.approx(1.01, abs=2e-4)
     assert max(res.reproj_rms_px) < 0.1
     plain = calibrate_observations(obs, image_sizes=[(W, H)] * 3, charuco=SPEC, nominal=nominal)
@@ -513,8 +582,14 @@ def test_refinement_reaches_the_least_squares_optimum(exact_rig, monkeypatch):
     monkeypatch.setattr(calibrate_module, "refine_nlopt", spy)
     calibrate_observations(obs, image_sizes=[(W, H)] * 3, charuco=SPEC, nominal=nominal)
     m = seen["model"]
-    lm = least_squares(lambda x: np.concatenate([r.ravel() for r in m.residuals(x)]), seen["x0"], method="lm",
-                       xtol=1e-15, ftol=1e-15, gtol=1e-15)
+    lm = least_squares(
+        lambda x: np.concatenate([r.ravel() for r in m.residuals(x)]),
+        seen["x0"],
+        method="lm",
+        xtol=1e-15,
+        ftol=1e-15,
+        gtol=1e-15,
+    )
     f_nlopt = m.cost_grad_hessian(seen["x"], want_hessian=False)[0]
     assert f_nlopt == pytest.approx(2.0 * lm.cost, rel=1e-9)
     assert f_nlopt < seen["info"]["cost_start"]
@@ -525,16 +600,26 @@ def test_rig_model_gradient_matches_finite_differences(exact_rig, monkeypatch):
     rng = np.random.default_rng(9)
     obs = exact_observations(true, sigma=0.3, rng=rng)
     seen = {}
-    monkeypatch.setattr(calibrate_module, "refine_nlopt", lambda model, x0, **kw: (seen.update(model=model, x0=x0) or (x0, {})))
-    calibrate_observations(obs, image_sizes=[(W, H)] * 3, charuco=SPEC, nominal=nominal,
-                           config=CalibrationConfig(fit_table_scale=True))
+    monkeypatch.setattr(
+        calibrate_module, "refine_nlopt", lambda model, x0, **kw: seen.update(model=model, x0=x0) or (x0, {})
+    )
+    calibrate_observations(
+        obs, image_sizes=[(W, H)] * 3, charuco=SPEC, nominal=nominal, config=CalibrationConfig(fit_table_scale=True)
+    )
     m, x0 = seen["model"], seen["x0"]
     x = x0 + np.random.default_rng(1).normal(0, 1e-3, x0.shape) * np.maximum(np.abs(x0), 1e-2)
     f, g, Hm = m.cost_grad_hessian(x, want_hessian=True)
     h = 1e-6 * np.maximum(np.abs(x), 1e-2)
-    gn = np.array([(m.cost_grad_hessian(x + h[i] * e, want_hessian=False)[0]
-                    - m.cost_grad_hessian(x - h[i] * e, want_hessian=False)[0]) / (2 * h[i])
-                   for i, e in enumerate(np.eye(m.n))])
+    gn = np.array(
+        [
+            (
+                m.cost_grad_hessian(x + h[i] * e, want_hessian=False)[0]
+                - m.cost_grad_hessian(x - h[i] * e, want_hessian=False)[0]
+            )
+            / (2 * h[i])
+            for i, e in enumerate(np.eye(m.n))
+        ]
+    )
     np.testing.assert_allclose(g, gn, rtol=1e-4, atol=1e-6 * np.abs(g).max())
     np.testing.assert_allclose(Hm, Hm.T, atol=1e-9 * np.abs(Hm).max())
     assert np.all(np.linalg.eigvalsh(Hm) > 0)  # gauge fixed: no null space
@@ -593,13 +678,18 @@ def test_bad_inputs_are_named():
     with pytest.raises(InputError, match="two observations of view c0_t000.000"):
         calibrate_observations([o, o], image_sizes=[(W, H)], charuco=SPEC)
     with pytest.raises(InputError, match="camera 5 is not in image_sizes"):
-        calibrate_observations([CharucoObservation(5, 0.0, np.arange(24), np.zeros((24, 2)), obj)],
-                               image_sizes=[(W, H)], charuco=SPEC)
+        calibrate_observations(
+            [CharucoObservation(5, 0.0, np.arange(24), np.zeros((24, 2)), obj)], image_sizes=[(W, H)], charuco=SPEC
+        )
     with pytest.raises(InputError, match="3 ids, 2 image points"):
         CharucoObservation(0, 0.0, np.array([1, 2, 3]), np.zeros((2, 2)), np.zeros((3, 3)))
     with pytest.raises(InputError, match="rng"):
-        render_charuco_view(Camera(K=np.eye(3) * [100, 100, 1], width=10, height=10),
-                            world_from_board=np.eye(4), charuco=SPEC, noise_sigma=0.1)
+        render_charuco_view(
+            Camera(K=np.eye(3) * [100, 100, 1], width=10, height=10),
+            world_from_board=np.eye(4),
+            charuco=SPEC,
+            noise_sigma=0.1,
+        )
 
 
 def test_pose_errors_and_gauge_alignment(exact_rig):
@@ -630,10 +720,15 @@ def test_renderer_puts_corners_where_the_camera_projects_them():
     obj = board_corners()
     uv, _ = cam.project(obj @ T[:3, :3].T + T[:3, 3])
     g = tonemap_for_detection(img)
-    ref = cv2.cornerSubPix(g, uv.astype(np.float32).reshape(-1, 1, 2) + 0.7, (4, 4), (-1, -1),
-                           (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 100, 1e-4)).reshape(-1, 2)
+    ref = cv2.cornerSubPix(
+        g,
+        uv.astype(np.float32).reshape(-1, 1, 2) + 0.7,
+        (4, 4),
+        (-1, -1),
+        (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 100, 1e-4),
+    ).reshape(-1, 2)
     e = ref - uv
-    assert np.sqrt(np.mean(np.sum(e ** 2, axis=1))) < 0.15
+    assert np.sqrt(np.mean(np.sum(e**2, axis=1))) < 0.15
     assert np.all(np.abs(e.mean(axis=0)) < 0.05)  # no half-pixel or other systematic shift
 
 

@@ -15,7 +15,13 @@ import pycolmap
 import pytest
 
 from opacityhull.camera import read_opencv_yaml
-from opacityhull.reconstruct.calibration import CalibrationConfig, CalibrationError, calibrate_session, pose_errors, view_cameras
+from opacityhull.reconstruct.calibration import (
+    CalibrationConfig,
+    CalibrationError,
+    calibrate_session,
+    pose_errors,
+    view_cameras,
+)
 from opacityhull.reconstruct.exports import export_colmap
 
 pytestmark = pytest.mark.slow
@@ -31,12 +37,14 @@ def sim_session(tmp_path_factory):
     from opacityhull.acquire.runner import run_capture
     from opacityhull.session import Session
 
-    plan = parse_plan({
-        "plan": {"name": "calibration-only", "seed": 3, "cameras": [1, 3, 4, 5]},
-        "table": {"steps": 4},
-        "exposures": {"default_s": [0.5]},
-        "phases": {"calibration": {"count": 8, "charuco": BOARD, "level": 255}},
-    })
+    plan = parse_plan(
+        {
+            "plan": {"name": "calibration-only", "seed": 3, "cameras": [1, 3, 4, 5]},
+            "table": {"steps": 4},
+            "exposures": {"default_s": [0.5]},
+            "phases": {"calibration": {"count": 8, "charuco": BOARD, "level": 255}},
+        }
+    )
     out = tmp_path_factory.mktemp("simcal") / "session"
     with sim.open_sim_rig("sim:builtin:diffuse") as rig:
         run_capture(rig, plan, out, fsync=False)

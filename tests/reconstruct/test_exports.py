@@ -30,12 +30,33 @@ W, H = 320, 240
 @pytest.fixture(scope="module")
 def calibrated():
     """A small exact calibration: three cameras, eight table angles, one distorted camera."""
-    g = {"target_m": [0.0, 0.02, 0.0], "cameras": [
-        {"name": f"cam{i}", "width": W, "height": H, "distance_m": 0.5, "elevation_deg": el, "azimuth_deg": az,
-         "focal_px": 300.0} for i, (el, az) in enumerate([(35.0, 0.0), (50.0, 120.0), (65.0, -120.0)])]}
+    g = {
+        "target_m": [0.0, 0.02, 0.0],
+        "cameras": [
+            {
+                "name": f"cam{i}",
+                "width": W,
+                "height": H,
+                "distance_m": 0.5,
+                "elevation_deg": el,
+                "azimuth_deg": az,
+                "focal_px": 300.0,
+            }
+            for i, (el, az) in enumerate([(35.0, 0.0), (50.0, 120.0), (65.0, -120.0)])
+        ],
+    }
     nominal = RigGeometry.from_dict(g).nominal_cameras()
-    true = [Camera(K=c.K, dist=[-0.05, 0.0, 0.0, 0.0, 0.0] if i == 1 else np.zeros(5), width=W, height=H,
-                   world_from_cam=c.world_from_cam, name=c.name) for i, c in enumerate(nominal)]
+    true = [
+        Camera(
+            K=c.K,
+            dist=[-0.05, 0.0, 0.0, 0.0, 0.0] if i == 1 else np.zeros(5),
+            width=W,
+            height=H,
+            world_from_cam=c.world_from_cam,
+            name=c.name,
+        )
+        for i, c in enumerate(nominal)
+    ]
     spec = CharucoSpec()
     obj = spec.board().getChessboardCorners().astype(np.float64)
     rng = np.random.default_rng(4)
@@ -128,7 +149,7 @@ def _opengl_project(frame: dict, X: np.ndarray) -> np.ndarray:
     y = -P[:, 1] / -P[:, 2]  # image rows grow downwards
     k1, k2, k3, p1, p2 = (frame[k] for k in ("k1", "k2", "k3", "p1", "p2"))
     r2 = x * x + y * y
-    rad = 1 + k1 * r2 + k2 * r2 ** 2 + k3 * r2 ** 3
+    rad = 1 + k1 * r2 + k2 * r2**2 + k3 * r2**3
     xd = x * rad + 2 * p1 * x * y + p2 * (r2 + 2 * x * x)
     yd = y * rad + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y
     return np.stack([frame["fl_x"] * xd + frame["cx"], frame["fl_y"] * yd + frame["cy"]], axis=1)

@@ -47,17 +47,25 @@ from typer.testing import CliRunner
 from opacityhull.cli import app
 from opacityhull.errors import InputError
 from opacityhull.imageio import read_png
-from opacityhull.reconstruct.matting import (DriftOptions, MattingOptions, correct_photometric_drift,
-                                             object_support, shift_image, solve_matte)
+from opacityhull.reconstruct.matting import (
+    DriftOptions,
+    MattingOptions,
+    correct_photometric_drift,
+    object_support,
+    shift_image,
+    solve_matte,
+)
 
 DATA = Path(__file__).resolve().parents[1] / "data" / "real" / "matting-flowers"
 PAIRS = [("flowers-compA.jpg", "flowers-backA.jpg"), ("flowers-compB.jpg", "flowers-backB.jpg")]
 
 # regions at 640x960 (rows y0:y1, columns x0:x1), by inspection
 LEAF_TIP = (520, 560, 85, 160)
-OPAQUE = {"stem_in_vase": ((710, 864, 374, 386), 0.90, 0.85),
-          "chrysanthemum": ((212, 242, 355, 420), 0.95, 0.85),
-          "gerbera": ((282, 308, 318, 352), 0.90, 0.75)}
+OPAQUE = {
+    "stem_in_vase": ((710, 864, 374, 386), 0.90, 0.85),
+    "chrysanthemum": ((212, 242, 355, 420), 0.95, 0.85),
+    "gerbera": ((282, 308, 318, 352), 0.90, 0.75),
+}
 
 
 @pytest.fixture(scope="module")
@@ -71,8 +79,7 @@ def flowers():
 @pytest.fixture(scope="module")
 def mattes(flowers):
     C, B = flowers
-    return {"field": solve_matte(C, B, options=MattingOptions(drift="field")),
-            "none": solve_matte(C, B)}
+    return {"field": solve_matte(C, B, options=MattingOptions(drift="field")), "none": solve_matte(C, B)}
 
 
 def _band(a):
@@ -146,8 +153,10 @@ def _scene(H=48, W=64, seed=0):
         x, y = x - dx, y - dy
         base = 0.6 if k == 0 else 0.1
         # a different frequency per channel, so the channels (and 1) are independent
-        return np.stack([base + 0.25 * base * np.sin((0.31 + 0.07 * c) * x + (0.23 - 0.05 * c) * y + ph[k, c])
-                         for c in range(3)], -1)
+        return np.stack(
+            [base + 0.25 * base * np.sin((0.31 + 0.07 * c) * x + (0.23 - 0.05 * c) * y + ph[k, c]) for c in range(3)],
+            -1,
+        )
 
     y, x = np.mgrid[0:H, 0:W]
     r = np.hypot(x - W * 0.6, y - H * 0.5)
@@ -313,15 +322,32 @@ def small_set(tmp_path_factory):
 
 
 def _args(d, obj, back, out, *extra):
-    return ["matte", "--object", *[str(d / o) for o in obj], "--backdrop", *[str(d / b) for b in back],
-            "--out", str(out), *extra]
+    return [
+        "matte",
+        "--object",
+        *[str(d / o) for o in obj],
+        "--backdrop",
+        *[str(d / b) for b in back],
+        "--out",
+        str(out),
+        *extra,
+    ]
 
 
 def test_cli_matte_writes_files_and_json(small_set, tmp_path):
     d, out = small_set, tmp_path / "m"
-    res = CliRunner().invoke(app, _args(d, ["flowers-compA.png", "flowers-compB.png"],
-                                        ["flowers-backA.png", "flowers-backB.png"], out,
-                                        "--over", str(d / "window.png"), "--json"))
+    res = CliRunner().invoke(
+        app,
+        _args(
+            d,
+            ["flowers-compA.png", "flowers-compB.png"],
+            ["flowers-backA.png", "flowers-backB.png"],
+            out,
+            "--over",
+            str(d / "window.png"),
+            "--json",
+        ),
+    )
     assert res.exit_code == 0, res.output
     summary = json.loads(res.stdout)
     alpha = cv2.imread(str(out / "alpha.png"), cv2.IMREAD_UNCHANGED)
@@ -344,27 +370,52 @@ def test_cli_matte_writes_files_and_json(small_set, tmp_path):
 
 def test_cli_matte_repeated_flags_and_human_output(small_set, tmp_path):
     d = small_set
-    res = CliRunner().invoke(app, ["matte", "--object", str(d / "flowers-compA.png"), "--backdrop",
-                                   str(d / "flowers-backA.png"), "--object", str(d / "flowers-compB.png"),
-                                   "--backdrop", str(d / "flowers-backB.png"), "--out", str(tmp_path / "m"),
-                                   "--drift", "none"])
+    res = CliRunner().invoke(
+        app,
+        [
+            "matte",
+            "--object",
+            str(d / "flowers-compA.png"),
+            "--backdrop",
+            str(d / "flowers-backA.png"),
+            "--object",
+            str(d / "flowers-compB.png"),
+            "--backdrop",
+            str(d / "flowers-backB.png"),
+            "--out",
+            str(tmp_path / "m"),
+            "--drift",
+            "none",
+        ],
+    )
     assert res.exit_code == 0, res.output
     assert res.stdout.strip() == "" and "clear" in res.stderr
     assert json.loads((tmp_path / "m" / "matte.json").read_text())["drift"] is None
 
 
-@pytest.mark.parametrize("obj,back,extra,match", [
-    (["flowers-compA.png", "flowers-compB.png"], ["flowers-backA.png"], [], "counts must match"),
-    (["flowers-compA.png"], ["flowers-backA.png"], [], "at least 2"),
-    (["flowers-compA.png", "other-size.png"], ["flowers-backA.png", "flowers-backB.png"], [], "differs from"),
-    (["flowers-compA.png", "broken.jpg"], ["flowers-backA.png", "flowers-backB.png"], [], "not a readable image"),
-    (["flowers-compA.png", "missing.png"], ["flowers-backA.png", "flowers-backB.png"], [], "no such file"),
-    (["flowers-compA.png", "flowers-compB.png"], ["flowers-backA.png", "flowers-backA.png"], [], "identical"),
-    (["flowers-compA.png", "flowers-compB.png"], ["flowers-backA.png", "flowers-backB.png"], ["--drift", "x"],
-     "drift must be one of"),
-    (["flowers-compA.png", "flowers-compB.png"], ["flowers-backA.png", "flowers-backB.png"], ["--bogus"],
-     "unknown option"),
-])
+@pytest.mark.parametrize(
+    "obj,back,extra,match",
+    [
+        (["flowers-compA.png", "flowers-compB.png"], ["flowers-backA.png"], [], "counts must match"),
+        (["flowers-compA.png"], ["flowers-backA.png"], [], "at least 2"),
+        (["flowers-compA.png", "other-size.png"], ["flowers-backA.png", "flowers-backB.png"], [], "differs from"),
+        (["flowers-compA.png", "broken.jpg"], ["flowers-backA.png", "flowers-backB.png"], [], "not a readable image"),
+        (["flowers-compA.png", "missing.png"], ["flowers-backA.png", "flowers-backB.png"], [], "no such file"),
+        (["flowers-compA.png", "flowers-compB.png"], ["flowers-backA.png", "flowers-backA.png"], [], "identical"),
+        (
+            ["flowers-compA.png", "flowers-compB.png"],
+            ["flowers-backA.png", "flowers-backB.png"],
+            ["--drift", "x"],
+            "drift must be one of",
+        ),
+        (
+            ["flowers-compA.png", "flowers-compB.png"],
+            ["flowers-backA.png", "flowers-backB.png"],
+            ["--bogus"],
+            "unknown option",
+        ),
+    ],
+)
 def test_cli_matte_bad_input_exit_2(small_set, tmp_path, obj, back, extra, match):
     out = tmp_path / "m"
     res = CliRunner().invoke(app, _args(small_set, obj, back, out, *extra))

@@ -138,11 +138,16 @@ def test_no_camera_source_is_an_error_and_debug_sources_are_labelled(tmp_path):
     rcsynth.make_session(tmp_path / "s", n_angles=4, reflectance=False, cameras="none", seed=5)
     with pytest.raises(FormatError, match="no cameras"):
         build_model(tmp_path / "s", tmp_path / "m", config=CFG)
-    r = build_model(tmp_path / "s", tmp_path / "m", config=BuildConfig(hull_res=32, cameras="groundtruth",
-                                                                       pictures=False))
+    r = build_model(
+        tmp_path / "s", tmp_path / "m", config=BuildConfig(hull_res=32, cameras="groundtruth", pictures=False)
+    )
     assert "debug" in r.camera_source
-    r2 = build_model(tmp_path / "s", tmp_path / "m2", config=BuildConfig(hull_res=32, cameras="nominal",
-                                                                         pictures=False), ground_truth=True)
+    r2 = build_model(
+        tmp_path / "s",
+        tmp_path / "m2",
+        config=BuildConfig(hull_res=32, cameras="nominal", pictures=False),
+        ground_truth=True,
+    )
     assert "debug" in r2.camera_source and r2.metrics["hull_object_in_hull"] > 0.999
 
 
@@ -214,9 +219,21 @@ def test_cameras_from_the_calibration_phase(tmp_path):
     its NaN RMS; with ``drop_uncalibrated_cameras=False`` that is an error naming it."""
     from opacityhull.reconstruct.calibration import CalibrationError
 
-    rcsynth.make_session(tmp_path / "s", n_cams=3, n_angles=4, width=200, height=150, n_patterns=1,
-                         reflectance=False, calibration_phase=True, cameras="none", elevations=(50.0, 75.0), ss=2,
-                         seed=9, board_hidden_from=(2,))
+    rcsynth.make_session(
+        tmp_path / "s",
+        n_cams=3,
+        n_angles=4,
+        width=200,
+        height=150,
+        n_patterns=1,
+        reflectance=False,
+        calibration_phase=True,
+        cameras="none",
+        elevations=(50.0, 75.0),
+        ss=2,
+        seed=9,
+        board_hidden_from=(2,),
+    )
     r = build_model(tmp_path / "s", tmp_path / "m", config=BuildConfig(hull_res=48), ground_truth=True)
     m = r.metrics
     assert r.camera_source == "calibration phase (calibrated)"

@@ -10,10 +10,20 @@ from hypothesis import strategies as st
 
 from opacityhull.camera import Camera, look_at_world_from_cam
 from opacityhull.errors import InputError, ShapeError
-from opacityhull.reconstruct.matting import (FLAG_CHANNEL_LOST, FLAG_INVALID, FLAG_SATURATED, FLAG_UNKNOWN,
-                                             MattingOptions, backdrop_from_displays, fill_from_neighbours,
-                                             fill_from_neighbours_reference, solve_matte, solve_matte_numpy,
-                                             solve_matte_reference, straight_from_premul)
+from opacityhull.reconstruct.matting import (
+    FLAG_CHANNEL_LOST,
+    FLAG_INVALID,
+    FLAG_SATURATED,
+    FLAG_UNKNOWN,
+    MattingOptions,
+    backdrop_from_displays,
+    fill_from_neighbours,
+    fill_from_neighbours_reference,
+    solve_matte,
+    solve_matte_numpy,
+    solve_matte_reference,
+    straight_from_premul,
+)
 from opacityhull.riggeometry import RigGeometry
 
 
@@ -121,11 +131,13 @@ def test_saturated_observations_are_dropped_and_flagged():
     sat_any = np.any(C >= level, axis=(0, 3)) | np.any(B >= level, axis=(0, 3))
     clippedC = np.minimum(C, level)
     clippedB = np.minimum(B, level)
-    r = solve_matte(clippedC, clippedB, c_saturation=level, b_saturation=level,
-                    options=MattingOptions(max_alpha_std=10, fill=False))
+    r = solve_matte(
+        clippedC, clippedB, c_saturation=level, b_saturation=level, options=MattingOptions(max_alpha_std=10, fill=False)
+    )
     assert np.array_equal(r.saturated, sat_any)
-    ref = solve_matte_reference(clippedC, clippedB, c_saturation=level, b_saturation=level,
-                                options=MattingOptions(max_alpha_std=10, fill=False))
+    ref = solve_matte_reference(
+        clippedC, clippedB, c_saturation=level, b_saturation=level, options=MattingOptions(max_alpha_std=10, fill=False)
+    )
     np.testing.assert_allclose(r.alpha, ref.alpha, atol=2e-6)
     # where each channel kept >= 2 unsaturated backdrops the estimate is exact
     ok = np.all(np.sum((clippedC < level) & (clippedB < level), axis=0) >= 2, axis=-1)
@@ -193,8 +205,12 @@ def test_bad_shapes_and_options():
 
 
 @settings(max_examples=40, deadline=None)
-@given(alpha=st.floats(0.0, 1.0), f=st.tuples(*[st.floats(0.0, 1.0)] * 3), K=st.integers(2, 6),
-       seed=st.integers(0, 2**31 - 1))
+@given(
+    alpha=st.floats(0.0, 1.0),
+    f=st.tuples(*[st.floats(0.0, 1.0)] * 3),
+    K=st.integers(2, 6),
+    seed=st.integers(0, 2**31 - 1),
+)
 def test_property_recovers_alpha_within_noise(alpha, f, K, seed):
     """For random alpha, F and well-separated backdrops (a complementary pair plus
     random ones), alpha is recovered within 5 predicted standard deviations."""
@@ -239,12 +255,24 @@ def test_fill_reproduces_a_linear_ramp_in_a_hole():
 def test_backdrop_from_displays_fronto_parallel():
     """A pinhole camera looking straight at the back display sees its pattern: each pixel
     centre's texel (independent: computed from the panel's metric size)."""
-    geo = RigGeometry.from_dict({
-        "target_m": [0, 0.2, -0.4], "cameras": [{"name": "c", "width": 40, "height": 30, "distance_m": 1,
-                                                 "fov_y_deg": 20}],
-        "displays": [{"name": "back", "centre_m": [0.0, 0.2, -0.4], "normal": [0, 0, 1], "up": [0, 1, 0],
-                      "size_m": [0.8, 0.6], "resolution": [8, 6], "rotates_with_table": False,
-                      "max_radiance": 2.0}]})
+    geo = RigGeometry.from_dict(
+        {
+            "target_m": [0, 0.2, -0.4],
+            "cameras": [{"name": "c", "width": 40, "height": 30, "distance_m": 1, "fov_y_deg": 20}],
+            "displays": [
+                {
+                    "name": "back",
+                    "centre_m": [0.0, 0.2, -0.4],
+                    "normal": [0, 0, 1],
+                    "up": [0, 1, 0],
+                    "size_m": [0.8, 0.6],
+                    "resolution": [8, 6],
+                    "rotates_with_table": False,
+                    "max_radiance": 2.0,
+                }
+            ],
+        }
+    )
     f = 100.0
     K = np.array([[f, 0, 19.5], [0, f, 14.5], [0, 0, 1]])
     T = look_at_world_from_cam((0.0, 0.2, 0.6), (0.0, 0.2, -0.4))

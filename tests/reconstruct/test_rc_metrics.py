@@ -9,8 +9,14 @@ import pytest
 import rcsynth
 from opacityhull.errors import FormatError, ShapeError
 from opacityhull.reconstruct.hull import HullGrid
-from opacityhull.reconstruct.metrics import (alpha_mae, hull_iou, object_region, read_mesh_ply, voxelize_mesh,
-                                             voxelize_mesh_reference)
+from opacityhull.reconstruct.metrics import (
+    alpha_mae,
+    hull_iou,
+    object_region,
+    read_mesh_ply,
+    voxelize_mesh,
+    voxelize_mesh_reference,
+)
 
 
 def two_overlapping_spheres():

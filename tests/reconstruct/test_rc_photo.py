@@ -13,8 +13,14 @@ from hypothesis import strategies as st
 
 from opacityhull.camera import Camera, look_at_world_from_cam
 from opacityhull.errors import ConfigError, InputError, ShapeError
-from opacityhull.reconstruct.photo import (PhotoConfig, best_depths, cost_volume, cost_volume_reference,
-                                           refine_surfels, select_views)
+from opacityhull.reconstruct.photo import (
+    PhotoConfig,
+    best_depths,
+    cost_volume,
+    cost_volume_reference,
+    refine_surfels,
+    select_views,
+)
 
 R_HULL = 0.05  # metres
 R_TRUE = 0.8 * R_HULL
@@ -33,8 +39,9 @@ def cameras(n=12, seed=0):
     out = []
     for k, d in enumerate(dirs):
         up = (0.0, 1.0, 0.0) if abs(d[1]) < 0.9 else (1.0, 0.0, 0.0)
-        out.append(Camera(K=K, width=W, height=H, world_from_cam=look_at_world_from_cam(DIST * d, (0, 0, 0), up),
-                          name=f"v{k}"))
+        out.append(
+            Camera(K=K, width=W, height=H, world_from_cam=look_at_world_from_cam(DIST * d, (0, 0, 0), up), name=f"v{k}")
+        )
     return out
 
 
@@ -96,8 +103,7 @@ def test_refinement_recovers_the_true_sphere(scene):
     cams, imgs, alphas, pos, nrm, rad, vis = scene
     # the spherical "hull" here is not a real visual hull (its outline is not the true
     # sphere's), so the outline-keeping step would rightly hold the rim back: measure without it
-    new, n2, r2, stats = refine_surfels(pos, nrm, rad, vis, cams, imgs, alphas,
-                                        config=PhotoConfig(keep_coverage=False))
+    new, n2, r2, stats = refine_surfels(pos, nrm, rad, vis, cams, imgs, alphas, config=PhotoConfig(keep_coverage=False))
     before = np.abs(np.linalg.norm(pos, axis=1) - R_TRUE).mean()
     after = np.abs(np.linalg.norm(new, axis=1) - R_TRUE).mean()
     assert before == pytest.approx(0.2 * R_HULL)
@@ -133,8 +139,9 @@ def test_keep_coverage_keeps_every_views_outline(scene):
 
 def test_pca_normals_of_the_refined_sphere_are_radial(scene):
     cams, imgs, alphas, pos, nrm, rad, vis = scene
-    new, n2, _, _ = refine_surfels(pos, nrm, rad, vis, cams, imgs, alphas,
-                                  config=PhotoConfig(normals="pca", keep_coverage=False))
+    new, n2, _, _ = refine_surfels(
+        pos, nrm, rad, vis, cams, imgs, alphas, config=PhotoConfig(normals="pca", keep_coverage=False)
+    )
     np.testing.assert_allclose(np.linalg.norm(n2, axis=1), 1.0, atol=1e-9)
     assert np.median(np.einsum("nk,nk->n", n2, nrm)) > 0.98
 
@@ -178,8 +185,9 @@ def test_nan_pixels_empty_and_single_visibility_stay_put(scene):
     np.testing.assert_array_equal(new, pos)
     assert stats["n_confident"] == 0
     # no surfels at all
-    new, n2, r2, stats = refine_surfels(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0), np.zeros((0, 12), bool),
-                                    cams, imgs, alphas)
+    new, n2, r2, stats = refine_surfels(
+        np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0), np.zeros((0, 12), bool), cams, imgs, alphas
+    )
     assert new.shape == (0, 3) and stats["n_moved"] == 0
 
 
@@ -205,23 +213,29 @@ def test_bad_inputs_name_what_is_wrong(scene):
 
 def test_best_depths_picks_distinct_peaks_only():
     s = np.full((4, 9), 0.1)
-    s[0, 4] = 0.9                  # clear peak
-    s[1, :] = 0.8                  # flat: no distinct peak
-    s[2, :] = np.nan               # nothing valid
-    s[3, 2], s[3, 7] = 0.9, 0.89   # two equal peaks: ambiguous
+    s[0, 4] = 0.9  # clear peak
+    s[1, :] = 0.8  # flat: no distinct peak
+    s[2, :] = np.nan  # nothing valid
+    s[3, 2], s[3, 7] = 0.9, 0.89  # two equal peaks: ambiguous
     sub, best, conf = best_depths(s, min_ncc=0.5, peak_ratio=0.9)
     assert conf.tolist() == [True, False, False, False]
     assert sub[0] == pytest.approx(4.0) and best[0] == pytest.approx(0.9)
     assert sub[2] == 0 and np.isnan(best[2])
     s2 = np.full((1, 5), 0.0)
-    s2[0, 1:4] = [0.5, 1.0, 0.7]   # parabola vertex right of 2
+    s2[0, 1:4] = [0.5, 1.0, 0.7]  # parabola vertex right of 2
     sub, _, _ = best_depths(s2, min_ncc=0.5, peak_ratio=0.9)
     assert 2.0 < sub[0] < 2.5
 
 
 @settings(max_examples=15, deadline=None)
-@given(seed=st.integers(0, 10_000), n=st.integers(1, 6), K=st.sampled_from([1, 3, 5]),
-       D=st.integers(1, 7), m=st.integers(1, 4), n_best=st.integers(0, 3))
+@given(
+    seed=st.integers(0, 10_000),
+    n=st.integers(1, 6),
+    K=st.sampled_from([1, 3, 5]),
+    D=st.integers(1, 7),
+    m=st.integers(1, 4),
+    n_best=st.integers(0, 3),
+)
 def test_kernel_equals_numpy_reference(seed, n, K, D, m, n_best):
     rng = np.random.default_rng(seed)
     cams = cameras(6)

@@ -24,8 +24,7 @@ def sphere_hull():
     grid = HullGrid.from_bounds(CENTRE - 0.065, CENTRE + 0.065, 48)
     occ = carve_octree(sils, cams, grid)
     footprint = 0.6 / 150.0
-    sample = sample_hull_surfels(occ, grid, sils, cams, bisection_iters=12,
-                                 normal_scale_vox=footprint / grid.voxel_m)
+    sample = sample_hull_surfels(occ, grid, sils, cams, bisection_iters=12, normal_scale_vox=footprint / grid.voxel_m)
     return cams, sils, grid, occ, sample
 
 
@@ -56,8 +55,7 @@ def test_surfel_normals_and_reduction(sphere_hull):
     assert np.all(nax >= 0.85 * an.max(axis=1) - 1e-6)  # 3-to-1 reduction (+ seam overlap 0.15)
     dominant = np.argmax(an, axis=1) == s.axis
     assert 0.7 < dominant.mean() < 0.95
-    np.testing.assert_allclose(s.radii, s.spacing_m / (math.sqrt(2) * np.maximum(nax, 0.85 / math.sqrt(3))),
-                               rtol=1e-5)
+    np.testing.assert_allclose(s.radii, s.spacing_m / (math.sqrt(2) * np.maximum(nax, 0.85 / math.sqrt(3))), rtol=1e-5)
     # density: the dominant axis samples |n_a| / spacing^2 per unit area, ~0.8 on average
     # over a sphere, plus the seam overlap (the hull is a slightly fattened sphere)
     area = 4 * math.pi * np.median(np.linalg.norm(s.positions - CENTRE, axis=1)) ** 2
@@ -93,8 +91,11 @@ def test_surfel_discs_cover_the_hull_without_holes(sphere_hull):
 def test_normals_kernel_matches_reference(sphere_hull):
     cams, sils, grid, occ, s = sphere_hull
     pts = s.positions[::97]
-    np.testing.assert_allclose(hull_normals(occ, grid, pts, sigma_vox=1.3, radius_vox=3),
-                               hull_normals_reference(occ, grid, pts, sigma_vox=1.3, radius_vox=3), atol=1e-9)
+    np.testing.assert_allclose(
+        hull_normals(occ, grid, pts, sigma_vox=1.3, radius_vox=3),
+        hull_normals_reference(occ, grid, pts, sigma_vox=1.3, radius_vox=3),
+        atol=1e-9,
+    )
 
 
 def test_oversampling_and_empty_hull(sphere_hull):
@@ -177,9 +178,9 @@ def test_occluded_surfels_are_not_visible():
     facing = (n2 * (o - p2)).sum(1) > 0
     hidden = facing & (miss < 0.045)
     assert hidden.sum() > 500
-    assert not vis[len(p1):][hidden].any()
+    assert not vis[len(p1) :][hidden].any()
     exposed = facing & (miss > 0.055) & ((n2 * (o - p2)).sum(1) / np.linalg.norm(o - p2, axis=1) > 0.3)
-    assert exposed.sum() > 100 and vis[len(p1):][exposed].mean() > 0.99
+    assert exposed.sum() > 100 and vis[len(p1) :][exposed].mean() > 0.99
     near_front = (n1 * (o - p1)).sum(1) / np.linalg.norm(o - p1, axis=1) > 0.3
     assert vis[: len(p1)][near_front].mean() > 0.99
 

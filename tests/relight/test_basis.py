@@ -62,8 +62,14 @@ def _random_lights(seed, k):
 
 
 @settings(max_examples=25, deadline=None)
-@given(seed=st.integers(0, 10_000), k=st.integers(1, 12), kind=st.sampled_from(["vmf", "linear", "voronoi"]),
-       lower=st.sampled_from(["drop", "nearest"]), width=st.floats(0.2, 1.5), h=st.sampled_from([4, 5, 9, 16]))
+@given(
+    seed=st.integers(0, 10_000),
+    k=st.integers(1, 12),
+    kind=st.sampled_from(["vmf", "linear", "voronoi"]),
+    lower=st.sampled_from(["drop", "nearest"]),
+    width=st.floats(0.2, 1.5),
+    h=st.sampled_from([4, 5, 9, 16]),
+)
 def test_weights_sum_to_the_integral_over_the_covered_domain(seed, k, kind, lower, width, h):
     rng = np.random.default_rng(seed + 1)
     img = rng.gamma(0.5, 1.0, size=(h, 2 * h, 3)).astype(np.float32)
@@ -82,8 +88,9 @@ def test_fast_integration_matches_the_texel_loop(kind, lower):
     env = EnvironmentMap(rng.random((9, 18, 3)).astype(np.float32))
     L = _random_lights(5, 7)
     cfg = KernelConfig(kind=kind, lower_hemisphere=lower, width=0.7, chunk=13)  # chunks cut rows
-    np.testing.assert_allclose(integrate_envmap(env, L, config=cfg), integrate_envmap_reference(env, L, config=cfg),
-                               rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(
+        integrate_envmap(env, L, config=cfg), integrate_envmap_reference(env, L, config=cfg), rtol=1e-10, atol=1e-12
+    )
 
 
 def test_voronoi_cells_of_a_constant_map_are_scipys_spherical_voronoi_areas():
@@ -129,8 +136,11 @@ def test_a_sun_between_two_lights_splits_smoothly_and_keeps_its_power():
     assert np.all(np.diff(split) >= 0) and np.max(np.diff(split)) < 0.15
     assert split[0] < 0.2 and split[-1] > 0.8
     # Voronoi aliases: the whole sun jumps from one light to the other at the bisector
-    vor = [integrate_envmap(sun_envmap(H, W, dir_el_az(30, az), [1e5] * 3), L,
-                            config=KernelConfig(kind="voronoi"))[1, 0] / total for az in (-0.5, 0.5)]
+    vor = [
+        integrate_envmap(sun_envmap(H, W, dir_el_az(30, az), [1e5] * 3), L, config=KernelConfig(kind="voronoi"))[1, 0]
+        / total
+        for az in (-0.5, 0.5)
+    ]
     assert vor[0] < 1e-9 and vor[1] > 1 - 1e-9
 
 
@@ -161,8 +171,10 @@ def test_the_seam_light_collects_both_edges_of_the_map():
     img = np.zeros((16, 32, 3), np.float32)
     img[6:10, 0] = 1.0  # left edge
     img[6:10, -1] = 1.0  # right edge: the same neighbourhood of -Z
-    for cfg in (KernelConfig(kind="vmf", width=0.1, lower_hemisphere="nearest"),
-                KernelConfig(kind="voronoi", lower_hemisphere="nearest")):
+    for cfg in (
+        KernelConfig(kind="vmf", width=0.1, lower_hemisphere="nearest"),
+        KernelConfig(kind="voronoi", lower_hemisphere="nearest"),
+    ):
         w = integrate_envmap(EnvironmentMap(img), L, config=cfg)
         assert w[0, 0] / w[:, 0].sum() > 0.999
         np.testing.assert_allclose(w[:, 0].sum(), EnvironmentMap(img).integral()[0], rtol=1e-12)
@@ -199,13 +211,16 @@ def test_directional_lights_use_the_same_partition():
     # the limit of a tiny sun of the same irradiance in that direction
     H, W = 1024, 2048
     env = sun_envmap(H, W, d, [1.0, 1.0, 1.0])
-    ws = integrate_envmap(env, L, config=KernelConfig(kind="vmf", width=0.5, lower_hemisphere="nearest",
-                                                       max_map_width=4096))
+    ws = integrate_envmap(
+        env, L, config=KernelConfig(kind="vmf", width=0.5, lower_hemisphere="nearest", max_map_width=4096)
+    )
     np.testing.assert_allclose(ws[:, 0] / ws[:, 0].sum(), w[:, 0] / w[:, 0].sum(), atol=0.02)
     # a light below the table is dropped by default
     assert np.all(directional_light_weights(L, [[0, -1, 0]], [[1, 1, 1]]) == 0)
     # exactly on a captured direction with Voronoi cells: all to that light
-    w = directional_light_weights(L, L[3:4], [[1, 1, 1]], config=KernelConfig(kind="voronoi", lower_hemisphere="nearest"))
+    w = directional_light_weights(
+        L, L[3:4], [[1, 1, 1]], config=KernelConfig(kind="voronoi", lower_hemisphere="nearest")
+    )
     assert w[3, 0] == 1.0 and w.sum() == 3.0
 
 

@@ -107,7 +107,9 @@ def test_whole_texel_yaw_is_exact_and_turns_plus_z_towards_plus_x():
     rot = env.rotated(90.0)
     d = latlong_directions(32, 64).reshape(-1, 3)
     R = np.array([[0, 0, 1], [0, 1, 0], [-1, 0, 0]], float)  # R_y(90): +Z -> +X
-    np.testing.assert_allclose(rot.lookup(d @ R.T, interpolation="nearest"), env.lookup(d, interpolation="nearest"), atol=0)
+    np.testing.assert_allclose(
+        rot.lookup(d @ R.T, interpolation="nearest"), env.lookup(d, interpolation="nearest"), atol=0
+    )
     np.testing.assert_allclose(rotate_latlong_yaw(img, 360.0), img)
 
 
@@ -171,9 +173,14 @@ def test_half_exr_with_overflow_inf_is_rejected_clearly(tmp_path):
         load_envmap(tmp_path / "over.exr")
 
 
-@pytest.mark.parametrize("bad,match", [(np.nan, r"1 NaN and 0 Inf.*row 2, column 5, channel G"),
-                                       (np.inf, r"0 NaN and 1 Inf.*row 2, column 5"),
-                                       (-0.25, r"1 negative radiance.*-0\.25.*row 2, column 5")])
+@pytest.mark.parametrize(
+    "bad,match",
+    [
+        (np.nan, r"1 NaN and 0 Inf.*row 2, column 5, channel G"),
+        (np.inf, r"0 NaN and 1 Inf.*row 2, column 5"),
+        (-0.25, r"1 negative radiance.*-0\.25.*row 2, column 5"),
+    ],
+)
 def test_nan_inf_and_negative_radiance_are_rejected_naming_the_file(tmp_path, bad, match):
     img = np.ones((8, 16, 3), np.float32)
     img[2, 5, 1] = bad

@@ -67,8 +67,15 @@ def _random_field(rng, P=30, K=7, C=3, Hd=11, Wd=17):
     boxes = np.stack([x0, y0, x1, y1], axis=-1).astype(np.uint16)
     n = rng.integers(0, K + 1, size=P).astype(np.uint8)
     w = rng.uniform(0, 2, size=(P, K, C)).astype(np.float32)
-    return nt.NaturalField(boxes=boxes, weights=w, n_kernels=n, residual=np.zeros(P, np.float32),
-                           domain_hw=(Hd, Wd), pixels_shape=(5, 6), n_images=0)
+    return nt.NaturalField(
+        boxes=boxes,
+        weights=w,
+        n_kernels=n,
+        residual=np.zeros(P, np.float32),
+        domain_hw=(Hd, Wd),
+        pixels_shape=(5, 6),
+        n_images=0,
+    )
 
 
 @settings(max_examples=25, deadline=None)
@@ -82,8 +89,7 @@ def test_relight_fast_equals_reference(seed):
     np.testing.assert_allclose(got, nt.relight_natural_reference(f, L), rtol=1e-5, atol=1e-5)
     # and both equal the dense transport product
     T = nt.transport_matrix(f)
-    np.testing.assert_allclose(got.reshape(-1, 3), np.einsum("pcx,xc->pc", T, L.reshape(-1, 3)), rtol=1e-5,
-                               atol=1e-5)
+    np.testing.assert_allclose(got.reshape(-1, 3), np.einsum("pcx,xc->pc", T, L.reshape(-1, 3)), rtol=1e-5, atol=1e-5)
 
 
 # --------------------------------------------------------------------------- NNLS
@@ -151,8 +157,13 @@ def test_fast_estimator_equals_reference(channels):
 
 
 @settings(max_examples=12, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-@given(seed=st.integers(0, 2**31 - 1), K=st.integers(1, 7), N=st.integers(8, 24),
-       hw=st.sampled_from([(4, 4), (8, 4), (5, 7), (8, 8)]), kind=st.sampled_from(ns.KINDS + ("random",)))
+@given(
+    seed=st.integers(0, 2**31 - 1),
+    K=st.integers(1, 7),
+    N=st.integers(8, 24),
+    hw=st.sampled_from([(4, 4), (8, 4), (5, 7), (8, 8)]),
+    kind=st.sampled_from(ns.KINDS + ("random",)),
+)
 def test_fast_estimator_equals_reference_hypothesis(seed, K, N, hw, kind):
     """Small random problems (odd sizes, 1-px kernels reached, random non-negative T):
     the fitted training values and the relit held-out values agree with the reference
@@ -173,7 +184,7 @@ def test_fast_estimator_equals_reference_hypothesis(seed, K, N, hw, kind):
     assert same.sum() >= 3
     assert np.all(np.isfinite(f.weights)) and np.all(f.weights >= 0)
     scale = np.abs(obs).max() + 1e-12
-    for L in imgs[N - 1:]:
+    for L in imgs[N - 1 :]:
         a, b = nt.relight_natural(f, L), nt.relight_natural(fr, L)
         np.testing.assert_allclose(a[same], b[same], atol=1e-4 * scale)
 
@@ -309,7 +320,9 @@ def test_progressive_refinement(mono_images):
     for p in range(T.shape[0]):
         for b in f2.boxes[p, : f2.n_kernels[p]]:
             parents = f1.boxes[p, : f1.n_kernels[p]]
-            inside = (parents[:, 0] <= b[0]) & (parents[:, 1] <= b[1]) & (parents[:, 2] >= b[2]) & (parents[:, 3] >= b[3])
+            inside = (
+                (parents[:, 0] <= b[0]) & (parents[:, 1] <= b[1]) & (parents[:, 2] >= b[2]) & (parents[:, 3] >= b[3])
+            )
             assert inside.any()
     one = nt.estimate_natural(train, obs)
     p_one = _psnr(np.stack([nt.relight_natural(one, L)[:, 0] for L in test]), tru, tru.max())
@@ -432,9 +445,17 @@ def test_load_rejects_corrupt_and_foreign(tmp_path, fitted):
     (tmp_path / "trunc.npz").write_bytes(data[: len(data) // 2])
     with pytest.raises(FormatError, match="trunc.npz"):
         nt.load_field(tmp_path / "trunc.npz")
-    np.savez(tmp_path / "other.npz", format=np.array("something/9"), domain_hw=np.array([1, 1]),
-             pixels_shape=np.array([1]), boxes=np.zeros((1, 1, 4), np.uint16), weights=np.zeros((1, 1, 1), np.float32),
-             n_kernels=np.zeros(1, np.uint8), residual=np.zeros(1, np.float32), n_images=np.array(1))
+    np.savez(
+        tmp_path / "other.npz",
+        format=np.array("something/9"),
+        domain_hw=np.array([1, 1]),
+        pixels_shape=np.array([1]),
+        boxes=np.zeros((1, 1, 4), np.uint16),
+        weights=np.zeros((1, 1, 1), np.float32),
+        n_kernels=np.zeros(1, np.uint8),
+        residual=np.zeros(1, np.float32),
+        n_images=np.array(1),
+    )
     with pytest.raises(FormatError, match="format 'something/9', expected 'opacityhull.natural/1'"):
         nt.load_field(tmp_path / "other.npz")
     with np.load(p) as z:

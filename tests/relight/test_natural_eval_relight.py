@@ -90,8 +90,7 @@ def test_relit_part_and_truth_use_one_mapping(glass_model):
     assert part is not None
     mask = np.abs(part).sum(axis=2) > 0
     same = ne.render_envmap_on_displays(rig, v.camera_index, v.table_deg, env, ["back"], centre_m=centre, seed=3)
-    other = ne.render_envmap_on_displays(rig, v.camera_index, v.table_deg, flipped, ["back"], centre_m=centre,
-                                         seed=3)
+    other = ne.render_envmap_on_displays(rig, v.camera_index, v.table_deg, flipped, ["back"], centre_m=centre, seed=3)
     a, b = ne.compare(part, same, mask), ne.compare(part, other, mask)
     print("own truth", a, "upside-down truth", b)
     assert mask.sum() > 100 and a["rel_err"] < 0.5 * b["rel_err"], (a, b)

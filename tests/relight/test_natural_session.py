@@ -25,14 +25,39 @@ from opacityhull.session import ShotRecord, shot_key
 
 GEO = {
     "target_m": [0.0, 0.1, 0.0],
-    "cameras": [{"name": "cam0", "width": 8, "height": 6, "distance_m": 1.0, "elevation_deg": 10.0,
-                 "azimuth_deg": 0.0, "fov_y_deg": 30.0}],
+    "cameras": [
+        {
+            "name": "cam0",
+            "width": 8,
+            "height": 6,
+            "distance_m": 1.0,
+            "elevation_deg": 10.0,
+            "azimuth_deg": 0.0,
+            "fov_y_deg": 30.0,
+        }
+    ],
     "lights": [],
     "displays": [
-        {"name": "bottom", "centre_m": [0, 0, 0], "normal": [0, 1, 0], "up": [0, 0, -1], "size_m": [1.0, 1.0],
-         "resolution": [16, 16], "rotates_with_table": True, "max_radiance": 2.0},
-        {"name": "back", "centre_m": [0, 0.28, -0.4], "normal": [0, 0, 1], "up": [0, 1, 0], "size_m": [1.0, 0.5],
-         "resolution": [16, 8], "rotates_with_table": False, "max_radiance": 1.0},
+        {
+            "name": "bottom",
+            "centre_m": [0, 0, 0],
+            "normal": [0, 1, 0],
+            "up": [0, 0, -1],
+            "size_m": [1.0, 1.0],
+            "resolution": [16, 16],
+            "rotates_with_table": True,
+            "max_radiance": 2.0,
+        },
+        {
+            "name": "back",
+            "centre_m": [0, 0.28, -0.4],
+            "normal": [0, 0, 1],
+            "up": [0, 1, 0],
+            "size_m": [1.0, 0.5],
+            "resolution": [16, 8],
+            "rotates_with_table": False,
+            "max_radiance": 1.0,
+        },
     ],
 }
 
@@ -57,20 +82,35 @@ class FakeSession:
                 L = p.images[d.name].astype(np.float64) / 255 * d.max_radiance
                 flat[idx] += ns.apply_transport(T[d.name], L[None])[0]
             self._radiance[key] = img
-            self.records.append(ShotRecord(id=key + "/e0", shot=key, phase="envmatte", camera=0, table_deg=table_deg,
-                                           pattern=pid, object_present=True, exposure_s=1.0, path="x",
-                                           sha256="0", bytes=0))
+            self.records.append(
+                ShotRecord(
+                    id=key + "/e0",
+                    shot=key,
+                    phase="envmatte",
+                    camera=0,
+                    table_deg=table_deg,
+                    pattern=pid,
+                    object_present=True,
+                    exposure_s=1.0,
+                    path="x",
+                    sha256="0",
+                    bytes=0,
+                )
+            )
 
     @property
     def patterns(self):
-        return {f"p{pid:03d}": {"files": {d: "x" for d in p.images}, "source": p.source}
-                for pid, p in self.pats.items()}
+        return {
+            f"p{pid:03d}": {"files": {d: "x" for d in p.images}, "source": p.source} for pid, p in self.pats.items()
+        }
 
     def phases(self):
         return {r.phase for r in self.records}
 
     def select(self, *, phase=None, camera=None, table_deg=None, kind="raw"):
-        return [r for r in self.records if (phase is None or r.phase == phase) and (camera is None or r.camera == camera)]
+        return [
+            r for r in self.records if (phase is None or r.phase == phase) and (camera is None or r.camera == camera)
+        ]
 
     def pattern_image(self, display, pid):
         return self.pats[pid].images[display].astype(np.float32) / 255
@@ -89,8 +129,10 @@ def fake(tmp_path_factory):
     P = int(mask.sum())
     # kinds K = 13 represents (dyadic boxes: ≤ 12 splits) or approximates well (broad lobes)
     kinds = [("boxes", "diffuse")[i % 2] for i in range(P)]
-    T = {d.name: ns.transport_rows(kinds, rng, height=d.resolution[1], width=d.resolution[0]) * (0.5 if i else 1.0)
-         for i, d in enumerate(geo.displays)}
+    T = {
+        d.name: ns.transport_rows(kinds, rng, height=d.resolution[1], width=d.resolution[0]) * (0.5 if i else 1.0)
+        for i, d in enumerate(geo.displays)
+    }
     root = tmp_path_factory.mktemp("nat")
     return FakeSession(root, plan, geo, T, mask), geo
 
@@ -100,8 +142,10 @@ def test_session_fields_per_display_reproduce_the_transport(fake, tmp_path):
     alpha = sess.mask.astype(np.float32) * 0.9
     rep = estimate_session_natural(sess, [(0, 0.0)], None, [alpha], tmp_path, n_kernels=13, weights_dtype="float32")
     assert rep["present"] and rep["pixels"] == 2 * sess.mask.sum()
-    assert rep["displays"] == {"back": {"domain_hw": [8, 16], "images": 60},
-                               "bottom": {"domain_hw": [16, 16], "images": 60}}
+    assert rep["displays"] == {
+        "back": {"domain_hw": [8, 16], "images": 60},
+        "bottom": {"domain_hw": [16, 16], "images": 60},
+    }
     assert sorted(rep["files"]) == ["natural/c0_t000.000/back.npz", "natural/c0_t000.000/bottom.npz"]
     fields = nt.load_view_fields(tmp_path, "c0_t000.000")
     rng = np.random.default_rng(9)
@@ -127,8 +171,9 @@ def test_session_errors(fake, tmp_path):
         estimate_session_natural(sess, [(0, 0.0)], None, [alpha], tmp_path / "a", n_kernels=61)
     with pytest.raises(InputError, match="1 views, 2 mattes"):
         estimate_session_natural(sess, [(0, 0.0)], None, [alpha, alpha], tmp_path / "b")
-    empty = FakeSession(tmp_path, parse_plan({"plan": {"name": "m"}, "phases": {"lightfield": {}}}), geo,
-                        sess.T, sess.mask)
+    empty = FakeSession(
+        tmp_path, parse_plan({"plan": {"name": "m"}, "phases": {"lightfield": {}}}), geo, sess.T, sess.mask
+    )
     with pytest.raises(InputError, match="no natural-illumination phase"):
         estimate_session_natural(empty, [(0, 0.0)], None, [alpha], tmp_path / "c")
     assert not (tmp_path / "a").exists() and not (tmp_path / "c").exists()
@@ -190,10 +235,10 @@ def test_records_labelled_natural_give_the_same_field(fake, tmp_path):
     relabelled = copy.copy(sess)
     relabelled.records = [dataclasses.replace(r, phase="natural") for r in sess.records]
     alpha = sess.mask.astype(np.float32)
-    a = estimate_session_natural(sess, [(0, 0.0)], None, [alpha], tmp_path / "a", n_kernels=13,
-                                 weights_dtype="float32")
-    b = estimate_session_natural(relabelled, [(0, 0.0)], None, [alpha], tmp_path / "b", n_kernels=13,
-                                 weights_dtype="float32")
+    a = estimate_session_natural(sess, [(0, 0.0)], None, [alpha], tmp_path / "a", n_kernels=13, weights_dtype="float32")
+    b = estimate_session_natural(
+        relabelled, [(0, 0.0)], None, [alpha], tmp_path / "b", n_kernels=13, weights_dtype="float32"
+    )
     assert a["pixels"] == b["pixels"] > 0 and a["displays"] == b["displays"]
     fa, fb = nt.load_view_fields(tmp_path / "a", "c0_t000.000"), nt.load_view_fields(tmp_path / "b", "c0_t000.000")
     for d in fa:
@@ -206,13 +251,13 @@ def test_natural_mask_fills_enclosed_low_alpha_only():
     from opacityhull.reconstruct.natural_field import natural_mask
 
     a = np.zeros((12, 14))
-    a[2:10, 2:8] = 0.9   # a ring: rim at 0.9, interior at 0.1 (clear glass)
+    a[2:10, 2:8] = 0.9  # a ring: rim at 0.9, interior at 0.1 (clear glass)
     a[4:8, 4:6] = 0.1
     a[2:10, 9:13] = 0.9  # a "U" whose gap (col 10..11, rows 2..7) opens to the top edge of the region
     a[2:8, 10:12] = 0.05
     m = natural_mask(a)
-    assert m[4:8, 4:6].all()                      # enclosed: filled
-    assert not m[2:8, 10:12].any()                # open to the background: left out
+    assert m[4:8, 4:6].all()  # enclosed: filled
+    assert not m[2:8, 10:12].any()  # open to the background: left out
     assert not m[0, :].any() and not m[:, 0].any()
     assert np.array_equal(natural_mask(a, fill_holes=False), a > 0.5)
     assert not natural_mask(np.zeros((5, 5))).any() and natural_mask(np.ones((5, 5))).all()

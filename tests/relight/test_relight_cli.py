@@ -18,8 +18,17 @@ def run(*args):
 
 
 def test_relight_envmap_writes_views_and_summary(sphere_model, probes_dir, tmp_path):
-    r = run("relight", sphere_model, "--envmap", probes_dir / "uffizi.hdr", "--yaw-deg", 180, "--out", tmp_path / "o",
-            "--json")
+    r = run(
+        "relight",
+        sphere_model,
+        "--envmap",
+        probes_dir / "uffizi.hdr",
+        "--yaw-deg",
+        180,
+        "--out",
+        tmp_path / "o",
+        "--json",
+    )
     assert r.exit_code == 0, r.output
     s = json.loads(r.stdout.strip().splitlines()[-1])
     assert s["n_views"] == 8 and s["n_lights_captured"] == 60
@@ -34,16 +43,36 @@ def test_builtin_probe_gets_its_yaw_by_default(sphere_model, tmp_path):
     r = run("relight", sphere_model, "--envmap", "builtin:grace", "--out", tmp_path / "o", "--json", "--no-views")
     assert r.exit_code == 0, r.output
     assert json.loads(r.stdout.strip().splitlines()[-1])["lighting"]["envmap"]["source"] == "grace.hdr yaw 180"
-    r = run("relight", sphere_model, "--envmap", "builtin:grace", "--yaw-deg", 0, "--out", tmp_path / "o", "--json",
-            "--no-views")
+    r = run(
+        "relight",
+        sphere_model,
+        "--envmap",
+        "builtin:grace",
+        "--yaw-deg",
+        0,
+        "--out",
+        tmp_path / "o",
+        "--json",
+        "--no-views",
+    )
     assert json.loads(r.stdout.strip().splitlines()[-1])["lighting"]["envmap"]["source"] == "grace.hdr"
     r = run("relight", sphere_model, "--envmap", "builtin:sun", "--out", tmp_path / "o")
     assert r.exit_code == 2 and "unknown built-in probe" in r.text
 
 
 def test_relight_with_lights_and_pca(sphere_model, tmp_path):
-    r = run("relight", sphere_model, "--lights", "0,1,0.2,1,1,1;point:1,1,0,2,0,0", "--pca-rank", 9,
-            "--out", tmp_path / "o", "--json", "--no-views")
+    r = run(
+        "relight",
+        sphere_model,
+        "--lights",
+        "0,1,0.2,1,1,1;point:1,1,0,2,0,0",
+        "--pca-rank",
+        9,
+        "--out",
+        tmp_path / "o",
+        "--json",
+        "--no-views",
+    )
     assert r.exit_code == 0, r.output
     s = json.loads(r.stdout.strip().splitlines()[-1])
     assert s["lighting"]["envmap"] is None and len(s["lighting"]["lights"]) == 2
@@ -53,8 +82,24 @@ def test_relight_with_lights_and_pca(sphere_model, tmp_path):
 
 
 def test_relight_orbit_and_view_render_through_ulr(sphere_model, probes_dir, tmp_path):
-    r = run("relight", sphere_model, "--envmap", probes_dir / "pisa.hdr", "--yaw-deg", 180, "--orbit", 3,
-            "--view", "1,45", "--out", tmp_path / "o", "--json", "--no-views", "--fps", 5)
+    r = run(
+        "relight",
+        sphere_model,
+        "--envmap",
+        probes_dir / "pisa.hdr",
+        "--yaw-deg",
+        180,
+        "--orbit",
+        3,
+        "--view",
+        "1,45",
+        "--out",
+        tmp_path / "o",
+        "--json",
+        "--no-views",
+        "--fps",
+        5,
+    )
     assert r.exit_code == 0, r.output
     s = json.loads(r.stdout.strip().splitlines()[-1])
     assert s["orbit"]["frames"] == 3
@@ -84,8 +129,20 @@ def test_relight_bad_inputs_exit_nonzero_with_a_clear_message(sphere_model, tmp_
 
 
 def test_eval_relight_on_the_analytic_sphere(sphere_model, probes_dir, tmp_path):
-    r = run("eval", "relight", sphere_model, "--envmap", probes_dir / "uffizi.hdr", "--yaw-deg", 180,
-            "--max-views", 3, "--out", tmp_path / "e", "--json")
+    r = run(
+        "eval",
+        "relight",
+        sphere_model,
+        "--envmap",
+        probes_dir / "uffizi.hdr",
+        "--yaw-deg",
+        180,
+        "--max-views",
+        3,
+        "--out",
+        tmp_path / "e",
+        "--json",
+    )
     assert r.exit_code == 0, r.output
     s = json.loads(r.stdout.strip().splitlines()[-1])
     assert {"psnr_mean", "rel_err_mean", "per_view"} <= set(s)
@@ -105,7 +162,9 @@ def test_eval_relight_refuses_a_model_of_a_real_rig(sphere_model, tmp_path, prob
     shutil.copytree(sphere_model, m)
     sess = tmp_path / "sess"
     sess.mkdir()
-    (sess / "session.toml").write_text(toml_dumps({"session": {"format": SESSION_FORMAT, "rig_source": "rigs/lab.toml"}}))
+    (sess / "session.toml").write_text(
+        toml_dumps({"session": {"format": SESSION_FORMAT, "rig_source": "rigs/lab.toml"}})
+    )
     (sess / "manifest.jsonl").write_text("")
     meta = tomllib.loads((m / "model.toml").read_text())
     meta["provenance"] = {"session": str(sess)}

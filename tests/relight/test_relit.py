@@ -50,7 +50,9 @@ def test_kernel_matches_reference(shape, near):
         pts[0, :3] = np.nan  # pixels without a surface keep factor 1
         kw = {"points": pts, "light_positions": rng.normal(size=(K, 3))}
     np.testing.assert_allclose(relight_stack(s, w, **kw), relight_stack_reference(s, w, **kw), rtol=2e-6, atol=1e-6)
-    np.testing.assert_allclose(relight_stack(s, w[0], **kw), relight_stack_reference(s, w[0], **kw), rtol=2e-6, atol=1e-6)
+    np.testing.assert_allclose(
+        relight_stack(s, w[0], **kw), relight_stack_reference(s, w[0], **kw), rtol=2e-6, atol=1e-6
+    )
 
 
 def test_parallel_kernel_matches_reference():
@@ -157,8 +159,9 @@ def test_calibration_is_divided_out(tmp_path, probes_dir):
     la, lb = Relighter(a).lights, Relighter(b).lights
     assert not np.allclose(la.output_rgb, lb.output_rgb)
     env = load_envmap(probes_dir / "uffizi.hdr", yaw_deg=180)
-    np.testing.assert_allclose(Relighter(a).relight_view(0, envmap=env), Relighter(b).relight_view(0, envmap=env),
-                               rtol=1e-5, atol=1e-7)
+    np.testing.assert_allclose(
+        Relighter(a).relight_view(0, envmap=env), Relighter(b).relight_view(0, envmap=env), rtol=1e-5, atol=1e-7
+    )
 
 
 def test_missing_one_light_image_is_named(sphere_model_missing):
@@ -166,15 +169,23 @@ def test_missing_one_light_image_is_named(sphere_model_missing):
     R = Relighter(m)
     env = EnvironmentMap(np.ones((8, 16, 3), np.float32))
     R.relight_view(0, envmap=env)  # view 0 is complete
-    with pytest.raises(FormatError, match=r"reflectance/c1_t000\.000\.exr: one-light image a072p000_l2 \(light 2 at array 72\.0 deg\) missing"):
+    with pytest.raises(
+        FormatError,
+        match=r"reflectance/c1_t000\.000\.exr: one-light image a072p000_l2 \(light 2 at array 72\.0 deg\) missing",
+    ):
         R.relight_view(1, envmap=env)
 
 
 def test_a_model_without_reflectance_is_refused(tmp_path, model):
     from opacityhull.model import write_model
 
-    root = write_model(tmp_path / "noref", views=model.views, surfels=model.surfels,
-                       view_rgba=[model.load_view_rgba(i) for i in range(len(model.views))], rig=model.meta["rig"])
+    root = write_model(
+        tmp_path / "noref",
+        views=model.views,
+        surfels=model.surfels,
+        view_rgba=[model.load_view_rgba(i) for i in range(len(model.views))],
+        rig=model.meta["rig"],
+    )
     with pytest.raises(FormatError, match="no reflectance data"):
         Relighter(OpacityHullModel.open(root))
 

@@ -65,8 +65,19 @@ def sim_model(request, tmp_path_factory):
     tmp = tmp_path_factory.mktemp(f"sim_{scene}")
     rig = _small_rig(tmp)
     (tmp / "plan.toml").write_text(PLAN)
-    r = CliRunner().invoke(app, ["capture", "--rig", f"sim:builtin:{scene}@{rig}", "--plan", str(tmp / "plan.toml"),
-                                 "--out", str(tmp / "session"), "--json"])
+    r = CliRunner().invoke(
+        app,
+        [
+            "capture",
+            "--rig",
+            f"sim:builtin:{scene}@{rig}",
+            "--plan",
+            str(tmp / "plan.toml"),
+            "--out",
+            str(tmp / "session"),
+            "--json",
+        ],
+    )
     assert r.exit_code == 0, r.output
     # the cameras are the simulator's true ones (a debug source, recorded in the
     # model): this test is about relighting, not calibration
@@ -77,8 +88,21 @@ def sim_model(request, tmp_path_factory):
 @pytest.mark.parametrize("probe", ["grace", "uffizi"])
 def test_eval_relight_against_mitsuba(sim_model, probe, tmp_path):
     scene, model = sim_model
-    r = CliRunner().invoke(app, ["eval", "relight", str(model), "--envmap", f"builtin:{probe}", "--spp", "32",
-                                 "--out", str(tmp_path / "e"), "--json"])
+    r = CliRunner().invoke(
+        app,
+        [
+            "eval",
+            "relight",
+            str(model),
+            "--envmap",
+            f"builtin:{probe}",
+            "--spp",
+            "32",
+            "--out",
+            str(tmp_path / "e"),
+            "--json",
+        ],
+    )
     assert r.exit_code == 0, r.output
     s = json.loads(r.stdout.strip().splitlines()[-1])
     assert s["truth"].startswith(f"mitsuba render_under_envmap (scene builtin:{scene}")

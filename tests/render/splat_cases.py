@@ -17,8 +17,13 @@ def make_cam(eye, target=(0.0, 0.1, 0.0), size=(40, 30), fov_deg=30.0, dist=None
     W, H = size
     f = H / (2 * math.tan(math.radians(fov_deg) / 2))
     Km = np.array([[f, 0, (W - 1) / 2 + 0.3], [0, f * 1.01, (H - 1) / 2 - 0.2], [0, 0, 1.0]])
-    return Camera(K=Km, width=W, height=H, world_from_cam=look_at_world_from_cam(eye, target),
-                  dist=np.zeros(5) if dist is None else dist)
+    return Camera(
+        K=Km,
+        width=W,
+        height=H,
+        world_from_cam=look_at_world_from_cam(eye, target),
+        dist=np.zeros(5) if dist is None else dist,
+    )
 
 
 def random_surfels(rng, n, centre=(0.0, 0.1, 0.0), spread=0.08, n_views=3):
@@ -35,6 +40,22 @@ def setup_fast(surfels, cam, cfg, areas):
     N = len(surfels)
     rec = np.empty((N, K.SPLAT_FIELDS), np.float32)
     valid = np.empty(N, bool)
-    K.splat_setup(surfels.positions, surfels.normals, surfels.radii, areas, pack_camera(cam), cam.width, cam.height,
-                  cfg.sigma_radius, cfg.filter, cfg.cutoff_sigma, cfg.epsilon_z, cfg.backface_cull, rec, valid, 0, N)
+    K.splat_setup(
+        surfels.positions,
+        surfels.normals,
+        surfels.radii,
+        areas,
+        pack_camera(cam),
+        cam.width,
+        cam.height,
+        cfg.sigma_radius,
+        cfg.filter,
+        cfg.cutoff_sigma,
+        cfg.epsilon_z,
+        cfg.backface_cull,
+        rec,
+        valid,
+        0,
+        N,
+    )
     return valid, rec

@@ -60,9 +60,16 @@ def _scene(seed, n_views, size, nan_texels=False):
 
 
 @settings(max_examples=30, deadline=None)
-@given(seed=st.integers(0, 2**31 - 1), n_views=st.integers(1, 11), k=st.integers(1, 6),
-       min_cov=st.sampled_from([0.0, 0.5, 0.9]), excl=st.booleans(), nan_texels=st.booleans(),
-       min_view_cos=st.sampled_from([-1.0, 0.0, 0.3]), fallback=st.booleans())
+@given(
+    seed=st.integers(0, 2**31 - 1),
+    n_views=st.integers(1, 11),
+    k=st.integers(1, 6),
+    min_cov=st.sampled_from([0.0, 0.5, 0.9]),
+    excl=st.booleans(),
+    nan_texels=st.booleans(),
+    min_view_cos=st.sampled_from([-1.0, 0.0, 0.3]),
+    fallback=st.booleans(),
+)
 def test_deferred_shade_equals_reference(seed, n_views, k, min_cov, excl, nan_texels, min_view_cos, fallback):
     cams, imgs, frame, depth, coverage, winner, vis = _scene(seed, n_views, (14, 11), nan_texels)
     normals = np.random.default_rng(seed + 1).normal(size=(vis.shape[0], 3)).astype(np.float32)
@@ -70,12 +77,37 @@ def test_deferred_shade_equals_reference(seed, n_views, k, min_cov, excl, nan_te
     exclude = [0] if excl else []
     pv = prepare_views(cams, imgs)
     packed = np.packbits(vis, axis=1, bitorder="little")
-    fast, n = D.deferred_shade(depth, coverage, winner, pack_camera(frame), frame.centre_world, packed, normals, pv,
-                               _allowed(n_views, exclude), k=k, min_coverage=min_cov, min_view_cos=min_view_cos,
-                               fallback=fallback, threads=2)
-    ref = deferred_shade_reference(depth, coverage, winner, frame, vis, cams, imgs, normals=normals, k=k,
-                                   exclude_views=exclude, min_coverage=min_cov, min_view_cos=min_view_cos,
-                                   fallback=fallback)
+    fast, n = D.deferred_shade(
+        depth,
+        coverage,
+        winner,
+        pack_camera(frame),
+        frame.centre_world,
+        packed,
+        normals,
+        pv,
+        _allowed(n_views, exclude),
+        k=k,
+        min_coverage=min_cov,
+        min_view_cos=min_view_cos,
+        fallback=fallback,
+        threads=2,
+    )
+    ref = deferred_shade_reference(
+        depth,
+        coverage,
+        winner,
+        frame,
+        vis,
+        cams,
+        imgs,
+        normals=normals,
+        k=k,
+        exclude_views=exclude,
+        min_coverage=min_cov,
+        min_view_cos=min_view_cos,
+        fallback=fallback,
+    )
     assert np.all(np.isfinite(fast))
     np.testing.assert_allclose(fast, ref, atol=2e-5)
     assert n >= int((np.abs(ref).sum(axis=2) > 0).sum())
@@ -105,8 +137,9 @@ def test_rasterize_geometry_equals_reference(seed, band_rows, threads):
 
 
 def _render(m, pv, cam, *, exclude=(), **cfg):
-    return render_image(m.surfels, m.cameras, pv, cam, config=RenderConfig(shading="pixel", **cfg),
-                        exclude_views=exclude)
+    return render_image(
+        m.surfels, m.cameras, pv, cam, config=RenderConfig(shading="pixel", **cfg), exclude_views=exclude
+    )
 
 
 def test_captured_view_reproduces_the_photograph_exactly(sphere):
@@ -218,8 +251,9 @@ def test_no_visible_view_is_not_drawn(sphere):
     res = _render(m, pv, m.cameras[3], exclude=list(range(pv.n_views)))
     assert not np.any(res.rgba) and res.stats["pixels_shaded"] == 0
     # surfels nobody sees are geometry; without the fallback (the default) they are not drawn
-    blind = Surfels(m.surfels.positions, m.surfels.normals, m.surfels.radii,
-                    np.zeros_like(m.surfels.visibility), m.surfels.n_views)
+    blind = Surfels(
+        m.surfels.positions, m.surfels.normals, m.surfels.radii, np.zeros_like(m.surfels.visibility), m.surfels.n_views
+    )
     res = render_image(blind, m.cameras, pv, m.cameras[3], config=RenderConfig(shading="pixel", fallback_views=False))
     assert not np.any(res.rgba) and np.isfinite(res.depth).any()
     # with it, the views in front of each tangent plane shade them (the sphere is convex:
@@ -255,8 +289,13 @@ def test_novel_view_close_to_ground_truth_and_within_the_silhouette(sphere):
 def test_distorted_desired_camera_in_pixel_mode(sphere):
     m, pv = sphere
     c = m.cameras[4]
-    cam = Camera(K=c.K, width=c.width, height=c.height, world_from_cam=c.world_from_cam,
-                 dist=np.array([-0.15, 0.0, 0.0, 0.0, 0.0]))
+    cam = Camera(
+        K=c.K,
+        width=c.width,
+        height=c.height,
+        world_from_cam=c.world_from_cam,
+        dist=np.array([-0.15, 0.0, 0.0, 0.0, 0.0]),
+    )
     res = _render(m, pv, cam)
     truth = m.scene.render(cam)
     a, b = truth[..., 3] > 0.5, res.alpha > 0.5
@@ -301,8 +340,10 @@ def test_real_temple_pixel_shading_beats_surfel_shading(temple_model):
 
     m = OpacityHullModel.open(temple_model)
     pv = prepare_model_views(m)
-    s = {sh: leave_one_out(m, views=[0, 4, 8, 12], config=RenderConfig(shading=sh), prepared=pv)
-         for sh in ("surfel", "pixel")}
+    s = {
+        sh: leave_one_out(m, views=[0, 4, 8, 12], config=RenderConfig(shading=sh), prepared=pv)
+        for sh in ("surfel", "pixel")
+    }
     px, sf = s["pixel"], s["surfel"]
     assert px["psnr_mean"] > sf["psnr_mean"] + 0.3 and px["psnr_mean"] > 18.3
     assert px["psnr_interior_mean"] > sf["psnr_interior_mean"] + 0.5

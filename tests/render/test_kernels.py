@@ -14,8 +14,14 @@ from splat_cases import make_cam, random_surfels, setup_fast
 
 from opacityhull.model import Surfels
 from opacityhull.render import kernels as K
-from opacityhull.render.reference import (bilinear_ref, rasterize_ref, render_image_ref, shade_ref, splat_setup_ref,
-                                          ulr_weights_ref)
+from opacityhull.render.reference import (
+    bilinear_ref,
+    rasterize_ref,
+    render_image_ref,
+    shade_ref,
+    splat_setup_ref,
+    ulr_weights_ref,
+)
 from opacityhull.render.renderer import RenderConfig, render_image, surfel_areas
 from opacityhull.render.views import prepare_views, scan_order
 
@@ -25,8 +31,12 @@ def test_bilinear_fetch_equals_scipy_map_coordinates():
     img = rng.random((7, 9, 4)).astype(np.float32)
     pv = prepare_views([make_cam((0, 0.1, 1.0), size=(9, 7))], [img])
     # inside, on texel centres, on the half-pixel border, and beyond it (clamped)
-    uv = np.concatenate([rng.uniform(-0.5, 8.5, size=(200, 2)) * [1, 6.0 / 8], [[0, 0], [8, 6], [-0.5, -0.5], [8.5, 6.5],
-                                                                              [3.0, 2.0], [-3, 2], [4, 40]]])
+    uv = np.concatenate(
+        [
+            rng.uniform(-0.5, 8.5, size=(200, 2)) * [1, 6.0 / 8],
+            [[0, 0], [8, 6], [-0.5, -0.5], [8.5, 6.5], [3.0, 2.0], [-3, 2], [4, 40]],
+        ]
+    )
     out = np.empty((len(uv), 4), np.float32)
     K.bilinear_fetch(pv.texels, pv.offsets[0], 9, 7, uv, out)
     np.testing.assert_allclose(out, bilinear_ref(img, uv), atol=1e-6)
@@ -34,8 +44,13 @@ def test_bilinear_fetch_equals_scipy_map_coordinates():
 
 
 @settings(max_examples=25, deadline=None)
-@given(seed=st.integers(0, 2**31 - 1), filt=st.sampled_from([0.0, 0.25, 1.0]), cutoff=st.floats(1.0, 3.0),
-       sigma=st.floats(0.3, 0.8), cull=st.booleans())
+@given(
+    seed=st.integers(0, 2**31 - 1),
+    filt=st.sampled_from([0.0, 0.25, 1.0]),
+    cutoff=st.floats(1.0, 3.0),
+    sigma=st.floats(0.3, 0.8),
+    cull=st.booleans(),
+)
 def test_splat_setup_equals_reference(seed, filt, cutoff, sigma, cull):
     rng = np.random.default_rng(seed)
     surf = random_surfels(rng, 60)
@@ -45,8 +60,18 @@ def test_splat_setup_equals_reference(seed, filt, cutoff, sigma, cull):
     cfg = RenderConfig(filter=filt, cutoff_sigma=cutoff, sigma_radius=sigma, backface_cull=cull)
     areas = rng.uniform(1e-6, 1e-4, size=len(surf)).astype(np.float32)
     v1, r1 = setup_fast(surf, cam, cfg, areas)
-    v2, r2 = splat_setup_ref(surf.positions, surf.normals, surf.radii, areas, cam, sigma_radius=sigma,
-                             filter_var=filt, cutoff=cutoff, eps_z=cfg.epsilon_z, cull_backfaces=cull)
+    v2, r2 = splat_setup_ref(
+        surf.positions,
+        surf.normals,
+        surf.radii,
+        areas,
+        cam,
+        sigma_radius=sigma,
+        filter_var=filt,
+        cutoff=cutoff,
+        eps_z=cfg.epsilon_z,
+        cull_backfaces=cull,
+    )
     np.testing.assert_array_equal(v1, v2)
     assert v1.any()
     cols = list(range(K.S_RGBA)) + [K.S_AREA]
@@ -118,8 +143,9 @@ def test_rasterize_equals_reference(band_rows, threads):
     rec[:, K.S_RGBA : K.S_RGBA + 4] = rng.random((len(surf), 4))
     draw = np.flatnonzero(valid)
     assert draw.size > 100
-    acc, zlim = K.splat_frame(rec, draw.astype(np.int64), cam.height, cam.width, cfg.cutoff_sigma, band_rows,
-                              threads=threads)
+    acc, zlim = K.splat_frame(
+        rec, draw.astype(np.int64), cam.height, cam.width, cfg.cutoff_sigma, band_rows, threads=threads
+    )
     acc_r, zlim_r = rasterize_ref(rec, draw, cam.height, cam.width, cfg.cutoff_sigma)
     np.testing.assert_array_equal(np.isfinite(zlim), np.isfinite(zlim_r))
     np.testing.assert_allclose(zlim[np.isfinite(zlim)], zlim_r[np.isfinite(zlim_r)], rtol=1e-6)
@@ -146,7 +172,7 @@ def test_eps_z_buffer_keeps_front_surface_and_discards_back():
         cfg = RenderConfig(epsilon_z=eps)
         valid, rec = setup_fast(surf, cam, cfg, surfel_areas(surf))
         rgba = np.zeros((len(pos), 4), np.float32)
-        rgba[len(back):] = [1, 0, 0, 1]  # front red
+        rgba[len(back) :] = [1, 0, 0, 1]  # front red
         rgba[: len(back)] = [0, 0, 1, 1]  # back blue
         rec[:, K.S_RGBA : K.S_RGBA + 4] = rgba
         acc, _ = K.splat_frame(rec, np.flatnonzero(valid).astype(np.int64), 32, 32, cfg.cutoff_sigma, 8)
@@ -163,17 +189,41 @@ def test_shading_equals_reference(sphere_small, sphere_views_premul):
     order, s_lb = scan_order(pv.centres, C, o, rho)
     out = np.zeros((N, 4), np.float32)
     ok = np.empty(N, bool)
-    K.ulr_shade(m.surfels.positions, m.surfels.visibility, np.ones(N, bool), np.ones(pv.n_views, np.uint8), C,
-                pv.centres, pv.cams, pv.sizes, pv.offsets, pv.texels, order, s_lb, pv.tie_rank, 4, out, 0, ok, 0, N)
+    K.ulr_shade(
+        m.surfels.positions,
+        m.surfels.visibility,
+        np.ones(N, bool),
+        np.ones(pv.n_views, np.uint8),
+        C,
+        pv.centres,
+        pv.cams,
+        pv.sizes,
+        pv.offsets,
+        pv.texels,
+        order,
+        s_lb,
+        pv.tie_rank,
+        4,
+        out,
+        0,
+        ok,
+        0,
+        N,
+    )
     Wd = ulr_weights_ref(m.surfels.positions, m.surfels.visible_bool(), m.cameras, C, k=4)
     ref = shade_ref(m.surfels.positions, Wd, m.cameras, sphere_views_premul)
     np.testing.assert_array_equal(ok, Wd.sum(axis=1) > 0)
     np.testing.assert_allclose(out[ok], ref[ok], atol=2e-6)
 
 
-@pytest.mark.parametrize("cfg", [RenderConfig(shading="surfel"),
-                                 RenderConfig(shading="surfel", k=2, filter=1.0, cutoff_sigma=2.5),
-                                 RenderConfig(shading="surfel", k=6, edge_coverage=False, epsilon_z=4.0)])
+@pytest.mark.parametrize(
+    "cfg",
+    [
+        RenderConfig(shading="surfel"),
+        RenderConfig(shading="surfel", k=2, filter=1.0, cutoff_sigma=2.5),
+        RenderConfig(shading="surfel", k=6, edge_coverage=False, epsilon_z=4.0),
+    ],
+)
 def test_render_image_equals_reference(sphere_small, sphere_views_premul, cfg):
     m = sphere_small
     cam = make_cam((0.25, 0.3, 0.4), size=(40, 30))
@@ -187,10 +237,14 @@ def test_render_image_equals_reference(sphere_small, sphere_views_premul, cfg):
     np.testing.assert_allclose(fast.weight / weight.max(), weight / weight.max(), atol=1e-5)
 
 
-@pytest.mark.parametrize("cfg", [RenderConfig(shading="pixel"),
-                                 RenderConfig(shading="pixel", k=2, min_view_cos=0.3, min_coverage=0.5),
-                                 RenderConfig(shading="pixel", k=6, edge_coverage=False, coverage_clip=False,
-                                              close_holes=False)])
+@pytest.mark.parametrize(
+    "cfg",
+    [
+        RenderConfig(shading="pixel"),
+        RenderConfig(shading="pixel", k=2, min_view_cos=0.3, min_coverage=0.5),
+        RenderConfig(shading="pixel", k=6, edge_coverage=False, coverage_clip=False, close_holes=False),
+    ],
+)
 def test_render_image_pixel_shading_equals_reference(sphere_small, sphere_views_premul, cfg):
     """Per-pixel shading end to end. The kernels' exp table and np.exp differ by ~1e-6,
     which can swap the winning surfel where two fragments weigh the same: the image must
@@ -198,8 +252,9 @@ def test_render_image_pixel_shading_equals_reference(sphere_small, sphere_views_
     m = sphere_small
     cam = make_cam((0.25, 0.3, 0.4), size=(40, 30))
     fast = render_image(m.surfels, m.cameras, sphere_views_premul, cam, config=cfg)
-    rgba, depth, weight, clear = render_image_ref(m.surfels, m.cameras, sphere_views_premul, cam, config=cfg,
-                                                  return_margin=True)
+    rgba, depth, weight, clear = render_image_ref(
+        m.surfels, m.cameras, sphere_views_premul, cam, config=cfg, return_margin=True
+    )
     drawn = rgba[..., 3] > 0
     assert drawn.sum() > 200 and (clear & drawn).sum() > 0.97 * drawn.sum()
     # pinhole filling looks at neighbours: compare where the 3x3 neighbourhood is clear too

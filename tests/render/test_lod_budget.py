@@ -116,8 +116,12 @@ def test_budget_one_draws_the_root(sphere_dir, tmp_path):
 
 
 @settings(max_examples=25, deadline=None)
-@given(n=st.integers(2, 400), seed=st.integers(0, 10_000), budget=st.integers(1, 400),
-       eye_scale=st.sampled_from([0.0, 0.5, 3.0, 50.0]))
+@given(
+    n=st.integers(2, 400),
+    seed=st.integers(0, 10_000),
+    budget=st.integers(1, 400),
+    eye_scale=st.sampled_from([0.0, 0.5, 3.0, 50.0]),
+)
 def test_select_cut_respects_any_budget(n, seed, budget, eye_scale):
     """Any budget ≥ 1, any eye (inside the cloud too): 1 ≤ splats ≤ budget. (The cut
     once took τ = max r_min/d as its coarsest start, and drew 5 splats for budget 1.)"""
@@ -126,8 +130,9 @@ def test_select_cut_respects_any_budget(n, seed, budget, eye_scale):
 
     rng = np.random.default_rng(seed)
     p = rng.normal(size=(n, 3))
-    s = Surfels.from_bool(p, p / np.linalg.norm(p, axis=1, keepdims=True), rng.uniform(0.01, 0.1, n),
-                          rng.random((n, 5)) < 0.5)
+    s = Surfels.from_bool(
+        p, p / np.linalg.norm(p, axis=1, keepdims=True), rng.uniform(0.01, 0.1, n), rng.random((n, 5)) < 0.5
+    )
     tree = build_point_tree(s, depth=10)
     eye = rng.normal(size=3) * eye_scale
     tau, mask = select_cut(tree, eye, budget)

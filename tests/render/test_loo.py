@@ -16,8 +16,9 @@ from opacityhull.render.synthetic import write_sphere_model
 
 @pytest.fixture(scope="module")
 def fuzzy_dir(tmp_path_factory):
-    root, _ = write_sphere_model(tmp_path_factory.mktemp("loo") / "fuzzy", n_surfels=8000, width=64, height=48,
-                                 fuzzy=True)
+    root, _ = write_sphere_model(
+        tmp_path_factory.mktemp("loo") / "fuzzy", n_surfels=8000, width=64, height=48, fuzzy=True
+    )
     return root
 
 

@@ -100,8 +100,12 @@ def test_loo_demo_plan_builtin_fuzzy_cli(tmp_path):
     Former simulator, surfel shading: PSNR 23.25 dB, SSIM 0.725, alpha MAE 0.071 over
     the 48 views; nearest view only 22.52 dB."""
     model = build("fuzzy", PLAN, alpha_threshold=0.05)
-    p = subprocess.run([sys.executable, "-m", "opacityhull.cli", "eval", "loo", str(model), "--out",
-                        str(tmp_path), "--json"], capture_output=True, text=True, timeout=900)
+    p = subprocess.run(
+        [sys.executable, "-m", "opacityhull.cli", "eval", "loo", str(model), "--out", str(tmp_path), "--json"],
+        capture_output=True,
+        text=True,
+        timeout=900,
+    )
     assert p.returncode == 0, p.stderr[-2000:]
     s = json.loads(p.stdout.strip().splitlines()[-1])
     assert len(s["views"]) == 48 and len(s["per_view"]) == 48 and Path(s["sheet"]).is_file()

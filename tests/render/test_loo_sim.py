@@ -30,8 +30,16 @@ pytestmark = pytest.mark.slow
 
 
 def build(scene: str, *, alpha_threshold: float = 0.5) -> Path:
-    return simcache.built(scene, simcache.CI_PLAN, simcache.CI_SCALE, hull_res=96, cameras="groundtruth",
-                          reflectance=False, pictures=False, alpha_threshold=alpha_threshold)
+    return simcache.built(
+        scene,
+        simcache.CI_PLAN,
+        simcache.CI_SCALE,
+        hull_res=96,
+        cameras="groundtruth",
+        reflectance=False,
+        pictures=False,
+        alpha_threshold=alpha_threshold,
+    )
 
 
 @pytest.fixture(scope="module")

@@ -12,10 +12,22 @@ import scipy.ndimage as ndi
 from opacityhull.camera import Camera, look_at_world_from_cam
 from opacityhull.errors import InputError, ShapeError
 from opacityhull.model import Surfels
-from opacityhull.render.background import (EnvMap, direction_to_equirect, envmap_lookup,
-                                           equirect_to_direction, load_background)
-from opacityhull.render.cameras import (captured_view_camera, look_at_camera, orbit_cameras, parse_look_at,
-                                        parse_view_spec, resize_camera, scene_target)
+from opacityhull.render.background import (
+    EnvMap,
+    direction_to_equirect,
+    envmap_lookup,
+    equirect_to_direction,
+    load_background,
+)
+from opacityhull.render.cameras import (
+    captured_view_camera,
+    look_at_camera,
+    orbit_cameras,
+    parse_look_at,
+    parse_view_spec,
+    resize_camera,
+    scene_target,
+)
 from opacityhull.render.evaluate import _display, loo_metrics
 from opacityhull.render.renderer import RenderConfig, render_image, spatially_sorted
 from opacityhull.render.synthetic import make_sphere_model
@@ -100,8 +112,14 @@ def test_leaving_a_view_out_degrades_gracefully_and_uses_neighbours(sphere64):
 @pytest.mark.parametrize("shading", ["surfel", "pixel"])
 def test_excluding_every_view_draws_nothing(sphere64, shading):
     m, pv = sphere64
-    r = render_image(m.surfels, m.cameras, pv, m.cameras[0], exclude_views=range(len(m.cameras)),
-                     config=RenderConfig(shading=shading))
+    r = render_image(
+        m.surfels,
+        m.cameras,
+        pv,
+        m.cameras[0],
+        exclude_views=range(len(m.cameras)),
+        config=RenderConfig(shading=shading),
+    )
     assert np.all(r.rgba == 0)
     if shading == "surfel":
         assert r.stats["splats_drawn"] == 0 and np.all(np.isinf(r.depth))
@@ -182,8 +200,13 @@ def test_bad_inputs_never_produce_nan(sphere64):
 
 def test_empty_and_mismatched_inputs(sphere64):
     m, pv = sphere64
-    empty = Surfels(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0), np.zeros((0, (len(m.cameras) + 7) // 8), np.uint8),
-                    len(m.cameras))
+    empty = Surfels(
+        np.zeros((0, 3)),
+        np.zeros((0, 3)),
+        np.zeros(0),
+        np.zeros((0, (len(m.cameras) + 7) // 8), np.uint8),
+        len(m.cameras),
+    )
     r = render_image(empty, m.cameras, pv, m.cameras[0])
     assert r.rgba.shape == (48, 64, 4) and np.all(r.rgba == 0)
     with pytest.raises(InputError, match="visibility for 36 views, 35"):
@@ -262,20 +285,36 @@ def _envmap_vs_mitsuba(mi):
     env = (0.5 + 0.45 * equirect_to_direction((u + 0.5) / w, (v + 0.5) / h)).astype(np.float32)
     f = 24 / (2 * math.tan(math.radians(50) / 2))
     for target in ((0, 0, 1.0), (1.0, 0, 0.2), (0.3, 0.8, -0.5)):
-        cam = Camera(K=np.array([[f, 0, 15.5], [0, f, 11.5], [0, 0, 1]]), width=32, height=24,
-                     world_from_cam=look_at_world_from_cam((0, 0, 0), target))
+        cam = Camera(
+            K=np.array([[f, 0, 15.5], [0, f, 11.5], [0, 0, 1]]),
+            width=32,
+            height=24,
+            world_from_cam=look_at_world_from_cam((0, 0, 0), target),
+        )
         p = mitsuba_sensor_params(cam)
-        scene = mi.load_dict({
-            "type": "scene", "integrator": {"type": "direct"},
-            "emitter": {"type": "envmap", "bitmap": mi.Bitmap(env)},
-            "sensor": {"type": "perspective", "fov": p["fov"], "fov_axis": "y",
-                       "principal_point_offset_x": p["principal_point_offset_x"],
-                       "principal_point_offset_y": p["principal_point_offset_y"],
-                       "to_world": mi.ScalarTransform4f(p["to_world"]),
-                       "film": {"type": "hdrfilm", "width": 32, "height": 24, "rfilter": {"type": "box"},
-                                "pixel_format": "rgb"},
-                       "sampler": {"type": "independent", "sample_count": 16}},
-        })
+        scene = mi.load_dict(
+            {
+                "type": "scene",
+                "integrator": {"type": "direct"},
+                "emitter": {"type": "envmap", "bitmap": mi.Bitmap(env)},
+                "sensor": {
+                    "type": "perspective",
+                    "fov": p["fov"],
+                    "fov_axis": "y",
+                    "principal_point_offset_x": p["principal_point_offset_x"],
+                    "principal_point_offset_y": p["principal_point_offset_y"],
+                    "to_world": mi.ScalarTransform4f(p["to_world"]),
+                    "film": {
+                        "type": "hdrfilm",
+                        "width": 32,
+                        "height": 24,
+                        "rfilter": {"type": "box"},
+                        "pixel_format": "rgb",
+                    },
+                    "sampler": {"type": "independent", "sample_count": 16},
+                },
+            }
+        )
         ref = np.array(mi.render(scene))
         mine = EnvMap(env).render(cam)
         assert np.mean(np.abs(ref - mine)) < 0.01
@@ -318,8 +357,9 @@ def test_camera_helpers(sphere64):
     assert captured_view_camera(views, 1, 30.0) is cams[4]
     geo = RigGeometry.from_dict(m.rig)
     novel = captured_view_camera(views, 1, 15.0)
-    np.testing.assert_allclose(novel.world_from_cam, RigGeometry.view_camera(geo.nominal_cameras()[1], 15.0).world_from_cam,
-                               atol=1e-12)
+    np.testing.assert_allclose(
+        novel.world_from_cam, RigGeometry.view_camera(geo.nominal_cameras()[1], 15.0).world_from_cam, atol=1e-12
+    )
     with pytest.raises(InputError, match="no captured camera 7"):
         captured_view_camera(views, 7, 0.0)
     # resizing keeps the vertical field of view and the relative principal point

@@ -60,8 +60,20 @@ def test_render_orbit_writes_frames_and_gif(sphere_dir, tmp_path):
 
 def test_render_look_at_over_environment_map(sphere_dir, tmp_path):
     root, _ = sphere_dir
-    s = run_json("render", root, "--out", tmp_path / "la.exr", "--look-at", "0,0.3,0.5,0,0.1,0,30",
-                 "--background", "/work/shared/data/probes/grace.hdr", "--env-yaw-deg", "180", "--k", "3")
+    s = run_json(
+        "render",
+        root,
+        "--out",
+        tmp_path / "la.exr",
+        "--look-at",
+        "0,0.3,0.5,0,0.1,0,30",
+        "--background",
+        "/work/shared/data/probes/grace.hdr",
+        "--env-yaw-deg",
+        "180",
+        "--k",
+        "3",
+    )
     assert s["background"] == "envmap"
     img = read_exr(tmp_path / "la.exr")
     assert img.shape == (48, 64, 3) and np.all(np.isfinite(img))
@@ -76,14 +88,17 @@ def test_render_look_at_over_environment_map(sphere_dir, tmp_path):
     assert np.abs(img[24, 32] - bg[24, 32]).max() > 0.05  # the object covers the centre
 
 
-@pytest.mark.parametrize("args,code,msg", [
-    (["--view", "0,0", "--orbit", "3"], 2, "only one of"),
-    (["--view", "zero"], 2, "--view"),
-    (["--view", "9,0"], 2, "no captured camera 9"),
-    (["--look-at", "1,2,3"], 2, "--look-at"),
-    (["--k", "0"], 2, "RenderConfig.k"),
-    (["--background", "nonsense.png"], 2, "neither a colour"),
-])
+@pytest.mark.parametrize(
+    "args,code,msg",
+    [
+        (["--view", "0,0", "--orbit", "3"], 2, "only one of"),
+        (["--view", "zero"], 2, "--view"),
+        (["--view", "9,0"], 2, "no captured camera 9"),
+        (["--look-at", "1,2,3"], 2, "--look-at"),
+        (["--k", "0"], 2, "RenderConfig.k"),
+        (["--background", "nonsense.png"], 2, "neither a colour"),
+    ],
+)
 def test_render_bad_input_exits_nonzero_with_a_message(sphere_dir, tmp_path, args, code, msg):
     root, _ = sphere_dir
     res = run("render", root, "--out", tmp_path / "x.png", *args)

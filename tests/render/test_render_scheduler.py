@@ -30,8 +30,9 @@ def cluster(dask_cluster):
 @pytest.fixture(scope="module")
 def tiny_model(tmp_path_factory):
     """1500 surfels, 24 views of 32x24 px: an orbit frame renders in milliseconds."""
-    root, _ = write_sphere_model(tmp_path_factory.mktemp("rsched") / "sphere", n_surfels=1500, width=32, height=24,
-                                 table_step_deg=45.0)
+    root, _ = write_sphere_model(
+        tmp_path_factory.mktemp("rsched") / "sphere", n_surfels=1500, width=32, height=24, table_step_deg=45.0
+    )
     return root
 
 
@@ -60,12 +61,14 @@ def assert_same_orbit(a: dict, b: dict):
 
 
 @pytest.mark.parametrize("scheduler", ["threads", "cluster"])
-def test_an_orbit_through_a_scheduler_equals_the_serial_orbit_bit_for_bit(scheduler, cluster, tiny_model,
-                                                                          serial_orbit, tmp_path):
+def test_an_orbit_through_a_scheduler_equals_the_serial_orbit_bit_for_bit(
+    scheduler, cluster, tiny_model, serial_orbit, tmp_path
+):
     with open_executor(cluster if scheduler == "cluster" else scheduler, workers=2) as ex:
         done = []
-        s = _orbit(tiny_model, tmp_path / "orbit.exr", executor=ex, budget=600,
-                   progress=lambda d, n: done.append((d, n)))
+        s = _orbit(
+            tiny_model, tmp_path / "orbit.exr", executor=ex, budget=600, progress=lambda d, n: done.append((d, n))
+        )
         assert s["scheduler"] == ex.scheduler
         # 5 frames on 2 slots: chunks of 2, 2, 1 frames, progress counted in frames
         assert done[-1] == (FRAMES, FRAMES) and len(done) == 3
@@ -81,8 +84,16 @@ def test_a_worker_opens_the_model_once_and_again_when_it_is_rebuilt(tiny_model, 
     cams = orbit_cameras([v.camera for v in m.views], 2, width=16, height=12)
 
     def task(tag):
-        return (str(tiny_model), cams, RenderConfig(), [], None, [str(tmp_path / f"{tag}_{i}.png") for i in range(2)],
-                None, None)
+        return (
+            str(tiny_model),
+            cams,
+            RenderConfig(),
+            [],
+            None,
+            [str(tmp_path / f"{tag}_{i}.png") for i in range(2)],
+            None,
+            None,
+        )
 
     a = render_frames(task("a"))
     b = render_frames(task("b"))
@@ -104,8 +115,19 @@ def test_render_cli_with_threads_writes_the_same_orbit_as_serial(tiny_model, tmp
     from opacityhull.cli import app, normalize_argv
 
     def cli(out, scheduler):
-        argv = ["render", str(tiny_model), "--out", str(out), "--orbit", "3", "--background", "grey", "--json",
-                "--scheduler", scheduler]
+        argv = [
+            "render",
+            str(tiny_model),
+            "--out",
+            str(out),
+            "--orbit",
+            "3",
+            "--background",
+            "grey",
+            "--json",
+            "--scheduler",
+            scheduler,
+        ]
         res = CliRunner().invoke(app, normalize_argv(argv), env={"COLUMNS": "4000"})
         assert res.exit_code == 0, res.output
         return json.loads(res.stdout)

@@ -29,8 +29,14 @@ def inflated():
     c = np.asarray(m.scene.centre, np.float32)
     d = DELTA_REL * m.scene.radius
     n = (s.positions - c) / np.linalg.norm(s.positions - c, axis=1, keepdims=True)
-    hull = Surfels(c + n * (m.scene.radius + d), n, s.radii * (1 + DELTA_REL), s.visibility, s.n_views,
-                   np.full(len(s), d, np.float32))
+    hull = Surfels(
+        c + n * (m.scene.radius + d),
+        n,
+        s.radii * (1 + DELTA_REL),
+        s.visibility,
+        s.n_views,
+        np.full(len(s), d, np.float32),
+    )
     return m, pv, hull, d
 
 
@@ -65,8 +71,13 @@ def test_shading_depth_lies_behind_the_hull_by_delta_along_the_axis(inflated):
     cam = _novel(m)
     a = render_image(hull, m.cameras, pv, cam, config=RenderConfig(shading_surface="hull"))
     # the displaced surfels alone, drawn as geometry: the sphere's own depth
-    true = render_image(Surfels(hull.shading_positions(), hull.normals, hull.radii, hull.visibility, hull.n_views),
-                        m.cameras, pv, cam, config=RenderConfig())
+    true = render_image(
+        Surfels(hull.shading_positions(), hull.normals, hull.radii, hull.visibility, hull.n_views),
+        m.cameras,
+        pv,
+        cam,
+        config=RenderConfig(),
+    )
     cx, cy = int(round(cam.K[0, 2])), int(round(cam.K[1, 2]))
     # on the optical axis through the centre the ray meets both spheres head on
     assert true.depth[cy, cx] - a.depth[cy, cx] == pytest.approx(d, rel=0.1)
@@ -75,8 +86,9 @@ def test_shading_depth_lies_behind_the_hull_by_delta_along_the_axis(inflated):
 def test_zero_depth_renders_exactly_the_hull(inflated):
     m, pv, hull, _ = inflated
     cam = _novel(m)
-    zero = Surfels(hull.positions, hull.normals, hull.radii, hull.visibility, hull.n_views,
-                   np.zeros(len(hull), np.float32))
+    zero = Surfels(
+        hull.positions, hull.normals, hull.radii, hull.visibility, hull.n_views, np.zeros(len(hull), np.float32)
+    )
     none = Surfels(hull.positions, hull.normals, hull.radii, hull.visibility, hull.n_views)
     a = render_image(zero, m.cameras, pv, cam, config=RenderConfig())
     b = render_image(none, m.cameras, pv, cam, config=RenderConfig())
@@ -103,8 +115,9 @@ def test_depth_round_trips_through_the_ply(tmp_path, inflated):
     back = read_surfels_ply(p)
     assert back.depth_m is not None and np.array_equal(back.depth_m, hull.depth_m[:100])
     # a PLY without the property is a hull-only model
-    write_surfels_ply(p, Surfels(hull.positions[:5], hull.normals[:5], hull.radii[:5], hull.visibility[:5],
-                                 hull.n_views))
+    write_surfels_ply(
+        p, Surfels(hull.positions[:5], hull.normals[:5], hull.radii[:5], hull.visibility[:5], hull.n_views)
+    )
     assert read_surfels_ply(p).depth_m is None
 
 

@@ -146,7 +146,9 @@ def _ring_scene(angles_deg, k, *, surfel=(0.0, 0.0, 0.0)):
         exact = {0: (sa, 0.0), 90: (0.0, sa), 180: (-sa, 0.0), 270: (0.0, -sa)}
         x, y = exact.get(phi, (sa * math.cos(math.radians(phi)), sa * math.sin(math.radians(phi))))
         cams.append(cam_at(np.array([x, y, ca])))
-    surf = Surfels.from_bool(np.array([surfel]), np.array([[0.0, 0, 1]]), np.array([0.01]), np.ones((1, len(cams)), bool))
+    surf = Surfels.from_bool(
+        np.array([surfel]), np.array([[0.0, 0, 1]]), np.array([0.01]), np.ones((1, len(cams)), bool)
+    )
     return cams, surf
 
 
@@ -297,8 +299,27 @@ def test_block_search_equals_frame_search(sphere_small):
         w = np.empty((N, 4), np.float32)
         uv = np.empty((N, 4, 2), np.float32)
         cnt = np.empty(N, np.int32)
-        K.ulr_select(m.surfels.positions, m.surfels.visibility, np.ones(N, bool), np.ones(pv.n_views, np.uint8), C,
-                     pv.centres, pv.cams, pv.sizes, order, s_lb, pv.tie_rank, 4, idx, w, uv, cnt, 0, N, block=block)
+        K.ulr_select(
+            m.surfels.positions,
+            m.surfels.visibility,
+            np.ones(N, bool),
+            np.ones(pv.n_views, np.uint8),
+            C,
+            pv.centres,
+            pv.cams,
+            pv.sizes,
+            order,
+            s_lb,
+            pv.tie_rank,
+            4,
+            idx,
+            w,
+            uv,
+            cnt,
+            0,
+            N,
+            block=block,
+        )
         outs.append((idx, w))
     for idx, w in outs[1:]:
         np.testing.assert_array_equal(idx, outs[0][0])

@@ -59,16 +59,34 @@ def grbl(kind):
     from ``backlash_deg``)."""
     made = []
 
-    def make(*, emu_kw=None, timeout_s: float = 0.5, open: bool = True, backlash_deg: float = 0.0,
-             boot_timeout_s: float = 0.5, unlock: bool = False, **ctl_kw):
+    def make(
+        *,
+        emu_kw=None,
+        timeout_s: float = 0.5,
+        open: bool = True,
+        backlash_deg: float = 0.0,
+        boot_timeout_s: float = 0.5,
+        unlock: bool = False,
+        **ctl_kw,
+    ):
         emu = GrblEmulator(**(emu_kw or {}))
         srv = EmulatorServer(emu, kind=kind)
         srv.start()
-        ctl = GrblController.from_url(srv.url, name="grbl", timeout_s=timeout_s, boot_timeout_s=boot_timeout_s, **ctl_kw)
+        ctl = GrblController.from_url(
+            srv.url, name="grbl", timeout_s=timeout_s, boot_timeout_s=boot_timeout_s, **ctl_kw
+        )
         made.append((srv, ctl))
         tt = GrblAxis(ctl, axis="X", steps_per_deg=80.0, max_rate_deg_s=30.0, accel_deg_s2=60.0, name="turntable")
-        la = GrblAxis(ctl, axis="Y", steps_per_deg=80.0, max_rate_deg_s=30.0, accel_deg_s2=60.0,
-                      backlash_deg=backlash_deg, soft_limits_deg=(-180.0, 180.0), name="light_rotation")
+        la = GrblAxis(
+            ctl,
+            axis="Y",
+            steps_per_deg=80.0,
+            max_rate_deg_s=30.0,
+            accel_deg_s2=60.0,
+            backlash_deg=backlash_deg,
+            soft_limits_deg=(-180.0, 180.0),
+            name="light_rotation",
+        )
         if open:
             ctl.open(unlock=unlock)
         return SimpleNamespace(server=srv, emu=emu, ctl=ctl, turntable=tt, lights=la, kind=kind)
@@ -92,8 +110,7 @@ def enttec(kind):
         srv.start()
         dmx = EnttecDmx.from_url(srv.url, name="dmx", timeout_s=timeout_s)
         made.append((srv, dmx))
-        arr = DmxLightArray(dmx, channels=channels or {0: 1, 1: 2, 2: 3, 3: 4}, rotation=rotation,
-                            name="light_array")
+        arr = DmxLightArray(dmx, channels=channels or {0: 1, 1: 2, 2: 3, 3: 4}, rotation=rotation, name="light_array")
         if open:
             dmx.open()
         return SimpleNamespace(server=srv, emu=emu, dmx=dmx, array=arr, kind=kind)

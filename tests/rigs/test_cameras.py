@@ -76,14 +76,18 @@ def test_opencv_avi_frames_in_order(avi):
 
 def test_opencv_exposure_control_refused_by_file_backend(avi):
     cam = OpenCVCamera(str(avi), name="cam3", width=W, height=H)
-    with pytest.raises(DeviceError, match=r"cam3: the \w+ backend did not accept an exposure of 0.01 s.*exposure_control = false"):
+    with pytest.raises(
+        DeviceError, match=r"cam3: the \w+ backend did not accept an exposure of 0.01 s.*exposure_control = false"
+    ):
         cam.capture(0.01)
     cam.close()
 
 
 def test_opencv_missing_devices_give_clear_errors(tmp_path):
     cam = OpenCVCamera(57, name="cam1", width=W, height=H, timeout_s=1)
-    with pytest.raises(DeviceGone, match=r"camera cam1: cannot open video device 57 \(/dev/video57\) — is it plugged in"):
+    with pytest.raises(
+        DeviceGone, match=r"camera cam1: cannot open video device 57 \(/dev/video57\) — is it plugged in"
+    ):
         cam.capture(0.01)
     info = cam.check()
     assert not info.ok and "video device 57" in info.detail
@@ -134,7 +138,7 @@ def test_directory_camera_waits_for_a_complete_file(tmp_path):
             f.write(blob[: len(blob) // 2])
             f.flush()
             assert saw_partial.wait(10)
-            f.write(blob[len(blob) // 2:])
+            f.write(blob[len(blob) // 2 :])
 
     threads = []
 
@@ -168,8 +172,14 @@ def test_directory_camera_jpeg_without_eoi_is_not_read(tmp_path):
             f.write(blob[-2:])
 
     t = threading.Thread(target=writer)
-    cam = DirectoryCamera(tmp_path, name="c", trigger=lambda e: t.start(), settle_s=0.05, timeout_s=10,
-                          on_wait=lambda s, p, n: seen.set() if s == "unreadable" else None)
+    cam = DirectoryCamera(
+        tmp_path,
+        name="c",
+        trigger=lambda e: t.start(),
+        settle_s=0.05,
+        timeout_s=10,
+        on_wait=lambda s, p, n: seen.set() if s == "unreadable" else None,
+    )
     img = cam.capture(0.01)
     t.join()
     expected = srgb_decode(cv2.imdecode(buf, cv2.IMREAD_COLOR)[:, :, ::-1] / np.float32(255))
@@ -185,8 +195,9 @@ def test_directory_camera_ignores_existing_and_hidden_files(tmp_path):
         (tmp_path / "notes.txt").write_text("not matching the pattern")
         threading.Thread(target=write_png, args=(tmp_path / "new.png", new)).start()
 
-    cam = DirectoryCamera(tmp_path, name="c", pattern="*.png", trigger=trigger, settle_s=0.02, timeout_s=10,
-                          width=W, height=H)
+    cam = DirectoryCamera(
+        tmp_path, name="c", pattern="*.png", trigger=trigger, settle_s=0.02, timeout_s=10, width=W, height=H
+    )
     img = cam.capture(0.5)
     assert cam.last_path.name == "new.png"
     np.testing.assert_array_equal(img, read_png(tmp_path / "new.png"))
@@ -198,33 +209,55 @@ def test_directory_camera_trigger_command_substitutes_exposure(tmp_path):
     write_png(src, np.full((H, W, 3), 0.25, np.float32))
     shots = tmp_path / "shots"
     shots.mkdir()
-    cmd = [sys.executable, "-c", "import shutil,sys; shutil.copy(sys.argv[1], sys.argv[2] + '/shot_' + sys.argv[3] + '.png')",
-           str(src), "{folder}", "{exposure_s}"]
+    cmd = [
+        sys.executable,
+        "-c",
+        "import shutil,sys; shutil.copy(sys.argv[1], sys.argv[2] + '/shot_' + sys.argv[3] + '.png')",
+        str(src),
+        "{folder}",
+        "{exposure_s}",
+    ]
     cam = DirectoryCamera(shots, name="c", trigger=cmd, settle_s=0.02, timeout_s=20)
     img = cam.capture(0.004)
     assert cam.last_path.name == "shot_0.004.png"
     np.testing.assert_allclose(img, 0.25, atol=0.003)
-    bad = DirectoryCamera(shots, name="c", trigger=[sys.executable, "-c", "import sys; sys.exit('no camera found')"],
-                          timeout_s=20)
+    bad = DirectoryCamera(
+        shots, name="c", trigger=[sys.executable, "-c", "import sys; sys.exit('no camera found')"], timeout_s=20
+    )
     with pytest.raises(DeviceError, match=r"trigger command .* failed with exit code 1: no camera found"):
         bad.capture(0.01)
 
 
 def test_directory_camera_timeouts_and_errors_name_the_folder(tmp_path):
     cam = DirectoryCamera(tmp_path, name="dslr", timeout_s=0.2, settle_s=0.01)
-    with pytest.raises(DeviceTimeout, match=rf"camera dslr: no new image matching .* appeared in {tmp_path} within "
-                                            r"0.2 s — is the tethering software running"):
+    with pytest.raises(
+        DeviceTimeout,
+        match=rf"camera dslr: no new image matching .* appeared in {tmp_path} within "
+        r"0.2 s — is the tethering software running",
+    ):
         cam.capture(0.01)
     # a file that appears but never becomes readable
-    cam = DirectoryCamera(tmp_path, name="dslr", timeout_s=0.3, settle_s=0.01,
-                          trigger=lambda e: (tmp_path / "broken.exr").write_bytes(b"garbage"))
+    cam = DirectoryCamera(
+        tmp_path,
+        name="dslr",
+        timeout_s=0.3,
+        settle_s=0.01,
+        trigger=lambda e: (tmp_path / "broken.exr").write_bytes(b"garbage"),
+    )
     with pytest.raises(DeviceTimeout, match="broken.exr .* did not become a complete, readable image"):
         cam.capture(0.01)
     missing = DirectoryCamera(tmp_path / "nope", name="dslr")
     with pytest.raises(DeviceGone, match="folder .*nope does not exist"):
         missing.capture(0.01)
     assert not missing.check().ok and cam.check().ok
-    sized = DirectoryCamera(tmp_path, name="dslr", width=W + 1, height=H, settle_s=0.01, timeout_s=10,
-                            trigger=lambda e: write_png(tmp_path / "x.png", np.zeros((H, W, 3), np.float32)))
+    sized = DirectoryCamera(
+        tmp_path,
+        name="dslr",
+        width=W + 1,
+        height=H,
+        settle_s=0.01,
+        timeout_s=10,
+        trigger=lambda e: write_png(tmp_path / "x.png", np.zeros((H, W, 3), np.float32)),
+    )
     with pytest.raises(DeviceError, match=r"x.png is 32x24, the config asks for 33x24"):
         sized.capture(0.01)

@@ -13,8 +13,13 @@ SERIAL_DEVICES = ["turntable", "light_array.rotation", "light_array", "backdrops
 
 
 def start_emulate(runtime: Path, *extra):
-    proc = subprocess.Popen([*CLI, "rig", "emulate", "--config", str(EXAMPLE), "--write-config", str(runtime),
-                             "--json", *extra], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, cwd=ROOT)
+    proc = subprocess.Popen(
+        [*CLI, "rig", "emulate", "--config", str(EXAMPLE), "--write-config", str(runtime), "--json", *extra],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=ROOT,
+    )
     line = proc.stdout.readline()
     if not line:
         proc.kill()
@@ -23,8 +28,13 @@ def start_emulate(runtime: Path, *extra):
 
 
 def rig_check(runtime: Path, *extra, timeout=30):
-    return subprocess.run([*CLI, "rig", "check", "--config", str(runtime), *extra], capture_output=True, text=True,
-                          cwd=ROOT, timeout=timeout)
+    return subprocess.run(
+        [*CLI, "rig", "check", "--config", str(runtime), *extra],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        timeout=timeout,
+    )
 
 
 def flat(text: str) -> str:
@@ -118,8 +128,12 @@ def test_bad_invocations_exit_with_input_error(tmp_path):
     r = runner.invoke(app, ["rig", "check", "--config", str(EXAMPLE)])
     assert r.exit_code == 2 and "rig emulate" in flat(r.output)
     real = tmp_path / "real.toml"
-    real.write_text(EXAMPLE.read_text().replace('"emulator:grbl"', '"/dev/ttyUSB0"')
-                    .replace('"emulator:enttec"', '"/dev/ttyUSB1"').replace('"emulator:display"', '"/dev/ttyS0"'))
+    real.write_text(
+        EXAMPLE.read_text()
+        .replace('"emulator:grbl"', '"/dev/ttyUSB0"')
+        .replace('"emulator:enttec"', '"/dev/ttyUSB1"')
+        .replace('"emulator:display"', '"/dev/ttyS0"')
+    )
     r = runner.invoke(app, ["rig", "emulate", "--config", str(real), "--write-config", str(tmp_path / "x.toml")])
     assert r.exit_code == 2 and "nothing to emulate" in flat(r.output) and not (tmp_path / "x.toml").exists()
     r = runner.invoke(app, ["rig", "check", "--config", str(tmp_path / "missing.toml"), "--json"])

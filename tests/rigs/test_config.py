@@ -28,8 +28,12 @@ def write(tmp_path, d, name="rig.toml") -> Path:
 def test_example_rig_parses(example_dict):
     cfg = load_rig_config(EXAMPLE)
     assert cfg.name == "paper rig (emulated)"
-    assert cfg.device_urls() == {"turntable": "emulator:grbl", "light_array": "emulator:enttec",
-                                 "light_array.rotation": "emulator:grbl", "backdrops": "emulator:display"}
+    assert cfg.device_urls() == {
+        "turntable": "emulator:grbl",
+        "light_array": "emulator:enttec",
+        "light_array.rotation": "emulator:grbl",
+        "backdrops": "emulator:display",
+    }
     ports = cfg.grbl_ports()
     assert list(ports) == ["emulator:grbl"] and [a.axis for a in ports["emulator:grbl"]] == ["X", "Y"]
     assert cfg.light_array.channel_map == {0: 1, 1: 2, 2: 3, 3: 4}
@@ -74,8 +78,9 @@ def test_example_rig_displays_cover_the_object():
         Qb = C + np.where(np.isfinite(t_b), t_b, 0)[:, None] * d
         Qk = C + np.where(np.isfinite(t_k), t_k, 0)[:, None] * d
         hit_bottom = np.isfinite(t_b) & (t_b >= t_p) & (np.hypot(Qb[:, 0], Qb[:, 2]) <= r_disc)
-        hit_back = np.isfinite(t_k) & (t_k >= t_p) & (Qk[:, 0] >= x0) & (Qk[:, 0] <= x1) & \
-            (Qk[:, 1] >= y0) & (Qk[:, 1] <= y1)
+        hit_back = (
+            np.isfinite(t_k) & (t_k >= t_p) & (Qk[:, 0] >= x0) & (Qk[:, 0] <= x1) & (Qk[:, 1] >= y0) & (Qk[:, 1] <= y1)
+        )
         assert np.all(hit_bottom | hit_back), f"{cam.name}: {np.count_nonzero(~(hit_bottom | hit_back))} rays miss"
     # the rotating bottom panel passes under the back panel: its lower edge is above the table top
     assert y0 > 0 and np.hypot(*bottom.size_m) / 2 > abs(z_back)
@@ -84,17 +89,23 @@ def test_example_rig_displays_cover_the_object():
 def test_roundtrip_and_url_rewrite(tmp_path, example_dict):
     cfg = load_rig_config(EXAMPLE)
     p = cfg.with_urls({"emulator:grbl": "/dev/pts/7", "emulator:display": "socket://127.0.0.1:4000"}).write(
-        tmp_path / "runtime.toml")
+        tmp_path / "runtime.toml"
+    )
     again = load_rig_config(p)
-    assert again.device_urls() == {"turntable": "/dev/pts/7", "light_array": "emulator:enttec",
-                                   "light_array.rotation": "/dev/pts/7", "backdrops": "socket://127.0.0.1:4000"}
+    assert again.device_urls() == {
+        "turntable": "/dev/pts/7",
+        "light_array": "emulator:enttec",
+        "light_array.rotation": "/dev/pts/7",
+        "backdrops": "socket://127.0.0.1:4000",
+    }
     for f in ("name", "cameras"):
         assert getattr(again, f) == getattr(cfg, f)
     assert again.turntable == cfg.turntable.__class__(**{**cfg.turntable.__dict__, "url": "/dev/pts/7"})
     assert again.light_array.channels == cfg.light_array.channels
     assert again.geometry.to_dict() == cfg.geometry.to_dict()
-    np.testing.assert_allclose(again.geometry.nominal_cameras()[3].world_from_cam,
-                               cfg.geometry.nominal_cameras()[3].world_from_cam)
+    np.testing.assert_allclose(
+        again.geometry.nominal_cameras()[3].world_from_cam, cfg.geometry.nominal_cameras()[3].world_from_cam
+    )
     assert cfg.raw["devices"]["turntable"]["url"] == "emulator:grbl"  # the original is untouched
 
 
@@ -122,64 +133,131 @@ def _swap_first_cameras(d):
 
 # (case id, edits, expected message): each edit is (key path, value or _DEL) or a callable on the dict
 _BAD_RIG = [
-    ("url-scheme", [(("devices", "turntable", "url"), "http://grbl.local")],
-     r"rig.toml: devices.turntable.url: unknown URL scheme in 'http://grbl.local'"),
-    ("emulator-kind", [(("devices", "light_array", "rotation", "url"), "emulator:stepper")],
-     r"devices.light_array.rotation.url: unknown emulator kind 'stepper'"),
-    ("emulator-device", [(("devices", "backdrops", "url"), "emulator:grbl")],
-     r"devices.backdrops.url: 'emulator:grbl' emulates a grbl device, but this device is a display"),
-    ("dmx-missing", [(("devices", "light_array", "channels", "2"), _DEL)],
-     r"devices.light_array.channels: no DMX channel for light 2 \(geometry.lights\[2\]\)"),
-    ("dmx-unknown-light", [(("devices", "light_array", "channels", "9"), 9)],
-     r"devices.light_array.channels.9: no light with id 9 in geometry.lights"),
-    ("dmx-reused", [(("devices", "light_array", "channels", "3"), 1)],
-     r"devices.light_array.channels.3: DMX channel 1 is already used by light 0"),
-    ("dmx-range", [(("devices", "light_array", "channels", "3"), 513)],
-     r"channels.3: expected a DMX channel 1..512, got 513"),
-    ("no-light-array", [(("devices", "light_array"), _DEL)],
-     r"devices: geometry.lights has 4 light\(s\) but there is no \[devices.light_array\]"),
-    ("dup-camera", [(("devices", "cameras", 4, "name"), "cam1")],
-     r"devices.cameras\[4\].name: duplicate camera name 'cam1' \(also devices.cameras\[1\]\)"),
-    ("dup-axis", [(("devices", "light_array", "rotation", "axis"), "X")],
-     r"devices.light_array.rotation.axis: axis X of the controller at 'emulator:grbl' is already "
-     r"devices.turntable"),
-    ("dup-port", [(("devices", "backdrops", "url"), "/dev/ttyUSB0"),
-                  (("devices", "light_array", "url"), "/dev/ttyUSB0")],
-     r"devices.backdrops.url: '/dev/ttyUSB0' is also devices.light_array.url \(a enttec device\)"),
+    (
+        "url-scheme",
+        [(("devices", "turntable", "url"), "http://grbl.local")],
+        r"rig.toml: devices.turntable.url: unknown URL scheme in 'http://grbl.local'",
+    ),
+    (
+        "emulator-kind",
+        [(("devices", "light_array", "rotation", "url"), "emulator:stepper")],
+        r"devices.light_array.rotation.url: unknown emulator kind 'stepper'",
+    ),
+    (
+        "emulator-device",
+        [(("devices", "backdrops", "url"), "emulator:grbl")],
+        r"devices.backdrops.url: 'emulator:grbl' emulates a grbl device, but this device is a display",
+    ),
+    (
+        "dmx-missing",
+        [(("devices", "light_array", "channels", "2"), _DEL)],
+        r"devices.light_array.channels: no DMX channel for light 2 \(geometry.lights\[2\]\)",
+    ),
+    (
+        "dmx-unknown-light",
+        [(("devices", "light_array", "channels", "9"), 9)],
+        r"devices.light_array.channels.9: no light with id 9 in geometry.lights",
+    ),
+    (
+        "dmx-reused",
+        [(("devices", "light_array", "channels", "3"), 1)],
+        r"devices.light_array.channels.3: DMX channel 1 is already used by light 0",
+    ),
+    (
+        "dmx-range",
+        [(("devices", "light_array", "channels", "3"), 513)],
+        r"channels.3: expected a DMX channel 1..512, got 513",
+    ),
+    (
+        "no-light-array",
+        [(("devices", "light_array"), _DEL)],
+        r"devices: geometry.lights has 4 light\(s\) but there is no \[devices.light_array\]",
+    ),
+    (
+        "dup-camera",
+        [(("devices", "cameras", 4, "name"), "cam1")],
+        r"devices.cameras\[4\].name: duplicate camera name 'cam1' \(also devices.cameras\[1\]\)",
+    ),
+    (
+        "dup-axis",
+        [(("devices", "light_array", "rotation", "axis"), "X")],
+        r"devices.light_array.rotation.axis: axis X of the controller at 'emulator:grbl' is already "
+        r"devices.turntable",
+    ),
+    (
+        "dup-port",
+        [(("devices", "backdrops", "url"), "/dev/ttyUSB0"), (("devices", "light_array", "url"), "/dev/ttyUSB0")],
+        r"devices.backdrops.url: '/dev/ttyUSB0' is also devices.light_array.url \(a enttec device\)",
+    ),
     ("camera-order", [_swap_first_cameras], r"same names in a different order"),
     ("camera-missing", [lambda d: d["devices"]["cameras"].pop()], r"missing \['cam5'\]"),
-    ("output-missing", [(("devices", "backdrops", "outputs", "back"), _DEL)],
-     r"devices.backdrops.outputs: no controller output for display 'back' \(geometry.displays\[1\]\)"),
-    ("output-unknown-display", [(("devices", "backdrops", "outputs", "side"), 2)],
-     r"devices.backdrops.outputs.side: no display named 'side' in geometry.displays"),
-    ("output-reused", [(("devices", "backdrops", "outputs", "back"), 0)],
-     r"outputs.back: output 0 is already used by display 'bottom'"),
-    ("slots-zero", [(("devices", "backdrops", "slots"), 0)],
-     r"devices.backdrops.slots: expected an integer in 1..65535, got 0"),
-    ("no-backdrops", [(("devices", "backdrops"), _DEL)],
-     r"geometry.displays has 2 display\(s\) but there is no \[devices.backdrops\]"),
-    ("number-type", [(("devices", "turntable", "steps_per_deg"), "80")],
-     r"devices.turntable.steps_per_deg: expected a number, got '80'"),
-    ("timeout-range", [(("devices", "turntable", "timeout_s"), -1)],
-     r"devices.turntable.timeout_s: must be > 0, got -1"),
-    ("unknown-key", [(("devices", "turntable", "speed"), 3)],
-     r"devices.turntable: unknown key\(s\) \['speed'\]"),
-    ("axis-letter", [(("devices", "turntable", "axis"), "Q")],
-     r"devices.turntable.axis: expected a GRBL axis letter"),
-    ("table-type", [(("devices", "backdrops", "outputs"), 3)],
-     r"devices.backdrops.outputs: expected a table, got int 3"),
-    ("bool-type", [(("devices", "cameras", 0),
-                    {"name": "cam0", "driver": "opencv", "device": 0, "exposure_control": "yes"})],
-     r"devices.cameras\[0\].exposure_control: expected true or false"),
-    ("camera-driver", [(("devices", "cameras", 0), {"name": "cam0", "driver": "gphoto"})],
-     r"devices.cameras\[0\].driver: unknown camera driver 'gphoto'"),
-    ("camera-unknown-key", [(("devices", "cameras", 0),
-                             {"name": "cam0", "driver": "opencv", "device": 0, "pattern": "*.png"})],
-     r"devices.cameras\[0\]: unknown key\(s\) \['pattern'\]"),
-    ("geometry-number", [(("geometry", "cameras", 0, "width"), "wide")],
-     r"rig.toml: geometry.cameras\[0\].width: expected a number"),
-    ("soft-limits", [(("devices", "turntable", "soft_limits_deg"), [10, -10])],
-     r"soft_limits_deg: expected \[min_deg, max_deg\] with min < max"),
+    (
+        "output-missing",
+        [(("devices", "backdrops", "outputs", "back"), _DEL)],
+        r"devices.backdrops.outputs: no controller output for display 'back' \(geometry.displays\[1\]\)",
+    ),
+    (
+        "output-unknown-display",
+        [(("devices", "backdrops", "outputs", "side"), 2)],
+        r"devices.backdrops.outputs.side: no display named 'side' in geometry.displays",
+    ),
+    (
+        "output-reused",
+        [(("devices", "backdrops", "outputs", "back"), 0)],
+        r"outputs.back: output 0 is already used by display 'bottom'",
+    ),
+    (
+        "slots-zero",
+        [(("devices", "backdrops", "slots"), 0)],
+        r"devices.backdrops.slots: expected an integer in 1..65535, got 0",
+    ),
+    (
+        "no-backdrops",
+        [(("devices", "backdrops"), _DEL)],
+        r"geometry.displays has 2 display\(s\) but there is no \[devices.backdrops\]",
+    ),
+    (
+        "number-type",
+        [(("devices", "turntable", "steps_per_deg"), "80")],
+        r"devices.turntable.steps_per_deg: expected a number, got '80'",
+    ),
+    (
+        "timeout-range",
+        [(("devices", "turntable", "timeout_s"), -1)],
+        r"devices.turntable.timeout_s: must be > 0, got -1",
+    ),
+    ("unknown-key", [(("devices", "turntable", "speed"), 3)], r"devices.turntable: unknown key\(s\) \['speed'\]"),
+    ("axis-letter", [(("devices", "turntable", "axis"), "Q")], r"devices.turntable.axis: expected a GRBL axis letter"),
+    (
+        "table-type",
+        [(("devices", "backdrops", "outputs"), 3)],
+        r"devices.backdrops.outputs: expected a table, got int 3",
+    ),
+    (
+        "bool-type",
+        [(("devices", "cameras", 0), {"name": "cam0", "driver": "opencv", "device": 0, "exposure_control": "yes"})],
+        r"devices.cameras\[0\].exposure_control: expected true or false",
+    ),
+    (
+        "camera-driver",
+        [(("devices", "cameras", 0), {"name": "cam0", "driver": "gphoto"})],
+        r"devices.cameras\[0\].driver: unknown camera driver 'gphoto'",
+    ),
+    (
+        "camera-unknown-key",
+        [(("devices", "cameras", 0), {"name": "cam0", "driver": "opencv", "device": 0, "pattern": "*.png"})],
+        r"devices.cameras\[0\]: unknown key\(s\) \['pattern'\]",
+    ),
+    (
+        "geometry-number",
+        [(("geometry", "cameras", 0, "width"), "wide")],
+        r"rig.toml: geometry.cameras\[0\].width: expected a number",
+    ),
+    (
+        "soft-limits",
+        [(("devices", "turntable", "soft_limits_deg"), [10, -10])],
+        r"soft_limits_deg: expected \[min_deg, max_deg\] with min < max",
+    ),
 ]
 
 
@@ -207,7 +285,7 @@ def test_bad_rig_config_names_file_and_key(tmp_path, example_dict, edits, match)
 
 def test_duplicate_device_table_is_invalid_toml(tmp_path):
     p = tmp_path / "dup.toml"
-    p.write_text(EXAMPLE.read_text() + "\n[devices.turntable]\nurl = \"/dev/ttyUSB3\"\n")
+    p.write_text(EXAMPLE.read_text() + '\n[devices.turntable]\nurl = "/dev/ttyUSB3"\n')
     with pytest.raises(ConfigError, match=r"dup.toml: invalid TOML \(.*turntable.*"):
         load_rig_config(p)
 
@@ -228,8 +306,13 @@ def test_missing_or_invalid_file(tmp_path):
 
 def test_directory_camera_folder_is_relative_to_the_config(tmp_path, example_dict):
     d = copy.deepcopy(example_dict)
-    d["devices"]["cameras"][1] = {"name": "cam1", "driver": "directory", "device": "shots/cam1", "settle_s": 0.5,
-                                  "trigger": ["gphoto2", "--capture-image-and-download"]}
+    d["devices"]["cameras"][1] = {
+        "name": "cam1",
+        "driver": "directory",
+        "device": "shots/cam1",
+        "settle_s": 0.5,
+        "trigger": ["gphoto2", "--capture-image-and-download"],
+    }
     d["devices"]["cameras"][2] = {"name": "cam2", "driver": "opencv", "device": "/dev/video2", "fourcc": "MJPG"}
     cfg = load_rig_config(write(tmp_path, d))
     assert cfg.cameras[1].device == str(tmp_path / "shots" / "cam1")

@@ -28,8 +28,15 @@ def emu():
 @pytest.fixture
 def ctl(emu):
     e, srv = emu
-    c = DisplayController.from_url(srv.url, outputs=OUTPUTS, timeout_s=0.3, retries=3, chunk_bytes=256,
-                          reconnect_attempts=1, reconnect_delay_s=0.01)
+    c = DisplayController.from_url(
+        srv.url,
+        outputs=OUTPUTS,
+        timeout_s=0.3,
+        retries=3,
+        chunk_bytes=256,
+        reconnect_attempts=1,
+        reconnect_delay_s=0.01,
+    )
     with c:
         yield c
 
@@ -145,7 +152,10 @@ def test_silent_controller_times_out_naming_device(emu):
     e.faults.silent = True
     c = DisplayController.from_url(srv.url, outputs=OUTPUTS, timeout_s=0.1, retries=2, name="backdrops")
     with c:
-        with pytest.raises(DeviceTimeout, match=r"backdrops: no valid reply to POWER back on after 3 attempt\(s\) on .*no reply within 0.1 s") as ei:
+        with pytest.raises(
+            DeviceTimeout,
+            match=r"backdrops: no valid reply to POWER back on after 3 attempt\(s\) on .*no reply within 0.1 s",
+        ) as ei:
             c.show("back", 1)
     assert srv.url in str(ei.value) and "powered" in str(ei.value)
     assert sum(1 for k, _ in e.history if k == "POWER") == 3
@@ -169,8 +179,15 @@ def test_unplug_mid_upload_then_replug(tmp_path):
                 srv.vanish()
 
     e.on_command = pull_plug
-    c = DisplayController.from_url(srv.url, outputs=OUTPUTS, timeout_s=0.3, retries=1, chunk_bytes=256,
-                          reconnect_attempts=2, reconnect_delay_s=0.01)
+    c = DisplayController.from_url(
+        srv.url,
+        outputs=OUTPUTS,
+        timeout_s=0.3,
+        retries=1,
+        chunk_bytes=256,
+        reconnect_attempts=2,
+        reconnect_delay_s=0.01,
+    )
     img = pattern(7)
     try:
         with pytest.raises(DeviceGone, match=r"backdrops: .*(did not come back|cannot open|lost the connection)"):

@@ -22,13 +22,19 @@ def test_documented_example_bytes():
     # docs/display-protocol.md lists these; a change here is a protocol change
     assert dp.encode_frame(1, *dp.identify()).hex(" ").upper() == "7E 01 01 3E 1F 7E"
     assert dp.encode_frame(2, *dp.show(1, 5)).hex(" ").upper() == "7E 02 11 01 00 05 5F 09 7E"
-    assert dp.encode_frame(5, *dp.upload_data(7, 0, bytes([0x7E, 0x7D, 0x00, 0xFF]))).hex(" ").upper() == \
-        "7E 05 21 00 07 00 00 00 00 7D 5E 7D 5D 00 FF 2D 46 7E"
+    assert (
+        dp.encode_frame(5, *dp.upload_data(7, 0, bytes([0x7E, 0x7D, 0x00, 0xFF]))).hex(" ").upper()
+        == "7E 05 21 00 07 00 00 00 00 7D 5E 7D 5D 00 FF 2D 46 7E"
+    )
 
 
 @settings(max_examples=80, deadline=None)
-@given(seq=st.integers(0, 255), cmd=st.integers(0, 255), payload=st.binary(max_size=dp.MAX_PAYLOAD),
-       split=st.integers(0, 3000))
+@given(
+    seq=st.integers(0, 255),
+    cmd=st.integers(0, 255),
+    payload=st.binary(max_size=dp.MAX_PAYLOAD),
+    split=st.integers(0, 3000),
+)
 def test_frame_roundtrip_any_split(seq, cmd, payload, split):
     wire = dp.encode_frame(seq, cmd, payload)
     inner = wire[1:-1]

@@ -120,7 +120,7 @@ def test_noise_between_frames_never_breaks_the_valid_ones(pairs, tail, chunk):
     p = ep.FrameParser()
     got = []
     for i in range(0, len(stream), chunk):
-        got += p.feed(stream[i:i + chunk])
+        got += p.feed(stream[i : i + chunk])
     assert got == [ep.Frame(label, data) for _, (label, data) in pairs]
     assert p.pending == 0
     noise_bytes = sum(len(n) for n, _ in pairs) + len(tail)
@@ -134,7 +134,7 @@ def test_arbitrary_bytes_never_raise_and_frames_are_real(data, chunk):
     p = ep.FrameParser()
     got = []
     for i in range(0, len(data), chunk):
-        got += p.feed(data[i:i + chunk])
+        got += p.feed(data[i : i + chunk])
     got += p.abandon()
     assert p.pending == 0
     for f in got:

@@ -34,8 +34,9 @@ def idle(x: float = 0.0, y: float = 0.0) -> bytes:
 
 BANNER = b"\r\nGrbl 1.1h ['$' for help]\r\n"
 #: $100/$110 already as the axis wants them (80 steps/deg, 30 deg/s = 1800 deg/min); $120 is not
-SETTINGS = b"$13=0\r\n$100=80.000\r\n$101=250.000\r\n$110=1800.000\r\n$111=500.000\r\n$120=10.000\r\n" \
-           b"$121=10.000\r\nok\r\n"
+SETTINGS = (
+    b"$13=0\r\n$100=80.000\r\n$101=250.000\r\n$110=1800.000\r\n$111=500.000\r\n$120=10.000\r\n$121=10.000\r\nok\r\n"
+)
 GRBL_OPEN = [
     (None, BANNER),  # an Arduino resets when the port opens and greets
     (b"?", idle()),
@@ -61,24 +62,32 @@ def test_grbl_open_reads_identity_and_writes_only_the_settings_that_differ():
 
 
 _MOVES = {
-    "polls-until-idle": ([
-        (b"?", idle()),
-        (b"G90 G0 X90.000\n", b"ok\r\n"),
-        (b"?", b"<Run|MPos:45.000,0.000|FS:1800,0>\r\n"),
-        (b"?", idle(90.0)),
-    ], 90.0, 1),
+    "polls-until-idle": (
+        [
+            (b"?", idle()),
+            (b"G90 G0 X90.000\n", b"ok\r\n"),
+            (b"?", b"<Run|MPos:45.000,0.000|FS:1800,0>\r\n"),
+            (b"?", idle(90.0)),
+        ],
+        90.0,
+        1,
+    ),
     # 350 deg on a continuous axis at 0: -10 deg is the short way
     "continuous-short-way": ([(b"?", idle()), (b"G90 G0 X-10.000\n", b"ok\r\n"), (b"?", idle(-10.0))], 350.0, 1),
     # no ``ok`` for the move: ``?`` says idle at the start, so the line never arrived;
     # ``$G`` flushes any late reply before the same absolute move is sent again
-    "lost-line-resent-after-asking": ([
-        (b"?", idle()),
-        (b"G90 G0 X90.000\n", b""),  # lost
-        (b"?", idle()),
-        (b"$G\n", b"[GC:G0 G54 G17 G21 G90 G94 M5 M9 T0 F0 S0]\r\nok\r\n"),
-        (b"G90 G0 X90.000\n", b"ok\r\n"),
-        (b"?", idle(90.0)),
-    ], 90.0, 2),
+    "lost-line-resent-after-asking": (
+        [
+            (b"?", idle()),
+            (b"G90 G0 X90.000\n", b""),  # lost
+            (b"?", idle()),
+            (b"$G\n", b"[GC:G0 G54 G17 G21 G90 G94 M5 M9 T0 F0 S0]\r\nok\r\n"),
+            (b"G90 G0 X90.000\n", b"ok\r\n"),
+            (b"?", idle(90.0)),
+        ],
+        90.0,
+        2,
+    ),
 }
 
 
@@ -146,8 +155,11 @@ def test_enttec_open_asks_the_widget_parameters():
 
 def test_enttec_set_levels_sends_one_universe_with_start_code_zero():
     universe = bytes([0, 200]) + bytes(22)
-    script = [(enttec(3, b"\x00\x00"), PARAMS), (enttec(6, b"\x00" + universe), b""),
-              (enttec(6, b"\x00" + bytes(24)), b"")]
+    script = [
+        (enttec(3, b"\x00\x00"), PARAMS),
+        (enttec(6, b"\x00" + universe), b""),
+        (enttec(6, b"\x00" + bytes(24)), b""),
+    ]
     with expected_exchange(dmx_array, script, name="dmx") as arr:
         arr.dmx.open()
         arr.set_levels({1: 200})
@@ -157,8 +169,11 @@ def test_enttec_set_levels_sends_one_universe_with_start_code_zero():
 
 
 def test_enttec_check_reads_parameters_and_serial_number():
-    script = [(enttec(3, b"\x00\x00"), PARAMS), (enttec(3, b"\x00\x00"), PARAMS),
-              (enttec(10), enttec(10, struct.pack("<I", 0x12345678)))]
+    script = [
+        (enttec(3, b"\x00\x00"), PARAMS),
+        (enttec(3, b"\x00\x00"), PARAMS),
+        (enttec(10), enttec(10, struct.pack("<I", 0x12345678))),
+    ]
     with expected_exchange(dmx_array, script, name="dmx") as arr:
         arr.dmx.open()
         info = arr.check()
@@ -193,8 +208,9 @@ def ack(seq: int, cmd: int, data: bytes = b"") -> bytes:
 
 
 def displays(transport: Transport) -> DisplayController:
-    return DisplayController(transport, outputs={"bottom": 0, "back": 1}, timeout_s=0.2, retries=1,
-                             reconnect_attempts=0)
+    return DisplayController(
+        transport, outputs={"bottom": 0, "back": 1}, timeout_s=0.2, retries=1, reconnect_attempts=0
+    )
 
 
 def test_crc_oracle_is_ccitt_false():
@@ -204,10 +220,12 @@ def test_crc_oracle_is_ccitt_false():
 def test_display_show_powers_the_panel_then_shows_the_pattern():
     # STATE: 2 outputs (power u8, shown u16 with 0xFFFF = blank), then 1 stored id (u16)
     state = bytes([2, 0, 0xFF, 0xFF, 1, 0x00, 0x07]) + b"\x00\x01\x00\x07"
-    script = [(hdlc(1, 0x10, b"\x01\x01"), ack(1, 0x10)),  # POWER output 1 on
-              (hdlc(2, 0x11, b"\x01\x00\x07"), ack(2, 0x11)),  # SHOW output 1, pattern 7
-              (hdlc(3, 0x02), ack(3, 0x02, state)),  # STATE
-              (hdlc(4, 0x12, b"\xff"), ack(4, 0x12))]  # BLANK all
+    script = [
+        (hdlc(1, 0x10, b"\x01\x01"), ack(1, 0x10)),  # POWER output 1 on
+        (hdlc(2, 0x11, b"\x01\x00\x07"), ack(2, 0x11)),  # SHOW output 1, pattern 7
+        (hdlc(3, 0x02), ack(3, 0x02, state)),  # STATE
+        (hdlc(4, 0x12, b"\xff"), ack(4, 0x12)),
+    ]  # BLANK all
     with expected_exchange(displays, script, name="backdrops") as d:
         d.open()
         d.show("back", 7)
@@ -240,8 +258,7 @@ def test_display_bad_frame_nak_resends_the_same_frame():
 
 
 def test_display_refusal_is_raised_with_its_reason():
-    script = [(hdlc(1, 0x10, b"\x00\x01"), ack(1, 0x10)),
-              (hdlc(2, 0x11, b"\x00\x00\x09"), hdlc(2, NAK, b"\x11\x05"))]
+    script = [(hdlc(1, 0x10, b"\x00\x01"), ack(1, 0x10)), (hdlc(2, 0x11, b"\x00\x00\x09"), hdlc(2, NAK, b"\x11\x05"))]
     with expected_exchange(displays, script, name="backdrops") as d:
         d.open()
         with pytest.raises(DisplayNak) as ei:
@@ -335,14 +352,16 @@ def test_rig_safe_exit_sends_feed_hold_lights_off_and_blank_exactly():
 
     config = parse_rig_config(LAB_RIG_CONFIG, source="lab-rig")
     grbl_t = ExpectedExchangeTransport(GRBL_OPEN + [(b"!", b"")], name="grbl")
-    dmx_t = ExpectedExchangeTransport([(enttec(3, b"\x00\x00"), PARAMS), (enttec(6, b"\x00" + bytes(24)), b"")],
-                                      name="dmx")
+    dmx_t = ExpectedExchangeTransport(
+        [(enttec(3, b"\x00\x00"), PARAMS), (enttec(6, b"\x00" + bytes(24)), b"")], name="dmx"
+    )
     disp_t = ExpectedExchangeTransport([(hdlc(1, 0x12, b"\xff"), ack(1, 0x12))], name="backdrops")
     tt = grbl_with_turntable(grbl_t)
     arr = dmx_array(dmx_t)
     disp = displays(disp_t)
-    rig = HardwareRig(config, turntable=tt, light_array=arr, backdrops=disp,
-                      ports=[tt.controller, arr.dmx, disp, tt.controller])
+    rig = HardwareRig(
+        config, turntable=tt, light_array=arr, backdrops=disp, ports=[tt.controller, arr.dmx, disp, tt.controller]
+    )
     assert [p.name for p in rig.ports] == ["grbl", "dmx", "backdrops"]  # each port once
     with rig:
         with rig.safe():

@@ -12,8 +12,14 @@ import pytest
 
 from opacityhull.errors import ConfigError, DeviceError, InputError
 from opacityhull.rigs import grbl_protocol as gp
-from opacityhull.rigs.motion import (GrblAlarm, GrblAxis, GrblCommandError, GrblController, GrblInterrupted,
-                                     move_duration_s)
+from opacityhull.rigs.motion import (
+    GrblAlarm,
+    GrblAxis,
+    GrblCommandError,
+    GrblController,
+    GrblInterrupted,
+    move_duration_s,
+)
 from opacityhull.rigs.interfaces import RotaryAxis
 from opacityhull.rigs.transport import DeviceGone, DeviceTimeout, ProtocolError
 
@@ -35,8 +41,9 @@ def test_open_reads_identity_and_writes_only_differing_settings(grbl):
     assert g.emu.settings[100] == 80.0 and g.emu.settings[101] == 80.0
     assert g.emu.settings[110] == 1800.0 and g.emu.settings[121] == 60.0
     writes = setting_writes(g.emu)
-    assert sorted(writes) == sorted(["$100=80.000", "$101=80.000", "$110=1800.000", "$111=1800.000",
-                                     "$120=60.000", "$121=60.000"])
+    assert sorted(writes) == sorted(
+        ["$100=80.000", "$101=80.000", "$110=1800.000", "$111=1800.000", "$120=60.000", "$121=60.000"]
+    )
     g.ctl.close()
     g.ctl.open()
     assert setting_writes(g.emu) == writes  # already right: EEPROM untouched
@@ -150,10 +157,15 @@ def test_two_axes_on_one_controller_and_config_errors(grbl):
     with pytest.raises(ConfigError, match="axis X .* already used by 'turntable'"):
         GrblAxis(g.ctl, axis="X", steps_per_deg=80, max_rate_deg_s=30, name="other")
     c = GrblController.from_url("loop://", name="c")
-    for kw, key in [({"axis": "Q"}, "axis"), ({"steps_per_deg": 0}, "steps_per_deg"),
-                    ({"max_rate_deg_s": math.nan}, "max_rate_deg_s"), ({"accel_deg_s2": -1}, "accel_deg_s2"),
-                    ({"backlash_deg": 90}, "backlash_deg"), ({"soft_limits_deg": (5, 1)}, "soft_limits_deg"),
-                    ({"steps_per_deg": 2000, "max_rate_deg_s": 30}, "30 kHz")]:
+    for kw, key in [
+        ({"axis": "Q"}, "axis"),
+        ({"steps_per_deg": 0}, "steps_per_deg"),
+        ({"max_rate_deg_s": math.nan}, "max_rate_deg_s"),
+        ({"accel_deg_s2": -1}, "accel_deg_s2"),
+        ({"backlash_deg": 90}, "backlash_deg"),
+        ({"soft_limits_deg": (5, 1)}, "soft_limits_deg"),
+        ({"steps_per_deg": 2000, "max_rate_deg_s": 30}, "30 kHz"),
+    ]:
         args = {"axis": "Z", "steps_per_deg": 80, "max_rate_deg_s": 30, "name": "bad", **kw}
         with pytest.raises(ConfigError, match=key):
             GrblAxis(c, **args)
@@ -425,8 +437,7 @@ def test_hard_limit_mid_move_needs_a_reset(grbl, background, wait_for):
     fut = background(g.turntable.move_to, 90.0)
     wait_for(lambda: g.emu.state == "Run", what="move started")
     g.emu.inject_alarm(1)
-    with pytest.raises(GrblAlarm, match="ALARM:1 hard limit while moving turntable .* check the limit switch") \
-            as ei:
+    with pytest.raises(GrblAlarm, match="ALARM:1 hard limit while moving turntable .* check the limit switch") as ei:
         fut.result(timeout=10)
     assert ei.value.critical
     with pytest.raises(GrblAlarm, match="ignores everything until a soft reset"):

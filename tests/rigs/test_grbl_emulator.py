@@ -37,18 +37,52 @@ def talk(emu, data: bytes) -> list[str]:
 
 
 def configure(emu, rate_deg_s=30.0, accel=60.0):
-    assert talk(emu, f"$110={rate_deg_s * 60}\n$111={rate_deg_s * 60}\n$120={accel}\n$121={accel}\n".encode()) == \
-        ["ok"] * 4
+    assert (
+        talk(emu, f"$110={rate_deg_s * 60}\n$111={rate_deg_s * 60}\n$120={accel}\n$121={accel}\n".encode())
+        == ["ok"] * 4
+    )
 
 
-@pytest.mark.parametrize("line,code", [
-    ("G0 X1.2.3", 1), ("12", 1), ("G0 X", 2), ("G0 Xabc", 2), ("$100=abc", 2), ("$100=", 2),
-    ("$Q", 3), ("$999=1", 3), ("$HZ", 5), ("$100=-1", 4), ("G0 F-1", 4), ("$H", 5), ("$0=2", 6),
-    ("$20=1", 10), ("G0 X" + "1" * 80, 11), ("$100=4000", 12), ("G0 Z1", 20), ("G2 X1", 20), ("G28", 20),
-    ("M99", 20), ("G0 G1 X1", 21), ("G90 G91", 21), ("G1 X1", 22), ("M5.5", 23), ("G0 X1 X2", 25),
-    ("N0 G0", 27), ("G4", 28), ("G59.1", 29), ("G80 G53 X1", 30), ("G80 X1", 31), ("G0 X1 I2", 36),
-    ("T300", 38), ("$J=G0 X1 F10", 16), ("$J=", 16), ("$J=G91 X1", 22),
-])
+@pytest.mark.parametrize(
+    "line,code",
+    [
+        ("G0 X1.2.3", 1),
+        ("12", 1),
+        ("G0 X", 2),
+        ("G0 Xabc", 2),
+        ("$100=abc", 2),
+        ("$100=", 2),
+        ("$Q", 3),
+        ("$999=1", 3),
+        ("$HZ", 5),
+        ("$100=-1", 4),
+        ("G0 F-1", 4),
+        ("$H", 5),
+        ("$0=2", 6),
+        ("$20=1", 10),
+        ("G0 X" + "1" * 80, 11),
+        ("$100=4000", 12),
+        ("G0 Z1", 20),
+        ("G2 X1", 20),
+        ("G28", 20),
+        ("M99", 20),
+        ("G0 G1 X1", 21),
+        ("G90 G91", 21),
+        ("G1 X1", 22),
+        ("M5.5", 23),
+        ("G0 X1 X2", 25),
+        ("N0 G0", 27),
+        ("G4", 28),
+        ("G59.1", 29),
+        ("G80 G53 X1", 30),
+        ("G80 X1", 31),
+        ("G0 X1 I2", 36),
+        ("T300", 38),
+        ("$J=G0 X1 F10", 16),
+        ("$J=", 16),
+        ("$J=G91 X1", 22),
+    ],
+)
 def test_invalid_lines_get_grbl_error_codes(line, code):
     emu, _ = make()
     assert talk(emu, line.encode() + b"\n") == [f"error:{code}"]
@@ -105,9 +139,9 @@ def test_move_follows_a_trapezoid_in_scaled_time():
     assert all(s == "Run" for s, _ in samples)
     xs = [x for _, x in samples]
     assert xs == sorted(xs) and 0 < xs[0] < xs[-1] < 30
-    assert xs[0] == pytest.approx(0.5 * 60 * 0.1 ** 2, abs=0.0125)  # t=0.1 s: accelerating, a t^2 / 2
+    assert xs[0] == pytest.approx(0.5 * 60 * 0.1**2, abs=0.0125)  # t=0.1 s: accelerating, a t^2 / 2
     assert xs[6] == pytest.approx(7.5 + 30 * 0.2, abs=0.0125)  # t=0.7 s: 0.5 s ramp, then cruising
-    assert xs[11] == pytest.approx(30 - 0.5 * 60 * 0.3 ** 2, abs=0.0125)  # t=1.2 s: decelerating
+    assert xs[11] == pytest.approx(30 - 0.5 * 60 * 0.3**2, abs=0.0125)  # t=1.2 s: decelerating
     st = gp.parse_status(talk(emu, b"?")[0])
     assert st.state == "Run" and st.feed == pytest.approx(60.0 * 0.1 * 60, abs=1.0)  # a*t in deg/min
     clock.t += T / 15 + 1e-9

@@ -56,29 +56,46 @@ def test_alarm_meanings_match_the_grbl_documentation():
     assert "could not find the limit switch" in gp.alarm_meaning(9).lower()
 
 
-@pytest.mark.parametrize("line,expected", [
-    (b"ok\r\n", gp.Ok()),
-    (b"Grbl 1.1h ['$' for help]\r\n", gp.Banner("1.1h", "Grbl 1.1h ['$' for help]")),
-    (b"[MSG:'$H'|'$X' to unlock]\r\n", gp.Message("MSG", "'$H'|'$X' to unlock")),
-    (b"[GC:G0 G54 G17 G21 G90 G94 M5 M9 T0 F0 S0]\r\n", gp.Message("GC", "G0 G54 G17 G21 G90 G94 M5 M9 T0 F0 S0")),
-    (b"[VER:1.1h.20190830:]\r\n", gp.Message("VER", "1.1h.20190830:")),
-    (b"[OPT:VH,15,128]\r\n", gp.Message("OPT", "VH,15,128")),
-    (b"[PRB:0.000,0.000,0.000:0]\r\n", gp.Message("PRB", "0.000,0.000,0.000:0")),
-    (b"$100=80.000\r\n", gp.Setting(100, 80.0)),
-    (b"$0=10\r\n", gp.Setting(0, 10.0)),
-    (b"$N0=G54\r\n", gp.Message("N0", "G54")),
-    (b">G54G20:ok\r\n", gp.StartupLine("G54G20", "ok")),
-    (b">G54G20:error:20\r\n", gp.StartupLine("G54G20", "error:20")),
-])
+@pytest.mark.parametrize(
+    "line,expected",
+    [
+        (b"ok\r\n", gp.Ok()),
+        (b"Grbl 1.1h ['$' for help]\r\n", gp.Banner("1.1h", "Grbl 1.1h ['$' for help]")),
+        (b"[MSG:'$H'|'$X' to unlock]\r\n", gp.Message("MSG", "'$H'|'$X' to unlock")),
+        (b"[GC:G0 G54 G17 G21 G90 G94 M5 M9 T0 F0 S0]\r\n", gp.Message("GC", "G0 G54 G17 G21 G90 G94 M5 M9 T0 F0 S0")),
+        (b"[VER:1.1h.20190830:]\r\n", gp.Message("VER", "1.1h.20190830:")),
+        (b"[OPT:VH,15,128]\r\n", gp.Message("OPT", "VH,15,128")),
+        (b"[PRB:0.000,0.000,0.000:0]\r\n", gp.Message("PRB", "0.000,0.000,0.000:0")),
+        (b"$100=80.000\r\n", gp.Setting(100, 80.0)),
+        (b"$0=10\r\n", gp.Setting(0, 10.0)),
+        (b"$N0=G54\r\n", gp.Message("N0", "G54")),
+        (b">G54G20:ok\r\n", gp.StartupLine("G54G20", "ok")),
+        (b">G54G20:error:20\r\n", gp.StartupLine("G54G20", "error:20")),
+    ],
+)
 def test_push_messages(line, expected):
     assert gp.parse_response(line) == expected
 
 
-@pytest.mark.parametrize("line", [
-    b"", b"\r\n", b"okk\r\n", b"error:\r\n", b"error:x1\r\n", b"ALARM:abc\r\n", b"\xff\xfe\r\n",
-    b"5\x1bk\r\n", b"[MSG\r\n", b"$abc=1\r\n", b"$100=1.2.3\r\n", b"Grbl\r\n", b">G54:maybe\r\n",
-    bytes(b ^ 0x5A if i % 2 == 0 else b for i, b in enumerate(b"ok\r\n")),
-])
+@pytest.mark.parametrize(
+    "line",
+    [
+        b"",
+        b"\r\n",
+        b"okk\r\n",
+        b"error:\r\n",
+        b"error:x1\r\n",
+        b"ALARM:abc\r\n",
+        b"\xff\xfe\r\n",
+        b"5\x1bk\r\n",
+        b"[MSG\r\n",
+        b"$abc=1\r\n",
+        b"$100=1.2.3\r\n",
+        b"Grbl\r\n",
+        b">G54:maybe\r\n",
+        bytes(b ^ 0x5A if i % 2 == 0 else b for i, b in enumerate(b"ok\r\n")),
+    ],
+)
 def test_garbage_raises_protocol_error_quoting_the_bytes(line):
     with pytest.raises(ProtocolError) as ei:
         gp.parse_response(line)
@@ -109,29 +126,35 @@ def test_every_state_parses(state):
     assert gp.parse_status(f"<{state}|MPos:0.000|FS:0,0>").state == state
 
 
-@pytest.mark.parametrize("line", [
-    "<Idle|FS:0,0>",  # no position
-    "<Idle|MPos:0,0|WPos:0,0>",  # both
-    "<Idling|MPos:0.000>",  # unknown state
-    "<Idle|MPos:1.0,abc>",
-    "<Idle|MPos:nan>",
-    "<Idle|MPos:inf>",
-    "<Idle|MPos:1,2,3,4,5,6,7>",
-    "<Idle|MPos:0.000|FS:1>",
-    "<Idle|MPos:0.000|MPos:1.000>",
-    "<Idle|MPos:0.000",  # truncated
-    "Idle|MPos:0.000>",
-    "<Idle|FS:0,0|MPos:0.000>",  # position must come second
-    "<Hold:x|MPos:0.000>",
-    "<Idle|MPos:0.000|junk>",
-])
+@pytest.mark.parametrize(
+    "line",
+    [
+        "<Idle|FS:0,0>",  # no position
+        "<Idle|MPos:0,0|WPos:0,0>",  # both
+        "<Idling|MPos:0.000>",  # unknown state
+        "<Idle|MPos:1.0,abc>",
+        "<Idle|MPos:nan>",
+        "<Idle|MPos:inf>",
+        "<Idle|MPos:1,2,3,4,5,6,7>",
+        "<Idle|MPos:0.000|FS:1>",
+        "<Idle|MPos:0.000|MPos:1.000>",
+        "<Idle|MPos:0.000",  # truncated
+        "Idle|MPos:0.000>",
+        "<Idle|FS:0,0|MPos:0.000>",  # position must come second
+        "<Hold:x|MPos:0.000>",
+        "<Idle|MPos:0.000|junk>",
+    ],
+)
 def test_malformed_status_raises(line):
     with pytest.raises(ProtocolError, match="GRBL status|in GRBL"):
         gp.parse_status(line)
 
 
-@given(st.lists(st.floats(-99999.0, 99999.0, allow_nan=False), min_size=1, max_size=6),
-       st.sampled_from(gp.STATES), st.floats(0, 1e5))
+@given(
+    st.lists(st.floats(-99999.0, 99999.0, allow_nan=False), min_size=1, max_size=6),
+    st.sampled_from(gp.STATES),
+    st.floats(0, 1e5),
+)
 @settings(max_examples=60, deadline=None)
 def test_status_round_trip(values, state, feed):
     text = "<" + state + "|MPos:" + ",".join(gp.format_number(v) for v in values) + f"|FS:{feed:.0f},0>"

@@ -33,18 +33,21 @@ def test_set_levels_reaches_the_universe_and_switches_others_off(enttec, wait_fo
     assert e.emu.other_start_codes == [] and e.emu.bad_frames == []
 
 
-@pytest.mark.parametrize("levels,match", [
-    ({0: 256}, "light 0: level 256 is outside 0..255"),
-    ({1: -1}, "light 1: level -1 is outside 0..255"),
-    ({2: 1.5}, "light 2: level 1.5 is not an integer"),
-    ({2: math.nan}, "light 2: level nan is not an integer"),
-    ({0: True}, "light 0: level True is not an integer"),
-    ({0: "255"}, "light 0: level '255' is not an integer"),
-    ({7: 10}, r"unknown light id 7 \(known ids: \[0, 1, 2, 3\]\)"),
-    ({"0": 10}, "unknown light id '0'"),
-    ({0: 10, 9: 1}, "unknown light id 9"),
-    ([(0, 10)], "must be a mapping"),
-])
+@pytest.mark.parametrize(
+    "levels,match",
+    [
+        ({0: 256}, "light 0: level 256 is outside 0..255"),
+        ({1: -1}, "light 1: level -1 is outside 0..255"),
+        ({2: 1.5}, "light 2: level 1.5 is not an integer"),
+        ({2: math.nan}, "light 2: level nan is not an integer"),
+        ({0: True}, "light 0: level True is not an integer"),
+        ({0: "255"}, "light 0: level '255' is not an integer"),
+        ({7: 10}, r"unknown light id 7 \(known ids: \[0, 1, 2, 3\]\)"),
+        ({"0": 10}, "unknown light id '0'"),
+        ({0: 10, 9: 1}, "unknown light id 9"),
+        ([(0, 10)], "must be a mapping"),
+    ],
+)
 def test_bad_levels_are_rejected_before_a_byte_is_sent(enttec, levels, match):
     e = enttec()
     before = bytes(e.emu.received)
@@ -154,16 +157,19 @@ def test_rotation_is_a_grbl_axis_on_the_shared_controller(enttec, grbl):
     assert e.array.rotation.move_to(45.0) == 45.0 and g.emu.position_deg("Y") == 45.0
 
 
-@pytest.mark.parametrize("channels,match", [
-    ({}, "non-empty"),
-    ({0: 0}, r"channels.0 = 0, expected a DMX channel 1..512"),
-    ({0: 513}, "channels.0 = 513"),
-    ({0: 1.0}, "channels.0 = 1.0"),
-    ({"a": 1}, "key 'a' is not an integer light id"),
-    ({-1: 1}, "not a light id"),
-    ({0: 1, "0": 2}, "light id 0 appears twice"),
-    ({0: 5, 1: 5}, "lights 0 and 1 are both on DMX channel 5"),
-])
+@pytest.mark.parametrize(
+    "channels,match",
+    [
+        ({}, "non-empty"),
+        ({0: 0}, r"channels.0 = 0, expected a DMX channel 1..512"),
+        ({0: 513}, "channels.0 = 513"),
+        ({0: 1.0}, "channels.0 = 1.0"),
+        ({"a": 1}, "key 'a' is not an integer light id"),
+        ({-1: 1}, "not a light id"),
+        ({0: 1, "0": 2}, "light id 0 appears twice"),
+        ({0: 5, 1: 5}, "lights 0 and 1 are both on DMX channel 5"),
+    ],
+)
 def test_channel_map_errors_name_the_key(channels, match):
     dmx = EnttecDmx.from_url("loop://", name="dmx")
     with pytest.raises(ConfigError, match=match):

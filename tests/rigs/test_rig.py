@@ -91,8 +91,9 @@ def test_open_rig_drives_every_device(cfg, emus, wait_for):
         rig.backdrops.show("back", 1)
         assert disp.shown(1) == 1 and disp.shown(0) is None
         infos = rig.check()
-        assert [i.name for i in infos] == ["turntable", "light_array.rotation", "light_array", "backdrops"] + \
-            [f"cam{i}" for i in range(6)]
+        assert [i.name for i in infos] == ["turntable", "light_array.rotation", "light_array", "backdrops"] + [
+            f"cam{i}" for i in range(6)
+        ]
         assert all(i.ok for i in infos), [i for i in infos if not i.ok]
         assert infos[0].state["position_deg"] == pytest.approx(30.0)
         assert rig.describe() == emus.config.to_dict()
@@ -168,9 +169,14 @@ def test_ctrl_c_during_move_leaves_rig_safe(tmp_path, cfg, wait_for):
         )
         # SIG_DFL in the child: a suite started in the background by a non-interactive
         # shell inherits SIGINT ignored, and Python then raises no KeyboardInterrupt
-        proc = subprocess.Popen([sys.executable, "-c", script, str(runtime)], stdout=subprocess.PIPE,
-                                stderr=subprocess.PIPE, text=True, cwd=ROOT,
-                                preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+        proc = subprocess.Popen(
+            [sys.executable, "-c", script, str(runtime)],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            cwd=ROOT,
+            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
+        )
         try:
             assert proc.stdout.readline().strip() == "moving"
             wait_for(lambda: g.state == "Run" and g.position_deg("X") > 1.0, 20, "the turntable to move")
@@ -251,8 +257,11 @@ def test_cameras_from_config_or_injected(tmp_path):
 def test_operator_prompts_or_refuses(cfg, emus, capsys):
     spec = CharucoSpec()
     rig = build_rig(emus.config, interactive=False)
-    with pytest.raises(OperatorActionRequired, match=r"manual step is needed — Place the ChArUco calibration board "
-                                                     r"flat on the turntable, centred on the axis \(7x5 squares") as ei:
+    with pytest.raises(
+        OperatorActionRequired,
+        match=r"manual step is needed — Place the ChArUco calibration board "
+        r"flat on the turntable, centred on the axis \(7x5 squares",
+    ) as ei:
         rig.operator("place_board", charuco=spec)
     assert ei.value.exit_code == 5 and "assume_ready" in str(ei.value)
     build_rig(emus.config, interactive=False, assume_ready=True).operator("remove_object")
@@ -293,8 +302,15 @@ def test_a_capture_on_a_hardware_rig_writes_no_ground_truth(tmp_path):
     from opacityhull.acquire.runner import run_capture
     from opacityhull.rigs.testing import LabRig
 
-    plan = parse_plan({"plan": {"name": "hw-tiny", "seed": 5}, "table": {"steps": 2},
-                       "exposures": {"default_s": [0.5]}, "phases": {"lightfield": {"level": 200}}}, where="hw-tiny")
+    plan = parse_plan(
+        {
+            "plan": {"name": "hw-tiny", "seed": 5},
+            "table": {"steps": 2},
+            "exposures": {"default_s": [0.5]},
+            "phases": {"lightfield": {"level": 200}},
+        },
+        where="hw-tiny",
+    )
     with LabRig() as lab:
         assert isinstance(lab, GroundTruthSource) and not isinstance(lab.hw, GroundTruthSource)
         res = run_capture(lab.hw, plan, tmp_path / "hw", rig_source="lab")

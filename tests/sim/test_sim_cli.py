@@ -17,8 +17,26 @@ def _json(result):
 
 def test_render_writes_exr_and_preview(tmp_path):
     out = tmp_path / "img.exr"
-    r = CliRunner().invoke(app, ["sim", "render", "--scene", "builtin:sphere", "--camera", "cam2", "--table-deg", "30",
-                                 "--light", "1", "--scale", "0.4", "--out", str(out), "--json"])
+    r = CliRunner().invoke(
+        app,
+        [
+            "sim",
+            "render",
+            "--scene",
+            "builtin:sphere",
+            "--camera",
+            "cam2",
+            "--table-deg",
+            "30",
+            "--light",
+            "1",
+            "--scale",
+            "0.4",
+            "--out",
+            str(out),
+            "--json",
+        ],
+    )
     assert r.exit_code == 0, r.output
     d = _json(r)
     img = read_exr(out)
@@ -29,8 +47,23 @@ def test_render_writes_exr_and_preview(tmp_path):
 
 
 def test_render_pattern_with_lights_off(tmp_path):
-    r = CliRunner().invoke(app, ["sim", "render", "--scene", "builtin:diffuse", "--camera", "0", "--lights-off",
-                                 "--pattern", "black", "--scale", "0.3", "--json"])
+    r = CliRunner().invoke(
+        app,
+        [
+            "sim",
+            "render",
+            "--scene",
+            "builtin:diffuse",
+            "--camera",
+            "0",
+            "--lights-off",
+            "--pattern",
+            "black",
+            "--scale",
+            "0.3",
+            "--json",
+        ],
+    )
     assert r.exit_code == 0, r.output
     assert _json(r)["max_radiance"] == 0.0  # an all-black pattern and no lights: black
 

@@ -19,25 +19,36 @@ from opacityhull.riggeometry import RigGeometry
 from opacityhull.sim.effects import reference_effects, select_effects
 from opacityhull.sim.evaluate import triangulation_alpha
 from opacityhull.sim.groundtruth import default_geometry, render_ground_truth
-from opacityhull.sim.render import (CROP_STEPS, SimRenderer, SimState, crop_camera, crop_window,
-                                    footprint_window, turntable_box)
+from opacityhull.sim.render import (
+    CROP_STEPS,
+    SimRenderer,
+    SimState,
+    crop_camera,
+    crop_window,
+    footprint_window,
+    turntable_box,
+)
 from opacityhull.sim.scenes import load_scene, parts_bounds
 
 from conftest import oracle_coverage, sphere_conic
 
 
 def _camera(eye, target=(0.0, 0.08, 0.0), w=160, h=120, f=150.0, cx=None, cy=None) -> Camera:
-    K = np.array([[f, 0.0, (w - 1) / 2 if cx is None else cx], [0.0, f, (h - 1) / 2 if cy is None else cy],
-                  [0.0, 0.0, 1.0]])
+    K = np.array(
+        [[f, 0.0, (w - 1) / 2 if cx is None else cx], [0.0, f, (h - 1) / 2 if cy is None else cy], [0.0, 0.0, 1.0]]
+    )
     return Camera(K=K, width=w, height=h, world_from_cam=look_at_world_from_cam(eye, target))
 
 
-@pytest.mark.parametrize("eye,target,cx", [
-    ((0.0, 0.3, 0.7), (0.0, 0.08, 0.0), None),      # centred
-    ((0.45, 0.2, 0.5), (0.0, 0.08, 0.0), 20.0),     # off-centre principal point
-    ((0.3, 0.6, 0.3), (0.12, 0.0, 0.1), None),      # object partly out of frame
-    ((0.0, 0.9, 0.01), (0.0, 0.0, 0.0), None),      # straight down the table axis
-])
+@pytest.mark.parametrize(
+    "eye,target,cx",
+    [
+        ((0.0, 0.3, 0.7), (0.0, 0.08, 0.0), None),  # centred
+        ((0.45, 0.2, 0.5), (0.0, 0.08, 0.0), 20.0),  # off-centre principal point
+        ((0.3, 0.6, 0.3), (0.12, 0.0, 0.1), None),  # object partly out of frame
+        ((0.0, 0.9, 0.01), (0.0, 0.0, 0.0), None),  # straight down the table axis
+    ],
+)
 def test_footprint_contains_every_pixel_the_sphere_covers(eye, target, cx):
     """Every pixel with analytic coverage > 0 of the sphere lies in the footprint window,
     and the window is at most 2 px (filter support + margin + rounding) wider than the
@@ -129,6 +140,7 @@ def test_turntable_box_contains_the_box_at_every_angle(c, t):
 
 # ------------------------------------------------------------------ renders
 
+
 @pytest.fixture(scope="module")
 def diffuse_renderer():
     return SimRenderer(load_scene("builtin:diffuse"), default_geometry())
@@ -150,8 +162,10 @@ def _window(r, cam, state, cfg):
 
 
 def _constant(g, rgb):
-    return {d.name: np.broadcast_to(np.asarray(rgb, np.uint8), (d.resolution[1], d.resolution[0], 3)).copy()
-            for d in g.displays}
+    return {
+        d.name: np.broadcast_to(np.asarray(rgb, np.uint8), (d.resolution[1], d.resolution[0], 3)).copy()
+        for d in g.displays
+    }
 
 
 @pytest.mark.parametrize("patterns,declared", [("constant", True), ("cells", True), ("cells", False)])
@@ -191,12 +205,12 @@ def test_cropped_matting_matches_the_full_render_at_the_crop_border(diffuse_rend
     a_crop = triangulation_alpha(c1, c2, b1, b2)
     a_full = triangulation_alpha(f1, f2, b1, b2)
     inside = np.zeros(a_crop.shape, bool)
-    inside[y0:y0 + h, x0:x0 + w] = True
+    inside[y0 : y0 + h, x0 : x0 + w] = True
     np.testing.assert_array_equal(c1[~inside], b1[~inside])
     assert np.all(a_crop[~inside] == 0.0)
     ring = np.zeros_like(inside)
-    ring[max(y0 - 2, 0):y0 + h + 2, max(x0 - 2, 0):x0 + w + 2] = True
-    ring[y0 + 2:y0 + h - 2, x0 + 2:x0 + w - 2] = False
+    ring[max(y0 - 2, 0) : y0 + h + 2, max(x0 - 2, 0) : x0 + w + 2] = True
+    ring[y0 + 2 : y0 + h - 2, x0 + 2 : x0 + w - 2] = False
     if patterns == "constant":
         d = np.abs(a_crop - a_full)[ring]
         assert d.max() <= sel.error_bound, d.max()
@@ -223,7 +237,7 @@ def test_light_pass_outside_the_window_is_exactly_black(diffuse_renderer):
     crop = r.render(cam, st_, seed=1, use_cache=False)
     full = r.render(cam, st_, effects=replace(sel, crop=False), seed=2, use_cache=False)
     inside = np.zeros(full.shape[:2], bool)
-    inside[y0:y0 + h, x0:x0 + w] = True
+    inside[y0 : y0 + h, x0 : x0 + w] = True
     assert np.all(full[~inside] == 0.0) and np.all(crop[~inside] == 0.0)
     assert full[inside].mean() > 0
     assert abs(crop[inside].mean() / full[inside].mean() - 1.0) < 0.01

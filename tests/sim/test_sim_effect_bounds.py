@@ -15,8 +15,12 @@ from opacityhull.sim.groundtruth import default_geometry
 from opacityhull.sim.render import SimRenderer
 from opacityhull.sim.scenes import builtin_names, load_scene
 
-CASES = [(n, p) for n in sorted(builtin_names()) for p in PHASES
-         if (p == "calibration") == (n == "charuco") or (n == "charuco" and p == "groundtruth")]
+CASES = [
+    (n, p)
+    for n in sorted(builtin_names())
+    for p in PHASES
+    if (p == "calibration") == (n == "charuco") or (n == "charuco" and p == "groundtruth")
+]
 
 _renderers: dict = {}
 
@@ -33,8 +37,10 @@ def _renderer(name):
 def test_selection_within_its_stated_bound(name, phase):
     r = _renderer(name)
     e = phase_error(r.scene, phase, geometry=r.geometry, ref_spp=256, renderer=r, seed=11)
-    print(f"{name}/{phase}: {e.metric} {e.error:.4f} (bound {e.bound}, {e.selected.integrator} "
-          f"d{e.selected.max_depth} {e.selected.spp} spp)")
+    print(
+        f"{name}/{phase}: {e.metric} {e.error:.4f} (bound {e.bound}, {e.selected.integrator} "
+        f"d{e.selected.max_depth} {e.selected.spp} spp)"
+    )
     assert e.error <= e.bound, f"{name}/{phase}: {e.metric} {e.error:.4f} > bound {e.bound}"
 
 

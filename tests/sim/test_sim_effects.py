@@ -73,8 +73,10 @@ def test_delta_only_objects_skip_the_light_array_and_the_reference_checks_it(sce
     ref = reference_effects(scenes["glass"], "lightfield", spp=16)
     assert ref.emitters == ("light_array",) and ref.skipped == ()
     p = tmp_path / "mirror_and_clay.toml"
-    body = ('[materials.mirror]\ntype = "conductor"\n[materials.clay]\ntype = "diffuse"\n'
-            '[[objects]]\nname = "a"\nshape = "sphere"\nmaterial = "mirror"\nradius_m = 0.05\n')
+    body = (
+        '[materials.mirror]\ntype = "conductor"\n[materials.clay]\ntype = "diffuse"\n'
+        '[[objects]]\nname = "a"\nshape = "sphere"\nmaterial = "mirror"\nradius_m = 0.05\n'
+    )
     p.write_text(body)
     assert select_effects(load_scene(p), "reflectance").emitters == ()
     p.write_text(body + '[[objects]]\nname = "b"\nshape = "disk"\nmaterial = "clay"\nradius_m = 0.1\n')
@@ -101,7 +103,7 @@ def test_every_selection_explains_itself_and_states_a_bound(scenes):
             assert cfg.reasons and all(isinstance(r, str) and r for r in cfg.reasons)
             assert cfg.error_bound > 0 and cfg.phase == phase
             if cfg.sampler == "stratified":
-                assert round(cfg.spp ** 0.5) ** 2 == cfg.spp, "stratified spp must be a square"
+                assert round(cfg.spp**0.5) ** 2 == cfg.spp, "stratified spp must be a square"
 
 
 def test_reference_is_full_path_tracing(scenes):
@@ -117,12 +119,15 @@ def test_overrides_apply_and_are_recorded(scenes):
     assert select_effects(scenes["glass"], "matting", overrides={"integrator": "direct"}).max_depth == 2
 
 
-@pytest.mark.parametrize("overrides,needle", [
-    ({"bounces": 3}, "bounces"),
-    ({"integrator": "bdpt"}, "bdpt"),
-    ({"spp": 0}, "spp"),
-    ({"resolution_scale": -1}, "resolution_scale"),
-])
+@pytest.mark.parametrize(
+    "overrides,needle",
+    [
+        ({"bounces": 3}, "bounces"),
+        ({"integrator": "bdpt"}, "bdpt"),
+        ({"spp": 0}, "spp"),
+        ({"resolution_scale": -1}, "resolution_scale"),
+    ],
+)
 def test_bad_overrides_raise(scenes, overrides, needle):
     with pytest.raises(ConfigError, match=needle):
         select_effects(scenes["diffuse"], "matting", overrides=overrides)
@@ -232,12 +237,15 @@ def test_cheapest_within_takes_the_fastest_candidate_inside_the_margin():
     assert cheapest_within(c2, 0.025).spp == 36
 
 
-@pytest.mark.parametrize("bound,margin,needle", [
-    (0.025, 0.5, "no candidate within 0.5 x bound 0.025"),
-    (0.0, 0.8, "bound 0.0 must be > 0"),
-    (float("nan"), 0.8, "must be > 0"),
-    (0.025, 1.5, "margin 1.5 in"),
-])
+@pytest.mark.parametrize(
+    "bound,margin,needle",
+    [
+        (0.025, 0.5, "no candidate within 0.5 x bound 0.025"),
+        (0.0, 0.8, "bound 0.0 must be > 0"),
+        (float("nan"), 0.8, "must be > 0"),
+        (0.025, 1.5, "margin 1.5 in"),
+    ],
+)
 def test_cheapest_within_hard_cases_raise_naming_the_values(bound, margin, needle):
     from opacityhull.sim.effects import cheapest_within
 
@@ -247,9 +255,15 @@ def test_cheapest_within_hard_cases_raise_naming_the_values(bound, margin, needl
 
 
 @settings(max_examples=60, deadline=None)
-@given(rows=st.lists(st.tuples(st.sampled_from([4, 9, 16, 25, 36, 49, 64]),
-                               st.floats(0.0, 0.1), st.floats(0.01, 1.0)), min_size=1, max_size=8),
-       bound=st.floats(0.005, 0.1), margin=st.floats(0.1, 1.0))
+@given(
+    rows=st.lists(
+        st.tuples(st.sampled_from([4, 9, 16, 25, 36, 49, 64]), st.floats(0.0, 0.1), st.floats(0.01, 1.0)),
+        min_size=1,
+        max_size=8,
+    ),
+    bound=st.floats(0.005, 0.1),
+    margin=st.floats(0.1, 1.0),
+)
 def test_cheapest_within_equals_a_brute_force_oracle(rows, bound, margin):
     from opacityhull.sim.effects import cheapest_within
 
@@ -278,12 +292,16 @@ def test_declared_matting_takes_the_measured_candidate_and_undeclared_keeps_both
         # an undeclared displays shot may be an envmatte shot: the envmatte selection's samples
         assert und.spp >= env.spp and und.spp >= sel.spp
         # undeclared: the matting row's integrator (fibres: direct lighting, else the envmatte one)
-        assert (und.integrator, und.max_depth) == (("direct", 2) if name == "fuzzy" else (env.integrator, env.max_depth))
+        assert (und.integrator, und.max_depth) == (
+            ("direct", 2) if name == "fuzzy" else (env.integrator, env.max_depth)
+        )
         assert any("did not declare its phase" in r for r in und.reasons)
         assert sel.backdrop_spp == und.backdrop_spp  # the backdrop shots are shared
     # what a capture got before phases were declared (2026-12-01 selections): 64 spp
-    assert {select_effects(scenes[n], "matting", declared=False).spp
-            for n in ("diffuse", "sphere", "glass", "glossy", "fuzzy")} == {64}
+    assert {
+        select_effects(scenes[n], "matting", declared=False).spp
+        for n in ("diffuse", "sphere", "glass", "glossy", "fuzzy")
+    } == {64}
     # every declared selection is cheaper (fewer samples) than the undeclared one
     assert all(select_effects(scenes[n], "matting").spp < 64 for n in ("diffuse", "sphere", "glass", "glossy"))
 
@@ -294,13 +312,19 @@ def test_declared_phase_picks_the_displays_selection():
 
     r = SimRenderer(load_scene("builtin:fuzzy"), default_geometry())
     pat = np.full((4, 4, 3), 200, np.uint8)
-    mat, und, env = (select_effects(r.scene, "matting"), select_effects(r.scene, "matting", declared=False),
-                     select_effects(r.scene, "envmatte"))
+    mat, und, env = (
+        select_effects(r.scene, "matting"),
+        select_effects(r.scene, "matting", declared=False),
+        select_effects(r.scene, "envmatte"),
+    )
     for phase, want in ((None, und), ("matting", mat), ("envmatte", env), ("lightfield", und)):
         st_ = SimState(displays={"back": pat}, phase=phase)
         (p,) = r.passes_for(st_)
-        assert (p.effects.integrator, p.effects.max_depth, p.effects.spp) == (want.integrator, want.max_depth,
-                                                                              want.spp), phase
+        assert (p.effects.integrator, p.effects.max_depth, p.effects.spp) == (
+            want.integrator,
+            want.max_depth,
+            want.spp,
+        ), phase
         e = r.effects_for(st_)
         assert (e.integrator, e.spp) == (want.integrator, want.spp), phase
     assert phase_for_state(SimState(displays={"back": pat}, phase="envmatte")) == "envmatte"

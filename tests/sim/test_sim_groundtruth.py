@@ -11,8 +11,13 @@ from hypothesis import strategies as st
 from opacityhull.camera import Camera, look_at_world_from_cam
 from opacityhull.errors import InputError, ShapeError
 from opacityhull.riggeometry import RigGeometry
-from opacityhull.sim.groundtruth import (direction_to_equirect, envmap_for_mitsuba, equirect_direction,
-                                         render_ground_truth, render_under_envmap)
+from opacityhull.sim.groundtruth import (
+    direction_to_equirect,
+    envmap_for_mitsuba,
+    equirect_direction,
+    render_ground_truth,
+    render_under_envmap,
+)
 from opacityhull.sim.render import SimRenderer
 from opacityhull.sim.scenes import load_scene
 
@@ -24,8 +29,12 @@ RADIUS = 0.08
 
 @pytest.fixture(scope="module")
 def sphere_gt(sphere_scene):
-    cam = Camera(K=np.array([[120.0, 0, 47.6], [0, 120.0, 34.1], [0, 0, 1]]), width=96, height=72,
-                 world_from_cam=look_at_world_from_cam((0.3, 0.5, 0.8), (0.01, 0.09, 0.0)))
+    cam = Camera(
+        K=np.array([[120.0, 0, 47.6], [0, 120.0, 34.1], [0, 0, 1]]),
+        width=96,
+        height=72,
+        world_from_cam=look_at_world_from_cam((0.3, 0.5, 0.8), (0.01, 0.09, 0.0)),
+    )
     r = SimRenderer(sphere_scene, None)
     return cam, render_ground_truth(sphere_scene, cam, renderer=r)
 
@@ -83,7 +92,7 @@ def test_shape_ids_name_the_parts(small_geometry):
     ids = gt["shape_id"]
     assert set(np.unique(ids)) == {0, 1, 2}
     # the ring lies on the table around the dome: its pixels are lower in the image on average
-    v = np.mgrid[0:cam.height, 0:cam.width][0]
+    v = np.mgrid[0 : cam.height, 0 : cam.width][0]
     assert v[ids == 2].mean() > v[ids == 1].mean()
     # one sample per pixel for ids, 16 for alpha: they agree except at thin edges
     assert np.all(ids[gt["alpha"] > 0.999] > 0)
@@ -122,15 +131,23 @@ def _spot_map(direction, rows=64, cols=128, half_width_px=2):
     u, v = direction_to_equirect(np.asarray(direction, dtype=np.float64))
     env = np.zeros((rows, cols, 3), np.float32)
     r, c = int(v * rows), int(u * cols) % cols
-    env[max(r - half_width_px, 0): r + half_width_px + 1,
-        [(c + k) % cols for k in range(-half_width_px, half_width_px + 1)]] = 50.0
+    env[
+        max(r - half_width_px, 0) : r + half_width_px + 1,
+        [(c + k) % cols for k in range(-half_width_px, half_width_px + 1)],
+    ] = 50.0
     return env
 
 
 @pytest.fixture(scope="module")
 def no_display_geometry():
-    return RigGeometry.from_dict({"target_m": [0, 0.08, 0], "cameras": [
-        {"name": "c", "width": 48, "height": 36, "distance_m": 1.0, "elevation_deg": 10.0, "fov_y_deg": 14.0}]})
+    return RigGeometry.from_dict(
+        {
+            "target_m": [0, 0.08, 0],
+            "cameras": [
+                {"name": "c", "width": 48, "height": 36, "distance_m": 1.0, "elevation_deg": 10.0, "fov_y_deg": 14.0}
+            ],
+        }
+    )
 
 
 @pytest.mark.parametrize("direction", [(1.0, 0.2, 0.0), (-0.3, 0.5, 0.8), (0.0, 0.3, -1.0)])
@@ -140,7 +157,8 @@ def test_envmap_bright_in_one_direction_lights_the_side_facing_it(sphere_scene, 
     the mirrored convention (u -> 1 - u) would not."""
     d = np.asarray(direction) / np.linalg.norm(direction)
     cam = no_display_geometry.nominal_cameras()[0].with_pose(
-        look_at_world_from_cam(CENTRE + 0.6 * np.array([0.3, 0.5, 0.8]) / np.linalg.norm([0.3, 0.5, 0.8]), CENTRE))
+        look_at_world_from_cam(CENTRE + 0.6 * np.array([0.3, 0.5, 0.8]) / np.linalg.norm([0.3, 0.5, 0.8]), CENTRE)
+    )
     r = SimRenderer(sphere_scene, no_display_geometry)
     out = render_under_envmap(sphere_scene, cam, _spot_map(d), spp=64, rig=no_display_geometry, renderer=r)
     assert out.shape == (36, 48, 4)
@@ -177,7 +195,7 @@ def test_envmap_table_angle_moves_only_the_rig_fixed_display(sphere_scene, small
     env = np.zeros((32, 64, 3), np.float32)
     u, v = direction_to_equirect(np.array([0.0, 0.15, -1.0]))  # low, behind: where the back panel is at 0 deg
     cols = [(int(u * 64) + k) % 64 for k in range(-3, 4)]  # -Z is at the seam u = 0
-    env[int(v * 32) - 2: int(v * 32) + 3, cols] = 30.0
+    env[int(v * 32) - 2 : int(v * 32) + 3, cols] = 30.0
     cam = RigGeometry.view_camera(small_geometry.nominal_cameras()[5], 180.0)  # from -Z, above the back panel
     r = SimRenderer(sphere_scene, small_geometry)
     at0 = render_under_envmap(sphere_scene, cam, env, spp=16, rig=small_geometry, table_deg=0.0, renderer=r)

@@ -49,8 +49,12 @@ def test_sensor_rays_project_back_to_their_pixels():
     from opacityhull.sim.render import _Loaded
 
     loaded = _Loaded(scene, mi.traverse(scene), {})
-    cam2 = Camera(K=np.array([[140.0, 0, 50.9], [0, 140.0, 30.2], [0, 0, 1]]), width=96, height=72,
-                  world_from_cam=look_at_world_from_cam((-0.4, 0.6, 0.5), (0.02, 0.1, -0.01)))
+    cam2 = Camera(
+        K=np.array([[140.0, 0, 50.9], [0, 140.0, 30.2], [0, 0, 1]]),
+        width=96,
+        height=72,
+        world_from_cam=look_at_world_from_cam((-0.4, 0.6, 0.5), (0.02, 0.1, -0.01)),
+    )
     r._set_sensor(loaded, "sensor", cam2)
     loaded.params.update()
     check(scene.sensors()[0], cam2)
@@ -69,7 +73,7 @@ def test_rendered_sphere_silhouette_matches_camera_py(sphere_renderer):
     Q = sphere_conic(cam, (0, 0.08, 0), 0.08)
     area, centre = conic_area_centre(Q)
     a = gt["alpha"].astype(np.float64)
-    v, u = np.mgrid[0:cam.height, 0:cam.width]
+    v, u = np.mgrid[0 : cam.height, 0 : cam.width]
     c_img = np.array([(a * u).sum(), (a * v).sum()]) / a.sum()
     assert a.sum() == pytest.approx(area, rel=3e-3)
     # the centroid of the silhouette region is not the projection of the sphere centre;
@@ -84,12 +88,14 @@ def test_table_rotation_turns_the_object_about_plus_y(small_geometry, tmp_path):
     """An off-axis sphere at table angle a appears where camera.py projects
     rig_from_object(a) @ centre, seen by the fixed rig camera."""
     p = tmp_path / "offaxis.toml"
-    p.write_text('[materials.m]\ntype = "diffuse"\n[[objects]]\nshape = "sphere"\nmaterial = "m"\n'
-                 'radius_m = 0.03\ncentre_m = [0.06, 0.03, 0.0]\n')
+    p.write_text(
+        '[materials.m]\ntype = "diffuse"\n[[objects]]\nshape = "sphere"\nmaterial = "m"\n'
+        "radius_m = 0.03\ncentre_m = [0.06, 0.03, 0.0]\n"
+    )
     scene = load_scene(p)
     r = SimRenderer(scene, small_geometry)
     cam = small_geometry.nominal_cameras()[2]
-    v, u = np.mgrid[0:cam.height, 0:cam.width]
+    v, u = np.mgrid[0 : cam.height, 0 : cam.width]
     for a in (0.0, 70.0, 200.0):
         view = RigGeometry.view_camera(cam, a)
         alpha = render_ground_truth(scene, view, spp=64, renderer=r)["alpha"].astype(np.float64)
@@ -103,14 +109,15 @@ def test_table_rotation_turns_the_object_about_plus_y(small_geometry, tmp_path):
 def test_camera_looking_straight_down_the_table_axis(sphere_renderer):
     """Elevation 90: the look-at picks a deterministic 'up'; the render and the analytic
     silhouette agree, and a capture renders finite values."""
-    spec = CameraSpec(name="top", width=80, height=60, distance_m=1.0, elevation_deg=90.0, azimuth_deg=0.0,
-                      focal_px=150.0)
+    spec = CameraSpec(
+        name="top", width=80, height=60, distance_m=1.0, elevation_deg=90.0, azimuth_deg=0.0, focal_px=150.0
+    )
     cam = spec.nominal_camera(np.array([0.0, 0.08, 0.0]))
     assert np.allclose(cam.forward_world, [0, -1, 0], atol=1e-9)
     gt = render_ground_truth(sphere_renderer.scene, cam, spp=64, renderer=sphere_renderer)
     area, centre = conic_area_centre(sphere_conic(cam, (0, 0.08, 0), 0.08))
     a = gt["alpha"].astype(np.float64)
-    v, u = np.mgrid[0:cam.height, 0:cam.width]
+    v, u = np.mgrid[0 : cam.height, 0 : cam.width]
     assert a.sum() == pytest.approx(area, rel=5e-3)
     assert np.linalg.norm(np.array([(a * u).sum(), (a * v).sum()]) / a.sum() - centre) < 0.05
     img = sphere_renderer.render(cam, SimState(table_deg=33.0, light_levels={3: 255}))
@@ -118,17 +125,35 @@ def test_camera_looking_straight_down_the_table_axis(sphere_renderer):
 
 
 def _geometry_without_displays(light_position) -> RigGeometry:
-    return RigGeometry.from_dict({
-        "target_m": [0.0, 0.08, 0.0],
-        "cameras": [{"name": "c", "width": 64, "height": 48, "distance_m": 0.8, "elevation_deg": 20.0,
-                     "azimuth_deg": 30.0, "fov_y_deg": 24.0}],
-        "lights": [{"id": 0, "position_m": list(map(float, light_position))}],
-    })
+    return RigGeometry.from_dict(
+        {
+            "target_m": [0.0, 0.08, 0.0],
+            "cameras": [
+                {
+                    "name": "c",
+                    "width": 64,
+                    "height": 48,
+                    "distance_m": 0.8,
+                    "elevation_deg": 20.0,
+                    "azimuth_deg": 30.0,
+                    "fov_y_deg": 24.0,
+                }
+            ],
+            "lights": [{"id": 0, "position_m": list(map(float, light_position))}],
+        }
+    )
 
 
 def test_light_exactly_behind_the_object_leaves_the_visible_side_black(sphere_scene):
-    spec = CameraSpec(name="c", width=64, height=48, distance_m=0.8, elevation_deg=20.0, azimuth_deg=30.0,
-                      focal_px=48 / (2 * math.tan(math.radians(12))))
+    spec = CameraSpec(
+        name="c",
+        width=64,
+        height=48,
+        distance_m=0.8,
+        elevation_deg=20.0,
+        azimuth_deg=30.0,
+        focal_px=48 / (2 * math.tan(math.radians(12))),
+    )
     target = np.array([0.0, 0.08, 0.0])
     cam = spec.nominal_camera(target)
     behind = target + (target - cam.centre_world) * 1.5  # on the camera's optical axis, behind the sphere
@@ -168,7 +193,7 @@ def test_pattern_row0_is_up_and_col0_left_on_the_panel(small_geometry, display, 
     d = small_geometry.display(display)
     w, h = d.resolution
     pat = np.zeros((h, w, 3), np.uint8)
-    pat[h // 2:, : w // 2] = 255
+    pat[h // 2 :, : w // 2] = 255
     r = SimRenderer(load_scene("builtin:sphere"), small_geometry)
     cam = small_geometry.nominal_cameras()[camera]
     img = r.render(cam, SimState(table_deg=table_deg, displays={display: pat}, content="none"))
@@ -184,7 +209,7 @@ def test_pattern_row0_is_up_and_col0_left_on_the_panel(small_geometry, display, 
     dist = _inside_polygon(bright, poly)
     assert np.mean(dist >= -1.0) > 0.99, "lit pixels outside the bottom-left quadrant"
     # and the quadrant's interior (away from its edges and inside the image) is lit
-    v, u = np.mgrid[0:cam.height, 0:cam.width]
+    v, u = np.mgrid[0 : cam.height, 0 : cam.width]
     pts = np.stack([u.ravel(), v.ravel()], 1).astype(np.float64)
     inside = _inside_polygon(pts, poly).reshape(cam.height, cam.width) > 1.5
     assert inside.sum() > 20
@@ -208,19 +233,32 @@ def test_light_intensity_gives_unit_irradiance_at_the_origin():
     """A light of intensity 1 at any distance gives irradiance 1 at the rig origin: a
     white Lambertian disc there (facing the light) has radiance 1/pi."""
     for dist in (0.5, 2.0):
-        g = RigGeometry.from_dict({
-            "target_m": [0.0, 0.0, 0.0],
-            "cameras": [{"name": "c", "width": 16, "height": 12, "distance_m": 1.0, "elevation_deg": 90.0,
-                         "azimuth_deg": 0.0, "fov_y_deg": 2.0}],
-            "lights": [{"id": 0, "position_m": [0.0, dist, 0.0], "intensity": 1.0}],
-        })
+        g = RigGeometry.from_dict(
+            {
+                "target_m": [0.0, 0.0, 0.0],
+                "cameras": [
+                    {
+                        "name": "c",
+                        "width": 16,
+                        "height": 12,
+                        "distance_m": 1.0,
+                        "elevation_deg": 90.0,
+                        "azimuth_deg": 0.0,
+                        "fov_y_deg": 2.0,
+                    }
+                ],
+                "lights": [{"id": 0, "position_m": [0.0, dist, 0.0], "intensity": 1.0}],
+            }
+        )
         import tempfile
         from pathlib import Path
 
         with tempfile.TemporaryDirectory() as td:
             p = Path(td) / "disc.toml"
-            p.write_text('[materials.w]\ntype = "diffuse"\nreflectance = 1.0\n[[objects]]\nshape = "disk"\n'
-                         'material = "w"\nradius_m = 0.2\n')
+            p.write_text(
+                '[materials.w]\ntype = "diffuse"\nreflectance = 1.0\n[[objects]]\nshape = "disk"\n'
+                'material = "w"\nradius_m = 0.2\n'
+            )
             scene = load_scene(p)
         cam = g.nominal_cameras()[0]
         img = SimRenderer(scene, g).render(cam, SimState(light_levels={0: 255}))
@@ -238,13 +276,22 @@ def test_light_intensity_gives_unit_irradiance_at_the_origin():
 
 def test_object_larger_than_the_displays(small_geometry, tmp_path):
     p = tmp_path / "huge.toml"
-    p.write_text('[materials.m]\ntype = "diffuse"\nreflectance = 0.5\n[[objects]]\nshape = "sphere"\nmaterial = "m"\n'
-                 'radius_m = 0.6\ncentre_m = [0.0, 0.6, 0.0]\n')
+    p.write_text(
+        '[materials.m]\ntype = "diffuse"\nreflectance = 0.5\n[[objects]]\nshape = "sphere"\nmaterial = "m"\n'
+        "radius_m = 0.6\ncentre_m = [0.0, 0.6, 0.0]\n"
+    )
     scene = load_scene(p)
     r = SimRenderer(scene, small_geometry, overrides={"spp": 16})
     # a wide camera, far back: sees the whole 1.2 m sphere and the edges of both panels
-    cam = CameraSpec(name="wide", width=96, height=72, distance_m=2.5, elevation_deg=15.0, azimuth_deg=20.0,
-                     focal_px=72 / (2 * math.tan(math.radians(35)))).nominal_camera(np.array([0.0, 0.5, 0.0]))
+    cam = CameraSpec(
+        name="wide",
+        width=96,
+        height=72,
+        distance_m=2.5,
+        elevation_deg=15.0,
+        azimuth_deg=20.0,
+        focal_px=72 / (2 * math.tan(math.radians(35))),
+    ).nominal_camera(np.array([0.0, 0.5, 0.0]))
     white = {d.name: make_pattern("white", *d.resolution) for d in small_geometry.displays}
     img = r.render(cam, SimState(displays=white))
     back_only = r.render(cam, SimState(displays=white, content="none"))
@@ -261,8 +308,11 @@ def test_object_larger_than_the_displays(small_geometry, tmp_path):
 def test_spp_one_renders(small_geometry):
     for name in ("diffuse", "glass"):
         r = SimRenderer(load_scene(f"builtin:{name}"), small_geometry, overrides={"spp": 1})
-        st = SimState(table_deg=10.0, light_levels={0: 255, 2: 255},
-                      displays={d.name: make_pattern("checker", *d.resolution) for d in small_geometry.displays})
+        st = SimState(
+            table_deg=10.0,
+            light_levels={0: 255, 2: 255},
+            displays={d.name: make_pattern("checker", *d.resolution) for d in small_geometry.displays},
+        )
         cfg = r.effects_for(st)
         assert cfg.spp == 1
         img = r.render(small_geometry.nominal_cameras()[2], st, effects=cfg)
@@ -275,13 +325,15 @@ def test_every_builtin_renders_from_every_camera(small_geometry, name):
     r = SimRenderer(scene, small_geometry, overrides={"spp": 4})
     pats = {d.name: make_pattern("random", *d.resolution, seed=2) for d in small_geometry.displays}
     for i, cam in enumerate(small_geometry.nominal_cameras()):
-        st = SimState(table_deg=15.0 * i, light_levels={1: 255}, displays=pats,
-                      content="board" if name == "charuco" else "object")
+        st = SimState(
+            table_deg=15.0 * i, light_levels={1: 255}, displays=pats, content="board" if name == "charuco" else "object"
+        )
         img = r.render(cam, st)
         assert img.shape == (cam.height, cam.width, 3)
         assert np.all(np.isfinite(img)) and np.all(img >= 0)
         parts = r._content_parts(st)
-        alpha = render_ground_truth(scene, RigGeometry.view_camera(cam, st.table_deg), spp=4, renderer=r,
-                                    parts=parts)["alpha"]
+        alpha = render_ground_truth(scene, RigGeometry.view_camera(cam, st.table_deg), spp=4, renderer=r, parts=parts)[
+            "alpha"
+        ]
         assert alpha.sum() > 20, f"{name} not visible from {cam.name}"
         assert img.mean(axis=2)[alpha > 0.99].mean() > 0.0

@@ -48,14 +48,17 @@ def _write(tmp_path, text: str):
 
 
 def test_unknown_material_type_names_file_and_key(tmp_path):
-    p = _write(tmp_path, """
+    p = _write(
+        tmp_path,
+        """
 [materials.fancy]
 type = "velvet"
 
 [[objects]]
 shape = "sphere"
 material = "fancy"
-""")
+""",
+    )
     with pytest.raises(ConfigError) as e:
         load_scene(p)
     msg = str(e.value)
@@ -63,33 +66,50 @@ material = "fancy"
 
 
 def test_undefined_material_reference_names_key(tmp_path):
-    p = _write(tmp_path, """
+    p = _write(
+        tmp_path,
+        """
 [materials.a]
 type = "diffuse"
 
 [[objects]]
 shape = "sphere"
 material = "b"
-""")
+""",
+    )
     with pytest.raises(ConfigError, match=r"objects\[0\]\.material.*'b'"):
         load_scene(p)
 
 
-@pytest.mark.parametrize("body,key", [
-    ('[materials.a]\ntype = "diffuse"\ncolour = [1, 0, 0]\n[[objects]]\nshape = "sphere"\nmaterial = "a"\n',
-     "materials.a"),
-    ('[materials.a]\ntype = "diffuse"\n[[objects]]\nshape = "sphere"\nmaterial = "a"\nradius = 0.1\n',
-     "objects[0]"),
-    ('[materials.a]\ntype = "diffuse"\n[[objects]]\nshape = "teapot"\nmaterial = "a"\n', "objects[0].shape"),
-    ('[materials.a]\ntype = "diffuse"\nreflectance = [2, 0, 0]\n[[objects]]\nshape = "sphere"\nmaterial = "a"\n',
-     "materials.a.reflectance"),
-    ('[materials.a]\ntype = "diffuse"\n[[objects]]\nshape = "sphere"\nmaterial = "a"\nradius_m = -1\n',
-     "radius_m"),
-    ('[scene]\nname = "x"\nlights = 3\n[materials.a]\ntype = "diffuse"\n[[objects]]\nshape = "sphere"\n'
-     'material = "a"\n', "scene"),
-    ('[materials.a]\ntype = "diffuse"\ntexture = { type = "plaid" }\n[[objects]]\nshape = "sphere"\n'
-     'material = "a"\n', "materials.a.texture.type"),
-])
+@pytest.mark.parametrize(
+    "body,key",
+    [
+        (
+            '[materials.a]\ntype = "diffuse"\ncolour = [1, 0, 0]\n[[objects]]\nshape = "sphere"\nmaterial = "a"\n',
+            "materials.a",
+        ),
+        (
+            '[materials.a]\ntype = "diffuse"\n[[objects]]\nshape = "sphere"\nmaterial = "a"\nradius = 0.1\n',
+            "objects[0]",
+        ),
+        ('[materials.a]\ntype = "diffuse"\n[[objects]]\nshape = "teapot"\nmaterial = "a"\n', "objects[0].shape"),
+        (
+            '[materials.a]\ntype = "diffuse"\nreflectance = [2, 0, 0]\n[[objects]]\nshape = "sphere"\nmaterial = "a"\n',
+            "materials.a.reflectance",
+        ),
+        ('[materials.a]\ntype = "diffuse"\n[[objects]]\nshape = "sphere"\nmaterial = "a"\nradius_m = -1\n', "radius_m"),
+        (
+            '[scene]\nname = "x"\nlights = 3\n[materials.a]\ntype = "diffuse"\n[[objects]]\nshape = "sphere"\n'
+            'material = "a"\n',
+            "scene",
+        ),
+        (
+            '[materials.a]\ntype = "diffuse"\ntexture = { type = "plaid" }\n[[objects]]\nshape = "sphere"\n'
+            'material = "a"\n',
+            "materials.a.texture.type",
+        ),
+    ],
+)
 def test_bad_scene_files_raise_config_error_naming_the_key(tmp_path, body, key):
     p = _write(tmp_path, body)
     with pytest.raises(ConfigError) as e:
@@ -107,8 +127,11 @@ def test_missing_builtin_and_file():
 def test_mesh_shape_from_ply(tmp_path):
     m = S.ellipsoid_mesh(radii_m=(0.05, 0.05, 0.05), centre_m=(0, 0.05, 0), segments=16, rings=8)
     S.write_ply_mesh(tmp_path / "blob.ply", m)
-    p = _write(tmp_path, '[materials.a]\ntype = "diffuse"\n[[objects]]\nshape = "mesh"\nfile = "blob.ply"\n'
-                         'material = "a"\nscale = 2.0\n')
+    p = _write(
+        tmp_path,
+        '[materials.a]\ntype = "diffuse"\n[[objects]]\nshape = "mesh"\nfile = "blob.ply"\n'
+        'material = "a"\nscale = 2.0\n',
+    )
     s = load_scene(p)
     lo, hi = s.bounds()
     assert hi[1] == pytest.approx(0.2, abs=1e-6) and lo[1] == pytest.approx(0.0, abs=1e-6)
@@ -116,13 +139,22 @@ def test_mesh_shape_from_ply(tmp_path):
     assert d["objects"][0]["file"] == str((tmp_path / "blob.ply").resolve())
 
 
-@pytest.mark.parametrize("mesh,volume,star", [
-    (lambda: S.uv_sphere_mesh(radius_m=0.08, segments=128, rings=64), 4 / 3 * math.pi * 0.08**3, True),
-    (lambda: S.torus_mesh(major_m=0.07, minor_m=0.01, segments=128, sides=64), 2 * math.pi**2 * 0.07 * 0.01**2,
-     False),
-    (lambda: S.ellipsoid_mesh(radii_m=(0.03, 0.05, 0.07), segments=128, rings=64),
-     4 / 3 * math.pi * 0.03 * 0.05 * 0.07, True),
-])
+@pytest.mark.parametrize(
+    "mesh,volume,star",
+    [
+        (lambda: S.uv_sphere_mesh(radius_m=0.08, segments=128, rings=64), 4 / 3 * math.pi * 0.08**3, True),
+        (
+            lambda: S.torus_mesh(major_m=0.07, minor_m=0.01, segments=128, sides=64),
+            2 * math.pi**2 * 0.07 * 0.01**2,
+            False,
+        ),
+        (
+            lambda: S.ellipsoid_mesh(radii_m=(0.03, 0.05, 0.07), segments=128, rings=64),
+            4 / 3 * math.pi * 0.03 * 0.05 * 0.07,
+            True,
+        ),
+    ],
+)
 def test_procedural_meshes_are_outward_with_the_analytic_volume(mesh, volume, star):
     m = mesh()
     # inscribed polygons lose O(1/segments^2) of the volume

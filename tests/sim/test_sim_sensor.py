@@ -49,10 +49,13 @@ def test_photometric_drift_off_by_default_and_per_shot_when_on():
     the matting drift correction recovers it."""
     x = np.full((64, 64, 3), 0.4)
     plain = SensorModel(read_noise=0.0, bit_depth=16)
-    assert np.array_equal(SensorModel(read_noise=0.0, bit_depth=16, exposure_drift_sigma=0.0).apply(
-        x, np.random.default_rng(5)), plain.apply(x, np.random.default_rng(5)))
-    m = SensorModel(full_well_e=1e7, read_noise=0.0, bit_depth=16, exposure_drift_sigma=0.05,
-                    white_balance_drift_sigma=0.1)
+    assert np.array_equal(
+        SensorModel(read_noise=0.0, bit_depth=16, exposure_drift_sigma=0.0).apply(x, np.random.default_rng(5)),
+        plain.apply(x, np.random.default_rng(5)),
+    )
+    m = SensorModel(
+        full_well_e=1e7, read_noise=0.0, bit_depth=16, exposure_drift_sigma=0.05, white_balance_drift_sigma=0.1
+    )
     for shot in range(10):
         f = m.drift_factors(np.random.default_rng([7, shot]))
         out = m.apply(x, np.random.default_rng([7, shot]))
@@ -61,7 +64,7 @@ def test_photometric_drift_off_by_default_and_per_shot_when_on():
     # log gain = exposure (shared) + white balance (per channel): var 0.05² + 0.1²
     assert np.std(g, axis=0) == pytest.approx(np.hypot(0.05, 0.1), rel=0.05)
     # the shared exposure part correlates the channels: cov = 0.05² (sampling std ~8 %)
-    assert np.cov(g[:, 0], g[:, 1])[0, 1] == pytest.approx(0.05 ** 2, rel=0.3)
+    assert np.cov(g[:, 0], g[:, 1])[0, 1] == pytest.approx(0.05**2, rel=0.3)
     assert m.to_dict()["white_balance_drift_sigma"] == 0.1
 
 
@@ -73,12 +76,14 @@ def test_drifted_shots_are_corrected_by_matting():
     B = np.stack([0.3 + 0.1 * np.sin(0.3 * x + 0.2 * y + c) for c in range(3)], -1)
     backs = np.stack([B * 1.6, B * 0.2])
     alpha = (np.hypot(x - 30, y - 20) < 8).astype(float)[..., None]
-    m = SensorModel(full_well_e=1e6, read_noise=0.0, bit_depth=16, exposure_drift_sigma=0.05,
-                    white_balance_drift_sigma=0.05)
+    m = SensorModel(
+        full_well_e=1e6, read_noise=0.0, bit_depth=16, exposure_drift_sigma=0.05, white_balance_drift_sigma=0.05
+    )
     obs = np.stack([m.apply(alpha * 0.5 + (1 - alpha) * backs[k], np.random.default_rng([1, k])) for k in range(2)])
     truth = np.stack([m.drift_factors(np.random.default_rng([1, k])) for k in range(2)])
-    _, rep = correct_photometric_drift(obs, backs.astype(np.float32), mode="gain",
-                                       options=DriftOptions(rounds=2, register=False))
+    _, rep = correct_photometric_drift(
+        obs, backs.astype(np.float32), mode="gain", options=DriftOptions(rounds=2, register=False)
+    )
     for k in range(2):
         np.testing.assert_allclose(rep.shots[k].gain, truth[k], rtol=5e-3)
 

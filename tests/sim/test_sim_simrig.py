@@ -116,8 +116,11 @@ def test_light_array_rotation(safe_rig):
     b = cam.capture(1.0)
     assert cam.last_state.array_deg == pytest.approx(90.0, abs=0.02)
     assert np.abs(a - b).mean() > 0.2 * a.mean()
-    direct = rig.renderer.render(cam.camera, SimState(array_deg=90.0, light_levels={0: 255},
-                                                      table_deg=cam.last_state.table_deg), seed=cam.last_seed)
+    direct = rig.renderer.render(
+        cam.camera,
+        SimState(array_deg=90.0, light_levels={0: 255}, table_deg=cam.last_state.table_deg),
+        seed=cam.last_seed,
+    )
     assert np.allclose(b, direct, rtol=1e-4, atol=1e-7)
     rig.light_array.rotation.move_to(0.0)
 
@@ -131,7 +134,7 @@ def test_pattern_shown_appears_behind_the_object(safe_rig):
         d = rig.geometry.display(name)
         pat = np.zeros((d.resolution[1], d.resolution[0], 3), np.uint8)
         pat[:, : d.resolution[0] // 2] = 255 if name == "back" else 0
-        pat[:, d.resolution[0] // 2:] = 255 if name == "bottom" else 0
+        pat[:, d.resolution[0] // 2 :] = 255 if name == "bottom" else 0
         pat[: d.resolution[1] // 2] = 255  # top half white on both
         rig.backdrops.upload(name, pid, pat)
         rig.backdrops.show(name, pid)
@@ -140,8 +143,9 @@ def test_pattern_shown_appears_behind_the_object(safe_rig):
     rig.operator("remove_object")
     backdrop = cam.capture(1.0)
     rig.operator("place_object")
-    alpha = render_ground_truth(rig.scene, RigGeometry.view_camera(cam.camera, 0.0), spp=16,
-                                renderer=rig.renderer)["alpha"]
+    alpha = render_ground_truth(rig.scene, RigGeometry.view_camera(cam.camera, 0.0), spp=16, renderer=rig.renderer)[
+        "alpha"
+    ]
     import cv2
 
     bg = cv2.erode((alpha == 0).astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
@@ -198,8 +202,9 @@ def test_board_placed_by_the_operator_is_detected(safe_rig):
     img = cam.capture(1.0)
     assert cam.last_effects.phase == "calibration" and cam.last_state.content == "board"
     # what is lit is the board where it lies at table 20 (it turns with the table), not the object
-    board = render_ground_truth(rig.scene, RigGeometry.view_camera(cam.camera, 20.0), spp=16,
-                                parts=board_parts(spec), renderer=rig.renderer)["alpha"]
+    board = render_ground_truth(
+        rig.scene, RigGeometry.view_camera(cam.camera, 20.0), spp=16, parts=board_parts(spec), renderer=rig.renderer
+    )["alpha"]
     import cv2
 
     lit = img.mean(axis=2) > 0
@@ -262,8 +267,11 @@ def test_sensor_noise_rig():
 
 def test_spec_parsing_and_geometry_only_rig(tmp_path):
     assert parse_sim_spec("sim:diffuse") == ("builtin:diffuse", None, {})
-    assert parse_sim_spec("sim:builtin:glass@r.toml?scale=0.5&seed=2") == ("builtin:glass", "r.toml",
-                                                                          {"scale": 0.5, "seed": 2})
+    assert parse_sim_spec("sim:builtin:glass@r.toml?scale=0.5&seed=2") == (
+        "builtin:glass",
+        "r.toml",
+        {"scale": 0.5, "seed": 2},
+    )
     with pytest.raises(ConfigError, match="unknown option"):
         parse_sim_spec("sim:diffuse?colour=1")
     with pytest.raises(ConfigError):

@@ -54,12 +54,15 @@ def test_probe_result_is_cached_on_disk(monkeypatch, tmp_path):
     monkeypatch.setattr(V, "_chosen", None)
 
 
-@pytest.mark.parametrize("works,expected,probed", [
-    ({"cuda_ad_rgb", "llvm_ad_rgb"}, "cuda_ad_rgb", ["cuda_ad_rgb"]),   # a GPU: CUDA, LLVM never probed
-    ({"llvm_ad_rgb"}, "llvm_ad_rgb", ["cuda_ad_rgb", "llvm_ad_rgb"]),   # these machines
-    (set(), "scalar_rgb", ["cuda_ad_rgb", "llvm_ad_rgb"]),              # neither JIT backend
-    ({"cuda_ad_rgb"}, "cuda_ad_rgb", ["cuda_ad_rgb"]),                  # GPU, broken libLLVM
-])
+@pytest.mark.parametrize(
+    "works,expected,probed",
+    [
+        ({"cuda_ad_rgb", "llvm_ad_rgb"}, "cuda_ad_rgb", ["cuda_ad_rgb"]),  # a GPU: CUDA, LLVM never probed
+        ({"llvm_ad_rgb"}, "llvm_ad_rgb", ["cuda_ad_rgb", "llvm_ad_rgb"]),  # these machines
+        (set(), "scalar_rgb", ["cuda_ad_rgb", "llvm_ad_rgb"]),  # neither JIT backend
+        ({"cuda_ad_rgb"}, "cuda_ad_rgb", ["cuda_ad_rgb"]),  # GPU, broken libLLVM
+    ],
+)
 def test_selection_prefers_cuda_then_llvm_then_scalar(works, expected, probed):
     """The selection logic with a fake probe result (no GPU here to run the variant)."""
     calls = []

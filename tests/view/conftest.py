@@ -10,8 +10,9 @@ from opacityhull.render.synthetic import write_sphere_model
 @pytest.fixture(scope="session")
 def view_model(tmp_path_factory):
     """4000 surfels, 24 views of 64×48 with a highlight (view-dependent colour)."""
-    return write_sphere_model(tmp_path_factory.mktemp("view") / "sphere", n_surfels=4000, width=64, height=48,
-                              table_step_deg=45.0)
+    return write_sphere_model(
+        tmp_path_factory.mktemp("view") / "sphere", n_surfels=4000, width=64, height=48, table_step_deg=45.0
+    )
 
 
 @pytest.fixture(scope="session")

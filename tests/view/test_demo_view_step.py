@@ -32,7 +32,7 @@ def test_demo_view_step_writes_the_bundle_and_a_working_command(view_model, tmp_
     argv = shlex.split(s["serve"])
     assert argv[:2] == ["opacityhull", "view"]
     args = argv[2:]
-    args[args.index("--port"):] = ["--out", str(tmp_path / "b2")]
+    args[args.index("--port") :] = ["--out", str(tmp_path / "b2")]
     res = CliRunner().invoke(app, ["view", *args])
     assert res.exit_code == 0, res.output
     assert json.loads((tmp_path / "b2" / "manifest.json").read_text())["n_surfels"] == len(m.surfels)

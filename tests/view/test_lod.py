@@ -39,8 +39,12 @@ def _cloud(n, seed, dup=False):
 
 
 @settings(max_examples=15, deadline=None)
-@given(n=st.integers(1, 300), seed=st.integers(0, 10_000), dup=st.booleans(),
-       t=st.sampled_from([0.0, 0.01, 0.05, 0.2, 1.0, 100.0]))
+@given(
+    n=st.integers(1, 300),
+    seed=st.integers(0, 10_000),
+    dup=st.booleans(),
+    t=st.sampled_from([0.0, 0.01, 0.05, 0.2, 1.0, 100.0]),
+)
 def test_cut_is_a_partition(n, seed, dup, t):
     s = _cloud(n, seed, dup)
     tree = build_point_tree(s, depth=8)
@@ -54,7 +58,9 @@ def test_cut_is_a_partition(n, seed, dup, t):
     ch = np.flatnonzero(tree.parent >= 0)
     par = tree.parent[ch]
     assert np.all((tree.visibility[ch] & ~tree.visibility[par]) == 0)
-    np.testing.assert_allclose(np.sum(tree.radii[mask].astype(float) ** 2), np.sum(s.radii.astype(float) ** 2), rtol=1e-4)
+    np.testing.assert_allclose(
+        np.sum(tree.radii[mask].astype(float) ** 2), np.sum(s.radii.astype(float) ** 2), rtol=1e-4
+    )
     np.testing.assert_allclose(tree.areas[mask].sum(), (np.pi * s.radii.astype(float) ** 2).sum(), rtol=1e-4)
 
 
@@ -89,8 +95,12 @@ def test_budget_psnr_against_full_model(sphere):
         s, _ = cut_surfels(tree, mask)
         r = render_image(s, cams, pv, cam, config=RenderConfig(threads=1))
         sel = (full.rgba[..., 3] > 0.01) | (r.rgba[..., 3] > 0.01)
-        d = np.concatenate([((r.rgba[..., :3] * r.rgba[..., 3:]) - (full.rgba[..., :3] * full.rgba[..., 3:]))[sel].ravel(),
-                            (r.rgba[..., 3] - full.rgba[..., 3])[sel]])
+        d = np.concatenate(
+            [
+                ((r.rgba[..., :3] * r.rgba[..., 3:]) - (full.rgba[..., :3] * full.rgba[..., 3:]))[sel].ravel(),
+                (r.rgba[..., 3] - full.rgba[..., 3])[sel],
+            ]
+        )
         psnr[frac] = np.inf if not d.any() else 10 * np.log10(1 / np.mean(d**2))
     print("LOD PSNR vs full:", psnr)
     assert psnr[1] > 100  # the full budget is the model itself (in another order: float rounding only)

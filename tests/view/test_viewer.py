@@ -43,40 +43,54 @@ def test_bundle_layout_reads_back(view_model, bundle):
     h = man["positions"]["cell_m"]
     assert d[: leaf[:nf].sum()].max() < 1e-6 and d.max() <= np.sqrt(3) * h
     # match coded leaves to surfels by the exact attributes (radius, normal), then check the cell
-    key = {(round(float(r), 9),) + tuple(np.round(n, 6)): i
-           for i, (r, n) in enumerate(zip(m.surfels.radii.tolist(), m.surfels.normals.tolist()))}
-    idx = np.array([key[(round(float(r), 9),) + tuple(np.round(n, 6))]
-                    for r, n in zip(rec["radius"][leaf].tolist(), rec["nrm"][leaf].tolist())])
+    key = {
+        (round(float(r), 9),) + tuple(np.round(n, 6)): i
+        for i, (r, n) in enumerate(zip(m.surfels.radii.tolist(), m.surfels.normals.tolist()))
+    }
+    idx = np.array(
+        [
+            key[(round(float(r), 9),) + tuple(np.round(n, 6))]
+            for r, n in zip(rec["radius"][leaf].tolist(), rec["nrm"][leaf].tolist())
+        ]
+    )
     np.testing.assert_array_equal(np.sort(idx), np.arange(len(m.surfels)))
-    exact = m.surfels.positions[idx[int(leaf[:nf].sum()):]].astype(np.float64)
+    exact = m.surfels.positions[idx[int(leaf[:nf].sum()) :]].astype(np.float64)
     # a coded leaf is its cell's centre moved along its normal by the quantised offset:
     # off by at most half an offset bin along the normal, half a cell diagonal across
     H = man["positions"]
-    step = np.sqrt(3) / 2**H["offset_bits"]
+    step = np.sqrt(3) / 2 ** H["offset_bits"]
     err = pos[nf:] - exact
     along = np.abs(np.sum(err * rec["nrm"][nf:], axis=1))
     assert H["offset_bits"] == 3 and along.max() <= step / 2 * h * (1 + 1e-4) + 1e-9
     assert np.linalg.norm(err, axis=1).max() <= np.sqrt(3) * h
     vis = np.unpackbits(rec["vis"][leaf].view(np.uint8).reshape(leaf.sum(), -1), axis=1, bitorder="little")
     np.testing.assert_array_equal(vis[:, : len(m.views)].astype(bool), m.surfels.visible_bool()[idx])
-    assert not vis[:, len(m.views):].any()
+    assert not vis[:, len(m.views) :].any()
     # the budget table: t = 0 draws exactly the leaves, larger t fewer splats
     assert man["lod"]["t"][0] == 0 and man["lod"]["splats"][0] == len(m.surfels)
     assert np.all(np.diff(man["lod"]["splats"]) <= 0) and man["lod"]["splats"][-1] == 1
     V = man["views"]
-    tex = np.frombuffer((out / V["file"]).read_bytes(), np.uint8).reshape(len(m.views), V["layer_height"],
-                                                                            V["layer_width"], 4)
+    tex = np.frombuffer((out / V["file"]).read_bytes(), np.uint8).reshape(
+        len(m.views), V["layer_height"], V["layer_width"], 4
+    )
     for v in (0, 11):
         rgba = m.view_rgba[v]
         np.testing.assert_allclose(tex[v, ..., 3] / 255, rgba[..., 3], atol=0.5 / 255 + 1e-6)
         pre = srgb_decode(tex[v, ..., :3] / 255.0)
         assert np.abs(pre - rgba[..., :3] * rgba[..., 3:4]).max() < 0.01
         np.testing.assert_allclose(V["layers"][v]["world_from_cam"], m.views[v].camera.world_from_cam.ravel())
-    model_bytes = (sum(c["bytes"] for c in man["chunks"]) + L["bytes"] + H["codes_bytes"] + H["counts_bytes"]
-                   + H["offsets_bytes"])
+    model_bytes = (
+        sum(c["bytes"] for c in man["chunks"]) + L["bytes"] + H["codes_bytes"] + H["counts_bytes"] + H["offsets_bytes"]
+    )
     assert summary["bytes_per_surfel"] == pytest.approx(model_bytes / man["n_surfels"])
-    assert model_bytes == nf * (12 + man["record_bytes"]) + L["count"] * man["record_bytes"] + \
-        H["codes_bytes"] + H["counts_bytes"] + H["offsets_bytes"]
+    assert (
+        model_bytes
+        == nf * (12 + man["record_bytes"])
+        + L["count"] * man["record_bytes"]
+        + H["codes_bytes"]
+        + H["counts_bytes"]
+        + H["offsets_bytes"]
+    )
 
 
 def test_bundle_refuses_to_replace_other_folders(view_model, tmp_path):
@@ -145,13 +159,15 @@ def test_browser_matches_cpu_renderer(browser, view_model, bundle):
     with BundleServer(out) as srv:
         r = _load(browser, srv.url)
         assert r["ok"], r["error"]
-        assert browser.execute_script("return window.opacityhull.viewer.loaded") == \
-            json.loads((out / "manifest.json").read_text())["n_nodes"]
+        assert (
+            browser.execute_script("return window.opacityhull.viewer.loaded")
+            == json.loads((out / "manifest.json").read_text())["n_nodes"]
+        )
         # the page's octree decoder (with the normal offsets) gives the NumPy reference's positions
         man, pos, _ = read_bundle(out)
         js = np.array(browser.execute_script("return window.opacityhull.leafPositions()"), np.float64).reshape(-1, 3)
         assert js.shape == (man["leaves"]["count"], 3)
-        np.testing.assert_allclose(js, pos[man["n_float"]:], rtol=0, atol=2e-7 * man["positions"]["size"])
+        np.testing.assert_allclose(js, pos[man["n_float"] :], rtol=0, atol=2e-7 * man["positions"]["size"])
         lv = browser.execute_script("return window.opacityhull.octree.levels")
         assert len(lv) == man["positions"]["depth"] + 1 and lv[-1] == man["positions"]["n_cells"] and lv[0] == 1
         # The page draws the bundle's surfels (octree-coded leaf positions) with per-surfel
@@ -164,8 +180,9 @@ def test_browser_matches_cpu_renderer(browser, view_model, bundle):
         _, _, recs = read_bundle(out)
         lf = recs["r_min"] == 0
         vis = recs["vis"][lf].view(np.uint8).reshape(int(lf.sum()), -1)[:, : m.surfels.visibility.shape[1]]
-        decoded = Surfels(positions=pos[lf], normals=recs["nrm"][lf], radii=recs["radius"][lf], visibility=vis,
-                          n_views=len(m.views))
+        decoded = Surfels(
+            positions=pos[lf], normals=recs["nrm"][lf], radii=recs["radius"][lf], visibility=vis, n_views=len(m.views)
+        )
         pv = prepare_model_views(model)
         cams = [v.camera for v in model.views]
         for vi in (2, 13):
@@ -178,8 +195,10 @@ def test_browser_matches_cpu_renderer(browser, view_model, bundle):
             assert mask.sum() > 300
             psnr = 10 * np.log10(1.0 / np.mean((gpu - pre)[mask] ** 2))
             psnr_same = 10 * np.log10(1.0 / np.mean((gpu - same.rgba[..., :3] * same.rgba[..., 3:4])[mask] ** 2))
-            print(f"view {vi}: browser vs CPU PSNR inside the mask: {psnr_same:.1f} dB (same surfels), "
-                  f"{psnr:.1f} dB (exact model)")
+            print(
+                f"view {vi}: browser vs CPU PSNR inside the mask: {psnr_same:.1f} dB (same surfels), "
+                f"{psnr:.1f} dB (exact model)"
+            )
             assert psnr_same >= 35.0
             assert psnr >= 27.0
             # outside the silhouette the page shows the background (black) exactly
@@ -282,7 +301,9 @@ def test_browser_environment_map_background(browser, view_model, tmp_path):
     with BundleServer(out) as srv:
         r = _load(browser, srv.url)
         assert r["ok"], r["error"]
-        browser.execute_script("window.opacityhull.viewer.setView(7); return window.opacityhull.setBackground('envmap')")
+        browser.execute_script(
+            "window.opacityhull.viewer.setView(7); return window.opacityhull.setBackground('envmap')"
+        )
         gpu = srgb_decode(canvas_rgb(browser).astype(np.float32) / 255.0)
         cpu = render_model(model, m.views[7].camera, config=RenderConfig(threads=1))
         ref = np.clip(cpu.over(env), 0, 1)
@@ -302,8 +323,12 @@ def test_cli_serves_until_terminated(view_model):
     from pathlib import Path
 
     root, _ = view_model
-    p = subprocess.Popen([sys.executable, "-m", "opacityhull.cli", "view", str(root), "--port", "0", "--json"],
-                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    p = subprocess.Popen(
+        [sys.executable, "-m", "opacityhull.cli", "view", str(root), "--port", "0", "--json"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
     try:
         s = json.loads(p.stdout.readline())
         assert s["url"].startswith("http://127.0.0.1:")

@@ -23,7 +23,9 @@ from .config import CalibrationError
 __all__ = ["estimate_turntable_axis", "rig_from_axis"]
 
 
-def estimate_turntable_axis(table_deg: Sequence[float], cam_from_board: Sequence[np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def estimate_turntable_axis(
+    table_deg: Sequence[float], cam_from_board: Sequence[np.ndarray]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The turntable axis in a camera's frame from board poses at several table angles.
 
     Parameters
@@ -106,4 +108,3 @@ def rig_from_axis(d, o, cam_from_board0, spec: CharucoSpec) -> np.ndarray:
     ex = math.cos(psi) * v - math.sin(psi) * np.cross(d, v)
     ez = np.cross(ex, d)
     return rigid(np.column_stack([ex, d, ez]), origin)
-

@@ -40,4 +40,3 @@ def board_params(spec: CharucoSpec, object_from_board: np.ndarray) -> np.ndarray
     w, h = spec.size_m
     centre = object_from_board[:3, 3] + R @ np.array([w / 2, h / 2, 0.0])
     return np.array([rv[0], rv[2], centre[0], centre[2]])
-

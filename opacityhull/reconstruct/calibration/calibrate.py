@@ -37,8 +37,9 @@ def _still_calibrated(cams: list[int], uncalibrated: Mapping[int, str]) -> list[
     """``cams`` without the cameras given up on; CalibrationError naming why when none is left."""
     left = [c for c in cams if c not in uncalibrated]
     if not left:
-        raise CalibrationError("no camera has three usable calibration views: "
-                               + " | ".join(uncalibrated[c] for c in sorted(uncalibrated)))
+        raise CalibrationError(
+            "no camera has three usable calibration views: " + " | ".join(uncalibrated[c] for c in sorted(uncalibrated))
+        )
     return left
 
 
@@ -136,8 +137,9 @@ def calibrate_observations(
     poses: dict[int, list[tuple[CharucoObservation, np.ndarray]]] = {}
     fixed: dict[int, tuple[str, ...]] = {}
     for c in cams:
-        fitted = fit_intrinsics(by_cam[c], size=sizes[c], K0=None if nominal is None else nominal[c].K,
-                                config=config, name=names[c])
+        fitted = fit_intrinsics(
+            by_cam[c], size=sizes[c], K0=None if nominal is None else nominal[c].K, config=config, name=names[c]
+        )
         dropped_views.update(fitted.dropped)
         notes.extend(fitted.notes)
         if fitted.K is None or fitted.dist is None:
@@ -185,15 +187,22 @@ def calibrate_observations(
             free += ["cx", "cy"]
         free += [nm for nm in ("k1", "k2", "p1", "p2", "k3") if nm not in fixed[c]]
         K = K_init[c]
-        blocks.append(CamBlock(
-            index=c, size=sizes[c], K=K.copy(), dist=dist_init[c].copy(), cam_from_rig=cam_from_rig,
-            free=tuple(free), aspect=float(K[0, 0] / K[1, 1]),
-            obj=np.concatenate([o.object_points for o in views]),
-            img=np.concatenate([o.image_points for o in views]),
-            angle=np.concatenate([np.full(len(o), o.table_deg) for o in views]),
-            view_of_point=np.concatenate([np.full(len(o), i) for i, o in enumerate(views)]),
-            views=[o.view for o in views],
-        ))
+        blocks.append(
+            CamBlock(
+                index=c,
+                size=sizes[c],
+                K=K.copy(),
+                dist=dist_init[c].copy(),
+                cam_from_rig=cam_from_rig,
+                free=tuple(free),
+                aspect=float(K[0, 0] / K[1, 1]),
+                obj=np.concatenate([o.object_points for o in views]),
+                img=np.concatenate([o.image_points for o in views]),
+                angle=np.concatenate([np.full(len(o), o.table_deg) for o in views]),
+                view_of_point=np.concatenate([np.full(len(o), i) for i, o in enumerate(views)]),
+                views=[o.view for o in views],
+            )
+        )
     model = RigModel(blocks, charuco, bparams, fit_tilt=config.fit_board_tilt, fit_scale=config.fit_table_scale)
     x0 = model.pack()
     t_axis = time.perf_counter()
@@ -218,8 +227,14 @@ def calibrate_observations(
     for b, r, r_end, r_start in zip(blocks, res, rms_per_cam(x), initial_rms):
         K, dist, rv, tv = model.camera_params(b, x)
         cam_from_rig = rigid(rodrigues(rv), tv)
-        rig_cams[b.index] = Camera(K=K, dist=dist, width=b.size[0], height=b.size[1],
-                                   world_from_cam=invert_rigid(cam_from_rig), name=names[b.index])
+        rig_cams[b.index] = Camera(
+            K=K,
+            dist=dist,
+            width=b.size[0],
+            height=b.size[1],
+            world_from_cam=invert_rigid(cam_from_rig),
+            name=names[b.index],
+        )
         rms_final[b.index], rms_init[b.index] = r_end, r_start
         for i, v in enumerate(b.views):
             per_view[v] = reprojection_rms_px(r[b.view_of_point == i])
@@ -228,8 +243,10 @@ def calibrate_observations(
     missing = [c for c in range(n_cams) if rig_cams[c] is None]
     if missing:
         if nominal is None:
-            raise InputError(f"calibrate_observations: cameras {missing} were not calibrated (not in image_sizes, "
-                             "or skipped); give `nominal` (the whole rig) to keep them as designed")
+            raise InputError(
+                f"calibrate_observations: cameras {missing} were not calibrated (not in image_sizes, "
+                "or skipped); give `nominal` (the whole rig) to keep them as designed"
+            )
         for c in missing:  # cameras not calibrated: kept nominal, marked, never used for views
             rig_cams[c] = nominal[c]
             uncalibrated.setdefault(c, "no images in the session: left nominal")
@@ -255,8 +272,9 @@ def calibrate_observations(
     )
 
 
-def calibrate_session(session: Session, *, config: CalibrationConfig = CalibrationConfig(),
-                      progress: ProgressCallback | None = None) -> CalibrationResult:
+def calibrate_session(
+    session: Session, *, config: CalibrationConfig = CalibrationConfig(), progress: ProgressCallback | None = None
+) -> CalibrationResult:
     """Calibrate the rig from the ``calibration`` phase of a session.
 
     Parameters
@@ -290,8 +308,10 @@ def calibrate_session(session: Session, *, config: CalibrationConfig = Calibrati
     # kind=None (any kind) is documented; select's unannotated default makes pyright infer str.
     recs = session.select(phase="calibration", kind=None)  # pyright: ignore[reportArgumentType]
     if not recs:
-        raise CalibrationError(f"{session.root}: the session has no 'calibration' phase records "
-                               "(capture the ChArUco board first, or provide calibration/<camera>.yaml)")
+        raise CalibrationError(
+            f"{session.root}: the session has no 'calibration' phase records "
+            "(capture the ChArUco board first, or provide calibration/<camera>.yaml)"
+        )
     shots: dict[str, ShotRecord] = {}
     for r in recs:
         shots.setdefault(r.shot, r)
@@ -310,8 +330,9 @@ def calibrate_session(session: Session, *, config: CalibrationConfig = Calibrati
             progress(k, total)
         vid = view_id(r.camera, r.table_deg)
         if not 0 <= r.camera < len(nominal):
-            raise FormatError(f"{session.root}: calibration shot {shot} names camera {r.camera}; "
-                              f"the rig has {len(nominal)} cameras")
+            raise FormatError(
+                f"{session.root}: calibration shot {shot} names camera {r.camera}; the rig has {len(nominal)} cameras"
+            )
         if vid in by_view:
             dropped.setdefault(vid, f"several calibration shots of this view ({by_view[vid]}, {shot}); used the first")
             continue
@@ -323,13 +344,23 @@ def calibrate_session(session: Session, *, config: CalibrationConfig = Calibrati
             continue
         h, w = img.shape[:2]
         if r.camera in seen_size and seen_size[r.camera] != (w, h):
-            dropped[vid] = (f"image is {w}x{h}, the camera's other calibration images are "
-                            f"{seen_size[r.camera][0]}x{seen_size[r.camera][1]}")
+            dropped[vid] = (
+                f"image is {w}x{h}, the camera's other calibration images are "
+                f"{seen_size[r.camera][0]}x{seen_size[r.camera][1]}"
+            )
             continue
         seen_size[r.camera] = sizes[r.camera] = (w, h)
-        observations.append(detect_charuco(img, charuco=spec, camera=r.camera, table_deg=r.table_deg,
-                                           percentile=config.tonemap_percentile, upscale=config.detect_upscale,
-                                           max_upscaled_px=config.detect_max_upscaled_px))
+        observations.append(
+            detect_charuco(
+                img,
+                charuco=spec,
+                camera=r.camera,
+                table_deg=r.table_deg,
+                percentile=config.tonemap_percentile,
+                upscale=config.detect_upscale,
+                max_upscaled_px=config.detect_max_upscaled_px,
+            )
+        )
     if progress is not None:
         progress(total, total)
     t_detect = time.perf_counter() - t0
@@ -339,7 +370,7 @@ def calibrate_session(session: Session, *, config: CalibrationConfig = Calibrati
         w, h = sizes[i]
         c = nominal[i]
         nom[i] = c if (w, h) == (c.width, c.height) else c.scaled(w / c.width)
-    result = calibrate_observations(observations, image_sizes=sizes, charuco=spec, nominal=nom, config=config,
-                                    dropped=dropped)
+    result = calibrate_observations(
+        observations, image_sizes=sizes, charuco=spec, nominal=nom, config=config, dropped=dropped
+    )
     return replace(result, seconds={"detect": t_detect, **result.seconds})
-

@@ -109,15 +109,21 @@ class CalibrationConfig:
     def __post_init__(self):
         if int(self.min_corners) < 4:
             raise ConfigError(f"CalibrationConfig.min_corners={self.min_corners}: need at least 4 corners per view")
-        for name in ("min_spread_squares", "min_image_spread_px", "max_view_rms_px", "min_plane_spread_deg",
-                     "min_k2_coverage"):
+        for name in (
+            "min_spread_squares",
+            "min_image_spread_px",
+            "max_view_rms_px",
+            "min_plane_spread_deg",
+            "min_k2_coverage",
+        ):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v >= 0):
                 raise ConfigError(f"CalibrationConfig.{name}={v!r}: expected a finite number >= 0")
         if int(self.max_iter) < 1 or int(self.restarts) < 0:
-            raise ConfigError(f"CalibrationConfig: max_iter={self.max_iter} must be >= 1, restarts={self.restarts} >= 0")
+            raise ConfigError(
+                f"CalibrationConfig: max_iter={self.max_iter} must be >= 1, restarts={self.restarts} >= 0"
+            )
         if not self.detect_upscale or any(int(f) < 1 for f in self.detect_upscale):
             raise ConfigError(f"CalibrationConfig.detect_upscale={self.detect_upscale!r}: expected factors >= 1")
         if not 50.0 <= float(self.tonemap_percentile) <= 100.0:
             raise ConfigError(f"CalibrationConfig.tonemap_percentile={self.tonemap_percentile}: expected 50..100")
-

@@ -118,9 +118,16 @@ def _detector(spec: CharucoSpec):
     return board, cv2.aruco.CharucoDetector(board)
 
 
-def detect_charuco(image, *, charuco: CharucoSpec, camera: int = 0, table_deg: float = 0.0,
-                   percentile: float = 99.5, upscale: Sequence[int] = (1, 2, 3),
-                   max_upscaled_px: int = 2048) -> CharucoObservation:
+def detect_charuco(
+    image,
+    *,
+    charuco: CharucoSpec,
+    camera: int = 0,
+    table_deg: float = 0.0,
+    percentile: float = 99.5,
+    upscale: Sequence[int] = (1, 2, 3),
+    max_upscaled_px: int = 2048,
+) -> CharucoObservation:
     """Detect the ChArUco corners of ``charuco`` in one image.
 
     Parameters
@@ -147,7 +154,9 @@ def detect_charuco(image, *, charuco: CharucoSpec, camera: int = 0, table_deg: f
 
     a = np.asarray(image)
     if a.dtype == np.uint8:
-        gray = a if a.ndim == 2 else (a[..., :3].mean(axis=2).round().astype(np.uint8) if a.shape[2] >= 3 else a[..., 0])
+        gray = (
+            a if a.ndim == 2 else (a[..., :3].mean(axis=2).round().astype(np.uint8) if a.shape[2] >= 3 else a[..., 0])
+        )
     else:
         gray = tonemap_for_detection(a, percentile=percentile)
     gray = np.ascontiguousarray(gray)
@@ -184,8 +193,9 @@ def _minor_std(points2: np.ndarray) -> float:
     return float(math.sqrt(max(np.linalg.eigvalsh(c)[0], 0.0)))
 
 
-def screen_observation(obs: CharucoObservation, *, charuco: CharucoSpec,
-                       config: CalibrationConfig = CalibrationConfig()) -> str | None:
+def screen_observation(
+    obs: CharucoObservation, *, charuco: CharucoSpec, config: CalibrationConfig = CalibrationConfig()
+) -> str | None:
     """Why ``obs`` cannot be used for calibration, or None when it can.
 
     Checks the corner count, finiteness, collinearity on the board (minor-axis spread
@@ -200,11 +210,14 @@ def screen_observation(obs: CharucoObservation, *, charuco: CharucoSpec,
         return "non-finite corner coordinates"
     spread = _minor_std(obs.object_points[:, :2]) / charuco.square_m
     if spread < config.min_spread_squares:
-        return (f"corners (nearly) collinear on the board: minor-axis spread {spread:.3f} squares "
-                f"< min_spread_squares={config.min_spread_squares}")
+        return (
+            f"corners (nearly) collinear on the board: minor-axis spread {spread:.3f} squares "
+            f"< min_spread_squares={config.min_spread_squares}"
+        )
     ispread = _minor_std(obs.image_points)
     if ispread < config.min_image_spread_px:
-        return (f"corners (nearly) collinear in the image (board seen edge-on): minor-axis spread "
-                f"{ispread:.2f} px < min_image_spread_px={config.min_image_spread_px}")
+        return (
+            f"corners (nearly) collinear in the image (board seen edge-on): minor-axis spread "
+            f"{ispread:.2f} px < min_image_spread_px={config.min_image_spread_px}"
+        )
     return None
-

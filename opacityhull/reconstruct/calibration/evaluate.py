@@ -24,8 +24,13 @@ from .result import CalibrationResult
 __all__ = ["pose_errors", "render_charuco_view"]
 
 
-def pose_errors(result: CalibrationResult | Sequence[Camera], true_rig_cameras: Sequence[Camera], *,
-                align_gauge: bool = False, volume_m: float | None = 0.2) -> dict:
+def pose_errors(
+    result: CalibrationResult | Sequence[Camera],
+    true_rig_cameras: Sequence[Camera],
+    *,
+    align_gauge: bool = False,
+    volume_m: float | None = 0.2,
+) -> dict:
     """Errors of calibrated rig cameras against ground truth.
 
     Parameters
@@ -79,8 +84,9 @@ def pose_errors(result: CalibrationResult | Sequence[Camera], true_rig_cameras: 
         # (orientations are accurate; positions are not, along each optical axis).
         Re = np.concatenate([c.world_from_cam[:3, :3].T for c in est])
         Rt = np.concatenate([c.world_from_cam[:3, :3].T for c in true])
-        psi = math.atan2(np.sum(Re[:, 2] * Rt[:, 0] - Re[:, 0] * Rt[:, 2]),
-                         np.sum(Re[:, 0] * Rt[:, 0] + Re[:, 2] * Rt[:, 2]))
+        psi = math.atan2(
+            np.sum(Re[:, 2] * Rt[:, 0] - Re[:, 0] * Rt[:, 2]), np.sum(Re[:, 0] * Rt[:, 0] + Re[:, 2] * Rt[:, 2])
+        )
         dy = float(np.mean([t.centre_world[1] - e.centre_world[1] for e, t in zip(est, true)]))
         if X is not None:
             # Then (ψ, dy) minimising the working volume's reprojection differences.
@@ -133,7 +139,6 @@ def pose_errors(result: CalibrationResult | Sequence[Camera], true_rig_cameras: 
         "gauge_yaw_deg": yaw,
         "gauge_dy_mm": dy * 1000.0,
     }
-
 
 
 def _lattice_offsets(n: int) -> np.ndarray:
@@ -238,8 +243,14 @@ def render_charuco_view(
             w = (Hm[2, 0] * xy[:, 0, 0] + Hm[2, 1] * xy[:, 0, 1] + Hm[2, 2]).reshape(H, W)
             maps[w <= 0] = -1e4
             # map2=None: ``maps`` holds both coordinates (the stub wrongly requires map2).
-            acc += cv2.remap(tex, maps, None, cv2.INTER_LINEAR,  # pyright: ignore[reportCallIssue, reportArgumentType]
-                             borderMode=cv2.BORDER_CONSTANT, borderValue=float(background))
+            acc += cv2.remap(
+                tex,
+                maps,
+                None,  # pyright: ignore[reportCallIssue, reportArgumentType]
+                cv2.INTER_LINEAR,
+                borderMode=cv2.BORDER_CONSTANT,
+                borderValue=float(background),
+            )
         img = acc / n
     if noise_sigma > 0 and rng is not None:  # rng is checked above; this narrows its type
         img = img + rng.normal(0.0, noise_sigma, img.shape)

@@ -74,10 +74,10 @@ def plane_spread_deg(normals: Sequence[np.ndarray]) -> float:
 class _Choice:
     """What a camera's views can constrain (see :func:`_choose_model`)."""
 
-    flags: int                                  # cv2.calibrateCamera flags of the held intrinsics
-    held: tuple[str, ...]                       # cx, cy, fx/fy
-    chain: list[tuple[str, tuple[str, ...]]]    # nested distortion models, smallest first
-    n_intr: int                                 # free intrinsics besides distortion
+    flags: int  # cv2.calibrateCamera flags of the held intrinsics
+    held: tuple[str, ...]  # cx, cy, fx/fy
+    chain: list[tuple[str, tuple[str, ...]]]  # nested distortion models, smallest first
+    n_intr: int  # free intrinsics besides distortion
     notes: tuple[str, ...]
 
 
@@ -94,8 +94,9 @@ def _dist_flags(flags: int, free_dist: tuple[str, ...]) -> int:
     return f
 
 
-def _choose_model(views: Sequence[CharucoObservation], *, K0: np.ndarray, size: tuple[int, int],
-                  config: CalibrationConfig, name: str) -> _Choice:
+def _choose_model(
+    views: Sequence[CharucoObservation], *, K0: np.ndarray, size: tuple[int, int], config: CalibrationConfig, name: str
+) -> _Choice:
     """Which intrinsics ``views`` can constrain (principal point, aspect ratio, k2) and
     the distortion models to try, with the notes saying why."""
     import cv2
@@ -113,18 +114,23 @@ def _choose_model(views: Sequence[CharucoObservation], *, K0: np.ndarray, size: 
     narrow = fov_diag_deg < config.min_fov_free_principal_point_deg
     fix_pp = (single_plane or narrow) if config.fix_principal_point is None else bool(config.fix_principal_point)
     if narrow and not single_plane and config.fix_principal_point is None:
-        notes.append(f"{name}: diagonal field of view {fov_diag_deg:.1f} deg (< "
-                     f"{config.min_fov_free_principal_point_deg}): principal point held at nominal")
+        notes.append(
+            f"{name}: diagonal field of view {fov_diag_deg:.1f} deg (< "
+            f"{config.min_fov_free_principal_point_deg}): principal point held at nominal"
+        )
     fix_ar = single_plane if config.fix_aspect_ratio is None else bool(config.fix_aspect_ratio)
     if single_plane and (config.fix_principal_point is None or config.fix_aspect_ratio is None):
-        notes.append(f"{name}: board normals span {spread:.1f} deg (< {config.min_plane_spread_deg}): "
-                     "one plane constrains only two intrinsics; principal point and aspect ratio held at nominal")
+        notes.append(
+            f"{name}: board normals span {spread:.1f} deg (< {config.min_plane_spread_deg}): "
+            "one plane constrains only two intrinsics; principal point and aspect ratio held at nominal"
+        )
     allpts = np.concatenate([o.image_points for o in views])
     r_cov = float(np.max(np.hypot(allpts[:, 0] - K0[0, 2], allpts[:, 1] - K0[1, 2]))) / (0.5 * math.hypot(w, h))
     fix_k2 = (r_cov < config.min_k2_coverage) if config.fix_k2 is None else bool(config.fix_k2)
     if config.fix_k2 is None and fix_k2:
-        notes.append(f"{name}: corners reach {r_cov:.2f} of the image half-diagonal "
-                     f"(< {config.min_k2_coverage}); k2 held at 0")
+        notes.append(
+            f"{name}: corners reach {r_cov:.2f} of the image half-diagonal (< {config.min_k2_coverage}); k2 held at 0"
+        )
     flags = cv2.CALIB_USE_INTRINSIC_GUESS
     held: list[str] = []
     if fix_pp:
@@ -146,8 +152,14 @@ def _choose_model(views: Sequence[CharucoObservation], *, K0: np.ndarray, size: 
     return _Choice(flags=flags, held=tuple(held), chain=chain, n_intr=n_intr, notes=tuple(notes))
 
 
-def fit_intrinsics(observations: Sequence[CharucoObservation], *, size: tuple[int, int], K0: np.ndarray | None,
-                   config: CalibrationConfig, name: str) -> IntrinsicsFit:
+def fit_intrinsics(
+    observations: Sequence[CharucoObservation],
+    *,
+    size: tuple[int, int],
+    K0: np.ndarray | None,
+    config: CalibrationConfig,
+    name: str,
+) -> IntrinsicsFit:
     """Calibrate one camera's intrinsics and board poses from its usable views.
 
     Parameters
@@ -188,8 +200,9 @@ def fit_intrinsics(observations: Sequence[CharucoObservation], *, size: tuple[in
     def fit(views_, free_dist, choice_):
         objs_ = [o.object_points.astype(np.float32) for o in views_]
         imgs_ = [o.image_points.astype(np.float32) for o in views_]
-        out = cv2.calibrateCameraExtended(objs_, imgs_, (w, h), K0.copy(), np.zeros(5),
-                                          flags=_dist_flags(choice_.flags, free_dist), criteria=crit)
+        out = cv2.calibrateCameraExtended(
+            objs_, imgs_, (w, h), K0.copy(), np.zeros(5), flags=_dist_flags(choice_.flags, free_dist), criteria=crit
+        )
         rms_, K_, dist_, rv_, tv_, _, _, pv_ = out
         return rms_, K_, dist_, rv_, tv_, np.asarray(pv_).ravel()
 
@@ -199,13 +212,20 @@ def fit_intrinsics(observations: Sequence[CharucoObservation], *, size: tuple[in
     bad = [i for i, e in enumerate(per_view) if e > lim]
     if bad:
         for i in bad:
-            dropped[views[i].view] = (f"reprojection RMS {per_view[i]:.2f} px after calibrating "
-                                      f"{name} alone (> {lim:.2f} px): misdetection")
+            dropped[views[i].view] = (
+                f"reprojection RMS {per_view[i]:.2f} px after calibrating {name} alone (> {lim:.2f} px): misdetection"
+            )
         views = [v for i, v in enumerate(views) if i not in bad]
         if len(views) < 3:
-            return IntrinsicsFit(K=None, dist=None, poses=[], n_views=len(views), fixed=choice.held,
-                                 notes=choice.notes + (f"{name}: dropped {len(bad)} outlier view(s)",),
-                                 dropped=dropped)
+            return IntrinsicsFit(
+                K=None,
+                dist=None,
+                poses=[],
+                n_views=len(views),
+                fixed=choice.held,
+                notes=choice.notes + (f"{name}: dropped {len(bad)} outlier view(s)",),
+                dropped=dropped,
+            )
         # What the views constrain is decided again without the misdetections: a wrong
         # view's PnP normal alone can widen the board normals past min_plane_spread_deg.
         choice = _choose_model(views, K0=K0, size=size, config=config, name=name)
@@ -224,8 +244,11 @@ def fit_intrinsics(observations: Sequence[CharucoObservation], *, size: tuple[in
             k = choice.n_intr + len(free_dist) + 6 * len(views)
             scored.append((n_res * math.log(ssr / n_res) + k * math.log(n_res), label, free_dist, r_))
         _, model_name, free_dist, (rms, K, dist, rvecs, tvecs, per_view) = min(scored, key=lambda t: t[0])
-        notes.append(f"{name}: distortion model '{model_name}' chosen by BIC ("
-                     + ", ".join(f"{nm} {b:.1f}" for b, nm, _, _ in scored) + ")")
+        notes.append(
+            f"{name}: distortion model '{model_name}' chosen by BIC ("
+            + ", ".join(f"{nm} {b:.1f}" for b, nm, _, _ in scored)
+            + ")"
+        )
     else:
         free_dist = choice.chain[-1][1]
         if bad:
@@ -233,5 +256,12 @@ def fit_intrinsics(observations: Sequence[CharucoObservation], *, size: tuple[in
     held = list(choice.held)
     held += [nm for nm in ("k1", "k2", "p1", "p2", "k3") if nm not in free_dist]
     poses = [(o, rigid(rodrigues(rv), np.asarray(tv).ravel())) for o, rv, tv in zip(views, rvecs, tvecs)]
-    return IntrinsicsFit(K=np.asarray(K, dtype=np.float64), dist=np.asarray(dist, dtype=np.float64).ravel()[:5],
-                         poses=poses, n_views=len(views), fixed=tuple(held), notes=tuple(notes), dropped=dropped)
+    return IntrinsicsFit(
+        K=np.asarray(K, dtype=np.float64),
+        dist=np.asarray(dist, dtype=np.float64).ravel()[:5],
+        poses=poses,
+        n_views=len(views),
+        fixed=tuple(held),
+        notes=tuple(notes),
+        dropped=dropped,
+    )

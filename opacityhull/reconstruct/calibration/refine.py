@@ -35,14 +35,14 @@ class CamBlock:
     K: np.ndarray
     dist: np.ndarray
     cam_from_rig: np.ndarray
-    free: tuple[str, ...]          # free intrinsics: f | fx, fy; cx, cy; k1, k2, p1, p2, k3
-    aspect: float                  # fx / fy when "f" is the parameter
-    obj: np.ndarray                # (N, 3) board points of all its views
-    img: np.ndarray                # (N, 2)
-    angle: np.ndarray              # (N,) table degrees per point
-    view_of_point: np.ndarray      # (N,) index into views
+    free: tuple[str, ...]  # free intrinsics: f | fx, fy; cx, cy; k1, k2, p1, p2, k3
+    aspect: float  # fx / fy when "f" is the parameter
+    obj: np.ndarray  # (N, 3) board points of all its views
+    img: np.ndarray  # (N, 2)
+    angle: np.ndarray  # (N,) table degrees per point
+    view_of_point: np.ndarray  # (N,) index into views
     views: list[str]
-    offset: int = 0                # start of its parameters in x
+    offset: int = 0  # start of its parameters in x
 
     @property
     def n_params(self) -> int:
@@ -52,8 +52,16 @@ class CamBlock:
 class RigModel:
     """Parameter packing, residuals and Jacobian of the turntable rig model."""
 
-    def __init__(self, blocks: list[CamBlock], spec: CharucoSpec, board: np.ndarray, *,
-                 fit_tilt: bool, fit_scale: bool, scale: float = 1.0):
+    def __init__(
+        self,
+        blocks: list[CamBlock],
+        spec: CharucoSpec,
+        board: np.ndarray,
+        *,
+        fit_tilt: bool,
+        fit_scale: bool,
+        scale: float = 1.0,
+    ):
         self.blocks = blocks
         self.spec = spec
         self.fit_tilt = fit_tilt
@@ -74,15 +82,25 @@ class RigModel:
     def pack(self) -> np.ndarray:
         x = np.zeros(self.n)
         for b in self.blocks:
-            vals = {"f": b.K[1, 1], "fx": b.K[0, 0], "fy": b.K[1, 1], "cx": b.K[0, 2], "cy": b.K[1, 2],
-                    "k1": b.dist[0], "k2": b.dist[1], "p1": b.dist[2], "p2": b.dist[3], "k3": b.dist[4]}
+            vals = {
+                "f": b.K[1, 1],
+                "fx": b.K[0, 0],
+                "fy": b.K[1, 1],
+                "cx": b.K[0, 2],
+                "cy": b.K[1, 2],
+                "k1": b.dist[0],
+                "k2": b.dist[1],
+                "p1": b.dist[2],
+                "p2": b.dist[3],
+                "k3": b.dist[4],
+            }
             for i, nm in enumerate(b.free):
                 x[b.offset + i] = vals[nm]
             k = b.offset + len(b.free)
-            x[k:k + 3] = rvec_from_matrix(b.cam_from_rig[:3, :3])
-            x[k + 3:k + 6] = b.cam_from_rig[:3, 3]
+            x[k : k + 3] = rvec_from_matrix(b.cam_from_rig[:3, :3])
+            x[k + 3 : k + 6] = b.cam_from_rig[:3, 3]
         bp = self.board0 if self.fit_tilt else self.board0[2:]
-        x[self.board_offset:self.board_offset + len(bp)] = bp
+        x[self.board_offset : self.board_offset + len(bp)] = bp
         if self.fit_scale:
             x[self.scale_offset] = self.scale0
         return x
@@ -90,7 +108,7 @@ class RigModel:
     def camera_params(self, b: CamBlock, x: np.ndarray):
         K = b.K.copy()
         dist = b.dist.copy()
-        p = dict(zip(b.free, x[b.offset:b.offset + len(b.free)]))
+        p = dict(zip(b.free, x[b.offset : b.offset + len(b.free)]))
         if "f" in p:
             K[1, 1] = p["f"]
             K[0, 0] = p["f"] * b.aspect
@@ -101,10 +119,10 @@ class RigModel:
             if nm in p:
                 dist[i] = p[nm]
         k = b.offset + len(b.free)
-        return K, dist, x[k:k + 3].copy(), x[k + 3:k + 6].copy()
+        return K, dist, x[k : k + 3].copy(), x[k + 3 : k + 6].copy()
 
     def board_params(self, x: np.ndarray) -> np.ndarray:
-        v = x[self.board_offset:self.board_offset + len(self.board_names)]
+        v = x[self.board_offset : self.board_offset + len(self.board_names)]
         return v.copy() if self.fit_tilt else np.concatenate([self.board0[:2], v])
 
     def scale(self, x: np.ndarray) -> float:
@@ -136,8 +154,9 @@ class RigModel:
         return [self._project(b, x, bp, s)[0] - b.img for b in self.blocks]
 
     @overload
-    def cost_grad_hessian(self, x: np.ndarray, *,
-                          want_hessian: Literal[True]) -> tuple[float, np.ndarray, np.ndarray]: ...
+    def cost_grad_hessian(
+        self, x: np.ndarray, *, want_hessian: Literal[True]
+    ) -> tuple[float, np.ndarray, np.ndarray]: ...
 
     @overload
     def cost_grad_hessian(self, x: np.ndarray, *, want_hessian: Literal[False]) -> tuple[float, np.ndarray, None]: ...
@@ -160,8 +179,9 @@ class RigModel:
                 if nm == "f":
                     cols.append(J[:, 6] * b.aspect + J[:, 7])
                 else:
-                    cols.append(J[:, {"fx": 6, "fy": 7, "cx": 8, "cy": 9, "k1": 10, "k2": 11,
-                                      "p1": 12, "p2": 13, "k3": 14}[nm]])
+                    cols.append(
+                        J[:, {"fx": 6, "fy": 7, "cx": 8, "cy": 9, "k1": 10, "k2": 11, "p1": 12, "p2": 13, "k3": 14}[nm]]
+                    )
             Jc = np.column_stack(cols + [J[:, 0:6]]) if cols else J[:, 0:6]
             # extra (board/scale) columns: dUV/dXcam · R · dXrig/dθ
             R = rodrigues(rv)
@@ -250,4 +270,3 @@ def refine_nlopt(model: RigModel, x0: np.ndarray, *, max_iter: int, restarts: in
             break
     info["cost_end"] = f_best
     return x_best, info
-

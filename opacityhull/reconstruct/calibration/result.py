@@ -118,25 +118,30 @@ class CalibrationResult:
         """JSON-ready summary (for ``build --json`` and ``report.json``)."""
         return {
             "reproj_rms_px": float(self.rms_px),
-            "reproj_rms_px_per_camera": {self.rig_cameras[c].name: float(self.reproj_rms_px[c])
-                                         for c in self.camera_indices},
-            "initial_rms_px_per_camera": {self.rig_cameras[c].name: float(self.initial_rms_px[c])
-                                          for c in self.camera_indices},
-            "focal_px": {self.rig_cameras[c].name: [self.rig_cameras[c].fx, self.rig_cameras[c].fy]
-                         for c in self.camera_indices},
+            "reproj_rms_px_per_camera": {
+                self.rig_cameras[c].name: float(self.reproj_rms_px[c]) for c in self.camera_indices
+            },
+            "initial_rms_px_per_camera": {
+                self.rig_cameras[c].name: float(self.initial_rms_px[c]) for c in self.camera_indices
+            },
+            "focal_px": {
+                self.rig_cameras[c].name: [self.rig_cameras[c].fx, self.rig_cameras[c].fy] for c in self.camera_indices
+            },
             "used_views": len(self.used_views),
             "dropped_views": dict(self.dropped_views),
             "table_scale": float(self.table_scale),
-            "board_centre_m": (self.object_from_board[:3, :3] @ np.array([*np.array(self.charuco.size_m) / 2, 0.0])
-                               + self.object_from_board[:3, 3]).tolist(),
+            "board_centre_m": (
+                self.object_from_board[:3, :3] @ np.array([*np.array(self.charuco.size_m) / 2, 0.0])
+                + self.object_from_board[:3, 3]
+            ).tolist(),
             "board_tilt_deg": float(math.degrees(math.acos(np.clip(-self.object_from_board[1, 2], -1, 1)))),
-            "fixed_intrinsics": {self.camera(c).name: list(v) for c, v in self.fixed_intrinsics.items()
-                                 if c in self.camera_indices},
+            "fixed_intrinsics": {
+                self.camera(c).name: list(v) for c, v in self.fixed_intrinsics.items() if c in self.camera_indices
+            },
             "uncalibrated": {self.rig_cameras[c].name: why for c, why in self.uncalibrated.items()},
             "seconds": dict(self.seconds),
             "notes": list(self.notes),
         }
-
 
 
 def view_cameras(result: CalibrationResult, views: Sequence[tuple[int, float]]) -> list[Camera]:
@@ -149,9 +154,9 @@ def view_cameras(result: CalibrationResult, views: Sequence[tuple[int, float]]) 
     for c, a in views:
         c = int(c)
         if c not in result.camera_indices:
-            raise InputError(f"view ({c}, {a}): camera {c} was not calibrated "
-                             f"(calibrated: {list(result.camera_indices)})")
+            raise InputError(
+                f"view ({c}, {a}): camera {c} was not calibrated (calibrated: {list(result.camera_indices)})"
+            )
         cam = RigGeometry.view_camera(result.camera(c), float(a) * result.table_scale)
         out.append(cam.with_name(view_id(c, a)))
     return out
-

@@ -95,7 +95,7 @@ class Faults:
         if targeted and self.garble > 0:
             self.garble -= 1
             body = data.rstrip(b"\r\n")
-            data = bytes((b ^ 0x5A) if i % 2 == 0 else b for i, b in enumerate(body)) + data[len(body):]
+            data = bytes((b ^ 0x5A) if i % 2 == 0 else b for i, b in enumerate(body)) + data[len(body) :]
             self.log.append(("garble", reply.data))
         if targeted and self.truncate > 0:
             self.truncate -= 1

@@ -53,8 +53,16 @@ class DisplayEmulator(EmulatedDevice):
     model = "OHDC-2 plasma display controller (emulated)"
     firmware = "1.3.0"
 
-    def __init__(self, *, outputs: int = 2, slots: int = 64, max_width: int = 512, max_height: int = 512,
-                 switch_s: float = 0.05, time_scale: float = 0.0):
+    def __init__(
+        self,
+        *,
+        outputs: int = 2,
+        slots: int = 64,
+        max_width: int = 512,
+        max_height: int = 512,
+        switch_s: float = 0.05,
+        time_scale: float = 0.0,
+    ):
         super().__init__(time_scale=time_scale)
         if not 1 <= outputs <= 254:
             raise ValueError(f"outputs must be 1..254, got {outputs}")
@@ -158,14 +166,17 @@ class DisplayEmulator(EmulatedDevice):
         if c == dp.CMD_IDENTIFY:
             if p:
                 return bad(dp.NAK_BAD_LENGTH)
-            ident = (f"{self.model};fw={self.firmware};outputs={self.outputs};slots={self.slots};"
-                     f"max={self.max_width}x{self.max_height}")
+            ident = (
+                f"{self.model};fw={self.firmware};outputs={self.outputs};slots={self.slots};"
+                f"max={self.max_width}x{self.max_height}"
+            )
             return ok(ident.encode("ascii"))
         if c == dp.CMD_STATE:
             if p:
                 return bad(dp.NAK_BAD_LENGTH)
-            st = dp.ControllerState(power=tuple(self._power), shown=tuple(self._shown),
-                                    stored=tuple(sorted(self._patterns)))
+            st = dp.ControllerState(
+                power=tuple(self._power), shown=tuple(self._shown), stored=tuple(sorted(self._patterns))
+            )
             return ok(dp.encode_state(st))
         if c == dp.CMD_POWER:
             if len(p) != 2:
@@ -220,8 +231,8 @@ class DisplayEmulator(EmulatedDevice):
                 return bad(dp.NAK_NO_UPLOAD)
             if off + len(data) > len(u["buf"]):
                 return bad(dp.NAK_OUT_OF_RANGE)
-            u["buf"][off:off + len(data)] = data
-            u["got"][off:off + len(data)] = True
+            u["buf"][off : off + len(data)] = data
+            u["got"][off : off + len(data)] = True
             return ok(struct.pack(">I", off))
         if c == dp.CMD_UPLOAD_END:
             if len(p) != 6:

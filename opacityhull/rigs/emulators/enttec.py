@@ -36,15 +36,22 @@ class EnttecEmulator(EmulatedDevice):
 
     name = "enttec"
 
-    def __init__(self, *, universe_size: int = 512, serial: int = 0x12345678, firmware: tuple[int, int] = (1, 44),
-                 time_scale: float = 0.0):
+    def __init__(
+        self,
+        *,
+        universe_size: int = 512,
+        serial: int = 0x12345678,
+        firmware: tuple[int, int] = (1, 44),
+        time_scale: float = 0.0,
+    ):
         super().__init__(time_scale=time_scale)
         if not ep.MIN_DMX_CHANNELS <= int(universe_size) <= ep.DMX_CHANNELS:
             raise ValueError(f"universe_size must be {ep.MIN_DMX_CHANNELS}..{ep.DMX_CHANNELS}, got {universe_size}")
         self.universe_size = int(universe_size)
         self.serial = int(serial)
-        self.params = ep.WidgetParameters(firmware=(int(firmware[0]), int(firmware[1])), break_time=9, mab_time=1,
-                                          rate_hz=40)
+        self.params = ep.WidgetParameters(
+            firmware=(int(firmware[0]), int(firmware[1])), break_time=9, mab_time=1, rate_hz=40
+        )
         self._levels = bytearray(self.universe_size)
         self._parser = ep.FrameParser()
         self.frames_received = 0  # well-formed frames of any label

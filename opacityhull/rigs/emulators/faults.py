@@ -27,8 +27,11 @@ FAULT_KINDS = {
     "late": (("count", "seconds"), (1, 1.0), "the next COUNT replies arrive SECONDS late, overtaken by later ones"),
     "delay": (("seconds",), (0.5,), "every reply is delayed by SECONDS"),
     "silent": ((), (), "nothing is answered at all (a hung device)"),
-    "babble": (("bytes_per_s",), (2000.0,), "BYTES_PER_S of noise that never parses, continuously (wrong baud "
-                                            "rate, a babbling device)"),
+    "babble": (
+        ("bytes_per_s",),
+        (2000.0,),
+        "BYTES_PER_S of noise that never parses, continuously (wrong baud rate, a babbling device)",
+    ),
     "vanish": (("after_s",), (0.0,), "the port disappears AFTER_S seconds after the emulator starts (unplugged)"),
 }
 
@@ -51,23 +54,30 @@ def parse_fault(text: str, *, where: str = "fault") -> FaultSpec:
         raise ConfigError(f"{where}: expected KIND[:ARGS], got {text!r}")
     kind, *raw = text.split(":")
     if kind not in FAULT_KINDS:
-        raise ConfigError(f"{where}: unknown fault {kind!r} in {text!r}; expected one of {', '.join(FAULT_KINDS)} "
-                          "(see docs/emulator-faults.md)")
+        raise ConfigError(
+            f"{where}: unknown fault {kind!r} in {text!r}; expected one of {', '.join(FAULT_KINDS)} "
+            "(see docs/emulator-faults.md)"
+        )
     names, defaults, _ = FAULT_KINDS[kind]
     if len(raw) > len(names):
-        raise ConfigError(f"{where}: {text!r}: {kind} takes at most {len(names)} argument(s) "
-                          f"({':'.join(n.upper() for n in names) or 'none'})")
+        raise ConfigError(
+            f"{where}: {text!r}: {kind} takes at most {len(names)} argument(s) "
+            f"({':'.join(n.upper() for n in names) or 'none'})"
+        )
     args = list(defaults)
     for i, v in enumerate(raw):
         want = type(defaults[i])
         try:
             x = want(v) if want is float else int(v)
         except ValueError:
-            raise ConfigError(f"{where}: {text!r}: {names[i].upper()} = {v!r} is not "
-                              f"{'a number' if want is float else 'an integer'}") from None
+            raise ConfigError(
+                f"{where}: {text!r}: {names[i].upper()} = {v!r} is not {'a number' if want is float else 'an integer'}"
+            ) from None
         if not x >= 0 or (names[i] in ("count", "bytes_per_s") and x == 0):
-            raise ConfigError(f"{where}: {text!r}: {names[i].upper()} must be "
-                              f"{'> 0' if names[i] in ('count', 'bytes_per_s') else '>= 0'}, got {v}")
+            raise ConfigError(
+                f"{where}: {text!r}: {names[i].upper()} must be "
+                f"{'> 0' if names[i] in ('count', 'bytes_per_s') else '>= 0'}, got {v}"
+            )
         args[i] = x
     return FaultSpec(kind, tuple(args))
 

@@ -61,8 +61,28 @@ BUILD_DATE = "20190830"
 
 # GRBL 1.1 defaults (defaults.h, DEFAULTS_GENERIC), in our units (degrees).
 _DEFAULTS = {
-    0: 10, 1: 25, 2: 0, 3: 0, 4: 0, 5: 0, 6: 0, 10: 1, 11: 0.010, 12: 0.002, 13: 0,
-    20: 0, 21: 0, 22: 0, 23: 0, 24: 25.0, 25: 500.0, 26: 250, 27: 1.0, 30: 1000, 31: 0, 32: 0,
+    0: 10,
+    1: 25,
+    2: 0,
+    3: 0,
+    4: 0,
+    5: 0,
+    6: 0,
+    10: 1,
+    11: 0.010,
+    12: 0.002,
+    13: 0,
+    20: 0,
+    21: 0,
+    22: 0,
+    23: 0,
+    24: 25.0,
+    25: 500.0,
+    26: 250,
+    27: 1.0,
+    30: 1000,
+    31: 0,
+    32: 0,
 }
 _AXIS_DEFAULTS = {100: 250.0, 110: 500.0, 120: 10.0, 130: 200.0}
 _INT_SETTINGS = {0, 1, 2, 3, 4, 5, 6, 10, 13, 20, 21, 22, 23, 26, 30, 31, 32}
@@ -72,14 +92,47 @@ _NUM = re.compile(r"[+-]?(?:\d+\.?\d*|\.\d+)")
 _LINE_MAX = 80
 
 _MODAL_GROUPS = {
-    0: "motion", 1: "motion", 2: "motion", 3: "motion", 80: "motion", 38: "motion",
-    17: "plane", 18: "plane", 19: "plane", 20: "units", 21: "units", 90: "distance", 91: "distance",
-    93: "feedmode", 94: "feedmode", 54: "wcs", 55: "wcs", 56: "wcs", 57: "wcs", 58: "wcs", 59: "wcs",
-    4: "nonmodal", 10: "nonmodal", 28: "nonmodal", 30: "nonmodal", 53: "nonmodal", 92: "nonmodal",
+    0: "motion",
+    1: "motion",
+    2: "motion",
+    3: "motion",
+    80: "motion",
+    38: "motion",
+    17: "plane",
+    18: "plane",
+    19: "plane",
+    20: "units",
+    21: "units",
+    90: "distance",
+    91: "distance",
+    93: "feedmode",
+    94: "feedmode",
+    54: "wcs",
+    55: "wcs",
+    56: "wcs",
+    57: "wcs",
+    58: "wcs",
+    59: "wcs",
+    4: "nonmodal",
+    10: "nonmodal",
+    28: "nonmodal",
+    30: "nonmodal",
+    53: "nonmodal",
+    92: "nonmodal",
 }
 _SUPPORTED_G = {0, 1, 4, 17, 18, 19, 20, 21, 53, 54, 55, 56, 57, 58, 59, 80, 90, 91, 94}
-_M_GROUPS = {0: "stop", 1: "stop", 2: "stop", 30: "stop", 3: "spindle", 4: "spindle", 5: "spindle",
-             7: "coolant", 8: "coolant", 9: "coolant"}
+_M_GROUPS = {
+    0: "stop",
+    1: "stop",
+    2: "stop",
+    30: "stop",
+    3: "spindle",
+    4: "spindle",
+    5: "spindle",
+    7: "coolant",
+    8: "coolant",
+    9: "coolant",
+}
 
 
 class _LineError(Exception):
@@ -121,8 +174,16 @@ class GrblEmulator(EmulatedDevice):
 
     name = "grbl"
 
-    def __init__(self, *, axes=("X", "Y"), steps_per_deg=None, time_scale: float = 0.0, banner: bool = True,
-                 homing: bool = False, options: str = "VH"):
+    def __init__(
+        self,
+        *,
+        axes=("X", "Y"),
+        steps_per_deg=None,
+        time_scale: float = 0.0,
+        banner: bool = True,
+        homing: bool = False,
+        options: str = "VH",
+    ):
         super().__init__(time_scale=time_scale)
         axes = tuple(a.upper() for a in axes)
         if not axes or any(a not in AXES for a in axes) or len(set(axes)) != len(axes):
@@ -444,8 +505,11 @@ class GrblEmulator(EmulatedDevice):
 
     def _soft_reset(self, now: float) -> list[Reply]:
         out: list[Reply] = []
-        moving = (self._state in ("Run", "Jog", "Home") and self._active is not None) or \
-            (self._state == "Hold" and self._sub == 1) or (self._state == "Door" and self._sub in (2, 3))
+        moving = (
+            (self._state in ("Run", "Jog", "Home") and self._active is not None)
+            or (self._state == "Hold" and self._sub == 1)
+            or (self._state == "Door" and self._sub in (2, 3))
+        )
         was_home = self._state == "Home"
         self._drop_motion(now)
         self._buf.clear()
@@ -787,9 +851,11 @@ class GrblEmulator(EmulatedDevice):
                 raise _LineError(8)
             return [self._line(f"${n}={self._fmt_setting(n)}") for n in sorted(self.settings)] + [ok]
         if text == "$G":
-            gc = (f"[GC:G{self._motion_mode} G{self._wcs} G{self._plane} G{20 if self._inches else 21} "
-                  f"G{90 if self._absolute else 91} G94 M{self._spindle} M{self._coolant} T{self._tool} "
-                  f"F{self._feed:g} S{self._spindle_speed:g}]")
+            gc = (
+                f"[GC:G{self._motion_mode} G{self._wcs} G{self._plane} G{20 if self._inches else 21} "
+                f"G{90 if self._absolute else 91} G94 M{self._spindle} M{self._coolant} T{self._tool} "
+                f"F{self._feed:g} S{self._spindle_speed:g}]"
+            )
             return [self._line(gc), ok]
         if text == "$C":
             if st == "Check":
@@ -818,12 +884,20 @@ class GrblEmulator(EmulatedDevice):
             return []  # ok when homing completes
         if text == "$#":
             z = ",".join(format_number(0.0) for _ in self.axes)
-            lines = [f"[G{n}:{z}]" for n in (54, 55, 56, 57, 58, 59)] + [f"[G28:{z}]", f"[G30:{z}]", f"[G92:{z}]",
-                                                                      "[TLO:0.000]", f"[PRB:{z}:0]"]
+            lines = [f"[G{n}:{z}]" for n in (54, 55, 56, 57, 58, 59)] + [
+                f"[G28:{z}]",
+                f"[G30:{z}]",
+                f"[G92:{z}]",
+                "[TLO:0.000]",
+                f"[PRB:{z}:0]",
+            ]
             return [self._line(x) for x in lines] + [ok]
         if text == "$I":
-            return [self._line(f"[VER:{VERSION}.{BUILD_DATE}:{self.build_info_text}]"),
-                    self._line(f"[OPT:{self.options},15,128]"), ok]
+            return [
+                self._line(f"[VER:{VERSION}.{BUILD_DATE}:{self.build_info_text}]"),
+                self._line(f"[OPT:{self.options},15,128]"),
+                ok,
+            ]
         if text.startswith("$I="):
             self.build_info_text = raw.strip()[3:]
             return [ok]

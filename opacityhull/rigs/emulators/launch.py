@@ -74,8 +74,11 @@ def _make(kind: str, url: str, config: RigConfig, time_scale: float) -> Emulated
         from .grbl import GrblEmulator
 
         axes = [a for a in config.axes() if a.url == url]
-        return GrblEmulator(axes=tuple(a.axis for a in axes), steps_per_deg={a.axis: a.steps_per_deg for a in axes},
-                            time_scale=time_scale)
+        return GrblEmulator(
+            axes=tuple(a.axis for a in axes),
+            steps_per_deg={a.axis: a.steps_per_deg for a in axes},
+            time_scale=time_scale,
+        )
     if kind == "enttec":
         from .enttec import EnttecEmulator
 
@@ -89,8 +92,9 @@ def _make(kind: str, url: str, config: RigConfig, time_scale: float) -> Emulated
     raise ConfigError(f"{config.source}: unknown emulator kind {kind!r} in {url!r}")
 
 
-def start_emulators(config: RigConfig, *, kind: str = "pty", time_scale: float = 0.0,
-                    faults: dict[str, list[str]] | None = None) -> EmulatorSet:
+def start_emulators(
+    config: RigConfig, *, kind: str = "pty", time_scale: float = 0.0, faults: dict[str, list[str]] | None = None
+) -> EmulatorSet:
     """Start one emulator per distinct ``emulator:KIND[#tag]`` URL of ``config``.
 
     Parameters
@@ -122,14 +126,17 @@ def start_emulators(config: RigConfig, *, kind: str = "pty", time_scale: float =
     for name, url in config.device_urls().items():
         if parse_emulator_url(url) is not None:
             names_by_url.setdefault(url, []).append(name)
-    specs: dict[str, list] = {u: [parse_fault(f, where=f"{config.source}: {u}") for f in emulator_url_faults(u)]
-                              for u in names_by_url}
+    specs: dict[str, list] = {
+        u: [parse_fault(f, where=f"{config.source}: {u}") for f in emulator_url_faults(u)] for u in names_by_url
+    }
     for dev_name, fl in (faults or {}).items():
         url = config.device_urls().get(dev_name)
         if url is None or url not in names_by_url:
             known = [n for u, ns in names_by_url.items() for n in ns]
-            raise ConfigError(f"--fault {dev_name}:...: no emulated device {dev_name!r} in {config.source} "
-                              f"(emulated: {', '.join(known) or 'none'})")
+            raise ConfigError(
+                f"--fault {dev_name}:...: no emulated device {dev_name!r} in {config.source} "
+                f"(emulated: {', '.join(known) or 'none'})"
+            )
         specs[url] += [parse_fault(f, where=f"--fault {dev_name}:{f}") for f in fl]
     try:
         for url, names in names_by_url.items():
