@@ -25,6 +25,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from benchkit import pyplot
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "benchmarks" / "out"
@@ -62,15 +63,9 @@ def bench_writer(n: int, width: int, height: int, *, half: bool, fsync: bool, co
         iio.fsync_dir = saved
         w.close()
     shutil.rmtree(root, ignore_errors=True)
-    return {
-        "case": f"{width}x{height} {'half' if half else 'float'} {compression}{' fsync' if fsync else ''}",
-        "images": n,
-        "seconds": dt,
-        "images_s": n / dt,
-        "MB_s": nbytes / dt / 1e6,
-        "bytes_per_image": nbytes / n,
-        "raw_bytes_per_image": width * height * 3 * (2 if half else 4),
-    }
+    case = f"{width}x{height} {'half' if half else 'float'} {compression}{' fsync' if fsync else ''}"
+    raw_bytes = width * height * 3 * (2 if half else 4)
+    return _rate_row(case, n, nbytes, dt, bytes_per_image=nbytes / n, raw_bytes_per_image=raw_bytes)
 
 
 def bench_disk(n: int, nbytes: int, tmp: Path) -> dict:
@@ -91,13 +86,12 @@ def bench_disk(n: int, nbytes: int, tmp: Path) -> dict:
         os.close(fd)
     dt = time.perf_counter() - t0
     shutil.rmtree(d, ignore_errors=True)
-    return {
-        "case": f"plain files {nbytes / 1e3:.0f} kB + fsync",
-        "images": n,
-        "seconds": dt,
-        "images_s": n / dt,
-        "MB_s": n * nbytes / dt / 1e6,
-    }
+    return _rate_row(f"plain files {nbytes / 1e3:.0f} kB + fsync", n, n * nbytes, dt)
+
+
+def _rate_row(case: str, n: int, total_bytes: int, dt: float, **extra) -> dict:
+    """A table row: ``n`` images (``total_bytes`` in all) written in ``dt`` seconds."""
+    return {"case": case, "images": n, "seconds": dt, "images_s": n / dt, "MB_s": total_bytes / dt / 1e6, **extra}
 
 
 def _open_rig(spec: str):
@@ -217,11 +211,7 @@ def main(argv=None) -> int:
     ]
     (OUT / "acquire.md").write_text("\n".join(md) + "\n")
     try:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-
+        plt = pyplot()
         fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(12, 4.5))
         labels = [r["case"] for r in rows] + ["limit: " + disk[0]["case"]]
         vals = [r["images_s"] for r in rows] + [disk[0]["images_s"]]
@@ -236,10 +226,7 @@ def main(argv=None) -> int:
         fig.savefig(OUT / "acquire.png", dpi=100)
     except Exception as e:  # pragma: no cover - plotting is optional
         print(f"plot skipped: {e}", file=sys.stderr)
-    if a.json:
-        print(json.dumps(summary))
-    else:
-        print("\n".join(md))
+    print(json.dumps(summary) if a.json else "\n".join(md))
     return 0
 
 

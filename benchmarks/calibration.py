@@ -33,9 +33,12 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "benchmarks" / "out"
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "tests"))  # helpers (the rig builders the tests use)
 
 
 def build_rig(width: int, height: int, rng):
+    from helpers import ring_cameras
+
     from opacityhull.camera import Camera
     from opacityhull.reconstruct.calibration import _rodrigues
     from opacityhull.riggeometry import RigGeometry
@@ -43,18 +46,9 @@ def build_rig(width: int, height: int, rng):
     f = 430.0 * width / 320.0
     g = {
         "target_m": [0.0, 0.02, 0.0],
-        "cameras": [
-            {
-                "name": f"cam{i}",
-                "width": width,
-                "height": height,
-                "distance_m": 0.5,
-                "elevation_deg": el,
-                "azimuth_deg": az,
-                "focal_px": f,
-            }
-            for i, (el, az) in enumerate([(30.0, 0.0), (45.0, 90.0), (60.0, 180.0), (75.0, 270.0)])
-        ],
+        "cameras": ring_cameras(
+            width, height, [(30.0, 0.0), (45.0, 90.0), (60.0, 180.0), (75.0, 270.0)], distance_m=0.5, focal_px=f
+        ),
     }
     nominal = RigGeometry.from_dict(g).nominal_cameras()
     true = []
@@ -100,12 +94,9 @@ def run(quick: bool) -> dict:
         for c, cam in enumerate(true):
             for a in all_angles:
                 t0 = time.perf_counter()
+                world_from_board = rig_from_object(a) @ placed.object_from_board()
                 img = render_charuco_view(
-                    cam,
-                    world_from_board=rig_from_object(a) @ placed.object_from_board(),
-                    charuco=spec,
-                    noise_sigma=0.004,
-                    rng=rng,
+                    cam, world_from_board=world_from_board, charuco=spec, noise_sigma=0.004, rng=rng
                 )
                 t1 = time.perf_counter()
                 obs.append(detect_charuco(img, charuco=spec, camera=c, table_deg=a))

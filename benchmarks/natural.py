@@ -38,13 +38,13 @@ Timings are warm (compile excluded) and contended: two cores shared with other j
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
+from benchkit import print_result, pyplot
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "benchmarks" / "out"
@@ -225,10 +225,7 @@ def bench_relight(rng, *, size, n_pixels):
 
 
 def kernel_figure(rng, out: Path, *, size):
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
     from matplotlib.patches import Rectangle
 
     from opacityhull.imageio import atomic_path
@@ -272,10 +269,7 @@ def kernel_figure(rng, out: Path, *, size):
 def bench_glass(rng, out: Path, *, size, height, width):
     """The synthetic glass-ball image: PSNR under held-out images and the bar, and the
     estimate | truth | error sheet (``natural_sheet.png``)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     from opacityhull.imageio import atomic_path
 
@@ -329,10 +323,7 @@ def bench_glass(rng, out: Path, *, size, height, width):
 
 
 def write_report(res, out: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     from opacityhull.imageio import atomic_path
 
@@ -432,10 +423,7 @@ def write_report(res, out: Path) -> None:
 
 def bench_sim(out: Path, *, scenes, Ns, n_test, n_bar, scale, camera=2, table_deg=0.0):
     """Fields of real Mitsuba transport (see the module docstring, ``--sim``)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     from opacityhull.imageio import atomic_path
     from opacityhull.relight import natural_eval as ne
@@ -608,12 +596,7 @@ def main(argv=None) -> int:
             ),
         }
         res["wall_s"] = time.perf_counter() - t0
-        if a.json:
-            from opacityhull.cliutil import to_jsonable
-
-            print(json.dumps(to_jsonable(res)))
-        else:
-            print((a.out / "natural_sim.md").read_text())
+        print_result(res, a.out / "natural_sim.md", as_json=a.json)
         return 0
     rng = np.random.default_rng(2004)
     res = {"quick": q, "machine": "2 shared cores (other jobs running): timings are contended"}
@@ -635,12 +618,7 @@ def main(argv=None) -> int:
     )
     write_report(res, a.out)
     res["wall_s"] = time.perf_counter() - t0
-    if a.json:
-        from opacityhull.cliutil import to_jsonable
-
-        print(json.dumps(to_jsonable(res)))
-    else:
-        print((a.out / "natural.md").read_text())
+    print_result(res, a.out / "natural.md", as_json=a.json)
     return 0
 
 

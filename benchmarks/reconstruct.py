@@ -32,10 +32,12 @@ import time
 from pathlib import Path
 
 import numpy as np
+from benchkit import pyplot
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "benchmarks" / "out"
 sys.path.insert(0, str(ROOT / "tests" / "reconstruct"))
+sys.path.insert(0, str(ROOT / "tests"))  # helpers, imported by rcsynth
 
 
 def best_of(fn, n):
@@ -266,10 +268,7 @@ def bench_accuracy(quick: bool, tmp: Path) -> dict:
 
 
 def write_report(res: dict) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     OUT.mkdir(parents=True, exist_ok=True)
     mt, cv, acc = res["matting"], res["carving"], res["accuracy"]

@@ -21,7 +21,6 @@ warm (the numba kernels run once first; compile time is reported separately).
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import sys
 import tempfile
@@ -29,6 +28,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from benchkit import print_result, pyplot
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "benchmarks" / "out"
@@ -283,10 +283,7 @@ def bench_pca(tmp: Path, probe, *, width, height, ranks) -> dict:
 
 
 def write_report(res: dict, out: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     from opacityhull.imageio import atomic_path
 
@@ -456,12 +453,7 @@ def main(argv=None) -> int:
             ranks=[1, 2, 3, 4, 6, 9, 12, 20, 60] if not q else [1, 3, 6, 9, 20, 60],
         )
     write_report(res, a.out)
-    if a.json:
-        from opacityhull.cliutil import to_jsonable
-
-        print(json.dumps(to_jsonable(res)))
-    else:
-        print((a.out / "relight.md").read_text())
+    print_result(res, a.out / "relight.md", as_json=a.json)
     return 0
 
 

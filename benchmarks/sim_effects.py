@@ -43,6 +43,7 @@ import subprocess
 import sys
 import time
 from dataclasses import replace
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -193,19 +194,12 @@ def accuracy(quick: bool, scales=(1.0,), *, scenes=None, phases=None, ref_spp: i
                 before = replace(select_effects(scene, phase, declared=False), crop=False, backdrop_spp=None)
                 if phase != "groundtruth":
                     also = also + (before,)
-                t0 = time.perf_counter()
-                e = phase_error(
-                    scene,
-                    phase,
-                    geometry=g,
-                    camera=cam,
-                    ref_spp=ref_spp,
-                    renderer=r,
-                    warm=True,
-                    seed=1,
-                    also=also,
-                    clock=CLOCK,
+                # the same camera, reference and seed for the selection and every candidate
+                measure = partial(
+                    phase_error, geometry=g, camera=cam, ref_spp=ref_spp, renderer=r, warm=True, seed=1, clock=CLOCK
                 )
+                t0 = time.perf_counter()
+                e = measure(scene, phase, also=also)
                 row = {
                     **e.to_json(),
                     "wall_s": time.perf_counter() - t0,
@@ -243,18 +237,7 @@ def accuracy(quick: bool, scales=(1.0,), *, scenes=None, phases=None, ref_spp: i
                         as_captured = replace(
                             mat, phase="envmatte", error_metric=env.error_metric, error_bound=env.error_bound
                         )
-                        e2 = phase_error(
-                            scene,
-                            phase,
-                            geometry=g,
-                            camera=cam,
-                            ref_spp=ref_spp,
-                            renderer=r,
-                            warm=True,
-                            seed=1,
-                            selected=as_captured,
-                            clock=CLOCK,
-                        )
+                        e2 = measure(scene, phase, selected=as_captured)
                         rows.append(
                             {
                                 **e2.to_json(),

@@ -11,7 +11,7 @@ import json
 import os
 import sys
 from contextlib import contextmanager
-from typing import Any, Callable, Iterator
+from typing import Any, Callable, Iterator, Mapping, Optional
 
 import numpy as np
 
@@ -23,6 +23,9 @@ __all__ = [
     "error_message",
     "writing_to",
     "progress",
+    "progress_bar",
+    "option_group",
+    "scheduler_options",
     "console",
     "ProgressCallback",
     "to_jsonable",
@@ -145,12 +148,9 @@ def cli_errors(fn):
     return wrapper
 
 
-@contextmanager
-def progress(description: str, total: int | None = None, *, enabled: bool = True) -> Iterator[ProgressCallback]:
-    """A rich progress bar with ETA on stderr; yields ``callback(done, total)``."""
-    if not enabled:
-        yield lambda done, total=None: None
-        return
+def progress_bar(label: str = "{task.description}"):
+    """The rich ``Progress`` every command shows on stderr: ``label`` (a rich template
+    over the task), bar, done/total, elapsed and ETA."""
     from rich.progress import (
         BarColumn,
         MofNCompleteColumn,
@@ -160,8 +160,8 @@ def progress(description: str, total: int | None = None, *, enabled: bool = True
         TimeRemainingColumn,
     )
 
-    with Progress(
-        TextColumn("[bold]{task.description}"),
+    return Progress(
+        TextColumn(f"[bold]{label}"),
         BarColumn(),
         MofNCompleteColumn(),
         TextColumn("elapsed"),
@@ -170,7 +170,78 @@ def progress(description: str, total: int | None = None, *, enabled: bool = True
         TimeRemainingColumn(),
         console=console(),
         transient=False,
-    ) as bar:
+    )
+
+
+def option_group(options: Mapping[str, tuple[Any, Any]], *, into: str, before: str | None = None, build=None):
+    """Decorator for a typer command: options declared once, shared by several commands.
+
+    ``options`` maps a parameter name to ``(type, typer.Option(default, "--flag", help=...))``.
+    They become parameters of the command (typer reads the signature), placed before the
+    parameter ``before`` (else last), so ``--help`` lists them where they belong. The
+    command takes one keyword-only parameter ``into`` instead: the dict of their values,
+    or ``build(**values)`` when ``build`` is given (for conversions that cannot fail:
+    checks belong in the command body, in the order its messages promise).
+    Put ``@cli_errors`` above this decorator."""
+    import inspect
+
+    def decorate(fn):
+        sig = inspect.signature(fn, eval_str=True)
+        params = [p for p in sig.parameters.values() if p.name != into]
+        if len(params) == len(sig.parameters):
+            raise TypeError(f"{fn.__name__}: option_group(into={into!r}) needs a keyword-only parameter {into!r}")
+        group = [
+            inspect.Parameter(name, inspect.Parameter.POSITIONAL_OR_KEYWORD, default=option, annotation=kind)
+            for name, (kind, option) in options.items()
+        ]
+        names = [p.name for p in params]
+        # default: after the last positional-or-keyword parameter (keyword-only ones stay last)
+        ends = [i for i, p in enumerate(params) if p.kind is not inspect.Parameter.POSITIONAL_OR_KEYWORD]
+        at = names.index(before) if before is not None else (ends[0] if ends else len(params))
+        params[at:at] = group
+
+        @functools.wraps(fn)
+        def wrapper(*args, **kwargs):
+            values = {name: kwargs.pop(name) for name in options}
+            kwargs[into] = build(**values) if build is not None else values
+            return fn(*args, **kwargs)
+
+        # typer builds the command from the signature and the annotations
+        setattr(wrapper, "__signature__", sig.replace(parameters=params))
+        wrapper.__annotations__ = {p.name: p.annotation for p in params}
+        return wrapper
+
+    return decorate
+
+
+def scheduler_options(help: str, *, workers: bool = False) -> dict[str, tuple[Any, Any]]:
+    """``--scheduler`` (with ``help``: what runs there), ``--scheduler-timeout`` and, with
+    ``workers``, ``--workers``, for :func:`option_group`: their values are the keyword
+    arguments of :func:`opacityhull.executor.open_executor`."""
+    import typer
+
+    opts: dict[str, tuple[Any, Any]] = {
+        "scheduler": (str, typer.Option("serial", "--scheduler", help=help)),
+        "timeout_s": (
+            float,
+            typer.Option(10.0, "--scheduler-timeout", help="Seconds to wait for a tcp:// scheduler to answer."),
+        ),
+    }
+    if workers:
+        opts["workers"] = (
+            Optional[int],
+            typer.Option(None, "--workers", help="threads/processes: pool size (default: the cores)."),
+        )
+    return opts
+
+
+@contextmanager
+def progress(description: str, total: int | None = None, *, enabled: bool = True) -> Iterator[ProgressCallback]:
+    """A rich progress bar with ETA on stderr; yields ``callback(done, total)``."""
+    if not enabled:
+        yield lambda done, total=None: None
+        return
+    with progress_bar() as bar:
         task = bar.add_task(description, total=total)
 
         def cb(done: int, tot: int | None = None) -> None:

@@ -57,7 +57,46 @@ import numpy as np
 from .camera import Camera, look_at_world_from_cam, object_from_rig, rot_y
 from .errors import ConfigError
 
-__all__ = ["CameraSpec", "LightSpec", "DisplaySpec", "RigGeometry", "view_id", "parse_view_id"]
+__all__ = [
+    "CameraSpec",
+    "LightSpec",
+    "DisplaySpec",
+    "RigGeometry",
+    "view_id",
+    "parse_view_id",
+    "bottom_display",
+    "back_display",
+]
+
+
+def bottom_display(size_m: list[float], resolution: list[int], **fields: Any) -> dict[str, Any]:
+    """The ``"bottom"`` ``[[geometry.displays]]`` entry: centred at the rig origin, normal
+    +y, up -z, turning with the table; ``size_m`` is (width, height) in metres,
+    ``resolution`` (columns, rows) in texels; ``fields`` (e.g. ``max_radiance``) are appended."""
+    return {
+        "name": "bottom",
+        "centre_m": [0.0, 0.0, 0.0],
+        "normal": [0.0, 1.0, 0.0],
+        "up": [0.0, 0.0, -1.0],
+        "size_m": size_m,
+        "resolution": resolution,
+        "rotates_with_table": True,
+        **fields,
+    }
+
+
+def back_display(centre_m: list[float], size_m: list[float], resolution: list[int], **fields: Any) -> dict[str, Any]:
+    """The ``"back"`` ``[[geometry.displays]]`` entry: centred at ``centre_m`` (rig frame,
+    metres), normal +z, up +y; ``fields`` (``rotates_with_table``, ``max_radiance``) as given."""
+    return {
+        "name": "back",
+        "centre_m": centre_m,
+        "normal": [0.0, 0.0, 1.0],
+        "up": [0.0, 1.0, 0.0],
+        "size_m": size_m,
+        "resolution": resolution,
+        **fields,
+    }
 
 
 def view_id(camera: int, table_deg: float) -> str:

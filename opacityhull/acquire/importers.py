@@ -242,6 +242,22 @@ def _staged(out: Path) -> Iterator[Path]:
 # --------------------------------------------------------------------------- common writer
 
 
+def _add_view_image(w, phase: str, camera: int, pixels, source: str, **fields) -> None:
+    """One imported image (table angle 0, one exposure) of ``camera`` in ``phase``."""
+    key = shot_key(phase, camera, 0.0)
+    w.add_image(
+        np.ascontiguousarray(pixels, np.float32),
+        id=f"{key}/e0",
+        shot=key,
+        phase=phase,
+        camera=camera,
+        table_deg=0.0,
+        rel_path=f"images/{key}_e0.exr",
+        extra={"source": source},
+        **fields,
+    )
+
+
 def _matte_problem(alpha: np.ndarray) -> str | None:
     obj = alpha >= MATTE_HALF
     if not obj.any():
@@ -354,30 +370,9 @@ def _write_session(
                             "pass --allow-full-masks (such a view carves nothing)"
                         )
                     full_views.append(v.what)
-                mkey = shot_key("mask", i, 0.0)
-            key = shot_key("lightfield", i, 0.0)
-            w.add_image(
-                np.ascontiguousarray(rgb, np.float32),
-                id=f"{key}/e0",
-                shot=key,
-                phase="lightfield",
-                camera=i,
-                table_deg=0.0,
-                rel_path=f"images/{key}_e0.exr",
-                exposure_s=1.0,
-                extra={"source": v.source},
-            )
+            _add_view_image(w, "lightfield", i, rgb, v.source, exposure_s=1.0)
             if alpha is not None:
-                w.add_image(
-                    np.ascontiguousarray(np.clip(alpha, 0, 1)[..., None], np.float32),
-                    id=f"{mkey}/e0",
-                    shot=mkey,
-                    phase="mask",
-                    camera=i,
-                    table_deg=0.0,
-                    rel_path=f"images/{mkey}_e0.exr",
-                    extra={"source": str(matte_file.name)},
-                )
+                _add_view_image(w, "mask", i, np.clip(alpha, 0, 1)[..., None], str(matte_file.name))
                 n_masks += 1
             if progress is not None:
                 progress(i + 1, len(views))

@@ -251,30 +251,39 @@ def _png_bytes(img: np.ndarray) -> bytes:
 def save_patterns(root, patterns: dict[int, Pattern]) -> dict:
     """Write ``patterns/<display>/p<id>.png`` (atomically) and return the
     ``session.toml [patterns]`` table."""
-    import hashlib
-
     from ..imageio import atomic_path
 
     root = Path(root)
     table = {}
     for pid, p in sorted(patterns.items()):
-        files, shas = {}, {}
         for dname, img in p.images.items():
-            rel = pattern_path(dname, pid)
             data = _png_bytes(img)
-            with atomic_path(root / rel) as tmp:
+            with atomic_path(root / pattern_path(dname, pid)) as tmp:
                 tmp.write_bytes(data)
-            files[dname] = rel
-            shas[dname] = hashlib.sha256(img.tobytes()).hexdigest()
-        entry = {"id": pid, "kind": p.kind, "phase": p.phase, "files": files, "pixels_sha256": shas}
-        if p.of is not None:
-            entry["of"] = p.of
-        if p.seed is not None:
-            entry["seed"] = p.seed
-        if p.source:
-            entry["source"] = p.source
-        table[f"p{pid:03d}"] = entry
+        table[f"p{pid:03d}"] = pattern_entry(pid, p)
     return table
+
+
+def pattern_entry(pid: int, p: Pattern, **tables: dict) -> dict:
+    """The ``session.toml [patterns]`` entry of pattern ``pid``: its files, ``tables``
+    (e.g. ``device_ids``), the SHA-256 of each image's pixels and its provenance."""
+    import hashlib
+
+    entry = {
+        "id": pid,
+        "kind": p.kind,
+        "phase": p.phase,
+        "files": {d: pattern_path(d, pid) for d in p.images},
+        **tables,
+        "pixels_sha256": {d: hashlib.sha256(img.tobytes()).hexdigest() for d, img in p.images.items()},
+    }
+    if p.of is not None:
+        entry["of"] = p.of
+    if p.seed is not None:
+        entry["seed"] = p.seed
+    if p.source:
+        entry["source"] = p.source
+    return entry
 
 
 def check_saved_patterns(root, patterns: dict[int, Pattern]) -> list[str]:

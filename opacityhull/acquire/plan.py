@@ -119,6 +119,26 @@ def _number(where: str, v: Any) -> float:
     return float(v)
 
 
+def _all_count_or_ids(at: str, v, item: str, expected: str, *, min_id: int | None = None):
+    """A selection of cameras or lights: ``"all"`` or absent (None), a count > 0 (int)
+    or a list of distinct ids (tuple); ``item`` is ``"camera index"``, ``"light id"``."""
+    if v is None or v == "all":
+        return None
+    if isinstance(v, int) and not isinstance(v, bool):
+        if v <= 0:
+            raise ConfigError(f"{at}: a {item.split()[0]} count must be > 0, got {v}")
+        return v
+    if (
+        not isinstance(v, list)
+        or not v
+        or not all(isinstance(x, int) and not isinstance(x, bool) and (min_id is None or x >= min_id) for x in v)
+    ):
+        raise ConfigError(f'{at}: expected "all" or {expected}, got {v!r}')
+    if len(set(v)) != len(v):
+        raise ConfigError(f"{at}: duplicate {item} in {v}")
+    return tuple(v)
+
+
 def _int(where: str, d: Mapping, key: str, default: int, *, lo: int | None = None, hi: int | None = None) -> int:
     v = d.get(key, default)
     if isinstance(v, bool) or not isinstance(v, int):
@@ -367,23 +387,9 @@ def parse_plan(
     if not isinstance(name, str) or not name:
         raise ConfigError(f"{where}: [plan].name: expected a non-empty string, got {name!r}")
     seed = _int(f"{where}: [plan]", p, "seed", 0, lo=0)
-    cams = p.get("cameras")
-    if cams is not None:
-        if cams == "all":
-            cams = None
-        elif isinstance(cams, int) and not isinstance(cams, bool):
-            if cams <= 0:
-                raise ConfigError(f"{where}: [plan].cameras: a camera count must be > 0, got {cams}")
-        elif (
-            not isinstance(cams, list)
-            or not cams
-            or not all(isinstance(c, int) and not isinstance(c, bool) and c >= 0 for c in cams)
-        ):
-            raise ConfigError(f'{where}: [plan].cameras: expected "all" or a list of camera indices, got {cams!r}')
-        elif len(set(cams)) != len(cams):
-            raise ConfigError(f"{where}: [plan].cameras: duplicate camera index in {cams}")
-        else:
-            cams = tuple(cams)
+    cams = _all_count_or_ids(
+        f"{where}: [plan].cameras", p.get("cameras"), "camera index", "a list of camera indices", min_id=0
+    )
 
     t = _table(where, d, "table")
     _check_keys(f"{where}: [table]", t, {"steps", "step_deg", "start_deg", "angles_deg"})
@@ -477,23 +483,7 @@ def parse_plan(
             w, ph, {"array_steps", "array_step_deg", "array_deg", "start_deg", "lights", "level", "exposures_s"}
         )
         arr = _sweep(w, ph, steps_key="array_steps", step_key="array_step_deg", list_key="array_deg", default_steps=1)
-        lights = ph.get("lights")
-        if lights is not None:
-            if lights == "all":
-                lights = None
-            elif isinstance(lights, int) and not isinstance(lights, bool):
-                if lights <= 0:
-                    raise ConfigError(f"{w}.lights: a light count must be > 0, got {lights}")
-            elif (
-                not isinstance(lights, list)
-                or not lights
-                or not all(isinstance(x, int) and not isinstance(x, bool) for x in lights)
-            ):
-                raise ConfigError(f'{w}.lights: expected "all" or a non-empty list of light ids, got {lights!r}')
-            elif len(set(lights)) != len(lights):
-                raise ConfigError(f"{w}.lights: duplicate light id in {lights}")
-            else:
-                lights = tuple(lights)
+        lights = _all_count_or_ids(f"{w}.lights", ph.get("lights"), "light id", "a non-empty list of light ids")
         level = _level(w, ph, 255)
         if level == 0:
             raise ConfigError(f"{w}.level: must be > 0 (one light at a time needs the light on)")

@@ -148,24 +148,32 @@ def schedule(plan: CapturePlan, geometry: RigGeometry) -> list[Stage]:
                 f"{plan.source or 'plan'}: [phases.{phase}].level = {level} but the rig has no lights (set level = 0)"
             )
 
+    def lit(phase, ph, a, exps, ld, patterns=(None,), *, object_present: bool = True) -> list[PlannedShot]:
+        # every light at the phase's level (or all off), one shot per pattern and camera
+        on = all_lights if ph.level else ()
+        return [
+            PlannedShot(
+                phase,
+                c,
+                a,
+                exps,
+                lights_deg=ld,
+                level=ph.level,
+                lights_on=on,
+                pattern=pid,
+                object_present=object_present,
+            )
+            for pid in patterns
+            for c in cams
+        ]
+
     if plan.calibration is not None:
         ph = plan.calibration
         need_lights("calibration", ph.level)
         exps = plan.exposures("calibration")
         shots = []
         for a in sweep(ph.table_deg):
-            for c in cams:
-                shots.append(
-                    PlannedShot(
-                        "calibration",
-                        c,
-                        a,
-                        exps,
-                        lights_deg=ph.lights_deg if all_lights else None,
-                        level=ph.level,
-                        lights_on=all_lights if ph.level else (),
-                    )
-                )
+            shots += lit("calibration", ph, a, exps, ph.lights_deg if all_lights else None)
         stages.append(Stage("board", tuple(shots), charuco=ph.charuco))
 
     if plan.matting is not None and plan.matting.object_absent:
@@ -180,21 +188,7 @@ def schedule(plan: CapturePlan, geometry: RigGeometry) -> list[Stage]:
             # array angle), so that each backdrop image is what the camera would see behind
             # the object, light spilled on the display surfaces included.
             ld = _lights_at(ph.lights_deg, a) if all_lights else None
-            for pid in ph.pattern_ids:
-                for c in cams:
-                    shots.append(
-                        PlannedShot(
-                            "matting",
-                            c,
-                            a,
-                            exps,
-                            lights_deg=ld,
-                            level=ph.level,
-                            lights_on=all_lights if ph.level else (),
-                            pattern=pid,
-                            object_present=False,
-                        )
-                    )
+            shots += lit("matting", ph, a, exps, ld, ph.pattern_ids, object_present=False)
         stages.append(Stage("empty", tuple(shots)))
 
     obj: list[PlannedShot] = []
@@ -206,38 +200,13 @@ def schedule(plan: CapturePlan, geometry: RigGeometry) -> list[Stage]:
         exps = plan.exposures("matting")
         for a in sweep(plan.table_deg):
             ld = _lights_at(ph.lights_deg, a) if all_lights else None
-            for pid in (*ph.pattern_ids, None):
-                for c in cams:
-                    obj.append(
-                        PlannedShot(
-                            "matting",
-                            c,
-                            a,
-                            exps,
-                            lights_deg=ld,
-                            level=ph.level,
-                            lights_on=all_lights if ph.level else (),
-                            pattern=pid,
-                        )
-                    )
+            obj += lit("matting", ph, a, exps, ld, (*ph.pattern_ids, None))
     if plan.lightfield is not None:
         ph = plan.lightfield
         need_lights("lightfield", ph.level)
         exps = plan.exposures("lightfield")
         for a in sweep(plan.table_deg):
-            ld = _lights_at(ph.lights_deg, a) if all_lights else None
-            for c in cams:
-                obj.append(
-                    PlannedShot(
-                        "lightfield",
-                        c,
-                        a,
-                        exps,
-                        lights_deg=ld,
-                        level=ph.level,
-                        lights_on=all_lights if ph.level else (),
-                    )
-                )
+            obj += lit("lightfield", ph, a, exps, _lights_at(ph.lights_deg, a) if all_lights else None)
     if plan.reflectance is not None:
         ph = plan.reflectance
         if not all_lights:
@@ -264,21 +233,8 @@ def schedule(plan: CapturePlan, geometry: RigGeometry) -> list[Stage]:
         for a in sweep(plan.table_deg):
             ld = _lights_at(ph.lights_deg, a) if (all_lights and ph.level) else None
             # one illumination domain at a time: its N images, the other displays black
-            for dname, dids in ids.items():
-                for pid in dids:
-                    for c in cams:
-                        obj.append(
-                            PlannedShot(
-                                "envmatte",
-                                c,
-                                a,
-                                exps,
-                                lights_deg=ld,
-                                level=ph.level,
-                                lights_on=all_lights if ph.level else (),
-                                pattern=pid,
-                            )
-                        )
+            for dids in ids.values():
+                obj += lit("envmatte", ph, a, exps, ld, dids)
     if obj:
         stages.append(Stage("object", tuple(obj)))
     keys = [s.key for st in stages for s in st.shots]
@@ -355,18 +311,13 @@ class MotionRates:
         d = dict(devices or {})
         kw = {}
         tt = d.get("turntable") or {}
-        if isinstance(tt, Mapping):
-            if _pos(tt.get("max_rate_deg_s")):
-                kw["table_rate_deg_s"] = float(tt["max_rate_deg_s"])
-            if _pos(tt.get("accel_deg_s2")):
-                kw["table_accel_deg_s2"] = float(tt["accel_deg_s2"])
         la = d.get("light_array") or {}
         rot = la.get("rotation") if isinstance(la, Mapping) else None
-        if isinstance(rot, Mapping):
-            if _pos(rot.get("max_rate_deg_s")):
-                kw["array_rate_deg_s"] = float(rot["max_rate_deg_s"])
-            if _pos(rot.get("accel_deg_s2")):
-                kw["array_accel_deg_s2"] = float(rot["accel_deg_s2"])
+        for axis, table in (("table", tt), ("array", rot)):
+            if isinstance(table, Mapping):
+                for key, field_ in (("max_rate_deg_s", "rate_deg_s"), ("accel_deg_s2", "accel_deg_s2")):
+                    if _pos(table.get(key)):
+                        kw[f"{axis}_{field_}"] = float(table[key])
         bd = d.get("backdrops") or {}
         if isinstance(bd, Mapping) and _pos(bd.get("baudrate")):
             kw["serial_bytes_s"] = float(bd["baudrate"]) / 10.0

@@ -38,7 +38,7 @@ import numpy as np
 from ..camera import Camera, object_from_rig, write_colmap_text, write_opencv_yaml
 from ..errors import InputError
 from ..imageio import read_png, write_exr, write_png
-from ..riggeometry import RigGeometry, view_id
+from ..riggeometry import RigGeometry, back_display, bottom_display, view_id
 from ..session import SessionWriter, shot_key
 
 log = logging.getLogger(__name__)
@@ -109,26 +109,14 @@ def synthetic_rig(
         "cameras": cams,
         "lights": lights,
         "displays": [
-            {
-                "name": "bottom",
-                "centre_m": [0.0, 0.0, 0.0],
-                "normal": [0.0, 1.0, 0.0],
-                "up": [0.0, 0.0, -1.0],
-                "size_m": [1.0, 1.0],
-                "resolution": [int(dw), int(dh)],
-                "rotates_with_table": True,
-                "max_radiance": 1.0,
-            },
-            {
-                "name": "back",
-                "centre_m": [0.0, 0.28, -0.4],
-                "normal": [0.0, 0.0, 1.0],
-                "up": [0.0, 1.0, 0.0],
-                "size_m": [1.0, 0.56],
-                "resolution": [int(dw), max(1, int(round(dh * 0.5625)))],
-                "rotates_with_table": False,
-                "max_radiance": 1.0,
-            },
+            bottom_display([1.0, 1.0], [int(dw), int(dh)], max_radiance=1.0),
+            back_display(
+                [0.0, 0.28, -0.4],
+                [1.0, 0.56],
+                [int(dw), max(1, int(round(dh * 0.5625)))],
+                rotates_with_table=False,
+                max_radiance=1.0,
+            ),
         ],
     }
 

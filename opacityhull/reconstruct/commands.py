@@ -7,7 +7,7 @@ from typing import List, Literal, Optional, cast
 
 import typer
 
-from ..cliutil import cli_errors, console, emit, writing_to
+from ..cliutil import cli_errors, console, emit, option_group, progress_bar, scheduler_options, writing_to
 from ..errors import ConfigError
 
 __all__ = ["register"]
@@ -128,11 +128,19 @@ def _human_matte(summary: dict) -> None:
         c.print(f"[yellow]note:[/] {n}")
 
 
+_BUILD_SCHEDULER = scheduler_options(
+    "Where the per-view steps run: serial | threads | processes | "
+    "tcp://HOST:PORT (a dask scheduler; see docs/distributed.md).",
+    workers=True,
+)
+
+
 def register(app, groups) -> None:
     """Add this stage's commands to the root app and the subcommand groups."""
 
     @app.command("build")
     @cli_errors
+    @option_group(_BUILD_SCHEDULER, into="executor", before="as_json")
     def build(
         session: Path = typer.Argument(..., help="Session folder (from `capture` or `import colmap`)."),
         out: Path = typer.Option(..., "--out", help="Model folder to write (created; existing files are replaced)."),
@@ -216,36 +224,17 @@ def register(app, groups) -> None:
             "inputs and options are unchanged (OUT/build/manifest.json); the report "
             "says which steps were reused.",
         ),
-        scheduler: str = typer.Option(
-            "serial",
-            "--scheduler",
-            help="Where the per-view steps run: serial | threads | processes | "
-            "tcp://HOST:PORT (a dask scheduler; see docs/distributed.md).",
-        ),
-        scheduler_timeout: float = typer.Option(
-            10.0, "--scheduler-timeout", help="Seconds to wait for a tcp:// scheduler to answer."
-        ),
-        workers: Optional[int] = typer.Option(
-            None, "--workers", help="threads/processes: pool size (default: the cores)."
-        ),
         as_json: bool = typer.Option(False, "--json", help="Print one JSON object on stdout."),
+        *,
+        executor: dict,
     ):
         """Build the opacity hull of a session: cameras, matting, visual hull, surfels,
         visibility, per-view RGBA and reflectance, pictures (and ground-truth metrics)."""
-        from rich.progress import (
-            BarColumn,
-            MofNCompleteColumn,
-            Progress,
-            TextColumn,
-            TimeElapsedColumn,
-            TimeRemainingColumn,
-        )
-
         from ..executor import open_executor, parse_scheduler
         from .build import DRIFT_MODES, BuildConfig, build_model
         from .matting import MattingOptions
 
-        parse_scheduler(scheduler)
+        parse_scheduler(executor["scheduler"])
         check_build_paths(session, out)
 
         if matting_drift not in DRIFT_MODES:
@@ -271,17 +260,7 @@ def register(app, groups) -> None:
             drop_uncalibrated_cameras=not require_all_cameras,
             refine=d.refine if refine is None else cast(Literal["shading", "surfels", "none"], refine),
         )
-        with Progress(
-            TextColumn("[bold]build: {task.description}"),
-            BarColumn(),
-            MofNCompleteColumn(),
-            TextColumn("elapsed"),
-            TimeElapsedColumn(),
-            TextColumn("eta"),
-            TimeRemainingColumn(),
-            console=console(),
-            transient=False,
-        ) as bar:
+        with progress_bar("build: {task.description}") as bar:
             # one bar line per step: its description names the step, its count and ETA
             # are the step's (views matted, images calibrated, ...). A new task per step:
             # rich's update() ignores total=None, so resetting one task left the previous
@@ -295,7 +274,7 @@ def register(app, groups) -> None:
             def prog(done: int, total: int | None = None) -> None:
                 bar.update(tasks[-1], completed=done, total=total)
 
-            with open_executor(scheduler, workers=workers, timeout_s=scheduler_timeout) as ex, writing_to(out):
+            with open_executor(**executor) as ex, writing_to(out):
                 report = build_model(
                     session,
                     out,

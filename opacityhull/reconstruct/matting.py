@@ -500,17 +500,24 @@ def _weights_and_flags(C, B, cs, bs):
     return w, flags.astype(np.uint8)
 
 
+def _flat_system(observations, backdrops, c_saturation, b_saturation, options: MattingOptions):
+    """What both NumPy solvers start from: the drift-corrected observations and
+    backdrops as (K, H*W, 3) float64, their (K, H*W, 3) sample weights (0 = dropped),
+    the (H*W,) uint8 flags, the image size (H, W) and the drift fit."""
+    C, B, cs, bs = _prepare(observations, backdrops, c_saturation, b_saturation)
+    B, drift = _drift_corrected(C, B, cs, bs, options)
+    K, H, W, _ = C.shape
+    C = C.reshape(K, H * W, 3).astype(np.float64)
+    B = B.reshape(K, H * W, 3).astype(np.float64)
+    w, flags = _weights_and_flags(C, B, cs, bs)
+    return C, B, w, flags, (H, W), drift
+
+
 def solve_matte_numpy(
     observations, backdrops, *, c_saturation=None, b_saturation=None, options: MattingOptions = MattingOptions()
 ) -> MatteResult:
     """The closed form of :func:`solve_matte`, vectorised in NumPy (float64)."""
-    C, B, cs, bs = _prepare(observations, backdrops, c_saturation, b_saturation)
-    B, drift = _drift_corrected(C, B, cs, bs, options)
-    K, H, W, _ = C.shape
-    N = H * W
-    C = C.reshape(K, N, 3).astype(np.float64)
-    B = B.reshape(K, N, 3).astype(np.float64)
-    w, flags = _weights_and_flags(C, B, cs, bs)
+    C, B, w, flags, (H, W), drift = _flat_system(observations, backdrops, c_saturation, b_saturation, options)
     C0 = np.where(w > 0, C, 0.0)
     B0 = np.where(w > 0, B, 0.0)
     sw = w.sum(axis=0)  # (N, 3)
@@ -544,13 +551,8 @@ def solve_matte_reference(
     """Slow oracle: every pixel's 3K×4 system ``[I3 | -B_k] [F'; alpha] = C_k - B_k``
     solved with ``numpy.linalg.lstsq`` (dropped rows removed; alpha clamped to [0, 1]
     then ``F'`` re-solved with alpha fixed). Use on small images only."""
-    C, B, cs, bs = _prepare(observations, backdrops, c_saturation, b_saturation)
-    B, drift = _drift_corrected(C, B, cs, bs, options)
-    K, H, W, _ = C.shape
-    N = H * W
-    Cr = C.reshape(K, N, 3).astype(np.float64)
-    Br = B.reshape(K, N, 3).astype(np.float64)
-    w, flags = _weights_and_flags(Cr, Br, cs, bs)
+    Cr, Br, w, flags, (H, W), drift = _flat_system(observations, backdrops, c_saturation, b_saturation, options)
+    K, N, _ = Cr.shape
     alpha = np.zeros(N)
     fg = np.zeros((N, 3))
     S = np.zeros(N)

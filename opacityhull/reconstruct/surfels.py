@@ -130,26 +130,14 @@ def _candidate_views(P, sizes, edt, pa, pb, cand):
 
 
 @njit(cache=True, nogil=True)
-def _inside_cand(P, sil, strong, sizes, cand, nc, tol, x, y, z):
-    # views left out of `cand` provably accept every point of the bracket (`strong` is a
-    # superset of `sil`), so counting rejections among the candidates counts them among
-    # all views
+def _inside(P, sil, strong, sizes, cand, nc, tol, x, y, z):
+    # the point test over views cand[:nc] (all views, or the bracket's candidates: views
+    # left out of `cand` provably accept every point of the bracket, `strong` being a
+    # superset of `sil`, so counting rejections among the candidates counts them among
+    # all views)
     rej = 0
     for q in range(nc):
         v = cand[q]
-        if _centre_carves(P, sil, sizes, v, x, y, z):
-            if _centre_carves(P, strong, sizes, v, x, y, z):
-                return False
-            rej += 1
-            if rej > tol:
-                return False
-    return True
-
-
-@njit(cache=True, nogil=True)
-def _inside_all(P, sil, strong, sizes, tol, x, y, z):
-    rej = 0
-    for v in range(P.shape[0]):
         if _centre_carves(P, sil, sizes, v, x, y, z):
             if _centre_carves(P, strong, sizes, v, x, y, z):
                 return False
@@ -192,6 +180,7 @@ def _fill_crossings(
     occ, axis, nb, nc, na, s, offsets, lo, h, P, sil, strong, sizes, edt, iters, tol, pos, sign, status
 ):
     V = P.shape[0]
+    every = np.arange(V)
     ax_b = 1 if axis == 0 else 0
     ax_c = 1 if axis == 2 else 2
     for r in prange(nb * s * nc * s):
@@ -235,8 +224,8 @@ def _fill_crossings(
                 in_ok = True
                 out_ok = True
             else:
-                in_ok = _inside_all(P, sil, strong, sizes, tol, pa[0], pa[1], pa[2])
-                out_ok = not _inside_all(P, sil, strong, sizes, tol, pb[0], pb[1], pb[2])
+                in_ok = _inside(P, sil, strong, sizes, every, V, tol, pa[0], pa[1], pa[2])
+                out_ok = not _inside(P, sil, strong, sizes, every, V, tol, pb[0], pb[1], pb[2])
             if in_ok and out_ok:
                 nc_ = _candidate_views(P, sizes, edt, pa, pb, cand)
                 lo_t = t_in
@@ -246,7 +235,7 @@ def _fill_crossings(
                     pm[axis] = mt
                     pm[ax_b] = cb
                     pm[ax_c] = cc
-                    if _inside_cand(P, sil, strong, sizes, cand, nc_, tol, pm[0], pm[1], pm[2]):
+                    if _inside(P, sil, strong, sizes, cand, nc_, tol, pm[0], pm[1], pm[2]):
                         lo_t = mt
                     else:
                         hi_t = mt

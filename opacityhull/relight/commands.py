@@ -10,7 +10,7 @@ from typing import Optional
 import typer
 from rich.markup import escape
 
-from ..cliutil import cli_errors, console, emit, progress, writing_to
+from ..cliutil import cli_errors, console, emit, option_group, progress, writing_to
 from ..errors import InputError, check_writable
 
 
@@ -53,6 +53,55 @@ _FORMAT_HELP = (
 )
 
 
+#: ``--env-yaw-deg`` and its old spelling, read as one value (see :func:`_yaw`).
+_YAW_OPTIONS = {
+    "env_yaw_deg": (Optional[float], typer.Option(None, "--env-yaw-deg", help=_YAW_HELP)),
+    "yaw_deg_alias": (Optional[float], typer.Option(None, "--yaw-deg", hidden=True, help="Old name of --env-yaw-deg.")),
+}
+
+
+def _yaw(env_yaw_deg: Optional[float], yaw_deg_alias: Optional[float]) -> Optional[float]:
+    return env_yaw_deg if yaw_deg_alias is None else yaw_deg_alias
+
+
+#: The flags of ``relight`` and ``eval relight`` that make their RelightConfig (see :func:`_config`).
+_CONFIG_OPTIONS = {
+    "kernel": (
+        str,
+        typer.Option(
+            "vmf",
+            "--kernel",
+            help="Light-cell partition: vmf (smooth, default), linear (barycentric on the "
+            "lights' triangulation) or voronoi (nearest light).",
+        ),
+    ),
+    "kernel_width": (
+        float,
+        typer.Option(0.25, "--kernel-width", help="vMF kernel sigma as a fraction of the light spacing."),
+    ),
+    "lower_hemisphere": (
+        str,
+        typer.Option(
+            "drop",
+            "--lower-hemisphere",
+            help="Light from below the table plane: drop (the table blocks it) or nearest.",
+        ),
+    ),
+    "near_light": (
+        bool,
+        typer.Option(
+            True,
+            "--near-light/--no-near-light",
+            help="Correct the one-light images for the lights' finite distance (1/r^2 at the hull surface).",
+        ),
+    ),
+    "pca_rank": (
+        Optional[int],
+        typer.Option(None, "--pca-rank", help="Relight from a rank-R PCA of each view's data (reports its error)."),
+    ),
+}
+
+
 #: Fewer captured light directions than this and ``eval relight`` warns: the light
 #: basis is too coarse for an environment map (a judgement, not a measured threshold).
 FEW_LIGHTS = 8
@@ -70,16 +119,14 @@ def register(app, groups) -> None:
 
     @app.command("relight")
     @cli_errors
+    @option_group(_YAW_OPTIONS, into="yaw_deg", before="probe_format", build=_yaw)
+    @option_group(_CONFIG_OPTIONS, into="config_options", before="exposure")
     def relight(
         model: Path = typer.Argument(..., help="Model folder written by `opacityhull build` (with reflectance data)."),
         out: Path = typer.Option(
             ..., "--out", help="Output folder (EXR + PNG per image, contact sheets, GIF, relight.json)."
         ),
         envmap: Optional[str] = typer.Option(None, "--envmap", help=_ENVMAP_HELP),
-        yaw_deg: Optional[float] = typer.Option(None, "--env-yaw-deg", help=_YAW_HELP),
-        yaw_deg_alias: Optional[float] = typer.Option(
-            None, "--yaw-deg", hidden=True, help="Old name of --env-yaw-deg."
-        ),
         probe_format: str = typer.Option("latlong", "--probe-format", help=_FORMAT_HELP),
         flip_u: bool = typer.Option(False, "--flip-u", help="The lat-long map is stored mirrored left-right."),
         lights: Optional[str] = typer.Option(
@@ -93,33 +140,14 @@ def register(app, groups) -> None:
         ),
         orbit: Optional[int] = typer.Option(None, "--orbit", help="Also render an orbit of N frames (PNGs + GIF)."),
         fps: float = typer.Option(12.0, "--fps", help="Frame rate of the orbit GIF (> 0; GIF stores 1/100 s delays)."),
-        kernel: str = typer.Option(
-            "vmf",
-            "--kernel",
-            help="Light-cell partition: vmf (smooth, default), linear (barycentric on the "
-            "lights' triangulation) or voronoi (nearest light).",
-        ),
-        kernel_width: float = typer.Option(
-            0.25, "--kernel-width", help="vMF kernel sigma as a fraction of the light spacing."
-        ),
-        lower_hemisphere: str = typer.Option(
-            "drop",
-            "--lower-hemisphere",
-            help="Light from below the table plane: drop (the table blocks it) or nearest.",
-        ),
-        near_light: bool = typer.Option(
-            True,
-            "--near-light/--no-near-light",
-            help="Correct the one-light images for the lights' finite distance (1/r^2 at the hull surface).",
-        ),
-        pca_rank: Optional[int] = typer.Option(
-            None, "--pca-rank", help="Relight from a rank-R PCA of each view's data (reports its error)."
-        ),
         exposure: Optional[float] = typer.Option(
             None, "--exposure", help="PNG exposure multiplier (default: automatic, key 0.18)."
         ),
         no_views: bool = typer.Option(False, "--no-views", help="Do not write the relit captured views."),
         json_out: bool = typer.Option(False, "--json", help="Print a JSON summary on stdout."),
+        *,
+        yaw_deg: Optional[float],
+        config_options: dict,
     ):
         """Relight a captured model under an environment map or lights: every captured view is relit as a weighted
         sum of its one-light images, then (--view/--orbit) blended onto the surfels with ULR over the environment."""
@@ -127,7 +155,6 @@ def register(app, groups) -> None:
         from .envmap import default_yaw_deg, load_envmap
         from .runner import parse_view_spec, relight_model
 
-        yaw_deg = yaw_deg if yaw_deg_alias is None else yaw_deg_alias
         _check_model(model)
         if orbit is not None and orbit < 1:
             raise InputError(f"--orbit {orbit}: expected at least 1 frame")
@@ -136,7 +163,7 @@ def register(app, groups) -> None:
         if exposure is not None and not (math.isfinite(exposure) and exposure > 0):
             raise InputError(f"--exposure {exposure}: expected a multiplier > 0 (omit it for automatic exposure)")
         check_writable(out)
-        cfg = _config(kernel, kernel_width, lower_hemisphere, near_light, pca_rank)
+        cfg = _config(**config_options)
         v = parse_view_spec(view) if view else None
         if envmap is None and not lights:
             raise InputError("give --envmap X.exr|X.hdr or --lights 'dx,dy,dz,r,g,b;...'")
@@ -189,13 +216,11 @@ def register(app, groups) -> None:
 
     @groups["eval"].command("relight")
     @cli_errors
+    @option_group(_YAW_OPTIONS, into="yaw_deg", before="probe_format", build=_yaw)
+    @option_group(_CONFIG_OPTIONS, into="config_options", before="json_out")
     def eval_relight_cmd(
         model: Path = typer.Argument(..., help="Model folder built from a simulated session (with reflectance data)."),
         envmap: str = typer.Option(..., "--envmap", help=_ENVMAP_HELP),
-        yaw_deg: Optional[float] = typer.Option(None, "--env-yaw-deg", help=_YAW_HELP),
-        yaw_deg_alias: Optional[float] = typer.Option(
-            None, "--yaw-deg", hidden=True, help="Old name of --env-yaw-deg."
-        ),
         probe_format: str = typer.Option("latlong", "--probe-format", help=_FORMAT_HELP),
         out: Optional[Path] = typer.Option(
             None,
@@ -208,18 +233,12 @@ def register(app, groups) -> None:
         max_views: Optional[int] = typer.Option(
             None, "--max-views", help="Evaluate at most this many views (spread evenly)."
         ),
-        kernel: str = typer.Option("vmf", "--kernel", help="Light-cell partition: vmf, linear or voronoi."),
-        kernel_width: float = typer.Option(
-            0.25, "--kernel-width", help="vMF kernel sigma as a fraction of the light spacing."
-        ),
-        lower_hemisphere: str = typer.Option("drop", "--lower-hemisphere", help="drop or nearest."),
-        near_light: bool = typer.Option(
-            True, "--near-light/--no-near-light", help="Near-light correction (1/r^2 at the hull surface)."
-        ),
-        pca_rank: Optional[int] = typer.Option(None, "--pca-rank", help="Evaluate rank-R PCA relighting."),
         json_out: bool = typer.Option(
             False, "--json", help='Print {"psnr_mean", "rel_err_mean", "per_view", ...} on stdout.'
         ),
+        *,
+        yaw_deg: Optional[float],
+        config_options: dict,
     ):
         """Relit captured views of a simulated model against Mitsuba's direct render of the same object under the
         same environment map from the same cameras: PSNR and relative error inside the mask, and a contact sheet
@@ -227,7 +246,6 @@ def register(app, groups) -> None:
         from .envmap import default_yaw_deg, load_envmap
         from .evaluate import eval_relight
 
-        yaw_deg = yaw_deg if yaw_deg_alias is None else yaw_deg_alias
         _check_model(model)
         if spp < 1:
             raise InputError(f"--spp {spp}: expected at least 1 sample per pixel")
@@ -236,7 +254,7 @@ def register(app, groups) -> None:
         if out is None:
             # not inside MODEL: a model is an input here (it may be shared or read-only)
             out = Path(f"{model.resolve().name}_eval_relight")
-        cfg = _config(kernel, kernel_width, lower_hemisphere, near_light, pca_rank)
+        cfg = _config(**config_options)
         env = load_envmap(
             envmap,
             yaw_deg=default_yaw_deg(envmap) if yaw_deg is None else yaw_deg,

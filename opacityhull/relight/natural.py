@@ -403,22 +403,16 @@ def prep_candidate(
 ):  # pragma: no cover - compiled
     """Columns of kernel k's two halves for cut o and their dots with the m columns and b."""
     X0, Y0, X1, Y1 = boxes[k, 0], boxes[k, 1], boxes[k, 2], boxes[k, 3]
-    if o == 0:
-        if X1 - X0 < 2:
-            valid[k, o] = False
-            return
-        mid = X0 + (X1 - X0) // 2
-        box_col(sat, X0, Y0, mid, Y1, cL[k, o])
-        box_col(sat, mid, Y0, X1, Y1, cR[k, o])
-        frac[k, o] = (mid - X0) / (X1 - X0)
-    else:
-        if Y1 - Y0 < 2:
-            valid[k, o] = False
-            return
-        mid = Y0 + (Y1 - Y0) // 2
-        box_col(sat, X0, Y0, X1, mid, cL[k, o])
-        box_col(sat, X0, mid, X1, Y1, cR[k, o])
-        frac[k, o] = (mid - Y0) / (Y1 - Y0)
+    lo, hi = (X0, X1) if o == 0 else (Y0, Y1)  # the extent cut o halves (0: x, 1: y)
+    if hi - lo < 2:
+        valid[k, o] = False
+        return
+    mid = lo + (hi - lo) // 2
+    lx1, ly1 = (mid, Y1) if o == 0 else (X1, mid)  # the first half ends at mid
+    rx0, ry0 = (mid, Y0) if o == 0 else (X0, mid)  # the second starts there
+    box_col(sat, X0, Y0, lx1, ly1, cL[k, o])
+    box_col(sat, rx0, ry0, X1, Y1, cR[k, o])
+    frac[k, o] = (mid - lo) / (hi - lo)
     valid[k, o] = True
     C = cols.shape[2]
     for c in range(C):
@@ -552,21 +546,12 @@ def fit_pixel(sat, b, K, rel_tol, boxes, m0, w_out):  # pragma: no cover - compi
         # apply the best split: kernel k becomes the low half, kernel m the high half
         k = best_k
         o = best_o
-        X0, Y0, X1, Y1 = boxes[k, 0], boxes[k, 1], boxes[k, 2], boxes[k, 3]
-        if o == 0:
-            mid = X0 + (X1 - X0) // 2
-            boxes[k, 2] = mid
-            boxes[m, 0] = mid
-            boxes[m, 1] = Y0
-            boxes[m, 2] = X1
-            boxes[m, 3] = Y1
-        else:
-            mid = Y0 + (Y1 - Y0) // 2
-            boxes[k, 3] = mid
-            boxes[m, 0] = X0
-            boxes[m, 1] = mid
-            boxes[m, 2] = X1
-            boxes[m, 3] = Y1
+        # box k keeps the first half of its extent along axis o, new box m takes the second
+        lo, hi = boxes[k, o], boxes[k, o + 2]
+        mid = lo + (hi - lo) // 2
+        boxes[m, :] = boxes[k, :]
+        boxes[k, o + 2] = mid
+        boxes[m, o] = mid
         for j in range(N):
             for c in range(C):
                 cols[k, j, c] = cL[k, o, j, c]

@@ -8,7 +8,7 @@ from typing import List, Optional
 
 import typer
 
-from ..cliutil import cli_errors, console, emit, progress, writing_to
+from ..cliutil import cli_errors, console, emit, option_group, progress, scheduler_options, writing_to
 from ..errors import InputError
 from .config import RenderConfig
 
@@ -35,6 +35,16 @@ _SHADING_HELP = (
     "| surfel: ULR per surfel, splatted."
 )
 
+#: The flags of ``render`` and ``eval loo`` that make their RenderConfig (see :func:`_config`).
+_RENDER_OPTIONS = {
+    "k": (int, typer.Option(_D.k, "--k", help=_K_HELP)),
+    "filter_var": (float, typer.Option(_D.filter, "--filter", help=_FILTER_HELP)),
+    "epsilon_z": (float, typer.Option(_D.epsilon_z, "--epsilon-z", help=_EPS_HELP)),
+    "cutoff": (float, typer.Option(_D.cutoff_sigma, "--cutoff", help=_CUTOFF_HELP)),
+    "sigma_radius": (float, typer.Option(_D.sigma_radius, "--sigma-radius", help=_SIGMA_HELP)),
+    "shading": (str, typer.Option(_D.shading, "--shading", help=_SHADING_HELP)),
+}
+
 
 #: Largest image ``render`` makes (64 Mpx: 8192 x 8192). The renderer keeps several float
 #: buffers per pixel; 100000 px wide asked for 196 GiB and died in the allocator.
@@ -46,6 +56,10 @@ BACKGROUND_KINDS = ("auto", "image", "envmap")
 _SCHEDULER_HELP = (
     "Where per-view work runs: serial | threads | processes | tcp://HOST:PORT (a dask scheduler; "
     "see docs/distributed.md)."
+)
+_LOO_SCHEDULER = scheduler_options(
+    _SCHEDULER_HELP + " With --holdout geometry|both the geometry rebuilds (the costly part) run there; "
+    "the renders run here."
 )
 
 
@@ -122,6 +136,8 @@ def register(app, groups) -> None:
 
     @app.command("render")
     @cli_errors
+    @option_group(_RENDER_OPTIONS, into="render_options", before="background")
+    @option_group(scheduler_options(_SCHEDULER_HELP), into="executor", before="json_out")
     def render_cmd(
         model: Path = typer.Argument(..., help="Model folder (model.toml, surfels.ply, views/)."),
         out: Path = typer.Option(
@@ -145,7 +161,6 @@ def register(app, groups) -> None:
             help="N frames on a circle around the model at the captured "
             "cameras' mean elevation and distance; also writes an animated GIF.",
         ),
-        k: int = typer.Option(_D.k, "--k", help=_K_HELP),
         background: Optional[str] = typer.Option(
             None,
             "--background",
@@ -164,11 +179,6 @@ def register(app, groups) -> None:
         height: Optional[int] = typer.Option(
             None, "--height", help="Output height in pixels (default: keeps the aspect)."
         ),
-        filter_var: float = typer.Option(_D.filter, "--filter", help=_FILTER_HELP),
-        epsilon_z: float = typer.Option(_D.epsilon_z, "--epsilon-z", help=_EPS_HELP),
-        cutoff: float = typer.Option(_D.cutoff_sigma, "--cutoff", help=_CUTOFF_HELP),
-        sigma_radius: float = typer.Option(_D.sigma_radius, "--sigma-radius", help=_SIGMA_HELP),
-        shading: str = typer.Option(_D.shading, "--shading", help=_SHADING_HELP),
         exclude: List[str] = typer.Option([], "--exclude-view", help="View id or index not to blend (repeatable)."),
         exclude_alias: List[str] = typer.Option([], "--exclude", hidden=True, help="Old name of --exclude-view."),
         fps: float = typer.Option(12.0, "--fps", help="Frame rate of the orbit animation (> 0)."),
@@ -179,19 +189,18 @@ def register(app, groups) -> None:
             "view-dependent cut of the sequential point tree (the viewer's level "
             "of detail). Default: every surfel.",
         ),
-        scheduler: str = typer.Option("serial", "--scheduler", help=_SCHEDULER_HELP),
-        scheduler_timeout: float = typer.Option(
-            10.0, "--scheduler-timeout", help="Seconds to wait for a tcp:// scheduler to answer."
-        ),
         json_out: bool = typer.Option(
             False, "--json", help="Print a JSON summary (frames, paths, ms per frame) on stdout."
         ),
+        *,
+        render_options: dict,
+        executor: dict,
     ):
         """Render a model from a captured view, a look-at camera, or an orbit (ULR-blended EWA surfel splatting)."""
         from ..executor import open_executor, parse_scheduler
         from .runner import run_render
 
-        serial = parse_scheduler(scheduler).kind == "serial"
+        serial = parse_scheduler(executor["scheduler"]).kind == "serial"
 
         if yaw_deg_alias is not None:
             env_yaw_deg = yaw_deg_alias
@@ -217,12 +226,12 @@ def register(app, groups) -> None:
             raise InputError(f"--out {out}: expected a .png or .exr file name")
         view_t = parse_view_spec(view) if view is not None else None
         look_t = parse_look_at(look_at) if look_at is not None else None
-        cfg = _config(k, filter_var, epsilon_z, cutoff, sigma_radius, shading)
+        cfg = _config(**render_options)
         n = orbit if orbit is not None else 1
         # the frames render on the scheduler's workers (each opens the model from its path
         # and writes its frames beside --out); serial renders here, with no executor at all
         with (
-            open_executor(scheduler, timeout_s=scheduler_timeout) as ex,
+            open_executor(**executor) as ex,
             progress("rendering", n, enabled=n > 1) as cb,
             writing_to(out),
         ):
@@ -261,17 +270,13 @@ def register(app, groups) -> None:
 
     @groups["eval"].command("loo")
     @cli_errors
+    @option_group(_RENDER_OPTIONS, into="render_options", before="out")
+    @option_group(_LOO_SCHEDULER, into="executor", before="json_out")
     def loo_cmd(
         model: Path = typer.Argument(..., help="Model folder."),
         views: Optional[str] = typer.Option(
             None, "--views", help="all (default) | every:N | camera:C | comma list of view ids or indices."
         ),
-        k: int = typer.Option(_D.k, "--k", help=_K_HELP),
-        filter_var: float = typer.Option(_D.filter, "--filter", help=_FILTER_HELP),
-        epsilon_z: float = typer.Option(_D.epsilon_z, "--epsilon-z", help=_EPS_HELP),
-        cutoff: float = typer.Option(_D.cutoff_sigma, "--cutoff", help=_CUTOFF_HELP),
-        sigma_radius: float = typer.Option(_D.sigma_radius, "--sigma-radius", help=_SIGMA_HELP),
-        shading: str = typer.Option(_D.shading, "--shading", help=_SHADING_HELP),
         out: Optional[Path] = typer.Option(
             None,
             "--out",
@@ -285,18 +290,12 @@ def register(app, groups) -> None:
             help="blend: leave the view out of the ULR blend only | geometry: also rebuild "
             "hull, surfels and visibility without it (honest, slower) | both.",
         ),
-        scheduler: str = typer.Option(
-            "serial",
-            "--scheduler",
-            help=_SCHEDULER_HELP + " With --holdout geometry|both the geometry rebuilds "
-            "(the costly part) run there; the renders run here.",
-        ),
-        scheduler_timeout: float = typer.Option(
-            10.0, "--scheduler-timeout", help="Seconds to wait for a tcp:// scheduler to answer."
-        ),
         json_out: bool = typer.Option(
             False, "--json", help="Print {views, psnr_mean, ssim_mean, alpha_mae, per_view} on stdout."
         ),
+        *,
+        render_options: dict,
+        executor: dict,
     ):
         """Leave-one-out: render each chosen captured view without blending it, compare with its photograph
         (PSNR, SSIM, alpha MAE inside the union of the masks), and write a contact sheet photo | render | error."""
@@ -307,18 +306,18 @@ def register(app, groups) -> None:
         if out is None:
             # not MODEL/pictures: a model is an input here (it may be shared or read-only)
             out = Path(f"{model.resolve().name}_loo")
-        cfg = _config(k, filter_var, epsilon_z, cutoff, sigma_radius, shading)
+        cfg = _config(**render_options)
         if holdout not in ("blend", "geometry", "both"):
             raise InputError(f"--holdout {holdout!r}: expected blend, geometry or both")
         from ..executor import open_executor, parse_scheduler
 
-        if parse_scheduler(scheduler).kind != "serial" and holdout == "blend":
+        if parse_scheduler(executor["scheduler"]).kind != "serial" and holdout == "blend":
             raise InputError(
-                f"--scheduler {scheduler}: with --holdout blend there is no per-view rebuild to "
+                f"--scheduler {executor['scheduler']}: with --holdout blend there is no per-view rebuild to "
                 "distribute (the renders run in this process); use --holdout geometry|both, or "
                 "--scheduler serial"
             )
-        with open_executor(scheduler, timeout_s=scheduler_timeout) as ex, progress("leave-one-out", None) as cb:
+        with open_executor(**executor) as ex, progress("leave-one-out", None) as cb:
             if holdout == "blend":
                 summary = run_loo(model, views=views, config=cfg, out=out, progress=cb)
             else:

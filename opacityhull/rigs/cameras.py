@@ -37,7 +37,9 @@ __all__ = ["OpenCVCamera", "DirectoryCamera", "expand_braces"]
 _LINEARIZE = ("srgb", "none")
 
 
-def _check_exposure(name: str, exposure_s) -> float:
+def check_exposure(name: str, exposure_s) -> float:
+    """``exposure_s`` as float seconds, or an InputError naming camera ``name`` (every
+    camera driver, the simulated ones included, takes exposures through this)."""
     if (
         isinstance(exposure_s, bool)
         or not isinstance(exposure_s, (int, float, np.floating))
@@ -302,7 +304,7 @@ class OpenCVCamera(OpenClose):
 
     def capture(self, exposure_s: float) -> np.ndarray:
         """A frame exposed for ``exposure_s`` seconds: linear float32 RGB (height, width, 3)."""
-        exposure_s = _check_exposure(self.name, exposure_s)
+        exposure_s = check_exposure(self.name, exposure_s)
         with self._lock:
             self.open()
             discard = 0
@@ -522,7 +524,7 @@ class DirectoryCamera:
 
     def capture(self, exposure_s: float) -> np.ndarray:
         """Wait for the next new image in the folder; linear float32 RGB (H, W, 3)."""
-        exposure_s = _check_exposure(self.name, exposure_s)
+        exposure_s = check_exposure(self.name, exposure_s)
         self.open()
         before = self._scan()
         self._run_trigger(exposure_s)

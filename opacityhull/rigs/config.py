@@ -32,6 +32,7 @@ from .transport import check_url
 log = logging.getLogger(__name__)
 
 __all__ = [
+    "PortConfig",
     "AxisConfig",
     "LightArrayConfig",
     "BackdropsConfig",
@@ -43,11 +44,29 @@ __all__ = [
     "emulator_url_faults",
     "EMULATOR_KINDS",
     "CAMERA_DRIVERS",
+    "emulated_axis",
 ]
 
 EMULATOR_KINDS = ("grbl", "enttec", "display")
 CAMERA_DRIVERS = ("opencv", "directory", "sim")
 GRBL_AXES = ("X", "Y", "Z", "A", "B", "C")
+
+
+def emulated_axis(axis: str, *, max_rate_deg_s: float, accel_deg_s2: float | None = None) -> dict[str, Any]:
+    """A ``[devices.turntable]`` (or ``[devices.light_array.rotation]``) table driving
+    the GRBL emulator's ``axis`` at 80 steps/degree with a 2 s reply timeout; without
+    ``accel_deg_s2`` the emulator's default acceleration applies."""
+    table: dict[str, Any] = {
+        "url": "emulator:grbl",
+        "axis": axis,
+        "steps_per_deg": 80.0,
+        "max_rate_deg_s": max_rate_deg_s,
+    }
+    if accel_deg_s2 is not None:
+        table["accel_deg_s2"] = accel_deg_s2
+    table["timeout_s"] = 2.0
+    return table
+
 
 _AXIS_KEYS = {
     "url",
@@ -100,35 +119,62 @@ def emulator_url_faults(url: str) -> list[str]:
     return out
 
 
+def _slot_map(ctx, key: str, table: Mapping, owners: list, owner_of, *, slots, unknown, bad, used, missing) -> dict:
+    """``table`` (TOML key -> device slot, e.g. light id -> DMX channel) checked: every
+    key names one of ``owners`` (``owner_of`` parses it), every slot is an integer in
+    ``slots`` (lo, hi) used once, every owner has one. The messages are templates over
+    ``owner``, ``owners``, ``value``, ``other`` (the owner already on that slot), ``i``."""
+    lo, hi = slots
+    out: dict = {}
+    for k, v in table.items():
+        owner = owner_of(k)
+        if owner not in owners:
+            raise ctx.err(f"{key}.{k}", unknown.format(owner=owner, owners=owners))
+        if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= hi:
+            raise ctx.err(f"{key}.{k}", bad.format(value=v))
+        if v in out.values():
+            other = [o for o, s in out.items() if s == v][0]
+            raise ctx.err(f"{key}.{k}", used.format(value=v, other=other))
+        out[owner] = v
+    for i, owner in enumerate(owners):
+        if owner not in out:
+            raise ctx.err(key, missing.format(owner=owner, i=i))
+    return out
+
+
 # --------------------------------------------------------------------------- dataclasses
 
 
-@dataclass(frozen=True)
-class AxisConfig:
-    """A GRBL axis: the turntable or the light-array rotation."""
+@dataclass(frozen=True, kw_only=True)
+class PortConfig:
+    """What every serial device of the rig has: its name, URL, reply timeout, baud rate
+    and the TOML key path of its table (for messages)."""
 
     name: str
     url: str
+    timeout_s: float = 2.0
+    baudrate: int = 115200
+    key: str = ""
+
+
+@dataclass(frozen=True, kw_only=True)
+class AxisConfig(PortConfig):
+    """A GRBL axis: the turntable or the light-array rotation."""
+
     axis: str = "X"
     steps_per_deg: float = 80.0
     max_rate_deg_s: float = 30.0
     accel_deg_s2: float = 60.0
     backlash_deg: float = 0.0
     soft_limits_deg: tuple[float, float] | None = None
-    timeout_s: float = 2.0
-    baudrate: int = 115200
-    key: str = ""  # TOML key path, for messages
 
 
-@dataclass(frozen=True)
-class LightArrayConfig:
+@dataclass(frozen=True, kw_only=True)
+class LightArrayConfig(PortConfig):
     """Enttec DMX USB Pro and the light id → DMX channel map; the rotation axis if any."""
 
-    name: str
-    url: str
     channels: tuple[tuple[int, int], ...]
     rotation: AxisConfig | None = None
-    timeout_s: float = 2.0
     baudrate: int = 57600
     key: str = "devices.light_array"
 
@@ -138,15 +184,11 @@ class LightArrayConfig:
         return dict(self.channels)
 
 
-@dataclass(frozen=True)
-class BackdropsConfig:
+@dataclass(frozen=True, kw_only=True)
+class BackdropsConfig(PortConfig):
     """The plasma-display controller and the display name → output map."""
 
-    name: str
-    url: str
     outputs: tuple[tuple[str, int], ...]
-    timeout_s: float = 2.0
-    baudrate: int = 115200
     retries: int = 3
     chunk_bytes: int = 512
     key: str = "devices.backdrops"
@@ -379,26 +421,26 @@ def parse_rig_config(data: Mapping[str, Any], *, source: str = "<rig config>", b
         url = ctx.url(key, la, "enttec")
         if "channels" not in la:
             raise ctx.err(key, "missing [devices.light_array.channels] (light id = DMX channel)")
-        ch_tab = ctx.table(f"{key}.channels", la["channels"])
-        channels: dict[int, int] = {}
-        for k, v in ch_tab.items():
+        ch_key = f"{key}.channels"
+
+        def light_id(k: str) -> int:
             try:
-                lid = int(k)
+                return int(k)
             except ValueError:
-                raise ctx.err(f"{key}.channels", f"key {k!r} is not a light id (an integer)") from None
-            if lid not in light_ids:
-                raise ctx.err(f"{key}.channels.{k}", f"no light with id {lid} in geometry.lights (ids: {light_ids})")
-            if isinstance(v, bool) or not isinstance(v, int) or not 1 <= v <= 512:
-                raise ctx.err(f"{key}.channels.{k}", f"expected a DMX channel 1..512, got {v!r}")
-            if v in channels.values():
-                other = [i for i, c in channels.items() if c == v][0]
-                raise ctx.err(f"{key}.channels.{k}", f"DMX channel {v} is already used by light {other}")
-            channels[lid] = v
-        for i, lid in enumerate(light_ids):
-            if lid not in channels:
-                raise ctx.err(
-                    f"{key}.channels", f"no DMX channel for light {lid} (geometry.lights[{i}]); add '{lid} = <channel>'"
-                )
+                raise ctx.err(ch_key, f"key {k!r} is not a light id (an integer)") from None
+
+        channels = _slot_map(
+            ctx,
+            ch_key,
+            ctx.table(ch_key, la["channels"]),
+            light_ids,
+            light_id,
+            slots=(1, 512),
+            unknown="no light with id {owner} in geometry.lights (ids: {owners})",
+            bad="expected a DMX channel 1..512, got {value!r}",
+            used="DMX channel {value} is already used by light {other}",
+            missing="no DMX channel for light {owner} (geometry.lights[{i}]); add '{owner} = <channel>'",
+        )
         rotation = None
         if "rotation" in la:
             rotation = _axis(ctx, f"{key}.rotation", "light_array.rotation", la["rotation"])
@@ -430,25 +472,19 @@ def parse_rig_config(data: Mapping[str, Any], *, source: str = "<rig config>", b
         ctx.int_(key, bd, "slots", 64, 1, 65535)
         if "outputs" not in bd:
             raise ctx.err(key, "missing [devices.backdrops.outputs] (display name = controller output)")
-        out_tab = ctx.table(f"{key}.outputs", bd["outputs"])
-        outputs: dict[str, int] = {}
-        for k, v in out_tab.items():
-            if k not in display_names:
-                raise ctx.err(
-                    f"{key}.outputs.{k}", f"no display named {k!r} in geometry.displays (names: {display_names})"
-                )
-            if isinstance(v, bool) or not isinstance(v, int) or not 0 <= v <= 254:
-                raise ctx.err(f"{key}.outputs.{k}", f"expected a controller output index 0..254, got {v!r}")
-            if v in outputs.values():
-                other = [n for n, o in outputs.items() if o == v][0]
-                raise ctx.err(f"{key}.outputs.{k}", f"output {v} is already used by display {other!r}")
-            outputs[k] = v
-        for i, dn in enumerate(display_names):
-            if dn not in outputs:
-                raise ctx.err(
-                    f"{key}.outputs",
-                    f"no controller output for display {dn!r} (geometry.displays[{i}]); add '{dn} = <output>'",
-                )
+        out_key = f"{key}.outputs"
+        outputs = _slot_map(
+            ctx,
+            out_key,
+            ctx.table(out_key, bd["outputs"]),
+            display_names,
+            str,
+            slots=(0, 254),
+            unknown="no display named {owner!r} in geometry.displays (names: {owners})",
+            bad="expected a controller output index 0..254, got {value!r}",
+            used="output {value} is already used by display {other!r}",
+            missing="no controller output for display {owner!r} (geometry.displays[{i}]); add '{owner} = <output>'",
+        )
         backdrops = BackdropsConfig(
             name="backdrops",
             url=url,

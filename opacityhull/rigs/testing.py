@@ -36,6 +36,8 @@ from typing import Any, Callable, Iterator, Sequence, TypeVar
 import numpy as np
 
 from ..errors import DeviceError
+from ..riggeometry import back_display, bottom_display
+from .config import emulated_axis
 from .interfaces import CameraInfo, DeviceInfo
 from .transport import Transport
 
@@ -253,49 +255,19 @@ LAB_GEOMETRY: dict[str, Any] = {
     ],
     "lights": [{"id": i, "elevation_deg": 45.0, "azimuth_deg": 90.0 * i, "distance_m": 1.2} for i in range(4)],
     "displays": [
-        {
-            "name": "bottom",
-            "centre_m": [0.0, 0.0, 0.0],
-            "normal": [0.0, 1.0, 0.0],
-            "up": [0.0, 0.0, -1.0],
-            "size_m": [0.6, 0.6],
-            "resolution": [16, 16],
-            "rotates_with_table": True,
-        },
-        {
-            "name": "back",
-            "centre_m": [0.0, 0.3, -0.4],
-            "normal": [0.0, 0.0, 1.0],
-            "up": [0.0, 1.0, 0.0],
-            "size_m": [0.8, 0.6],
-            "resolution": [16, 12],
-            "rotates_with_table": False,
-        },
+        bottom_display([0.6, 0.6], [16, 16]),
+        back_display([0.0, 0.3, -0.4], [0.8, 0.6], [16, 12], rotates_with_table=False),
     ],
 }
 
 LAB_RIG_CONFIG: dict[str, Any] = {
     "rig": {"name": "lab rig (tests)"},
     "devices": {
-        "turntable": {
-            "url": "emulator:grbl",
-            "axis": "X",
-            "steps_per_deg": 80.0,
-            "max_rate_deg_s": 90.0,
-            "accel_deg_s2": 180.0,
-            "timeout_s": 2.0,
-        },
+        "turntable": emulated_axis("X", max_rate_deg_s=90.0, accel_deg_s2=180.0),
         "light_array": {
             "url": "emulator:enttec",
             "timeout_s": 2.0,
-            "rotation": {
-                "url": "emulator:grbl",
-                "axis": "Y",
-                "steps_per_deg": 80.0,
-                "max_rate_deg_s": 45.0,
-                "accel_deg_s2": 90.0,
-                "timeout_s": 2.0,
-            },
+            "rotation": emulated_axis("Y", max_rate_deg_s=45.0, accel_deg_s2=90.0),
             "channels": {"0": 1, "1": 2, "2": 3, "3": 4},
         },
         "backdrops": {"url": "emulator:display", "timeout_s": 1.0, "outputs": {"bottom": 0, "back": 1}},

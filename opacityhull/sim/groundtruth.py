@@ -168,7 +168,8 @@ def render_ground_truth(
     nrm = np.linalg.norm(n_sum, axis=2, keepdims=True)
     normals = np.where(covered[..., None] & (nrm > 1e-12), n_sum / np.maximum(nrm, 1e-12), 0.0).astype(np.float32)
     # shape ids: one sample per pixel so the index is not averaged with its neighbours
-    one, shape_names = r.render_rgba(
+    shape_names: dict[int, str] = {}
+    one = r.render_rgba(
         camera,
         parts,
         integrator=integ,
@@ -176,7 +177,7 @@ def render_ground_truth(
         sampler="independent",
         seed=seed + 1,
         key=("gt1",),
-        with_shape_names=True,
+        shape_names_out=shape_names,
     )
     sid_raw = np.rint(one[:, :, 8]).astype(np.int32)
     shape_id = np.zeros_like(sid_raw)

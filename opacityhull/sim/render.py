@@ -74,7 +74,7 @@ import threading
 from collections import OrderedDict
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, Literal, Mapping, Sequence, overload
+from typing import Any, Mapping, Sequence
 
 import numpy as np
 
@@ -880,7 +880,6 @@ class SimRenderer:
             self._radiance.clear()
             self._radiance_bytes = 0
 
-    @overload
     def render_rgba(
         self,
         camera_object: Camera,
@@ -892,43 +891,12 @@ class SimRenderer:
         sampler: str = "stratified",
         seed: int = 0,
         key: tuple = (),
-        with_shape_names: Literal[False] = False,
+        shape_names_out: dict[int, str] | None = None,
         updates: Mapping | None = None,
-    ) -> np.ndarray: ...
-
-    @overload
-    def render_rgba(
-        self,
-        camera_object: Camera,
-        parts: Sequence[Part],
-        *,
-        extra: Mapping | None = None,
-        integrator: dict,
-        spp: int,
-        sampler: str = "stratified",
-        seed: int = 0,
-        key: tuple = (),
-        with_shape_names: Literal[True],
-        updates: Mapping | None = None,
-    ) -> tuple[np.ndarray, dict[int, str]]: ...
-
-    def render_rgba(
-        self,
-        camera_object: Camera,
-        parts: Sequence[Part],
-        *,
-        extra: Mapping | None = None,
-        integrator: dict,
-        spp: int,
-        sampler: str = "stratified",
-        seed: int = 0,
-        key: tuple = (),
-        with_shape_names: bool = False,
-        updates: Mapping | None = None,
-    ) -> np.ndarray | tuple[np.ndarray, dict[int, str]]:
+    ) -> np.ndarray:
         """Low-level: render ``parts`` (plus ``extra`` Mitsuba dict entries) from a camera
         posed in the object frame with the given integrator; returns the raw film
-        channels (H, W, C) — and, with ``with_shape_names``, the map from aov
+        channels (H, W, C). A ``shape_names_out`` dict is filled with the map from aov
         ``shape_index`` values to shape ids (``obj_<i>`` for part i). ``extra`` is used
         when the scene is first loaded (``key`` identifies it); ``updates`` (Mitsuba
         parameter name → value, e.g. a ``to_world``) are applied before every render.
@@ -971,10 +939,9 @@ class SimRenderer:
                 spp=int(spp),
             )
             self.renders += 1
-            out = np.array(img, dtype=np.float32)
-            if with_shape_names:
-                return out, shape_index_names(mi, loaded.scene)
-            return out
+            if shape_names_out is not None:
+                shape_names_out.update(shape_index_names(mi, loaded.scene))
+            return np.array(img, dtype=np.float32)
 
     def cache_info(self) -> dict:
         """Mitsuba scenes loaded and renders run; radiance-cache entries, bytes and hits."""

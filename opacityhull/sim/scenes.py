@@ -34,7 +34,7 @@ import math
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping, TypeVar
+from typing import Any, Callable, Mapping, TypeVar
 
 import numpy as np
 
@@ -578,6 +578,37 @@ def _build_part(scene: SceneSpec, o: ObjectSpec) -> Part:
     return part
 
 
+_SEGMENTS = {"lo": 8, "hi": 1024, "integer": True}
+
+#: shape -> (mesh builder, its parameters: key, default, bounds checked by ``_number``)
+_SOLIDS: dict[str, tuple[Callable[..., S.TriMesh], tuple[tuple[str, float, dict], ...]]] = {
+    "cup": (
+        S.cup_mesh,
+        (
+            ("radius_m", 0.06, {"lo": 1e-3}),
+            ("height_m", 0.15, {"lo": 1e-3}),
+            ("wall_m", 0.012, {"lo": 1e-4}),
+            ("flutes", 7, {"lo": 0, "hi": 64, "integer": True}),
+            ("flute_depth", 0.12, {"lo": 0.0, "hi": 0.5}),
+            ("segments", 112, _SEGMENTS),
+        ),
+    ),
+    "dome": (
+        S.dome_mesh,
+        (("radius_m", 0.065, {"lo": 1e-3}), ("height_m", 0.16, {"lo": 1e-3}), ("segments", 96, _SEGMENTS)),
+    ),
+    "bottle": (
+        S.bottle_mesh,
+        (
+            ("radius_m", 0.055, {"lo": 1e-3}),
+            ("height_m", 0.17, {"lo": 1e-3}),
+            ("neck_radius_m", 0.022, {"lo": 1e-4}),
+            ("segments", 96, _SEGMENTS),
+        ),
+    ),
+}
+
+
 def _build_part_uncached(scene: SceneSpec, o: ObjectSpec) -> Part:
     where = f"{scene.source}: objects.{o.name}"
     p = o.params
@@ -600,30 +631,9 @@ def _build_part_uncached(scene: SceneSpec, o: ObjectSpec) -> Part:
             raise ConfigError(f"{where}.radii_m: must be > 0, got {radii.tolist()}")
         c = _vec3(f"{where}.centre_m", p["centre_m"]) if "centre_m" in p else np.array([0.0, radii[1], 0.0])
         return Part(o.name, "mesh", mat, mesh=S.ellipsoid_mesh(radii_m=radii, centre_m=c, segments=96, rings=48))
-    if o.shape == "cup":
-        m = S.cup_mesh(
-            radius_m=num("radius_m", 0.06, lo=1e-3),
-            height_m=num("height_m", 0.15, lo=1e-3),
-            wall_m=num("wall_m", 0.012, lo=1e-4),
-            flutes=num("flutes", 7, lo=0, hi=64, integer=True),
-            flute_depth=num("flute_depth", 0.12, lo=0.0, hi=0.5),
-            segments=num("segments", 112, lo=8, hi=1024, integer=True),
-        )
-        return Part(o.name, "mesh", mat, mesh=m)
-    if o.shape == "dome":
-        m = S.dome_mesh(
-            radius_m=num("radius_m", 0.065, lo=1e-3),
-            height_m=num("height_m", 0.16, lo=1e-3),
-            segments=num("segments", 96, lo=8, hi=1024, integer=True),
-        )
-        return Part(o.name, "mesh", mat, mesh=m)
-    if o.shape == "bottle":
-        m = S.bottle_mesh(
-            radius_m=num("radius_m", 0.055, lo=1e-3),
-            height_m=num("height_m", 0.17, lo=1e-3),
-            neck_radius_m=num("neck_radius_m", 0.022, lo=1e-4),
-            segments=num("segments", 96, lo=8, hi=1024, integer=True),
-        )
+    if o.shape in _SOLIDS:
+        make, keys = _SOLIDS[o.shape]
+        m = make(**{k: num(k, default, **bounds) for k, default, bounds in keys})
         return Part(o.name, "mesh", mat, mesh=m)
     if o.shape == "torus":
         c = _vec3(f"{where}.centre_m", p.get("centre_m", [0.0, 0.01, 0.0]))

@@ -37,6 +37,7 @@ import numpy as np
 from ..charuco import CharucoSpec
 from ..errors import ConfigError, DeviceError, InputError
 from ..riggeometry import CameraSpec, RigGeometry
+from ..rigs.cameras import check_exposure
 from ..rigs.interfaces import CameraInfo, DeviceInfo
 from .render import SimRenderer, SimState
 from .scenes import DATA_DIR, SceneSpec, builtin_names, load_scene
@@ -94,29 +95,16 @@ _DEFAULT_DEVICES_NOTE = "devices synthesised by the simulator for a geometry-onl
 
 
 def _default_devices(geometry: dict) -> dict:
+    from ..rigs.config import emulated_axis
+
     lights = geometry.get("lights", [])
     displays = geometry.get("displays", [])
-    dev: dict = {
-        "turntable": {
-            "url": "emulator:grbl",
-            "axis": "X",
-            "steps_per_deg": 80.0,
-            "max_rate_deg_s": 30.0,
-            "accel_deg_s2": 60.0,
-            "timeout_s": 2.0,
-        },
-    }
+    dev: dict = {"turntable": emulated_axis("X", max_rate_deg_s=30.0, accel_deg_s2=60.0)}
     if lights:
         dev["light_array"] = {
             "url": "emulator:enttec",
             "timeout_s": 2.0,
-            "rotation": {
-                "url": "emulator:grbl",
-                "axis": "Y",
-                "steps_per_deg": 80.0,
-                "max_rate_deg_s": 30.0,
-                "timeout_s": 2.0,
-            },
+            "rotation": emulated_axis("Y", max_rate_deg_s=30.0),
             "channels": {str(int(L.get("id", i))): i + 1 for i, L in enumerate(lights)},
         }
     if displays:
@@ -239,13 +227,7 @@ class SimCamera:
         return self._rig.true_cameras[self.index]
 
     def capture(self, exposure_s: float) -> np.ndarray:
-        if (
-            isinstance(exposure_s, bool)
-            or not isinstance(exposure_s, (int, float, np.floating))
-            or not math.isfinite(exposure_s)
-            or exposure_s <= 0
-        ):
-            raise InputError(f"camera {self.name}: exposure_s must be a positive number of seconds, got {exposure_s!r}")
+        exposure_s = check_exposure(self.name, exposure_s)
         rig = self._rig
         state = rig.state()
         with self._lock:

@@ -29,7 +29,16 @@ from opacityhull.rigs.testing import LAB_GEOMETRY as GEOMETRY
 from opacityhull.rigs.testing import LAB_RIG_CONFIG as RIG_CONFIG
 from opacityhull.rigs.testing import LabRig, SynthCamera
 
-__all__ = ["GEOMETRY", "RIG_CONFIG", "TINY_PLAN", "LabRig", "SynthCamera", "tiny_plan"]
+__all__ = [
+    "GEOMETRY",
+    "RIG_CONFIG",
+    "TINY_PLAN",
+    "LabRig",
+    "SynthCamera",
+    "assert_left_safe",
+    "assert_resumed_to_the_end",
+    "tiny_plan",
+]
 
 TINY_PLAN = {
     "plan": {"name": "lab-tiny", "seed": 5},
@@ -48,6 +57,27 @@ def tiny_plan():
     from opacityhull.acquire.plan import parse_plan
 
     return parse_plan(TINY_PLAN, where="lab-tiny")
+
+
+def assert_left_safe(report: str) -> None:
+    """A capture child's report of the rig after ``rig.safe()`` ran (the line it prints
+    when stopped): every light off, no display lit, the table still, a feed hold sent."""
+    assert "lights={0: 0, 1: 0, 2: 0, 3: 0}" in report and "shown=False" in report, report
+    assert "moving=False" in report and "feed_hold_sent=True" in report, report
+
+
+def assert_resumed_to_the_end(proc, out, *, listed: int, total: int, timeout_s: float) -> None:
+    """``proc``, a capture child started with ``--resume`` on ``out`` where ``listed`` of
+    ``total`` images were taken, exits 0 having taken exactly the missing ones; the
+    manifest then lists every id once."""
+    from opacityhull.session import read_manifest
+
+    rest, err = proc.communicate(timeout=timeout_s)
+    assert proc.returncode == 0, err
+    res = json.loads([x for x in rest.splitlines() if x.startswith("done ")][0][5:])
+    assert res["complete"] and res["taken"] == total - listed
+    ids = [r.id for r in read_manifest(f"{out}/manifest.jsonl")]
+    assert len(ids) == len(set(ids)) == total
 
 
 def _child(argv):

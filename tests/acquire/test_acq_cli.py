@@ -76,12 +76,8 @@ def lab_session(tmp_path_factory):
     from opacityhull.acquire.runner import run_capture
 
     out = tmp_path_factory.mktemp("cli") / "s"
-    rig = LabRig()
-    rig.open()
-    try:
+    with LabRig() as rig:
         run_capture(rig, tiny_plan(), out)
-    finally:
-        rig.close()
     return out
 
 
@@ -119,20 +115,8 @@ def test_import_colmap_cli(runner, tmp_path):
     from test_acq_import import _synthetic_set
 
     _synthetic_set(tmp_path, n=3)
-    res = runner.invoke(
-        app,
-        [
-            "import",
-            "colmap",
-            "--model",
-            str(tmp_path / "model"),
-            "--images",
-            str(tmp_path / "images"),
-            "--out",
-            str(tmp_path / "s"),
-            "--json",
-        ],
-    )
+    model, images, out = (str(tmp_path / name) for name in ("model", "images", "s"))
+    res = runner.invoke(app, ["import", "colmap", "--model", model, "--images", images, "--out", out, "--json"])
     assert res.exit_code == 0, res.output
     assert _json(res)["images"] == 3
     res = runner.invoke(app, ["session", "verify", str(tmp_path / "s"), "--json"])

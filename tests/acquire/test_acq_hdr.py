@@ -119,6 +119,23 @@ def test_debevec_recovers_response_and_radiance():
     assert np.median(rel) < 0.08, np.median(rel)
 
 
+def _add_bracket(w, img, shot, k, t, *, light, **kw):
+    """Bracket ``k`` (exposure ``t`` s) of reflectance shot ``shot`` (camera 0, light ``light``)."""
+    w.add_image(
+        img,
+        id=f"{shot}/e{k}",
+        shot=shot,
+        phase="reflectance",
+        camera=0,
+        table_deg=0.0,
+        rel_path=f"images/{shot}_e{k}.exr",
+        exposure_s=t,
+        lights_deg=0.0,
+        light=light,
+        **kw,
+    )
+
+
 def _bracketed_session(tmp_path, L, times, *, linear=True, gain=1.0):
     geo = {
         "target_m": [0, 0, 0],
@@ -135,18 +152,7 @@ def _bracketed_session(tmp_path, L, times, *, linear=True, gain=1.0):
             shot = f"reflectance/c0_t000.000/a000.000_l{shot_i}"
             for k, t in enumerate(times):
                 img = _expose(L * scale, t, gain=gain) if linear else _gamma_camera(L * scale, t)
-                w.add_image(
-                    img,
-                    id=f"{shot}/e{k}",
-                    shot=shot,
-                    phase="reflectance",
-                    camera=0,
-                    table_deg=0.0,
-                    rel_path=f"images/{shot}_e{k}.exr",
-                    exposure_s=t,
-                    lights_deg=0.0,
-                    light=shot_i,
-                )
+                _add_bracket(w, img, shot, k, t, light=shot_i)
     return root
 
 
@@ -191,19 +197,7 @@ def test_hdr_remerges_when_a_bracket_was_reshot(tmp_path):
     assert hdr_session(root)["merged"] == 2
     shot = "reflectance/c0_t000.000/a000.000_l1"
     with SessionWriter(root).resume() as w:  # a re-shoot of bracket 1 (e.g. its file was corrupt)
-        w.add_image(
-            _expose(L, TIMES[1]),
-            id=f"{shot}/e1",
-            shot=shot,
-            phase="reflectance",
-            camera=0,
-            table_deg=0.0,
-            rel_path=f"images/{shot}_e1.exr",
-            exposure_s=TIMES[1],
-            lights_deg=0.0,
-            light=1,
-            replace=True,
-        )
+        _add_bracket(w, _expose(L, TIMES[1]), shot, 1, TIMES[1], light=1, replace=True)
     rep = hdr_session(root)
     assert rep["merged"] == 1 and rep["skipped"] == 1
     s = Session.open(root)

@@ -350,24 +350,16 @@ def _colmap_set(tmp_path, *, masks=True):
     return cams, names
 
 
+def _colmap_argv(tmp_path, out, *extra, masks=True):
+    """``import colmap`` of the set under ``tmp_path`` (model/, images/, masks/) into ``out``."""
+    argv = ["import", "colmap", "--model", str(tmp_path / "model"), "--images", str(tmp_path / "images")]
+    if masks:
+        argv += ["--masks", str(tmp_path / "masks")]
+    return [*argv, "--out", str(out), *extra]
+
+
 def _cli_colmap(runner, tmp_path, out, *extra):
-    return runner.invoke(
-        app,
-        [
-            "import",
-            "colmap",
-            "--model",
-            str(tmp_path / "model"),
-            "--images",
-            str(tmp_path / "images"),
-            "--masks",
-            str(tmp_path / "masks"),
-            "--out",
-            str(out),
-            "--json",
-            *extra,
-        ],
-    )
+    return runner.invoke(app, _colmap_argv(tmp_path, out, "--json", *extra))
 
 
 @pytest.mark.parametrize("case", ["empty", "full", "wrong_size"])
@@ -505,19 +497,7 @@ def _bad_quaternion_model(tmp_path, q) -> Path:
 def test_bad_quaternion_text_and_binary(runner, tmp_path, q, words):
     lineno = _bad_quaternion_model(tmp_path, q)
     out = tmp_path / "S"
-    res = runner.invoke(
-        app,
-        [
-            "import",
-            "colmap",
-            "--model",
-            str(tmp_path / "model"),
-            "--images",
-            str(tmp_path / "images"),
-            "--out",
-            str(out),
-        ],
-    )
+    res = runner.invoke(app, _colmap_argv(tmp_path, out, masks=False))
     assert res.exit_code == 4, res.output
     assert f"images.txt:{lineno}" in _err(res) and "'img_1.png'" in _err(res) and words in _err(res)
     assert not out.exists()

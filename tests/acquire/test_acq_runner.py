@@ -3,16 +3,15 @@ disk full, device errors, and signals in a subprocess."""
 
 from __future__ import annotations
 
-import json
 import os
 import random
 import signal
 import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import fill_with_zeros, python_child, with_pythonpath
 
 from opacityhull.acquire.plan import parse_plan
 from opacityhull.acquire.runner import DiskFull, device_pattern_id, resume_mismatch, run_capture
@@ -41,12 +40,8 @@ def rig():
 def captured(tmp_path_factory):
     """One complete capture shared by the read-only tests."""
     out = tmp_path_factory.mktemp("cap") / "s"
-    r = LabRig()
-    r.open()
-    try:
+    with LabRig() as r:
         res = run_capture(r, tiny_plan(), out, rig_source="lab")
-    finally:
-        r.close()
     return out, res, r
 
 
@@ -266,12 +261,7 @@ def test_disk_fills_up_mid_run(rig, small_fs):
     def fill(cam):
         n["k"] += 1
         if n["k"] == 60:
-            with open(small_fs / "filler", "wb", buffering=0) as f:
-                try:
-                    while True:
-                        f.write(b"\0" * 65536)
-                except OSError:
-                    pass
+            fill_with_zeros(small_fs / "filler")
 
     for c in rig.cameras:
         c.before_capture = fill
@@ -294,14 +284,7 @@ def test_disk_fills_up_mid_run(rig, small_fs):
 
 
 def _child(out: Path, *args):
-    env = dict(os.environ, PYTHONPATH=str(HERE) + os.pathsep + os.environ.get("PYTHONPATH", ""))
-    return subprocess.Popen(
-        [sys.executable, str(HERE / "rigkit.py"), str(out), *args],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        env=env,
-    )
+    return python_child(HERE / "rigkit.py", str(out), *args, env=with_pythonpath(HERE))
 
 
 def _run_until(proc, n_images: int, sig) -> None:
@@ -324,21 +307,13 @@ def test_signal_at_random_point_then_resume(tmp_path, sig, seed):
     else:
         assert proc.returncode == 130, err
         # the child reports the rig state after rig.safe() ran
-        line = [x for x in rest.splitlines() if x.startswith("interrupted")][0]
-        assert "lights={0: 0, 1: 0, 2: 0, 3: 0}" in line and "shown=False" in line
-        assert "moving=False" in line and "feed_hold_sent=True" in line
+        rigkit.assert_left_safe([x for x in rest.splitlines() if x.startswith("interrupted")][0])
     listed = len(_manifest_ids(out))
     assert k <= listed < total
-    proc = _child(out, "--resume")
-    rest, err = proc.communicate(timeout=60)
-    assert proc.returncode == 0, err
-    res = json.loads([x for x in rest.splitlines() if x.startswith("done ")][0][5:])
-    assert res["complete"] and res["taken"] == total - listed
+    rigkit.assert_resumed_to_the_end(_child(out, "--resume"), out, listed=listed, total=total, timeout_s=60)
     rep = verify_session(out)
     assert rep["ok"], rep
     assert rep["per_phase"] == expected() and rep["superseded"] == 0
-    ids = _manifest_ids(out)
-    assert len(ids) == len(set(ids)) == total
 
 
 def test_concurrent_capture_into_one_session_is_refused(captured, rig):

@@ -3,6 +3,8 @@ tails, a failing manifest append, reader accessors."""
 
 from __future__ import annotations
 
+from functools import partial
+
 import numpy as np
 import pytest
 
@@ -26,8 +28,8 @@ def _new(tmp_path):
 def test_last_record_of_an_id_wins(tmp_path):
     w = _new(tmp_path)
     img = np.full((3, 4, 3), 0.25, np.float32)
-    w.add_image(
-        img,
+    add_one = partial(  # one image id, written three times
+        w.add_image,
         id="lightfield/c0_t000.000/img/e0",
         shot="lightfield/c0_t000.000/img",
         phase="lightfield",
@@ -36,28 +38,10 @@ def test_last_record_of_an_id_wins(tmp_path):
         rel_path="images/a.exr",
         exposure_s=0.5,
     )
+    add_one(img)
     with pytest.raises(InputError, match="already in"):
-        w.add_image(
-            img,
-            id="lightfield/c0_t000.000/img/e0",
-            shot="lightfield/c0_t000.000/img",
-            phase="lightfield",
-            camera=0,
-            table_deg=0.0,
-            rel_path="images/a.exr",
-            exposure_s=0.5,
-        )
-    w.add_image(
-        img * 2,
-        id="lightfield/c0_t000.000/img/e0",
-        shot="lightfield/c0_t000.000/img",
-        phase="lightfield",
-        camera=0,
-        table_deg=0.0,
-        rel_path="images/a.exr",
-        exposure_s=0.5,
-        replace=True,
-    )
+        add_one(img)
+    add_one(img * 2, replace=True)
     w.close()
     s = Session.open(tmp_path / "s")
     assert len(s.records) == 1 and s.superseded == 1

@@ -28,6 +28,22 @@ def _set_white_level(value: str):
     return setup
 
 
+M = "{T}/m"
+WHITE_LEVEL = r"session.toml: \[session\] white_level = {}, expected a finite number > 0"
+
+
+def _bad_white_level(case_id: str, toml_value: str, shown: str) -> Case:
+    """``white_level = TOML_VALUE`` in session.toml: exit 4 and no model.toml written."""
+    argv = ("build", "{S}", "--out", M, "--no-pictures")
+    setup = _set_white_level(toml_value)
+    return Case(case_id, argv, 4, WHITE_LEVEL.format(shown), setup=setup, must_not_exist=(f"{M}/model.toml",))
+
+
+def _bad_flag(case_id: str, flags: tuple, message: str) -> Case:
+    """``build {S} --out M FLAGS``: exit 2 and no model folder created."""
+    return Case(case_id, ("build", "{S}", "--out", M, *flags), 2, message, must_not_exist=(M,))
+
+
 CASES = [
     Case(
         "out-is-a-file",
@@ -47,41 +63,15 @@ CASES = [
     Case("out-contains-the-session", ("build", "{S}", "--out", "{T}"), 2, r"contains the session folder"),
     Case(
         "session-missing",
-        ("build", "{T}/nosuch", "--out", "{T}/m"),
+        ("build", "{T}/nosuch", "--out", M),
         2,
         r"nosuch: no such session folder",
-        must_not_exist=("{T}/m",),
+        must_not_exist=(M,),
     ),
-    Case(
-        "white-level-text",
-        ("build", "{S}", "--out", "{T}/m", "--no-pictures"),
-        4,
-        r"session.toml: \[session\] white_level = \"bright\", expected a finite number > 0",
-        setup=_set_white_level('"bright"'),
-        must_not_exist=("{T}/m/model.toml",),
-    ),
-    Case(
-        "white-level-zero",
-        ("build", "{S}", "--out", "{T}/m", "--no-pictures"),
-        4,
-        r"session.toml: \[session\] white_level = 0, expected a finite number > 0",
-        setup=_set_white_level("0"),
-        must_not_exist=("{T}/m/model.toml",),
-    ),
-    Case(
-        "bounds-not-numbers",
-        ("build", "{S}", "--out", "{T}/m", "--bounds", "a,b"),
-        2,
-        r"--bounds 'a,b': expected six numbers",
-        must_not_exist=("{T}/m",),
-    ),
-    Case(
-        "refine-unknown",
-        ("build", "{S}", "--out", "{T}/m", "--refine", "deep"),
-        2,
-        r"--refine 'deep': expected shading, surfels or none",
-        must_not_exist=("{T}/m",),
-    ),
+    _bad_white_level("white-level-text", '"bright"', r"\"bright\""),
+    _bad_white_level("white-level-zero", "0", "0"),
+    _bad_flag("bounds-not-numbers", ("--bounds", "a,b"), r"--bounds 'a,b': expected six numbers"),
+    _bad_flag("refine-unknown", ("--refine", "deep"), r"--refine 'deep': expected shading, surfels or none"),
 ]
 
 

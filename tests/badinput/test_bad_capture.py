@@ -7,11 +7,12 @@ from __future__ import annotations
 import json
 import os
 import signal
-import subprocess
 import sys
 from pathlib import Path
 
 import pytest
+from helpers import python_child, with_pythonpath
+from rigkit import assert_left_safe, assert_resumed_to_the_end
 
 HERE = Path(__file__).resolve().parent
 
@@ -22,18 +23,17 @@ def _manifest_ids(out: Path) -> list[str]:
 
 
 def _child(out: Path, *args, hold: str | None = None):
-    env = dict(os.environ, PYTHONPATH=str(HERE) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    env = with_pythonpath(HERE)
     if hold:
         env["OPACITYHULL_TEST_HOLD_AT"] = hold
-    # default dispositions: a suite started in the background inherits SIGINT/SIGHUP ignored
-    return subprocess.Popen(
-        [sys.executable, str(HERE / "capture_child.py"), str(out), *args],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-        text=True,
-        env=env,
-        preexec_fn=lambda: [signal.signal(s, signal.SIG_DFL) for s in (signal.SIGHUP, signal.SIGTERM)],
-    )
+    return python_child(HERE / "capture_child.py", str(out), *args, env=env, preexec_fn=_default_dispositions)
+
+
+def _default_dispositions() -> None:
+    """A suite started in the background inherits SIGINT/SIGHUP ignored: the child gets
+    the default dispositions back."""
+    for s in (signal.SIGHUP, signal.SIGTERM):
+        signal.signal(s, signal.SIG_DFL)
 
 
 @pytest.mark.parametrize("sig, code", [(signal.SIGTERM, 143), (signal.SIGHUP, 129)])
@@ -51,21 +51,13 @@ def test_sigterm_and_sighup_leave_the_rig_safe_and_the_session_resumable(tmp_pat
             break
     rest, err = proc.communicate(timeout=120)
     assert proc.returncode == code, err
-    state = [x for x in rest.splitlines() if x.startswith("state ")][0]
-    assert "lights={0: 0, 1: 0, 2: 0, 3: 0}" in state and "shown=False" in state, state
-    assert "moving=False" in state and "feed_hold_sent=True" in state, state
+    assert_left_safe([x for x in rest.splitlines() if x.startswith("state ")][0])
     assert "terminated by SIG" in err
     assert not (out / ".capture.lock").exists()
     listed = len(_manifest_ids(out))
     assert 5 <= listed < total
     assert verify_session(out)["ok"]
-    proc = _child(out, "--resume")
-    rest, err = proc.communicate(timeout=120)
-    assert proc.returncode == 0, err
-    res = json.loads([x for x in rest.splitlines() if x.startswith("done ")][0][5:])
-    assert res["complete"] and res["taken"] == total - listed
-    ids = _manifest_ids(out)
-    assert len(ids) == len(set(ids)) == total
+    assert_resumed_to_the_end(_child(out, "--resume"), out, listed=listed, total=total, timeout_s=120)
 
 
 def test_resume_with_another_simulated_scene_is_refused(tmp_path):

@@ -8,6 +8,7 @@ import subprocess
 from pathlib import Path
 
 import pytest
+from helpers import fill_with_zeros
 
 from badkit import flat, invoke, tree_digest
 
@@ -25,12 +26,8 @@ def _read_only(path: Path) -> None:
 
 
 def _fill(path: Path) -> None:
-    with open(path / "filler", "wb", buffering=0) as f:
-        try:
-            while True:
-                f.write(b"\0" * 65536)
-        except OSError:
-            pass
+    fill_with_zeros(path / "filler")
+    with open(path / "filler", "ab", buffering=0) as f:  # the last partial block, byte by byte
         try:
             while True:
                 f.write(b"\0")

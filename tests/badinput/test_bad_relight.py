@@ -10,62 +10,28 @@ from badkit import Case, invoke, run_case
 
 OUT = "{T}/relit"
 
+GRACE = ("--envmap", "builtin:grace")
+
+
+def _relight(case_id: str, flags: tuple, message: str, *, model: str = "{M}") -> Case:
+    """``relight MODEL --out OUT --envmap builtin:grace FLAGS``: exit 2, nothing written."""
+    return Case(case_id, ("relight", model, "--out", OUT, *GRACE, *flags), 2, message, must_not_exist=(OUT,))
+
+
+def _eval(case_id: str, flags: tuple, message: str) -> Case:
+    """``eval relight {M} --envmap builtin:grace FLAGS --out OUT``: exit 2, nothing written."""
+    return Case(case_id, ("eval", "relight", "{M}", *GRACE, *flags, "--out", OUT), 2, message, must_not_exist=(OUT,))
+
+
 CASES = [
-    Case(
-        "exposure-negative",
-        ("relight", "{M}", "--out", OUT, "--envmap", "builtin:grace", "--exposure", "-1"),
-        2,
-        r"--exposure -1.0: expected a multiplier > 0",
-        must_not_exist=(OUT,),
-    ),
-    Case(
-        "exposure-zero",
-        ("relight", "{M}", "--out", OUT, "--envmap", "builtin:grace", "--exposure", "0"),
-        2,
-        r"--exposure 0.0: expected a multiplier > 0",
-        must_not_exist=(OUT,),
-    ),
-    Case(
-        "exposure-nan",
-        ("relight", "{M}", "--out", OUT, "--envmap", "builtin:grace", "--exposure", "nan"),
-        2,
-        r"--exposure nan",
-        must_not_exist=(OUT,),
-    ),
-    Case(
-        "orbit-zero",
-        ("relight", "{M}", "--out", OUT, "--envmap", "builtin:grace", "--orbit", "0"),
-        2,
-        r"--orbit 0: expected at least 1 frame",
-        must_not_exist=(OUT,),
-    ),
-    Case(
-        "model-missing",
-        ("relight", "{T}/nosuch", "--out", OUT, "--envmap", "builtin:grace"),
-        2,
-        r"nosuch: no such model folder",
-        must_not_exist=(OUT,),
-    ),
-    Case(
-        "eval-spp-zero",
-        ("eval", "relight", "{M}", "--envmap", "builtin:grace", "--spp", "0", "--out", OUT),
-        2,
-        r"--spp 0: expected at least 1 sample per pixel",
-        must_not_exist=(OUT,),
-    ),
-    Case(
-        "eval-max-views-zero",
-        ("eval", "relight", "{M}", "--envmap", "builtin:grace", "--max-views", "0", "--out", OUT),
-        2,
-        r"--max-views 0: expected at least 1",
-        must_not_exist=(OUT,),
-    ),
-    Case(
-        "eval-model-missing",
-        ("eval", "relight", "{T}/nosuch", "--envmap", "builtin:grace"),
-        2,
-        r"nosuch: no such model folder",
-    ),
+    _relight("exposure-negative", ("--exposure", "-1"), r"--exposure -1.0: expected a multiplier > 0"),
+    _relight("exposure-zero", ("--exposure", "0"), r"--exposure 0.0: expected a multiplier > 0"),
+    _relight("exposure-nan", ("--exposure", "nan"), r"--exposure nan"),
+    _relight("orbit-zero", ("--orbit", "0"), r"--orbit 0: expected at least 1 frame"),
+    _relight("model-missing", (), r"nosuch: no such model folder", model="{T}/nosuch"),
+    _eval("eval-spp-zero", ("--spp", "0"), r"--spp 0: expected at least 1 sample per pixel"),
+    _eval("eval-max-views-zero", ("--max-views", "0"), r"--max-views 0: expected at least 1"),
+    Case("eval-model-missing", ("eval", "relight", "{T}/nosuch", *GRACE), 2, r"nosuch: no such model folder"),
 ]
 
 

@@ -12,105 +12,34 @@ from badkit import Case, invoke, run_case
 OUT = "{T}/out.png"
 NOTHING = ("{T}/out.png", "{T}/out_000.png", "{T}/out.gif")
 
+
+def _render(case_id: str, flags: tuple, message: str, *, model: str = "{M}") -> Case:
+    """``render MODEL --out OUT FLAGS``: exit 2 and no image written."""
+    return Case(case_id, ("render", model, "--out", OUT, *flags), 2, message, must_not_exist=NOTHING)
+
+
+EXCLUDE_ALL = sum((("--exclude-view", str(i)) for i in range(12)), ())
+EXCLUDE_ALL_OLD_FLAG = sum((("--exclude", str(i)) for i in range(12)), ())
+HUGE = r"--width/--height: 100000 x 75000 = 7500 Mpx is more than the 67 Mpx limit \(MAX_RENDER_PIXELS\)"
 CASES = [
-    Case(
-        "width-zero",
-        ("render", "{M}", "--out", OUT, "--width", "0"),
-        2,
-        r"--width 0: expected a positive number",
-        must_not_exist=NOTHING,
-    ),
-    Case(
-        "height-zero",
-        ("render", "{M}", "--out", OUT, "--height", "0"),
-        2,
-        r"--height 0: expected a positive",
-        must_not_exist=NOTHING,
-    ),
-    Case(
-        "width-negative",
-        ("render", "{M}", "--out", OUT, "--width", "-5"),
-        2,
-        r"--width -5: expected a positive",
-        must_not_exist=NOTHING,
-    ),
-    Case(
-        "width-huge",
-        ("render", "{M}", "--out", OUT, "--width", "100000"),
-        2,
-        r"--width/--height: 100000 x 75000 = 7500 Mpx is more than the 67 Mpx limit \(MAX_RENDER_PIXELS\)",
-        must_not_exist=NOTHING,
-    ),
-    Case(
-        "width-height-huge",
-        ("render", "{M}", "--out", OUT, "--width", "9000", "--height", "9000"),
-        2,
-        r"9000 x 9000 = 81 Mpx is more than",
-        must_not_exist=NOTHING,
-    ),
-    Case(
-        "fps-zero",
-        ("render", "{M}", "--out", OUT, "--orbit", "2", "--fps", "0"),
-        2,
-        r"--fps 0.0: expected a frame rate > 0",
-        must_not_exist=NOTHING,
-    ),
-    Case(
-        "fps-negative",
-        ("render", "{M}", "--out", OUT, "--orbit", "2", "--fps", "-3"),
-        2,
-        r"--fps -3.0",
-        must_not_exist=NOTHING,
-    ),
-    Case(
-        "orbit-zero",
-        ("render", "{M}", "--out", OUT, "--orbit", "0"),
-        2,
-        r"--orbit 0: expected at least 1 frame",
-        must_not_exist=NOTHING,
-    ),
-    Case(
+    _render("width-zero", ("--width", "0"), r"--width 0: expected a positive number"),
+    _render("height-zero", ("--height", "0"), r"--height 0: expected a positive"),
+    _render("width-negative", ("--width", "-5"), r"--width -5: expected a positive"),
+    _render("width-huge", ("--width", "100000"), HUGE),
+    _render("width-height-huge", ("--width", "9000", "--height", "9000"), r"9000 x 9000 = 81 Mpx is more than"),
+    _render("fps-zero", ("--orbit", "2", "--fps", "0"), r"--fps 0.0: expected a frame rate > 0"),
+    _render("fps-negative", ("--orbit", "2", "--fps", "-3"), r"--fps -3.0"),
+    _render("orbit-zero", ("--orbit", "0"), r"--orbit 0: expected at least 1 frame"),
+    _render(
         "background-kind-bogus",
-        ("render", "{M}", "--out", OUT, "--background", "black", "--background-kind", "bogus"),
-        2,
+        ("--background", "black", "--background-kind", "bogus"),
         r"--background-kind 'bogus': expected one of auto, image, envmap",
-        must_not_exist=NOTHING,
     ),
-    Case(
-        "every-view-excluded",
-        ("render", "{M}", "--out", OUT, *sum((("--exclude-view", str(i)) for i in range(12)), ())),
-        2,
-        r"--exclude-view: all 12 views of .* are excluded",
-        must_not_exist=NOTHING,
-    ),
-    Case(
-        "every-view-excluded-old-flag",
-        ("render", "{M}", "--out", OUT, *sum((("--exclude", str(i)) for i in range(12)), ())),
-        2,
-        r"all 12 views",
-        must_not_exist=NOTHING,
-    ),
-    Case(
-        "unknown-view-excluded",
-        ("render", "{M}", "--out", OUT, "--exclude-view", "c9_t000.000"),
-        2,
-        r"view 'c9_t000.000' not in model",
-        must_not_exist=NOTHING,
-    ),
-    Case(
-        "model-missing",
-        ("render", "{T}/nosuch", "--out", OUT),
-        2,
-        r"nosuch: no such model folder",
-        must_not_exist=NOTHING,
-    ),
-    Case(
-        "model-is-a-file",
-        ("render", "{M}/model.toml", "--out", OUT),
-        2,
-        r"model.toml is a file, expected a model folder",
-        must_not_exist=NOTHING,
-    ),
+    _render("every-view-excluded", EXCLUDE_ALL, r"--exclude-view: all 12 views of .* are excluded"),
+    _render("every-view-excluded-old-flag", EXCLUDE_ALL_OLD_FLAG, r"all 12 views"),
+    _render("unknown-view-excluded", ("--exclude-view", "c9_t000.000"), r"view 'c9_t000.000' not in model"),
+    _render("model-missing", (), r"nosuch: no such model folder", model="{T}/nosuch"),
+    _render("model-is-a-file", (), r"model.toml is a file, expected a model folder", model="{M}/model.toml"),
     Case("loo-model-missing", ("eval", "loo", "{T}/nosuch"), 2, r"nosuch: no such model folder"),
 ]
 

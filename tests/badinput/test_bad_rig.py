@@ -25,49 +25,24 @@ def _rig_with_url(old: str, new: str):
 
 
 EMULATE = ("rig", "emulate", "--config", str(EXAMPLE), "--write-config", "{T}/rt.toml")
+
+
+def _fault(case_id: str, spec: str, message: str) -> Case:
+    """``rig emulate --fault SPEC``: exit 2 before the runtime config is written."""
+    return Case(case_id, (*EMULATE, "--fault", spec), 2, message, must_not_exist=("{T}/rt.toml",))
+
+
 CASES = [
-    Case(
+    _fault(
         "fault-unknown-kind",
-        (*EMULATE, "--fault", "turntable:explode"),
-        2,
+        "turntable:explode",
         r"--fault turntable:explode: unknown fault 'explode' .* expected one of drop, garble",
-        must_not_exist=("{T}/rt.toml",),
     ),
-    Case(
-        "fault-unknown-device",
-        (*EMULATE, "--fault", "kettle:silent"),
-        2,
-        r"no emulated device 'kettle' .* \(emulated: turntable",
-        must_not_exist=("{T}/rt.toml",),
-    ),
-    Case(
-        "fault-no-kind",
-        (*EMULATE, "--fault", "turntable"),
-        2,
-        r"--fault 'turntable': expected DEVICE:KIND",
-        must_not_exist=("{T}/rt.toml",),
-    ),
-    Case(
-        "fault-bad-count",
-        (*EMULATE, "--fault", "backdrops:garble:many"),
-        2,
-        r"'garble:many': COUNT = 'many' is not an integer",
-        must_not_exist=("{T}/rt.toml",),
-    ),
-    Case(
-        "fault-zero-count",
-        (*EMULATE, "--fault", "backdrops:drop:0"),
-        2,
-        r"COUNT must be > 0, got 0",
-        must_not_exist=("{T}/rt.toml",),
-    ),
-    Case(
-        "fault-too-many-args",
-        (*EMULATE, "--fault", "turntable:silent:3"),
-        2,
-        r"silent takes at most 0 argument",
-        must_not_exist=("{T}/rt.toml",),
-    ),
+    _fault("fault-unknown-device", "kettle:silent", r"no emulated device 'kettle' .* \(emulated: turntable"),
+    _fault("fault-no-kind", "turntable", r"--fault 'turntable': expected DEVICE:KIND"),
+    _fault("fault-bad-count", "backdrops:garble:many", r"'garble:many': COUNT = 'many' is not an integer"),
+    _fault("fault-zero-count", "backdrops:drop:0", r"COUNT must be > 0, got 0"),
+    _fault("fault-too-many-args", "turntable:silent:3", r"silent takes at most 0 argument"),
     Case(
         "url-fault-unknown",
         ("rig", "emulate", "--config", "{T}/rig.toml", "--write-config", "{T}/rt.toml"),

@@ -37,6 +37,9 @@ def _edit_record(index: int, **changes):
     return setup
 
 
+VERIFY = ("session", "verify", "{S}")
+HDR = ("session", "hdr", "{S}")
+WHITE_LEVEL_TEXT = r"session.toml: \[session\] white_level = \"bright\", expected a finite number > 0"
 CASES = [
     Case("verify-missing-folder", ("session", "verify", "{T}/nosuch"), 2, r"nosuch: no such session folder"),
     Case("info-missing-folder", ("session", "info", "{T}/nosuch", "--json"), 2, r"nosuch: no such session folder"),
@@ -48,32 +51,22 @@ CASES = [
     ),
     Case(
         "verify-table-deg-not-a-number",
-        ("session", "verify", "{S}"),
+        VERIFY,
         4,
         r"NOT OK.*invalid records 1.*manifest.jsonl:3: record .*table_deg = \"ninety\", expected a finite number",
         setup=_edit_record(2, table_deg="ninety"),
     ),
     Case(
-        "verify-camera-negative",
-        ("session", "verify", "{S}"),
-        4,
-        r"camera = -1, expected an integer >= 0",
-        setup=_edit_record(0, camera=-1),
+        "verify-camera-negative", VERIFY, 4, r"camera = -1, expected an integer >= 0", setup=_edit_record(0, camera=-1)
     ),
     Case(
         "verify-phase-unknown",
-        ("session", "verify", "{S}"),
+        VERIFY,
         4,
         r"phase = \"nosuch\", expected one of calibration",
         setup=_edit_record(1, phase="nosuch"),
     ),
-    Case(
-        "verify-white-level-text",
-        ("session", "verify", "{S}"),
-        4,
-        r"session.toml: \[session\] white_level = \"bright\", expected a finite number > 0",
-        setup=_set_session_key("white_level", '"bright"'),
-    ),
+    Case("verify-white-level-text", VERIFY, 4, WHITE_LEVEL_TEXT, setup=_set_session_key("white_level", '"bright"')),
     Case(
         "info-white-level-zero",
         ("session", "info", "{S}"),
@@ -83,22 +76,13 @@ CASES = [
     ),
     Case(
         "hdr-unknown-phase",
-        ("session", "hdr", "{S}", "--phase", "nosuch"),
+        (*HDR, "--phase", "nosuch"),
         2,
         r"--phase 'nosuch': not a phase; expected one of calibration",
     ),
+    Case("hdr-absent-phase", (*HDR, "--phase", "envmatte"), 2, r"--phase 'envmatte': .* has no images of that phase"),
     Case(
-        "hdr-absent-phase",
-        ("session", "hdr", "{S}", "--phase", "envmatte"),
-        2,
-        r"--phase 'envmatte': .* has no images of that phase",
-    ),
-    Case(
-        "hdr-white-level-text",
-        ("session", "hdr", "{S}"),
-        4,
-        r"white_level = \"bright\"",
-        setup=_set_session_key("white_level", '"bright"'),
+        "hdr-white-level-text", HDR, 4, r"white_level = \"bright\"", setup=_set_session_key("white_level", '"bright"')
     ),
 ]
 

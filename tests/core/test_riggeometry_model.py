@@ -18,7 +18,7 @@ from opacityhull.model import (
     write_model,
     write_surfels_ply,
 )
-from opacityhull.riggeometry import RigGeometry, parse_view_id, view_id
+from opacityhull.riggeometry import RigGeometry, back_display, bottom_display, parse_view_id, view_id
 
 GEOM = {
     "target_m": [0.0, 0.08, 0.0],
@@ -27,25 +27,7 @@ GEOM = {
         {"name": "cam1", "width": 64, "height": 48, "distance_m": 1.0, "elevation_deg": 60.0, "fov_y_deg": 20.0},
     ],
     "lights": [{"id": i, "elevation_deg": 40.0 + 10 * i, "azimuth_deg": 0.0, "distance_m": 1.2} for i in range(4)],
-    "displays": [
-        {
-            "name": "bottom",
-            "centre_m": [0, 0, 0],
-            "normal": [0, 1, 0],
-            "up": [0, 0, -1],
-            "size_m": [0.6, 0.6],
-            "resolution": [32, 32],
-            "rotates_with_table": True,
-        },
-        {
-            "name": "back",
-            "centre_m": [0, 0.2, -0.35],
-            "normal": [0, 0, 1],
-            "up": [0, 1, 0],
-            "size_m": [0.8, 0.45],
-            "resolution": [64, 36],
-        },
-    ],
+    "displays": [bottom_display([0.6, 0.6], [32, 32]), back_display([0, 0.2, -0.35], [0.8, 0.45], [64, 36])],
 }
 
 

@@ -15,10 +15,11 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+from helpers import camera_spec
 
 from opacityhull.camera import Camera, object_from_rig, write_colmap_text, write_opencv_yaml
 from opacityhull.imageio import read_png, write_exr, write_png
-from opacityhull.riggeometry import RigGeometry, view_id
+from opacityhull.riggeometry import RigGeometry, back_display, bottom_display, view_id
 from opacityhull.session import SessionWriter, shot_key
 
 # the ray caster is shared with the paper-scale session writer (one copy of the scene)
@@ -35,15 +36,15 @@ HALO_ALPHA = 0.35
 def rig_dict(n_cams=3, width=64, height=48, *, fov_y_deg=20.0, distance_m=0.8, elevations=(15.0, 55.0)):
     els = np.linspace(elevations[0], elevations[1], n_cams)
     cams = [
-        {
-            "name": f"cam{i}",
-            "width": width,
-            "height": height,
-            "distance_m": distance_m,
-            "elevation_deg": float(e),
-            "azimuth_deg": 0.0,
-            "fov_y_deg": fov_y_deg,
-        }
+        camera_spec(
+            f"cam{i}",
+            width,
+            height,
+            distance_m=distance_m,
+            elevation_deg=float(e),
+            azimuth_deg=0.0,
+            fov_y_deg=fov_y_deg,
+        )
         for i, e in enumerate(els)
     ]
     return {
@@ -54,26 +55,8 @@ def rig_dict(n_cams=3, width=64, height=48, *, fov_y_deg=20.0, distance_m=0.8, e
             {"id": 1, "elevation_deg": 70.0, "azimuth_deg": -60.0, "distance_m": 1.0},
         ],
         "displays": [
-            {
-                "name": "bottom",
-                "centre_m": [0.0, 0.0, 0.0],
-                "normal": [0.0, 1.0, 0.0],
-                "up": [0.0, 0.0, -1.0],
-                "size_m": [1.0, 1.0],
-                "resolution": [32, 32],
-                "rotates_with_table": True,
-                "max_radiance": 1.0,
-            },
-            {
-                "name": "back",
-                "centre_m": [0.0, 0.28, -0.4],
-                "normal": [0.0, 0.0, 1.0],
-                "up": [0.0, 1.0, 0.0],
-                "size_m": [1.0, 0.56],
-                "resolution": [32, 18],
-                "rotates_with_table": False,
-                "max_radiance": 1.0,
-            },
+            bottom_display([1.0, 1.0], [32, 32], max_radiance=1.0),
+            back_display([0.0, 0.28, -0.4], [1.0, 0.56], [32, 18], rotates_with_table=False, max_radiance=1.0),
         ],
     }
 

@@ -28,7 +28,10 @@ def cluster(dask_cluster):
 
 @pytest.fixture(scope="module")
 def built(tmp_path_factory):
-    return rcsynth.built_sphere(tmp_path_factory, "sched", CFG, reflectance=True, seed=12)
+    """``(session_dir, model_dir)`` of one build run serially (the reference)."""
+    session, out, rep = rcsynth.built_sphere(tmp_path_factory, "sched", CFG, reflectance=True, seed=12)
+    assert rep.scheduler == "serial"
+    return session, out
 
 
 @pytest.fixture(scope="module")
@@ -38,9 +41,7 @@ def session(built):
 
 @pytest.fixture(scope="module")
 def serial_model(built):
-    _, out, rep = built
-    assert rep.scheduler == "serial"
-    return out
+    return built[1]
 
 
 def assert_same_model(a, b):

@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from helpers import ring_cameras
 
 from opacityhull.camera import Camera, rig_from_object, rot_y
 from opacityhull import se3
@@ -50,18 +51,7 @@ HELD_OUT = np.arange(22.5, 360.0, 90.0)
 def geometry_dict(elevations=(40.0, 52.0, 65.0, 18.0), azimuths=(0.0, 120.0, -120.0, 60.0), focal_px=430.0):
     return {
         "target_m": [0.0, 0.02, 0.0],
-        "cameras": [
-            {
-                "name": f"cam{i}",
-                "width": W,
-                "height": H,
-                "distance_m": 0.5,
-                "elevation_deg": el,
-                "azimuth_deg": az,
-                "focal_px": focal_px,
-            }
-            for i, (el, az) in enumerate(zip(elevations, azimuths))
-        ],
+        "cameras": ring_cameras(W, H, zip(elevations, azimuths), distance_m=0.5, focal_px=focal_px),
     }
 
 
@@ -128,13 +118,8 @@ def rendered():
     images, obs, held = {}, [], []
     for c, cam in enumerate(true):
         for a in list(ANGLES) + (list(HELD_OUT) if c < 3 else []):
-            img = render_charuco_view(
-                cam,
-                world_from_board=rig_from_object(a) @ TRUE_PLACE.object_from_board(),
-                charuco=SPEC,
-                noise_sigma=0.004,
-                rng=rng,
-            )
+            world_from_board = rig_from_object(a) @ TRUE_PLACE.object_from_board()
+            img = render_charuco_view(cam, world_from_board=world_from_board, charuco=SPEC, noise_sigma=0.004, rng=rng)
             o = detect_charuco(img, charuco=SPEC, camera=c, table_deg=a, upscale=(1, 2))
             if a in HELD_OUT:
                 held.append(o)

@@ -10,6 +10,7 @@ import cv2
 import numpy as np
 import pycolmap
 import pytest
+from helpers import ring_cameras
 
 from opacityhull.camera import Camera, read_opencv_yaml, rig_from_object
 from opacityhull.charuco import CharucoSpec
@@ -32,18 +33,7 @@ def calibrated():
     """A small exact calibration: three cameras, eight table angles, one distorted camera."""
     g = {
         "target_m": [0.0, 0.02, 0.0],
-        "cameras": [
-            {
-                "name": f"cam{i}",
-                "width": W,
-                "height": H,
-                "distance_m": 0.5,
-                "elevation_deg": el,
-                "azimuth_deg": az,
-                "focal_px": 300.0,
-            }
-            for i, (el, az) in enumerate([(35.0, 0.0), (50.0, 120.0), (65.0, -120.0)])
-        ],
+        "cameras": ring_cameras(W, H, [(35.0, 0.0), (50.0, 120.0), (65.0, -120.0)], distance_m=0.5, focal_px=300.0),
     }
     nominal = RigGeometry.from_dict(g).nominal_cameras()
     true = [

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -119,18 +120,19 @@ def test_silhouette_touching_the_border_is_not_carved_outside():
     assert np.all(occ[inside])
 
 
+def _inner_camera(eye) -> Camera:
+    """A 40 x 30 px camera (f = 30 px) at ``eye`` looking along +x."""
+    K = np.array([[30.0, 0, 19.5], [0, 30.0, 14.5], [0, 0, 1]])
+    T = look_at_world_from_cam(eye, eye + np.array([1.0, 0.0, 0.0]))
+    return Camera(K=K, width=40, height=30, world_from_cam=T, name="inner")
+
+
 def test_camera_centre_inside_the_bounding_volume():
     """A camera inside the grid (looking outwards) carves only in front of it; voxels
     behind it and on its plane stay, and the three carvers still agree."""
     cams = ring_cameras(8)
     eye = CENTRE + np.array([0.0, 0.0, 0.0])
-    inner = Camera(
-        K=np.array([[30.0, 0, 19.5], [0, 30.0, 14.5], [0, 0, 1]]),
-        width=40,
-        height=30,
-        world_from_cam=look_at_world_from_cam(eye, eye + np.array([1.0, 0.0, 0.0])),
-        name="inner",
-    )
+    inner = _inner_camera(eye)
     sil_inner = np.zeros((30, 40), bool)  # sees nothing of the object in front of it
     grid = HullGrid.from_bounds(CENTRE - 0.07, CENTRE + 0.07, 28)
     sils = [sphere_silhouette(c) for c in cams] + [sil_inner]
@@ -174,13 +176,7 @@ def test_hull_bounds_contain_the_hull_and_are_tight():
 def test_hull_bounds_drop_a_camera_inside_and_need_a_fallback_when_unbounded():
     cams = ring_cameras(8)
     sils = [sphere_silhouette(c) for c in cams]
-    inner = Camera(
-        K=np.array([[30.0, 0, 19.5], [0, 30.0, 14.5], [0, 0, 1]]),
-        width=40,
-        height=30,
-        world_from_cam=look_at_world_from_cam(CENTRE, CENTRE + np.array([1.0, 0, 0])),
-        name="inner",
-    )
+    inner = _inner_camera(CENTRE)
     s_in = np.zeros((30, 40), bool)
     s_in[10:20, 10:20] = True
     lo, hi = hull_bounds(sils + [s_in], cams + [inner])
@@ -211,17 +207,7 @@ def test_silhouette_from_alpha_threshold_dilation_nan():
 
 def test_distorted_camera_silhouette_is_resampled_conservatively():
     cams = ring_cameras(10, W=160, H=120, f=220.0)  # sphere radius ~18 px
-    dist_cams = [
-        Camera(
-            K=c.K,
-            width=c.width,
-            height=c.height,
-            world_from_cam=c.world_from_cam,
-            dist=(-0.15, 0.03, 0.001, -0.001, 0.0),
-            name=c.name,
-        )
-        for c in cams
-    ]
+    dist_cams = [dataclasses.replace(c, dist=(-0.15, 0.03, 0.001, -0.001, 0.0)) for c in cams]
     sils_d = []
     for c in dist_cams:  # silhouette as the distorted camera sees it
         uv = np.stack(np.meshgrid(np.arange(c.width), np.arange(c.height)), -1).reshape(-1, 2).astype(float)

@@ -24,7 +24,7 @@ from opacityhull.reconstruct.matting import (
     solve_matte_reference,
     straight_from_premul,
 )
-from opacityhull.riggeometry import RigGeometry
+from opacityhull.riggeometry import RigGeometry, back_display
 
 
 def composite(alpha, F, B, noise=0.0, rng=None):
@@ -260,16 +260,7 @@ def test_backdrop_from_displays_fronto_parallel():
             "target_m": [0, 0.2, -0.4],
             "cameras": [{"name": "c", "width": 40, "height": 30, "distance_m": 1, "fov_y_deg": 20}],
             "displays": [
-                {
-                    "name": "back",
-                    "centre_m": [0.0, 0.2, -0.4],
-                    "normal": [0, 0, 1],
-                    "up": [0, 1, 0],
-                    "size_m": [0.8, 0.6],
-                    "resolution": [8, 6],
-                    "rotates_with_table": False,
-                    "max_radiance": 2.0,
-                }
+                back_display([0.0, 0.2, -0.4], [0.8, 0.6], [8, 6], rotates_with_table=False, max_radiance=2.0)
             ],
         }
     )

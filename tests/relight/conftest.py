@@ -29,11 +29,6 @@ def sphere_model_missing(tmp_path_factory):
     from opacityhull.model import light_key
     from opacityhull.relight.synthetic import write_sphere_model
 
-    return write_sphere_model(
-        tmp_path_factory.mktemp("sphere_missing") / "model",
-        width=16,
-        height=12,
-        table_degs=(0.0, 90.0),
-        n_positions=5,
-        drop_light=(1, light_key(2, 72.0)),
-    )
+    root = tmp_path_factory.mktemp("sphere_missing") / "model"
+    lost = (1, light_key(2, 72.0))
+    return write_sphere_model(root, width=16, height=12, table_degs=(0.0, 90.0), n_positions=5, drop_light=lost)

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from helpers import camera_spec
 
 from opacityhull.acquire.patterns import plan_patterns
 from opacityhull.acquire.plan import parse_plan
@@ -20,44 +21,16 @@ from opacityhull.reconstruct.natural_field import estimate_session_natural
 from opacityhull.relight import natural as nt
 from opacityhull.relight import natural_synthetic as ns
 from opacityhull.relight.envmap import EnvironmentMap
-from opacityhull.riggeometry import RigGeometry
+from opacityhull.riggeometry import RigGeometry, back_display, bottom_display
 from opacityhull.session import ShotRecord, shot_key
 
 GEO = {
     "target_m": [0.0, 0.1, 0.0],
-    "cameras": [
-        {
-            "name": "cam0",
-            "width": 8,
-            "height": 6,
-            "distance_m": 1.0,
-            "elevation_deg": 10.0,
-            "azimuth_deg": 0.0,
-            "fov_y_deg": 30.0,
-        }
-    ],
+    "cameras": [camera_spec("cam0", 8, 6, distance_m=1.0, elevation_deg=10.0, azimuth_deg=0.0, fov_y_deg=30.0)],
     "lights": [],
     "displays": [
-        {
-            "name": "bottom",
-            "centre_m": [0, 0, 0],
-            "normal": [0, 1, 0],
-            "up": [0, 0, -1],
-            "size_m": [1.0, 1.0],
-            "resolution": [16, 16],
-            "rotates_with_table": True,
-            "max_radiance": 2.0,
-        },
-        {
-            "name": "back",
-            "centre_m": [0, 0.28, -0.4],
-            "normal": [0, 0, 1],
-            "up": [0, 1, 0],
-            "size_m": [1.0, 0.5],
-            "resolution": [16, 8],
-            "rotates_with_table": False,
-            "max_radiance": 1.0,
-        },
+        bottom_display([1.0, 1.0], [16, 16], max_radiance=2.0),
+        back_display([0, 0.28, -0.4], [1.0, 0.5], [16, 8], rotates_with_table=False, max_radiance=1.0),
     ],
 }
 

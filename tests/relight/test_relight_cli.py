@@ -17,20 +17,16 @@ def run(*args):
     return r
 
 
-def test_relight_envmap_writes_views_and_summary(sphere_model, probes_dir, tmp_path):
-    r = run(
-        "relight",
-        sphere_model,
-        "--envmap",
-        probes_dir / "uffizi.hdr",
-        "--yaw-deg",
-        180,
-        "--out",
-        tmp_path / "o",
-        "--json",
-    )
+def run_ok(*args) -> dict:
+    """``run(*args, "--json")``: asserts exit 0 and returns the summary (the last stdout line)."""
+    r = run(*args, "--json")
     assert r.exit_code == 0, r.output
-    s = json.loads(r.stdout.strip().splitlines()[-1])
+    return json.loads(r.stdout.strip().splitlines()[-1])
+
+
+def test_relight_envmap_writes_views_and_summary(sphere_model, probes_dir, tmp_path):
+    uffizi = ("--envmap", probes_dir / "uffizi.hdr", "--yaw-deg", 180)
+    s = run_ok("relight", sphere_model, *uffizi, "--out", tmp_path / "o")
     assert s["n_views"] == 8 and s["n_lights_captured"] == 60
     assert s["lighting"]["envmap"]["source"] == "uffizi.hdr yaw 180"
     rgba = read_exr(tmp_path / "o" / "views" / "c0_t000.000.exr")
@@ -40,41 +36,16 @@ def test_relight_envmap_writes_views_and_summary(sphere_model, probes_dir, tmp_p
 
 
 def test_builtin_probe_gets_its_yaw_by_default(sphere_model, tmp_path):
-    r = run("relight", sphere_model, "--envmap", "builtin:grace", "--out", tmp_path / "o", "--json", "--no-views")
-    assert r.exit_code == 0, r.output
-    assert json.loads(r.stdout.strip().splitlines()[-1])["lighting"]["envmap"]["source"] == "grace.hdr yaw 180"
-    r = run(
-        "relight",
-        sphere_model,
-        "--envmap",
-        "builtin:grace",
-        "--yaw-deg",
-        0,
-        "--out",
-        tmp_path / "o",
-        "--json",
-        "--no-views",
-    )
-    assert json.loads(r.stdout.strip().splitlines()[-1])["lighting"]["envmap"]["source"] == "grace.hdr"
+    grace = ("relight", sphere_model, "--envmap", "builtin:grace", "--out", tmp_path / "o", "--no-views")
+    assert run_ok(*grace)["lighting"]["envmap"]["source"] == "grace.hdr yaw 180"
+    assert run_ok(*grace, "--yaw-deg", 0)["lighting"]["envmap"]["source"] == "grace.hdr"
     r = run("relight", sphere_model, "--envmap", "builtin:sun", "--out", tmp_path / "o")
     assert r.exit_code == 2 and "unknown built-in probe" in r.text
 
 
 def test_relight_with_lights_and_pca(sphere_model, tmp_path):
-    r = run(
-        "relight",
-        sphere_model,
-        "--lights",
-        "0,1,0.2,1,1,1;point:1,1,0,2,0,0",
-        "--pca-rank",
-        9,
-        "--out",
-        tmp_path / "o",
-        "--json",
-        "--no-views",
-    )
-    assert r.exit_code == 0, r.output
-    s = json.loads(r.stdout.strip().splitlines()[-1])
+    lights = "0,1,0.2,1,1,1;point:1,1,0,2,0,0"
+    s = run_ok("relight", sphere_model, "--lights", lights, "--pca-rank", 9, "--out", tmp_path / "o", "--no-views")
     assert s["lighting"]["envmap"] is None and len(s["lighting"]["lights"]) == 2
     np.testing.assert_allclose(s["lighting"]["lights"][1]["irradiance_rgb"], [1.0, 0, 0])  # 2 / |(1,1,0)|^2
     assert s["pca"]["rank"] == 9 and 0 < s["pca"]["reflectance_rel_error_mean"] < 0.05
@@ -82,26 +53,9 @@ def test_relight_with_lights_and_pca(sphere_model, tmp_path):
 
 
 def test_relight_orbit_and_view_render_through_ulr(sphere_model, probes_dir, tmp_path):
-    r = run(
-        "relight",
-        sphere_model,
-        "--envmap",
-        probes_dir / "pisa.hdr",
-        "--yaw-deg",
-        180,
-        "--orbit",
-        3,
-        "--view",
-        "1,45",
-        "--out",
-        tmp_path / "o",
-        "--json",
-        "--no-views",
-        "--fps",
-        5,
-    )
-    assert r.exit_code == 0, r.output
-    s = json.loads(r.stdout.strip().splitlines()[-1])
+    pisa = ("--envmap", probes_dir / "pisa.hdr", "--yaw-deg", 180)
+    orbit = ("--orbit", 3, "--fps", 5, "--view", "1,45")
+    s = run_ok("relight", sphere_model, *pisa, *orbit, "--out", tmp_path / "o", "--no-views")
     assert s["orbit"]["frames"] == 3
     from PIL import Image
 
@@ -129,22 +83,8 @@ def test_relight_bad_inputs_exit_nonzero_with_a_clear_message(sphere_model, tmp_
 
 
 def test_eval_relight_on_the_analytic_sphere(sphere_model, probes_dir, tmp_path):
-    r = run(
-        "eval",
-        "relight",
-        sphere_model,
-        "--envmap",
-        probes_dir / "uffizi.hdr",
-        "--yaw-deg",
-        180,
-        "--max-views",
-        3,
-        "--out",
-        tmp_path / "e",
-        "--json",
-    )
-    assert r.exit_code == 0, r.output
-    s = json.loads(r.stdout.strip().splitlines()[-1])
+    uffizi = ("--envmap", probes_dir / "uffizi.hdr", "--yaw-deg", 180)
+    s = run_ok("eval", "relight", sphere_model, *uffizi, "--max-views", 3, "--out", tmp_path / "e")
     assert {"psnr_mean", "rel_err_mean", "per_view"} <= set(s)
     assert len(s["per_view"]) == 3 and s["truth"] == "analytic quadrature"
     assert s["rel_err_mean"] < 0.03 and s["psnr_mean"] > 30

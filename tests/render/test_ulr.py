@@ -299,27 +299,9 @@ def test_block_search_equals_frame_search(sphere_small):
         w = np.empty((N, 4), np.float32)
         uv = np.empty((N, 4, 2), np.float32)
         cnt = np.empty(N, np.int32)
-        K.ulr_select(
-            m.surfels.positions,
-            m.surfels.visibility,
-            np.ones(N, bool),
-            np.ones(pv.n_views, np.uint8),
-            C,
-            pv.centres,
-            pv.cams,
-            pv.sizes,
-            order,
-            s_lb,
-            pv.tie_rank,
-            4,
-            idx,
-            w,
-            uv,
-            cnt,
-            0,
-            N,
-            block=block,
-        )
+        surfels = (m.surfels.positions, m.surfels.visibility, np.ones(N, bool))  # every surfel drawable
+        views = (np.ones(pv.n_views, np.uint8), C, pv.centres, pv.cams, pv.sizes)  # every view allowed
+        K.ulr_select(*surfels, *views, order, s_lb, pv.tie_rank, 4, idx, w, uv, cnt, 0, N, block=block)
         outs.append((idx, w))
     for idx, w in outs[1:]:
         np.testing.assert_array_equal(idx, outs[0][0])

@@ -18,6 +18,7 @@ from opacityhull.rigs.emulators.enttec import EnttecEmulator
 from opacityhull.rigs.emulators.grbl import GrblEmulator
 from opacityhull.rigs.lights import DmxLightArray, EnttecDmx
 from opacityhull.rigs.motion import GrblAxis, GrblController
+from opacityhull.rigs.transport import DeviceTimeout
 
 
 @pytest.fixture(params=["pty", "tcp"])
@@ -41,6 +42,24 @@ def _wait_for(predicate, timeout_s: float = 5.0, what: str = "condition"):
 @pytest.fixture
 def wait_for():
     return _wait_for
+
+
+def _open_silent(kit, port) -> str:
+    """Open ``port`` while ``kit.emu`` answers nothing: it must raise
+    :class:`DeviceTimeout` naming ``kit.server.url`` and stay closed. Returns the message."""
+    kit.emu.faults.silent = True
+    with pytest.raises(DeviceTimeout) as ei:
+        port.open()
+    msg = str(ei.value)
+    assert kit.server.url in msg, msg
+    assert not port.is_open
+    return msg
+
+
+@pytest.fixture
+def open_silent():
+    """``msg = open_silent(kit, port)``: see :func:`_open_silent`."""
+    return _open_silent
 
 
 @pytest.fixture

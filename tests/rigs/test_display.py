@@ -25,18 +25,24 @@ def emu():
         yield e, srv
 
 
-@pytest.fixture
-def ctl(emu):
-    e, srv = emu
-    c = DisplayController.from_url(
+def _small_chunk_controller(srv, *, retries: int, reconnect_attempts: int) -> DisplayController:
+    """A controller on ``srv`` uploading in 256-byte chunks (several per image), 0.3 s
+    reply timeout and a quick 10 ms reconnect."""
+    return DisplayController.from_url(
         srv.url,
         outputs=OUTPUTS,
         timeout_s=0.3,
-        retries=3,
+        retries=retries,
         chunk_bytes=256,
-        reconnect_attempts=1,
+        reconnect_attempts=reconnect_attempts,
         reconnect_delay_s=0.01,
     )
+
+
+@pytest.fixture
+def ctl(emu):
+    e, srv = emu
+    c = _small_chunk_controller(srv, retries=3, reconnect_attempts=1)
     with c:
         yield c
 
@@ -179,15 +185,7 @@ def test_unplug_mid_upload_then_replug(tmp_path):
                 srv.vanish()
 
     e.on_command = pull_plug
-    c = DisplayController.from_url(
-        srv.url,
-        outputs=OUTPUTS,
-        timeout_s=0.3,
-        retries=1,
-        chunk_bytes=256,
-        reconnect_attempts=2,
-        reconnect_delay_s=0.01,
-    )
+    c = _small_chunk_controller(srv, retries=1, reconnect_attempts=2)
     img = pattern(7)
     try:
         with pytest.raises(DeviceGone, match=r"backdrops: .*(did not come back|cannot open|lost the connection)"):

@@ -51,14 +51,10 @@ def test_open_reads_identity_and_writes_only_differing_settings(grbl):
     assert set(g.ctl.axes) == {"X", "Y"}
 
 
-def test_open_a_silent_port_times_out_naming_device_url_and_what_to_check(grbl):
+def test_open_a_silent_port_times_out_naming_device_url_and_what_to_check(grbl, open_silent):
     g = grbl(open=False)
-    g.emu.faults.silent = True
-    with pytest.raises(DeviceTimeout) as ei:
-        g.ctl.open()
-    msg = str(ei.value)
-    assert "grbl" in msg and g.server.url in msg and "GRBL 1.1 at 115200 baud" in msg
-    assert not g.ctl.is_open
+    msg = open_silent(g, g.ctl)
+    assert "grbl" in msg and "GRBL 1.1 at 115200 baud" in msg
     assert b"?" in g.emu.received and b"\x18" in g.emu.received  # asked, then provoked a banner
 
 

@@ -11,13 +11,8 @@ from hypothesis import strategies as st
 from opacityhull.camera import Camera, look_at_world_from_cam
 from opacityhull.errors import InputError, ShapeError
 from opacityhull.riggeometry import RigGeometry
-from opacityhull.sim.groundtruth import (
-    direction_to_equirect,
-    envmap_for_mitsuba,
-    equirect_direction,
-    render_ground_truth,
-    render_under_envmap,
-)
+from opacityhull.sim.groundtruth import direction_to_equirect, envmap_for_mitsuba, equirect_direction
+from opacityhull.sim.groundtruth import render_ground_truth, render_under_envmap
 from opacityhull.sim.render import SimRenderer
 from opacityhull.sim.scenes import load_scene
 

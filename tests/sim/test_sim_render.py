@@ -18,6 +18,13 @@ from opacityhull.sim.variants import use_mitsuba
 from conftest import conic_area_centre, oracle_coverage, sphere_conic
 
 
+def _spec_with_half_fov(name: str, width: int, height: int, *, half_fov_y_deg: float, **pose) -> CameraSpec:
+    """A :class:`CameraSpec` of ``width`` x ``height`` px whose vertical half field of
+    view is ``half_fov_y_deg``; ``pose`` is ``distance_m``, ``elevation_deg``, ``azimuth_deg``."""
+    focal_px = height / (2 * math.tan(math.radians(half_fov_y_deg)))
+    return CameraSpec(name=name, width=width, height=height, focal_px=focal_px, **pose)
+
+
 def _off_centre_camera(eye=(0.25, 0.45, 0.85), target=(0.0, 0.08, 0.0)) -> Camera:
     K = np.array([[118.0, 0.0, 43.2], [0.0, 118.0, 31.7], [0.0, 0.0, 1.0]])
     return Camera(K=K, width=96, height=72, world_from_cam=look_at_world_from_cam(eye, target), name="odd")
@@ -145,15 +152,7 @@ def _geometry_without_displays(light_position) -> RigGeometry:
 
 
 def test_light_exactly_behind_the_object_leaves_the_visible_side_black(sphere_scene):
-    spec = CameraSpec(
-        name="c",
-        width=64,
-        height=48,
-        distance_m=0.8,
-        elevation_deg=20.0,
-        azimuth_deg=30.0,
-        focal_px=48 / (2 * math.tan(math.radians(12))),
-    )
+    spec = _spec_with_half_fov("c", 64, 48, half_fov_y_deg=12, distance_m=0.8, elevation_deg=20.0, azimuth_deg=30.0)
     target = np.array([0.0, 0.08, 0.0])
     cam = spec.nominal_camera(target)
     behind = target + (target - cam.centre_world) * 1.5  # on the camera's optical axis, behind the sphere
@@ -283,15 +282,8 @@ def test_object_larger_than_the_displays(small_geometry, tmp_path):
     scene = load_scene(p)
     r = SimRenderer(scene, small_geometry, overrides={"spp": 16})
     # a wide camera, far back: sees the whole 1.2 m sphere and the edges of both panels
-    cam = CameraSpec(
-        name="wide",
-        width=96,
-        height=72,
-        distance_m=2.5,
-        elevation_deg=15.0,
-        azimuth_deg=20.0,
-        focal_px=72 / (2 * math.tan(math.radians(35))),
-    ).nominal_camera(np.array([0.0, 0.5, 0.0]))
+    spec = _spec_with_half_fov("wide", 96, 72, half_fov_y_deg=35, distance_m=2.5, elevation_deg=15.0, azimuth_deg=20.0)
+    cam = spec.nominal_camera(np.array([0.0, 0.5, 0.0]))
     white = {d.name: make_pattern("white", *d.resolution) for d in small_geometry.displays}
     img = r.render(cam, SimState(displays=white))
     back_only = r.render(cam, SimState(displays=white, content="none"))

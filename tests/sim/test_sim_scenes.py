@@ -48,17 +48,7 @@ def _write(tmp_path, text: str):
 
 
 def test_unknown_material_type_names_file_and_key(tmp_path):
-    p = _write(
-        tmp_path,
-        """
-[materials.fancy]
-type = "velvet"
-
-[[objects]]
-shape = "sphere"
-material = "fancy"
-""",
-    )
+    p = _write(tmp_path, '[materials.fancy]\ntype = "velvet"\n\n[[objects]]\nshape = "sphere"\nmaterial = "fancy"\n')
     with pytest.raises(ConfigError) as e:
         load_scene(p)
     msg = str(e.value)
@@ -66,17 +56,7 @@ material = "fancy"
 
 
 def test_undefined_material_reference_names_key(tmp_path):
-    p = _write(
-        tmp_path,
-        """
-[materials.a]
-type = "diffuse"
-
-[[objects]]
-shape = "sphere"
-material = "b"
-""",
-    )
+    p = _write(tmp_path, '[materials.a]\ntype = "diffuse"\n\n[[objects]]\nshape = "sphere"\nmaterial = "b"\n')
     with pytest.raises(ConfigError, match=r"objects\[0\]\.material.*'b'"):
         load_scene(p)
 

@@ -1,0 +1,32 @@
+"""Helpers shared by the benchmark scripts, which import it from their own folder
+(``python benchmarks/<name>.py`` puts ``benchmarks/`` first on ``sys.path``).
+
+Running this file does nothing: ``make bench`` runs every ``benchmarks/*.py``.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+
+def pyplot():
+    """``matplotlib.pyplot`` on the non-interactive Agg backend (no display needed; the
+    backend must be chosen before pyplot is first imported)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def print_result(res: dict, report: Path, *, as_json: bool) -> None:
+    """Print ``res`` as one JSON object on stdout (``--json``), else the Markdown report
+    the benchmark wrote at ``report``."""
+    if as_json:
+        from opacityhull.cliutil import to_jsonable
+
+        print(json.dumps(to_jsonable(res)))
+    else:
+        print(report.read_text())

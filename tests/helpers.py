@@ -1,0 +1,55 @@
+"""Small builders shared by the test files (``tests/`` is on ``sys.path`` through
+``tests/conftest.py``; benchmarks that import test modules add it themselves).
+
+The camera-entry builders of rig-geometry dicts are here; the two display panels of the
+lab layout are :func:`opacityhull.riggeometry.bottom_display` and ``back_display``.
+"""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any, Callable
+
+
+def python_child(script: Path, *args: str, env: dict[str, str], preexec_fn: Callable[[], Any] | None = None):
+    """Start ``python SCRIPT ARGS...`` with text pipes on stdout and stderr, in the
+    environment ``env`` (a full environment, e.g. ``os.environ`` plus keys); returns the
+    :class:`subprocess.Popen`."""
+    cmd = [sys.executable, str(script), *map(str, args)]
+    return subprocess.Popen(
+        cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, preexec_fn=preexec_fn
+    )
+
+
+def with_pythonpath(folder: Path) -> dict[str, str]:
+    """``os.environ`` with ``folder`` first on ``PYTHONPATH``."""
+    return dict(os.environ, PYTHONPATH=str(folder) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+
+
+def fill_with_zeros(path: Path) -> None:
+    """Write 64 KiB blocks of zeros to the file ``path`` until the file system refuses
+    (ENOSPC or a quota); the error is the point, so it is swallowed."""
+    with open(path, "wb", buffering=0) as f:
+        try:
+            while True:
+                f.write(b"\0" * 65536)
+        except OSError:
+            pass
+
+
+def camera_spec(name: str, width: int, height: int, **fields: Any) -> dict[str, Any]:
+    """A ``[[cameras]]`` entry of a rig-geometry dict: ``width`` x ``height`` px, plus
+    ``fields`` (``distance_m``, ``elevation_deg``, ``fov_y_deg``, ...) as given."""
+    return {"name": name, "width": width, "height": height, **fields}
+
+
+def ring_cameras(width: int, height: int, elevations_azimuths_deg, **fields: Any) -> list[dict[str, Any]]:
+    """``cam0``, ``cam1``, ... at the given (elevation, azimuth) pairs in degrees, all
+    ``width`` x ``height`` px with the same ``fields`` (``distance_m``, ``focal_px``, ...)."""
+    return [
+        camera_spec(f"cam{i}", width, height, **fields, elevation_deg=el, azimuth_deg=az)
+        for i, (el, az) in enumerate(elevations_azimuths_deg)
+    ]
