@@ -11,7 +11,11 @@ On analytic sphere models (36 views of 128×96; 50 k, 500 k and — without ``--
   loads), and the frame time of an orbit over the full model and at a budget of N/16;
 * CPU renderer vs browser PSNR (captured cameras, inside the mask; 50 k model);
 * SH fit error (RMS over all observations, sRGB [0, 1]) against the degree;
-* LOD (sequential point tree): budget → PSNR against the full model and CPU ms per frame.
+* LOD (sequential point tree): budget → PSNR against the full model and CPU ms per frame;
+* relit bundles (the analytic relit sphere, 50 k surfels, and ``--relit-models``): relit
+  bytes per view and per surfel, PCA rank and relit/stack errors, and the page relit under
+  grace vs the CPU relighter (PSNR inside the mask). ``--relit-only`` measures just these
+  (``benchmarks/out/viewer_relit.md|json``).
 
 Writes ``benchmarks/out/viewer.md``, ``viewer.json`` and ``viewer.png``. The machine is
 shared: timings are contended wall times, to be read as orders of magnitude.
@@ -102,6 +106,134 @@ def browser_psnr(model_dir, bundle_dir, drv, views=(2, 13)) -> list:
                 }
             )
     return out
+
+
+def relit_rows(
+    model_dir, bundle_dir, drv, *, label: str | None = None, probe="grace", cases=((180.0, 2), (65.0, 5))
+) -> dict:
+    """Relit bundle figures of one model with reflectance: bytes, PCA rank and errors, and
+    (with a browser) the page relit under ``probe`` at captured cameras vs the CPU —
+    Relighter's exact relit views blended by render_image on the bundle's decoded surfels
+    (surfel shading, as the page) and relight_model's picture of the exact model — PSNR
+    inside the mask, both over the same rotated map at the page's exposure."""
+    from opacityhull.imageio import read_image, srgb_decode
+    from opacityhull.model import OpacityHullModel, Surfels
+    from opacityhull.relight.envmap import load_envmap
+    from opacityhull.relight.relit import Relighter
+    from opacityhull.relight.runner import relight_model
+    from opacityhull.render.background import EnvMap, composite_over, resolve_background
+    from opacityhull.render.config import RenderConfig
+    from opacityhull.render.renderer import render_image
+    from opacityhull.render.views import prepare_views
+    from opacityhull.view.browser import canvas_rgb, wait_ready
+    from opacityhull.view.bundle import read_bundle, write_bundle
+    from opacityhull.view.server import BundleServer
+
+    t = time.perf_counter()
+    s = write_bundle(model_dir, bundle_dir)
+    rl = json.loads((Path(bundle_dir) / "manifest.json").read_text())["relight"]
+    out = {
+        "model": label or str(model_dir),
+        "surfels": s["surfels"],
+        "views": s["views"],
+        "lights": rl["n_lights"],
+        "exposure": rl["envmaps"][[e["name"] for e in rl["envmaps"]].index(probe)]["exposure"],
+        "envmaps": len(rl["envmaps"]),
+        "bundle_write_s": time.perf_counter() - t,
+        "pca_rank": rl["rank"],
+        "relit_rel_error": rl["relit_rel_error"],
+        "relit_rel_error_target": rl["rel_error_target"],
+        "stack_rel_error_mean": rl["stack_rel_error_mean"],
+        "stack_rel_error_max": rl["stack_rel_error_max"],
+        "crop": [rl["basis"]["tile_width"], rl["basis"]["tile_height"]],
+        "relit_bytes_per_view": s["relight"]["bytes_per_view"],
+        "relit_bytes_per_surfel": s["relight"]["bytes_per_surfel"],
+        "weights_bytes_per_envmap": s["relight"]["weights_bytes_per_envmap"],
+        "one_light_bytes_per_view_float16": 2 * 3 * rl["n_lights"] * s["bytes_per_view"] / 4,
+        "psnr": [],
+    }
+    if drv is None:
+        return out
+    model = OpacityHullModel.open(model_dir)
+    _, pos, rec = read_bundle(bundle_dir)
+    lf = rec["r_min"] == 0
+    vis = rec["vis"][lf].view(np.uint8).reshape(int(lf.sum()), -1)[:, : model.surfels.visibility.shape[1]]
+    dec = Surfels(
+        positions=pos[lf], normals=rec["nrm"][lf], radii=rec["radius"][lf], visibility=vis, n_views=len(model.views)
+    )
+    cams = [v.camera for v in model.views]
+    R = Relighter(model)
+    n = [e["name"] for e in rl["envmaps"]].index(probe)
+    expo = rl["envmaps"][n]["exposure"]
+    with BundleServer(bundle_dir) as srv, tempfile.TemporaryDirectory() as td:
+        drv.get(srv.url)
+        r = wait_ready(drv, timeout_s=900)
+        if not r["ok"]:
+            raise RuntimeError(r["error"])
+        for yaw, vi in cases:
+            vi = vi % len(cams)
+            env = load_envmap(f"builtin:{probe}", yaw_deg=yaw)
+            bg = EnvMap(np.asarray(env.radiance))
+            pv = prepare_views(cams, [R.relight_view(i, envmap=env) for i in range(len(cams))])
+            t = time.perf_counter()
+            drv.execute_script(f"window.opacityhull.viewer.setView({vi}); window.opacityhull.setRelight({n}, {yaw})")
+            relight_ms = 1e3 * (time.perf_counter() - t)
+            frame_ms = drv.execute_script("return window.opacityhull.viewer.draw()")
+            gpu = srgb_decode(canvas_rgb(drv).astype(np.float32) / 255.0)
+            same = render_image(dec, cams, pv, cams[vi], config=RenderConfig(threads=1, shading="surfel"))
+            v = model.views[vi]
+            cpu = relight_model(
+                model_dir,
+                out=Path(td) / f"v{vi}",
+                envmap=env,
+                view=(v.camera_index, v.table_deg),
+                write_views=False,
+                exposure=expo,
+                render_config=RenderConfig(threads=1),
+            )
+            full = read_image(cpu["view"]["exr"])
+            mask = same.rgba[..., 3] > 0.01
+            ref_same = np.clip(expo * same.over(bg), 0, 1)
+            ref_full = np.clip(expo * composite_over(full, resolve_background(bg, cams[vi])), 0, 1)
+            out["psnr"].append(
+                {
+                    "view": vi,
+                    "yaw_deg": yaw,
+                    "psnr_db_same_surfels": float(10 * np.log10(1 / np.mean((gpu - ref_same)[mask] ** 2))),
+                    "psnr_db_relight_model": float(10 * np.log10(1 / np.mean((gpu - ref_full)[mask] ** 2))),
+                    "relight_and_frame_ms": relight_ms,
+                    "frame_ms": frame_ms,
+                }
+            )
+    return out
+
+
+def relit_lines(rows) -> list[str]:
+    lines = [
+        "",
+        "Relit bundles (per view: rank-r PCA of the one-light stack, int8 eigen-images cropped to the object; "
+        "per map: Relighter weights at 72 yaws × table angles). Browser vs CPU PSNR inside the mask, "
+        "relit under grace: vs the same surfels (Relighter + render_image, surfel shading) / vs relight_model:",
+        "",
+        "| model | surfels | views | lights | rank | relit err | stack err mean/max | crop px | relit kB/view "
+        "| relit B/surfel | weights kB/map | one-light kB/view (half) | write s | exposure "
+        "| PSNR dB (same / relight_model) |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        ps = "; ".join(
+            f"v{p['view']} yaw {p['yaw_deg']:g}: {p['psnr_db_same_surfels']:.1f} / {p['psnr_db_relight_model']:.1f}"
+            for p in r["psnr"]
+        )
+        lines.append(
+            f"| {r['model']} | {r['surfels']} | {r['views']} | {r['lights']} | {r['pca_rank']} "
+            f"| {100 * r['relit_rel_error']:.2f} % | {100 * r['stack_rel_error_mean']:.1f} / "
+            f"{100 * r['stack_rel_error_max']:.1f} % | {r['crop'][0]}×{r['crop'][1]} "
+            f"| {r['relit_bytes_per_view'] / 1e3:.0f} | {r['relit_bytes_per_surfel']:.0f} "
+            f"| {r['weights_bytes_per_envmap'] / 1e3:.0f} | {r['one_light_bytes_per_view_float16'] / 1e3:.0f} "
+            f"| {r['bundle_write_s']:.0f} | {r['exposure']:.1f} | {ps or 'no browser'} |"
+        )
+    return lines
 
 
 def lod_table(m, fracs=(1 / 16, 1 / 4, 1)) -> list:
@@ -224,12 +356,60 @@ def coding_tradeoff(m, settings=((1.0, 0), (1.0, 3), (0.5, 3))) -> list:
     return rows
 
 
+def relit_measure(tmp: Path, drv, models) -> list:
+    from opacityhull.relight.synthetic import write_sphere_model as write_relit_sphere
+
+    rows = []
+    root = write_relit_sphere(tmp / "relit_sphere", width=128, height=96, n_surfels=50_000)
+    for i, m in enumerate([root, *models]):
+        label = "analytic relit sphere 128×96" if i == 0 else str(m)
+        rows.append(relit_rows(m, tmp / f"relit_b{i}", drv, label=label))
+        print(f"relit {m}: {rows[-1]}", file=sys.stderr)
+    return rows
+
+
+def relit_main(args) -> int:
+    from opacityhull.view.browser import close_browser, find_chromium, open_browser
+
+    b, _, why = find_chromium()
+    drv = open_browser() if b else None
+    tmp = Path(tempfile.mkdtemp(prefix="opacityhull-bench-viewer-relit-"))
+    try:
+        rows = relit_measure(tmp, drv, args.relit_models)
+    finally:
+        if drv is not None:
+            close_browser(drv)
+        import shutil
+
+        shutil.rmtree(tmp, ignore_errors=True)
+    res = {"relit": rows, "machine": "shared 2-core, software WebGL2 (SwiftShader); contended wall times"}
+    if drv is None:
+        res["browser"] = f"skipped: {why}"
+    OUT.mkdir(parents=True, exist_ok=True)
+    (OUT / "viewer_relit.json").write_text(json.dumps(res, indent=1) + "\n")
+    lines = ["# Viewer benchmark: relit bundles", "", res["machine"], *relit_lines(rows)]
+    (OUT / "viewer_relit.md").write_text("\n".join(lines) + "\n")
+    print(json.dumps(res) if args.json else "\n".join(lines))
+    return 0
+
+
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(description=(__doc__ or "").split("\n")[0])
     ap.add_argument("--quick", action="store_true", help="50 k and 500 k surfels only")
     ap.add_argument("--json", action="store_true", help="print the results as one JSON object on stdout")
     ap.add_argument("--models", nargs="*", default=[], help="model folders whose position-code bits to measure")
+    ap.add_argument(
+        "--relit-models",
+        nargs="*",
+        default=[],
+        help="models with reflectance to add to the relit rows (the analytic relit sphere is always measured)",
+    )
+    ap.add_argument(
+        "--relit-only", action="store_true", help="only the relit rows (benchmarks/out/viewer_relit.md|json)"
+    )
     args = ap.parse_args(argv)
+    if args.relit_only:
+        return relit_main(args)
 
     from opacityhull.export.sh import fit_sh
     from opacityhull.render.synthetic import write_sphere_model
@@ -273,6 +453,7 @@ def main(argv=None) -> int:
                 res["sh_fit_rms"] = {str(k): v for k, v in fit.rms.items()}
                 res["lod"] = lod_table(m)
                 res["coding_tradeoff"] = coding_tradeoff(m)
+        res["relit"] = relit_measure(tmp, drv, args.relit_models)
         for path in args.models:
             from opacityhull.model import OpacityHullModel
 
@@ -346,6 +527,7 @@ def main(argv=None) -> int:
             f"| {o['cell_over_spacing']:g} | {o['offset_bits']} | {o['bits_total']:.2f} | "
             f"{o['psnr_db_pixel']:.1f} | {o['psnr_db_surfel']:.1f} |"
         )
+    lines += relit_lines(res["relit"])
     lines += ["", "| LOD budget | splats | PSNR vs full (dB) | cut ms | CPU render ms |", "|---|---|---|---|---|"]
     for r in res["lod"]:
         lines.append(

@@ -78,7 +78,7 @@ def _step(title: str) -> None:
 VIEW_PORT = 8765
 
 
-def view_step(model, out_web, *, envmap: str | None = None, progress=None) -> dict:
+def view_step(model, out_web, *, envmap: str | None = None, probes=None, progress=None) -> dict:
     """The viewer's part of the demo: write the static WebGL2 bundle of ``model`` to
     ``out_web`` (an earlier bundle there is replaced) and say how to serve it.
 
@@ -92,7 +92,7 @@ def view_step(model, out_web, *, envmap: str | None = None, progress=None) -> di
     from .view.bundle import write_bundle
 
     out_web = Path(out_web)
-    summary = write_bundle(model, out_web, envmap=envmap, progress=progress)
+    summary = write_bundle(model, out_web, envmap=envmap, probes=probes, progress=progress)
     summary["serve"] = f"opacityhull view {shlex.quote(str(model))} --port {VIEW_PORT}"
     summary["serve_static"] = f"python3 -m http.server -b 127.0.0.1 -d {shlex.quote(str(out_web))} {VIEW_PORT}"
     summary["url"] = f"http://127.0.0.1:{VIEW_PORT}/"
@@ -289,7 +289,9 @@ def run_demo(
     _step(f"5/{n_steps} viewer bundle")
     t = time.monotonic()
     with progress("viewer bundle") as cb:
-        vw = view_step(model, out / "web", envmap=f"builtin:{probe}", progress=cb)
+        # two maps in the page's lighting picker (all five cost +20-46 s and +26 MB)
+        others = [p for p in ("uffizi", "grace") if p != probe][:1]
+        vw = view_step(model, out / "web", envmap=f"builtin:{probe}", probes=[probe, *others], progress=cb)
     seconds["view"] = time.monotonic() - t
     summary["view"] = vw
 

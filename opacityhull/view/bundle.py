@@ -39,6 +39,7 @@ import shutil
 import zlib
 from importlib import resources
 from pathlib import Path
+from typing import Sequence
 
 import numpy as np
 
@@ -114,6 +115,11 @@ def write_bundle(
     overwrite: bool = True,
     position_cell_m: float | None = None,
     offset_bits: int = 3,
+    relight: bool = True,
+    probes: Sequence[str] | None = None,
+    yaw_steps: int = 72,
+    relight_error: float = 0.01,
+    relight_rank: int | None = None,
     progress=None,
 ) -> dict:
     """Write the viewer bundle of a model folder.
@@ -134,6 +140,13 @@ def write_bundle(
         median nearest-neighbour spacing (the seed's balance of sampling and quantisation).
     offset_bits : bits of the per-leaf offset along the normal that refines the octree cell
         centre (Botsch et al. 2002, §5 "offset attributes"); 0 stores cell centres only.
+    relight : for a model with reflectance, add the relighting chunks
+        (:mod:`opacityhull.view.relit`): the page then has an environment-map picker and a
+        rotation slider, and relights on the GPU with the CPU relighter's weights.
+    probes : builtin probes to bundle for relighting (default all five); ``envmap`` is added.
+    yaw_steps : rotations of each map the light weights are tabulated at (360 / steps apart).
+    relight_error : relative relit error the PCA rank is chosen for.
+    relight_rank : fix the PCA rank instead (1..16).
     progress : callable(done, total) or None.
 
     Returns
@@ -161,6 +174,10 @@ def write_bundle(
     N = len(s)
     if N == 0:
         raise InputError(f"{model_dir}/surfels.ply: no surfels to view")
+    if relight and model.has_reflectance:
+        _check_relight_options(model, probes, yaw_steps, relight_error, relight_rank)
+    elif relight and (probes is not None or relight_rank is not None):
+        log.warning("%s: the model has no reflectance (no one-light images): nothing to relight", model.root)
     env = None
     if envmap is not None:
         from ..relight.envmap import default_yaw_deg, resolve_envmap_path
@@ -203,9 +220,88 @@ def write_bundle(
         )
         if env is not None:
             summary["envmap"] = _write_envmap(tmp, env, str(envmap))
+        if relight and model.has_reflectance:
+            summary["relight"] = _write_relight(
+                tmp,
+                model,
+                summary,
+                probes=probes,
+                envmap=None if env is None else (str(envmap), float(env.yaw_deg), "envmap.bin"),
+                yaw_steps=yaw_steps,
+                relight_error=relight_error,
+                relight_rank=relight_rank,
+                progress=progress,
+            )
     summary["out"] = str(out)
     summary["index"] = str(out / "index.html")
     return summary
+
+
+def _check_relight_options(model, probes, yaw_steps, relight_error, relight_rank) -> None:
+    """The relighting options, checked before anything is written."""
+    from ..data import PROBE_NAMES
+    from .relit import RANK_MAX
+
+    names = list(PROBE_NAMES) if probes is None else list(probes)
+    bad = [p for p in names if p not in PROBE_NAMES]
+    if bad:
+        raise InputError(f"--probes {','.join(names)}: unknown probe {bad[0]!r}; choose from {', '.join(PROBE_NAMES)}")
+    if not (isinstance(yaw_steps, (int, np.integer)) and 1 <= int(yaw_steps) <= 3600):
+        raise InputError(f"--yaw-steps {yaw_steps!r}: expected an integer in 1..3600")
+    if not (np.isfinite(relight_error) and 0 < relight_error < 1):
+        raise InputError(f"--relight-error {relight_error!r}: expected a relative error in (0, 1)")
+    K = len(model.light_samples)
+    if relight_rank is not None and not 1 <= int(relight_rank) <= min(K, RANK_MAX):
+        raise InputError(
+            f"--relight-rank {relight_rank}: expected 1..{min(K, RANK_MAX)} (the model has {K} light samples, "
+            f"the page supports rank {RANK_MAX})"
+        )
+
+
+def _write_relight(
+    tmp: Path, model, summary, *, probes, envmap, yaw_steps, relight_error, relight_rank, progress
+) -> dict:
+    from ..data import PROBE_NAMES
+    from .relit import write_relight
+
+    names = list(PROBE_NAMES) if probes is None else list(probes)
+    V = len(model.views)
+    done = [0]
+
+    def tick():
+        done[0] += 1
+        if progress:
+            progress(done[0], V)
+
+    rl = write_relight(
+        tmp,
+        model,
+        probes=names,
+        extra_envmap=envmap,
+        yaw_steps=yaw_steps,
+        rel_error_target=relight_error,
+        rank=relight_rank,
+        progress=tick,
+    )
+    mp = tmp / "manifest.json"
+    man = json.loads(mp.read_text())
+    man["relight"] = rl
+    mp.write_text(json.dumps(man, indent=1) + "\n")
+    model_bytes = rl["basis"]["bytes"] + rl["coeffs"]["bytes"]
+    env_bytes = sum(e["weights"]["bytes"] for e in rl["envmaps"])
+    summary["bytes"] = sum(p.stat().st_size for p in tmp.iterdir())
+    return {
+        "rank": rl["rank"],
+        "relit_rel_error": rl["relit_rel_error"],
+        "stack_rel_error_mean": rl["stack_rel_error_mean"],
+        "stack_rel_error_max": rl["stack_rel_error_max"],
+        "n_lights": rl["n_lights"],
+        "envmaps": [e["name"] for e in rl["envmaps"]],
+        "bytes": model_bytes + env_bytes,
+        "bytes_per_view": model_bytes / V,
+        "bytes_per_surfel": model_bytes / max(1, summary["surfels"]),
+        "weights_bytes_per_envmap": env_bytes / len(rl["envmaps"]),
+    }
 
 
 def _write_envmap(tmp: Path, env, spec: str) -> dict:

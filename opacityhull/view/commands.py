@@ -29,7 +29,14 @@ def _parse_bg(text: str):
 
 def _bits(s: dict) -> str:
     b, o = s.get("position_bits_per_coded_surfel"), s.get("position_offset_bits_per_coded_surfel")
-    return "float32" if b is None else f"octree {b:.2f} + offsets {o:.2f} bits/surfel"
+    text = "float32" if b is None else f"octree {b:.2f} + offsets {o:.2f} bits/surfel"
+    r = s.get("relight")
+    if r:
+        text += (
+            f"; relightable under {', '.join(r['envmaps'])} (PCA rank {r['rank']}, relit error "
+            f"{100 * r['relit_rel_error']:.1f} %, {r['bytes_per_view'] / 1e3:.0f} kB/view)"
+        )
+    return text
 
 
 def register(app, groups) -> None:
@@ -75,6 +82,27 @@ def register(app, groups) -> None:
             help="Bits of the per-surfel offset along the normal "
             "that refines the octree cell centre (0-8; 0: cell centres).",
         ),
+        relight: bool = typer.Option(
+            True,
+            "--relight/--no-relight",
+            help="For a model with reflectance: bundle the relighting data "
+            "(environment-map picker and rotation slider in the page).",
+        ),
+        probes: Optional[str] = typer.Option(
+            None,
+            "--probes",
+            help="Builtin probes to relight with, comma-separated (default: all of ennis grace pisa "
+            "uffizi wells); --envmap adds its map.",
+        ),
+        relight_error: float = typer.Option(
+            0.01, "--relight-error", help="Relative relit error the per-view PCA rank is chosen for."
+        ),
+        relight_rank: Optional[int] = typer.Option(
+            None, "--relight-rank", help="Fix the PCA rank of the relighting data instead (1-16)."
+        ),
+        yaw_steps: int = typer.Option(
+            72, "--yaw-steps", help="Rotations of each map the light weights are tabulated at (72: every 5 deg)."
+        ),
         json_out: bool = typer.Option(
             False, "--json", help="Print a JSON summary (bundle path, bytes, URL) on stdout."
         ),
@@ -102,6 +130,11 @@ def register(app, groups) -> None:
                     env_yaw_deg=env_yaw_deg,
                     position_cell_m=position_cell_m,
                     offset_bits=offset_bits,
+                    relight=relight,
+                    probes=None if probes is None else [p.strip() for p in probes.split(",") if p.strip()],
+                    relight_error=relight_error,
+                    relight_rank=relight_rank,
+                    yaw_steps=yaw_steps,
                     progress=cb,
                 )
             if not serve:

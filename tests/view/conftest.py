@@ -35,3 +35,23 @@ def browser():
     drv = open_browser()
     yield drv
     close_browser(drv)
+
+
+@pytest.fixture(scope="session")
+def relit_model(tmp_path_factory):
+    """The analytic Lambertian sphere with reflectance (relight/synthetic.py): 4 table
+    angles × 2 cameras of 48×40, 4 × 15 directional lights, 4000 surfels."""
+    from opacityhull.relight.synthetic import write_sphere_model as write_relit_sphere
+
+    return write_relit_sphere(tmp_path_factory.mktemp("relit") / "sphere", width=48, height=40, n_surfels=4000)
+
+
+@pytest.fixture(scope="session")
+def relit_bundle(relit_model, tmp_path_factory):
+    """Its bundle, relightable under two probes, weights every 15° (24 yaw steps: the
+    default 72 costs 3× the bundle time in Relighter.weights)."""
+    from opacityhull.view.bundle import write_bundle
+
+    out = tmp_path_factory.mktemp("relit_bundle") / "b"
+    summary = write_bundle(relit_model, out, first_chunk=500, probes=["grace", "uffizi"], yaw_steps=24)
+    return out, summary

@@ -314,7 +314,7 @@ void main() { vec2 p = vec2(float((gl_VertexID << 1) & 2), float(gl_VertexID & 2
 const RESOLVE_FS = `#version 300 es
 precision highp float;
 uniform highp sampler2D u_acc0; uniform highp sampler2D u_acc1;
-uniform float u_covfull; uniform float u_amin; uniform vec3 u_bg;
+uniform float u_covfull; uniform float u_amin; uniform vec3 u_bg; uniform float u_exposure;
 uniform int u_useEnv; uniform highp sampler2D u_env; uniform mat3 u_Rwc; uniform vec4 u_K; uniform float u_H;
 uniform float u_yaw;
 out vec4 o;
@@ -350,7 +350,34 @@ void main() {
     vec3 pre = a >= u_amin ? a0.rgb * s : vec3(0.0);
     col = pre + (1.0 - a) * bg;
   }
-  o = vec4(srgb(col), 1.0);
+  o = vec4(srgb(col * u_exposure), 1.0);
+}`;
+
+// Relight pass (relit models, docs/viewer-format.md "relight"): layer v of the relit
+// texture array is view v under the chosen map, sum_j a_j * B_vj with a_j = scale_vj *
+// sum_l w_l C_v[l, j] (computed on the CPU per view), B_vj the PCA eigen-images (signed
+// bytes, cropped to the matte's box, tiled in layer v of the basis array), and the
+// captured matte as alpha -- what Relighter.relight_view gives with pca_rank. The shading
+// pass then samples this array with the same ULR as the captured views.
+const RELIGHT_FS = `#version 300 es
+precision highp float; precision highp int; precision highp sampler2DArray;
+uniform highp sampler2DArray u_basis; uniform highp sampler2DArray u_views;
+uniform int u_layer; uniform int u_rank; uniform int u_cols; uniform ivec2 u_tile; uniform ivec2 u_crop;
+uniform vec3 u_a[${16}];
+out vec4 o;
+void main() {
+  ivec2 p = ivec2(gl_FragCoord.xy);  // texel (x, row) of the layer = pixel (x, y) of the view
+  float alpha = texelFetch(u_views, ivec3(p, u_layer), 0).a;
+  ivec2 q = p - u_crop;
+  vec3 c = vec3(0.0);
+  if (q.x >= 0 && q.y >= 0 && q.x < u_tile.x && q.y < u_tile.y) {
+    for (int j = 0; j < ${16}; j++) {
+      if (j >= u_rank) break;
+      ivec2 t = q + ivec2((j % u_cols) * u_tile.x, (j / u_cols) * u_tile.y);
+      c += u_a[j] * texelFetch(u_basis, ivec3(t, u_layer), 0).rgb;
+    }
+  }
+  o = vec4(max(c, vec3(0.0)), alpha);
 }`;
 
 function compile(gl, vs, fs, what) {
@@ -399,6 +426,11 @@ class Viewer {
     this.depthProg = compile(gl, VS(words, false), FS(false), "depth pass");
     this.shadeProg = compile(gl, VS(words, true), FS(true), "accumulation pass");
     this.resolveProg = compile(gl, RESOLVE_VS, RESOLVE_FS, "resolve");
+    this.relight = manifest.relight || null;
+    this.lighting = null;  // null: the captured views; else the index of a bundled map
+    this.relitReady = false;
+    this.exposureOverride = null;
+    if (this.relight) this.relightProg = compile(gl, RESOLVE_VS, RELIGHT_FS, "relight");
     // positions (float32 x 3 per node: the float chunks' own, the leaves' from the octree code)
     // and the other attributes in a second buffer
     this.posVbo = gl.createBuffer();
@@ -504,6 +536,98 @@ class Viewer {
     gl.texImage2D(gl.TEXTURE_2D, 0, gl.RGB32F, e.width, e.height, 0, gl.RGB, gl.FLOAT, new Float32Array(buf));
     for (const p of [gl.TEXTURE_MIN_FILTER, gl.TEXTURE_MAG_FILTER]) gl.texParameteri(gl.TEXTURE_2D, p, gl.NEAREST);
     this.envYawDeg = e.yaw_deg;
+  }
+
+  // the relighting chunks: basis (signed bytes), coefficients and per map its light
+  // weights (float32) and its equirectangular image (float32 RGB)
+  uploadRelight(basisBuf, coeffsBuf, maps) {
+    const gl = this.gl, rl = this.relight, B = rl.basis, V = rl.views.length;
+    const maxSize = gl.getParameter(gl.MAX_TEXTURE_SIZE), maxLayers = gl.getParameter(gl.MAX_ARRAY_TEXTURE_LAYERS);
+    if (B.layer_width > maxSize || B.layer_height > maxSize || V > maxLayers) {
+      throw new Error(`The relighting basis needs ${V} layers of ${B.layer_width}x${B.layer_height} texels; this browser's WebGL2 ` +
+        `allows ${maxLayers} layers of at most ${maxSize}x${maxSize}. Write the bundle with a smaller --relight-rank.`);
+    }
+    if (rl.rank > 16) throw new Error(`manifest.json: relight rank ${rl.rank}, the viewer supports at most 16`);
+    this.basisTex = gl.createTexture();
+    gl.activeTexture(gl.TEXTURE5);
+    gl.bindTexture(gl.TEXTURE_2D_ARRAY, this.basisTex);
+    gl.texStorage3D(gl.TEXTURE_2D_ARRAY, 1, gl.RGB8_SNORM, B.layer_width, B.layer_height, V);
+    gl.pixelStorei(gl.UNPACK_ALIGNMENT, 1);
+    gl.texSubImage3D(gl.TEXTURE_2D_ARRAY, 0, 0, 0, 0, B.layer_width, B.layer_height, V, gl.RGB, gl.BYTE, new Int8Array(basisBuf));
+    for (const p of [gl.TEXTURE_MIN_FILTER, gl.TEXTURE_MAG_FILTER]) gl.texParameteri(gl.TEXTURE_2D_ARRAY, p, gl.NEAREST);
+    this.coeffs = new Float32Array(coeffsBuf);
+    this.relitMaps = maps.map(({ weights, image }, n) => {
+      const e = rl.envmaps[n];
+      const tex = gl.createTexture();
+      gl.activeTexture(gl.TEXTURE4);
+      gl.bindTexture(gl.TEXTURE_2D, tex);
+      gl.texImage2D(gl.TEXTURE_2D, 0, gl.RGB32F, e.image.width, e.image.height, 0, gl.RGB, gl.FLOAT, new Float32Array(image));
+      for (const p of [gl.TEXTURE_MIN_FILTER, gl.TEXTURE_MAG_FILTER]) gl.texParameteri(gl.TEXTURE_2D, p, gl.NEAREST);
+      return { weights: new Float32Array(weights), tex };
+    });
+    const v = this.man.views;
+    this.relitTex = gl.createTexture();
+    gl.activeTexture(gl.TEXTURE6);
+    gl.bindTexture(gl.TEXTURE_2D_ARRAY, this.relitTex);
+    gl.texStorage3D(gl.TEXTURE_2D_ARRAY, 1, gl.RGBA16F, v.layer_width, v.layer_height, V);
+    gl.texParameteri(gl.TEXTURE_2D_ARRAY, gl.TEXTURE_MIN_FILTER, gl.LINEAR);
+    gl.texParameteri(gl.TEXTURE_2D_ARRAY, gl.TEXTURE_MAG_FILTER, gl.LINEAR);
+    gl.texParameteri(gl.TEXTURE_2D_ARRAY, gl.TEXTURE_WRAP_S, gl.CLAMP_TO_EDGE);
+    gl.texParameteri(gl.TEXTURE_2D_ARRAY, gl.TEXTURE_WRAP_T, gl.CLAMP_TO_EDGE);
+    this.relitFb = gl.createFramebuffer();
+    this.relitKey = null;
+    this.relitReady = true;
+  }
+
+  // (T, K, 3) weights of map n at yaw (deg): the bundled table, linear between steps
+  relitWeights(n, yawDeg) {
+    const rl = this.relight, S = rl.yaw_steps, T = rl.table_deg.length, K = rl.n_lights, W = this.relitMaps[n].weights;
+    const x = (((yawDeg % 360) + 360) % 360) / (360 / S);
+    const s0 = Math.floor(x), f = x - s0, a = (s0 % S) * T * K * 3, b = ((s0 + 1) % S) * T * K * 3;
+    const out = new Float64Array(T * K * 3);
+    for (let i = 0; i < out.length; i++) out[i] = (1 - f) * W[a + i] + f * W[b + i];
+    return out;
+  }
+
+  // relight every view into the relit texture array (only when the map or yaw changed)
+  relightViews() {
+    const key = `${this.lighting} ${this.envYawDeg}`;
+    if (this.relitKey === key) return;
+    const gl = this.gl, rl = this.relight, B = rl.basis, K = rl.n_lights, r = rl.rank, u = this.relightProg.u;
+    const w = this.relitWeights(this.lighting, this.envYawDeg);
+    const v = this.man.views;
+    gl.bindFramebuffer(gl.FRAMEBUFFER, this.relitFb);
+    gl.viewport(0, 0, v.layer_width, v.layer_height);
+    gl.disable(gl.BLEND); gl.disable(gl.DEPTH_TEST);
+    // only the crop is drawn: outside it the layer stays as allocated (zero) and the
+    // shading pass never samples there (the crop holds every node's projection)
+    gl.enable(gl.SCISSOR_TEST);
+    gl.useProgram(this.relightProg.p);
+    gl.activeTexture(gl.TEXTURE5); gl.bindTexture(gl.TEXTURE_2D_ARRAY, this.basisTex);
+    gl.activeTexture(gl.TEXTURE0); gl.bindTexture(gl.TEXTURE_2D_ARRAY, this.viewsTex);
+    gl.uniform1i(u.u_basis, 5); gl.uniform1i(u.u_views, 0);
+    gl.uniform1i(u.u_rank, r); gl.uniform1i(u.u_cols, B.cols); gl.uniform2i(u.u_tile, B.tile_width, B.tile_height);
+    const a = new Float32Array(16 * 3);
+    rl.views.forEach((vm, i) => {
+      const wt = vm.table_index * K * 3, c0 = i * K * r;
+      a.fill(0);
+      for (let j = 0; j < r; j++) {
+        for (let ch = 0; ch < 3; ch++) {
+          let acc = 0;
+          for (let l = 0; l < K; l++) acc += w[wt + 3 * l + ch] * this.coeffs[c0 + l * r + j];
+          a[3 * j + ch] = acc * vm.scale[j];
+        }
+      }
+      gl.framebufferTextureLayer(gl.FRAMEBUFFER, gl.COLOR_ATTACHMENT0, this.relitTex, 0, i);
+      gl.drawBuffers([gl.COLOR_ATTACHMENT0]);
+      gl.uniform1i(u.u_layer, i); gl.uniform2i(u.u_crop, vm.crop[0], vm.crop[1]);
+      gl.scissor(vm.crop[0], vm.crop[1], B.tile_width, B.tile_height);
+      gl.uniform3fv(u["u_a[0]"], a);
+      gl.drawArrays(gl.TRIANGLES, 0, 3);
+    });
+    gl.disable(gl.SCISSOR_TEST);
+    gl.bindFramebuffer(gl.FRAMEBUFFER, null);
+    this.relitKey = key;
   }
 
   // a float chunk: count positions (float32 x 3), then count attribute records
@@ -615,6 +739,8 @@ class Viewer {
     const zscale = 1 / (2 * (dist + 4 * b.radius) + 1e-9);
     const density = 1.0;
     const tau = this.tau(dist);
+    const relit = this.lighting !== null && this.relitReady;
+    if (relit) this.relightViews();
     gl.bindFramebuffer(gl.FRAMEBUFFER, this.fb);
     gl.viewport(0, 0, W, H);
     gl.drawBuffers([gl.COLOR_ATTACHMENT0, gl.COLOR_ATTACHMENT1]);
@@ -622,7 +748,7 @@ class Viewer {
     gl.clearBufferfv(gl.COLOR, 1, [0, 0, 0, 0]);
     gl.clearBufferfv(gl.DEPTH, 0, [1]);
     gl.enable(gl.DEPTH_TEST);
-    gl.activeTexture(gl.TEXTURE0); gl.bindTexture(gl.TEXTURE_2D_ARRAY, this.viewsTex);
+    gl.activeTexture(gl.TEXTURE0); gl.bindTexture(gl.TEXTURE_2D_ARRAY, relit ? this.relitTex : this.viewsTex);
     gl.activeTexture(gl.TEXTURE1); gl.bindTexture(gl.TEXTURE_2D, this.viewTex);
     for (const [pi, prog] of [[0, this.depthProg], [1, this.shadeProg]]) {
       const u = prog.u;
@@ -658,9 +784,12 @@ class Viewer {
     gl.uniform1i(rp.u.u_acc0, 2); gl.uniform1i(rp.u.u_acc1, 3);
     gl.uniform1f(rp.u.u_covfull, r.coverage_full); gl.uniform1f(rp.u.u_amin, r.alpha_min);
     gl.uniform3fv(rp.u.u_bg, this.bg);
-    const useEnv = this.bgMode === "envmap" && this.envTex ? 1 : 0;
+    // the background map: the relighting map when relit, else the bundle's --envmap
+    const envTex = relit ? this.relitMaps[this.lighting].tex : this.envTex;
+    const useEnv = this.bgMode === "envmap" && envTex ? 1 : 0;
     gl.uniform1i(rp.u.u_useEnv, useEnv);
-    gl.activeTexture(gl.TEXTURE4); gl.bindTexture(gl.TEXTURE_2D, useEnv ? this.envTex : this.acc1);
+    gl.uniform1f(rp.u.u_exposure, this.exposureOverride !== null ? this.exposureOverride : relit ? this.relight.envmaps[this.lighting].exposure : 1.0);
+    gl.activeTexture(gl.TEXTURE4); gl.bindTexture(gl.TEXTURE_2D, useEnv ? envTex : this.acc1);
     gl.uniform1i(rp.u.u_env, 4);
     // world_from_cam rotation, column-major
     gl.uniformMatrix3fv(rp.u.u_Rwc, false, new Float32Array([T[0], T[4], T[8], T[1], T[5], T[9], T[2], T[6], T[10]]));
@@ -696,7 +825,9 @@ async function main() {
   man.views.layers.forEach((v, i) => { const o = document.createElement("option"); o.value = i; o.textContent = `${i}: ${v.id}`; sel.appendChild(o); });
   viewer.setView(0);
   const L = man.leaves, H = man.positions;
-  const total = man.views.bytes + man.chunks.reduce((a, c) => a + c.bytes, 0) + (L ? L.bytes + H.codes_bytes + H.counts_bytes + H.offsets_bytes : 0);
+  const RL = man.relight;
+  const relightBytes = RL ? RL.basis.bytes + RL.coeffs.bytes + RL.envmaps.reduce((a, e) => a + e.weights.bytes + (e.image.file === (man.envmap && man.envmap.file) ? 0 : e.image.bytes), 0) : 0;
+  const total = man.views.bytes + man.chunks.reduce((a, c) => a + c.bytes, 0) + (L ? L.bytes + H.codes_bytes + H.counts_bytes + H.offsets_bytes : 0) + relightBytes;
   let got = 0;
   const report = () => { progress.textContent = `loading ${(100 * got / total).toFixed(0)} % — ${viewer.loaded} / ${man.n_nodes} nodes`; };
   report();
@@ -716,8 +847,10 @@ async function main() {
   viewer.uploadViews(await viewsP);
   got += man.views.bytes; report();
   api.timings.views = performance.now();
+  let envBuf = null;  // the --envmap map, shared with the relighting maps when it is one
   if (man.envmap) {
-    viewer.uploadEnvmap(await fetchBytes(man.envmap.file, man.envmap.bytes, "the environment map"));
+    envBuf = await fetchBytes(man.envmap.file, man.envmap.bytes, "the environment map");
+    viewer.uploadEnvmap(envBuf);
     const o = document.createElement("option"); o.value = "envmap"; o.textContent = `environment map (${man.envmap.source})`;
     $("bg").appendChild(o);
     const yaw = $("yaw"); yaw.value = man.envmap.yaw_deg; $("yawlabel").style.display = "";
@@ -767,7 +900,41 @@ async function main() {
     api.timings.leaves = performance.now();
     dirty = true;
   }
-  progress.textContent = `${man.n_surfels} surfels, ${man.n_views} views`;
+  if (RL) {  // relighting: PCA basis, coefficients, per map its weights and image (after the geometry)
+    progress.textContent = "loading the relighting data…";
+    const basis = await fetchBytes(RL.basis.file, RL.basis.bytes, "the relighting PCA basis");
+    const coeffs = await fetchBytes(RL.coeffs.file, RL.coeffs.bytes, "the relighting PCA coefficients");
+    const maps = [];
+    for (const e of RL.envmaps) {
+      const weights = await fetchBytes(e.weights.file, e.weights.bytes, `the light weights of environment map ${e.name}`);
+      const image = man.envmap && e.image.file === man.envmap.file ? envBuf : await fetchBytes(e.image.file, e.image.bytes, `environment map ${e.name}`);
+      maps.push({ weights, image });
+    }
+    viewer.uploadRelight(basis, coeffs, maps);
+    got += relightBytes; report();
+    api.timings.relight = performance.now();
+    const ls = $("light");
+    RL.envmaps.forEach((e, i) => { const o = document.createElement("option"); o.value = i; o.textContent = `relit: ${e.name}`; ls.appendChild(o); });
+    $("lightlabel").style.display = "";
+    const yaw = $("yaw");
+    yaw.min = 0; yaw.max = 360; yaw.step = 360 / RL.yaw_steps;
+    $("yawlabel").style.display = "";
+    yaw.oninput = () => { viewer.envYawDeg = +yaw.value; $("yawval").textContent = `${yaw.value}°`; dirty = true; };
+    ls.onchange = () => {
+      if (ls.value === "") viewer.lighting = null;
+      else {
+        viewer.lighting = +ls.value; viewer.envYawDeg = RL.envmaps[viewer.lighting].default_yaw_deg;
+        yaw.value = viewer.envYawDeg; $("yawval").textContent = `${yaw.value}°`;
+        viewer.bgMode = "envmap"; $("bg").value = "envmap";
+      }
+      dirty = true;
+    };
+    if (!man.envmap) {  // the background picker can show the relighting map
+      const o = document.createElement("option"); o.value = "envmap"; o.textContent = "environment map (the relighting map)";
+      $("bg").appendChild(o);
+    }
+  }
+  progress.textContent = `${man.n_surfels} surfels, ${man.n_views} views${RL ? `, relightable (PCA rank ${RL.rank}, ${RL.n_lights} lights)` : ""}`;
   // controls
   sel.onchange = () => { viewer.setView(+sel.value); dirty = true; };
   const kIn = $("k"); kIn.value = viewer.k; $("kval").textContent = viewer.k;
@@ -802,6 +969,20 @@ window.opacityhull = {
     return this.viewer.draw();
   },
   setEnvYaw(deg) { this.viewer.envYawDeg = deg; return this.viewer.draw(); },
+  // relit models: env = index or name of a bundled map (null: the captured views), yaw in
+  // degrees (default: the map's default yaw); the background follows (envmap mode)
+  setRelight(env, yawDeg) {
+    const v = this.viewer, rl = v.relight;
+    if (!rl || !v.relitReady) throw new Error("this bundle has no relighting data (the model has no reflectance)");
+    if (env === null) { v.lighting = null; return v.draw(); }
+    const i = typeof env === "number" ? env : rl.envmaps.findIndex((e) => e.name === env);
+    if (!(i >= 0 && i < rl.envmaps.length)) throw new Error(`no bundled environment map ${JSON.stringify(env)} (have ${rl.envmaps.map((e) => e.name).join(", ")})`);
+    v.lighting = i;
+    v.envYawDeg = yawDeg === undefined || yawDeg === null ? rl.envmaps[i].default_yaw_deg : +yawDeg;
+    v.bgMode = "envmap";
+    return v.draw();
+  },
+  setExposure(x) { this.viewer.exposureOverride = x === null || x === undefined ? null : +x; return this.viewer.draw(); },
   orbit(dAz, dEl, zoom = 1) { this.viewer.orbit(dAz, dEl, zoom); return this.viewer.draw(); },
   // the leaves' positions as decoded from the octree code (flat x y z list, float32 values)
   leafPositions() { const P = this.viewer.leafPositions; return P ? Array.from(P) : null; },
