@@ -64,7 +64,9 @@ def configurations():
         ("auto-robust-surfel", {"refine": "none"}, surfel),
         ("auto-robust-pixel", {"refine": "none"}, pixel),
         ("auto-robust-pixel-movesurfels", {"refine": "surfels"}, pixel),
+        ("auto-robust-pixel-shadingdepth-fillholes", {"refine": "shading", "backdrop_holes": False}, pixel),
         ("auto-robust-pixel-shadingdepth", {"refine": "shading"}, pixel),
+        ("auto-robust-pixel-shadingdepth-flow", {"refine": "shading"}, {**pixel, "align": "flow"}),
     ]
 
 

@@ -50,7 +50,7 @@ from ..errors import (
     Terminated,
     write_error,
 )
-from ..rigs.interfaces import GroundTruthSource
+from ..rigs.interfaces import GroundTruthSource, PhaseAware
 from ..session import Session, SessionWriter, sha256_file, toml_dumps
 from .exr import write_capture_exr
 from .patterns import Pattern, check_saved_patterns, plan_patterns, save_patterns
@@ -863,8 +863,11 @@ def _capture(
                         if not pend:
                             continue
                         drv.enter_stage(st)
+                        phase_aware = isinstance(rig, PhaseAware)
                         for shot, idxs in pend:
                             t0 = time.monotonic()
+                            if phase_aware:  # the simulator spends samples by phase
+                                rig.note_phase(shot.phase)
                             drv.set_state(shot, displays)
                             cam = rig.cameras[shot.camera]
                             spec = geometry.cameras[shot.camera]
@@ -1163,26 +1166,11 @@ def _session_meta(rig, cam_info, plan, geometry, stages, patterns, rig_source) -
     if plan.calibration is not None:
         meta["charuco"] = plan.calibration.charuco.to_dict()
     # pattern table without writing (the files follow right after the session exists)
-    import hashlib
-
-    from .patterns import pattern_path
+    from .patterns import pattern_entry
 
     for pid, p in sorted(patterns.items()):
-        entry = {
-            "id": pid,
-            "kind": p.kind,
-            "phase": p.phase,
-            "files": {d: pattern_path(d, pid) for d in p.images},
-            "device_ids": {d: device_pattern_id(pid, i) for i, d in enumerate(p.images)},
-            "pixels_sha256": {d: hashlib.sha256(img.tobytes()).hexdigest() for d, img in p.images.items()},
-        }
-        if p.of is not None:
-            entry["of"] = p.of
-        if p.seed is not None:
-            entry["seed"] = p.seed
-        if p.source:
-            entry["source"] = p.source
-        meta["patterns"][f"p{pid:03d}"] = entry
+        device_ids = {d: device_pattern_id(pid, i) for i, d in enumerate(p.images)}
+        meta["patterns"][f"p{pid:03d}"] = pattern_entry(pid, p, device_ids=device_ids)
     return _strip_none(meta)
 
 

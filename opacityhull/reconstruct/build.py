@@ -81,7 +81,9 @@ from ..session import Session, check_finite, require_manifest_ok
 from .hull import (
     EmptyHullError,
     HullGrid,
+    backdrop_holes,
     carve_octree,
+    enclosed_holes,
     hull_bounds,
     silhouette_from_alpha,
     carve_robust,
@@ -156,6 +158,9 @@ class BuildConfig:
         through enclosed holes survives up to this many such views. None (default) = 1
         for imported image sets with at least 8 views (thresholded masks have shadow
         holes), 0 for rig sessions (triangulation mattes).
+    backdrop_holes : with a tolerant carve, mask holes whose photograph shows the
+        backdrop (:func:`open_hole_masks`) carve like the outer contour (see-through
+        gaps); False treats every enclosed hole as doubtful.
     matting_drift : photometric drift and registration correction of the backdrops
         (:func:`.matting.correct_photometric_drift`; reported per shot in
         ``report.json``): "auto" = "field" except for the simulated rig without a sensor
@@ -207,6 +212,7 @@ class BuildConfig:
     max_hull_res: int = 640
     surfels_per_pixel: float = 1.0
     carve_tolerance: int | None = None
+    backdrop_holes: bool = True
     matting_drift: DriftMode = "auto"
     verify_checksums: bool = True
     refine: Literal["shading", "surfels", "none"] | bool = "shading"
@@ -664,6 +670,54 @@ class Geometry:
     notes: list
 
 
+def open_hole_masks(alpha: np.ndarray, photo_rgb: np.ndarray, *, threshold: float = 0.5) -> np.ndarray:
+    """(H, W) bool: the enclosed holes of a view's mask (α ≤ ``threshold``) that show the
+    backdrop (:func:`.hull.backdrop_holes` on the raw photograph's luminance, in display
+    values): see-through gaps to carve, as opposed to shadows as dark as the backdrop."""
+    sil = np.asarray(alpha) > threshold
+    rgb = np.nan_to_num(np.asarray(photo_rgb, np.float32)[..., :3], nan=0.0, posinf=0.0, neginf=0.0)
+    lum = np.clip(rgb @ np.array([0.2126, 0.7152, 0.0722], np.float32), 0.0, None) ** (1.0 / 2.2)
+    return enclosed_holes(sil) & ~backdrop_holes(sil, lum)
+
+
+OPEN_HOLES = "open_holes.npz"
+"""``MODEL/build/open_holes.npz``: per view id, the mask holes a tolerant carve trusted
+(:func:`open_hole_masks`, bit-packed rows with the image shape), so that the
+geometry holdout of ``eval loo`` carves as the build did without the photographs."""
+
+
+def write_open_holes(path: Path, holes: dict) -> None:
+    from ..imageio import atomic_path
+
+    arrays = {}
+    for vid, m in holes.items():
+        m = np.asarray(m, bool)
+        arrays[f"{vid}.bits"] = np.packbits(m, axis=1)
+        arrays[f"{vid}.shape"] = np.asarray(m.shape, np.int64)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as f:
+            np.savez_compressed(f, **arrays)
+
+
+def read_open_holes(path: Path) -> dict:
+    """View id → (H, W) bool of :data:`OPEN_HOLES`; {} when the file is absent (a model
+    built before it, or by a classical carve)."""
+    if not path.is_file():
+        return {}
+    try:
+        with np.load(path) as z:
+            out = {}
+            for key in z.files:
+                if key.endswith(".bits"):
+                    vid = key[: -len(".bits")]
+                    h, w = (int(x) for x in z[f"{vid}.shape"])
+                    out[vid] = np.unpackbits(z[key], axis=1, count=w)[:h].astype(bool)
+            return out
+    except (OSError, ValueError, KeyError) as e:
+        raise FormatError(f"{path}: not a readable open-holes file ({e}); delete it to carve as before") from e
+
+
 def _nullstep(name):
     from contextlib import nullcontext
 
@@ -682,6 +736,7 @@ def build_geometry(
     step=None,
     progress=None,
     images=None,
+    open_holes=None,
 ) -> Geometry:
     """Silhouettes → hull → surfels → visibility from per-view alphas and cameras.
 
@@ -691,17 +746,28 @@ def build_geometry(
     ``rig_session`` clips the hull at the table top. ``step`` is the build's step timer
     (a context-manager factory taking the step name). ``images``: per-view linear RGB
     (callable ``i → (H, W, 3)`` or a sequence), needed by ``config.refine``.
+    ``open_holes``: per view None or an (H, W) bool mask of the enclosed mask holes that
+    show the backdrop (:func:`open_hole_masks`); a tolerant carve trusts rejections
+    through them like those of the outer contour.
     """
     step = step or _nullstep
     prog = progress or (lambda done, total: None)
     notes: list[str] = []
     V = len(cameras)
     with step("silhouettes"):
-        sils, pin, dil = [], [], []
+        sils, pin, dil, strong_in = [], [], [], []
         for i, (cam, alpha) in enumerate(zip(cameras, alphas)):
             d = config.dilate_base_px + config.dilate_rms_factor * float(rms_px[i])
             dil.append(int(math.ceil(d - 1e-9)))
             s = silhouette_from_alpha(alpha, threshold=config.alpha_threshold, dilate_px=d)
+            oh = None if open_holes is None else open_holes[i]
+            if oh is not None:
+                if np.shape(oh) != s.shape:
+                    raise InputError(f"open_holes of view {view_ids[i]}: {np.shape(oh)}, expected {s.shape}")
+                # the dilated silhouette's filled holes, minus the backdrop ones
+                strong_in.append(undistort_silhouette(enclosed_holes(s) & ~np.asarray(oh, bool), cam)[0])
+            else:
+                strong_in.append(None)
             s, pc = undistort_silhouette(s, cam)
             sils.append(s)
             pin.append(pc)
@@ -743,7 +809,19 @@ def build_geometry(
             # return_stats=True: (occupancy, stats, strong silhouettes)
             occ, ostats, strong = cast(
                 "tuple[np.ndarray, Any, Any]",
-                carve_robust(sils, pin, grid, tolerance=tol, root_cell=config.root_cell, return_stats=True),
+                carve_robust(
+                    sils,
+                    pin,
+                    grid,
+                    tolerance=tol,
+                    root_cell=config.root_cell,
+                    return_stats=True,
+                    strong_silhouettes=(
+                        None
+                        if all(t is None for t in strong_in)
+                        else [enclosed_holes(sl) if t is None else t for t, sl in zip(strong_in, sils)]
+                    ),
+                ),
             )
         else:
             occ, ostats = cast(
@@ -1202,7 +1280,7 @@ def step_geometry(
         "rig_session": rig_session,
         "colour": (
             _digest([_records_digest(session, session.select(shot=s, kind=None)) for s, _ in colour])
-            if config.refine != "none" and colour
+            if (config.refine != "none" or config.carve_tolerance != 0) and colour
             else ""
         ),
     }
@@ -1223,6 +1301,15 @@ def step_geometry(
             )[..., :3]
 
         images = view_rgb
+    holes = None
+    tolerant = config.carve_tolerance if config.carve_tolerance is not None else (0 if rig_session else 1)
+    if tolerant and colour and config.backdrop_holes:
+        holes = [
+            None
+            if shot[0] is None
+            else open_hole_masks(a, _rgb(session.load_radiance(shot[0])), threshold=config.alpha_threshold)
+            for a, shot in zip(mattes.alphas, colour)
+        ]
     g = build_geometry(
         mattes.alphas,
         cams.views,
@@ -1234,7 +1321,12 @@ def step_geometry(
         step=step,
         progress=progress,
         images=images,
+        open_holes=holes,
     )
+    if holes is not None:
+        write_open_holes(store.dir / OPEN_HOLES, {v: h for v, h in zip(vids, holes) if h is not None})
+    else:  # a stale file from an earlier build would make the geometry holdout carve differently
+        (store.dir / OPEN_HOLES).unlink(missing_ok=True)
     store.save(rel, g)
     store.record("geometry", key, inputs=inputs, params=params, outputs=[rel], seconds=time.perf_counter() - t)
     return g, key

@@ -85,6 +85,10 @@ def geometry_without(model: OpacityHullModel, *, config: BuildConfig | None = No
     rig_session = not str(model.meta.get("provenance", {}).get("rig_source", "")).startswith("import:")
     lo, hi = report.get("lo_m"), report.get("hi_m")
     fallback = (np.asarray(lo), np.asarray(hi)) if lo and hi else None
+    from .build import BUILD_DIR, OPEN_HOLES, read_open_holes
+
+    stored = read_open_holes(Path(model.root) / BUILD_DIR / OPEN_HOLES)
+    holes = [stored.get(v.id) for v in model.views]
 
     def rebuild(i: int) -> Surfels:
         keep = [j for j in range(V) if j != i]
@@ -107,6 +111,7 @@ def geometry_without(model: OpacityHullModel, *, config: BuildConfig | None = No
             rig_session=rig_session,
             fallback_box=fallback,
             images=images,
+            open_holes=[holes[j] for j in keep] if stored else None,
         )
         s = g.surfels
         vis = np.zeros((len(s), V), bool)

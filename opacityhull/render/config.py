@@ -14,6 +14,7 @@ __all__ = ["RenderConfig", "KMAX", "Shading", "ShadingSurface", "default_threads
 
 Shading = Literal["pixel", "surfel"]
 ShadingSurface = Literal["refined", "hull"]
+Align = Literal["none", "flow"]
 
 KMAX = 16
 """Largest supported ULR k (the kernels keep per-surfel candidate lists on the stack)."""
@@ -130,6 +131,10 @@ class RenderConfig:
         "hull" (or surfels without ``depth_m``): on the hull. Surfel shading always
         shades on the hull (displaced centres measured −0.3 dB there: their visibility
         bits belong to the hull positions).
+    align : "none" or "flow"
+        Pixel shading only: "flow" aligns the chosen views by optical flow before
+        blending (floating textures, :mod:`opacityhull.render.floating`), which removes
+        the ghosting the hull's depth errors leave; "none" blends them as they project.
     """
 
     k: int = 4
@@ -150,6 +155,7 @@ class RenderConfig:
     close_holes: bool = True
     fallback_views: bool = False
     shading_surface: ShadingSurface = "refined"
+    align: Align = "none"
 
     @property
     def n_threads(self) -> int:
@@ -185,5 +191,7 @@ class RenderConfig:
                 f"RenderConfig.shading_surface = {self.shading_surface!r}: expected one of "
                 f"{', '.join(get_args(ShadingSurface))}"
             )
+        if self.align not in get_args(Align):
+            raise InputError(f"RenderConfig.align = {self.align!r}: expected one of {', '.join(get_args(Align))}")
         if not (isinstance(self.band_rows, (int, np.integer)) and self.band_rows >= 1):
             raise InputError(f"RenderConfig.band_rows = {self.band_rows!r}: expected an integer >= 1")

@@ -348,6 +348,7 @@ def deferred_shade(
     min_view_cos: float = MIN_VIEW_COS,
     fallback: bool = False,
     threads: int = 1,
+    align=None,
 ) -> tuple[np.ndarray, int]:
     """Per-pixel ULR shading (the fast twin of
     :func:`~opacityhull.render.reference.deferred_shade_reference`).
@@ -369,6 +370,9 @@ def deferred_shade(
     views : :class:`~opacityhull.render.views.PreparedViews` with images.
     allowed : (V,) uint8, 0 for excluded views.
     k : ULR neighbourhood.
+    align : optional :class:`~opacityhull.render.floating.FlowAlignConfig`: the chosen
+        views are aligned by optical flow before blending (:func:`.floating.float_blend`,
+        floating textures); None blends them as they project.
 
     Returns
     -------
@@ -410,6 +414,8 @@ def deferred_shade(
     ok = np.zeros(P, np.bool_)
     order, s_lb = np.arange(views.n_views, dtype=np.int64), np.zeros(views.n_views)
     C = np.asarray(desired_centre, np.float64).reshape(3)
+    if align is not None:
+        return _aligned_shade(pix, points, pvis, pok, views, allowed, C, order, s_lb, k, (H, W), align, threads)
     K.parallel_for(
         K.ulr_shade,
         P,
@@ -436,4 +442,43 @@ def deferred_shade(
     )
     flat = out.reshape(-1, 4)
     flat[pix[ok]] = rgba[ok]
+    return out, int(ok.sum())
+
+
+def _aligned_shade(pix, points, pvis, pok, views, allowed, C, order, s_lb, k, shape, align, threads):
+    """:func:`deferred_shade` with floating-texture alignment: the same view choice and
+    weights (``ulr_select``), blended by :func:`.floating.float_blend`."""
+    from .floating import float_blend
+
+    P = pix.size
+    kk = max(1, int(k))
+    idx = np.empty((P, kk), np.int32)
+    w = np.empty((P, kk), np.float32)
+    uv = np.empty((P, kk, 2), np.float32)
+    count = np.empty(P, np.int32)
+    K.parallel_for(
+        K.ulr_select,
+        P,
+        (
+            points,
+            pvis,
+            pok,
+            allowed,
+            C,
+            views.centres,
+            views.cams,
+            views.sizes,
+            order,
+            s_lb,
+            views.tie_rank,
+            kk,
+            idx,
+            w,
+            uv,
+            count,
+        ),
+        threads=threads,
+    )
+    ok = count > 0
+    out, _ = float_blend(pix[ok], points[ok], idx[ok], w[ok], uv[ok], views, shape, config=align)
     return out, int(ok.sum())

@@ -482,6 +482,7 @@ def _render_deferred(
         min_view_cos=float(config.min_view_cos),
         fallback=bool(config.fallback_views),
         threads=threads,
+        align=_align_config(config),
     )
     if config.coverage_clip:
         a = premul[..., 3]
@@ -505,6 +506,14 @@ def _render_deferred(
         "ms": _stage_ms(t0, prepare=t_prep, setup=t_setup, raster=t_raster, shade=t_shade, finish=t_end),
     }
     return RenderResult(rgba_img, depth, np.ascontiguousarray(wsum, dtype=np.float32), cov, camera, config, stats)
+
+
+def _align_config(config: RenderConfig):
+    if config.align == "none":
+        return None
+    from .floating import FlowAlignConfig
+
+    return FlowAlignConfig()
 
 
 def _shading_depth(

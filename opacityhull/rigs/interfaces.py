@@ -31,6 +31,7 @@ __all__ = [
     "CameraInfo",
     "Rig",
     "GroundTruthSource",
+    "PhaseAware",
     "Port",
 ]
 
@@ -216,6 +217,20 @@ class Rig(Protocol):
         waited for) or performed by a simulated rig. Actions: ``"place_board"``
         (details: ``charuco`` = :class:`~opacityhull.charuco.CharucoSpec`),
         ``"remove_board"``, ``"remove_object"``, ``"place_object"``."""
+        ...
+
+
+@runtime_checkable
+class PhaseAware(Protocol):
+    """A rig that renders shots differently by capture phase (the simulated rig: a matting
+    shot and an envmatte shot look alike in the rig state, but need different samples).
+
+    The capture runner calls :meth:`note_phase` before the shots of each phase on rigs
+    that have it (``isinstance(rig, PhaseAware)``); hardware needs nothing of the kind.
+    """
+
+    def note_phase(self, phase: str | None) -> None:
+        """Declare the phase of the shots that follow (None: undeclared)."""
         ...
 
 

@@ -17,16 +17,18 @@ DATA = Path(__file__).resolve().parents[1] / "data" / "real"
 
 pytestmark = pytest.mark.slow
 
-# Measured with the defaults (auto resolution, robust carve, pixel shading at the
-# photo-consistent shading depth), every 4th view held out (4 views): temple blend
-# 19.41 dB / geometry 18.67 dB, coverage IoU 0.933, interior alpha 0.969; dino blend 19.48
-# / geometry 17.55, IoU 0.960, interior alpha 0.976. The computation is deterministic
-# (fixed data, no sampling); the margins of 0.5 dB / 0.015 are what single features moved
-# by this round and last (shading depth +0.45 / +0.67 dB on the temple, robust carving
-# +0.45 dB, pixel shading +0.6 dB), so losing any one of them fails. Below the issue's
-# goals (baseline + 3 dB; IoU 0.97, interior alpha 0.99): see the closing note.
+# Measured with the defaults (auto resolution, robust carve with see-through mask holes
+# judged by the photograph, pixel shading at the photo-consistent shading depth), every 4th
+# view held out (4 views): temple blend 20.07 dB / geometry 18.86 dB, coverage IoU 0.945,
+# interior alpha 0.975; dino blend 19.48 / geometry 17.55, IoU 0.960, interior alpha 0.976
+# (no dino hole shows the backdrop: unchanged by that rule). The computation is
+# deterministic (fixed data, no sampling); the margins of 0.5 dB / 0.015 are what single
+# features moved by (backdrop holes +0.66 / +0.19 dB on the temple, shading depth +0.45 /
+# +0.67 dB, robust carving +0.45 dB, pixel shading +0.6 dB), so losing any one of them
+# fails. Below the goals (baseline + 3 dB; IoU 0.97, interior alpha 0.99): see the
+# closing note.
 THRESHOLDS = {
-    "temple": {"geometry_psnr": 18.15, "blend_psnr": 18.9, "iou": 0.918, "interior_alpha": 0.954},
+    "temple": {"geometry_psnr": 18.35, "blend_psnr": 19.55, "iou": 0.93, "interior_alpha": 0.96},
     "dino": {"geometry_psnr": 17.05, "blend_psnr": 18.95, "iou": 0.945, "interior_alpha": 0.961},
 }
 
