@@ -10,7 +10,12 @@ view of one session through :func:`opacityhull.reconstruct.perview.matte_view_ch
 (the workers read the session from disk and send back a checksum: the same work a build
 does per view, without shipping pixels), warm (numba caches loaded in every worker first).
 
-    .venv/bin/python benchmarks/scale.py [--quick] [--json]
+    .venv/bin/python benchmarks/scale.py [--quick] [--json] [--storage-only]
+
+Model storage (also ``--storage-only``, merged into the existing scale.json/md): the
+same models written with half and float32 pixels (``write_model(storage=...)``) and one
+synthetic build both ways (``build --storage``): disk bytes per view, leave-one-out PSNR,
+relit error against the exact quadrature, and the stored values' error.
 
 Quick: views 48/144/432 at 64×48, lights 0/24 at 48 views, the scheduler comparison on
 48 views at 320×240 (~3 min on the loaded 2-core VM, ~6 min when it is very loaded).
@@ -31,8 +36,12 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from opacityhull.model import Storage
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "benchmarks" / "out"
@@ -61,12 +70,14 @@ def make_session(root: Path, *, n_table: int, width: int, height: int, lights: i
     }
 
 
-def run_build_rss(session: Path, model: Path, *, reflectance: bool) -> dict:
+def run_build_rss(session: Path, model: Path, *, reflectance: bool, storage: str | None = None) -> dict:
     """``opacityhull build`` in a child process: wall time, the child's own peak RSS
     (``os.wait4``: not the maximum over every child so far, as ``RUSAGE_CHILDREN`` is), sizes."""
     cmd = [str(CLI), "build", str(session), "--out", str(model), "--no-pictures", "--json"]
     if not reflectance:
         cmd.append("--no-reflectance")
+    if storage is not None:
+        cmd += ["--storage", storage]
     t = time.perf_counter()
     with tempfile.TemporaryFile() as fo, tempfile.TemporaryFile() as fe:
         p = subprocess.Popen(cmd, stdout=fo, stderr=fe, env=_env())
@@ -88,6 +99,8 @@ def run_build_rss(session: Path, model: Path, *, reflectance: bool) -> dict:
         "peak_rss_mb": ru.ru_maxrss / 1024.0,
         "model_bytes": model_bytes,
         "disk_bytes_per_view": views_bytes / max(rep["views"], 1),
+        "storage": rep.get("metrics", {}).get("storage_pixel_type", "float"),
+        "report_disk_bytes_per_view": rep.get("metrics", {}).get("disk_bytes_per_view"),
         "surfels": rep["surfels"],
         "steps_s": rep.get("seconds", {}),
     }
@@ -223,6 +236,168 @@ def scheduler_comparison(tmp: Path, *, n_table: int, width: int, height: int, re
     return res
 
 
+def _dir_bytes_per_view(model, sub: str) -> float:
+    files = [model.root / sub / f"{v.id}.exr" for v in model.views]
+    return sum(f.stat().st_size for f in files if f.is_file()) / len(model.views)
+
+
+def _copy_model(m, dst: Path, storage: "Storage"):
+    """``m`` rewritten through ``write_model`` in ``storage`` (both copies of a pair go
+    through the same path, so they differ only in the pixel type)."""
+    from opacityhull.model import OpacityHullModel, write_model
+
+    refl = None
+    if m.has_reflectance:
+        refl = {"lights": m.light_samples, "images": m.load_reflectance}
+    write_model(
+        dst,
+        views=m.views,
+        surfels=m.surfels,
+        view_rgba=[m.load_view_rgba(i) for i in range(len(m.views))],
+        rig=m.meta.get("rig"),
+        provenance=m.meta.get("provenance"),
+        reflectance=refl,
+        storage=storage,
+    )
+    return OpacityHullModel.open(dst)
+
+
+def storage_comparison(tmp: Path, *, quick: bool) -> dict:
+    """Half against float32 pixels in the model: disk bytes per view (views and
+    reflectance), leave-one-out PSNR of the analytic sphere (render/synthetic), relit
+    error against the exact quadrature (relight/synthetic), and the relative error of
+    the stored values. Each model pair is written from the same data, differing only in
+    ``write_model(storage=...)``."""
+    from opacityhull.model import OpacityHullModel
+    from opacityhull.relight.envmap import EnvironmentMap, downsample_latlong, load_envmap
+    from opacityhull.relight.relit import Relighter
+    from opacityhull.relight.synthetic import SphereScene, sphere_groundtruth
+    from opacityhull.relight.synthetic import write_sphere_model as write_relight_sphere
+    from opacityhull.render.evaluate import leave_one_out
+    from opacityhull.render.renderer import RenderConfig
+    from opacityhull.render.synthetic import write_sphere_model as write_render_sphere
+    from opacityhull.data import PROBES_DIR
+
+    w, h = (96, 72) if quick else (200, 150)
+    res: dict = {"loo_size": f"{w}x{h}"}
+    # a real build of the synthetic session, both ways (`opacityhull build --storage`)
+    n_table, bw, bh, lights = (8, 64, 48, 24) if quick else (8, 200, 150, 24)
+    s = tmp / "st_build.session"
+    make_session(s, n_table=n_table, width=bw, height=bh, lights=lights)
+    builds = {}
+    for st in ("float", "half"):
+        b = run_build_rss(s, tmp / f"st_build_{st}.model", reflectance=True, storage=st)
+        if b["storage"] != st:
+            raise RuntimeError(f"build --storage {st} wrote a {b['storage']} model")
+        builds[st] = {k: b[k] for k in ("disk_bytes_per_view", "report_disk_bytes_per_view", "build_s")}
+    res["build"] = {"views": 6 * n_table, "size": f"{bw}x{bh}", "lights": lights, **builds}
+    res["build_bytes_per_view_ratio_half_vs_float"] = (
+        builds["half"]["disk_bytes_per_view"] / builds["float"]["disk_bytes_per_view"]
+    )
+    fm, hm = (OpacityHullModel.open(tmp / f"st_build_{st}.model") for st in ("float", "half"))
+    d = [np.max(np.abs(a - b)) for a, b in zip(fm.load_views_premul(), hm.load_views_premul())]
+    res["build_views_max_abs_err"] = float(max(d))
+    for p in (s, tmp / "st_build_float.model", tmp / "st_build_half.model"):
+        shutil.rmtree(p, ignore_errors=True)
+    # leave-one-out on the ULR renderer (views only)
+    src, _ = write_render_sphere(tmp / "st_loo_src", width=w, height=h, table_step_deg=30.0, n_surfels=20000)
+    src_m = OpacityHullModel.open(src)
+    loo_m = {st: _copy_model(src_m, tmp / f"st_loo_{st}", st) for st in ("float", "half")}
+    pick = list(range(0, len(src_m.views), 3))
+    loo = {st: leave_one_out(m, views=pick, config=RenderConfig()) for st, m in loo_m.items()}
+    res["loo_views"] = len(pick)
+    res["loo_psnr_db"] = {st: loo[st]["psnr_mean"] for st in loo}
+    res["loo_psnr_delta_db"] = loo["half"]["psnr_mean"] - loo["float"]["psnr_mean"]
+    pv = {st: np.concatenate([p.ravel() for p in m.load_views_premul()]) for st, m in loo_m.items()}
+    res["views_max_abs_err"] = float(np.max(np.abs(pv["half"] - pv["float"])))
+    res["views_max_value"] = float(np.nanmax(pv["float"]))
+    res["views_bytes_per_view"] = {st: _dir_bytes_per_view(m, "views") for st, m in loo_m.items()}
+    # relighting from the one-light images (views + reflectance)
+    rw, rh = (40, 32) if quick else (96, 80)
+    rsrc = OpacityHullModel.open(write_relight_sphere(tmp / "st_rl_src", width=rw, height=rh))
+    rl_m = {st: _copy_model(rsrc, tmp / f"st_rl_{st}", st) for st in ("float", "half")}
+    res["relight_size"] = f"{rw}x{rh}"
+    res["relight_lights"] = len(rsrc.light_samples)
+    env = EnvironmentMap(downsample_latlong(load_envmap(PROBES_DIR / "grace.hdr", yaw_deg=180).radiance, 4))
+    errs: dict = {"float": [], "half": []}
+    vs_float = []
+    rel_val = []
+    for i in range(len(rsrc.views)):
+        truth = sphere_groundtruth(rsrc.views[i].camera, SphereScene(), env, upper_only=True)
+        relit = {st: Relighter(m).relight_view(i, envmap=env) for st, m in rl_m.items()}
+        msk = relit["float"][..., 3] > 0.99
+        for st in errs:
+            errs[st].append(float(np.linalg.norm(relit[st][..., :3][msk] - truth[msk]) / np.linalg.norm(truth[msk])))
+        vs_float.append(
+            float(
+                np.linalg.norm(relit["half"][..., :3][msk] - relit["float"][..., :3][msk])
+                / np.linalg.norm(relit["float"][..., :3][msk])
+            )
+        )
+        a, b = rl_m["float"].load_reflectance(i), rl_m["half"].load_reflectance(i)
+        for k in a:
+            big = np.abs(a[k]) > 6.2e-5  # normal half range: relative precision 2**-11
+            if big.any():
+                rel_val.append(float(np.max(np.abs(b[k][big] - a[k][big]) / np.abs(a[k][big]))))
+    res["relight_rel_err_vs_truth_max"] = {st: max(v) for st, v in errs.items()}
+    res["relight_rel_err_half_vs_float_max"] = max(vs_float)
+    res["reflectance_max_rel_err"] = max(rel_val)
+    res["bytes_per_view"] = {
+        st: {"views": _dir_bytes_per_view(m, "views"), "reflectance": _dir_bytes_per_view(m, "reflectance")}
+        for st, m in rl_m.items()
+    }
+    tot = {st: sum(v.values()) for st, v in res["bytes_per_view"].items()}
+    res["bytes_per_view_ratio_half_vs_float"] = tot["half"] / tot["float"]
+    for d in (tmp / n for n in ("st_loo_src", "st_rl_src", *(f"st_{k}_{st}" for k in ("loo", "rl") for st in tot))):
+        shutil.rmtree(d, ignore_errors=True)
+    print(f"  storage: {json.dumps(res)}", file=sys.stderr)
+    return res
+
+
+def _storage_summary(st: dict) -> dict:
+    return {
+        "storage_bytes_per_view_ratio_half_vs_float": st["bytes_per_view_ratio_half_vs_float"],
+        "storage_build_bytes_per_view_ratio_half_vs_float": st["build_bytes_per_view_ratio_half_vs_float"],
+        "storage_bytes_per_view": {k: sum(v.values()) for k, v in st["bytes_per_view"].items()},
+        "storage_loo_psnr_delta_db": st["loo_psnr_delta_db"],
+        "storage_relight_rel_err_half_vs_float": st["relight_rel_err_half_vs_float_max"],
+    }
+
+
+def storage_table(st: dict) -> list[str]:
+    bpv, b = st["bytes_per_view"], st["build"]
+    return [
+        "",
+        "## Model storage: half against float32 pixels",
+        "",
+        f"`write_model(storage=...)`, the same data written both ways (`benchmarks/scale.py --storage-only`). "
+        f"Relit sphere (relight/synthetic, {st['relight_size']}, {st['relight_lights']} light samples), "
+        "disk bytes per view (ZIP-compressed EXR):",
+        "",
+        "| storage | views B/view | reflectance B/view | total B/view |",
+        "|---|---:|---:|---:|",
+        *(
+            f"| {k} | {v['views']:.0f} | {v['reflectance']:.0f} | {v['views'] + v['reflectance']:.0f} |"
+            for k, v in bpv.items()
+        ),
+        "",
+        f"`opacityhull build --storage float|half` of the synthetic session ({b['views']} views, {b['size']}, "
+        f"{b['lights']} light directions): {b['float']['disk_bytes_per_view']:.0f} B/view float, "
+        f"{b['half']['disk_bytes_per_view']:.0f} B/view half ({st['build_bytes_per_view_ratio_half_vs_float']:.3f}); "
+        f"views differ by at most {st['build_views_max_abs_err']:.2e} (premultiplied).",
+        "",
+        f"Half / float bytes per view: {st['bytes_per_view_ratio_half_vs_float']:.3f}. "
+        f"Leave-one-out PSNR of the ULR sphere ({st['loo_size']}, {st['loo_views']} views): "
+        f"float {st['loo_psnr_db']['float']:.3f} dB, half {st['loo_psnr_db']['half']:.3f} dB "
+        f"(delta {st['loo_psnr_delta_db']:+.4f} dB). Relit error against the exact quadrature, worst view: "
+        f"float {st['relight_rel_err_vs_truth_max']['float']:.5f}, half "
+        f"{st['relight_rel_err_vs_truth_max']['half']:.5f}; half against float relit "
+        f"{st['relight_rel_err_half_vs_float_max']:.2e}. Stored values: views max abs error "
+        f"{st['views_max_abs_err']:.2e} (premultiplied, values up to {st.get('views_max_value', 1.0):.3g}), reflectance max relative error "
+        f"{st['reflectance_max_rel_err']:.2e} (half's step is 2^-11 = 4.9e-4, rounding half of it).",
+    ]
+
+
 def plot(rows: list[dict], sched: dict, path: Path, base_mb: float | None = None) -> None:
     import matplotlib
 
@@ -266,7 +441,7 @@ def plot(rows: list[dict], sched: dict, path: Path, base_mb: float | None = None
     plt.close(fig)
 
 
-def table(rows: list[dict], sched: dict, summary: dict, quick: bool) -> str:
+def table(rows: list[dict], sched: dict, summary: dict, quick: bool, storage: dict | None = None) -> str:
     lines = [
         "# Paper scale (benchmarks/scale.py)",
         "",
@@ -275,14 +450,15 @@ def table(rows: list[dict], sched: dict, summary: dict, quick: bool) -> str:
         "`ru_maxrss`. The machine is a shared, loaded 2-core VM: timings are contended, "
         "ratios measured in one run are what to compare.",
         "",
-        "| views | size | lights | images | session MB | write s | build s | peak RSS MB | model kB/view | surfels |",
-        "|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|",
+        "| views | size | lights | images | session MB | write s | build s | peak RSS MB | model kB/view | pixels | surfels |",
+        "|---:|---|---:|---:|---:|---:|---:|---:|---:|---|---:|",
     ]
-    for r in rows:
+    for r in rows:  # rows measured before `build --storage` existed have no "storage": float32
         lines.append(
             f"| {r['views']} | {r['width']}x{r['height']} | {r['lights']} | {r['images']} | "
             f"{r['session_bytes'] / 1e6:.1f} | {r['write_s']:.1f} | {r['build_s']:.1f} | "
-            f"{r['peak_rss_mb']:.0f} | {r['disk_bytes_per_view'] / 1e3:.1f} | {r['surfels']} |"
+            f"{r['peak_rss_mb']:.0f} | {r['disk_bytes_per_view'] / 1e3:.1f} | {r.get('storage', 'float')} | "
+            f"{r['surfels']} |"
         )
     if "baseline_rss_mb" in summary:
         lines += [
@@ -323,6 +499,8 @@ def table(rows: list[dict], sched: dict, summary: dict, quick: bool) -> str:
             f"{sched['projected_16_workers_s']:.2f} s, {sched['projected_16_worker_speedup']:.1f}x serial "
             "(assumes 16 real cores and a file system that keeps up).",
         ]
+    if storage:
+        lines += storage_table(storage)
     lines += ["", "Summary: `" + json.dumps(summary) + "`", ""]
     return "\n".join(lines)
 
@@ -332,10 +510,29 @@ def main() -> None:
     ap.add_argument("--quick", action="store_true", help="the small sweep (a few minutes)")
     ap.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     ap.add_argument("--tmp", default=None, help="scratch folder (default: a temporary one)")
+    ap.add_argument(
+        "--storage-only",
+        action="store_true",
+        help="only the half/float model storage comparison, merged into the existing scale.json/md",
+    )
     args = ap.parse_args()
     OUT.mkdir(parents=True, exist_ok=True)
     tmp = Path(args.tmp or tempfile.mkdtemp(prefix="oh-scale-"))
     tmp.mkdir(parents=True, exist_ok=True)
+    if args.storage_only:
+        try:
+            storage = storage_comparison(tmp, quick=args.quick)
+        finally:
+            if args.tmp is None:
+                shutil.rmtree(tmp, ignore_errors=True)
+        prev = json.loads((OUT / "scale.json").read_text()) if (OUT / "scale.json").is_file() else {}
+        summary = {**prev.get("summary", {}), **_storage_summary(storage)}
+        res = {**prev, "summary": summary, **summary, "storage": storage}
+        (OUT / "scale.json").write_text(json.dumps(res, indent=1))
+        text = table(prev.get("rows", []), prev.get("schedulers", {}), summary, summary.get("quick", True), storage)
+        (OUT / "scale.md").write_text(text)
+        print(json.dumps(res) if args.json else text)
+        return
     small = (64, 48)
     points = [(8, *small, 0), (24, *small, 0), (72, *small, 0), (8, *small, 24)]
     # per-view tasks must cost well above the cluster's few ms per task to show scaling
@@ -362,6 +559,7 @@ def main() -> None:
                 )
             )
         sched = scheduler_comparison(tmp, n_table=sched_pt[0], width=sched_pt[1], height=sched_pt[2], repeats=repeats)
+        storage = storage_comparison(tmp, quick=args.quick)
     finally:
         if args.tmp is None:
             shutil.rmtree(tmp, ignore_errors=True)
@@ -392,6 +590,7 @@ def main() -> None:
         # what the other jobs on the machine did to these figures: parallel speed-ups mean
         # little once the load is above the 2 cores
         "load_average_1m": [load_start, os.getloadavg()[0]],
+        **_storage_summary(storage),
     }
     if not args.quick:
         big = (200, 150)
@@ -399,14 +598,14 @@ def main() -> None:
         summary["peak_rss_above_baseline_ratio_432_vs_48_at_200x150"] = (pick(432, big)["peak_rss_mb"] - base_mb) / max(
             pick(48, big)["peak_rss_mb"] - base_mb, 1.0
         )
-    res = {"summary": summary, **summary, "rows": rows, "schedulers": sched}
+    res = {"summary": summary, **summary, "rows": rows, "schedulers": sched, "storage": storage}
     (OUT / "scale.json").write_text(json.dumps(res, indent=1))
-    (OUT / "scale.md").write_text(table(rows, sched, summary, args.quick))
+    (OUT / "scale.md").write_text(table(rows, sched, summary, args.quick, storage))
     plot(rows, sched, OUT / "scale.png", base_mb)
     if args.json:
         print(json.dumps(res))
     else:
-        print(table(rows, sched, summary, args.quick))
+        print(table(rows, sched, summary, args.quick, storage))
 
 
 if __name__ == "__main__":

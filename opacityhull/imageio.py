@@ -29,6 +29,7 @@ log = logging.getLogger(__name__)
 
 __all__ = [
     "HALF_MAX",
+    "to_half",
     "read_image",
     "write_image",
     "read_exr",
@@ -173,7 +174,27 @@ def srgb_decode(encoded) -> np.ndarray:
 # --------------------------------------------------------------------------- EXR
 
 
-def write_exr(path, image, *, half: bool = False, channels: str | None = None, header: dict | None = None) -> None:
+def to_half(a, *, path) -> tuple[np.ndarray, dict | None]:
+    """``a`` as float16 for a half EXR at ``path``: finite values beyond ±65504 are
+    clamped, with one :class:`HalfOverflowWarning` naming the file (half would turn them
+    into ±Inf silently); NaN and ±Inf stay as they are, as float32 keeps them. Returns the
+    array and ``{"values": n, "max_abs": m}`` of what was clamped, or None."""
+    a32 = np.asarray(a, dtype=np.float32)
+    over = np.isfinite(a32) & (np.abs(a32) > HALF_MAX)
+    if not over.any():
+        return a32.astype(np.float16), None
+    n, mx = int(np.count_nonzero(over)), float(np.max(np.abs(a32[over])))
+    warnings.warn(
+        f"{path}: {n} values beyond the half-float range (max |v| = {mx:.4g}) clamped to ±{HALF_MAX:g}",
+        HalfOverflowWarning,
+        stacklevel=3,
+    )
+    return np.where(over, np.copysign(np.float32(HALF_MAX), a32), a32).astype(np.float16), {"values": n, "max_abs": mx}
+
+
+def write_exr(
+    path, image, *, half: bool = False, channels: str | None = None, header: dict | None = None
+) -> dict | None:
     """Write an (H, W[, C]) image as EXR, atomically.
 
     Parameters
@@ -181,34 +202,31 @@ def write_exr(path, image, *, half: bool = False, channels: str | None = None, h
     path : path
     image : array (H, W) or (H, W, C), C in 1..4, any float dtype.
     half : bool
-        Store 16-bit floats. Values beyond ±65504 are clamped first and a
-        :class:`HalfOverflowWarning` naming the file is issued; NaN stays NaN.
+        Store 16-bit floats (:func:`to_half`: finite values beyond ±65504 are clamped
+        with a :class:`HalfOverflowWarning` naming the file; NaN and ±Inf stay).
     channels : str, optional
         Channel names, one letter each (default Y, YA, RGB, RGBA by channel count).
     header : dict, optional
         Extra header attributes, typed by :func:`_exr_attribute` (str → string,
         int → int, float → float, 3 numbers → v3f, ``chromaticities`` → its 8 floats).
+
+    Returns
+    -------
+    What a half write clamped (:func:`to_half`), or None.
     """
     path = Path(path)
     a = _as_hwc(f"image for {path}", image)
     names = channels or _CHANNEL_SETS[a.shape[2]]
     if len(names) != a.shape[2]:
         raise InputError(f"{len(names)} channel names {names!r} for {a.shape[2]} channels ({path})")
+    clamped = None
     if half:
-        a32 = a.astype(np.float32)
-        over = np.abs(a32) > HALF_MAX
-        if np.any(over & np.isfinite(a32)) or np.any(np.isinf(a32)):
-            warnings.warn(
-                f"{path}: {int(np.count_nonzero(over))} values beyond the half-float range "
-                f"(max |v| = {float(np.nanmax(np.abs(a32))):.4g}) clamped to ±{HALF_MAX}",
-                HalfOverflowWarning,
-                stacklevel=2,
-            )
-        data = np.clip(a32, -HALF_MAX, HALF_MAX).astype(np.float16)
+        data, clamped = to_half(a, path=path)
     else:
         data = a.astype(np.float32)
     chans = {n: np.ascontiguousarray(data[:, :, i]) for i, n in enumerate(names)}
     _write_exr_channels(path, chans, header)
+    return clamped
 
 
 def _read_exr_channels(path: Path) -> dict[str, np.ndarray]:
@@ -414,7 +432,8 @@ def write_image(path, image, **kw) -> None:
     """Write by extension: ``.exr`` (float), ``.hdr`` (RGBE) or ``.png`` (sRGB 8-bit)."""
     suffix = Path(path).suffix.lower()
     if suffix == ".exr":
-        return write_exr(path, image, **kw)
+        write_exr(path, image, **kw)
+        return
     if suffix == ".hdr":
         return write_hdr(path, image)
     if suffix == ".png":
@@ -425,33 +444,41 @@ def write_image(path, image, **kw) -> None:
 # --------------------------------------------------------------------------- layered EXR
 
 
-def write_exr_layers(path, layers: dict, *, half: bool = False, header: dict | None = None) -> None:
+def write_exr_layers(
+    path, layers: dict, *, half: bool = False, header: dict | None = None, shape: tuple[int, int] | None = None
+) -> dict | None:
     """Write several same-sized images into one EXR as layers ``<name>.R``, ``.G``, ...
 
     ``layers`` maps a layer name (no dots) to an (H, W, C) array, C in 1..4. Used for a
     view's one-light-at-a-time images: one file per view, one layer per light.
-    ``header``: extra attributes, typed as in :func:`write_exr`.
+    ``header``: extra attributes, typed as in :func:`write_exr`. ``half`` as in
+    :func:`write_exr` (one warning per file); ``shape``: the (H, W) every layer must have.
+    Returns what a half write clamped (:func:`to_half`), or None.
     """
     path = Path(path)
     if not layers:
         raise InputError(f"no layers to write to {path}")
     chans = {}
-    shape = None
+    given = shape is not None
     for name, img in layers.items():
         if "." in name:
             raise InputError(f"layer name {name!r} must not contain '.' ({path})")
         a = _as_hwc(f"layer {name} for {path}", img)
         if shape is None:
             shape = a.shape[:2]
-        elif a.shape[:2] != shape:
-            raise ShapeError(f"layer {name} for {path} is {a.shape[:2]}, other layers are {shape}")
-        if half:
-            a = np.clip(a.astype(np.float32), -HALF_MAX, HALF_MAX).astype(np.float16)
-        else:
-            a = a.astype(np.float32)
+        elif a.shape[:2] != tuple(shape):
+            other = "the image is" if given else "other layers are"
+            raise ShapeError(f"layer {name} for {path} is {a.shape[:2]}, {other} {tuple(shape)}")
         for i, c in enumerate(_CHANNEL_SETS[a.shape[2]]):
-            chans[f"{name}.{c}"] = np.ascontiguousarray(a[:, :, i])
+            chans[f"{name}.{c}"] = np.ascontiguousarray(a[:, :, i], dtype=np.float32)
+    clamped = None
+    if half:
+        # one conversion over all layers: one warning and one record per file
+        keys = list(chans)
+        stacked, clamped = to_half(np.stack([chans[k] for k in keys]), path=path)
+        chans = {k: np.ascontiguousarray(stacked[i]) for i, k in enumerate(keys)}
     _write_exr_channels(path, chans, header)
+    return clamped
 
 
 def read_exr_layers(path) -> dict:

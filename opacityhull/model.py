@@ -7,14 +7,17 @@ Layout of a model folder::
                             [provenance] session, rig source, build options;
                             [rig] rig geometry table (riggeometry schema);
                             [[views]] id, camera, table_deg, image (in views order);
-                            [reflectance] present, lights = [{key, light_id, array_deg}]
+                            [reflectance] present, lights = [{key, light_id, array_deg}];
+                            [storage] pixel_type ("half" | "float"), clamped_values,
+                            clamped = [{file, values, max_abs}] (absent: float)
     surfels.ply             binary PLY, element vertex: x y z nx ny nz radius (float32)
                             and vis_000 .. vis_NNN (uint8): the visibility bit vector,
                             bit v of byte v // 8 (LSB first) set when view v sees the
                             surfel (depth-tested, not just in the frustum)
     cameras/                COLMAP text model of all views; image NAME = view id; the
                             order of images.txt is the order of the views (bit index)
-    views/<view id>.exr     opacity light field sample of that view: RGBA float32,
+    views/<view id>.exr     opacity light field sample of that view: RGBA (half or
+                            float32 pixels, ``[storage] pixel_type``),
                             alpha from the matte; colour premultiplied by alpha
                             (OpenEXR's convention; format 1 stored straight colour),
                             header ``chromaticities`` = Rec.709 primaries, D65 white
@@ -27,12 +30,21 @@ Layout of a model folder::
                             ``<key>.lightOutputRGB`` (v3f, intensity × colour) and, when
                             the model has a rig, ``<key>.lightDirection`` (v3f, unit,
                             object frame at this view's table angle, towards the light)
-                            and ``<key>.lightPosition`` (v3f, metres, same frame)
+                            and ``<key>.lightPosition`` (v3f, metres, same frame);
+                            pixels half or float32 like the views
     calibration/<camera>.yaml   rig cameras (OpenCV YAML, world_from_cam = rig_from_cam)
     report.json             metrics and timings of the build
     pictures/               contact sheets, overlays, plots
 
 World frame = object frame (rig frame at table angle 0), metres.
+
+Storage: ``views/`` and ``reflectance/`` hold one pixel type, ``[storage] pixel_type``.
+The values are the same in both: linear premultiplied RGBA, and radiance at full DMX
+level; there is no extra scale or offset, a reader widens half to float32 and uses the
+numbers as they are. Half keeps 11 significant bits (relative step 2**-11 ≈ 4.9e-4,
+absolute 6e-8 below 6.1e-5) and tops out at 65504: finite values beyond it are clamped to
+±65504 with a :class:`~opacityhull.imageio.HalfOverflowWarning` naming the file, and
+listed in ``[storage] clamped``; NaN and ±Inf are stored as they are, as in float32.
 """
 
 from __future__ import annotations
@@ -41,7 +53,7 @@ import logging
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Sequence
+from typing import Literal, Sequence, get_args
 
 import numpy as np
 
@@ -64,6 +76,8 @@ __all__ = [
     "read_surfels_ply",
     "write_model",
     "light_key",
+    "Storage",
+    "STORAGE_TYPES",
 ]
 
 MODEL_FORMAT = "opacityhull-model/2"
@@ -75,6 +89,13 @@ READABLE_FORMATS = ("opacityhull-model/1", MODEL_FORMAT)
 #: Below this alpha a premultiplied view texel has no recoverable straight colour (0 is
 #: returned): ``premul / alpha`` would only amplify rounding.
 STRAIGHT_ALPHA_EPS = 1e-6
+
+
+#: Pixel type of ``views/`` and ``reflectance/``: 16-bit half or 32-bit float EXR.
+Storage = Literal["half", "float"]
+STORAGE_TYPES: tuple[str, ...] = get_args(Storage)
+#: ``[storage] clamped`` lists at most this many files (the count covers them all).
+MAX_CLAMPED_LISTED = 100
 
 
 def light_key(light_id: int, array_deg: float) -> str:
@@ -334,6 +355,24 @@ class OpacityHullModel:
         return str(self.meta["model"]["format"])
 
     @property
+    def storage(self) -> str:
+        """Pixel type of ``views/`` and ``reflectance/``: "half" or "float" (models
+        written before ``[storage]`` existed are float32)."""
+        st = self.meta.get("storage", {}).get("pixel_type", "float")
+        if st not in STORAGE_TYPES:
+            raise FormatError(
+                f"{self.root / 'model.toml'}: storage.pixel_type {st!r}, expected one of "
+                f"{', '.join(map(repr, STORAGE_TYPES))}"
+            )
+        return str(st)
+
+    @property
+    def storage_clamped(self) -> list[dict]:
+        """The files whose values were clamped to the half range when written:
+        ``[{"file", "values", "max_abs"}]`` (empty for float storage)."""
+        return list(self.meta.get("storage", {}).get("clamped", []))
+
+    @property
     def views_premultiplied(self) -> bool:
         """Whether ``views/*.exr`` store premultiplied colour (format 2 on)."""
         return self.format != "opacityhull-model/1"
@@ -476,6 +515,7 @@ def write_model(
     reflectance: dict | None = None,
     extra_meta: dict | None = None,
     progress=None,
+    storage: Storage = "float",
 ) -> Path:
     """Write a complete model folder.
 
@@ -489,6 +529,10 @@ def write_model(
     provenance : session path, options, timings.
     reflectance : ``{"lights": [LightSample...], "images": callable(view_index) -> {key: (H, W, 3)}}``.
     progress : callable(done, total) or None.
+    storage : pixel type of ``views/`` and ``reflectance/``: "float" (32-bit, the
+        default here) or "half" (16-bit: half the bytes; 11 significant bits, finite
+        values beyond ±65504 clamped with a ``HalfOverflowWarning`` and listed in
+        ``model.toml`` ``[storage] clamped``). Same values either way, no scale.
 
     ``model.toml`` is written last, so a folder without it is an unfinished build.
     """
@@ -496,7 +540,10 @@ def write_model(
     from .session import toml_dumps
 
     root = Path(root)
+    if storage not in STORAGE_TYPES:
+        raise InputError(f"write_model storage {storage!r}: expected one of {', '.join(map(repr, STORAGE_TYPES))}")
     root.mkdir(parents=True, exist_ok=True)
+    clamped: list[dict] = []
     if surfels.n_views != len(views):
         raise InputError(f"surfels have {surfels.n_views} views, {len(views)} views given")
     write_colmap_text(
@@ -513,9 +560,11 @@ def write_model(
             check_shape(f"view {v.id} RGBA", img, (v.camera.height, v.camera.width, 4))
             pre = np.array(img, dtype=np.float32)
             pre[..., :3] *= pre[..., 3:4]
-            write_exr(
-                root / "views" / f"{v.id}.exr", pre, header={"chromaticities": REC709_CHROMATICITIES, "view": v.id}
-            )
+            path = root / "views" / f"{v.id}.exr"
+            header = {"chromaticities": REC709_CHROMATICITIES, "view": v.id}
+            info = write_exr(path, pre, header=header, half=storage == "half")
+            if info:
+                clamped.append({"file": str(path), **info})
             done += 1
             if progress:
                 progress(done, total)
@@ -542,11 +591,17 @@ def write_model(
             log.warning("write_model: reflectance without a rig geometry; its layers carry no light direction")
         for v in views:
             imgs = reflectance["images"](v.index)
-            write_exr_layers(
-                root / "reflectance" / f"{v.id}.exr",
-                {L.key: imgs[L.key] for L in lights},
+            path = root / "reflectance" / f"{v.id}.exr"
+            layers = {L.key: imgs[L.key] for L in lights}
+            info = write_exr_layers(
+                path,
+                layers,
                 header=_light_header(v, lights, geometry),
+                half=storage == "half",
+                shape=(v.camera.height, v.camera.width),
             )
+            if info:
+                clamped.append({"file": str(path), **info})
             done += 1
             if progress:
                 progress(done, total)
@@ -556,6 +611,12 @@ def write_model(
         }
     else:
         meta["reflectance"] = {"present": False}
+    meta["storage"] = {
+        "pixel_type": storage,
+        "values": "linear premultiplied RGBA (views), radiance at full DMX level (reflectance); no scale",
+        "clamped_values": int(sum(c["values"] for c in clamped)),
+        "clamped": clamped[:MAX_CLAMPED_LISTED],
+    }
     if extra_meta:
         meta.update(extra_meta)
     with atomic_path(root / "model.toml") as tmp:

@@ -9,14 +9,13 @@ backgrounds of one-light-at-a-time and object-absent images about as well as ZIP
 
 from __future__ import annotations
 
-import warnings
 from pathlib import Path
 from typing import Literal, get_args
 
 import numpy as np
 
 from ..errors import ConfigError, ShapeError
-from ..imageio import HALF_MAX, HalfOverflowWarning, atomic_path
+from ..imageio import atomic_path, to_half
 
 __all__ = ["COMPRESSIONS", "ExrCompression", "write_capture_exr"]
 
@@ -45,7 +44,8 @@ def _compression(name: str):
 
 def write_capture_exr(path, image, *, half: bool = False, compression: str = "rle") -> None:
     """Write an (H, W, C) image (C = 1, 3 or 4) as EXR, atomically (temporary file,
-    fsync, rename). ``half`` clamps to ±65504 first, with a warning naming the file."""
+    fsync, rename). ``half``: :func:`~opacityhull.imageio.to_half` (finite values beyond ±65504
+    clamped, with a warning naming the file)."""
     import OpenEXR
 
     path = Path(path)
@@ -57,14 +57,7 @@ def write_capture_exr(path, image, *, half: bool = False, compression: str = "rl
     names = {1: "Y", 3: "RGB", 4: "RGBA"}[a.shape[2]]
     a = a.astype(np.float32)
     if half:
-        over = np.abs(a) > HALF_MAX
-        if np.any(over):
-            warnings.warn(
-                f"{path}: {int(np.count_nonzero(over))} values beyond the half-float range clamped to ±{HALF_MAX}",
-                HalfOverflowWarning,
-                stacklevel=2,
-            )
-        a = np.clip(a, -HALF_MAX, HALF_MAX).astype(np.float16)
+        a, _ = to_half(a, path=path)
     chans = {n: np.ascontiguousarray(a[:, :, i]) for i, n in enumerate(names)}
     hdr = {"compression": _compression(compression), "type": OpenEXR.scanlineimage}
     with atomic_path(path) as tmp:

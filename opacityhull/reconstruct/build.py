@@ -75,7 +75,7 @@ import numpy as np
 
 from ..camera import Camera, read_colmap_text, read_opencv_yaml
 from ..errors import ConfigError, FormatError, InputError
-from ..model import LightSample, Surfels, ViewInfo, light_key, write_model
+from ..model import STORAGE_TYPES, LightSample, Storage, Surfels, ViewInfo, light_key, write_model
 from ..riggeometry import RigGeometry, view_id
 from ..session import Session, check_finite, require_manifest_ok
 from .hull import (
@@ -206,6 +206,10 @@ class BuildConfig:
     reflectance : attach one-light-at-a-time images when the session has them.
     pictures : write the PNG pictures.
     ground_truth_dilate_px : dilation of the object region for ``alpha_mae``.
+    storage : pixel type of the model's ``views/`` and ``reflectance/`` EXRs (same values,
+        no scale): "half" (default: half the bytes per view; leave-one-out and relighting
+        figures unchanged, ``benchmarks/out/scale.md``) or "float" (32-bit). Values
+        beyond the half range are clamped and listed in the report.
     """
 
     hull_res: int | None = None
@@ -239,6 +243,7 @@ class BuildConfig:
     reflectance: bool = True
     pictures: bool = True
     ground_truth_dilate_px: int = 3
+    storage: Storage = "half"
 
     def __post_init__(self):
         if isinstance(self.refine, bool):
@@ -275,6 +280,8 @@ class BuildConfig:
                 raise ConfigError(
                     f"bounds_m must be ((x0, y0, z0), (x1, y1, z1)) with x1 > x0 ..., got {self.bounds_m}"
                 )
+        if self.storage not in STORAGE_TYPES:
+            raise ConfigError(f"storage must be one of {', '.join(map(repr, STORAGE_TYPES))}, got {self.storage!r}")
         object.__setattr__(self, "exclude_views", tuple(self.exclude_views))
 
     def to_dict(self) -> dict:
@@ -938,6 +945,7 @@ _NOT_GEOMETRY = (
     "verify_checksums",
     "ground_truth_dilate_px",
     "alpha_eps",
+    "storage",  # the pixel type of the written files: only the write step depends on it
 )
 
 
@@ -1655,6 +1663,7 @@ def build_model(
                 reflectance=reflectance,
                 extra_meta=extra,
                 progress=prog,
+                storage=config.storage,
             )
             store.record(
                 "write", write_key, inputs=write_in, params={}, outputs=outputs, seconds=time.perf_counter() - t
@@ -1719,6 +1728,7 @@ def build_model(
         )
         metrics["nonfinite_images"] = len(nonfinite)
     metrics["manifest_verified"] = "sha256" if config.verify_checksums else "sizes and ids only"
+    metrics.update(_storage_metrics(out, [v.id for v in view_infos], notes))
     report.metrics = metrics
     report.seconds = {k: round(v, 4) for k, v in timer.seconds.items()}
     report.seconds["total"] = round(sum(timer.seconds.values()), 4)
@@ -1730,6 +1740,37 @@ def build_model(
     with atomic_path(out / "report.json") as tmp:
         tmp.write_text(json.dumps(to_jsonable(report.to_dict()), indent=2) + "\n")
     return report
+
+
+def _storage_metrics(out: Path, view_ids: Sequence[str], notes: list) -> dict:
+    """Pixel type and bytes per view of the written model (read back from the folder, so a
+    reused write step reports the same), and the values clamped to the half range (a note
+    naming the files: they are not lost silently)."""
+    from ..tomlio import read_toml
+
+    st = read_toml(out / "model.toml", error=FormatError, what="model.toml").get("storage", {})
+    sizes = {}
+    for d in ("views", "reflectance"):
+        files = [out / d / f"{vid}.exr" for vid in view_ids]
+        sizes[d] = sum(f.stat().st_size for f in files if f.is_file()) / max(len(view_ids), 1)
+    m = {
+        "storage_pixel_type": st.get("pixel_type", "float"),
+        "disk_bytes_per_view": sizes["views"] + sizes["reflectance"],
+        "disk_bytes_per_view_views": sizes["views"],
+        "disk_bytes_per_view_reflectance": sizes["reflectance"],
+        "storage_clamped_values": int(st.get("clamped_values", 0)),
+    }
+    clamped = list(st.get("clamped", []))
+    if m["storage_clamped_values"]:
+        m["storage_clamped_files"] = clamped
+        notes.append(
+            f"storage half: {m['storage_clamped_values']} value(s) beyond ±65504 clamped in "
+            f"{len(clamped)} file(s): "
+            + "; ".join(f"{c['file']} ({c['values']}, max |v| {c['max_abs']:.4g})" for c in clamped[:3])
+            + (" ..." if len(clamped) > 3 else "")
+            + " (build with --storage float to keep them)"
+        )
+    return m
 
 
 def _pictures(out: Path, session, views, vids, alphas, sils, pin, surfels, cams, colour_shots) -> list[str]:

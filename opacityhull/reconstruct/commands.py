@@ -217,6 +217,13 @@ def register(app, groups) -> None:
         ),
         no_reflectance: bool = typer.Option(False, "--no-reflectance", help="Do not attach one-light images."),
         no_pictures: bool = typer.Option(False, "--no-pictures", help="Skip the PNG pictures."),
+        storage: Optional[str] = typer.Option(
+            None,
+            "--storage",
+            help="Pixel type of the model's view and reflectance EXRs: half (16-bit, half "
+            "the bytes; values beyond 65504 are clamped and listed in the report) | float "
+            "(32-bit). Default: BuildConfig.storage (half).",
+        ),
         resume: bool = typer.Option(
             False,
             "--resume",
@@ -241,6 +248,8 @@ def register(app, groups) -> None:
             raise ConfigError(f"--matting-drift {matting_drift!r}: expected one of {', '.join(DRIFT_MODES)}")
         if refine is not None and refine not in ("shading", "surfels", "none"):
             raise ConfigError(f"--refine {refine!r}: expected shading, surfels or none")
+        if storage is not None and storage not in ("half", "float"):
+            raise ConfigError(f"--storage {storage!r}: expected half or float")
         # options left out keep the config dataclasses' defaults (one place for them)
         d, dm = BuildConfig(), MattingOptions()
         matting = MattingOptions(max_alpha_std=dm.max_alpha_std if max_alpha_std is None else max_alpha_std)
@@ -259,6 +268,7 @@ def register(app, groups) -> None:
             pictures=not no_pictures,
             drop_uncalibrated_cameras=not require_all_cameras,
             refine=d.refine if refine is None else cast(Literal["shading", "surfels", "none"], refine),
+            storage=d.storage if storage is None else cast(Literal["half", "float"], storage),
         )
         with progress_bar("build: {task.description}") as bar:
             # one bar line per step: its description names the step, its count and ETA
