@@ -7,7 +7,7 @@ import math
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
+from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 
 from splat_cases import make_cam, random_surfels, setup_fast
@@ -73,7 +73,8 @@ def test_splat_setup_equals_reference(seed, filt, cutoff, sigma, cull):
         cull_backfaces=cull,
     )
     np.testing.assert_array_equal(v1, v2)
-    assert v1.any()
+    # a camera that sees none of the 60 surfels (seed 2770056: all culled) tests nothing more
+    assume(v1.any())
     cols = list(range(K.S_RGBA)) + [K.S_AREA]
     np.testing.assert_allclose(r1[v1][:, cols], r2[v2][:, cols], rtol=2e-5, atol=1e-6)
 
