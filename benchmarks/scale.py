@@ -244,22 +244,9 @@ def _dir_bytes_per_view(model, sub: str) -> float:
 def _copy_model(m, dst: Path, storage: "Storage"):
     """``m`` rewritten through ``write_model`` in ``storage`` (both copies of a pair go
     through the same path, so they differ only in the pixel type)."""
-    from opacityhull.model import OpacityHullModel, write_model
+    from opacityhull.model import copy_model
 
-    refl = None
-    if m.has_reflectance:
-        refl = {"lights": m.light_samples, "images": m.load_reflectance}
-    write_model(
-        dst,
-        views=m.views,
-        surfels=m.surfels,
-        view_rgba=[m.load_view_rgba(i) for i in range(len(m.views))],
-        rig=m.meta.get("rig"),
-        provenance=m.meta.get("provenance"),
-        reflectance=refl,
-        storage=storage,
-    )
-    return OpacityHullModel.open(dst)
+    return copy_model(m, dst, storage=storage)
 
 
 def storage_comparison(tmp: Path, *, quick: bool) -> dict:

@@ -75,6 +75,7 @@ __all__ = [
     "write_surfels_ply",
     "read_surfels_ply",
     "write_model",
+    "copy_model",
     "light_key",
     "Storage",
     "STORAGE_TYPES",
@@ -622,3 +623,21 @@ def write_model(
     with atomic_path(root / "model.toml") as tmp:
         tmp.write_text(toml_dumps(meta))
     return root
+
+
+def copy_model(model: OpacityHullModel, dst, *, storage: Storage) -> OpacityHullModel:
+    """``model`` written again to ``dst`` through :func:`write_model` with the pixel type
+    ``storage`` (e.g. a float32 model converted to half): views, surfels, reflectance,
+    rig and provenance; the pictures and the build report are not copied."""
+    refl = {"lights": model.light_samples, "images": model.load_reflectance} if model.has_reflectance else None
+    write_model(
+        dst,
+        views=model.views,
+        surfels=model.surfels,
+        view_rgba=[model.load_view_rgba(i) for i in range(len(model.views))],
+        rig=model.meta.get("rig"),
+        provenance=model.meta.get("provenance"),
+        reflectance=refl,
+        storage=storage,
+    )
+    return OpacityHullModel.open(dst)

@@ -16,7 +16,7 @@ import pytest
 import rcsynth
 from opacityhull.errors import ConfigError, FormatError, InputError
 from opacityhull.imageio import HalfOverflowWarning
-from opacityhull.model import OpacityHullModel, Storage, ViewInfo, write_model
+from opacityhull.model import OpacityHullModel, Storage, ViewInfo, copy_model, write_model
 
 # half rounds to nearest with 10 fraction bits: |error| <= 2**-11 |x| for normal numbers,
 # <= 2**-25 below 2**-14 (subnormals)
@@ -25,20 +25,9 @@ HALF_ABS = 2.0**-25
 
 
 def _copy(m: OpacityHullModel, dst: Path, storage: Storage) -> OpacityHullModel:
-    """``m`` written again through ``write_model`` in ``storage``: both copies of a pair
-    come from the same arrays and differ only in the pixel type."""
-    refl = {"lights": m.light_samples, "images": m.load_reflectance} if m.has_reflectance else None
-    write_model(
-        dst,
-        views=m.views,
-        surfels=m.surfels,
-        view_rgba=[m.load_view_rgba(i) for i in range(len(m.views))],
-        rig=m.meta.get("rig"),
-        provenance=m.meta.get("provenance"),
-        reflectance=refl,
-        storage=storage,
-    )
-    return OpacityHullModel.open(dst)
+    """``m`` written again in ``storage``: both copies of a pair come from the same arrays
+    and differ only in the pixel type."""
+    return copy_model(m, dst, storage=storage)
 
 
 @pytest.fixture(scope="module")
