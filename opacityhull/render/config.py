@@ -131,10 +131,14 @@ class RenderConfig:
         "hull" (or surfels without ``depth_m``): on the hull. Surfel shading always
         shades on the hull (displaced centres measured −0.3 dB there: their visibility
         bits belong to the hull positions).
-    align : "none" or "flow"
-        Pixel shading only: "flow" aligns the chosen views by optical flow before
-        blending (floating textures, :mod:`opacityhull.render.floating`), which removes
-        the ghosting the hull's depth errors leave; "none" blends them as they project.
+    align : "flow" or "none"
+        Pixel shading only: "flow" (default) aligns the chosen views by optical flow
+        before blending (floating textures, :mod:`opacityhull.render.floating`), which
+        removes ghosting the hull's depth errors leave; "none" blends them as they
+        project. Measured (leave-one-out, every 4th view, geometry / blend holdout):
+        dinoSR +0.30 / +0.35 dB and SSIM +0.035; templeSR +0.05 / +0.03 dB, SSIM +0.014 /
+        +0.006; at about +0.14 s per 640×480 frame. At a captured camera (one view) it
+        does nothing.
     """
 
     k: int = 4
@@ -155,7 +159,7 @@ class RenderConfig:
     close_holes: bool = True
     fallback_views: bool = False
     shading_surface: ShadingSurface = "refined"
-    align: Align = "none"
+    align: Align = "flow"
 
     @property
     def n_threads(self) -> int:

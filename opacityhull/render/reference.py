@@ -299,9 +299,11 @@ def render_image_ref(
     winning surfel is clear of the runner-up by more than the kernels' exp-table error."""
     from .renderer import RenderConfig, coverage_from, normalise, straight_from_premul, surfel_areas
 
-    cfg = config or RenderConfig()
+    cfg = config or RenderConfig(align="none")
     if camera.has_distortion:
         raise NotImplementedError("render_image_ref: distortion-free desired cameras only")
+    if cfg.shading == "pixel" and cfg.align != "none":
+        raise NotImplementedError("render_image_ref: no flow alignment (pass RenderConfig(align='none'))")
     valid, rec = splat_setup_ref(
         surfels.positions,
         surfels.normals,
