@@ -57,7 +57,7 @@ KEYS = (
 
 def configurations():
     """(name, BuildConfig overrides, RenderConfig overrides), each adding one feature."""
-    surfel, pixel = {"shading": "surfel"}, {"shading": "pixel"}
+    surfel, pixel = {"shading": "surfel"}, {"shading": "pixel", "align": "none"}
     return [
         ("res384-classic-surfel", {"hull_res": 384, "carve_tolerance": 0, "refine": "none"}, surfel),
         ("auto-classic-surfel", {"carve_tolerance": 0, "refine": "none"}, surfel),
@@ -192,6 +192,7 @@ def main(argv=None) -> int:
     ap.add_argument("--sets", default="temple,dino")
     ap.add_argument("--configs", default=None, help="comma list of configuration names (default all)")
     ap.add_argument("--model", action="append", default=[], help="NAME=DIR of a built model (blend holdout)")
+    ap.add_argument("--append", action="store_true", help="keep the rows of the earlier run (other configurations)")
     a = ap.parse_args(argv)
     views = "every:4" if a.quick else "every:2"
     configs = configurations()
@@ -207,6 +208,11 @@ def main(argv=None) -> int:
             name, _, d = spec.partition("=")
             rows += run_model(name, Path(d), "every:2", configs, tmp)
     OUT.mkdir(parents=True, exist_ok=True)
+    stem = "fidelity_quick" if a.quick else "fidelity"
+    if a.append and (OUT / f"{stem}.json").is_file():
+        done = {(r["set"], r["config"]) for r in rows}
+        old = [r for r in json.loads((OUT / f"{stem}.json").read_text()) if (r["set"], r["config"]) not in done]
+        rows = sorted(old + rows, key=lambda r: (r["set"] != "temple", r["set"]))
     md = [
         "# Fidelity on real photographs",
         "",
@@ -219,7 +225,6 @@ def main(argv=None) -> int:
         "",
     ]
     # the quick and the full run keep separate files: the full one compares with the baseline
-    stem = "fidelity_quick" if a.quick else "fidelity"
     (OUT / f"{stem}.md").write_text("\n".join(md))
     (OUT / f"{stem}.json").write_text(json.dumps(rows, indent=1))
     plot(rows, OUT / f"{stem}.png")

@@ -47,8 +47,9 @@ def direction_to_uv(directions, *, invalid: Literal["raise", "zenith"] = "raise"
             raise InputError(f"invalid={invalid!r}: expected 'raise' or 'zenith'")
         d = np.where(bad[..., None], np.array([0.0, 1.0, 0.0]), d)
         n = np.where(bad, 1.0, n)
-    y = np.clip(d[..., 1] / n, -1.0, 1.0)
-    v = np.arccos(y) / math.pi
+    # atan2 of (distance from the axis, height) rather than arccos(y / n): arccos loses
+    # all precision within ~1e-8 rad of the poles (1 − cos θ falls below the float64 step)
+    v = np.arctan2(np.hypot(d[..., 0], d[..., 2]), d[..., 1]) / math.pi
     u = np.arctan2(d[..., 0], -d[..., 2]) / (2.0 * math.pi)
     u = u - np.floor(u)
     u = np.where(u >= 1.0, 0.0, u)  # -0.0 and rounding can give exactly 1
