@@ -137,7 +137,7 @@ class RenderConfig:
         removes ghosting the hull's depth errors leave; "none" blends them as they
         project. Measured (leave-one-out, every 4th view, geometry / blend holdout):
         dinoSR +0.30 / +0.35 dB and SSIM +0.035; templeSR +0.05 / +0.03 dB, SSIM +0.014 /
-        +0.006; at about +0.14 s per 640×480 frame. At a captured camera (one view) it
+        +0.006; at +0.14–0.5 s per 640×480 frame. At a captured camera (one view) it
         does nothing.
     """
 
