@@ -73,17 +73,11 @@ def browser_psnr(model_dir, bundle_dir, drv, views=(2, 13)) -> list:
     from opacityhull.view.browser import canvas_rgb, wait_ready
     from opacityhull.view.server import BundleServer
 
-    from opacityhull.model import Surfels
     from opacityhull.render.renderer import prepare_model_views, render_image
-    from opacityhull.view.bundle import read_bundle
+    from opacityhull.view.bundle import decoded_surfels
 
     model = OpacityHullModel.open(model_dir)
-    _, pos, rec = read_bundle(bundle_dir)
-    lf = rec["r_min"] == 0
-    vis = rec["vis"][lf].view(np.uint8).reshape(int(lf.sum()), -1)[:, : model.surfels.visibility.shape[1]]
-    dec = Surfels(
-        positions=pos[lf], normals=rec["nrm"][lf], radii=rec["radius"][lf], visibility=vis, n_views=len(model.views)
-    )
+    dec = decoded_surfels(bundle_dir, n_views=len(model.views))
     cams = [v.camera for v in model.views]
     pv = prepare_model_views(model)
     out = []
@@ -117,7 +111,7 @@ def relit_rows(
     (surfel shading, as the page) and relight_model's picture of the exact model — PSNR
     inside the mask, both over the same rotated map at the page's exposure."""
     from opacityhull.imageio import read_image, srgb_decode
-    from opacityhull.model import OpacityHullModel, Surfels
+    from opacityhull.model import OpacityHullModel
     from opacityhull.relight.envmap import load_envmap
     from opacityhull.relight.relit import Relighter
     from opacityhull.relight.runner import relight_model
@@ -126,7 +120,7 @@ def relit_rows(
     from opacityhull.render.renderer import render_image
     from opacityhull.render.views import prepare_views
     from opacityhull.view.browser import canvas_rgb, wait_ready
-    from opacityhull.view.bundle import read_bundle, write_bundle
+    from opacityhull.view.bundle import decoded_surfels, write_bundle
     from opacityhull.view.server import BundleServer
 
     t = time.perf_counter()
@@ -155,12 +149,7 @@ def relit_rows(
     if drv is None:
         return out
     model = OpacityHullModel.open(model_dir)
-    _, pos, rec = read_bundle(bundle_dir)
-    lf = rec["r_min"] == 0
-    vis = rec["vis"][lf].view(np.uint8).reshape(int(lf.sum()), -1)[:, : model.surfels.visibility.shape[1]]
-    dec = Surfels(
-        positions=pos[lf], normals=rec["nrm"][lf], radii=rec["radius"][lf], visibility=vis, n_views=len(model.views)
-    )
+    dec = decoded_surfels(bundle_dir, n_views=len(model.views))
     cams = [v.camera for v in model.views]
     R = Relighter(model)
     n = [e["name"] for e in rl["envmaps"]].index(probe)

@@ -328,27 +328,7 @@ def render_image(
     splat = scratch.get("splat", (N, K.SPLAT_FIELDS), np.float32)
     areas = surfel_areas(surfels)
     valid = scratch.get("valid", (N,), np.bool_)
-    K.parallel_for(
-        K.splat_setup,
-        N,
-        (
-            surfels.positions,
-            surfels.normals,
-            surfels.radii,
-            areas,
-            cam_row,
-            W,
-            H,
-            float(config.sigma_radius),
-            float(config.filter),
-            float(config.cutoff_sigma),
-            float(config.epsilon_z),
-            bool(config.backface_cull),
-            splat,
-            valid,
-        ),
-        threads=threads,
-    )
+    _setup_splats(surfels, surfels.positions, areas, cam_row, W, H, config, threads, splat, valid)
     t_setup = time.perf_counter()
     if progress:
         progress(1, 3)
@@ -508,6 +488,32 @@ def _render_deferred(
     return RenderResult(rgba_img, depth, np.ascontiguousarray(wsum, dtype=np.float32), cov, camera, config, stats)
 
 
+def _setup_splats(surfels, positions, areas, cam_row, W, H, config: RenderConfig, threads, splat, valid) -> None:
+    """Splat records of ``surfels`` centred at ``positions`` (the hull's, or the shading
+    depth's displaced ones) for the frame ``cam_row`` (W×H), in parallel."""
+    K.parallel_for(
+        K.splat_setup,
+        len(surfels),
+        (
+            positions,
+            surfels.normals,
+            surfels.radii,
+            areas,
+            cam_row,
+            W,
+            H,
+            float(config.sigma_radius),
+            float(config.filter),
+            float(config.cutoff_sigma),
+            float(config.epsilon_z),
+            bool(config.backface_cull),
+            splat,
+            valid,
+        ),
+        threads=threads,
+    )
+
+
 def _align_config(config: RenderConfig):
     if config.align == "none":
         return None
@@ -531,27 +537,7 @@ def _shading_depth(
     shade_at = surfels.shading_positions()
     splat = scratch.get("splat_shade", (N, K.SPLAT_FIELDS), np.float32)
     valid = scratch.get("valid_shade", (N,), np.bool_)
-    K.parallel_for(
-        K.splat_setup,
-        N,
-        (
-            shade_at,
-            surfels.normals,
-            surfels.radii,
-            surfel_areas(surfels),
-            cam_row,
-            W,
-            H,
-            float(config.sigma_radius),
-            float(config.filter),
-            float(config.cutoff_sigma),
-            float(config.epsilon_z),
-            bool(config.backface_cull),
-            splat,
-            valid,
-        ),
-        threads=threads,
-    )
+    _setup_splats(surfels, shade_at, surfel_areas(surfels), cam_row, W, H, config, threads, splat, valid)
     draw = np.flatnonzero(valid).astype(np.int64)
     # no scratch here: the hull pass's winner may still live in the scratch buffers
     geo, winner = D.geometry_frame(

@@ -50,7 +50,7 @@ from .octree_code import decode_positions, encode_offsets, encode_positions, med
 
 log = logging.getLogger(__name__)
 
-__all__ = ["VIEWER_FORMAT", "MAX_VIEWS", "write_bundle", "record_bytes", "read_bundle"]
+__all__ = ["VIEWER_FORMAT", "MAX_VIEWS", "write_bundle", "record_bytes", "read_bundle", "decoded_surfels"]
 
 VIEWER_FORMAT = "opacityhull-viewer/2"
 MAX_VIEWS = 256
@@ -606,3 +606,16 @@ def read_bundle(bundle_dir) -> tuple[dict, np.ndarray, np.ndarray]:
         pos.append(P)
         att.append(A)
     return man, np.concatenate(pos), np.concatenate(att)
+
+
+def decoded_surfels(bundle_dir, *, n_views: int):
+    """The model's surfels as the page draws them: the leaves (``r_min == 0``) of
+    :func:`read_bundle` with their decoded positions, normals, radii and the first
+    ``n_views`` visibility bits, as :class:`~opacityhull.model.Surfels` (what the CPU
+    renderer compares the browser with)."""
+    from ..model import Surfels
+
+    _, pos, rec = read_bundle(bundle_dir)
+    lf = rec["r_min"] == 0
+    vis = rec["vis"][lf].view(np.uint8).reshape(int(lf.sum()), -1)[:, : (n_views + 7) // 8]
+    return Surfels(positions=pos[lf], normals=rec["nrm"][lf], radii=rec["radius"][lf], visibility=vis, n_views=n_views)

@@ -174,15 +174,10 @@ def test_browser_matches_cpu_renderer(browser, view_model, bundle):
         # ULR: against the CPU renderer of the same surfels in its surfel shading mode it must
         # agree closely; against the exact model (CPU default, pixel shading) the figure
         # includes the position coding's loss (cell = surfel spacing, 3 offset bits).
-        from opacityhull.model import Surfels
         from opacityhull.render.renderer import prepare_model_views, render_image
+        from opacityhull.view.bundle import decoded_surfels
 
-        _, _, recs = read_bundle(out)
-        lf = recs["r_min"] == 0
-        vis = recs["vis"][lf].view(np.uint8).reshape(int(lf.sum()), -1)[:, : m.surfels.visibility.shape[1]]
-        decoded = Surfels(
-            positions=pos[lf], normals=recs["nrm"][lf], radii=recs["radius"][lf], visibility=vis, n_views=len(m.views)
-        )
+        decoded = decoded_surfels(out, n_views=len(m.views))
         pv = prepare_model_views(model)
         cams = [v.camera for v in model.views]
         for vi in (2, 13):

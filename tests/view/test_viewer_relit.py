@@ -17,7 +17,7 @@ from opacityhull.imageio import srgb_decode
 from opacityhull.model import OpacityHullModel
 from opacityhull.relight.envmap import load_envmap
 from opacityhull.relight.relit import Relighter, compress_reflectance, compress_reflectance_reference
-from opacityhull.view.bundle import read_bundle, write_bundle
+from opacityhull.view.bundle import decoded_surfels, write_bundle
 from opacityhull.view.relit import (
     choose_rank,
     quantize_basis,
@@ -156,14 +156,7 @@ def _load(drv, url):
 
 
 def _decoded_surfels(bundle_dir, model):
-    from opacityhull.model import Surfels
-
-    _, pos, rec = read_bundle(bundle_dir)
-    lf = rec["r_min"] == 0
-    vis = rec["vis"][lf].view(np.uint8).reshape(int(lf.sum()), -1)[:, : model.surfels.visibility.shape[1]]
-    return Surfels(
-        positions=pos[lf], normals=rec["nrm"][lf], radii=rec["radius"][lf], visibility=vis, n_views=len(model.views)
-    )
+    return decoded_surfels(bundle_dir, n_views=len(model.views))
 
 
 def test_browser_relit_matches_cpu_relighter(browser, relit_model, relit_bundle, tmp_path):
