@@ -153,7 +153,7 @@ def photo_holdout_loo(m, cams, rgba, config, views):
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(description=(__doc__ or "").split("\n")[0])
     ap.add_argument("--hull-res", type=int, default=256)
     ap.add_argument("--sets", default="templeSR,dinoSR")
     ap.add_argument("--scratch", default="/tmp/helper-photo/bench")
@@ -179,18 +179,7 @@ def main(argv=None):
         base, t_base = cli_loo(model, scratch / f"{name}-{args.hull_res}-loo")
         m, cams, rgba = load(model)
         views = [int(p["index"]) for p in base["per_view"]]
-        rows.append(
-            dict(
-                set=name,
-                variant="hull",
-                protocol="-",
-                psnr=base["psnr_mean"],
-                ssim=base["ssim_mean"],
-                refine_s=0.0,
-                moved=0.0,
-                n=len(m.surfels),
-            )
-        )
+        rows.append(_row(name, "hull", "-", base, 0.0, moved=0.0, n=len(m.surfels)))
         print(f"{name}: hull  PSNR {base['psnr_mean']:.2f}  SSIM {base['ssim_mean']:.3f}", file=sys.stderr)
         for vname in args.variants.split(","):
             cfg = variants[vname]
@@ -199,13 +188,12 @@ def main(argv=None):
                 dst = write_copy(model, sf, scratch / f"{name}-{args.hull_res}-{vname}")
                 s, _ = cli_loo(dst, dst / "loo")
                 rows.append(
-                    dict(
-                        set=name,
-                        variant=vname,
-                        protocol="blend",
-                        psnr=s["psnr_mean"],
-                        ssim=s["ssim_mean"],
-                        refine_s=tr,
+                    _row(
+                        name,
+                        vname,
+                        "blend",
+                        s,
+                        tr,
                         moved=stats["n_moved"] / max(stats["n_surfels"], 1),
                         n=len(sf),
                         conf=stats["n_confident"] / max(stats["n_surfels"], 1),
@@ -221,22 +209,25 @@ def main(argv=None):
                 )
             if args.protocol in ("photo", "both"):
                 s, tr = photo_holdout_loo(m, cams, rgba, cfg, views)
-                rows.append(
-                    dict(
-                        set=name,
-                        variant=vname,
-                        protocol="photo",
-                        psnr=s["psnr_mean"],
-                        ssim=s["ssim_mean"],
-                        refine_s=tr,
-                        moved=float("nan"),
-                        n=len(m.surfels),
-                    )
-                )
+                rows.append(_row(name, vname, "photo", s, tr, moved=float("nan"), n=len(m.surfels)))
                 print(f"{name}: {vname} photo PSNR {s['psnr_mean']:.2f} SSIM {s['ssim_mean']:.3f}", file=sys.stderr)
     print(json.dumps(rows, indent=1))
     if not args.no_write:
         write_outputs(rows, args)
+
+
+def _row(name: str, variant: str, protocol: str, loo: dict, refine_s: float, **extra) -> dict:
+    """One result row: the set, variant and protocol, the PSNR/SSIM means of the leave-one-out
+    summary ``loo``, the refinement seconds, then ``extra`` (moved, n, and the blend's statistics)."""
+    return dict(
+        set=name,
+        variant=variant,
+        protocol=protocol,
+        psnr=loo["psnr_mean"],
+        ssim=loo["ssim_mean"],
+        refine_s=refine_s,
+        **extra,
+    )
 
 
 def write_outputs(rows, args):

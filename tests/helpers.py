@@ -53,3 +53,33 @@ def ring_cameras(width: int, height: int, elevations_azimuths_deg, **fields: Any
         camera_spec(f"cam{i}", width, height, **fields, elevation_deg=el, azimuth_deg=az)
         for i, (el, az) in enumerate(elevations_azimuths_deg)
     ]
+
+
+def load_viewer(drv, url: str) -> dict:
+    """Open the viewer page at ``url`` in the WebDriver ``drv``; its ready record (``ok``, ``error``)."""
+    from opacityhull.view.browser import wait_ready
+
+    drv.get(url)
+    return wait_ready(drv, timeout_s=90)
+
+
+def viewer_error(drv, bundle: Path) -> str:
+    """Serve the bundle folder, load the viewer, check that it fails and shows an error; the error's text."""
+    from opacityhull.view.server import BundleServer
+
+    with BundleServer(bundle) as srv:
+        r = load_viewer(drv, srv.url)
+        assert not r["ok"]
+        error = drv.find_element("id", "error")
+        assert error.is_displayed()
+        return error.text
+
+
+def copy_without(src: Path, dst: Path, *missing: str) -> Path:
+    """``dst``: a copy of the folder ``src`` without the files named ``missing`` (relative paths)."""
+    import shutil
+
+    shutil.copytree(src, dst)
+    for name in missing:
+        (dst / name).unlink()
+    return dst

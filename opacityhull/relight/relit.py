@@ -64,6 +64,10 @@ __all__ = [
 # --------------------------------------------------------------------------- kernels
 
 
+#: pixels per block of the relighting kernels (one block: one task of the parallel loop)
+_BLOCK_PIXELS = 4096
+
+
 def _kernels():
     """(serial, parallel) compiled kernels. Blocks of 4096 pixels keep the float64
     accumulator in L2 while the K one-light images stream through once; the
@@ -71,7 +75,11 @@ def _kernels():
     from numba import njit, prange
 
     @njit(cache=True, fastmath=False)
-    def block(stack, weights, points, light_pos, near, p0, p1, out):  # pragma: no cover - compiled
+    def block(stack, weights, points, light_pos, b, out):  # pragma: no cover - compiled
+        P = stack.shape[1]
+        near = points.shape[0] == P  # a point per pixel: near lights (else directional)
+        p0 = b * _BLOCK_PIXELS
+        p1 = min(P, p0 + _BLOCK_PIXELS)
         K = stack.shape[0]
         M = weights.shape[0]
         acc = np.zeros((M, p1 - p0, 3))
@@ -111,19 +119,13 @@ def _kernels():
 
     @njit(cache=True)
     def serial(stack, weights, points, light_pos, out):  # pragma: no cover - compiled
-        P = stack.shape[1]
-        near = points.shape[0] == P
-        B = 4096
-        for b in range((P + B - 1) // B):
-            block(stack, weights, points, light_pos, near, b * B, min(P, b * B + B), out)
+        for b in range((stack.shape[1] + _BLOCK_PIXELS - 1) // _BLOCK_PIXELS):
+            block(stack, weights, points, light_pos, b, out)
 
     @njit(cache=True, parallel=True)
     def parallel(stack, weights, points, light_pos, out):  # pragma: no cover - compiled
-        P = stack.shape[1]
-        near = points.shape[0] == P
-        B = 4096
-        for b in prange((P + B - 1) // B):
-            block(stack, weights, points, light_pos, near, b * B, min(P, b * B + B), out)
+        for b in prange((stack.shape[1] + _BLOCK_PIXELS - 1) // _BLOCK_PIXELS):
+            block(stack, weights, points, light_pos, b, out)
 
     return serial, parallel
 

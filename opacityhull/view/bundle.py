@@ -153,10 +153,6 @@ def write_bundle(
     -------
     Summary dict: paths, surfels, views, bytes (total, per surfel, per view).
     """
-    from ..imageio import srgb_encode
-    from ..render.config import RenderConfig
-    from ..render.renderer import ALPHA_MIN, coverage_full, surfel_areas
-
     if not 1 <= int(k) <= 8:
         raise InputError(f"--k {k}: the viewer supports k in [1, 8]")
     if position_cell_m is not None and not (np.isfinite(position_cell_m) and position_cell_m > 0):
@@ -201,23 +197,7 @@ def write_bundle(
                 f"format {VIEWER_FORMAT}); choose an empty or new folder"
             )
     with replacing_dir(out) as tmp:
-        summary = _write(
-            tmp,
-            model,
-            s,
-            V,
-            k,
-            bg,
-            first_chunk,
-            progress,
-            srgb_encode,
-            RenderConfig(),
-            ALPHA_MIN,
-            coverage_full,
-            surfel_areas,
-            position_cell_m,
-            int(offset_bits),
-        )
+        summary = _write(tmp, model, k, bg, first_chunk, progress, position_cell_m, int(offset_bits))
         if env is not None:
             summary["envmap"] = _write_envmap(tmp, env, str(envmap))
         if relight and model.has_reflectance:
@@ -323,25 +303,13 @@ def _write_envmap(tmp: Path, env, spec: str) -> dict:
     return meta
 
 
-def _write(
-    tmp,
-    model,
-    s,
-    V,
-    k,
-    bg,
-    first_chunk,
-    progress,
-    srgb_encode,
-    cfg,
-    alpha_min,
-    coverage_full,
-    surfel_areas,
-    position_cell_m,
-    offset_bits,
-) -> dict:
+def _write(tmp, model, k, bg, first_chunk, progress, position_cell_m, offset_bits) -> dict:
+    from ..imageio import srgb_encode
+    from ..render.config import RenderConfig
+    from ..render.renderer import ALPHA_MIN, coverage_full, surfel_areas
     from .lod import build_point_tree
 
+    s, V, cfg = model.surfels, len(model.views), RenderConfig()
     words, rec = record_bytes(V)
     fin = np.all(np.isfinite(s.positions), axis=1) & np.isfinite(s.radii) & (s.radii > 0)
     if not fin.all():
@@ -532,7 +500,7 @@ def _write(
             "cutoff": cfg.cutoff_sigma,
             "epsilon_z": cfg.epsilon_z,
             "coverage_full": coverage_full(cfg),
-            "alpha_min": alpha_min,
+            "alpha_min": ALPHA_MIN,
             "m_floor": 1e-6,
             "zdev_footprints": 4.0,
         },

@@ -11,6 +11,7 @@ import urllib.request
 
 import numpy as np
 import pytest
+from helpers import copy_without, load_viewer, viewer_error
 
 from opacityhull.imageio import srgb_decode
 from opacityhull.model import OpacityHullModel
@@ -37,9 +38,9 @@ def test_bundle_layout_reads_back(view_model, bundle):
     # ones sit at their octree cell's centre, within half a cell diagonal of the surfel
     leaf = rec["r_min"] == 0
     assert leaf.sum() == len(m.surfels)
-    from scipy.spatial import cKDTree
+    from scipy.spatial import KDTree  # (cKDTree is untyped: no stub for the C module)
 
-    d, _ = cKDTree(m.surfels.positions).query(pos[leaf], 1)
+    d, _ = KDTree(m.surfels.positions).query(pos[leaf], 1)
     h = man["positions"]["cell_m"]
     assert d[: leaf[:nf].sum()].max() < 1e-6 and d.max() <= np.sqrt(3) * h
     # match coded leaves to surfels by the exact attributes (radius, normal), then check the cell
@@ -139,13 +140,6 @@ def test_server_serves_bundle(bundle):
 # --------------------------------------------------------------------------- in the browser
 
 
-def _load(drv, url):
-    from opacityhull.view.browser import wait_ready
-
-    drv.get(url)
-    return wait_ready(drv, timeout_s=90)
-
-
 def test_browser_matches_cpu_renderer(browser, view_model, bundle):
     """A captured camera set through the JS hook: PSNR ≥ 30 dB inside the mask against
     render_model; frames/s of an orbit are printed, not asserted (software GL)."""
@@ -157,7 +151,7 @@ def test_browser_matches_cpu_renderer(browser, view_model, bundle):
     out, _ = bundle
     model = OpacityHullModel.open(root)
     with BundleServer(out) as srv:
-        r = _load(browser, srv.url)
+        r = load_viewer(browser, srv.url)
         assert r["ok"], r["error"]
         assert (
             browser.execute_script("return window.opacityhull.viewer.loaded")
@@ -220,15 +214,8 @@ def test_browser_matches_cpu_renderer(browser, view_model, bundle):
 
 def test_browser_missing_chunk_shows_error(browser, bundle, tmp_path):
     out, _ = bundle
-    broken = tmp_path / "broken"
-    shutil.copytree(out, broken)
-    (broken / "surfels_002.bin").unlink()
-    with BundleServer(broken) as srv:
-        r = _load(browser, srv.url)
-        assert not r["ok"]
-        text = browser.find_element("id", "error").text
-        assert "surfels_002.bin" in text and "HTTP 404" in text and "incomplete" in text
-        assert browser.find_element("id", "error").is_displayed()
+    text = viewer_error(browser, copy_without(out, tmp_path / "broken", "surfels_002.bin"))
+    assert "surfels_002.bin" in text and "HTTP 404" in text and "incomplete" in text
 
 
 def test_browser_corrupt_octree_code_shows_error(browser, bundle, tmp_path):
@@ -242,21 +229,15 @@ def test_browser_corrupt_octree_code_shows_error(browser, bundle, tmp_path):
     shutil.copytree(out, broken)
     p = broken / H["codes_file"]
     p.write_bytes(p.read_bytes()[: len(p.read_bytes()) // 2])
-    with BundleServer(broken) as srv:
-        r = _load(browser, srv.url)
-        assert not r["ok"]
-        text = browser.find_element("id", "error").text
-        assert "positions.oct" in text and ("truncated" in text or "inflated" in text)
+    text = viewer_error(browser, broken)
+    assert "positions.oct" in text and ("truncated" in text or "inflated" in text)
     codes = zlib.decompress((out / H["codes_file"]).read_bytes())
     short = zlib.compress(codes[:-5], 9)
     p.write_bytes(short)
     man["positions"]["codes_bytes"] = len(short)
     (broken / "manifest.json").write_text(json.dumps(man))
-    with BundleServer(broken) as srv:
-        r = _load(browser, srv.url)
-        assert not r["ok"]
-        text = browser.find_element("id", "error").text
-        assert "octree position code" in text and "ends at level" in text
+    text = viewer_error(browser, broken)
+    assert "octree position code" in text and "ends at level" in text
 
 
 def test_browser_truncated_chunk_and_not_a_bundle(browser, bundle, tmp_path):
@@ -265,17 +246,12 @@ def test_browser_truncated_chunk_and_not_a_bundle(browser, bundle, tmp_path):
     shutil.copytree(out, broken)
     p = broken / "surfels_001.bin"
     p.write_bytes(p.read_bytes()[:-48])
-    with BundleServer(broken) as srv:
-        r = _load(browser, srv.url)
-        assert not r["ok"] and "truncated" in browser.find_element("id", "error").text
+    assert "truncated" in viewer_error(browser, broken)
     empty = tmp_path / "empty"
     empty.mkdir()
     for f in ("index.html", "viewer.js"):
         shutil.copyfile(out / f, empty / f)
-    with BundleServer(empty) as srv:
-        r = _load(browser, srv.url)
-        assert not r["ok"]
-        assert "not an opacityhull viewer bundle" in browser.find_element("id", "error").text
+    assert "not an opacityhull viewer bundle" in viewer_error(browser, empty)
 
 
 def test_browser_environment_map_background(browser, view_model, tmp_path):
@@ -294,7 +270,7 @@ def test_browser_environment_map_background(browser, view_model, tmp_path):
     env = load_background(str(resolve_envmap_path("builtin:uffizi")), yaw_deg=150.0, kind="envmap")
     model = OpacityHullModel.open(root)
     with BundleServer(out) as srv:
-        r = _load(browser, srv.url)
+        r = load_viewer(browser, srv.url)
         assert r["ok"], r["error"]
         browser.execute_script(
             "window.opacityhull.viewer.setView(7); return window.opacityhull.setBackground('envmap')"
@@ -325,6 +301,7 @@ def test_cli_serves_until_terminated(view_model):
         text=True,
     )
     try:
+        assert p.stdout is not None
         s = json.loads(p.stdout.readline())
         assert s["url"].startswith("http://127.0.0.1:")
         with urllib.request.urlopen(s["url"], timeout=10) as r:

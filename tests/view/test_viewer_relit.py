@@ -11,6 +11,7 @@ import sys
 
 import numpy as np
 import pytest
+from helpers import copy_without, load_viewer, viewer_error
 
 from opacityhull.errors import FormatError, InputError
 from opacityhull.imageio import srgb_decode
@@ -148,13 +149,6 @@ def test_cli_relight_options(relit_model, tmp_path):
 # --------------------------------------------------------------------------- in the browser
 
 
-def _load(drv, url):
-    from opacityhull.view.browser import wait_ready
-
-    drv.get(url)
-    return wait_ready(drv, timeout_s=90)
-
-
 def _decoded_surfels(bundle_dir, model):
     return decoded_surfels(bundle_dir, n_views=len(model.views))
 
@@ -186,7 +180,7 @@ def test_browser_relit_matches_cpu_relighter(browser, relit_model, relit_bundle,
     R = Relighter(model)
     expo = man["relight"]["envmaps"][0]["exposure"]
     with BundleServer(out) as srv:
-        r = _load(browser, srv.url)
+        r = load_viewer(browser, srv.url)
         assert r["ok"], r["error"]
         for yaw, vi in ((180.0, 2), (67.5, 5)):
             env = load_envmap("builtin:grace", yaw_deg=yaw)
@@ -240,7 +234,7 @@ def test_browser_relit_controls(browser, relit_bundle, bundle):
         " e.dispatchEvent(new Event(ev));"
     )
     with BundleServer(out) as srv:
-        r = _load(browser, srv.url)
+        r = load_viewer(browser, srv.url)
         assert r["ok"], r["error"]
         assert browser.find_element("id", "lightlabel").is_displayed()
         opts = browser.execute_script("return Array.from(document.getElementById('light').options).map(o => o.text)")
@@ -264,7 +258,7 @@ def test_browser_relit_controls(browser, relit_bundle, bundle):
         np.testing.assert_array_equal(_frame(browser), captured)  # back to the captured views, black background
     b, _ = bundle
     with BundleServer(b) as srv:
-        r = _load(browser, srv.url)
+        r = load_viewer(browser, srv.url)
         assert r["ok"], r["error"]
         assert not browser.find_element("id", "lightlabel").is_displayed()
         with pytest.raises(Exception, match="no relighting data"):
@@ -273,23 +267,14 @@ def test_browser_relit_controls(browser, relit_bundle, bundle):
 
 def test_browser_relit_missing_or_truncated_chunk(browser, relit_bundle, tmp_path):
     out, _ = relit_bundle
-    broken = tmp_path / "nobasis"
-    shutil.copytree(out, broken)
-    (broken / "basis.bin").unlink()
-    with BundleServer(broken) as srv:
-        r = _load(browser, srv.url)
-        assert not r["ok"]
-        text = browser.find_element("id", "error").text
-        assert "relighting PCA basis" in text and "basis.bin" in text and "HTTP 404" in text
-        assert browser.find_element("id", "error").is_displayed()
+    broken = copy_without(out, tmp_path / "nobasis", "basis.bin")
+    text = viewer_error(browser, broken)
+    assert "relighting PCA basis" in text and "basis.bin" in text and "HTTP 404" in text
     p = broken / "weights_01.bin"
     shutil.copyfile(out / "basis.bin", broken / "basis.bin")
     p.write_bytes(p.read_bytes()[:-12])
-    with BundleServer(broken) as srv:
-        r = _load(browser, srv.url)
-        assert not r["ok"]
-        text = browser.find_element("id", "error").text
-        assert "weights_01.bin" in text and "uffizi" in text and "truncated" in text
+    text = viewer_error(browser, broken)
+    assert "weights_01.bin" in text and "uffizi" in text and "truncated" in text
 
 
 def test_browser_envmap_option_is_a_relighting_map(browser, relit_model, tmp_path):
@@ -301,7 +286,7 @@ def test_browser_envmap_option_is_a_relighting_map(browser, relit_model, tmp_pat
     assert len(rl["envmaps"]) == 1 and rl["envmaps"][0]["image"]["file"] == "envmap.bin"
     assert rl["envmaps"][0]["default_yaw_deg"] == 150.0 and not list(out.glob("relight_env_*.bin"))
     with BundleServer(out) as srv:
-        r = _load(browser, srv.url)
+        r = load_viewer(browser, srv.url)
         assert r["ok"], r["error"]
         browser.execute_script("return window.opacityhull.setRelight('grace')")
         assert browser.execute_script("return window.opacityhull.viewer.envYawDeg") == 150

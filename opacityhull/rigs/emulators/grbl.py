@@ -140,6 +140,17 @@ class _LineError(Exception):
         self.code = code
 
 
+def _modal_group(code: int, group_of: dict, used: dict) -> str:
+    """The modal group of G/M ``code``: error 20 when the table ``group_of`` does not know
+    it, 21 when the block already has a word of that group (a key of ``used``)."""
+    if code not in group_of:
+        raise _LineError(20)
+    g = group_of[code]
+    if g in used:
+        raise _LineError(21)
+    return g
+
+
 @dataclass
 class _Motion:
     """One planned straight move (or homing) and its timing."""
@@ -689,11 +700,7 @@ class GrblEmulator(EmulatedDevice):
                 if code != int(code):
                     raise _LineError(29 if int(code) == 59 else 20)
                 code = int(code)
-                if code not in _MODAL_GROUPS:
-                    raise _LineError(20)
-                g = _MODAL_GROUPS[code]
-                if g in groups:
-                    raise _LineError(21)
+                g = _modal_group(code, _MODAL_GROUPS, groups)
                 if code not in _SUPPORTED_G:
                     raise _LineError(20)
                 if jog and code not in (20, 21, 90, 91, 53):
@@ -706,12 +713,7 @@ class GrblEmulator(EmulatedDevice):
                 if value != int(value):
                     raise _LineError(23)
                 code = int(value)
-                if code not in _M_GROUPS:
-                    raise _LineError(20)
-                g = _M_GROUPS[code]
-                if g in mgroups:
-                    raise _LineError(21)
-                mgroups[g] = code
+                mgroups[_modal_group(code, _M_GROUPS, mgroups)] = code
                 continue
             if letter in seen:
                 raise _LineError(25)
