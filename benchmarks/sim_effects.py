@@ -22,9 +22,10 @@ lightfield and matting states, for each Mitsuba variant (``llvm_ad_rgb`` and
 backdrop shot taken first, as a capture does) against the full frame (``crop`` off),
 measured alternately in one process.
 
-Matting candidates: each built-in scene's matting shot inside the crop at 16..64 spp and
-the 2026-12-01 selection ('before'), measured alternately round by round on the rig
-camera and the 64x48 test camera — the table the selection picks from
+Matting candidates: each built-in scene's matting shot inside the crop at 9..64 spp and
+the 2026-12-01 selection ('before'), measured alternately round by round on the 64x48
+test camera and on the rig camera at 200x150 and 400x300 — the tables, one per camera
+size, the selection picks from
 (``opacityhull.sim.effects.MATTING_CANDIDATES``; ``--matting-candidates`` prints it).
 
     .venv/bin/python benchmarks/sim_effects.py [--quick] [--json] [--scales 1,1.4,2]
@@ -258,15 +259,18 @@ def accuracy(quick: bool, scales=(1.0,), *, scenes=None, phases=None, ref_spp: i
     return rows
 
 
-def matting_candidates(scenes=None, *, rounds: int = 4, ref_spp: int = 256, scale: float = 1.0) -> list[dict]:
+def matting_candidates(scenes=None, *, rounds: int = 4, ref_spp: int = 256, scales=(1.0, 2.0)) -> list[dict]:
     """The measurement behind :data:`opacityhull.sim.effects.MATTING_CANDIDATES`: for each
-    built-in scene, matting with the crop at 16..64 spp (and ``path`` d2 where the
+    built-in scene, matting with the crop at 9..64 spp (and ``path`` d2 where the
     selection is ``direct``) and the selection as of 2026-12-01 ('before': whole frame,
     64 spp, backdrops at 64 spp); every round renders each candidate once, alternately
     (contention hits all alike): alpha error against one ``ref_spp`` reference (mean over
     rounds, a new seed each) and CPU seconds per object + backdrop shot pair (median), on
-    camera 2 of the default rig (at ``scale``) and on the 64x48 test camera
-    (``evaluate.eval_camera``, which the bound test uses; it measures higher errors)."""
+    the 64x48 test camera (``evaluate.eval_camera``, which the bound test uses) and on
+    camera 2 of the default rig at each of ``scales`` (1: 200x150, 2: the demo's
+    400x300). The error falls with the resolution (fewer of the covered pixels are
+    edge pixels, whose coverage is what the samples estimate), so the selection keeps one
+    candidate list per measured size (``candidates_table``)."""
     from opacityhull.riggeometry import RigGeometry
     from opacityhull.sim.effects import reference_effects, scene_kind, select_effects
     from opacityhull.sim.evaluate import coverage_mask, eval_camera, triangulation_alpha
@@ -276,13 +280,11 @@ def matting_candidates(scenes=None, *, rounds: int = 4, ref_spp: int = 256, scal
 
     g = default_geometry()
     rig_cam = g.nominal_cameras()[2]
-    rig_cam = rig_cam if scale == 1 else rig_cam.scaled(scale)
+    cams = [("test", eval_camera())] + [("rig", rig_cam if s == 1 else rig_cam.scaled(s)) for s in scales]
     table = 20.0
     rows = []
     for name, (cam_name, cam) in [
-        (n, c)
-        for n in scenes or ("diffuse", "sphere", "glass", "glossy", "fuzzy")
-        for c in (("rig", rig_cam), ("test", eval_camera()))
+        (n, c) for n in scenes or ("diffuse", "sphere", "glass", "glossy", "fuzzy") for c in cams
     ]:
         sc = load_scene(f"builtin:{name}")
         r = SimRenderer(sc, g)
@@ -311,7 +313,7 @@ def matting_candidates(scenes=None, *, rounds: int = 4, ref_spp: int = 256, scal
         )
         base = select_effects(sc, "matting", declared=False)  # the integrator of the kind's matting row
         cands = {"before": replace(base, spp=64, crop=False, backdrop_spp=None)}
-        for spp in (16, 25, 36, 49, 64):
+        for spp in (9, 16, 25, 36, 49, 64):
             cands[f"{base.integrator} d{base.max_depth} {spp}"] = replace(
                 base, spp=spp, crop=True, backdrop_spp=min(16, spp)
             )
@@ -363,18 +365,31 @@ def matting_candidates(scenes=None, *, rounds: int = 4, ref_spp: int = 256, scal
 
 
 def candidates_table(rows: list[dict]) -> dict:
-    """kind -> the Candidate tuple for MATTING_CANDIDATES: per candidate, the worst error
-    among the built-in scenes of that kind and both cameras, and the slowest pair time of
-    the rig camera."""
+    """``"kind WxH"`` -> the Candidate tuples for MATTING_CANDIDATES at that camera size:
+    per candidate, the worst error among the built-in scenes of that kind, and the
+    slowest pair time of the scenes at the largest rig-camera size (the same time for
+    every size: the ranking is what the selection uses; the largest camera's renders are
+    the least dominated by per-call overheads, whose noise reorders the small ones)."""
+    rig_px = max((r["width"] * r["height"] for r in rows if r.get("camera") == "rig"), default=0)
+    times: dict = {}
+    for r in rows:
+        if r["crop"] and r["width"] * r["height"] == rig_px:
+            key = (r["kind"], r["integrator"], r["max_depth"], r["spp"])
+            times[key] = max(times.get(key, 0.0), r["pair_s"])
     out: dict = {}
     for r in rows:
         if not r["crop"]:
             continue
         key = (r["integrator"], r["max_depth"], r["spp"])
-        e, t = out.setdefault(r["kind"], {}).get(key, (0.0, 0.0))
-        out[r["kind"]][key] = (max(e, r["error"]), max(t, r["pair_s"]) if r.get("camera", "rig") == "rig" else t)
+        size = f"{r['kind']} {r['width']}x{r['height']}"
+        e = out.setdefault(size, {}).get(key, 0.0)
+        out[size][key] = max(e, r["error"])
     return {
-        kind: sorted((i, d, s, round(e, 4), round(t, 3)) for (i, d, s), (e, t) in v.items()) for kind, v in out.items()
+        size: sorted(
+            (i, d, s, round(e, 4), round(times.get((size.split()[0], i, d, s), float("nan")), 3))
+            for (i, d, s), e in v.items()
+        )
+        for size, v in sorted(out.items())
     }
 
 

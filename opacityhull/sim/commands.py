@@ -144,10 +144,11 @@ def register(app, groups) -> None:
             content="board" if board else "object",
         )
         r = SimRenderer(sc, geometry, overrides={"spp": spp} if spp else None)
-        eff = r.effects_for(state)
-        passes = r.passes_for(state)
+        cam = geometry.nominal_cameras()[ci]
+        eff = r.effects_for(state, camera=cam)
+        passes = r.passes_for(state, camera=cam)
         t0 = time.perf_counter()
-        img = r.render(geometry.nominal_cameras()[ci], state, seed=seed)
+        img = r.render(cam, state, seed=seed)
         dt = time.perf_counter() - t0
         summary = {
             "scene": sc.source,
@@ -206,18 +207,36 @@ def register(app, groups) -> None:
         phase: str = typer.Option(
             ..., "--phase", help="calibration, matting, lightfield, reflectance, envmatte or groundtruth."
         ),
+        camera_size: str = typer.Option(
+            "",
+            "--camera-size",
+            help="WxH of the camera the shots are for (matting samples depend on it); default: the built-in rig's.",
+        ),
         json_out: bool = typer.Option(False, "--json", help="Print the selection as one JSON line."),
     ):
         """Say which effects the simulator renders for a scene in a capture phase, and why;
         its expected cost relative to the full-effects reference, and the Mitsuba variant."""
+        from ..errors import InputError
         from .effects import expected_cost, select_effects
+        from .groundtruth import default_geometry
         from .scenes import load_scene
         from .variants import variant_report
 
+        if camera_size:
+            try:
+                w, h = (int(v) for v in camera_size.lower().split("x"))
+                if w <= 0 or h <= 0:
+                    raise ValueError
+            except ValueError:
+                raise InputError(f"--camera-size {camera_size!r}: expected WIDTHxHEIGHT, e.g. 400x300") from None
+        else:
+            c0 = default_geometry().nominal_cameras()[0]
+            w, h = c0.width, c0.height
         sc = load_scene(scene)
-        cfg = select_effects(sc, phase)
+        cfg = select_effects(sc, phase, pixels=w * h)
         summary = {
             "scene": sc.source,
+            "camera_size": [w, h],
             **cfg.to_json(),
             "expected_cost": expected_cost(sc, phase),
             "variant": variant_report(),

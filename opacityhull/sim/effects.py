@@ -55,6 +55,7 @@ __all__ = [
     "expected_cost",
     "cheapest_within",
     "MATTING_CANDIDATES",
+    "matting_candidates_for",
     "MATTING_MARGIN",
     "Candidate",
     "MEASURED_COST",
@@ -194,7 +195,12 @@ def _check_phase(phase: str) -> None:
 
 
 def select_effects(
-    scene: SceneSpec, phase: str, *, overrides: Mapping[str, Any] | None = None, declared: bool = True
+    scene: SceneSpec,
+    phase: str,
+    *,
+    overrides: Mapping[str, Any] | None = None,
+    declared: bool = True,
+    pixels: int | None = None,
 ) -> EffectConfig:
     """Choose the cheapest rendering that is faithful for ``scene`` in ``phase``.
 
@@ -211,6 +217,12 @@ def select_effects(
         state is the same — so it is rendered with the matting integrator at the
         envmatte selection's spp (within both bounds, measured); a declared matting
         shot gets the cheapest measured matting candidate (:data:`MATTING_CANDIDATES`).
+    pixels : int, optional
+        Matting only: pixels of the camera the shot is for. The matte's error falls with
+        the resolution (fewer covered pixels are edge pixels), so a declared matting shot
+        takes its candidate from the largest measured camera size not above ``pixels``
+        (:func:`matting_candidates_for`); without it, from the smallest (the 64x48 test
+        camera: the most samples).
 
     Raises
     ------
@@ -279,16 +291,16 @@ def select_effects(
     if phase == "matting" and kind in MATTING_CANDIDATES:
         env_spp = _TABLE[(kind, "backdrop")][2]
         if declared:
-            c = cheapest_within(MATTING_CANDIDATES[kind], bound)
+            (mw, mh), cands = matting_candidates_for(kind, pixels)
+            c = cheapest_within(cands, bound)
             integrator, depth, spp = c.integrator, c.max_depth, c.spp
             reasons.append(
                 f"matting: the cheapest measured candidate inside the crop whose alpha error is within "
                 f"{MATTING_MARGIN:g} x the bound {bound:g} — {c.integrator} d{c.max_depth} {c.spp} spp, measured "
-                f"{c.error:.4f} at {c.seconds:.3f} s per object + backdrop shot pair (candidates: "
-                + ", ".join(
-                    f"{k.integrator} d{k.max_depth} {k.spp}: {k.error:.4f}, {k.seconds:.3f} s"
-                    for k in MATTING_CANDIDATES[kind]
-                )
+                f"{c.error:.4f} at {c.seconds:.3f} s per object + backdrop shot pair at {mw}x{mh} "
+                + ("(the smallest measured camera)" if pixels is None or pixels < mw * mh else f"(<= {pixels} px)")
+                + " (candidates: "
+                + ", ".join(f"{k.integrator} d{k.max_depth} {k.spp}: {k.error:.4f}, {k.seconds:.3f} s" for k in cands)
                 + f"; {MATTING_SOURCE})"
             )
         else:
@@ -525,6 +537,18 @@ def cheapest_within(candidates, bound: float, *, margin: float | None = None) ->
     return min(ok, key=lambda c: (c.seconds, c.spp))
 
 
+def matting_candidates_for(kind: str, pixels: int | None = None) -> tuple[tuple[int, int], tuple[Candidate, ...]]:
+    """``((width, height), candidates)`` of :data:`MATTING_CANDIDATES` for a camera of
+    ``pixels`` pixels: those measured at the largest size not above it — the error of a
+    matte falls with the resolution, so a larger camera may use what a smaller one
+    measured, never the reverse. Without ``pixels``, or below every measured size, the
+    smallest. Raises KeyError for a kind without candidates."""
+    sizes = sorted(MATTING_CANDIDATES[kind], key=lambda wh: wh[0] * wh[1])
+    fit = [wh for wh in sizes if pixels is not None and wh[0] * wh[1] <= pixels]
+    size = fit[-1] if fit else sizes[0]
+    return size, MATTING_CANDIDATES[kind][size]
+
+
 #: Safety factor of :func:`cheapest_within`: a candidate qualifies if its measured error
 #: is at most this fraction of the bound — two seeds of the same measurement differ by up
 #: to ~10 %.
@@ -532,50 +556,135 @@ MATTING_MARGIN = 0.85
 
 #: Where :data:`MATTING_CANDIDATES` comes from.
 MATTING_SOURCE = (
-    "benchmarks/sim_effects.py --quick (its matting candidates, 2 rounds): error = the worst of "
-    "camera 2 of the default rig (200x150) and the 64x48 test camera (evaluate.eval_camera; it measures "
-    "1.3-1.9x the error of the rig camera), table 20 deg, 256-spp reference, mean of 2 seeds; seconds = "
-    "median CPU time of an object + backdrop shot pair of the rig camera, candidates measured "
-    "alternately, contended 2-core machine (path d2 and direct d2 are within that noise of each other)"
+    "benchmarks/sim_effects.py --matting-candidates --rounds 2: error = the worst of the kind's built-in "
+    "scenes at one camera size (the 64x48 test camera evaluate.eval_camera, camera 2 of the default rig "
+    "at 200x150 and at 400x300), table 20 deg, 256-spp reference, mean of 2 seeds; seconds = median CPU "
+    "time of an object + backdrop shot pair of the 400x300 rig camera (the ranking; at 200x150 per-call "
+    "overheads and their noise reorder near-equal candidates), candidates measured alternately, 2-core machine shared with other jobs (path d2 "
+    "and direct d2 are within that noise of each other)"
 )
 #: kind -> matting candidates measured inside the crop (:data:`MATTING_SOURCE`): the worst
 #: error and the slowest object + backdrop shot pair among the built-in scenes of that
 #: kind (diffuse: builtin:diffuse and builtin:sphere) and the two cameras. The selection for a declared
 #: matting shot is ``cheapest_within(MATTING_CANDIDATES[kind], bound)``; regenerate with
 #: ``.venv/bin/python benchmarks/sim_effects.py --matting-candidates`` (its ``table``).
-MATTING_CANDIDATES: dict[str, tuple[Candidate, ...]] = {
-    "diffuse": (
-        Candidate("direct", 2, 16, 0.0260, 0.151),
-        Candidate("direct", 2, 25, 0.0236, 0.176),
-        Candidate("direct", 2, 36, 0.0196, 0.222),
-        Candidate("direct", 2, 49, 0.0178, 0.234),
-        Candidate("direct", 2, 64, 0.0175, 0.240),
-        Candidate("path", 2, 16, 0.0261, 0.149),
-        Candidate("path", 2, 36, 0.0194, 0.188),
-    ),
-    "transmissive": (
-        Candidate("path", 8, 16, 0.0483, 0.158),
-        Candidate("path", 8, 25, 0.0390, 0.194),
-        Candidate("path", 8, 36, 0.0341, 0.219),
-        Candidate("path", 8, 49, 0.0322, 0.234),
-        Candidate("path", 8, 64, 0.0310, 0.266),
-    ),
-    "glossy": (
-        Candidate("path", 3, 16, 0.0312, 0.193),
-        Candidate("path", 3, 25, 0.0286, 0.218),
-        Candidate("path", 3, 36, 0.0251, 0.273),
-        Candidate("path", 3, 49, 0.0231, 0.307),
-        Candidate("path", 3, 64, 0.0219, 0.326),
-    ),
-    "fibres": (
-        Candidate("direct", 2, 16, 0.0668, 0.261),
-        Candidate("direct", 2, 25, 0.0552, 0.319),
-        Candidate("direct", 2, 36, 0.0486, 0.392),
-        Candidate("direct", 2, 49, 0.0419, 0.471),
-        Candidate("direct", 2, 64, 0.0381, 0.570),
-        Candidate("path", 2, 16, 0.0670, 0.235),
-        Candidate("path", 2, 36, 0.0494, 0.396),
-    ),
+MATTING_CANDIDATES: dict[str, dict[tuple[int, int], tuple[Candidate, ...]]] = {
+    "diffuse": {
+        (64, 48): (
+            Candidate("direct", 2, 9, 0.0369, 0.190),
+            Candidate("direct", 2, 16, 0.0260, 0.253),
+            Candidate("direct", 2, 25, 0.0236, 0.282),
+            Candidate("direct", 2, 36, 0.0196, 0.381),
+            Candidate("direct", 2, 49, 0.0178, 0.432),
+            Candidate("direct", 2, 64, 0.0175, 0.471),
+            Candidate("path", 2, 16, 0.0261, 0.304),
+            Candidate("path", 2, 36, 0.0194, 0.371),
+        ),
+        (200, 150): (
+            Candidate("direct", 2, 9, 0.0231, 0.190),
+            Candidate("direct", 2, 16, 0.0170, 0.253),
+            Candidate("direct", 2, 25, 0.0138, 0.282),
+            Candidate("direct", 2, 36, 0.0120, 0.381),
+            Candidate("direct", 2, 49, 0.0108, 0.432),
+            Candidate("direct", 2, 64, 0.0098, 0.471),
+            Candidate("path", 2, 16, 0.0167, 0.304),
+            Candidate("path", 2, 36, 0.0117, 0.371),
+        ),
+        (400, 300): (
+            Candidate("direct", 2, 9, 0.0200, 0.190),
+            Candidate("direct", 2, 16, 0.0142, 0.253),
+            Candidate("direct", 2, 25, 0.0113, 0.282),
+            Candidate("direct", 2, 36, 0.0097, 0.381),
+            Candidate("direct", 2, 49, 0.0087, 0.432),
+            Candidate("direct", 2, 64, 0.0078, 0.471),
+            Candidate("path", 2, 16, 0.0143, 0.304),
+            Candidate("path", 2, 36, 0.0097, 0.371),
+        ),
+    },
+    "transmissive": {
+        (64, 48): (
+            Candidate("path", 8, 9, 0.0653, 0.181),
+            Candidate("path", 8, 16, 0.0483, 0.238),
+            Candidate("path", 8, 25, 0.0390, 0.284),
+            Candidate("path", 8, 36, 0.0341, 0.358),
+            Candidate("path", 8, 49, 0.0322, 0.423),
+            Candidate("path", 8, 64, 0.0310, 0.451),
+        ),
+        (200, 150): (
+            Candidate("path", 8, 9, 0.0445, 0.181),
+            Candidate("path", 8, 16, 0.0319, 0.238),
+            Candidate("path", 8, 25, 0.0251, 0.284),
+            Candidate("path", 8, 36, 0.0230, 0.358),
+            Candidate("path", 8, 49, 0.0210, 0.423),
+            Candidate("path", 8, 64, 0.0192, 0.451),
+        ),
+        (400, 300): (
+            Candidate("path", 8, 9, 0.0363, 0.181),
+            Candidate("path", 8, 16, 0.0253, 0.238),
+            Candidate("path", 8, 25, 0.0207, 0.284),
+            Candidate("path", 8, 36, 0.0182, 0.358),
+            Candidate("path", 8, 49, 0.0163, 0.423),
+            Candidate("path", 8, 64, 0.0152, 0.451),
+        ),
+    },
+    "glossy": {
+        (64, 48): (
+            Candidate("path", 3, 9, 0.0408, 0.246),
+            Candidate("path", 3, 16, 0.0312, 0.287),
+            Candidate("path", 3, 25, 0.0286, 0.377),
+            Candidate("path", 3, 36, 0.0251, 0.467),
+            Candidate("path", 3, 49, 0.0231, 0.543),
+            Candidate("path", 3, 64, 0.0219, 0.618),
+        ),
+        (200, 150): (
+            Candidate("path", 3, 9, 0.0292, 0.246),
+            Candidate("path", 3, 16, 0.0205, 0.287),
+            Candidate("path", 3, 25, 0.0163, 0.377),
+            Candidate("path", 3, 36, 0.0147, 0.467),
+            Candidate("path", 3, 49, 0.0131, 0.543),
+            Candidate("path", 3, 64, 0.0121, 0.618),
+        ),
+        (400, 300): (
+            Candidate("path", 3, 9, 0.0227, 0.246),
+            Candidate("path", 3, 16, 0.0175, 0.287),
+            Candidate("path", 3, 25, 0.0141, 0.377),
+            Candidate("path", 3, 36, 0.0120, 0.467),
+            Candidate("path", 3, 49, 0.0107, 0.543),
+            Candidate("path", 3, 64, 0.0098, 0.618),
+        ),
+    },
+    "fibres": {
+        (64, 48): (
+            Candidate("direct", 2, 9, 0.0889, 0.316),
+            Candidate("direct", 2, 16, 0.0668, 0.435),
+            Candidate("direct", 2, 25, 0.0552, 0.627),
+            Candidate("direct", 2, 36, 0.0486, 0.844),
+            Candidate("direct", 2, 49, 0.0419, 1.046),
+            Candidate("direct", 2, 64, 0.0381, 1.278),
+            Candidate("path", 2, 16, 0.0670, 0.438),
+            Candidate("path", 2, 36, 0.0494, 0.816),
+        ),
+        (200, 150): (
+            Candidate("direct", 2, 9, 0.0718, 0.316),
+            Candidate("direct", 2, 16, 0.0532, 0.435),
+            Candidate("direct", 2, 25, 0.0417, 0.627),
+            Candidate("direct", 2, 36, 0.0356, 0.844),
+            Candidate("direct", 2, 49, 0.0304, 1.046),
+            Candidate("direct", 2, 64, 0.0281, 1.278),
+            Candidate("path", 2, 16, 0.0521, 0.438),
+            Candidate("path", 2, 36, 0.0353, 0.816),
+        ),
+        (400, 300): (
+            Candidate("direct", 2, 9, 0.0562, 0.316),
+            Candidate("direct", 2, 16, 0.0400, 0.435),
+            Candidate("direct", 2, 25, 0.0312, 0.627),
+            Candidate("direct", 2, 36, 0.0264, 0.844),
+            Candidate("direct", 2, 49, 0.0236, 1.046),
+            Candidate("direct", 2, 64, 0.0217, 1.278),
+            Candidate("path", 2, 16, 0.0398, 0.438),
+            Candidate("path", 2, 36, 0.0265, 0.816),
+        ),
+    },
 }
 
 

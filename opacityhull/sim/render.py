@@ -647,12 +647,14 @@ class SimRenderer:
             self.variant = choose_variant()
         return use_mitsuba(self.variant)
 
-    def effects_for(self, state: SimState) -> EffectConfig:
+    def effects_for(self, state: SimState, *, camera: Camera | None = None) -> EffectConfig:
         """The effect configuration of the phase a capture in ``state`` belongs to
         (:func:`phase_for_state`), listing every emitter group switched on that is not
-        provably black. What is actually rendered, pass by pass: :meth:`passes_for`."""
+        provably black. What is actually rendered, pass by pass: :meth:`passes_for`.
+        ``camera``: the camera the capture is for (its size picks the matting samples:
+        ``select_effects(pixels=...)``)."""
         phase = "calibration" if state.content == "board" else phase_for_state(state)
-        cfg = self._select(phase, declared=state.phase == phase)
+        cfg = self._select(phase, declared=state.phase == phase, camera=camera)
         if state.content == "none":
             return backdrop_only_effects(cfg)
         # whatever is switched on is in the picture, even where the phase would not use it
@@ -670,7 +672,9 @@ class SimRenderer:
             )
         return cfg
 
-    def passes_for(self, state: SimState, effects: EffectConfig | None = None) -> list[RenderPass]:
+    def passes_for(
+        self, state: SimState, effects: EffectConfig | None = None, *, camera: Camera | None = None
+    ) -> list[RenderPass]:
         """The Mitsuba renders a capture in ``state`` is the sum of.
 
         Without ``effects``, each emitter group switched on gets the selection of its own
@@ -679,6 +683,7 @@ class SimRenderer:
         With ``effects`` every group uses it (groups not in ``effects.emitters`` are not
         rendered). Either way, with nothing on the table only the displays are rendered,
         at depth 1 (:func:`~opacityhull.sim.effects.backdrop_only_effects`: exact).
+        ``camera`` (the one rendered): its size picks a declared matting shot's samples.
 
         Raises
         ------
@@ -699,7 +704,7 @@ class SimRenderer:
             cfg_d = (
                 self._select("envmatte")
                 if state.phase == "envmatte"
-                else self._select("matting", declared=state.phase == "matting")
+                else self._select("matting", declared=state.phase == "matting", camera=camera)
             )
             cfg_l = self._select("reflectance" if len(lights) == 1 else "lightfield")
         if state.content == "none":
@@ -739,7 +744,7 @@ class SimRenderer:
         """
         if effects is not None and effects.integrator == "aov":
             raise InputError("render(): the aov integrator is for ground truth (groundtruth.render_ground_truth)")
-        passes = self.passes_for(state, effects)
+        passes = self.passes_for(state, effects, camera=rig_camera)
         out = np.zeros((rig_camera.height, rig_camera.width, 3), np.float32)
         if not passes:
             return out
@@ -753,8 +758,9 @@ class SimRenderer:
             out += img
         return out
 
-    def _select(self, phase: str, *, declared: bool = True) -> EffectConfig:
-        return select_effects(self.scene, phase, overrides=self.overrides or None, declared=declared)
+    def _select(self, phase: str, *, declared: bool = True, camera: Camera | None = None) -> EffectConfig:
+        pixels = None if camera is None else camera.width * camera.height
+        return select_effects(self.scene, phase, overrides=self.overrides or None, declared=declared, pixels=pixels)
 
     def _render_pass(
         self, rig_camera: Camera, state: SimState, p: RenderPass, parts, seed: int, *, use_cache: bool = True

@@ -234,10 +234,10 @@ class SimCamera:
             n = self._captures
             self._captures += 1
         seed = (rig.seed * 1_000_003 + self.index * 10_007 + n) & 0x7FFFFFFF
-        cfg = rig.renderer.effects_for(state)
+        cfg = rig.renderer.effects_for(state, camera=self.camera)
         radiance = rig.renderer.render(self.camera, state, seed=seed)
         self.last_state, self.last_effects, self.last_seed = state, cfg, seed
-        self.last_passes = rig.renderer.passes_for(state)
+        self.last_passes = rig.renderer.passes_for(state, camera=self.camera)
         value = (self.spec.gain * float(exposure_s)) * radiance
         if rig.sensor is not None:
             value = rig.sensor.apply(value, np.random.default_rng([rig.seed, self.index, n]))

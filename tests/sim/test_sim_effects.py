@@ -168,6 +168,29 @@ def test_cli_explain_bad_phase_exits_2():
     assert "nap" in r.output
 
 
+def test_cli_explain_matting_follows_the_camera_size(scenes):
+    got = {}
+    for size in ("", "64x48", "400x300"):
+        args = ["sim", "explain", "--scene", "builtin:sphere", "--phase", "matting", "--json"]
+        r = CliRunner().invoke(app, args + (["--camera-size", size] if size else []))
+        assert r.exit_code == 0, r.output
+        got[size] = json.loads(r.stdout.strip().splitlines()[-1])
+    assert got[""]["camera_size"] == [200, 150]  # the built-in rig's cameras
+    for size, d in got.items():
+        w, h = d["camera_size"]
+        assert d["spp"] == select_effects(scenes["sphere"], "matting", pixels=w * h).spp
+    assert got["400x300"]["spp"] < got["64x48"]["spp"]
+
+
+@pytest.mark.parametrize("size", ["400", "400x", "0x300", "-4x3", "axb", "4x3x2"])
+def test_cli_explain_bad_camera_size_exits_2_naming_the_flag(size):
+    r = CliRunner().invoke(
+        app, ["sim", "explain", "--scene", "builtin:sphere", "--phase", "matting", "--camera-size", size]
+    )
+    assert r.exit_code == 2, r.output
+    assert "--camera-size" in r.output and "WIDTHxHEIGHT" in r.output
+
+
 def test_non_square_spp_override_switches_to_independent_samples(scenes):
     cfg = select_effects(scenes["sphere"], "reflectance", overrides={"spp": 5})
     assert cfg.spp == 5 and cfg.sampler == "independent"
@@ -278,14 +301,14 @@ def test_cheapest_within_equals_a_brute_force_oracle(rows, bound, margin):
 
 
 def test_declared_matting_takes_the_measured_candidate_and_undeclared_keeps_both_bounds(scenes):
-    from opacityhull.sim.effects import MATTING_CANDIDATES, MATTING_MARGIN, cheapest_within, scene_kind
+    from opacityhull.sim.effects import MATTING_MARGIN, cheapest_within, matting_candidates_for, scene_kind
 
     for name in ("diffuse", "sphere", "glass", "glossy", "fuzzy"):
         sc = scenes[name]
         sel = select_effects(sc, "matting")
         und = select_effects(sc, "matting", declared=False)
         env = select_effects(sc, "envmatte")
-        c = cheapest_within(MATTING_CANDIDATES[scene_kind(sc, "matting")], sel.error_bound)
+        c = cheapest_within(matting_candidates_for(scene_kind(sc, "matting"))[1], sel.error_bound)
         assert (sel.integrator, sel.max_depth, sel.spp) == (c.integrator, c.max_depth, c.spp)
         assert c.error <= MATTING_MARGIN * sel.error_bound
         assert any(f"{c.spp} spp, measured {c.error:.4f}" in r for r in sel.reasons)
@@ -304,6 +327,56 @@ def test_declared_matting_takes_the_measured_candidate_and_undeclared_keeps_both
     } == {64}
     # every declared selection is cheaper (fewer samples) than the undeclared one
     assert all(select_effects(scenes[n], "matting").spp < 64 for n in ("diffuse", "sphere", "glass", "glossy"))
+
+
+def test_matting_samples_follow_the_camera_size(scenes):
+    """A larger camera takes the candidates measured at the largest size not above it
+    (its matte error is lower: fewer covered pixels are edges), never a smaller size's;
+    below every measured size, or without a size, the smallest (the most samples)."""
+    from opacityhull.sim.effects import MATTING_CANDIDATES, cheapest_within, matting_candidates_for, scene_kind
+
+    for name in ("diffuse", "sphere", "glass", "glossy", "fuzzy"):
+        sc = scenes[name]
+        kind = scene_kind(sc, "matting")
+        sizes = sorted(MATTING_CANDIDATES[kind], key=lambda wh: wh[0] * wh[1])
+        assert len(sizes) >= 3  # the test camera, the rig's 200x150 and the demo's 400x300
+        assert matting_candidates_for(kind)[0] == sizes[0] == matting_candidates_for(kind, 1)[0]
+        spp = []
+        for w, h in sizes:
+            for px in (w * h, w * h + 1):
+                got_size, cands = matting_candidates_for(kind, px)
+                assert got_size == (w, h) and cands is MATTING_CANDIDATES[kind][(w, h)]
+            sel = select_effects(sc, "matting", pixels=w * h)
+            c = cheapest_within(MATTING_CANDIDATES[kind][(w, h)], sel.error_bound)
+            assert (sel.integrator, sel.max_depth, sel.spp) == (c.integrator, c.max_depth, c.spp)
+            assert any(f"at {w}x{h}" in r for r in sel.reasons)
+            spp.append(sel.spp)
+        assert spp == sorted(spp, reverse=True)  # more pixels never need more samples here
+        assert select_effects(sc, "matting", pixels=None).spp == spp[0]
+        # the size only matters to declared matting shots
+        for phase in ("envmatte", "lightfield", "reflectance"):
+            assert select_effects(sc, phase, pixels=10**7) == select_effects(sc, phase)
+        assert select_effects(sc, "matting", declared=False, pixels=10**7) == select_effects(
+            sc, "matting", declared=False
+        )
+
+
+def test_renderer_picks_matting_samples_by_the_rendered_camera():
+    from opacityhull.sim.groundtruth import default_geometry
+    from opacityhull.sim.render import SimRenderer, SimState
+
+    g = default_geometry()
+    r = SimRenderer(load_scene("builtin:sphere"), g)
+    pat = np.full((4, 4, 3), 200, np.uint8)
+    st_ = SimState(table_deg=0.0, displays={d.name: pat for d in g.displays}, phase="matting")
+    from opacityhull.sim.evaluate import eval_camera
+
+    small, big = eval_camera(), g.nominal_cameras()[2].scaled(2)
+    for cam in (small, big):
+        (p,) = r.passes_for(st_, camera=cam)
+        want = select_effects(r.scene, "matting", pixels=cam.width * cam.height)
+        assert p.effects == want and r.effects_for(st_, camera=cam).spp == want.spp
+    assert r.passes_for(st_, camera=big)[0].effects.spp < r.passes_for(st_, camera=small)[0].effects.spp
 
 
 def test_declared_phase_picks_the_displays_selection():
