@@ -217,7 +217,8 @@ def phase_error(
         widens it to frame the board).
     ref_spp : reference samples per pixel (groundtruth: coverage reference uses 4× this).
     warm : render each configuration before timing (keeps JIT compilation out).
-    selected : measure this configuration instead of the selection.
+    selected : measure this configuration instead of the selection (default
+        ``select_effects(pixels=...)`` of the camera: what a capture with it gets).
     also : further configurations measured against the same reference images (warm
         like the selection when ``warm``); their errors and times land in ``.also``.
     clock : what the seconds are measured with (default wall time,
@@ -250,10 +251,11 @@ def _phase_error(
     from .groundtruth import render_ground_truth
 
     r = renderer or SimRenderer(scene, geometry)
-    sel = selected or select_effects(scene, phase)
-    ref = reference_effects(scene, phase, spp=ref_spp)
     if camera is None:
         camera = calibration_camera() if phase == "calibration" else eval_camera()
+    # the selection a capture with this camera gets (matting samples depend on its size)
+    sel = selected or select_effects(scene, phase, pixels=camera.width * camera.height)
+    ref = reference_effects(scene, phase, spp=ref_spp)
     view = RigGeometry.view_camera(camera, table_deg)
     ids = [L.id for L in geometry.lights]
     rng = np.random.default_rng(seed)
