@@ -10,7 +10,14 @@ view of one session through :func:`opacityhull.reconstruct.perview.matte_view_ch
 (the workers read the session from disk and send back a checksum: the same work a build
 does per view, without shipping pixels), warm (numba caches loaded in every worker first).
 
-    .venv/bin/python benchmarks/scale.py [--quick] [--json] [--storage-only]
+    .venv/bin/python benchmarks/scale.py [--quick] [--json] [--storage-only] [--memory-only]
+
+Memory against views (also ``--memory-only``, merged into the existing scale.json/md):
+48/144/432 views at 320×240, where the views' data dominates the interpreter's import
+floor (432 views of 320×240 RGBA float32 = 530 MB): the build's peak RSS with the default
+options and with ``--refine none``, and the renderer's. ``--compare-pythonpath DIR`` also
+runs every point with another copy of the package first on ``PYTHONPATH`` (e.g. the
+tree before a change) and puts its figures beside.
 
 Model storage (also ``--storage-only``, merged into the existing scale.json/md): the
 same models written with half and float32 pixels (``write_model(storage=...)``) and one
@@ -48,8 +55,16 @@ OUT = ROOT / "benchmarks" / "out"
 CLI = Path(sys.executable).with_name("opacityhull")
 
 
-def _env():
-    return {**os.environ, "OPENBLAS_NUM_THREADS": "1"}
+def _env(pythonpath: str | None = None, *, single_thread: bool = False):
+    """The children's environment: ``pythonpath`` first on PYTHONPATH; ``single_thread``
+    (the memory sweep) also one numba thread, so that runs beside other benchmarks stay
+    light (the peak RSS does not depend on it)."""
+    env = {**os.environ, "OPENBLAS_NUM_THREADS": "1"}
+    if pythonpath:
+        env["PYTHONPATH"] = pythonpath
+    if single_thread:
+        env["NUMBA_NUM_THREADS"] = "1"
+    return env
 
 
 def make_session(root: Path, *, n_table: int, width: int, height: int, lights: int) -> dict:
@@ -70,17 +85,26 @@ def make_session(root: Path, *, n_table: int, width: int, height: int, lights: i
     }
 
 
-def run_build_rss(session: Path, model: Path, *, reflectance: bool, storage: str | None = None) -> dict:
+def run_build_rss(
+    session: Path,
+    model: Path,
+    *,
+    reflectance: bool,
+    storage: str | None = None,
+    extra: tuple[str, ...] = (),
+    pythonpath: str | None = None,
+    single_thread: bool = False,
+) -> dict:
     """``opacityhull build`` in a child process: wall time, the child's own peak RSS
     (``os.wait4``: not the maximum over every child so far, as ``RUSAGE_CHILDREN`` is), sizes."""
-    cmd = [str(CLI), "build", str(session), "--out", str(model), "--no-pictures", "--json"]
+    cmd = [str(CLI), "build", str(session), "--out", str(model), "--no-pictures", "--json", *extra]
     if not reflectance:
         cmd.append("--no-reflectance")
     if storage is not None:
         cmd += ["--storage", storage]
     t = time.perf_counter()
     with tempfile.TemporaryFile() as fo, tempfile.TemporaryFile() as fe:
-        p = subprocess.Popen(cmd, stdout=fo, stderr=fe, env=_env())
+        p = subprocess.Popen(cmd, stdout=fo, stderr=fe, env=_env(pythonpath, single_thread=single_thread))
         _, status, ru = os.wait4(p.pid, 0)
         p.returncode = os.waitstatus_to_exitcode(status)
         wall = time.perf_counter() - t
@@ -103,6 +127,8 @@ def run_build_rss(session: Path, model: Path, *, reflectance: bool, storage: str
         "report_disk_bytes_per_view": rep.get("metrics", {}).get("disk_bytes_per_view"),
         "surfels": rep["surfels"],
         "steps_s": rep.get("seconds", {}),
+        "report_peak_rss_mb": rep.get("peak_rss_mb"),
+        "memory_budget_gb": rep.get("memory_budget_gb"),
     }
 
 
@@ -114,7 +140,7 @@ def baseline_rss_mb() -> float:
     return ru.ru_maxrss / 1024.0
 
 
-def run_render_rss(model: Path, out: Path) -> dict:
+def run_render_rss(model: Path, out: Path, *, pythonpath: str | None = None, single_thread: bool = False) -> dict:
     """``opacityhull render MODEL`` (the first captured view) in a child: time, peak RSS."""
     t = time.perf_counter()
     with tempfile.TemporaryFile() as fe:
@@ -122,7 +148,7 @@ def run_render_rss(model: Path, out: Path) -> dict:
             [str(CLI), "render", str(model), "--out", str(out), "--json"],
             stdout=subprocess.DEVNULL,
             stderr=fe,
-            env=_env(),
+            env=_env(pythonpath, single_thread=single_thread),
         )
         _, status, ru = os.wait4(p.pid, 0)
         if os.waitstatus_to_exitcode(status) != 0:
@@ -147,6 +173,128 @@ def sweep_point(tmp: Path, *, n_table: int, width: int, height: int, lights: int
         file=sys.stderr,
     )
     return row
+
+
+MEMORY_SIZE = (320, 240)
+MEMORY_TABLES = (8, 24, 72)  # 48, 144, 432 views
+
+
+def memory_sweep(tmp: Path, *, compare_pythonpath: str | None = None, compare_label: str | None = None) -> dict:
+    """Peak RSS of the build (default options and ``--refine none``) and of the renderer
+    against the views at :data:`MEMORY_SIZE`; with ``compare_pythonpath`` the same with
+    that copy of the package."""
+    w, h = MEMORY_SIZE
+    variants: dict[str, str | None] = {"now": None}
+    if compare_pythonpath:
+        variants["compare"] = compare_pythonpath
+    rows = []
+    for n_table in MEMORY_TABLES:
+        s = tmp / f"mem_v{6 * n_table}.session"
+        row: dict = {"views": 6 * n_table, "width": w, "height": h}
+        row.update(make_session(s, n_table=n_table, width=w, height=h, lights=0))
+        for name, pp in variants.items():
+            m = tmp / f"mem_v{6 * n_table}_{name}.model"
+            b = run_build_rss(s, m, reflectance=False, pythonpath=pp, single_thread=True)
+            row[f"{name}_build_peak_rss_mb"] = b["peak_rss_mb"]
+            row[f"{name}_build_s"] = b["build_s"]
+            row[f"{name}_steps_s"] = b["steps_s"]
+            row[f"{name}_memory_budget_gb"] = b["memory_budget_gb"]
+            row[f"{name}_render_peak_rss_mb"] = run_render_rss(
+                m, tmp / f"mem_{name}.png", pythonpath=pp, single_thread=True
+            )["render_peak_rss_mb"]
+            shutil.rmtree(m, ignore_errors=True)
+            m2 = tmp / f"mem_v{6 * n_table}_{name}_norefine.model"
+            b2 = run_build_rss(s, m2, reflectance=False, extra=("--refine", "none"), pythonpath=pp, single_thread=True)
+            row[f"{name}_norefine_build_peak_rss_mb"] = b2["peak_rss_mb"]
+            shutil.rmtree(m2, ignore_errors=True)
+            print(
+                f"  memory {6 * n_table} views {w}x{h} [{name}]: build {b['peak_rss_mb']:.0f} MB, "
+                f"--refine none {b2['peak_rss_mb']:.0f} MB, render {row[f'{name}_render_peak_rss_mb']:.0f} MB",
+                file=sys.stderr,
+            )
+        shutil.rmtree(s, ignore_errors=True)
+        rows.append(row)
+    return {"size": f"{w}x{h}", "rows": rows, "compare_pythonpath": compare_pythonpath, "compare_label": compare_label}
+
+
+def _memory_summary(mem: dict) -> dict:
+    r48 = next(r for r in mem["rows"] if r["views"] == 48)
+    r432 = next(r for r in mem["rows"] if r["views"] == 432)
+    size = mem["size"]
+    out = {}
+    for name in ("now", "compare"):
+        if f"{name}_build_peak_rss_mb" not in r48:
+            continue
+        tag = "" if name == "now" else "_compare"
+        out[f"peak_rss_ratio_432_vs_48_at_{size}{tag}"] = (
+            r432[f"{name}_build_peak_rss_mb"] / r48[f"{name}_build_peak_rss_mb"]
+        )
+        out[f"peak_rss_ratio_432_vs_48_at_{size}_refine_none{tag}"] = (
+            r432[f"{name}_norefine_build_peak_rss_mb"] / r48[f"{name}_norefine_build_peak_rss_mb"]
+        )
+        out[f"render_peak_rss_ratio_432_vs_48_at_{size}{tag}"] = (
+            r432[f"{name}_render_peak_rss_mb"] / r48[f"{name}_render_peak_rss_mb"]
+        )
+        out[f"render_peak_rss_mb_432_views_at_{size}{tag}"] = r432[f"{name}_render_peak_rss_mb"]
+    return out
+
+
+def memory_table(mem: dict, summary: dict) -> list[str]:
+    size = mem["size"]
+    cmp_ = mem.get("compare_pythonpath")
+    lines = [
+        "",
+        f"## Peak RSS against views at {size}",
+        "",
+        "`opacityhull build --no-pictures --no-reflectance` (default options, and `--refine none`) and "
+        "`opacityhull render MODEL` in child processes (`ru_maxrss`), `--memory-gb` at its default; "
+        f"`benchmarks/scale.py --memory-only{' --compare-pythonpath ' + cmp_ if cmp_ else ''}`."
+        + (
+            f" Columns *before*: the same with the package copy on that PYTHONPATH ({mem.get('compare_label') or 'unlabelled'})."
+            if cmp_
+            else ""
+        )
+        + " Build seconds are contended and include numba compiling a kernel whose source changed on its first run.",
+        "",
+    ]
+    has_cmp = "compare_build_peak_rss_mb" in mem["rows"][0]
+    if has_cmp:
+        lines += [
+            "| views | build MB | before | `--refine none` MB | before | render MB | before | build s | before |",
+            "|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+        ]
+    else:
+        lines += ["| views | build MB | `--refine none` MB | render MB | build s |", "|---:|---:|---:|---:|---:|"]
+    for r in mem["rows"]:
+        if has_cmp:
+            lines.append(
+                f"| {r['views']} | {r['now_build_peak_rss_mb']:.0f} | {r['compare_build_peak_rss_mb']:.0f} | "
+                f"{r['now_norefine_build_peak_rss_mb']:.0f} | {r['compare_norefine_build_peak_rss_mb']:.0f} | "
+                f"{r['now_render_peak_rss_mb']:.0f} | {r['compare_render_peak_rss_mb']:.0f} | "
+                f"{r['now_build_s']:.1f} | {r['compare_build_s']:.1f} |"
+            )
+        else:
+            lines.append(
+                f"| {r['views']} | {r['now_build_peak_rss_mb']:.0f} | {r['now_norefine_build_peak_rss_mb']:.0f} | "
+                f"{r['now_render_peak_rss_mb']:.0f} | {r['now_build_s']:.1f} |"
+            )
+    k = f"peak_rss_ratio_432_vs_48_at_{size}"
+    lines += [
+        "",
+        f"432 / 48 views: build {summary.get(k, float('nan')):.2f}x, `--refine none` "
+        f"{summary.get(k + '_refine_none', float('nan')):.2f}x, render "
+        f"{summary.get(f'render_peak_rss_ratio_432_vs_48_at_{size}', float('nan')):.2f}x"
+        + (
+            f" (before: {summary[k + '_compare']:.2f}x, {summary[k + '_refine_none_compare']:.2f}x, "
+            f"{summary[f'render_peak_rss_ratio_432_vs_48_at_{size}_compare']:.2f}x)"
+            if k + "_compare" in summary
+            else ""
+        )
+        + ". What still grows with the views is the photo refinement's (V, H, W) float32 grey and "
+        "alpha stacks (`photo.refine_surfels`, ~19 B a pixel a view at its peak) and the surfel "
+        "bisection's 2 B a pixel a view; see ARCHITECTURE.md, build memory.",
+    ]
+    return lines
 
 
 def scheduler_comparison(tmp: Path, *, n_table: int, width: int, height: int, repeats: int) -> dict:
@@ -428,7 +576,9 @@ def plot(rows: list[dict], sched: dict, path: Path, base_mb: float | None = None
     plt.close(fig)
 
 
-def table(rows: list[dict], sched: dict, summary: dict, quick: bool, storage: dict | None = None) -> str:
+def table(
+    rows: list[dict], sched: dict, summary: dict, quick: bool, storage: dict | None = None, memory: dict | None = None
+) -> str:
     lines = [
         "# Paper scale (benchmarks/scale.py)",
         "",
@@ -486,6 +636,8 @@ def table(rows: list[dict], sched: dict, summary: dict, quick: bool, storage: di
             f"{sched['projected_16_workers_s']:.2f} s, {sched['projected_16_worker_speedup']:.1f}x serial "
             "(assumes 16 real cores and a file system that keeps up).",
         ]
+    if memory:
+        lines += memory_table(memory, summary)
     if storage:
         lines += storage_table(storage)
     lines += ["", "Summary: `" + json.dumps(summary) + "`", ""]
@@ -502,10 +654,42 @@ def main() -> None:
         action="store_true",
         help="only the half/float model storage comparison, merged into the existing scale.json/md",
     )
+    ap.add_argument(
+        "--memory-only",
+        action="store_true",
+        help="only the peak RSS against views at 320x240 (build and renderer), merged into the existing scale.json/md",
+    )
+    ap.add_argument("--compare-label", default=None, help="what the --compare-pythonpath copy is (for the table)")
+    ap.add_argument(
+        "--compare-pythonpath",
+        default=None,
+        help="with the memory sweep: also run each point with this package copy first on PYTHONPATH",
+    )
     args = ap.parse_args()
     OUT.mkdir(parents=True, exist_ok=True)
     tmp = Path(args.tmp or tempfile.mkdtemp(prefix="oh-scale-"))
     tmp.mkdir(parents=True, exist_ok=True)
+    if args.memory_only:
+        try:
+            memory = memory_sweep(tmp, compare_pythonpath=args.compare_pythonpath, compare_label=args.compare_label)
+        finally:
+            if args.tmp is None:
+                shutil.rmtree(tmp, ignore_errors=True)
+        prev = json.loads((OUT / "scale.json").read_text()) if (OUT / "scale.json").is_file() else {}
+        summary = {**prev.get("summary", {}), **_memory_summary(memory)}
+        res = {**prev, "summary": summary, **summary, "memory": memory}
+        (OUT / "scale.json").write_text(json.dumps(res, indent=1))
+        text = table(
+            prev.get("rows", []),
+            prev.get("schedulers", {}),
+            summary,
+            summary.get("quick", True),
+            prev.get("storage"),
+            memory,
+        )
+        (OUT / "scale.md").write_text(text)
+        print(json.dumps(res) if args.json else text)
+        return
     if args.storage_only:
         try:
             storage = storage_comparison(tmp, quick=args.quick)
@@ -516,7 +700,14 @@ def main() -> None:
         summary = {**prev.get("summary", {}), **_storage_summary(storage)}
         res = {**prev, "summary": summary, **summary, "storage": storage}
         (OUT / "scale.json").write_text(json.dumps(res, indent=1))
-        text = table(prev.get("rows", []), prev.get("schedulers", {}), summary, summary.get("quick", True), storage)
+        text = table(
+            prev.get("rows", []),
+            prev.get("schedulers", {}),
+            summary,
+            summary.get("quick", True),
+            storage,
+            prev.get("memory"),
+        )
         (OUT / "scale.md").write_text(text)
         print(json.dumps(res) if args.json else text)
         return
@@ -547,6 +738,7 @@ def main() -> None:
             )
         sched = scheduler_comparison(tmp, n_table=sched_pt[0], width=sched_pt[1], height=sched_pt[2], repeats=repeats)
         storage = storage_comparison(tmp, quick=args.quick)
+        memory = memory_sweep(tmp, compare_pythonpath=args.compare_pythonpath, compare_label=args.compare_label)
     finally:
         if args.tmp is None:
             shutil.rmtree(tmp, ignore_errors=True)
@@ -578,6 +770,7 @@ def main() -> None:
         # little once the load is above the 2 cores
         "load_average_1m": [load_start, os.getloadavg()[0]],
         **_storage_summary(storage),
+        **_memory_summary(memory),
     }
     if not args.quick:
         big = (200, 150)
@@ -585,14 +778,14 @@ def main() -> None:
         summary["peak_rss_above_baseline_ratio_432_vs_48_at_200x150"] = (pick(432, big)["peak_rss_mb"] - base_mb) / max(
             pick(48, big)["peak_rss_mb"] - base_mb, 1.0
         )
-    res = {"summary": summary, **summary, "rows": rows, "schedulers": sched, "storage": storage}
+    res = {"summary": summary, **summary, "rows": rows, "schedulers": sched, "storage": storage, "memory": memory}
     (OUT / "scale.json").write_text(json.dumps(res, indent=1))
-    (OUT / "scale.md").write_text(table(rows, sched, summary, args.quick, storage))
+    (OUT / "scale.md").write_text(table(rows, sched, summary, args.quick, storage, memory))
     plot(rows, sched, OUT / "scale.png", base_mb)
     if args.json:
         print(json.dumps(res))
     else:
-        print(table(rows, sched, summary, args.quick, storage))
+        print(table(rows, sched, summary, args.quick, storage, memory))
 
 
 if __name__ == "__main__":

@@ -557,13 +557,20 @@ def write_model(
     total = len(views) * (1 + (reflectance is not None))
     done = 0
     if view_rgba is not None:
-        for v, img in zip(views, view_rgba):
+        # not zip(): its reused result tuple would keep the previous view's image alive
+        # while a lazy sequence makes the next one
+        images = iter(view_rgba)
+        for v in views:
+            img = next(images, None)
+            if img is None:
+                break  # as zip(): a shorter sequence writes the views it has
             check_shape(f"view {v.id} RGBA", img, (v.camera.height, v.camera.width, 4))
             pre = np.array(img, dtype=np.float32)
             pre[..., :3] *= pre[..., 3:4]
             path = root / "views" / f"{v.id}.exr"
             header = {"chromaticities": REC709_CHROMATICITIES, "view": v.id}
             info = write_exr(path, pre, header=header, half=storage == "half")
+            del img, pre  # a lazy sequence's next view is made before the loop rebinds these
             if info:
                 clamped.append({"file": str(path), **info})
             done += 1

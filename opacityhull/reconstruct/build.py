@@ -58,6 +58,16 @@ mtimes, the upstream products; and the parameters that shape it). ``build --resu
 view already matted, and ``report.json``'s ``steps`` says which were reused. The
 products are a cache of this build, not an interchange format (pickles for cameras and
 geometry): ``MODEL/build/`` can be deleted once the model is finished.
+
+**Memory.** Every per-view step reads, processes and writes one view at a time: the
+alphas are read back from ``build/mattes`` on access, the silhouettes are kept
+bit-packed (:class:`PackedMasks`), the classical carve stacks at most
+:data:`CARVE_BATCH_MAX_VIEWS` views at once, the views are written as they are made.
+``build_model(memory_gb=...)`` (``build --memory-gb``, default :data:`MEMORY_FRACTION` of
+the RAM) caps the views in flight on a local pool and the carve batch
+(:class:`MemoryPlan`); ``report.json`` gives ``memory_budget_gb`` and ``peak_rss_mb``.
+The photo refinement's (V, H, W) stacks are the one part that still grows with the
+views (ARCHITECTURE.md, build memory).
 """
 
 from __future__ import annotations
@@ -307,6 +317,11 @@ class BuildReport:
     #: step name -> "ran" | "reused" | "reused k of n views" (``build --resume``)
     steps: dict = field(default_factory=dict)
     scheduler: str = "serial"
+    #: the ``--memory-gb`` budget the build planned with, and this process's peak RSS
+    memory_budget_gb: float = 0.0
+    peak_rss_mb: float = 0.0
+    #: how the budget was spent (:class:`MemoryPlan`) and what each stage held
+    memory: dict = field(default_factory=dict)
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -326,6 +341,8 @@ class BuildReport:
             "views_disagreeing_with_hull": self.hull.get("views_disagreeing_with_hull", []),
             "steps": dict(self.steps),
             "scheduler": self.scheduler,
+            "memory_budget_gb": self.memory_budget_gb,
+            "peak_rss_mb": self.peak_rss_mb,
         }
 
 
@@ -667,7 +684,8 @@ class Geometry:
     """What :func:`build_geometry` made: pinhole silhouettes and cameras, the carved
     grid, the surfels with visibility, and what to report."""
 
-    sils: list
+    #: pinhole silhouettes per view (:class:`PackedMasks`; a list in geometry pickled before)
+    sils: Sequence
     pin: list
     dilations: list
     occ: np.ndarray
@@ -744,6 +762,7 @@ def build_geometry(
     progress=None,
     images=None,
     open_holes=None,
+    carve_batch: int | None = None,
 ) -> Geometry:
     """Silhouettes → hull → surfels → visibility from per-view alphas and cameras.
 
@@ -762,11 +781,15 @@ def build_geometry(
     notes: list[str] = []
     V = len(cameras)
     with step("silhouettes"):
-        sils, pin, dil, strong_in = [], [], [], []
-        for i, (cam, alpha) in enumerate(zip(cameras, alphas)):
+        # one view at a time: its alpha read, thresholded, undistorted and bit-packed
+        sils, strong_in = PackedMasks(), PackedMasks()
+        pin, dil, covers, empty, full = [], [], [], [], []
+        for i, cam in enumerate(cameras):
+            alpha = alphas[i]
             d = config.dilate_base_px + config.dilate_rms_factor * float(rms_px[i])
             dil.append(int(math.ceil(d - 1e-9)))
             s = silhouette_from_alpha(alpha, threshold=config.alpha_threshold, dilate_px=d)
+            del alpha
             oh = None if open_holes is None else open_holes[i]
             if oh is not None:
                 if np.shape(oh) != s.shape:
@@ -775,23 +798,28 @@ def build_geometry(
                 strong_in.append(undistort_silhouette(enclosed_holes(s) & ~np.asarray(oh, bool), cam)[0])
             else:
                 strong_in.append(None)
+            del oh
             s, pc = undistort_silhouette(s, cam)
+            covers.append(float(s.mean()))
+            if not s.any():
+                empty.append(view_ids[i])
+            elif s.all():
+                full.append(view_ids[i])
             sils.append(s)
             pin.append(pc)
-        cover = float(np.median([s.mean() for s in sils]))
+            del s
+        cover = float(np.median(covers))
         if cover > 0.8:
             notes.append(
                 f"the silhouettes cover {100 * cover:.0f} % of the images (median): the mattes are nearly "
                 "all opaque — were the backdrops lit in the object-present matting shots?"
             )
-        empty = [view_ids[i] for i, s in enumerate(sils) if not s.any()]
         if empty:
             raise EmptyHullError(
                 f"empty silhouette (alpha <= {config.alpha_threshold} everywhere) in view(s) {', '.join(empty[:10])}"
                 f"{' ...' if len(empty) > 10 else ''}: the visual hull would be empty. Check those images, lower "
                 "--alpha-threshold, or leave the views out with --exclude-view"
             )
-        full = [view_ids[i] for i, s in enumerate(sils) if s.all()]
         if full:
             notes.append(f"view(s) {', '.join(full[:10])} are opaque everywhere (full mask): they carve nothing")
     tol = config.carve_tolerance if config.carve_tolerance is not None else (1 if (not rig_session and V >= 8) else 0)
@@ -812,12 +840,15 @@ def build_geometry(
             lo_p[1] = max(lo_p[1], 0.0)
         grid = HullGrid.from_bounds(lo_p, hi_p, res.hull_res)
         strong = None
+        carve_batches = 1
         if tol > 0:
+            # a tolerant carve counts rejections over every view at once: unpacked
+            sils_l = list(sils)
             # return_stats=True: (occupancy, stats, strong silhouettes)
             occ, ostats, strong = cast(
                 "tuple[np.ndarray, Any, Any]",
                 carve_robust(
-                    sils,
+                    sils_l,
                     pin,
                     grid,
                     tolerance=tol,
@@ -826,13 +857,13 @@ def build_geometry(
                     strong_silhouettes=(
                         None
                         if all(t is None for t in strong_in)
-                        else [enclosed_holes(sl) if t is None else t for t, sl in zip(strong_in, sils)]
+                        else [enclosed_holes(sl) if t is None else t for t, sl in zip(strong_in, sils_l)]
                     ),
                 ),
             )
         else:
-            occ, ostats = cast(
-                "tuple[np.ndarray, Any]", carve_octree(sils, pin, grid, root_cell=config.root_cell, return_stats=True)
+            occ, ostats, carve_batches = _carve_batched(
+                sils, pin, grid, root_cell=config.root_cell, batch=carve_batch or CARVE_BATCH_MAX_VIEWS
             )
         n_occ = int(occ.sum())
         if n_occ == 0:
@@ -850,13 +881,15 @@ def build_geometry(
             "octree_tests": ostats.tests,
             "resolution": res.to_dict(),
             "carve_tolerance": tol,
+            "carve_batches": carve_batches,
+            "silhouettes_packed_bytes": sils.nbytes,
         }
         # where a view's mask disagrees with the hull (shadow holes, lit cloth, frame
         # edges): the share of the kept voxels it would have carved on its own
         idx = np.argwhere(occ)
         if len(idx) > 200_000:
             idx = idx[np.random.default_rng(0).choice(len(idx), 200_000, replace=False)]
-        rej = view_rejections(grid.centres(idx), sils, pin).mean(axis=0) if tol > 0 else np.zeros(V)
+        rej = view_rejections(grid.centres(idx), sils_l, pin).mean(axis=0) if tol > 0 else np.zeros(V)
         info["view_disagreement"] = {view_ids[i]: round(float(rej[i]), 5) for i in range(V)}
         bad = [(view_ids[i], float(rej[i])) for i in np.argsort(-rej) if rej[i] > 0.01]
         info["views_disagreeing_with_hull"] = [v for v, _ in bad]
@@ -880,6 +913,8 @@ def build_geometry(
             tolerance=tol,
             strong_silhouettes=strong,
         )
+        if tol > 0:
+            del sils_l, strong
         info.update({"pixel_footprint_m": res.pixel_footprint_m, "surfel_spacing_m": sample.spacing_m})
         if sample.spacing_m > 1.5 * res.pixel_footprint_m:
             notes.append(
@@ -909,13 +944,17 @@ def build_geometry(
         with step("refine"):
             from .photo import PhotoConfig, refine_surfels
 
-            imgs = [images(i) if callable(images) else images[i] for i in range(V)]
+            # deferred: refine_surfels packs each view's grey and alpha into its stacks as it
+            # reads it, so only one photograph is alive at a time here
+            src = images
+            imgs = [_Deferred((lambda i=i: src(i)) if callable(src) else (lambda i=i: src[i])) for i in range(V)]
+            alps = [_Deferred(lambda i=i: alphas[i]) for i in range(V)]
             move = config.refine == "surfels"
             # shading depth only: coverage and radii stay the hull's, so neither the outline
             # restoration nor the radius growth of moved surfels is needed
             pc = PhotoConfig() if move else PhotoConfig(keep_coverage=False, radius_neighbours=0)
             pos, nrm, rad, st = refine_surfels(
-                sample.positions, sample.normals, sample.radii, vis, pin, imgs, list(alphas), config=pc
+                sample.positions, sample.normals, sample.radii, vis, pin, imgs, alps, config=pc
             )
             if move:
                 vis = cast(
@@ -927,6 +966,32 @@ def build_geometry(
                 surfels.depth_m = np.ascontiguousarray(st["depth_m"], np.float32)
             info["refine"] = {"mode": config.refine, **{k: v for k, v in st.items() if np.ndim(v) == 0}}
     return Geometry(sils=sils, pin=pin, dilations=dil, occ=occ, grid=grid, surfels=surfels, info=info, notes=notes)
+
+
+def _carve_batched(sils: Sequence, pin: Sequence[Camera], grid: HullGrid, *, root_cell: int, batch: int):
+    """The classical (tolerance 0) octree carve over at most ``batch`` views at a time,
+    the batches' hulls intersected: a voxel survives the carve iff no view carves its
+    centre, so this is voxel for voxel :func:`.hull.carve_octree` over all views, with
+    only ``batch`` views' unpacked silhouettes and summed-area tables alive. Returns
+    (occupancy, OctreeStats summed over the batches, number of batches)."""
+    from .hull import OctreeStats
+
+    V = len(pin)
+    b = max(1, int(batch))
+    occ, cells, tests, n = None, 0, 0, 0
+    for b0 in range(0, V, b):
+        part = sils[b0 : b0 + b]
+        o, st = cast(
+            "tuple[np.ndarray, Any]",
+            carve_octree(part, list(pin[b0 : b0 + b]), grid, root_cell=root_cell, return_stats=True),
+        )
+        del part
+        occ = o if occ is None else (occ & o)
+        cells, tests, n = cells + st.cells, tests + st.tests, n + 1
+        if not occ.any():
+            break  # empty already: the caller says so
+    assert occ is not None
+    return occ, OctreeStats(cells, tests, int(root_cell)), n
 
 
 # --------------------------------------------------------------------------- steps on disk
@@ -1085,7 +1150,8 @@ class Mattes:
     """The matting step's product: alphas in view order, per-view stats, where the
     backdrops came from, NaN/Inf notes, and the step key."""
 
-    alphas: list
+    #: per view (H, W) float32, read from ``build/mattes`` on access (:class:`_MatteFiles`)
+    alphas: Sequence
     stats: list
     sources: set
     nonfinite: list
@@ -1116,6 +1182,149 @@ class _LazyViews(Sequence):
 
     def __iter__(self) -> Iterator[np.ndarray]:
         return (self.fn(i) for i in range(self.n))
+
+
+class PackedMasks(Sequence):
+    """Per-view (H, W) bool masks held bit-packed (:func:`numpy.packbits` along rows, 1 bit
+    a pixel): ``masks[i]`` unpacks view ``i`` alone. The build keeps its silhouettes this
+    way between the stages, so that holding every view's mask costs V·H·W/8 bytes; an
+    entry may be None (no mask for that view)."""
+
+    def __init__(self, masks: Sequence | None = None):
+        self._bits: list = []
+        for m in masks or ():
+            self.append(m)
+
+    def append(self, mask) -> None:
+        if mask is None:
+            self._bits.append(None)
+            return
+        m = np.asarray(mask, bool)
+        if m.ndim != 2:
+            raise InputError(f"PackedMasks: a mask is (H, W), got shape {m.shape}")
+        self._bits.append((np.packbits(m, axis=1), m.shape))
+
+    def __len__(self) -> int:
+        return len(self._bits)
+
+    def __getitem__(self, i):
+        if isinstance(i, slice):
+            out = PackedMasks()
+            out._bits = self._bits[i]
+            return out
+        e = self._bits[i]
+        if e is None:
+            return None
+        bits, (h, w) = e
+        return np.unpackbits(bits, axis=1, count=w).view(bool)
+
+    def __iter__(self) -> Iterator:
+        return (self[i] for i in range(len(self)))
+
+    @property
+    def nbytes(self) -> int:
+        return sum(e[0].nbytes for e in self._bits if e is not None)
+
+
+class _MatteFiles(Sequence):
+    """The matting step's alphas, read from ``build/mattes/<view>.npy`` on access (one
+    view at a time; nothing cached): ``alphas[i]`` is view ``i``'s (H, W) float32 matte,
+    registered with :data:`.perview.LIVE_VIEWS`."""
+
+    def __init__(self, paths: Sequence[Path], shapes: Sequence[tuple[int, int]], vids: Sequence[str]):
+        self.paths, self.shapes, self.vids = list(paths), [tuple(x) for x in shapes], list(vids)
+
+    def __len__(self) -> int:
+        return len(self.paths)
+
+    def __getitem__(self, i):
+        if isinstance(i, slice):
+            raise TypeError("_MatteFiles does not slice")
+        from .perview import LIVE_VIEWS
+
+        i = range(len(self.paths))[i]
+        return LIVE_VIEWS.track(self.vids[i], _load_matte(self.paths[i], self.shapes[i]))
+
+    def __iter__(self) -> Iterator[np.ndarray]:
+        return (self[i] for i in range(len(self)))
+
+
+class _Deferred:
+    """An array computed when NumPy asks for it (``np.asarray``), not before: a list of
+    these stands for a list of per-view images without holding them (the photo
+    refinement packs its inputs one view at a time)."""
+
+    __slots__ = ("fn",)
+
+    def __init__(self, fn: Callable[[], np.ndarray]):
+        self.fn = fn
+
+    def __array__(self, dtype=None, copy=None):
+        a = np.asarray(self.fn())
+        return a if dtype is None else a.astype(dtype, copy=False)
+
+
+#: the default ``--memory-gb``: this fraction of the machine's RAM
+MEMORY_FRACTION = 0.25
+#: views the classical carve stacks at once (its silhouettes and summed-area tables cost
+#: 5 bytes a pixel a view): more are carved in batches whose hulls are intersected,
+#: voxel for voxel the same hull
+CARVE_BATCH_MAX_VIEWS = 48
+
+
+def total_ram_bytes() -> int:
+    import os
+
+    try:
+        return int(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
+    except (ValueError, OSError, AttributeError):
+        return 8 << 30
+
+
+def default_memory_gb() -> float:
+    """``build --memory-gb`` when not given: :data:`MEMORY_FRACTION` of the RAM."""
+    return MEMORY_FRACTION * total_ram_bytes() / 2**30
+
+
+def check_memory_gb(memory_gb) -> float:
+    """``memory_gb`` as a float > 0, else a ConfigError naming ``--memory-gb``."""
+    try:
+        g = float(memory_gb)
+    except (TypeError, ValueError):
+        g = float("nan")
+    if not (math.isfinite(g) and g > 0):
+        raise ConfigError(f"--memory-gb {memory_gb!r}: expected a number of GB > 0 (the build's memory budget)")
+    return g
+
+
+@dataclass(frozen=True)
+class MemoryPlan:
+    """How the ``--memory-gb`` budget is spent: views in flight in the per-view steps
+    (matting on threads/processes), views stacked per carve batch."""
+
+    budget_gb: float
+    view_bytes: int
+    in_flight: int
+    carve_batch: int
+
+    @classmethod
+    def for_build(cls, budget_gb: float, *, pixels: int, images_per_view: int, workers: int, views: int):
+        budget = budget_gb * 2**30
+        # one view being matted: its matting shots and backdrops as float32 RGB, plus
+        # the solver's working arrays (~4 more images) and its alpha
+        view_bytes = int((images_per_view + 4) * pixels * 12 + 4 * pixels)
+        in_flight = int(max(1, min(max(1, workers), (0.5 * budget) // max(view_bytes, 1))))
+        carve = int(max(1, min(CARVE_BATCH_MAX_VIEWS, views, (0.25 * budget) // max(5 * pixels, 1))))
+        return cls(budget_gb, view_bytes, in_flight, carve)
+
+
+def peak_rss_mb() -> float:
+    """This process's peak resident set so far (``ru_maxrss``), MB."""
+    import resource
+    import sys
+
+    r = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return r / (2**20 if sys.platform == "darwin" else 1024.0)
 
 
 def step_cameras(session: Session, config: BuildConfig, store: _StepStore, *, progress=None):
@@ -1166,13 +1375,24 @@ def step_cameras(session: Session, config: BuildConfig, store: _StepStore, *, pr
 
 
 def step_matting(
-    session: Session, views, cams: _Cameras, config: BuildConfig, store: _StepStore, *, executor=None, progress=None
+    session: Session,
+    views,
+    cams: _Cameras,
+    config: BuildConfig,
+    store: _StepStore,
+    *,
+    executor=None,
+    progress=None,
+    in_flight: int | None = None,
 ) -> Mattes:
     """Step 2: one alpha per view (triangulation matting, or the imported mask), each
     written to ``build/mattes/<view>.npy`` with its own key as it finishes, so a build
     killed mid-way keeps the views already matted. Views run through ``executor``
     (:mod:`opacityhull.executor`; local schedulers get this Session, process and Dask
-    workers open the session from its path)."""
+    workers open the session from its path). ``in_flight``: at most this many views
+    are matted at once on a local pool (the memory budget's share, :class:`MemoryPlan`);
+    None = the pool's size. The returned alphas are read back from the files on access
+    (:class:`_MatteFiles`), never all held."""
     from ..executor import SerialExecutor
     from .perview import BuildMatteTask, build_matte, run_build_matte
 
@@ -1185,7 +1405,7 @@ def step_matting(
     patterns = _digest(_files_digest(session.root / "patterns")) if config.backdrops != "object-absent" else ""
     mdir = store.model_dir / BUILD_DIR / "mattes"
     vids = [view_id(c, a) for c, a in views]
-    tasks, keys, metas, alphas = [], [], {}, {}
+    tasks, keys, metas = [], [], {}
     for i, ((c, a), cam) in enumerate(zip(views, cams.views)):
         recs = session.select(phase="mask" if use_masks else "matting", camera=c, table_deg=a, kind=None)
         k = _digest(
@@ -1200,7 +1420,8 @@ def step_matting(
         path = mdir / f"{vids[i]}.npy"
         got = _stored_matte(path, k, (cam.height, cam.width)) if store.resume else None
         if got is not None:
-            alphas[i], metas[i] = got
+            metas[i] = got[1]  # checked against its hash; read again when used
+            del got
             continue
         tasks.append(
             (
@@ -1229,12 +1450,19 @@ def step_matting(
             fn = partial(run_build_matte, session)
         else:
             fn = build_matte
-        done = ex.map(fn, [tk for _, tk in tasks], progress=progress)
+        items = [tk for _, tk in tasks]
+        wave = len(items)
+        if in_flight is not None and ex.scheduler in ("threads", "processes") and in_flight < ex.n_workers:
+            wave = max(1, int(in_flight))  # a larger pool would hold more views than the budget allows
+        done: list = []
+        for w0 in range(0, len(items), wave):
+            off = w0
+            sub = (
+                None if progress is None else (lambda d, t, off=off: progress(off + d, len(items)))  # noqa: B023 (bound by default)
+            )
+            done.extend(ex.map(fn, items[w0 : w0 + wave], progress=sub))
         for (i, _), meta in zip(tasks, done):
             metas[i] = meta
-    for i, cam in enumerate(cams.views):
-        if i not in alphas:
-            alphas[i] = _load_matte(mdir / f"{vids[i]}.npy", (cam.height, cam.width))
     reused = len(views) - len(tasks)
     status = "ran" if reused == 0 else ("reused" if not tasks else f"reused {reused} of {len(views)} views")
     store.record(
@@ -1249,7 +1477,7 @@ def step_matting(
     ordered = [metas[i] for i in range(len(views))]
     content = _digest([m["sha256"] for m in ordered])
     return Mattes(
-        alphas=[alphas[i] for i in range(len(views))],
+        alphas=_MatteFiles([mdir / f"{v}.npy" for v in vids], [(cam.height, cam.width) for cam in cams.views], vids),
         content=content,
         stats=[m["stats"] for m in ordered if m.get("stats")],
         sources={m["source"] for m in ordered},
@@ -1272,6 +1500,7 @@ def step_geometry(
     colour=None,
     step=None,
     progress=None,
+    carve_batch: int | None = None,
 ) -> tuple[Geometry, str]:
     """Steps 3-6 (silhouettes, hull, surfels, visibility, refine): :func:`build_geometry`
     over the mattes, stored as ``build/geometry.pkl``."""
@@ -1304,20 +1533,26 @@ def step_geometry(
         shots = list(colour or [])
 
         def view_rgb(i: int) -> np.ndarray:
-            return _view_rgba(
+            from .perview import LIVE_VIEWS
+
+            rgba = _view_rgba(
                 session, shots[i], mattes.alphas[i], use_masks=mattes.use_masks, alpha_eps=config.alpha_eps
-            )[..., :3]
+            )
+            return LIVE_VIEWS.track(vids[i], rgba[..., :3])
 
         images = view_rgb
     holes = None
     tolerant = config.carve_tolerance if config.carve_tolerance is not None else (0 if rig_session else 1)
     if tolerant and colour and config.backdrop_holes:
-        holes = [
-            None
-            if shot[0] is None
-            else open_hole_masks(a, _rgb(session.load_radiance(shot[0])), threshold=config.alpha_threshold)
-            for a, shot in zip(mattes.alphas, colour)
-        ]
+        holes = PackedMasks()  # one view at a time, bit-packed
+        for i, shot in enumerate(colour):
+            holes.append(
+                None
+                if shot[0] is None
+                else open_hole_masks(
+                    mattes.alphas[i], _rgb(session.load_radiance(shot[0])), threshold=config.alpha_threshold
+                )
+            )
     g = build_geometry(
         mattes.alphas,
         cams.views,
@@ -1330,6 +1565,7 @@ def step_geometry(
         progress=progress,
         images=images,
         open_holes=holes,
+        carve_batch=carve_batch,
     )
     if holes is not None:
         write_open_holes(store.dir / OPEN_HOLES, {v: h for v, h in zip(vids, holes) if h is not None})
@@ -1440,6 +1676,7 @@ def build_model(
     on_step: Callable[[str], None] | None = None,
     resume: bool = False,
     executor=None,
+    memory_gb: float | None = None,
 ) -> BuildReport:
     """Build the opacity-hull model of a session (see the module docstring).
 
@@ -1465,11 +1702,17 @@ def build_model(
         parameters are unchanged (``build --resume``).
     executor : :class:`opacityhull.executor.Executor` for the per-view steps (matting);
         default serial. Every scheduler gives the same model bit for bit.
+    memory_gb : the memory budget (``build --memory-gb``; default
+        :data:`MEMORY_FRACTION` of the RAM): it caps the views matted at once on a
+        local pool and the views the classical carve stacks at once
+        (:class:`MemoryPlan`). Every per-view step streams one view at a time whatever
+        the budget; the model does not depend on it.
 
     Returns
     -------
     BuildReport (also written to ``out_dir/report.json``).
     """
+    budget_gb = check_memory_gb(default_memory_gb() if memory_gb is None else memory_gb)
     session = session_dir if isinstance(session_dir, Session) else Session.open(session_dir)
     out = Path(out_dir)
     timer0 = time.perf_counter()
@@ -1502,9 +1745,25 @@ def build_model(
         notes.extend(cam_notes)
     vids = [view_id(c, a) for c, a in views]
     V = len(views)
+    plan = MemoryPlan.for_build(
+        budget_gb,
+        pixels=max(c.width * c.height for c in cams.views),
+        images_per_view=len(
+            session.select(
+                phase="mask" if ("mask" in session.phases() and "matting" not in session.phases()) else "matting",
+                camera=views[0][0],
+                table_deg=views[0][1],
+                kind=None,
+            )
+        ),
+        workers=int(getattr(executor, "n_workers", 1)),
+        views=V,
+    )
 
     with timer.step("matting"):
-        mattes = step_matting(session, views, cams, config, store, executor=executor, progress=prog)
+        mattes = step_matting(
+            session, views, cams, config, store, executor=executor, progress=prog, in_flight=plan.in_flight
+        )
     alphas = mattes.alphas
     nonfinite.extend(mattes.nonfinite[:1000])
     backdrop_source = ", ".join(sorted(mattes.sources))
@@ -1524,17 +1783,32 @@ def build_model(
         )
 
     def view_rgba(i: int) -> np.ndarray:
-        return _view_rgba(
-            session,
-            colour_shots[i],
-            alphas[i],
-            use_masks=mattes.use_masks,
-            alpha_eps=config.alpha_eps,
-            finite=lambda img, where: finite(img, f"view {vids[i]} {where.removeprefix('view ')}"),
+        from .perview import LIVE_VIEWS
+
+        return LIVE_VIEWS.track(
+            vids[i],
+            _view_rgba(
+                session,
+                colour_shots[i],
+                alphas[i],
+                use_masks=mattes.use_masks,
+                alpha_eps=config.alpha_eps,
+                finite=lambda img, where: finite(img, f"view {vids[i]} {where.removeprefix('view ')}"),
+            ),
         )
 
     g, geometry_key = step_geometry(
-        session, views, cams, mattes, cameras_key, config, store, colour=colour_shots, step=timer.step, progress=prog
+        session,
+        views,
+        cams,
+        mattes,
+        cameras_key,
+        config,
+        store,
+        colour=colour_shots,
+        step=timer.step,
+        progress=prog,
+        carve_batch=plan.carve_batch,
     )
     notes.extend(g.notes)
     sils, pin, occ, grid, surfels = g.sils, g.pin, g.occ, g.grid, g.surfels
@@ -1734,6 +2008,14 @@ def build_model(
     report.seconds["total"] = round(sum(timer.seconds.values()), 4)
     report.steps = dict(store.status)
     report.scheduler = getattr(executor, "scheduler", "serial")
+    report.memory_budget_gb = float(budget_gb)
+    report.peak_rss_mb = round(peak_rss_mb(), 1)
+    report.memory = {
+        **asdict(plan),
+        "silhouettes_packed_bytes": int(getattr(sils, "nbytes", 0)),
+        "note": "per-view steps hold one view at a time (in_flight views while matting on a local pool); "
+        "see ARCHITECTURE.md, build memory",
+    }
     from ..imageio import atomic_path
     from ..cliutil import to_jsonable
 
@@ -1812,14 +2094,18 @@ def _ground_truth_metrics(session, views, vids, alphas, occ, grid, cams, config,
     m: dict = {}
     per_view = []
     true_sils = []
-    for (c, _), vid, a, pc in zip(views, vids, alphas, pin):
+    for i, ((c, _), vid) in enumerate(zip(views, vids)):
         p = gt / "alpha" / f"{vid}.exr"
         if not p.is_file():
             continue
         t = read_exr(p)[..., 0]
-        if t.shape != a.shape:
+        a = alphas[i]
+        same = t.shape == a.shape
+        if same:
+            per_view.append(alpha_mae(a, t, dilate_px=config.ground_truth_dilate_px))
+        del a
+        if not same:
             continue
-        per_view.append(alpha_mae(a, t, dilate_px=config.ground_truth_dilate_px))
         true_sils.append(silhouette_from_alpha(t, threshold=config.alpha_threshold, dilate_px=dilations.get(c, 0)))
     # the hull the same cameras would carve from perfect mattes: separates matting and
     # carving errors from what no visual hull can see (cavities, concavities)

@@ -224,6 +224,16 @@ def register(app, groups) -> None:
             "the bytes; values beyond 65504 are clamped and listed in the report) | float "
             "(32-bit). Default: BuildConfig.storage (half).",
         ),
+        memory_gb: Optional[float] = typer.Option(
+            None,
+            "--memory-gb",
+            help="Memory budget of the build, GB (default: a quarter of the RAM). Every "
+            "per-view step reads, processes and writes one view at a time; the budget caps "
+            "the views matted at once on --scheduler threads|processes (fewer than --workers "
+            "when one view's images would not fit) and the views the carve stacks at once. "
+            "The model does not depend on it; report.json gives memory_budget_gb and "
+            "peak_rss_mb.",
+        ),
         resume: bool = typer.Option(
             False,
             "--resume",
@@ -243,6 +253,10 @@ def register(app, groups) -> None:
 
         parse_scheduler(executor["scheduler"])
         check_build_paths(session, out)
+        from .build import check_memory_gb
+
+        if memory_gb is not None:
+            check_memory_gb(memory_gb)  # exit 2 naming --memory-gb, before any work
 
         if matting_drift not in DRIFT_MODES:
             raise ConfigError(f"--matting-drift {matting_drift!r}: expected one of {', '.join(DRIFT_MODES)}")
@@ -294,6 +308,7 @@ def register(app, groups) -> None:
                     on_step=on_step,
                     resume=resume,
                     executor=ex,
+                    memory_gb=memory_gb,
                 )
             bar.update(tasks[-1], description="done")
         summary = report.summary()

@@ -73,29 +73,42 @@ class SurfelSample:
         return int(self.positions.shape[0])
 
 
-def silhouette_distance(silhouettes) -> np.ndarray:
+def silhouette_distance(silhouettes, *, shape: tuple[int, int] | None = None, floor_u8: bool = False) -> np.ndarray:
     """Per view, Euclidean distance (pixels) from each silhouette pixel to the nearest
-    non-silhouette pixel (0 outside), stacked to (V, Hmax, Wmax) float32."""
+    non-silhouette pixel (0 outside), stacked to (V, Hmax, Wmax) float32. ``shape``
+    (Hmax, Wmax) when known: the silhouettes are then read once each, one at a time
+    (a sequence that unpacks on access, such as the build's bit-packed masks).
+    ``floor_u8``: the distances rounded down and capped at 255, as uint8 (a quarter of
+    the bytes; a lower bound of the distance, which is all :func:`_candidate_views`
+    needs to skip a view)."""
     import cv2
 
-    Hm = max(s.shape[0] for s in silhouettes)
-    Wm = max(s.shape[1] for s in silhouettes)
-    out = np.zeros((len(silhouettes), Hm, Wm), np.float32)
-    for i, s in enumerate(silhouettes):
-        s8 = np.asarray(s, dtype=np.uint8)
+    if shape is None:
+        Hm = max(np.shape(s)[0] for s in silhouettes)
+        Wm = max(np.shape(s)[1] for s in silhouettes)
+    else:
+        Hm, Wm = (int(x) for x in shape)
+    out = np.zeros((len(silhouettes), Hm, Wm), np.uint8 if floor_u8 else np.float32)
+    for i in range(len(silhouettes)):
+        s8 = np.asarray(silhouettes[i], dtype=bool).astype(np.uint8)
         # pad with silhouette so the image border is not a boundary (outside an image
         # nothing is carved); the padding is wide enough for any bracket we test
         pad = 64
         sp = np.pad(s8, pad, constant_values=1)
         d = cv2.distanceTransform(sp, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
-        out[i, : s8.shape[0], : s8.shape[1]] = d[pad:-pad, pad:-pad]
+        d = d[pad:-pad, pad:-pad]
+        if floor_u8:
+            d = np.minimum(np.floor(d), 255.0).astype(np.uint8)
+        out[i, : s8.shape[0], : s8.shape[1]] = d
     return out
 
 
 @njit(cache=True, nogil=True)
 def _candidate_views(P, sizes, edt, pa, pb, cand):
     """Views that might carve some point of the segment [pa, pb] (pa inside). Returns
-    the count written to ``cand``."""
+    the count written to ``cand``. ``edt`` is a lower bound of the silhouette distance
+    (float32 exact, or its uint8 floor): a lower bound only keeps more views as
+    candidates, and a candidate that accepts every point changes no test."""
     V = P.shape[0]
     n = 0
     for v in range(V):
@@ -406,7 +419,9 @@ def sample_hull_surfels(
     if strong_silhouettes is not None and np.any(sil > strong):
         raise InputError("strong_silhouettes must contain the silhouettes (a superset of their pixels)")
     P = projection_matrices(cameras)
-    edt = silhouette_distance([np.asarray(x, dtype=bool) for x in silhouettes])
+    # uint8 floor of the distance (1 byte a pixel a view instead of 4): the candidate
+    # test only skips views, so a lower bound gives the same surfels
+    edt = silhouette_distance(silhouettes, shape=sil.shape[1:], floor_u8=True)
     h = grid.voxel_m
     all_pos, all_axis, all_sign = [], [], []
     for axis in range(3):

@@ -258,6 +258,14 @@ def _remap_buffers(premul, wsum, cov, depth, grid):
     )
 
 
+def _stage_end(progress, done: int) -> float:
+    """The ``perf_counter`` time a render stage ended, after reporting ``done`` of the 3 stages to ``progress``."""
+    t = time.perf_counter()
+    if progress:
+        progress(done, 3)
+    return t
+
+
 def _stage_ms(t0: float, **ends: float) -> dict:
     """Milliseconds per stage from the ``perf_counter`` time each stage ended (in order), and the total."""
     ms, prev = {}, t0
@@ -329,9 +337,7 @@ def render_image(
     areas = surfel_areas(surfels)
     valid = scratch.get("valid", (N,), np.bool_)
     _setup_splats(surfels, surfels.positions, areas, cam_row, W, H, config, threads, splat, valid)
-    t_setup = time.perf_counter()
-    if progress:
-        progress(1, 3)
+    t_setup = _stage_end(progress, 1)
 
     if config.shading == "pixel":
         return _render_deferred(
@@ -378,9 +384,7 @@ def render_image(
         ),
         threads=threads,
     )
-    t_shade = time.perf_counter()
-    if progress:
-        progress(2, 3)
+    t_shade = _stage_end(progress, 2)
 
     draw = np.flatnonzero(ok).astype(np.int64)
     accum, _ = K.splat_frame(
@@ -404,9 +408,7 @@ def render_image(
         premul[..., :3] *= premul[..., 3:4]
         premul, wsum, cov, depth = _remap_buffers(premul, wsum, cov, depth, grid)
         rgba_img = straight_from_premul(premul)
-    t_end = time.perf_counter()
-    if progress:
-        progress(3, 3)
+    t_end = _stage_end(progress, 3)
     stats = {
         "surfels": N,
         **_view_stats(camera, config, threads, exclude_views, pv, valid, draw),
@@ -444,9 +446,7 @@ def _render_deferred(
     refined = config.shading_surface == "refined" and surfels.depth_m is not None
     if refined:
         depth = _shading_depth(surfels, cam_row, W, H, depth, config, threads, scratch)
-    t_raster = time.perf_counter()
-    if progress:
-        progress(2, 3)
+    t_raster = _stage_end(progress, 2)
     premul, n_shaded = D.deferred_shade(
         depth,
         cov,
@@ -473,9 +473,7 @@ def _render_deferred(
     if grid is not None:
         premul, wsum, cov, depth = _remap_buffers(premul, wsum, cov, depth, grid)
     rgba_img = straight_from_premul(premul)
-    t_end = time.perf_counter()
-    if progress:
-        progress(3, 3)
+    t_end = _stage_end(progress, 3)
     stats = {
         "surfels": len(surfels),
         **_view_stats(camera, config, threads, exclude_views, pv, valid, draw),
@@ -693,7 +691,7 @@ def render_model(
     """Render a model folder's opacity hull from ``camera`` (loads the views unless given)."""
     cams = [v.camera for v in model.views]
     if views_rgba_premul is None:
-        views_rgba_premul = prepare_views(cams, model.load_views_premul())
+        views_rgba_premul = prepare_model_views(model)
     return render_image(
         model_surfels(model),
         cams,
@@ -705,6 +703,60 @@ def render_model(
     )
 
 
-def prepare_model_views(model: OpacityHullModel) -> PreparedViews:
-    """Load and pack all views of a model once (for several frames)."""
-    return prepare_views([v.camera for v in model.views], model.load_views_premul())
+def prepare_model_views(model: OpacityHullModel, *, mapped: bool = True) -> PreparedViews:
+    """Pack all views of a model once (for several frames), texel for texel what
+    ``prepare_views(cameras, model.load_views_premul())`` packs.
+
+    ``mapped`` (default): the views are read one at a time (each view's file decoded,
+    converted to float32 and its non-finite texels zeroed) into an unlinked temporary
+    file that the texel buffer memory-maps (copy-on-write). A frame then makes resident
+    only the pages of the views its surfels sample (the k nearest of each), so a
+    432-view model costs what the views one frame needs cost, not 432 float32 images;
+    the OS drops the pages again under memory pressure. ``mapped=False`` holds them in
+    memory (the eager path; the images are equal)."""
+    cams = [v.camera for v in model.views]
+    if not mapped:
+        return prepare_views(cams, model.load_views_premul())
+    from dataclasses import replace
+
+    pv = prepare_views(cams)  # cameras, offsets and tie ranks; no texels
+    texels, bad = _mapped_texels(model, cams, pv.offsets)
+    return replace(pv, texels=texels, nonfinite_texels=bad)
+
+
+def _mapped_texels(model: OpacityHullModel, cams: Sequence[Camera], offsets: np.ndarray) -> tuple[np.ndarray, int]:
+    """(P, 4) float32 texels of every view in a memory-mapped temporary file, written one
+    view at a time, and the number of non-finite values replaced by 0."""
+    import mmap
+    import tempfile
+
+    from ..errors import ShapeError
+
+    npx = [c.width * c.height for c in cams]
+    total = int(sum(npx))
+    if total == 0:
+        return np.zeros((0, 4), np.float32), 0
+    bad = 0
+    with tempfile.TemporaryFile(prefix="opacityhull-views-") as f:
+        for v, c in enumerate(cams):
+            if f.tell() != int(offsets[v]) * 16:
+                raise AssertionError("view offsets out of step with the texel file")
+            a = model.load_views_premul([v])[0]
+            if a.shape != (c.height, c.width, 4):
+                raise ShapeError(
+                    f"view {v} ({c.name or 'unnamed'}) RGBA has shape {a.shape}, expected ({c.height}, {c.width}, 4)"
+                )
+            t = np.ascontiguousarray(a.reshape(-1, 4), np.float32)
+            del a
+            fin = np.isfinite(t)
+            if not fin.all():
+                t = t.copy() if not t.flags.writeable else t
+                bad += int((~fin).sum())
+                t[~fin] = 0.0
+            f.write(t.data.cast("B"))
+            del t, fin
+        f.flush()
+        # copy-on-write: writable like an ordinary array (the kernels' signatures are
+        # those of in-memory texels: no recompilation), never written back to the file
+        mm = mmap.mmap(f.fileno(), total * 16, access=mmap.ACCESS_COPY)
+    return np.ndarray((total, 4), dtype=np.float32, buffer=mm), bad
