@@ -64,9 +64,20 @@ def configurations():
         ("auto-robust-surfel", {"refine": "none"}, surfel),
         ("auto-robust-pixel", {"refine": "none"}, pixel),
         ("auto-robust-pixel-movesurfels", {"refine": "surfels"}, pixel),
-        ("auto-robust-pixel-shadingdepth-fillholes", {"refine": "shading", "backdrop_holes": False}, pixel),
-        ("auto-robust-pixel-shadingdepth", {"refine": "shading"}, pixel),
-        ("auto-robust-pixel-shadingdepth-flow", {"refine": "shading"}, {**pixel, "align": "flow"}),
+        # every enclosed hole doubtful (no see-through gap trusted; nothing filled)
+        (
+            "auto-robust-pixel-shadingdepth-fillholes",
+            {"refine": "shading", "backdrop_holes": False, "fill_shadow_holes": False},
+            pixel,
+        ),
+        ("auto-robust-pixel-shadingdepth", {"refine": "shading", "fill_shadow_holes": False}, pixel),
+        (
+            "auto-robust-pixel-shadingdepth-flow",
+            {"refine": "shading", "fill_shadow_holes": False},
+            {**pixel, "align": "flow"},
+        ),
+        # today's defaults: the shadow holes of the masks opaque in the views' alpha
+        ("auto-robust-pixel-shadingdepth-flow-shadowfill", {"refine": "shading"}, {**pixel, "align": "flow"}),
     ]
 
 

@@ -66,6 +66,11 @@ from .tomlio import read_toml
 log = logging.getLogger(__name__)
 
 __all__ = [
+    "BUILD_DIR",
+    "FILLED_HOLES",
+    "OPEN_HOLES",
+    "read_hole_masks",
+    "write_hole_masks",
     "MODEL_FORMAT",
     "READABLE_FORMATS",
     "Surfels",
@@ -648,3 +653,53 @@ def copy_model(model: OpacityHullModel, dst, *, storage: Storage) -> OpacityHull
         storage=storage,
     )
     return OpacityHullModel.open(dst)
+
+
+# --------------------------------------------------------------------------- build products the evaluation reads
+
+BUILD_DIR = "build"
+"""``MODEL/build/``: the build's step products (cache) and what the evaluation must know
+of how the views were made."""
+
+FILLED_HOLES = "filled_holes.npz"
+"""``MODEL/build/filled_holes.npz``: per view id, the mask holes the build filled as
+shadows (:func:`opacityhull.reconstruct.build.fill_shadow_holes`; bit-packed like :data:`OPEN_HOLES`): ``eval loo``
+restores the photograph's own mask there before comparing."""
+
+OPEN_HOLES = "open_holes.npz"
+"""``MODEL/build/open_holes.npz``: per view id, the mask holes a tolerant carve trusted
+(:func:`opacityhull.reconstruct.build.open_hole_masks`, bit-packed rows with the image shape), so that the
+geometry holdout of ``eval loo`` carves as the build did without the photographs."""
+
+
+def write_hole_masks(path: Path, holes: dict) -> None:
+    """Write view id → (H, W) bool masks bit-packed (:data:`OPEN_HOLES`, :data:`FILLED_HOLES`)."""
+    from .imageio import atomic_path
+
+    arrays = {}
+    for vid, m in holes.items():
+        m = np.asarray(m, bool)
+        arrays[f"{vid}.bits"] = np.packbits(m, axis=1)
+        arrays[f"{vid}.shape"] = np.asarray(m.shape, np.int64)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as f:
+            np.savez_compressed(f, **arrays)
+
+
+def read_hole_masks(path: Path) -> dict:
+    """View id → (H, W) bool of :data:`OPEN_HOLES` or :data:`FILLED_HOLES`; {} when the
+    file is absent (a model built before it, or without the rule)."""
+    if not path.is_file():
+        return {}
+    try:
+        with np.load(path) as z:
+            out = {}
+            for key in z.files:
+                if key.endswith(".bits"):
+                    vid = key[: -len(".bits")]
+                    h, w = (int(x) for x in z[f"{vid}.shape"])
+                    out[vid] = np.unpackbits(z[key], axis=1, count=w)[:h].astype(bool)
+            return out
+    except (OSError, ValueError, KeyError) as e:
+        raise FormatError(f"{path}: not a readable hole-mask file ({e}); rebuild the model to rewrite it") from e

@@ -85,7 +85,19 @@ import numpy as np
 
 from ..camera import Camera, read_colmap_text, read_opencv_yaml
 from ..errors import ConfigError, FormatError, InputError
-from ..model import STORAGE_TYPES, LightSample, Storage, Surfels, ViewInfo, light_key, write_model
+from ..model import (
+    BUILD_DIR,
+    FILLED_HOLES,
+    OPEN_HOLES,
+    STORAGE_TYPES,
+    LightSample,
+    Storage,
+    Surfels,
+    ViewInfo,
+    light_key,
+    write_hole_masks,
+    write_model,
+)
 from ..riggeometry import RigGeometry, view_id
 from ..session import Session, check_finite, require_manifest_ok
 from .hull import (
@@ -137,6 +149,7 @@ STEPS = (
     "verify",
     "cameras",
     "matting",
+    "holes",
     "silhouettes",
     "hull",
     "surfels",
@@ -171,6 +184,12 @@ class BuildConfig:
     backdrop_holes : with a tolerant carve, mask holes whose photograph shows the
         backdrop (:func:`open_hole_masks`) carve like the outer contour (see-through
         gaps); False treats every enclosed hole as doubtful.
+    fill_shadow_holes : with imported masks, a tolerant carve and ``backdrop_holes``, the
+        other enclosed holes — brighter than the backdrop, so shadows on the object that
+        a threshold lost (:func:`shadow_hole_masks`) — are opaque in the views' alpha,
+        the opacity the blending uses; where they were filled is kept in
+        ``MODEL/build/filled_holes.npz`` so that ``eval loo`` still compares with the
+        photograph's own mask.
     matting_drift : photometric drift and registration correction of the backdrops
         (:func:`.matting.correct_photometric_drift`; reported per shot in
         ``report.json``): "auto" = "field" except for the simulated rig without a sensor
@@ -227,6 +246,7 @@ class BuildConfig:
     surfels_per_pixel: float = 1.0
     carve_tolerance: int | None = None
     backdrop_holes: bool = True
+    fill_shadow_holes: bool = True
     matting_drift: DriftMode = "auto"
     verify_checksums: bool = True
     refine: Literal["shading", "surfels", "none"] | bool = "shading"
@@ -705,42 +725,87 @@ def open_hole_masks(alpha: np.ndarray, photo_rgb: np.ndarray, *, threshold: floa
     return enclosed_holes(sil) & ~backdrop_holes(sil, lum)
 
 
-OPEN_HOLES = "open_holes.npz"
-"""``MODEL/build/open_holes.npz``: per view id, the mask holes a tolerant carve trusted
-(:func:`open_hole_masks`, bit-packed rows with the image shape), so that the
-geometry holdout of ``eval loo`` carves as the build did without the photographs."""
+def shadow_hole_masks(alpha: np.ndarray, photo_rgb: np.ndarray, *, threshold: float = 0.5) -> np.ndarray:
+    """(H, W) bool: the enclosed holes of a view's mask that do *not* show the backdrop
+    (the complement of :func:`open_hole_masks` among them): shadows and dark parts of the
+    object as dark as the backdrop, which a thresholded mask lost."""
+    sil = np.asarray(alpha) > threshold
+    return enclosed_holes(sil) & ~sil & ~open_hole_masks(alpha, photo_rgb, threshold=threshold)
 
 
-def write_open_holes(path: Path, holes: dict) -> None:
-    from ..imageio import atomic_path
+class _HolesFilled(Sequence):
+    """``alphas`` with each view's ``fill`` mask (:class:`PackedMasks`, entries may be
+    None) set to 1 on access; one view at a time, like the alphas it wraps."""
 
-    arrays = {}
-    for vid, m in holes.items():
-        m = np.asarray(m, bool)
-        arrays[f"{vid}.bits"] = np.packbits(m, axis=1)
-        arrays[f"{vid}.shape"] = np.asarray(m.shape, np.int64)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with atomic_path(path) as tmp:
-        with open(tmp, "wb") as f:
-            np.savez_compressed(f, **arrays)
+    def __init__(self, alphas: Sequence, fill: "PackedMasks"):
+        if len(alphas) != len(fill):
+            raise InputError(f"_HolesFilled: {len(fill)} fill masks for {len(alphas)} alphas")
+        self.alphas, self.fill = alphas, fill
+
+    def __len__(self) -> int:
+        return len(self.alphas)
+
+    def __getitem__(self, i):
+        if isinstance(i, slice):
+            raise TypeError("_HolesFilled does not slice")
+        a = self.alphas[i]
+        m = self.fill[i]
+        if m is None or not m.any():
+            return a
+        a = np.array(a, np.float32, copy=True) if not (isinstance(a, np.ndarray) and a.flags.writeable) else a
+        a[m] = 1.0
+        return a
+
+    def __iter__(self) -> Iterator[np.ndarray]:
+        return (self[i] for i in range(len(self)))
 
 
-def read_open_holes(path: Path) -> dict:
-    """View id → (H, W) bool of :data:`OPEN_HOLES`; {} when the file is absent (a model
-    built before it, or by a classical carve)."""
-    if not path.is_file():
-        return {}
-    try:
-        with np.load(path) as z:
-            out = {}
-            for key in z.files:
-                if key.endswith(".bits"):
-                    vid = key[: -len(".bits")]
-                    h, w = (int(x) for x in z[f"{vid}.shape"])
-                    out[vid] = np.unpackbits(z[key], axis=1, count=w)[:h].astype(bool)
-            return out
-    except (OSError, ValueError, KeyError) as e:
-        raise FormatError(f"{path}: not a readable open-holes file ({e}); delete it to carve as before") from e
+def fill_shadow_holes(
+    session: Session,
+    mattes: "Mattes",
+    colour: Sequence,
+    vids: Sequence[str],
+    config: "BuildConfig",
+    store: "_StepStore",
+) -> tuple["Mattes", dict]:
+    """The matting step's alphas with the shadow holes of imported masks filled
+    (``BuildConfig.fill_shadow_holes``; :func:`shadow_hole_masks` on each view's colour
+    photograph), one view at a time, and ``{"views", "px"}`` filled. Writes
+    :data:`FILLED_HOLES` (removes a stale one when nothing is filled); the returned
+    :class:`Mattes` has a new ``content`` digest, so later steps see the change."""
+    import hashlib
+
+    rig = _is_rig_session(session)
+    tolerant = config.carve_tolerance if config.carve_tolerance is not None else (0 if rig else 1)
+    path = store.dir / FILLED_HOLES
+    none = {"views": 0, "px": 0}
+    if not (config.fill_shadow_holes and config.backdrop_holes and tolerant and mattes.use_masks):
+        path.unlink(missing_ok=True)
+        return mattes, none
+    fill = PackedMasks()
+    h = hashlib.sha256(mattes.content.encode())
+    n_px = n_views = 0
+    for i, shot in enumerate(colour):
+        m = (
+            None
+            if shot[0] is None
+            else shadow_hole_masks(
+                mattes.alphas[i], _rgb(session.load_radiance(shot[0])), threshold=config.alpha_threshold
+            )
+        )
+        fill.append(m)
+        if m is not None and m.any():
+            n_px += int(m.sum())
+            n_views += 1
+            h.update(vids[i].encode() + np.packbits(m, axis=1).tobytes())
+    if n_px == 0:
+        path.unlink(missing_ok=True)
+        return mattes, none
+    write_hole_masks(path, {vids[i]: m for i, m in enumerate(fill) if m is not None and m.any()})
+    return replace(mattes, alphas=_HolesFilled(mattes.alphas, fill), content=h.hexdigest()), {
+        "views": n_views,
+        "px": n_px,
+    }
 
 
 def _nullstep(name):
@@ -997,7 +1062,6 @@ def _carve_batched(sils: Sequence, pin: Sequence[Camera], grid: HullGrid, *, roo
 # --------------------------------------------------------------------------- steps on disk
 
 #: the build's own products, inside the model folder (reused by ``build --resume``)
-BUILD_DIR = "build"
 BUILD_FORMAT = "opacityhull.build/1"
 
 #: BuildConfig fields that do not change a step's product (everything else does: a
@@ -1568,7 +1632,7 @@ def step_geometry(
         carve_batch=carve_batch,
     )
     if holes is not None:
-        write_open_holes(store.dir / OPEN_HOLES, {v: h for v, h in zip(vids, holes) if h is not None})
+        write_hole_masks(store.dir / OPEN_HOLES, {v: h for v, h in zip(vids, holes) if h is not None})
     else:  # a stale file from an earlier build would make the geometry holdout carve differently
         (store.dir / OPEN_HOLES).unlink(missing_ok=True)
     store.save(rel, g)
@@ -1781,6 +1845,14 @@ def build_model(
             f"{session.root}: no lightfield (or displays-off matting) image for views "
             f"{missing_colour[:5]}: nothing to colour the model with"
         )
+    with timer.step("holes"):
+        mattes, shadow_filled = fill_shadow_holes(session, mattes, colour_shots, vids, config, store)
+    alphas = mattes.alphas
+    if shadow_filled["px"]:
+        notes.append(
+            f"mask holes: {shadow_filled['px']} px in {shadow_filled['views']} view(s) show no backdrop "
+            "(shadows a threshold lost) and are opaque in the views' alpha (build/filled_holes.npz)"
+        )
 
     def view_rgba(i: int) -> np.ndarray:
         from .perview import LIVE_VIEWS
@@ -1815,6 +1887,7 @@ def build_model(
     hull_info = dict(g.info)
     dilations = {c: g.dilations[i] for i, (c, _) in enumerate(views)}
     hull_info["dilate_px_per_camera"] = {str(k): v for k, v in sorted(dilations.items())}
+    hull_info["shadow_holes_filled"] = shadow_filled
 
     with timer.step("reflectance"):
         reflectance, refl_digest = step_reflectance(session, views, vids, alphas, config, notes, finite)

@@ -85,9 +85,9 @@ def geometry_without(model: OpacityHullModel, *, config: BuildConfig | None = No
     rig_session = not str(model.meta.get("provenance", {}).get("rig_source", "")).startswith("import:")
     lo, hi = report.get("lo_m"), report.get("hi_m")
     fallback = (np.asarray(lo), np.asarray(hi)) if lo and hi else None
-    from .build import BUILD_DIR, OPEN_HOLES, read_open_holes
+    from ..model import BUILD_DIR, OPEN_HOLES, read_hole_masks
 
-    stored = read_open_holes(Path(model.root) / BUILD_DIR / OPEN_HOLES)
+    stored = read_hole_masks(Path(model.root) / BUILD_DIR / OPEN_HOLES)
     holes = [stored.get(v.id) for v in model.views]
 
     def rebuild(i: int) -> Surfels:

@@ -731,7 +731,8 @@ def refine_surfels(
             f"refine_surfels: normals must be unit length (found lengths in [{lens.min():.3g}, {lens.max():.3g}])"
         )
     grey = _stack("images", list(images), cameras, 3)
-    alpha = np.nan_to_num(_stack("alphas", list(alphas), cameras, 1), nan=0.0)
+    alpha = _stack("alphas", list(alphas), cameras, 1)
+    np.nan_to_num(alpha, copy=False, nan=0.0)  # in place: a second (V, H, W) stack is the peak at many views
     sils = alpha > config.alpha_threshold
 
     views = select_views(pos, nrm, vis, cameras, n_views=config.n_views, exclude_views=exclude_views)

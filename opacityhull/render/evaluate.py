@@ -28,7 +28,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..imageio import srgb_encode
-from ..model import OpacityHullModel, Surfels
+from ..model import BUILD_DIR, FILLED_HOLES, OpacityHullModel, Surfels, read_hole_masks
 from .renderer import RenderConfig, model_surfels, prepare_model_views, render_image
 
 __all__ = ["loo_metrics", "region_masks", "select_views", "leave_one_out", "contact_sheet", "ALPHA_THRESHOLD"]
@@ -247,6 +247,29 @@ def contact_sheet(
     return write_sheet(path, img)
 
 
+def _photograph(model: OpacityHullModel, i: int, filled: dict, render_rgba: np.ndarray):
+    """View ``i`` as photographed: the model's view with the photograph's own mask where
+    the build filled shadow holes (``filled``: :data:`~opacityhull.model.FILLED_HOLES`),
+    the number of such pixels, and the coverage IoU of ``render_rgba`` against the
+    filled mask (None where nothing was filled)."""
+    photo = model.load_view_rgba(i)
+    holes = filled.get(model.views[i].id)
+    if holes is None or not holes.any():
+        return photo, 0, None
+    if holes.shape != photo.shape[:2]:
+        raise InputError(
+            f"{model.root}/{BUILD_DIR}/{FILLED_HOLES}: view {model.views[i].id} mask {holes.shape}, "
+            f"expected {photo.shape[:2]}; rebuild the model"
+        )
+    model_mask = np.nan_to_num(photo[..., 3]) > 0.5
+    rendered = np.nan_to_num(render_rgba[..., 3]) > 0.5
+    union = int((model_mask | rendered).sum())
+    iou = float((model_mask & rendered).sum()) / union if union else float("nan")
+    photo = photo.copy()
+    photo[..., 3][holes] = 0.0
+    return photo, int(holes.sum()), iou
+
+
 def leave_one_out(
     model: OpacityHullModel,
     *,
@@ -286,6 +309,7 @@ def leave_one_out(
     sheet_pick = set(np.unique(np.linspace(0, len(idx) - 1, min(max_sheet_rows, len(idx))).round().astype(int)))
     per_view, rows = [], []
     build_ms = []
+    filled = read_hole_masks(Path(model.root) / BUILD_DIR / FILLED_HOLES)
     for j, i in enumerate(idx):
         use = surfels
         if holdout == "geometry" and geometry_without is not None:  # checked above: not None here
@@ -299,13 +323,15 @@ def leave_one_out(
         t0 = time.perf_counter()
         res = render_image(use, cams, pv, cams[i], config=config, exclude_views=[i])
         ms = 1e3 * (time.perf_counter() - t0)
-        photo = model.load_view_rgba(i)
+        photo, filled_px, iou_filled = _photograph(model, i, filled, res.rgba)
         m = loo_metrics(photo, res.rgba, alpha_threshold=alpha_threshold, coverage=res.coverage)
         per_view.append(
             {
                 "view": model.views[i].id,
                 "index": i,
                 **m,
+                "coverage_iou_holes_filled": m["coverage_iou"] if iou_filled is None else iou_filled,
+                "shadow_holes_px": filled_px,
                 "ms": ms,
                 **({"rebuild_ms": build_ms[-1], "surfels": len(use)} if build_ms else {}),
             }
@@ -334,6 +360,7 @@ def leave_one_out(
                 "psnr_band",
                 "ssim_band",
                 "coverage_iou",
+                "coverage_iou_holes_filled",
                 "interior_alpha",
                 "interior_alpha_deficit",
                 "interior_alpha_covered",
@@ -357,7 +384,9 @@ def leave_one_out(
             else "ULR blending, hull, surfels and visibility (rebuilt without the held-out view)"
         ),
         "metric_space": "sRGB-encoded colour over black, inside the union of photo and render masks "
-        "(interior: photo mask eroded 3 px; band: the 7-px band around its silhouette)",
+        "(interior: photo mask eroded 3 px; band: the 7-px band around its silhouette); the photograph's "
+        "own mask, also where the build filled its shadow holes (coverage_iou_holes_filled: against the "
+        "filled mask)",
     }
     if build_ms:
         summary["rebuild_ms_per_view"] = float(np.mean(build_ms))

@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from opacityhull.errors import FormatError, InputError
-from opacityhull.reconstruct.build import open_hole_masks, read_open_holes, write_open_holes
+from opacityhull.model import read_hole_masks, write_hole_masks
+from opacityhull.reconstruct.build import PackedMasks, _HolesFilled, open_hole_masks, shadow_hole_masks
 from opacityhull.reconstruct.hull import (
     HullGrid,
     backdrop_holes,
@@ -132,12 +133,42 @@ def test_open_holes_file_round_trip_and_corruption(tmp_path):
     rng = np.random.default_rng(0)
     holes = {"c0_t000.000": rng.random((7, 13)) > 0.5, "c1_t000.000": np.zeros((5, 9), bool)}
     p = tmp_path / "build" / "open_holes.npz"
-    write_open_holes(p, holes)
-    back = read_open_holes(p)
+    write_hole_masks(p, holes)
+    back = read_hole_masks(p)
     assert set(back) == set(holes)
     for k in holes:
         np.testing.assert_array_equal(back[k], holes[k])
-    assert read_open_holes(tmp_path / "missing.npz") == {}
+    assert read_hole_masks(tmp_path / "missing.npz") == {}
     p.write_bytes(b"not a zip")
     with pytest.raises(FormatError, match="open_holes.npz"):
-        read_open_holes(p)
+        read_hole_masks(p)
+
+
+def test_shadow_holes_are_the_enclosed_holes_that_do_not_show_the_backdrop():
+    sil, lum, gap, shadow = _scene()
+    rgb = np.repeat((lum**2.2)[..., None], 3, axis=2)  # linear radiance, as the build reads it
+    alpha = sil.astype(np.float32)
+    closed, open_ = shadow_hole_masks(alpha, rgb), open_hole_masks(alpha, rgb)
+    assert np.array_equal(closed, shadow) and np.array_equal(open_, gap)
+    assert not (closed & open_).any() and np.array_equal(closed | open_, enclosed_holes(sil) & ~sil)
+    # a mask without holes has none; the outer backdrop is never a hole
+    full = np.zeros_like(alpha)
+    full[10:50, 10:70] = 1.0
+    assert not shadow_hole_masks(full, rgb).any()
+    assert not (shadow_hole_masks(alpha, rgb) & ~enclosed_holes(sil)).any()
+
+
+def test_holes_filled_sets_exactly_the_masks_to_one_view_by_view():
+    rng = np.random.default_rng(3)
+    alphas = [rng.random((6, 9)).astype(np.float32) for _ in range(3)]
+    fill = PackedMasks([rng.random((6, 9)) < 0.3, None, np.zeros((6, 9), bool)])
+    got = _HolesFilled([a.copy() for a in alphas], fill)
+    assert len(got) == 3
+    a0 = got[0]
+    m0 = fill[0]
+    assert m0 is not None and m0.any()
+    assert np.all(a0[m0] == 1.0) and np.array_equal(a0[~m0], alphas[0][~m0])
+    assert np.array_equal(got[1], alphas[1]) and np.array_equal(got[2], alphas[2])
+    assert [x.shape for x in got] == [(6, 9)] * 3
+    with pytest.raises(InputError, match="2 fill masks for 3 alphas"):
+        _HolesFilled(alphas, PackedMasks([None, None]))
