@@ -749,7 +749,7 @@ class _HolesFilled(Sequence):
         if isinstance(i, slice):
             raise TypeError("_HolesFilled does not slice")
         a = self.alphas[i]
-        m = self.fill[i]
+        m = cast("np.ndarray | None", self.fill[int(i)])
         if m is None or not m.any():
             return a
         a = np.array(a, np.float32, copy=True) if not (isinstance(a, np.ndarray) and a.flags.writeable) else a
