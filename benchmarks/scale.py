@@ -669,44 +669,30 @@ def main() -> None:
     OUT.mkdir(parents=True, exist_ok=True)
     tmp = Path(args.tmp or tempfile.mkdtemp(prefix="oh-scale-"))
     tmp.mkdir(parents=True, exist_ok=True)
-    if args.memory_only:
+    if args.memory_only or args.storage_only:
+        # one part measured anew, merged into the earlier scale.json/md
         try:
-            memory = memory_sweep(tmp, compare_pythonpath=args.compare_pythonpath, compare_label=args.compare_label)
+            if args.memory_only:
+                part, made = (
+                    "memory",
+                    memory_sweep(tmp, compare_pythonpath=args.compare_pythonpath, compare_label=args.compare_label),
+                )
+            else:
+                part, made = "storage", storage_comparison(tmp, quick=args.quick)
         finally:
             if args.tmp is None:
                 shutil.rmtree(tmp, ignore_errors=True)
         prev = json.loads((OUT / "scale.json").read_text()) if (OUT / "scale.json").is_file() else {}
-        summary = {**prev.get("summary", {}), **_memory_summary(memory)}
-        res = {**prev, "summary": summary, **summary, "memory": memory}
+        summary = {**prev.get("summary", {}), **(_memory_summary if part == "memory" else _storage_summary)(made)}
+        res = {**prev, "summary": summary, **summary, part: made}
         (OUT / "scale.json").write_text(json.dumps(res, indent=1))
         text = table(
             prev.get("rows", []),
             prev.get("schedulers", {}),
             summary,
             summary.get("quick", True),
-            prev.get("storage"),
-            memory,
-        )
-        (OUT / "scale.md").write_text(text)
-        print(json.dumps(res) if args.json else text)
-        return
-    if args.storage_only:
-        try:
-            storage = storage_comparison(tmp, quick=args.quick)
-        finally:
-            if args.tmp is None:
-                shutil.rmtree(tmp, ignore_errors=True)
-        prev = json.loads((OUT / "scale.json").read_text()) if (OUT / "scale.json").is_file() else {}
-        summary = {**prev.get("summary", {}), **_storage_summary(storage)}
-        res = {**prev, "summary": summary, **summary, "storage": storage}
-        (OUT / "scale.json").write_text(json.dumps(res, indent=1))
-        text = table(
-            prev.get("rows", []),
-            prev.get("schedulers", {}),
-            summary,
-            summary.get("quick", True),
-            storage,
-            prev.get("memory"),
+            res.get("storage"),
+            res.get("memory"),
         )
         (OUT / "scale.md").write_text(text)
         print(json.dumps(res) if args.json else text)

@@ -56,6 +56,7 @@ __all__ = [
     "cheapest_within",
     "MATTING_CANDIDATES",
     "matting_candidates_for",
+    "MATTING_SIZES",
     "MATTING_MARGIN",
     "Candidate",
     "MEASURED_COST",
@@ -563,128 +564,57 @@ MATTING_SOURCE = (
     "overheads and their noise reorder near-equal candidates), candidates measured alternately, 2-core machine shared with other jobs (path d2 "
     "and direct d2 are within that noise of each other)"
 )
-#: kind -> matting candidates measured inside the crop (:data:`MATTING_SOURCE`): the worst
-#: error and the slowest object + backdrop shot pair among the built-in scenes of that
-#: kind (diffuse: builtin:diffuse and builtin:sphere) and the two cameras. The selection for a declared
-#: matting shot is ``cheapest_within(MATTING_CANDIDATES[kind], bound)``; regenerate with
+#: camera sizes (width, height) the matting candidates were measured at, smallest first
+MATTING_SIZES: tuple[tuple[int, int], ...] = ((64, 48), (200, 150), (400, 300))
+
+#: kind -> (integrator, max_depth, spp, seconds, (error at each of :data:`MATTING_SIZES`))
+_MATTING_ROWS: dict[str, tuple[tuple[str, int, int, float, tuple[float, ...]], ...]] = {
+    "diffuse": (
+        ("direct", 2, 9, 0.190, (0.0369, 0.0231, 0.0200)),
+        ("direct", 2, 16, 0.253, (0.0260, 0.0170, 0.0142)),
+        ("direct", 2, 25, 0.282, (0.0236, 0.0138, 0.0113)),
+        ("direct", 2, 36, 0.381, (0.0196, 0.0120, 0.0097)),
+        ("direct", 2, 49, 0.432, (0.0178, 0.0108, 0.0087)),
+        ("direct", 2, 64, 0.471, (0.0175, 0.0098, 0.0078)),
+        ("path", 2, 16, 0.304, (0.0261, 0.0167, 0.0143)),
+        ("path", 2, 36, 0.371, (0.0194, 0.0117, 0.0097)),
+    ),
+    "transmissive": (
+        ("path", 8, 9, 0.181, (0.0653, 0.0445, 0.0363)),
+        ("path", 8, 16, 0.238, (0.0483, 0.0319, 0.0253)),
+        ("path", 8, 25, 0.284, (0.0390, 0.0251, 0.0207)),
+        ("path", 8, 36, 0.358, (0.0341, 0.0230, 0.0182)),
+        ("path", 8, 49, 0.423, (0.0322, 0.0210, 0.0163)),
+        ("path", 8, 64, 0.451, (0.0310, 0.0192, 0.0152)),
+    ),
+    "glossy": (
+        ("path", 3, 9, 0.246, (0.0408, 0.0292, 0.0227)),
+        ("path", 3, 16, 0.287, (0.0312, 0.0205, 0.0175)),
+        ("path", 3, 25, 0.377, (0.0286, 0.0163, 0.0141)),
+        ("path", 3, 36, 0.467, (0.0251, 0.0147, 0.0120)),
+        ("path", 3, 49, 0.543, (0.0231, 0.0131, 0.0107)),
+        ("path", 3, 64, 0.618, (0.0219, 0.0121, 0.0098)),
+    ),
+    "fibres": (
+        ("direct", 2, 9, 0.316, (0.0889, 0.0718, 0.0562)),
+        ("direct", 2, 16, 0.435, (0.0668, 0.0532, 0.0400)),
+        ("direct", 2, 25, 0.627, (0.0552, 0.0417, 0.0312)),
+        ("direct", 2, 36, 0.844, (0.0486, 0.0356, 0.0264)),
+        ("direct", 2, 49, 1.046, (0.0419, 0.0304, 0.0236)),
+        ("direct", 2, 64, 1.278, (0.0381, 0.0281, 0.0217)),
+        ("path", 2, 16, 0.438, (0.0670, 0.0521, 0.0398)),
+        ("path", 2, 36, 0.816, (0.0494, 0.0353, 0.0265)),
+    ),
+}
+
+#: kind -> camera size -> the matting candidates measured there (:data:`MATTING_SOURCE`): the
+#: worst error among the built-in scenes of that kind and the slowest object + backdrop shot
+#: pair. The selection for a declared matting shot is
+#: ``cheapest_within(matting_candidates_for(kind, pixels)[1], bound)``; regenerate with
 #: ``.venv/bin/python benchmarks/sim_effects.py --matting-candidates`` (its ``table``).
 MATTING_CANDIDATES: dict[str, dict[tuple[int, int], tuple[Candidate, ...]]] = {
-    "diffuse": {
-        (64, 48): (
-            Candidate("direct", 2, 9, 0.0369, 0.190),
-            Candidate("direct", 2, 16, 0.0260, 0.253),
-            Candidate("direct", 2, 25, 0.0236, 0.282),
-            Candidate("direct", 2, 36, 0.0196, 0.381),
-            Candidate("direct", 2, 49, 0.0178, 0.432),
-            Candidate("direct", 2, 64, 0.0175, 0.471),
-            Candidate("path", 2, 16, 0.0261, 0.304),
-            Candidate("path", 2, 36, 0.0194, 0.371),
-        ),
-        (200, 150): (
-            Candidate("direct", 2, 9, 0.0231, 0.190),
-            Candidate("direct", 2, 16, 0.0170, 0.253),
-            Candidate("direct", 2, 25, 0.0138, 0.282),
-            Candidate("direct", 2, 36, 0.0120, 0.381),
-            Candidate("direct", 2, 49, 0.0108, 0.432),
-            Candidate("direct", 2, 64, 0.0098, 0.471),
-            Candidate("path", 2, 16, 0.0167, 0.304),
-            Candidate("path", 2, 36, 0.0117, 0.371),
-        ),
-        (400, 300): (
-            Candidate("direct", 2, 9, 0.0200, 0.190),
-            Candidate("direct", 2, 16, 0.0142, 0.253),
-            Candidate("direct", 2, 25, 0.0113, 0.282),
-            Candidate("direct", 2, 36, 0.0097, 0.381),
-            Candidate("direct", 2, 49, 0.0087, 0.432),
-            Candidate("direct", 2, 64, 0.0078, 0.471),
-            Candidate("path", 2, 16, 0.0143, 0.304),
-            Candidate("path", 2, 36, 0.0097, 0.371),
-        ),
-    },
-    "transmissive": {
-        (64, 48): (
-            Candidate("path", 8, 9, 0.0653, 0.181),
-            Candidate("path", 8, 16, 0.0483, 0.238),
-            Candidate("path", 8, 25, 0.0390, 0.284),
-            Candidate("path", 8, 36, 0.0341, 0.358),
-            Candidate("path", 8, 49, 0.0322, 0.423),
-            Candidate("path", 8, 64, 0.0310, 0.451),
-        ),
-        (200, 150): (
-            Candidate("path", 8, 9, 0.0445, 0.181),
-            Candidate("path", 8, 16, 0.0319, 0.238),
-            Candidate("path", 8, 25, 0.0251, 0.284),
-            Candidate("path", 8, 36, 0.0230, 0.358),
-            Candidate("path", 8, 49, 0.0210, 0.423),
-            Candidate("path", 8, 64, 0.0192, 0.451),
-        ),
-        (400, 300): (
-            Candidate("path", 8, 9, 0.0363, 0.181),
-            Candidate("path", 8, 16, 0.0253, 0.238),
-            Candidate("path", 8, 25, 0.0207, 0.284),
-            Candidate("path", 8, 36, 0.0182, 0.358),
-            Candidate("path", 8, 49, 0.0163, 0.423),
-            Candidate("path", 8, 64, 0.0152, 0.451),
-        ),
-    },
-    "glossy": {
-        (64, 48): (
-            Candidate("path", 3, 9, 0.0408, 0.246),
-            Candidate("path", 3, 16, 0.0312, 0.287),
-            Candidate("path", 3, 25, 0.0286, 0.377),
-            Candidate("path", 3, 36, 0.0251, 0.467),
-            Candidate("path", 3, 49, 0.0231, 0.543),
-            Candidate("path", 3, 64, 0.0219, 0.618),
-        ),
-        (200, 150): (
-            Candidate("path", 3, 9, 0.0292, 0.246),
-            Candidate("path", 3, 16, 0.0205, 0.287),
-            Candidate("path", 3, 25, 0.0163, 0.377),
-            Candidate("path", 3, 36, 0.0147, 0.467),
-            Candidate("path", 3, 49, 0.0131, 0.543),
-            Candidate("path", 3, 64, 0.0121, 0.618),
-        ),
-        (400, 300): (
-            Candidate("path", 3, 9, 0.0227, 0.246),
-            Candidate("path", 3, 16, 0.0175, 0.287),
-            Candidate("path", 3, 25, 0.0141, 0.377),
-            Candidate("path", 3, 36, 0.0120, 0.467),
-            Candidate("path", 3, 49, 0.0107, 0.543),
-            Candidate("path", 3, 64, 0.0098, 0.618),
-        ),
-    },
-    "fibres": {
-        (64, 48): (
-            Candidate("direct", 2, 9, 0.0889, 0.316),
-            Candidate("direct", 2, 16, 0.0668, 0.435),
-            Candidate("direct", 2, 25, 0.0552, 0.627),
-            Candidate("direct", 2, 36, 0.0486, 0.844),
-            Candidate("direct", 2, 49, 0.0419, 1.046),
-            Candidate("direct", 2, 64, 0.0381, 1.278),
-            Candidate("path", 2, 16, 0.0670, 0.438),
-            Candidate("path", 2, 36, 0.0494, 0.816),
-        ),
-        (200, 150): (
-            Candidate("direct", 2, 9, 0.0718, 0.316),
-            Candidate("direct", 2, 16, 0.0532, 0.435),
-            Candidate("direct", 2, 25, 0.0417, 0.627),
-            Candidate("direct", 2, 36, 0.0356, 0.844),
-            Candidate("direct", 2, 49, 0.0304, 1.046),
-            Candidate("direct", 2, 64, 0.0281, 1.278),
-            Candidate("path", 2, 16, 0.0521, 0.438),
-            Candidate("path", 2, 36, 0.0353, 0.816),
-        ),
-        (400, 300): (
-            Candidate("direct", 2, 9, 0.0562, 0.316),
-            Candidate("direct", 2, 16, 0.0400, 0.435),
-            Candidate("direct", 2, 25, 0.0312, 0.627),
-            Candidate("direct", 2, 36, 0.0264, 0.844),
-            Candidate("direct", 2, 49, 0.0236, 1.046),
-            Candidate("direct", 2, 64, 0.0217, 1.278),
-            Candidate("path", 2, 16, 0.0398, 0.438),
-            Candidate("path", 2, 36, 0.0265, 0.816),
-        ),
-    },
+    kind: {size: tuple(Candidate(i, d, s, e[k], t) for i, d, s, t, e in rows) for k, size in enumerate(MATTING_SIZES)}
+    for kind, rows in _MATTING_ROWS.items()
 }
 
 
