@@ -6,6 +6,7 @@ that always dies is a clean WorkerLost, never a partial result."""
 from __future__ import annotations
 
 import os
+import sys
 import socket
 import time
 
@@ -119,6 +120,18 @@ def test_workers_run_one_numba_thread_and_are_other_processes(scheduler, executo
     info = executor.map(worker_info, range(4))
     assert all(i["numba_threads"] == 1 for i in info)
     assert os.getpid() not in {i["pid"] for i in info}
+    if scheduler == "cluster" and sys.platform.startswith("linux"):
+        # the nanny's MALLOC_TRIM_THRESHOLD_ (adaptive mmap threshold off) is undone in
+        # every worker by the executor's worker plugin (executor.tune_malloc)
+        assert all(i["malloc_tuned"] for i in info), info
+
+
+def test_tune_malloc_takes_on_glibc():
+    from opacityhull.executor import tune_malloc
+
+    if not sys.platform.startswith("linux"):
+        pytest.skip("glibc's mallopt")
+    assert tune_malloc() is True and worker_info()["malloc_tuned"] is True
 
 
 @pytest.mark.parametrize("scheduler", ["serial", "threads", "processes", "cluster"])
