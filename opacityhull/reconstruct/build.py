@@ -1304,7 +1304,7 @@ class _MatteFiles(Sequence):
     def __getitem__(self, i):
         if isinstance(i, slice):
             raise TypeError("_MatteFiles does not slice")
-        from .perview import LIVE_VIEWS
+        from .liveviews import LIVE_VIEWS
 
         i = range(len(self.paths))[i]
         return LIVE_VIEWS.track(self.vids[i], _load_matte(self.paths[i], self.shapes[i]))
@@ -1597,7 +1597,7 @@ def step_geometry(
         shots = list(colour or [])
 
         def view_rgb(i: int) -> np.ndarray:
-            from .perview import LIVE_VIEWS
+            from .liveviews import LIVE_VIEWS
 
             rgba = _view_rgba(
                 session, shots[i], mattes.alphas[i], use_masks=mattes.use_masks, alpha_eps=config.alpha_eps
@@ -1855,7 +1855,7 @@ def build_model(
         )
 
     def view_rgba(i: int) -> np.ndarray:
-        from .perview import LIVE_VIEWS
+        from .liveviews import LIVE_VIEWS
 
         return LIVE_VIEWS.track(
             vids[i],

@@ -226,7 +226,7 @@ def matte_for_build(
         raise FormatError(
             f"view {vid}: alpha is {alpha.shape[1]}x{alpha.shape[0]}, camera is {view_cam.width}x{view_cam.height}"
         )
-    from .perview import LIVE_VIEWS
+    from .liveviews import LIVE_VIEWS
 
     alpha = LIVE_VIEWS.track(vid, np.ascontiguousarray(alpha, np.float32))
     return alpha, {"view": vid, "source": src, "stats": stats, "nonfinite": nonfinite}

@@ -10,9 +10,6 @@ parsed once per worker, not once per view) and sends back either the alpha or, w
 from __future__ import annotations
 
 import logging
-import threading
-import weakref
-from collections import Counter
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
@@ -22,6 +19,7 @@ import numpy as np
 from ..camera import Camera
 from ..riggeometry import RigGeometry, view_id
 from ..session import Session
+from .liveviews import LIVE_VIEWS, LiveViews
 from .matting import MattingOptions, solve_matte
 
 log = logging.getLogger(__name__)
@@ -38,51 +36,6 @@ __all__ = [
     "LiveViews",
     "LIVE_VIEWS",
 ]
-
-
-class LiveViews:
-    """How many views have a full-resolution array (alpha, RGBA, photograph) alive at
-    once in this process: the build's per-view loaders register what they hand out
-    (:meth:`track`), and a finaliser counts each array out when it is freed. ``peak`` is
-    the streaming structure's witness: it stays at the number of views in flight, not
-    the number of views (tests/reconstruct/test_build_streaming.py). Thread-safe;
-    counts only this process (process and Dask workers keep their own)."""
-
-    def __init__(self) -> None:
-        self._lock = threading.Lock()
-        self._live: Counter = Counter()
-        #: most distinct views alive at once since :meth:`reset`
-        self.peak = 0
-        #: arrays registered since :meth:`reset`
-        self.tracked = 0
-
-    def reset(self) -> None:
-        with self._lock:
-            self.peak = len(self._live)
-            self.tracked = 0
-
-    @property
-    def live(self) -> int:
-        return len(self._live)
-
-    def track(self, view: str, arr: np.ndarray) -> np.ndarray:
-        """Register ``arr`` as a full-resolution array of ``view``; returns it."""
-        with self._lock:
-            self._live[view] += 1
-            self.tracked += 1
-            self.peak = max(self.peak, len(self._live))
-        weakref.finalize(arr, self._gone, view)
-        return arr
-
-    def _gone(self, view: str) -> None:
-        with self._lock:
-            self._live[view] -= 1
-            if self._live[view] <= 0:
-                del self._live[view]
-
-
-#: the process-wide counter the build's loaders report to
-LIVE_VIEWS = LiveViews()
 
 
 @dataclass(frozen=True, kw_only=True)

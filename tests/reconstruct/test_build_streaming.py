@@ -24,7 +24,7 @@ from opacityhull.acquire.synthetic import SyntheticSessionConfig, write_syntheti
 from opacityhull.executor import open_executor
 from opacityhull.model import OpacityHullModel
 from opacityhull.reconstruct.build import BuildConfig, MemoryPlan, PackedMasks, build_model
-from opacityhull.reconstruct.perview import LIVE_VIEWS
+from opacityhull.reconstruct.liveviews import LIVE_VIEWS
 
 CLI = Path(sys.executable).with_name("opacityhull")
 CFG = BuildConfig(pictures=False, reflectance=False)
