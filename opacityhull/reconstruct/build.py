@@ -715,22 +715,30 @@ class Geometry:
     notes: list
 
 
-def open_hole_masks(alpha: np.ndarray, photo_rgb: np.ndarray, *, threshold: float = 0.5) -> np.ndarray:
-    """(H, W) bool: the enclosed holes of a view's mask (α ≤ ``threshold``) that show the
-    backdrop (:func:`.hull.backdrop_holes` on the raw photograph's luminance, in display
-    values): see-through gaps to carve, as opposed to shadows as dark as the backdrop."""
+def hole_masks(alpha: np.ndarray, photo_rgb: np.ndarray, *, threshold: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
+    """``(open, shadow)``, (H, W) bool each: a view's mask's enclosed holes (α ≤
+    ``threshold``) split by the raw photograph's luminance in display values
+    (:func:`.hull.backdrop_holes`): those that show the backdrop (see-through gaps, to
+    carve) and the others (shadows as dark as the backdrop, which a threshold lost).
+    Neither depends on the other holes being filled: the judgement is each hole's own
+    brightness against the backdrop outside the outer contour."""
     sil = np.asarray(alpha) > threshold
     rgb = np.nan_to_num(np.asarray(photo_rgb, np.float32)[..., :3], nan=0.0, posinf=0.0, neginf=0.0)
     lum = np.clip(rgb @ np.array([0.2126, 0.7152, 0.0722], np.float32), 0.0, None) ** (1.0 / 2.2)
-    return enclosed_holes(sil) & ~backdrop_holes(sil, lum)
+    filled = enclosed_holes(sil)
+    open_ = filled & ~backdrop_holes(sil, lum)
+    return open_, filled & ~sil & ~open_
+
+
+def open_hole_masks(alpha: np.ndarray, photo_rgb: np.ndarray, *, threshold: float = 0.5) -> np.ndarray:
+    """The see-through holes of :func:`hole_masks`: carved like the outer contour."""
+    return hole_masks(alpha, photo_rgb, threshold=threshold)[0]
 
 
 def shadow_hole_masks(alpha: np.ndarray, photo_rgb: np.ndarray, *, threshold: float = 0.5) -> np.ndarray:
-    """(H, W) bool: the enclosed holes of a view's mask that do *not* show the backdrop
-    (the complement of :func:`open_hole_masks` among them): shadows and dark parts of the
-    object as dark as the backdrop, which a thresholded mask lost."""
-    sil = np.asarray(alpha) > threshold
-    return enclosed_holes(sil) & ~sil & ~open_hole_masks(alpha, photo_rgb, threshold=threshold)
+    """The shadow holes of :func:`hole_masks`: the enclosed holes that do *not* show the
+    backdrop."""
+    return hole_masks(alpha, photo_rgb, threshold=threshold)[1]
 
 
 class _HolesFilled(Sequence):
@@ -767,12 +775,14 @@ def fill_shadow_holes(
     vids: Sequence[str],
     config: "BuildConfig",
     store: "_StepStore",
-) -> tuple["Mattes", dict]:
+) -> tuple["Mattes", dict, "PackedMasks | None"]:
     """The matting step's alphas with the shadow holes of imported masks filled
-    (``BuildConfig.fill_shadow_holes``; :func:`shadow_hole_masks` on each view's colour
-    photograph), one view at a time, and ``{"views", "px"}`` filled. Writes
-    :data:`FILLED_HOLES` (removes a stale one when nothing is filled); the returned
-    :class:`Mattes` has a new ``content`` digest, so later steps see the change."""
+    (``BuildConfig.fill_shadow_holes``; :func:`hole_masks` on each view's colour
+    photograph), one view at a time, ``{"views", "px"}`` filled, and the open holes found
+    on the way (for :func:`step_geometry`, which would otherwise load every photograph
+    again; None when the rule does not apply). Writes :data:`FILLED_HOLES` (removes a
+    stale one when nothing is filled); the returned :class:`Mattes` has a new ``content``
+    digest, so later steps see the change."""
     import hashlib
 
     rig = _is_rig_session(session)
@@ -781,18 +791,17 @@ def fill_shadow_holes(
     none = {"views": 0, "px": 0}
     if not (config.fill_shadow_holes and config.backdrop_holes and tolerant and mattes.use_masks):
         path.unlink(missing_ok=True)
-        return mattes, none
-    fill = PackedMasks()
+        return mattes, none, None
+    fill, opened = PackedMasks(), PackedMasks()
     h = hashlib.sha256(mattes.content.encode())
     n_px = n_views = 0
     for i, shot in enumerate(colour):
-        m = (
-            None
+        o, m = (
+            (None, None)
             if shot[0] is None
-            else shadow_hole_masks(
-                mattes.alphas[i], _rgb(session.load_radiance(shot[0])), threshold=config.alpha_threshold
-            )
+            else hole_masks(mattes.alphas[i], _rgb(session.load_radiance(shot[0])), threshold=config.alpha_threshold)
         )
+        opened.append(o)
         fill.append(m)
         if m is not None and m.any():
             n_px += int(m.sum())
@@ -800,12 +809,10 @@ def fill_shadow_holes(
             h.update(vids[i].encode() + np.packbits(m, axis=1).tobytes())
     if n_px == 0:
         path.unlink(missing_ok=True)
-        return mattes, none
+        return mattes, none, opened
     write_hole_masks(path, {vids[i]: m for i, m in enumerate(fill) if m is not None and m.any()})
-    return replace(mattes, alphas=_HolesFilled(mattes.alphas, fill), content=h.hexdigest()), {
-        "views": n_views,
-        "px": n_px,
-    }
+    filled = replace(mattes, alphas=_HolesFilled(mattes.alphas, fill), content=h.hexdigest())
+    return filled, {"views": n_views, "px": n_px}, opened
 
 
 def _nullstep(name):
@@ -1565,9 +1572,11 @@ def step_geometry(
     step=None,
     progress=None,
     carve_batch: int | None = None,
+    open_holes: "PackedMasks | None" = None,
 ) -> tuple[Geometry, str]:
     """Steps 3-6 (silhouettes, hull, surfels, visibility, refine): :func:`build_geometry`
-    over the mattes, stored as ``build/geometry.pkl``."""
+    over the mattes, stored as ``build/geometry.pkl``. ``open_holes``: the see-through
+    holes per view if already judged (:func:`fill_shadow_holes`), else judged here."""
     vids = [view_id(c, a) for c, a in views]
     rig_session = _is_rig_session(session)
     # imported sessions have no [rig] table; a corrupt one is a FormatError, not "no rig"
@@ -1607,7 +1616,9 @@ def step_geometry(
         images = view_rgb
     holes = None
     tolerant = config.carve_tolerance if config.carve_tolerance is not None else (0 if rig_session else 1)
-    if tolerant and colour and config.backdrop_holes:
+    if tolerant and colour and config.backdrop_holes and open_holes is not None:
+        holes = open_holes
+    elif tolerant and colour and config.backdrop_holes:
         holes = PackedMasks()  # one view at a time, bit-packed
         for i, shot in enumerate(colour):
             holes.append(
@@ -1846,7 +1857,7 @@ def build_model(
             f"{missing_colour[:5]}: nothing to colour the model with"
         )
     with timer.step("holes"):
-        mattes, shadow_filled = fill_shadow_holes(session, mattes, colour_shots, vids, config, store)
+        mattes, shadow_filled, open_holes = fill_shadow_holes(session, mattes, colour_shots, vids, config, store)
     alphas = mattes.alphas
     if shadow_filled["px"]:
         notes.append(
@@ -1881,6 +1892,7 @@ def build_model(
         step=timer.step,
         progress=prog,
         carve_batch=plan.carve_batch,
+        open_holes=open_holes,
     )
     notes.extend(g.notes)
     sils, pin, occ, grid, surfels = g.sils, g.pin, g.occ, g.grid, g.surfels
