@@ -11,9 +11,11 @@ import json
 import os
 import sys
 from contextlib import contextmanager
-from typing import Any, Callable, Iterator, Mapping, Optional
+from pathlib import Path
+from typing import Annotated, Any, Callable, Iterator, Mapping, Optional
 
 import numpy as np
+import typer
 
 from .errors import EXIT_CODES, InputError, OpacityHullError, Terminated, write_error
 
@@ -29,9 +31,24 @@ __all__ = [
     "console",
     "ProgressCallback",
     "to_jsonable",
+    "JsonFlag",
+    "JsonSummaryFlag",
+    "ModelDirArg",
+    "SessionDirArg",
 ]
 
 ProgressCallback = Callable[[int, int], None]
+
+# Options and arguments declared the same way by several commands: one declaration, so
+# their flags and help cannot drift apart. Use as ``json_out: JsonFlag = False``.
+#: ``--json`` of commands whose result is one JSON object (capture, session, import).
+JsonFlag = Annotated[bool, typer.Option("--json", help="Print one JSON object on stdout.")]
+#: ``--json`` of commands that print a summary of what they wrote (export, relight).
+JsonSummaryFlag = Annotated[bool, typer.Option("--json", help="Print a JSON summary on stdout.")]
+#: The MODEL argument of the commands that read a built model (export, view).
+ModelDirArg = Annotated[Path, typer.Argument(help="Model folder (model.toml, surfels.ply, views/).")]
+#: The DIRECTORY argument of ``session verify|info|hdr``.
+SessionDirArg = Annotated[Path, typer.Argument(help="Session folder.")]
 
 
 def console():

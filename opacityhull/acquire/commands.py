@@ -14,7 +14,7 @@ from typing import Optional
 
 import typer
 
-from ..cliutil import cli_errors, console, emit, progress
+from ..cliutil import JsonFlag, SessionDirArg, cli_errors, console, emit, progress
 from ..errors import CaptureInterrupted, ConfigError, OpacityHullError
 from ..tomlio import read_toml
 
@@ -196,7 +196,7 @@ def register(app, groups) -> None:
             "--assume-ready",
             help="Hardware rigs without a terminal: take every manual step (board, object) as done.",
         ),
-        json_out: bool = typer.Option(False, "--json", help="Print one JSON object on stdout."),
+        json_out: JsonFlag = False,
     ):
         """Capture a session: run a plan on a rig, resumably (exit 5 = stopped early, resumable; 130 = Ctrl-C)."""
         from .plan import load_plan
@@ -269,8 +269,8 @@ def register(app, groups) -> None:
     @session.command("verify")
     @cli_errors
     def verify(
-        directory: Path = typer.Argument(..., help="Session folder."),
-        json_out: bool = typer.Option(False, "--json", help="Print one JSON object on stdout."),
+        directory: SessionDirArg,
+        json_out: JsonFlag = False,
     ):
         """Check every manifest entry exists with its sha256 and no image is unlisted (exit 4 if not ok)."""
         from .verify import verify_session
@@ -300,8 +300,8 @@ def register(app, groups) -> None:
     @session.command("info")
     @cli_errors
     def info(
-        directory: Path = typer.Argument(..., help="Session folder."),
-        json_out: bool = typer.Option(False, "--json", help="Print one JSON object on stdout."),
+        directory: SessionDirArg,
+        json_out: JsonFlag = False,
     ):
         """Phases, views, image counts and bytes of a session."""
         from .schedule import human_bytes
@@ -328,12 +328,12 @@ def register(app, groups) -> None:
     @session.command("hdr")
     @cli_errors
     def hdr(
-        directory: Path = typer.Argument(..., help="Session folder."),
+        directory: SessionDirArg,
         phase: Optional[list[str]] = typer.Option(None, "--phase", help="Only this phase (repeatable)."),
         method: str = typer.Option("auto", "--method", help="auto | linear | debevec."),
         saturation: float = typer.Option(0.98, "--saturation", help="Clipped above this fraction of white."),
         force: bool = typer.Option(False, "--force", help="Merge again even if up to date."),
-        json_out: bool = typer.Option(False, "--json", help="Print one JSON object on stdout."),
+        json_out: JsonFlag = False,
     ):
         """Merge exposure brackets into linear radiance (kind = "hdr" records; raw brackets stay)."""
         from .hdr import hdr_session
@@ -369,7 +369,7 @@ def register(app, groups) -> None:
         ),
         out: Path = _IMPORT_OUT,
         allow_full_masks: bool = _ALLOW_FULL_MASKS,
-        json_out: bool = typer.Option(False, "--json", help="Print one JSON object on stdout."),
+        json_out: JsonFlag = False,
     ):
         """Turn a COLMAP-calibrated image set into a session that `build` accepts."""
         from .importers import import_colmap
@@ -390,7 +390,7 @@ def register(app, groups) -> None:
         ),
         out: Path = _IMPORT_OUT,
         allow_full_masks: bool = _ALLOW_FULL_MASKS,
-        json_out: bool = typer.Option(False, "--json", help="Print one JSON object on stdout."),
+        json_out: JsonFlag = False,
     ):
         """Turn a nerfstudio transforms.json (RGBA images or mask_path mattes) into a session that `build` accepts."""
         from .importers import import_nerfstudio

@@ -31,14 +31,14 @@ import logging
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
+from typing import Any, Callable, Mapping
 
 import numpy as np
 
 from ..camera import Camera, object_from_rig, write_colmap_text, write_opencv_yaml
 from ..errors import InputError
 from ..imageio import read_png, write_exr, write_png
-from ..riggeometry import RigGeometry, back_display, bottom_display, view_id
+from ..riggeometry import DisplaySpec, RigGeometry, back_display, bottom_display, view_id
 from ..session import SessionWriter, shot_key
 
 log = logging.getLogger(__name__)
@@ -49,6 +49,9 @@ __all__ = [
     "sphere_hit_t",
     "sphere_albedo",
     "pixel_rays",
+    "panel_hits",
+    "panel_texels",
+    "record_shot_key",
     "synthetic_rig",
     "CORE_R_M",
     "CENTRE_M",
@@ -164,6 +167,56 @@ class _DisplayHits:
         return out
 
 
+def record_shot_key(phase: str, camera: int, table_deg: float, record: Mapping[str, Any]) -> str:
+    """:func:`~opacityhull.session.shot_key` of an image whose record carries ``record``
+    (the keyword fields of the manifest entry: ``light``, ``pattern``, ...); fields that
+    are not part of the key (``extra``) are ignored, missing ones take its defaults."""
+    return shot_key(phase, camera, table_deg, **{k: record[k] for k in _SHOT_KEY_FIELDS if k in record})
+
+
+_SHOT_KEY_FIELDS = ("lights_deg", "light", "pattern", "object_present")
+
+
+def panel_hits(
+    o: np.ndarray, d: np.ndarray, disp: DisplaySpec, Robj: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Where rays (o, d) (object frame) meet the plane of display ``disp``.
+
+    ``Robj`` (3, 3) is :func:`~opacityhull.camera.object_from_rig` at the view's table
+    angle: a display fixed in the rig turns by -angle in the object frame, one that
+    rotates with the table does not move.
+
+    Returns
+    -------
+    t : (N,) ray parameter of the plane hit (inf/nan for rays parallel to it).
+    x, y : (N,) metres from the panel centre along its right and up axes.
+    inside : (N,) bool, a hit in front of the ray origin inside the panel.
+    """
+    F = disp.frame()
+    right, up, nrm, ctr = F[:3, 0], F[:3, 1], F[:3, 2], F[:3, 3]
+    if not disp.rotates_with_table:  # fixed in the rig: turns by -a in the object frame
+        right, up, nrm, ctr = Robj @ right, Robj @ up, Robj @ nrm, Robj @ ctr
+    den = d @ nrm
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = ((ctr - o) @ nrm) / den
+    X = o + t[:, None] * d
+    x = (X - ctr) @ right
+    y = (X - ctr) @ up
+    w, h = disp.size_m
+    inside = np.isfinite(t) & (t > 0) & (np.abs(x) < w / 2) & (np.abs(y) < h / 2)
+    return t, x, y, inside
+
+
+def panel_texels(x: np.ndarray, y: np.ndarray, size_m, rows: int, cols: int) -> tuple[np.ndarray, np.ndarray]:
+    """(row, col) texel indices of panel points ``x, y`` (metres from the centre, see
+    :func:`panel_hits`) on a ``rows × cols`` image covering a ``size_m = (w, h)`` panel;
+    row 0 is the top edge."""
+    w, h = size_m
+    row = np.clip(((h / 2 - y) / h * rows).astype(int), 0, rows - 1)
+    col = np.clip(((x + w / 2) / w * cols).astype(int), 0, cols - 1)
+    return row, col
+
+
 def display_hits(o: np.ndarray, d: np.ndarray, table_deg: float, geo: RigGeometry) -> _DisplayHits:
     """The display texel (nearest display along the ray) each ray (object frame) meets."""
     n = d.shape[0]
@@ -172,21 +225,10 @@ def display_hits(o: np.ndarray, d: np.ndarray, table_deg: float, geo: RigGeometr
     rc = np.zeros((len(geo.displays), 2, n), np.int64)
     Robj = object_from_rig(table_deg)[:3, :3]
     for k, disp in enumerate(geo.displays):
-        F = disp.frame()
-        right, up, nrm, ctr = F[:3, 0], F[:3, 1], F[:3, 2], F[:3, 3]
-        if not disp.rotates_with_table:  # fixed in the rig: turns by -a in the object frame
-            right, up, nrm, ctr = Robj @ right, Robj @ up, Robj @ nrm, Robj @ ctr
-        den = d @ nrm
-        with np.errstate(divide="ignore", invalid="ignore"):
-            t = ((ctr - o) @ nrm) / den
-        X = o + t[:, None] * d
-        x = (X - ctr) @ right
-        y = (X - ctr) @ up
-        w, h = disp.size_m
-        hit = np.isfinite(t) & (t > 0) & (t < best) & (np.abs(x) < w / 2) & (np.abs(y) < h / 2)
+        t, x, y, inside = panel_hits(o, d, disp, Robj)
+        hit = inside & (t < best)
         cols, rows = disp.resolution
-        rc[k, 0, hit] = np.clip(((h / 2 - y[hit]) / h * rows).astype(int), 0, rows - 1)
-        rc[k, 1, hit] = np.clip(((x[hit] + w / 2) / w * cols).astype(int), 0, cols - 1)
+        rc[k, 0, hit], rc[k, 1, hit] = panel_texels(x[hit], y[hit], disp.size_m, rows, cols)
         which[hit] = k
         best[hit] = t[hit]
     out = {}
@@ -324,15 +366,7 @@ def write_synthetic_session(
         made = []
 
         def add(img, phase, **kw):
-            key = shot_key(
-                phase,
-                c,
-                a,
-                lights_deg=kw.get("lights_deg"),
-                light=kw.get("light"),
-                pattern=kw.get("pattern"),
-                object_present=kw.get("object_present", True),
-            )
+            key = record_shot_key(phase, c, a, kw)
             if cfg.noise > 0:
                 img = img + vrng.normal(0.0, cfg.noise, img.shape).astype(np.float32)
             val = np.clip(img * exposure_s, 0.0, white_level).astype(np.float32)

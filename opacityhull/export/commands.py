@@ -6,14 +6,14 @@ from pathlib import Path
 
 import typer
 
-from ..cliutil import cli_errors, console, emit
+from ..cliutil import JsonSummaryFlag, ModelDirArg, cli_errors, console, emit
 
 
 def register(app, groups) -> None:
     @app.command("export")
     @cli_errors
     def export_cmd(
-        model: Path = typer.Argument(..., help="Model folder (model.toml, surfels.ply, views/)."),
+        model: ModelDirArg,
         fmt: str = typer.Option(..., "--format", help="nerfstudio | colmap | ply | opencv."),
         out: Path = typer.Option(..., "--out", help="Output folder (created; must be empty unless --overwrite)."),
         overwrite: bool = typer.Option(False, "--overwrite", help="Replace a non-empty --out."),
@@ -24,7 +24,7 @@ def register(app, groups) -> None:
         nerfstudio_alpha: str = typer.Option(
             "rgba", "--nerfstudio-alpha", help="nerfstudio: 'rgba' PNGs, or 'mask' (RGB + single-channel mask_path)."
         ),
-        json_out: bool = typer.Option(False, "--json", help="Print a JSON summary on stdout."),
+        json_out: JsonSummaryFlag = False,
     ):
         """Export a model for other tools: nerfstudio, COLMAP (sparse/0 text+binary), PLY (points + 3DGS splats), OpenCV YAML."""
         from .formats import FORMATS, export_model

@@ -10,7 +10,7 @@ from typing import Optional
 import typer
 from rich.markup import escape
 
-from ..cliutil import cli_errors, console, emit, option_group, progress, writing_to
+from ..cliutil import JsonSummaryFlag, cli_errors, console, emit, option_group, progress, writing_to
 from ..errors import InputError, check_writable
 
 
@@ -144,7 +144,7 @@ def register(app, groups) -> None:
             None, "--exposure", help="PNG exposure multiplier (default: automatic, key 0.18)."
         ),
         no_views: bool = typer.Option(False, "--no-views", help="Do not write the relit captured views."),
-        json_out: bool = typer.Option(False, "--json", help="Print a JSON summary on stdout."),
+        json_out: JsonSummaryFlag = False,
         *,
         yaw_deg: Optional[float],
         config_options: dict,

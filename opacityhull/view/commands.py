@@ -7,7 +7,7 @@ from typing import Optional
 
 import typer
 
-from ..cliutil import cli_errors, console, emit, progress
+from ..cliutil import ModelDirArg, cli_errors, console, emit, progress
 
 
 def _parse_bg(text: str):
@@ -43,7 +43,7 @@ def register(app, groups) -> None:
     @app.command("view")
     @cli_errors
     def view_cmd(
-        model: Path = typer.Argument(..., help="Model folder (model.toml, surfels.ply, views/)."),
+        model: ModelDirArg,
         out: Optional[Path] = typer.Option(
             None,
             "--out",

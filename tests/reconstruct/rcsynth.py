@@ -15,50 +15,27 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-from helpers import camera_spec
 
 from opacityhull.camera import Camera, object_from_rig, write_colmap_text, write_opencv_yaml
 from opacityhull.imageio import read_png, write_exr, write_png
-from opacityhull.riggeometry import RigGeometry, back_display, bottom_display, view_id
-from opacityhull.session import SessionWriter, shot_key
+from opacityhull.riggeometry import RigGeometry, view_id
+from opacityhull.session import SessionWriter
 
-# the ray caster is shared with the paper-scale session writer (one copy of the scene)
+# the rig, the ray caster and the shot keys are shared with the paper-scale session
+# writer (one copy of the scene)
+from opacityhull.acquire.synthetic import CENTRE_M, CORE_R_M
+from opacityhull.acquire.synthetic import panel_hits as _panel_hits
+from opacityhull.acquire.synthetic import panel_texels as _panel_texels
 from opacityhull.acquire.synthetic import pixel_rays as _rays
+from opacityhull.acquire.synthetic import record_shot_key
+from opacityhull.acquire.synthetic import synthetic_rig as rig_dict
 from opacityhull.acquire.synthetic import sphere_albedo as _albedo
 from opacityhull.acquire.synthetic import sphere_hit_t as _sphere_t
 
-CORE_R = 0.04
+CORE_R = CORE_R_M  # the paper-scale writer's sphere: 0.04 m at (0, 0.06, 0)
 HALO_R = 0.055
-CENTRE = np.array([0.0, 0.06, 0.0])
+CENTRE = CENTRE_M
 HALO_ALPHA = 0.35
-
-
-def rig_dict(n_cams=3, width=64, height=48, *, fov_y_deg=20.0, distance_m=0.8, elevations=(15.0, 55.0)):
-    els = np.linspace(elevations[0], elevations[1], n_cams)
-    cams = [
-        camera_spec(
-            f"cam{i}",
-            width,
-            height,
-            distance_m=distance_m,
-            elevation_deg=float(e),
-            azimuth_deg=0.0,
-            fov_y_deg=fov_y_deg,
-        )
-        for i, e in enumerate(els)
-    ]
-    return {
-        "target_m": [0.0, 0.06, 0.0],
-        "cameras": cams,
-        "lights": [
-            {"id": 0, "elevation_deg": 40.0, "azimuth_deg": 90.0, "distance_m": 1.0},
-            {"id": 1, "elevation_deg": 70.0, "azimuth_deg": -60.0, "distance_m": 1.0},
-        ],
-        "displays": [
-            bottom_display([1.0, 1.0], [32, 32], max_radiance=1.0),
-            back_display([0.0, 0.28, -0.4], [1.0, 0.56], [32, 18], rotates_with_table=False, max_radiance=1.0),
-        ],
-    }
 
 
 def _display_radiance(o, d, table_deg, geo: RigGeometry, patterns: dict | None):
@@ -72,21 +49,10 @@ def _display_radiance(o, d, table_deg, geo: RigGeometry, patterns: dict | None):
         pat = patterns.get(disp.name)
         if pat is None:
             continue
-        F = disp.frame()
-        right, up, n, ctr = F[:3, 0], F[:3, 1], F[:3, 2], F[:3, 3]
-        if not disp.rotates_with_table:  # fixed in the rig: turns by -a in the object frame
-            right, up, n, ctr = Robj @ right, Robj @ up, Robj @ n, Robj @ ctr
-        den = d @ n
-        with np.errstate(divide="ignore", invalid="ignore"):
-            t = ((ctr - o) @ n) / den
-        X = o + t[:, None] * d
-        x = (X - ctr) @ right
-        y = (X - ctr) @ up
-        w, h = disp.size_m
-        hit = np.isfinite(t) & (t > 0) & (t < best) & (np.abs(x) < w / 2) & (np.abs(y) < h / 2)
+        t, x, y, inside = _panel_hits(o, d, disp, Robj)
+        hit = inside & (t < best)
         rows, cols = pat.shape[:2]
-        col = np.clip(((x[hit] + w / 2) / w * cols).astype(int), 0, cols - 1)
-        row = np.clip(((h / 2 - y[hit]) / h * rows).astype(int), 0, rows - 1)
+        row, col = _panel_texels(x[hit], y[hit], disp.size_m, rows, cols)
         out[hit] = disp.max_radiance * pat[row, col]
         best[hit] = t[hit]
     return out
@@ -248,15 +214,7 @@ def make_session(
     gain = 1.0
 
     def add(img, phase, c, a, **kw):
-        key = shot_key(
-            phase,
-            c,
-            a,
-            lights_deg=kw.get("lights_deg"),
-            light=kw.get("light"),
-            pattern=kw.get("pattern"),
-            object_present=kw.get("object_present", True),
-        )
+        key = record_shot_key(phase, c, a, kw)
         img = img + rng.normal(0.0, noise, img.shape).astype(np.float32)
         val = np.minimum(img * gain * exposure_s, white_level).astype(np.float32)
         w.add_image(
