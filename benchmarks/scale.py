@@ -290,9 +290,12 @@ def memory_table(mem: dict, summary: dict) -> list[str]:
             if k + "_compare" in summary
             else ""
         )
-        + ". What still grows with the views is the photo refinement's (V, H, W) float32 grey and "
-        "alpha stacks (`photo.refine_surfels`, ~19 B a pixel a view at its peak) and the surfel "
-        "bisection's 2 B a pixel a view; see ARCHITECTURE.md, build memory.",
+        + ". The photo refinement (`photo.refine_surfels`) streams its views: at most "
+        "`PhotoConfig.max_views_in_memory` (32) views' grey image and matte (8 B a pixel) in memory, "
+        "the silhouettes bit-packed, so it no longer holds (V, H, W) stacks. What still grows with "
+        "the views is the surfel bisection's silhouette and distance stacks "
+        "(`surfels.sample_hull_surfels`, 2 B a pixel a view) and the per-surfel visibility "
+        "(1 B a surfel a view); see ARCHITECTURE.md, build memory.",
     ]
     return lines
 

@@ -7,7 +7,12 @@ Layout of a model folder::
                             [provenance] session, rig source, build options;
                             [rig] rig geometry table (riggeometry schema);
                             [[views]] id, camera, table_deg, image (in views order);
-                            [reflectance] present, lights = [{key, light_id, array_deg}];
+                            [reflectance] present, lights = [{key, light_id, array_deg}],
+                            storage ("layers" | "pca"; absent: layers), with pca:
+                            pca_error_target or pca_rank, pca_block (px, 0: per
+                            view), rank_max, rel_error_max, values_ratio,
+                            [[reflectance.pca_views]] {id, rank (max over blocks),
+                            rank_mean, rel_error, box};
                             [storage] pixel_type ("half" | "float"), clamped_values,
                             clamped = [{file, values, max_abs}] (absent: float)
     surfels.ply             binary PLY, element vertex: x y z nx ny nz radius (float32)
@@ -31,7 +36,13 @@ Layout of a model folder::
                             the model has a rig, ``<key>.lightDirection`` (v3f, unit,
                             object frame at this view's table angle, towards the light)
                             and ``<key>.lightPosition`` (v3f, metres, same frame);
-                            pixels half or float32 like the views
+                            pixels half or float32 like the views. With
+                            ``[reflectance] storage = "pca"`` the file holds instead a
+                            blockwise PCA of the view's stack, two parts: ``basis``
+                            (layers ``pc000 .. pc<R-1>`` over the data window = the
+                            stack's non-zero box) and ``coefficients`` (a pixel per
+                            block, channels ``<key>.c<j>``);
+                            :mod:`opacityhull.reflectance_pca` describes it
     calibration/<camera>.yaml   rig cameras (OpenCV YAML, world_from_cam = rig_from_cam)
     report.json             metrics and timings of the build
     pictures/               contact sheets, overlays, plots
@@ -60,6 +71,16 @@ import numpy as np
 from . import __version__
 from .camera import Camera, read_colmap_text, write_colmap_text
 from .errors import FormatError, InputError, ShapeError, check_shape
+from .reflectance_pca import (
+    DEFAULT_PCA_BLOCK,
+    DEFAULT_PCA_ERROR,
+    PCA_FORMAT,
+    REFLECTANCE_STORAGES,
+    ReflectanceStorage,
+    check_pca_options,
+    read_reflectance_pca,
+    write_reflectance_pca,
+)
 from .riggeometry import RigGeometry
 from .tomlio import read_toml
 
@@ -84,6 +105,8 @@ __all__ = [
     "light_key",
     "Storage",
     "STORAGE_TYPES",
+    "ReflectanceStorage",
+    "REFLECTANCE_STORAGES",
 ]
 
 MODEL_FORMAT = "opacityhull-model/2"
@@ -422,14 +445,31 @@ class OpacityHullModel:
         r = self.meta.get("reflectance", {})
         return [LightSample(L["key"], int(L["light_id"]), float(L["array_deg"])) for L in r.get("lights", [])]
 
+    @property
+    def reflectance_storage(self) -> str:
+        """How ``reflectance/`` holds the one-light images: "layers" (one EXR layer per
+        light sample; models written before the option) or "pca" (a rank-R PCA per view,
+        :mod:`opacityhull.reflectance_pca`)."""
+        st = self.meta.get("reflectance", {}).get("storage", "layers")
+        if st not in REFLECTANCE_STORAGES:
+            raise FormatError(
+                f"{self.root / 'model.toml'}: reflectance.storage {st!r}, expected one of "
+                f"{', '.join(map(repr, REFLECTANCE_STORAGES))}"
+            )
+        return str(st)
+
     def load_reflectance(self, i: int) -> dict[str, np.ndarray]:
-        """``{light key: (H, W, 3) premultiplied radiance}`` of view ``i``; raises
-        :class:`FormatError` naming the view and light when a sample is missing."""
+        """``{light key: (H, W, 3) premultiplied radiance}`` of view ``i`` (rebuilt from
+        the PCA when the model stores one); raises :class:`FormatError` naming the view
+        and light when a sample is missing or the file does not match."""
         from .imageio import read_exr_layers
 
         p = self.root / "reflectance" / f"{self.views[i].id}.exr"
         if not p.is_file():
             raise FormatError(f"{p}: one-light-at-a-time images of view {self.views[i].id} not found")
+        if self.reflectance_storage == "pca":
+            cam = self.views[i].camera
+            return read_reflectance_pca(p, [L.key for L in self.light_samples], shape=(cam.height, cam.width))
         layers = read_exr_layers(p)
         for L in self.light_samples:
             if L.key not in layers:
@@ -522,6 +562,10 @@ def write_model(
     extra_meta: dict | None = None,
     progress=None,
     storage: Storage = "float",
+    reflectance_storage: ReflectanceStorage = "layers",
+    pca_rank: int | None = None,
+    pca_error: float = DEFAULT_PCA_ERROR,
+    pca_block: int | None = DEFAULT_PCA_BLOCK,
 ) -> Path:
     """Write a complete model folder.
 
@@ -539,6 +583,14 @@ def write_model(
         default here) or "half" (16-bit: half the bytes; 11 significant bits, finite
         values beyond ±65504 clamped with a ``HalfOverflowWarning`` and listed in
         ``model.toml`` ``[storage] clamped``). Same values either way, no scale.
+    reflectance_storage : "layers" (one EXR layer per light sample) or "pca" (per view a
+        PCA per ``pca_block``-pixel block, None: one for the view,
+        :mod:`opacityhull.reflectance_pca`: basis images over the non-zero box and K
+        coefficients per block and rank; :meth:`OpacityHullModel.load_reflectance`
+        rebuilds the layers). The rank is ``pca_rank`` (in [1, K]) in every block or,
+        when None, the fewest components over the view's blocks whose relative Frobenius
+        error over the view is at most ``pca_error``. The measured error, ranks and values ratio per view go to
+        ``model.toml`` ``[reflectance]``.
 
     ``model.toml`` is written last, so a folder without it is an unfinished build.
     """
@@ -548,6 +600,16 @@ def write_model(
     root = Path(root)
     if storage not in STORAGE_TYPES:
         raise InputError(f"write_model storage {storage!r}: expected one of {', '.join(map(repr, STORAGE_TYPES))}")
+    if reflectance_storage not in REFLECTANCE_STORAGES:
+        raise InputError(
+            f"write_model reflectance_storage {reflectance_storage!r}: expected one of "
+            f"{', '.join(map(repr, REFLECTANCE_STORAGES))}"
+        )
+    if reflectance_storage == "pca":
+        check_pca_options(rank=pca_rank, error=pca_error, block=pca_block)
+        n_lights = len(list(reflectance["lights"])) if reflectance is not None else 0
+        if reflectance is not None and pca_rank is not None and int(pca_rank) > n_lights:
+            raise InputError(f"write_model pca_rank {pca_rank} is more than the {n_lights} light samples")
     root.mkdir(parents=True, exist_ok=True)
     clamped: list[dict] = []
     if surfels.n_views != len(views):
@@ -602,26 +664,68 @@ def write_model(
             geometry = RigGeometry.from_dict(rig, where="write_model rig")
         else:
             log.warning("write_model: reflectance without a rig geometry; its layers carry no light direction")
+        pca_views: list[dict] = []
+        pca_values = [0.0, 0.0]  # values of the layers, values stored
         for v in views:
             imgs = reflectance["images"](v.index)
             path = root / "reflectance" / f"{v.id}.exr"
             layers = {L.key: imgs[L.key] for L in lights}
-            info = write_exr_layers(
-                path,
-                layers,
-                header=_light_header(v, lights, geometry),
-                half=storage == "half",
-                shape=(v.camera.height, v.camera.width),
-            )
-            if info:
-                clamped.append({"file": str(path), **info})
+            shape = (v.camera.height, v.camera.width)
+            header = _light_header(v, lights, geometry)
+            if reflectance_storage == "pca":
+                pv = write_reflectance_pca(
+                    path,
+                    layers,
+                    [L.key for L in lights],
+                    shape=shape,
+                    header=header,
+                    half=storage == "half",
+                    rank=pca_rank,
+                    error=pca_error,
+                    block=pca_block,
+                )
+                pca_views.append(
+                    {
+                        "id": v.id,
+                        "rank": pv.rank,
+                        "rank_mean": round(pv.rank_mean, 4),
+                        "rel_error": float(pv.rel_error),
+                        "box": list(pv.box),
+                    }
+                )
+                pca_values[0] += len(lights) * shape[0] * shape[1] * 3
+                pca_values[1] += len(lights) * shape[0] * shape[1] * 3 / pv.values_ratio
+                log.debug("reflectance %s: PCA rank %d, error %.3g", v.id, pv.rank, pv.rel_error)
+                del pv
+            else:
+                info = write_exr_layers(path, layers, header=header, half=storage == "half", shape=shape)
+                if info:
+                    clamped.append({"file": str(path), **info})
+            del imgs, layers  # the next view's images are made before the loop rebinds these
             done += 1
             if progress:
                 progress(done, total)
         meta["reflectance"] = {
             "present": True,
+            "storage": reflectance_storage,
             "lights": [{"key": L.key, "light_id": L.light_id, "array_deg": L.array_deg} for L in lights],
         }
+        if reflectance_storage == "pca":
+            meta["reflectance"].update(
+                {
+                    "pca_format": PCA_FORMAT,
+                    "pca_rank": None if pca_rank is None else int(pca_rank),
+                    "pca_error_target": None if pca_rank is not None else float(pca_error),
+                    # block edge in pixels; 0: one PCA for the whole view
+                    "pca_block": 0 if pca_block is None else int(pca_block),
+                    "rank_max": max(d["rank"] for d in pca_views) if pca_views else 0,
+                    "rel_error_max": max(d["rel_error"] for d in pca_views) if pca_views else 0.0,
+                    # layers' values / stored values (same pixel type): the nominal ratio;
+                    # report.json has the bytes on disk
+                    "values_ratio": pca_values[0] / pca_values[1] if pca_values[1] else 1.0,
+                    "pca_views": pca_views,
+                }
+            )
     else:
         meta["reflectance"] = {"present": False}
     meta["storage"] = {
@@ -637,10 +741,28 @@ def write_model(
     return root
 
 
-def copy_model(model: OpacityHullModel, dst, *, storage: Storage) -> OpacityHullModel:
+def copy_model(
+    model: OpacityHullModel,
+    dst,
+    *,
+    storage: Storage,
+    reflectance_storage: ReflectanceStorage | None = None,
+    pca_rank: int | None = None,
+    pca_error: float | None = None,
+    pca_block: int | None = DEFAULT_PCA_BLOCK,
+) -> OpacityHullModel:
     """``model`` written again to ``dst`` through :func:`write_model` with the pixel type
-    ``storage`` (e.g. a float32 model converted to half): views, surfels, reflectance,
-    rig and provenance; the pictures and the build report are not copied."""
+    ``storage`` (e.g. a float32 model converted to half) and ``reflectance_storage``
+    (None: the model's own; ``pca_rank`` / ``pca_error`` / ``pca_block`` as in
+    :func:`write_model`, rank and error None: the model's own target or the default): views, surfels, reflectance, rig and
+    provenance; the pictures and the build report are not copied."""
+    r = model.meta.get("reflectance", {})
+    if reflectance_storage is None:
+        reflectance_storage = "pca" if model.has_reflectance and model.reflectance_storage == "pca" else "layers"
+        if reflectance_storage == "pca" and pca_rank is None and pca_error is None:
+            pca_rank = r.get("pca_rank")
+            pca_error = r.get("pca_error_target")
+            pca_block = int(r.get("pca_block", DEFAULT_PCA_BLOCK)) or None
     refl = {"lights": model.light_samples, "images": model.load_reflectance} if model.has_reflectance else None
     write_model(
         dst,
@@ -651,6 +773,10 @@ def copy_model(model: OpacityHullModel, dst, *, storage: Storage) -> OpacityHull
         provenance=model.meta.get("provenance"),
         reflectance=refl,
         storage=storage,
+        reflectance_storage=reflectance_storage,
+        pca_rank=pca_rank,
+        pca_error=DEFAULT_PCA_ERROR if pca_error is None else float(pca_error),
+        pca_block=pca_block,
     )
     return OpacityHullModel.open(dst)
 

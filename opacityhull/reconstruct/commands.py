@@ -224,6 +224,31 @@ def register(app, groups) -> None:
             "the bytes; values beyond 65504 are clamped and listed in the report) | float "
             "(32-bit). Default: BuildConfig.storage (half).",
         ),
+        reflectance_storage: Optional[str] = typer.Option(
+            None,
+            "--reflectance-storage",
+            help="How the model stores the one-light images: layers (one EXR layer per "
+            "light) | pca (a PCA per pixel block of each view, error and ranks in the report; readers get "
+            "the layers back). Default: BuildConfig.reflectance_storage (layers).",
+        ),
+        pca_error: Optional[float] = typer.Option(
+            None,
+            "--pca-error",
+            help="With --reflectance-storage pca: per view the fewest components over its "
+            "blocks whose relative Frobenius error is at most this (default: "
+            "BuildConfig.pca_error, 0.01).",
+        ),
+        pca_rank: Optional[int] = typer.Option(
+            None,
+            "--pca-rank",
+            help="With --reflectance-storage pca: this rank for every block (instead of --pca-error).",
+        ),
+        pca_block: Optional[int] = typer.Option(
+            None,
+            "--pca-block",
+            help="With --reflectance-storage pca: one PCA per block of this many pixels "
+            "square; 0 = one PCA per view (default: BuildConfig.pca_block, 8).",
+        ),
         memory_gb: Optional[float] = typer.Option(
             None,
             "--memory-gb",
@@ -264,6 +289,18 @@ def register(app, groups) -> None:
             raise ConfigError(f"--refine {refine!r}: expected shading, surfels or none")
         if storage is not None and storage not in ("half", "float"):
             raise ConfigError(f"--storage {storage!r}: expected half or float")
+        if reflectance_storage is not None and reflectance_storage not in ("layers", "pca"):
+            raise ConfigError(f"--reflectance-storage {reflectance_storage!r}: expected layers or pca")
+        if pca_rank is not None and pca_error is not None:
+            raise ConfigError("--pca-rank and --pca-error: give one (a fixed rank, or the error that chooses it)")
+        if (pca_rank is not None or pca_error is not None or pca_block is not None) and reflectance_storage != "pca":
+            raise ConfigError("--pca-rank / --pca-error / --pca-block need --reflectance-storage pca")
+        if pca_block is not None and (pca_block < 0 or pca_block == 1):
+            raise ConfigError(f"--pca-block {pca_block}: expected 0 (one PCA per view) or an edge of >= 2 pixels")
+        if pca_rank is not None and pca_rank < 1:
+            raise ConfigError(f"--pca-rank {pca_rank}: expected an integer >= 1")
+        if pca_error is not None and not 0.0 < pca_error < 1.0:
+            raise ConfigError(f"--pca-error {pca_error}: expected a relative error in (0, 1), e.g. 0.01")
         # options left out keep the config dataclasses' defaults (one place for them)
         d, dm = BuildConfig(), MattingOptions()
         matting = MattingOptions(max_alpha_std=dm.max_alpha_std if max_alpha_std is None else max_alpha_std)
@@ -283,6 +320,14 @@ def register(app, groups) -> None:
             drop_uncalibrated_cameras=not require_all_cameras,
             refine=d.refine if refine is None else cast(Literal["shading", "surfels", "none"], refine),
             storage=d.storage if storage is None else cast(Literal["half", "float"], storage),
+            reflectance_storage=(
+                d.reflectance_storage
+                if reflectance_storage is None
+                else cast(Literal["layers", "pca"], reflectance_storage)
+            ),
+            pca_rank=pca_rank,
+            pca_error=d.pca_error if pca_error is None else pca_error,
+            pca_block=d.pca_block if pca_block is None else (pca_block or None),
         )
         with progress_bar("build: {task.description}") as bar:
             # one bar line per step: its description names the step, its count and ETA

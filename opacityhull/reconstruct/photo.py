@@ -53,6 +53,18 @@ Defaults were chosen by leave-one-out on templeSR/dinoSR at hull-res 256
 
 :func:`cost_volume` is the numba kernel (parallel over surfels); :func:`cost_volume_reference`
 is the same arithmetic in plain NumPy (a loop over surfels), for the tests.
+
+**Memory.** :func:`refine_surfels` streams the photographs: the surfels are scored in
+batches of one reference view (split further when their views exceed the budget), each
+batch on the few views it uses, loaded into ``PhotoConfig.max_views_in_memory`` slots of
+grey image and matte (the view needed again furthest ahead makes room), the same kernel
+run on the remapped view indices, so the cost volume is bit for bit the full-stack one.
+The silhouettes are held bit-packed and the hull test takes them a batch of views at a
+time; a list of deferred photographs (the build's) is read view by view. Its memory is
+O(max_views_in_memory·H·W) for the pixels + O(V·H·W/8) for the packed silhouettes +
+O(N·(V + n_depths)) per surfel (visibility and scores), not O(V·H·W) floats. The outline
+restoration (``keep_coverage``, not the build's shading mode) still renders (V, H, W) depth
+buffers through :func:`.visibility.surfel_visibility`.
 """
 
 from __future__ import annotations
@@ -72,6 +84,9 @@ from .hull import point_in_hull, projection_matrices
 __all__ = ["PhotoConfig", "refine_surfels", "select_views", "cost_volume", "cost_volume_reference", "tangent_frames"]
 
 log = logging.getLogger(__name__)
+
+#: working memory of :func:`select_views` (its surfels are taken in chunks of this size)
+SELECT_CHUNK_BYTES = 32 << 20
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -103,6 +118,11 @@ class PhotoConfig:
     keep_coverage : put surfels back on the hull wherever moving them would uncover pixels
         the hull's surfels covered in some view (the photographs' outlines are exact), then
         smooth again with them held, up to ``coverage_rounds`` times.
+    max_views_in_memory : the memory budget, in views (≥ ``n_views``): the cost volume holds
+        at most this many views' grey image and matte (8 bytes a pixel a view, e.g. 32 views
+        = 20 MB at 320×240, 360 MB at 1360×1032), the hull test at most 8× as many
+        silhouettes (1 byte a pixel). It bounds memory, not the result, which is bit for bit
+        the same at any budget; a smaller one only reads photographs again more often.
     """
 
     n_views: int = 5
@@ -125,6 +145,7 @@ class PhotoConfig:
     radius_factor: float = 1.0
     keep_coverage: bool = True
     coverage_rounds: int = 3
+    max_views_in_memory: int = 32
 
     def __post_init__(self):
         if int(self.n_views) < 2:
@@ -155,6 +176,11 @@ class PhotoConfig:
             raise ConfigError(f"PhotoConfig.min_support must be in [0, 1], got {self.min_support}")
         if self.normals not in ("hull", "pca"):
             raise ConfigError(f"PhotoConfig.normals must be 'hull' or 'pca', got {self.normals!r}")
+        if int(self.max_views_in_memory) < int(self.n_views):
+            raise ConfigError(
+                f"PhotoConfig.max_views_in_memory must be >= n_views = {self.n_views} (one surfel's "
+                f"views are scored together), got {self.max_views_in_memory}"
+            )
 
     @property
     def n_depths(self) -> int:
@@ -164,7 +190,27 @@ class PhotoConfig:
 # --------------------------------------------------------------------------- inputs
 
 
+def _plane(name, i, a, cam, channels) -> np.ndarray:
+    """View ``i``'s (H, W) float32 plane: the channel mean of an RGB(A) image
+    (``channels=3``) or a matte (``channels=1``). Reads ``a`` (a deferred photograph is
+    loaded here)."""
+    a = np.asarray(a, dtype=np.float32)
+    shape = a.shape
+    if channels == 3 and a.ndim == 3 and a.shape[2] in (3, 4):
+        a = a[..., :3].mean(axis=2)
+    elif channels == 1 and a.ndim == 3 and a.shape[2] == 1:
+        a = a[..., 0]
+    if a.shape != (cam.height, cam.width):
+        raise ShapeError(
+            f"{name}[{i}] ({cam.name}) has shape {shape}, expected "
+            f"({cam.height}, {cam.width}{', 3' if channels == 3 else ''})"
+        )
+    return a
+
+
 def _stack(name, arrays, cameras, channels):
+    """(V, Hmax, Wmax) float32 planes of every view, zero-padded (the full-stack inputs of
+    :func:`cost_volume`; :func:`refine_surfels` streams instead)."""
     V = len(cameras)
     if len(arrays) != V:
         raise InputError(f"{len(arrays)} {name} for {V} cameras")
@@ -172,17 +218,7 @@ def _stack(name, arrays, cameras, channels):
     Wm = max(c.width for c in cameras)
     out = np.zeros((V, Hm, Wm), np.float32)
     for i, (a, c) in enumerate(zip(arrays, cameras)):
-        a = np.asarray(a, dtype=np.float32)
-        if channels == 3 and a.ndim == 3 and a.shape[2] in (3, 4):
-            a = a[..., :3].mean(axis=2)
-        elif channels == 1 and a.ndim == 3 and a.shape[2] == 1:
-            a = a[..., 0]
-        if a.shape != (c.height, c.width):
-            raise ShapeError(
-                f"{name}[{i}] ({c.name}) has shape {np.shape(arrays[i])}, expected "
-                f"({c.height}, {c.width}{', 3' if channels == 3 else ''})"
-            )
-        out[i, : c.height, : c.width] = a
+        out[i, : c.height, : c.width] = _plane(name, i, a, c, channels)
     return out
 
 
@@ -211,15 +247,21 @@ def select_views(
             raise InputError(f"exclude_views: view {v} out of range [0, {V})")
         vis[:, int(v)] = False
     C = np.array([c.centre_world for c in cameras], dtype=np.float64).reshape(V, 3)
-    d = C[None, :, :] - pos[:, None, :]
-    d /= np.maximum(np.linalg.norm(d, axis=2, keepdims=True), 1e-300)
-    cos = np.einsum("nvk,nk->nv", d, nrm)
-    cos = np.where(vis, cos, -np.inf)
     m = min(int(n_views), V)
-    order = np.argsort(-cos, axis=1, kind="stable")[:, :m]
-    ok = np.take_along_axis(vis, order, axis=1)
     out = np.full((pos.shape[0], int(n_views)), -1, np.int64)
-    out[:, :m] = np.where(ok, order, -1)
+    # in row chunks: the (n, V, 3) directions are 24 B a surfel a view, 1 GB for 10⁵
+    # surfels and 432 views at once (row by row, the same numbers)
+    rows = max(1, SELECT_CHUNK_BYTES // (64 * max(V, 1)))
+    for r0 in range(0, pos.shape[0], rows):
+        r1 = min(r0 + rows, pos.shape[0])
+        d = C[None, :, :] - pos[r0:r1, None, :]
+        d /= np.maximum(np.linalg.norm(d, axis=2, keepdims=True), 1e-300)
+        cos = np.einsum("nvk,nk->nv", d, nrm[r0:r1])
+        del d
+        cos = np.where(vis[r0:r1], cos, -np.inf)
+        order = np.argsort(-cos, axis=1, kind="stable")[:, :m]
+        ok = np.take_along_axis(vis[r0:r1], order, axis=1)
+        out[r0:r1, :m] = np.where(ok, order, -1)
     return out
 
 
@@ -516,6 +558,191 @@ def cost_volume_reference(
     return out
 
 
+# --------------------------------------------------------------------------- streaming
+
+
+def _cost_batches(views, cap: int) -> list[np.ndarray]:
+    """Surfel index batches of the streamed cost volume: the surfels with two or more
+    views, grouped by reference view in view order (neighbouring references share most of
+    their views, so a view stays loaded across consecutive batches), a group split
+    further, in order, wherever the union of its surfels' views would exceed ``cap``."""
+    m = (views >= 0).sum(axis=1)
+    active = np.flatnonzero(m >= 2)
+    if not active.size:
+        return []
+    order = active[np.argsort(views[active, 0], kind="stable")]
+    refs = views[order, 0]
+    cuts = np.flatnonzero(np.diff(refs)) + 1
+    out = []
+    for grp in np.split(order, cuts):
+        vv = views[grp]
+        if np.unique(vv[vv >= 0]).size <= cap:
+            out.append(grp)
+            continue
+        # surfels with the same view set side by side, so that a split cuts few of them apart
+        key = np.sort(np.where(vv >= 0, vv, np.iinfo(np.int64).max), axis=1)
+        grp = grp[np.lexsort(key.T[::-1])]
+        cur: set[int] = set()
+        start = 0
+        for k, n in enumerate(grp):
+            row = {int(v) for v in views[n] if v >= 0}
+            if len(cur | row) > cap:
+                out.append(grp[start:k])
+                start, cur = k, set()
+            cur |= row
+        out.append(grp[start:])
+    return out
+
+
+def _streamed_cost_volume(
+    pos, nrm, cameras, images, alphas, views, step, spacing, *, config: PhotoConfig, cap: int
+) -> tuple[np.ndarray, dict]:
+    """:func:`cost_volume` over the full stacks, computed with at most ``cap`` views'
+    grey image and matte in memory.
+
+    The surfels are scored in :func:`_cost_batches`; a batch's views are loaded into a
+    fixed set of ``min(cap, views used)`` slots (a view already there is kept; the one to
+    make room for is the view needed again furthest in the future, Belady's rule, so with
+    enough slots every photograph is read once), the batch's view indices, projection
+    matrices and sizes remapped to the slots, and the same kernel run on it: each surfel
+    sees the same pixels through the same arithmetic, so the volume is bit for bit the
+    full-stack one. Memory: O(min(cap, V)·Hmax·Wmax) (8 bytes a pixel) + O(N·n_depths).
+    Returns the (N, n_depths) volume and counts (``n_view_loads``, ``n_cost_batches``,
+    ``views_in_memory``)."""
+    N, D = pos.shape[0], int(config.n_depths)
+    scores = np.full((N, D), np.nan)
+    batches = _cost_batches(views, cap)
+    counts = {"n_view_loads": 0, "n_cost_batches": len(batches), "views_in_memory": 0}
+    if not batches:
+        return scores, counts
+    uses: dict[int, list[int]] = {}
+    needs = []
+    for b, sel in enumerate(batches):
+        vv = views[sel]
+        need = np.unique(vv[vv >= 0])
+        needs.append(need)
+        for v in need:
+            uses.setdefault(int(v), []).append(b)
+    S = min(int(cap), len(uses))
+    Hm = max(c.height for c in cameras)
+    Wm = max(c.width for c in cameras)
+    grey = np.zeros((S, Hm, Wm), np.float32)
+    alpha = np.zeros((S, Hm, Wm), np.float32)
+    held = np.full(S, -1, np.int64)  # the view in each slot
+    slot_of: dict[int, int] = {}
+    P_all = projection_matrices(cameras)
+    size_all = np.array([(c.width, c.height) for c in cameras], dtype=np.int64).reshape(-1, 2)
+    t1, t2 = tangent_frames(nrm)
+    K, eps2 = int(config.patch_size), float(config.texture_std) ** 2
+
+    def next_use(v, b):
+        u = uses[v]
+        k = int(np.searchsorted(u, b, side="left"))
+        return u[k] if k < len(u) else math.inf
+
+    for b, sel in enumerate(batches):
+        need = [int(v) for v in needs[b]]
+        keep = set(need)
+        for v in need:
+            if v in slot_of:
+                continue
+            free = np.flatnonzero(held < 0)
+            if free.size:
+                s = int(free[0])
+            else:
+                # evict the held view (not needed by this batch) used again furthest ahead
+                # (there is one: a batch needs at most cap views and v is not held yet)
+                cand = [int(x) for x in held if int(x) not in keep]
+                victim = max(cand, key=lambda x: next_use(x, b))
+                s = slot_of.pop(victim)
+            cam = cameras[v]
+            h, w = cam.height, cam.width
+            grey[s, :h, :w] = _plane("images", v, images[v], cam, 3)
+            alpha[s, :h, :w] = _plane("alphas", v, alphas[v], cam, 1)
+            # in place: NaN matte = outside (a copy of the plane would be a second one alive)
+            np.nan_to_num(alpha[s, :h, :w], copy=False, nan=0.0)
+            held[s] = v
+            slot_of[v] = s
+            counts["n_view_loads"] += 1
+        lut = np.full(len(cameras), -1, np.int64)
+        occupied = np.flatnonzero(held >= 0)
+        lut[held[occupied]] = occupied
+        vb = views[sel]
+        vl = np.ascontiguousarray(np.where(vb >= 0, lut[np.maximum(vb, 0)], -1))
+        # an empty slot's camera is never indexed (no surfel's view maps to it)
+        src = np.where(held >= 0, held, 0)
+        out = np.empty((sel.size, D), np.float64)
+        _cost_kernel(
+            np.ascontiguousarray(P_all[src]),
+            grey,
+            alpha,
+            np.ascontiguousarray(size_all[src]),
+            np.ascontiguousarray(pos[sel]),
+            np.ascontiguousarray(nrm[sel]),
+            np.ascontiguousarray(t1[sel]),
+            np.ascontiguousarray(t2[sel]),
+            vl,
+            np.ascontiguousarray(step[sel]),
+            np.ascontiguousarray(spacing[sel]),
+            D,
+            K,
+            eps2,
+            float(config.alpha_threshold),
+            int(config.n_best),
+            out,
+        )
+        scores[sel] = out
+    counts["views_in_memory"] = int(S)
+    return scores, counts
+
+
+class _PackedSilhouettes(Sequence):
+    """Per-view (H, W) bool masks held bit-packed along rows (H·W/8 bytes a view);
+    ``sils[i]`` unpacks view ``i`` alone and a slice is another such sequence. (The
+    layout of :class:`.build.PackedMasks`, kept here so that the refinement does not
+    import the build.)"""
+
+    def __init__(self, bits=None):
+        self._bits: list = [] if bits is None else bits
+
+    def append(self, mask) -> None:
+        m = np.asarray(mask, bool)
+        self._bits.append((np.packbits(m, axis=1), m.shape[1]))
+
+    def __len__(self) -> int:
+        return len(self._bits)
+
+    def __getitem__(self, i):  # type: ignore[override]
+        if isinstance(i, slice):
+            return _PackedSilhouettes(self._bits[i])
+        bits, w = self._bits[i]
+        return np.unpackbits(bits, axis=1, count=w).view(bool)
+
+
+def _silhouettes(alphas, cameras, threshold: float) -> _PackedSilhouettes:
+    """Every view's silhouette ``α > threshold`` (NaN = outside), read one matte at a time
+    and held bit-packed."""
+    out = _PackedSilhouettes()
+    for i, cam in enumerate(cameras):
+        out.append(_plane("alphas", i, alphas[i], cam, 1) > threshold)
+    return out
+
+
+def _in_hull(points, sils, cameras, *, batch: int) -> np.ndarray:
+    """:func:`.hull.point_in_hull` (tolerance 0) with at most ``batch`` views' silhouettes
+    unpacked at a time: a point is inside iff no view rejects it, so the batches' answers
+    are ANDed (only points still inside are tested against the next batch)."""
+    cams = list(cameras)
+    ok = np.ones(points.shape[0], bool)
+    b = max(1, int(batch))
+    for b0 in range(0, len(cams), b):
+        idx = np.flatnonzero(ok)
+        if not idx.size:
+            break
+        ok[idx] = point_in_hull(points[idx], sils[b0 : b0 + b], cams[b0 : b0 + b])
+    return ok
+
+
 # --------------------------------------------------------------------------- decision
 
 
@@ -562,7 +789,7 @@ def _rim(positions, normals, views, cameras, sils, rim_px, rim_cos):
         sel = np.flatnonzero(ref == v) if rim_cos <= 0 else np.arange(positions.shape[0])
         if not sel.size:
             continue
-        s = sils[v, : cam.height, : cam.width]
+        s = np.asarray(sils[v], dtype=bool)
         # distance of silhouette pixels to the nearest non-silhouette pixel (the boundary)
         edt = distance_transform_edt(np.pad(s, 1, constant_values=False))
         assert isinstance(edt, np.ndarray)  # distances only: no indices or out= requested
@@ -584,15 +811,16 @@ def _rim(positions, normals, views, cameras, sils, rim_px, rim_cos):
     return out
 
 
-def _clamp_into_hull(pos, nrm, depth, sils, cameras, clamped):
+def _clamp_into_hull(pos, nrm, depth, sils, cameras, clamped, *, batch: int):
     """Refined points ``pos − depth·n``, with the depth of any point outside some view's
-    silhouette halved until it is inside (then 0). Updates ``depth`` and ``clamped`` in place."""
+    silhouette halved until it is inside (then 0). Updates ``depth`` and ``clamped`` in place.
+    ``sils`` is a sequence of (H, W) masks (bit-packed); ``batch`` views are tested at a time."""
     new = pos - depth[:, None] * nrm
     for it in range(7):
         moved = np.flatnonzero(depth > 0)
         if not moved.size:
             break
-        bad = moved[~point_in_hull(new[moved], sils, cameras)]
+        bad = moved[~_in_hull(new[moved], sils, cameras, batch=batch)]
         if not bad.size:
             break
         clamped[bad] = True
@@ -694,9 +922,15 @@ def refine_surfels(
     radii : (N,) surfel radii, metres (the smallest radii returned).
     visibility : (N, V) bool visibility vectors (e.g. ``Surfels.visible_bool()``).
     cameras : V pinhole :class:`~opacityhull.camera.Camera` (object frame, no distortion).
-    images : V linear RGB (H, W, 3) float images (a (V, H, W, 3) array or a list); RGBA is
-        accepted and its alpha ignored. Non-finite pixels invalidate the patches that touch them.
+    images : V linear RGB (H, W, 3) float images (a (V, H, W, 3) array, a list, or any
+        sequence of array-likes read on access, e.g. deferred photographs); RGBA is accepted
+        and its alpha ignored. Non-finite pixels invalidate the patches that touch them.
+        A view is read when a batch of surfels first needs it, and again only if the memory
+        budget evicted it meanwhile (``stats["n_view_loads"]``); views no surfel scores
+        are never read.
     alphas : V (H, W) mattes in [0, 1]; the silhouettes are ``α > config.alpha_threshold``.
+        Each is read twice: once for the silhouettes and once (or as often as its image)
+        for the cost volume.
     config : :class:`PhotoConfig`.
     exclude_views : view indices never used (a held-out view in leave-one-out).
 
@@ -706,7 +940,15 @@ def refine_surfels(
     normals : (N, 3) float64 unit normals (the input ones, or PCA with ``normals="pca"``).
     radii : (N,) float64 radii, grown where the refined surfels spread apart.
     stats : dict — ``depth_m`` (N,) inward displacement, ``confident`` (N,) bool, ``ncc``
-        (N,) best NCC (NaN without two views), and counts/means/seconds.
+        (N,) best NCC (NaN without two views), and counts/means/seconds, among them
+        ``n_view_loads`` (photographs read), ``n_cost_batches`` and ``views_in_memory``
+        (slots of grey and matte held, ≤ ``config.max_views_in_memory``).
+
+    Notes
+    -----
+    Memory is O(``max_views_in_memory``·Hmax·Wmax) (8 bytes a pixel) + O(V·H·W/8) (packed
+    silhouettes) + O(N·(V + n_depths)), independent of V in the pixels (see the module
+    docstring); with ``keep_coverage`` the outline check adds (V, H, W) depth buffers.
     """
     t0 = time.perf_counter()
     pos = np.asarray(positions, dtype=np.float64)
@@ -730,10 +972,14 @@ def refine_surfels(
         raise InputError(
             f"refine_surfels: normals must be unit length (found lengths in [{lens.min():.3g}, {lens.max():.3g}])"
         )
-    grey = _stack("images", list(images), cameras, 3)
-    alpha = _stack("alphas", list(alphas), cameras, 1)
-    np.nan_to_num(alpha, copy=False, nan=0.0)  # in place: a second (V, H, W) stack is the peak at many views
-    sils = alpha > config.alpha_threshold
+    # indexed, never materialised: a list of deferred photographs stays deferred
+    images = images if hasattr(images, "__getitem__") and hasattr(images, "__len__") else list(images)
+    alphas = alphas if hasattr(alphas, "__getitem__") and hasattr(alphas, "__len__") else list(alphas)
+    for name, arrays in (("images", images), ("alphas", alphas)):
+        if len(arrays) != V:
+            raise InputError(f"{len(arrays)} {name} for {V} cameras")
+    cameras = list(cameras)
+    sils = _silhouettes(alphas, cameras, config.alpha_threshold)
 
     views = select_views(pos, nrm, vis, cameras, n_views=config.n_views, exclude_views=exclude_views)
     ref = views[:, 0] if N else np.zeros(0, np.int64)
@@ -749,20 +995,9 @@ def refine_surfels(
     step = foot * config.depth_step_px
     spacing = foot * config.patch_step_px
     D = config.n_depths
-    scores = cost_volume(
-        pos,
-        nrm,
-        cameras,
-        grey,
-        alpha,
-        views,
-        step,
-        spacing,
-        n_depths=D,
-        patch_size=config.patch_size,
-        texture_std=config.texture_std,
-        alpha_threshold=config.alpha_threshold,
-        n_best=config.n_best,
+    cap = int(config.max_views_in_memory)
+    scores, counts = _streamed_cost_volume(
+        pos, nrm, cameras, images, alphas, views, step, spacing, config=config, cap=cap
     )
     t_cost = time.perf_counter() - t0
     sub, best, conf = best_depths(scores, min_ncc=config.min_ncc, peak_ratio=config.peak_ratio)
@@ -793,7 +1028,6 @@ def refine_surfels(
     fixed = rim.copy()  # surfels held on the hull
     restored = np.zeros(N, bool)
     clamped = np.zeros(N, bool)
-    sil_list = list(sils)
     target = depth.copy()
     cov_h = None
     for rnd in range(int(config.coverage_rounds) if config.keep_coverage else 1):
@@ -805,7 +1039,8 @@ def refine_surfels(
             for _ in range(int(config.smooth_iters)):
                 depth = depth[nb].mean(axis=1)
                 depth[fixed] = 0.0
-        new = _clamp_into_hull(pos, nrm, depth, sil_list, cameras, clamped)
+        # the hull test's silhouettes are 1 byte a pixel against the cost volume's 8
+        new = _clamp_into_hull(pos, nrm, depth, sils, cameras, clamped, batch=8 * cap)
         out_n = nrm.copy()
         if config.normals == "pca":
             out_n = _pca_normals(new, nrm, config.neighbours)
@@ -845,15 +1080,21 @@ def refine_surfels(
         "mean_depth_moved_m": float(depth[moved_mask].mean()) if moved_mask.any() else 0.0,
         "median_footprint_m": float(np.median(foot[foot > 0])) if np.any(foot > 0) else 0.0,
         "n_depths": int(D),
+        **counts,
         "seconds_cost_volume": float(t_cost),
         "seconds": float(secs),
     }
     log.info(
-        "photo refinement: %d/%d surfels confident, %d moved (mean %.3g m), %.2f s",
+        "photo refinement: %d/%d surfels confident, %d moved (mean %.3g m), %.2f s; "
+        "%d photograph reads for %d views in %d batches, %d views in memory",
         stats["n_confident"],
         N,
         stats["n_moved"],
         stats["mean_depth_moved_m"],
         secs,
+        counts["n_view_loads"],
+        V,
+        counts["n_cost_batches"],
+        counts["views_in_memory"],
     )
     return new, out_n, out_r, stats

@@ -38,6 +38,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from ..errors import FormatError, InputError, ShapeError
+from ..reflectance_pca import CompressedReflectance, compress_reflectance, compress_reflectance_reference
 from .basis import (
     KernelConfig,
     LightSet,
@@ -210,96 +211,6 @@ def relight_stack_reference(stack, weights, *, points=None, light_positions=None
             out[m] += img
     out = out.astype(np.float32)
     return out[0] if single else out
-
-
-# --------------------------------------------------------------------------- PCA
-
-
-@dataclass(frozen=True, eq=False)
-class CompressedReflectance:
-    """Rank-r truncated SVD of one view's reflectance data.
-
-    ``stack[k].reshape(-1) ≈ Σ_j basis[j].reshape(-1) · coeffs[k, j]``.
-
-    Attributes
-    ----------
-    basis : (r, H, W, 3) float32 eigen-images (U·S).
-    coeffs : (K, r) float64 light-space coefficients (V).
-    singular_values : (min(K, 3HW),) all singular values, descending.
-    rel_error : ‖M − M_r‖_F / ‖M‖_F of the reflectance matrix M (0 when M = 0).
-    """
-
-    basis: np.ndarray
-    coeffs: np.ndarray
-    singular_values: np.ndarray
-    rel_error: float
-
-    @property
-    def rank(self) -> int:
-        return self.coeffs.shape[1]
-
-    @property
-    def n_lights(self) -> int:
-        return self.coeffs.shape[0]
-
-    @property
-    def compression_ratio(self) -> float:
-        """Floats of the full stack / floats of (basis + coeffs)."""
-        P3 = int(np.prod(self.basis.shape[1:]))
-        return (self.n_lights * P3) / max(1, self.rank * P3 + self.coeffs.size)
-
-    def relight(self, weights) -> np.ndarray:
-        """(K, 3) weights → (H, W, 3) relit image (or (M, K, 3) → (M, H, W, 3))."""
-        w = np.asarray(weights, np.float64)
-        single = w.ndim == 2
-        w = w[None] if single else w
-        if w.shape[1:] != (self.n_lights, 3):
-            raise ShapeError(f"weights have shape {np.shape(weights)}, expected ({self.n_lights}, 3)")
-        a = np.einsum("kr,mkc->mrc", self.coeffs, w)  # (M, r, 3)
-        out = np.einsum("rhwc,mrc->mhwc", self.basis, a.astype(np.float32), optimize=True)
-        return out[0] if single else out
-
-    def reconstruct(self) -> np.ndarray:
-        """(K, H, W, 3) the rank-r approximation of the stack."""
-        r = self.rank
-        B = self.basis.reshape(r, -1)
-        return (self.coeffs.astype(np.float32) @ B).reshape((self.n_lights,) + self.basis.shape[1:])
-
-
-def compress_reflectance(stack, rank: int) -> CompressedReflectance:
-    """Rank-``rank`` approximation of a (K, H, W, 3) stack via the K×K Gram matrix.
-
-    The matrix M (3HW × K) is tall, so its SVD comes from the eigen-decomposition of
-    MᵀM (K × K, float64): V and σ² directly, U·S = M V. Squaring the condition number
-    only affects the discarded tail. Checked against :func:`numpy.linalg.svd` by
-    :func:`compress_reflectance_reference`.
-    """
-    s = np.asarray(stack, np.float32)
-    if s.ndim != 4 or s.shape[3] != 3:
-        raise ShapeError(f"reflectance stack has shape {s.shape}, expected (K, H, W, 3)")
-    K = s.shape[0]
-    if not 1 <= int(rank) <= K:
-        raise InputError(f"PCA rank must be in [1, {K}] (the number of lights), got {rank}")
-    Mt = s.reshape(K, -1)  # (K, 3HW) = Mᵀ
-    G = Mt.astype(np.float64) @ Mt.T.astype(np.float64)
-    evals, evecs = np.linalg.eigh(G)
-    order = np.argsort(evals)[::-1]
-    evals = np.clip(evals[order], 0, None)
-    V = evecs[:, order[: int(rank)]]
-    basis = (V.T.astype(np.float32) @ Mt).reshape((int(rank),) + s.shape[1:])
-    total = float(evals.sum())
-    rel = math.sqrt(max(0.0, float(evals[int(rank) :].sum())) / total) if total > 0 else 0.0
-    return CompressedReflectance(basis.astype(np.float32), V, np.sqrt(evals), rel)
-
-
-def compress_reflectance_reference(stack, rank: int) -> np.ndarray:
-    """Rank-r approximation through :func:`numpy.linalg.svd` (oracle), (K, H, W, 3)."""
-    s = np.asarray(stack, np.float64)
-    K = s.shape[0]
-    M = s.reshape(K, -1).T
-    U, S, Vt = np.linalg.svd(M, full_matrices=False)
-    Mr = (U[:, :rank] * S[:rank]) @ Vt[:rank]
-    return Mr.T.reshape(s.shape).astype(np.float32)
 
 
 # --------------------------------------------------------------------------- model
