@@ -57,7 +57,7 @@ KEYS = (
 
 def configurations():
     """(name, BuildConfig overrides, RenderConfig overrides), each adding one feature."""
-    surfel, pixel = {"shading": "surfel"}, {"shading": "pixel", "align": "none"}
+    surfel, pixel = {"shading": "surfel"}, {"shading": "pixel", "align": "none", "opaque_interior": False}
     return [
         ("res384-classic-surfel", {"hull_res": 384, "carve_tolerance": 0, "refine": "none"}, surfel),
         ("auto-classic-surfel", {"carve_tolerance": 0, "refine": "none"}, surfel),
@@ -76,8 +76,14 @@ def configurations():
             {"refine": "shading", "fill_shadow_holes": False},
             {**pixel, "align": "flow"},
         ),
-        # today's defaults: the shadow holes of the masks opaque in the views' alpha
+        # the shadow holes of the masks opaque in the views' alpha
         ("auto-robust-pixel-shadingdepth-flow-shadowfill", {"refine": "shading"}, {**pixel, "align": "flow"}),
+        # today's defaults: the hull's interior opaque where the (tolerance-dilated) mattes say so
+        (
+            "auto-robust-pixel-shadingdepth-flow-shadowfill-opaqueinterior",
+            {"refine": "shading"},
+            {**pixel, "align": "flow", "opaque_interior": True},
+        ),
     ]
 
 

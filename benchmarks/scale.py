@@ -686,7 +686,11 @@ def main() -> None:
             if args.tmp is None:
                 shutil.rmtree(tmp, ignore_errors=True)
         prev = json.loads((OUT / "scale.json").read_text()) if (OUT / "scale.json").is_file() else {}
-        summary = {**prev.get("summary", {}), **(_memory_summary if part == "memory" else _storage_summary)(made)}
+        kept = prev.get("summary", {})
+        if part == "memory":  # a new memory part replaces the old one's comparison too
+            kept = {k: v for k, v in kept.items() if not k.endswith("_compare")}
+            prev = {k: v for k, v in prev.items() if not k.endswith("_compare")}
+        summary = {**kept, **(_memory_summary if part == "memory" else _storage_summary)(made)}
         res = {**prev, "summary": summary, **summary, part: made}
         (OUT / "scale.json").write_text(json.dumps(res, indent=1))
         text = table(

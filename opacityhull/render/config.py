@@ -139,6 +139,25 @@ class RenderConfig:
         dinoSR +0.30 / +0.35 dB and SSIM +0.035; templeSR +0.05 / +0.03 dB, SSIM +0.014 /
         +0.006; at +0.14–0.5 s per 640×480 frame. At a captured camera (one view) it
         does nothing.
+    opaque_interior : bool
+        Pixel shading only: inside the hull's projection (the covered pixels, closed by a
+        1-px disc and eroded by ``interior_px``; :func:`~opacityhull.render.renderer.hull_interior`)
+        the coverage does not clip α (its dips there are the splats' sampling seams,
+        not a silhouette), and α is raised to the blend of the views' mattes dilated by
+        ``matte_tolerance_px`` (the hull was carved from silhouettes dilated that much,
+        so a hull point on a crease lands up to that far outside a view's matte, and that
+        view's 0 there is no evidence of a hole). The outline is left to the coverage and
+        the undilated mattes. Measured (every 4th view held out, against the
+        photographs' masks, blend / geometry holdout): templeSR interior α 0.982 → 0.985 /
+        0.981 → 0.984 (0.995 → 0.998 where the hull draws), coverage IoU +0.002 / +0.002,
+        PSNR −0.006 / −0.016 dB; dinoSR interior α 0.983 → 0.986 / 0.982 → 0.986 (0.994 →
+        0.997), IoU +0.0003, PSNR +0.03 / +0.02 dB. Eroding only 2 px lost 0.07 dB on the
+        temple's geometry holdout (the rebuilt hull's spill got opaquer near its outline).
+    interior_px : int ≥ 0
+        Erosion (px) of the hull's projection that bounds ``opaque_interior``.
+    matte_tolerance_px : int ≥ 0
+        Dilation (px) of the views' mattes for ``opaque_interior`` (the build's default
+        silhouette dilation is 1 px).
     """
 
     k: int = 4
@@ -160,6 +179,9 @@ class RenderConfig:
     fallback_views: bool = False
     shading_surface: ShadingSurface = "refined"
     align: Align = "flow"
+    opaque_interior: bool = True
+    interior_px: int = 4
+    matte_tolerance_px: int = 1
 
     @property
     def n_threads(self) -> int:
@@ -197,5 +219,9 @@ class RenderConfig:
             )
         if self.align not in get_args(Align):
             raise InputError(f"RenderConfig.align = {self.align!r}: expected one of {', '.join(get_args(Align))}")
+        for name in ("interior_px", "matte_tolerance_px"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, np.integer)) and not isinstance(v, bool) and 0 <= v <= 64):
+                raise InputError(f"RenderConfig.{name} = {v!r}: expected an integer in [0, 64]")
         if not (isinstance(self.band_rows, (int, np.integer)) and self.band_rows >= 1):
             raise InputError(f"RenderConfig.band_rows = {self.band_rows!r}: expected an integer >= 1")

@@ -19,7 +19,10 @@ afterwards (``coverage_clip``) — beyond the hull's limb the back-projected poi
 the extrapolated tangent plane and would take opaque matte from the neighbours. The
 clip replaces a hard coverage threshold (``min_coverage``, default 0 in the renderer):
 a threshold of ½ dropped the fractional silhouette pixels, measured −1.1 dB on the
-temple ring against the clip.
+temple ring against the clip. Inside the hull's projection (``opaque_interior``, the
+renderer's :func:`~opacityhull.render.renderer.hull_interior`) the clip is off and α is
+raised to the blend of the views' mattes dilated by the carve's silhouette tolerance, so
+that interior α is 1 wherever the source mattes say opaque.
 
 Why the winner's visibility and not each fragment's: visibility vectors are a surfel
 property; the winner is the surfel whose centre is nearest the pixel in the kernel's

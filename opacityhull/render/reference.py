@@ -342,9 +342,14 @@ def render_image_ref(
             min_coverage=cfg.min_coverage,
             min_view_cos=cfg.min_view_cos,
         )
+        clip_to = cov
+        if cfg.opaque_interior:
+            premul, clip_to = _opaque_interior_ref(
+                premul, depth, cov, winner, camera, surfels, view_cameras, view_rgba_premul, cfg, exclude_views
+            )
         if cfg.coverage_clip:
             a = premul[..., 3]
-            clipped = np.minimum(a, cov)
+            clipped = np.minimum(a, clip_to)
             premul = premul * np.where(a > clipped, clipped / np.where(a > 0, a, 1.0), 1.0)[..., None]
         out = (straight_from_premul(premul.astype(np.float32)), depth, wsum)
         return out + (best > second * (1 + 1e-4),) if return_margin else out
@@ -468,3 +473,56 @@ def deferred_shade_reference(
     Wd = ulr_weights_ref(X, vis, view_cameras, camera.centre_world, k=k, exclude_views=exclude_views)
     out[ys, xs] = shade_ref(X, Wd, view_cameras, view_rgba_premul)
     return out
+
+
+def _opaque_interior_ref(
+    premul, depth, cov, winner, camera, surfels, view_cameras, view_rgba_premul, cfg, exclude_views
+):
+    """NumPy twin of the renderer's opaque interior (``RenderConfig.opaque_interior``):
+    returns the raised premultiplied image and the coverage the clip then uses (1 inside
+    the hull's interior)."""
+    from scipy import ndimage
+
+    from .renderer import ALPHA_MIN, OPAQUE_MATTE, hull_interior
+
+    interior = hull_interior(cov, winner, erode_px=int(cfg.interior_px))
+    r = int(cfg.matte_tolerance_px)
+    import cv2
+
+    # the renderer's digital disc (its shape only; the dilation here is SciPy's)
+    disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1)).astype(bool)
+    dil_views = []
+    for img in view_rgba_premul:
+        a = np.asarray(img, np.float32)[..., 3]
+        grown = ndimage.binary_dilation(a >= OPAQUE_MATTE, structure=disc) if r > 0 else a >= OPAQUE_MATTE
+        d = np.maximum(a, grown.astype(np.float32))
+        dil_views.append(np.repeat(d[..., None], 4, axis=2))
+    dil = deferred_shade_reference(
+        depth,
+        cov,
+        winner,
+        camera,
+        surfels.visible_bool(),
+        view_cameras,
+        dil_views,
+        normals=surfels.normals,
+        k=cfg.k,
+        exclude_views=exclude_views,
+        min_coverage=cfg.min_coverage,
+        min_view_cos=cfg.min_view_cos,
+    )
+    a = premul[..., 3]
+    target = np.where(interior, np.maximum(a, np.clip(dil[..., 3], 0.0, 1.0)), a)
+    out = np.array(premul, np.float32)
+    has = a > ALPHA_MIN
+    fix = (target > a) & has
+    out[fix] *= (target[fix] / a[fix])[:, None]
+    none = (target > a) & ~has
+    if none.any():
+        pm = np.asarray(premul, np.float64)
+        box = np.stack([ndimage.uniform_filter(pm[..., c], size=5, mode="constant") * 25.0 for c in range(4)], -1)
+        n = box[..., 3]
+        ok = none & (n > ALPHA_MIN)
+        out[ok, :3] = (box[ok, :3] / n[ok, None] * target[ok, None]).astype(np.float32)
+        out[ok, 3] = target[ok]
+    return out, np.where(interior, np.float32(1.0), cov).astype(np.float32)

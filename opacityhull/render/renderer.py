@@ -464,9 +464,18 @@ def _render_deferred(
         threads=threads,
         align=_align_config(config),
     )
+    interior = None
+    if config.opaque_interior:
+        interior = hull_interior(cov, winner, erode_px=int(config.interior_px))
+        premul = _opaque_interior(
+            premul, interior, depth, cov, winner, cam_row, C, surfels, pv, allowed, config, threads
+        )
     if config.coverage_clip:
+        # inside the hull's projection the coverage's dips are the splats' sampling gaps,
+        # not a silhouette: only the outline clips
+        clip_to = cov if interior is None else np.where(interior, np.float32(1.0), cov)
         a = premul[..., 3]
-        clipped = np.minimum(a, cov)
+        clipped = np.minimum(a, clip_to)
         scale = np.where(a > clipped, clipped / np.where(a > 0, a, 1.0), 1.0).astype(np.float32)
         premul *= scale[..., None]
     t_shade = time.perf_counter()
@@ -484,6 +493,130 @@ def _render_deferred(
         "ms": _stage_ms(t0, prepare=t_prep, setup=t_setup, raster=t_raster, shade=t_shade, finish=t_end),
     }
     return RenderResult(rgba_img, depth, np.ascontiguousarray(wsum, dtype=np.float32), cov, camera, config, stats)
+
+
+def hull_interior(coverage: np.ndarray, winner: np.ndarray, *, erode_px: int = 4, close_px: int = 1) -> np.ndarray:
+    """(H, W) bool: the pixels deep inside the hull's projection, where the ray enters the
+    hull away from its outline. The covered pixels (coverage ≥ ½ with a winning surfel)
+    are closed by a disc of ``close_px`` (the splats' sampling seams are not part of the
+    outline; a wider closing also shut the temple's carved see-through slots, −0.03 dB)
+    and eroded by a disc of ``erode_px`` (the antialiased outline, where the coverage and
+    the blended mattes decide the silhouette, stays out)."""
+    import cv2
+
+    m = ((np.asarray(coverage) >= 0.5) & (np.asarray(winner) >= 0)).astype(np.uint8)
+    if close_px > 0:
+        k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * close_px + 1, 2 * close_px + 1))
+        m = cv2.morphologyEx(m, cv2.MORPH_CLOSE, k, borderType=cv2.BORDER_CONSTANT, borderValue=0)
+    if erode_px > 0:
+        k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * erode_px + 1, 2 * erode_px + 1))
+        m = cv2.erode(m, k, borderType=cv2.BORDER_CONSTANT, borderValue=0)
+    return m.astype(bool)
+
+
+_DILATED_CACHE: dict = {}
+
+OPAQUE_MATTE = 0.99
+"""A view's matte α from which it counts as opaque (:func:`dilated_matte_views`)."""
+
+
+def dilated_matte_views(pv: PreparedViews, radius_px: int, *, opaque: float = OPAQUE_MATTE) -> PreparedViews:
+    """``pv`` with every texel's four channels replaced by its view's matte α, or 1
+    where the matte is opaque (α ≥ ``opaque``) within a disc of ``radius_px``: what a
+    view's matte says once the carve's silhouette dilation is allowed for. Only the
+    opaque part grows; fractional mattes (fur, glass) keep their values. Cached for the
+    last ``pv`` (one model renders many frames)."""
+    import mmap
+    from dataclasses import replace
+
+    import cv2
+
+    key = (id(pv.texels), int(radius_px), float(opaque))
+    hit = _DILATED_CACHE.get("last")
+    if hit is not None and hit[0] == key and hit[1] is pv.texels:
+        return hit[2]
+    k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius_px + 1, 2 * radius_px + 1))
+
+    src = pv.texels.base if isinstance(pv.texels.base, mmap.mmap) else None
+
+    def rows():
+        for v in range(pv.n_views):
+            w, h = int(pv.sizes[v, 0]), int(pv.sizes[v, 1])
+            o = int(pv.offsets[v])
+            a = np.array(pv.texels[o : o + w * h, 3]).reshape(h, w)
+            if src is not None:
+                # every view's pages were just read: unmap them again (clean private file
+                # pages — nothing writes the texels — come back from the page cache when a
+                # frame uses the view), so the renderer's RSS stays flat in the views
+                lo = -(-o * 16 // mmap.PAGESIZE) * mmap.PAGESIZE
+                hi = (o + w * h) * 16 // mmap.PAGESIZE * mmap.PAGESIZE
+                if hi > lo:
+                    src.madvise(mmap.MADV_DONTNEED, lo, hi - lo)
+            b = (a >= opaque).astype(np.uint8)
+            d = np.maximum(a, cv2.dilate(b, k) if radius_px > 0 else b)
+            yield o, np.repeat(d.reshape(-1, 1).astype(np.float32), 4, axis=1)
+
+    if src is not None:  # mapped views (the default): map these too
+        tex = _map_texel_rows(int(pv.texels.shape[0]), rows())
+    else:
+        tex = np.empty_like(pv.texels)
+        for o, t in rows():
+            tex[o : o + t.shape[0]] = t
+    out = replace(pv, texels=tex)
+    _DILATED_CACHE["last"] = (key, pv.texels, out)
+    return out
+
+
+def _opaque_interior(premul, interior, depth, cov, winner, cam_row, C, surfels, pv, allowed, config, threads):
+    """Interior α where the source mattes say opaque: inside the hull's projection
+    (``interior``) α is raised to the blend, with the same views and weights, of the
+    views' mattes whose opaque part is dilated by ``config.matte_tolerance_px``
+    (:func:`dilated_matte_views`) — the hull was carved from silhouettes dilated that much, so a
+    hull point up to that far outside a view's matte is consistent with it, and on a
+    crease the back-projected point lands just there. Colour stays the blend's
+    (straight); pixels that no view gave colour take their neighbours' (normalised box
+    filter of the premultiplied colour)."""
+    from . import deferred as D
+
+    if not interior.any():
+        return premul
+    pvd = dilated_matte_views(pv, int(config.matte_tolerance_px))
+    dil, _ = D.deferred_shade(
+        depth,
+        cov,
+        winner,
+        cam_row,
+        C,
+        surfels.visibility,
+        surfels.normals,
+        pvd,
+        allowed,
+        k=int(config.k),
+        min_coverage=float(config.min_coverage),
+        min_view_cos=float(config.min_view_cos),
+        fallback=bool(config.fallback_views),
+        threads=threads,
+        align=None,
+    )
+    a = premul[..., 3]
+    target = np.where(interior, np.maximum(a, np.clip(dil[..., 3], 0.0, 1.0)), a).astype(np.float32)
+    up = target > a
+    if not up.any():
+        return premul
+    out = premul.copy()
+    has = a > ALPHA_MIN
+    fix = up & has
+    out[fix] *= (target[fix] / a[fix])[:, None]
+    none = up & ~has
+    if none.any():
+        import cv2
+
+        box = cv2.boxFilter(premul, -1, (5, 5), normalize=False, borderType=cv2.BORDER_CONSTANT)
+        n = box[..., 3]
+        ok = none & (n > ALPHA_MIN)
+        out[ok, :3] = box[ok, :3] / n[ok, None] * target[ok, None]
+        out[ok, 3] = target[ok]
+    return out
 
 
 def _setup_splats(surfels, positions, areas, cam_row, W, H, config: RenderConfig, threads, splat, valid) -> None:
@@ -727,20 +860,14 @@ def prepare_model_views(model: OpacityHullModel, *, mapped: bool = True) -> Prep
 def _mapped_texels(model: OpacityHullModel, cams: Sequence[Camera], offsets: np.ndarray) -> tuple[np.ndarray, int]:
     """(P, 4) float32 texels of every view in a memory-mapped temporary file, written one
     view at a time, and the number of non-finite values replaced by 0."""
-    import mmap
-    import tempfile
-
     from ..errors import ShapeError
 
-    npx = [c.width * c.height for c in cams]
-    total = int(sum(npx))
-    if total == 0:
-        return np.zeros((0, 4), np.float32), 0
+    total = int(sum(c.width * c.height for c in cams))
     bad = 0
-    with tempfile.TemporaryFile(prefix="opacityhull-views-") as f:
+
+    def rows():
+        nonlocal bad
         for v, c in enumerate(cams):
-            if f.tell() != int(offsets[v]) * 16:
-                raise AssertionError("view offsets out of step with the texel file")
             a = model.load_views_premul([v])[0]
             if a.shape != (c.height, c.width, 4):
                 raise ShapeError(
@@ -753,10 +880,27 @@ def _mapped_texels(model: OpacityHullModel, cams: Sequence[Camera], offsets: np.
                 t = t.copy() if not t.flags.writeable else t
                 bad += int((~fin).sum())
                 t[~fin] = 0.0
-            f.write(t.data.cast("B"))
-            del t, fin
+            yield int(offsets[v]), t
+
+    return _map_texel_rows(total, rows()), bad
+
+
+def _map_texel_rows(total: int, rows) -> np.ndarray:
+    """(total, 4) float32 texels in a memory-mapped temporary file, written from ``rows``
+    (``(texel offset, (n, 4) float32)`` in order, one view at a time): the renderer's
+    views stay out of the process's anonymous memory, whatever their number."""
+    import mmap
+    import tempfile
+
+    if total == 0:
+        return np.zeros((0, 4), np.float32)
+    with tempfile.TemporaryFile(prefix="opacityhull-views-") as f:
+        for off, t in rows:
+            if f.tell() != off * 16:
+                raise AssertionError("view offsets out of step with the texel file")
+            f.write(np.ascontiguousarray(t, np.float32).data.cast("B"))
         f.flush()
         # copy-on-write: writable like an ordinary array (the kernels' signatures are
         # those of in-memory texels: no recompilation), never written back to the file
         mm = mmap.mmap(f.fileno(), total * 16, access=mmap.ACCESS_COPY)
-    return np.ndarray((total, 4), dtype=np.float32, buffer=mm), bad
+    return np.ndarray((total, 4), dtype=np.float32, buffer=mm)

@@ -31,9 +31,16 @@ pytestmark = pytest.mark.slow
 # +0.30 dB on the dino, shading depth +0.45 / +0.67 dB, robust carving +0.45 dB, pixel
 # shading +0.6 dB), so losing any one of them fails. Below the issue's goals (baseline +
 # 3 dB; IoU 0.97 against the masks; interior alpha 0.99): see the closing note.
+# With the opaque interior (RenderConfig.opaque_interior, the default since): temple
+# blend 20.35 / geometry 19.04 dB, IoU 0.948, interior alpha 0.985 (0.998 where the hull
+# draws); dino 19.93 / 17.95 dB, IoU 0.958, interior alpha 0.986 (0.997). What is left is
+# the masks': an oracle drawing the hull exactly, with the shadow holes the build filled
+# drawn opaque, reaches IoU 0.961 / 0.972 and interior alpha 0.987 / 0.990 on these four
+# views (temple view 0's lit cloth fold, 5.6 k px the other views' outlines carve; the
+# dino's feet, lost at the outline of the neighbours' masks in views 8 and 12).
 THRESHOLDS = {
-    "temple": {"geometry_psnr": 18.55, "blend_psnr": 19.85, "iou": 0.93, "interior_alpha": 0.967},
-    "dino": {"geometry_psnr": 17.4, "blend_psnr": 19.4, "iou": 0.942, "interior_alpha": 0.968},
+    "temple": {"geometry_psnr": 18.55, "blend_psnr": 19.85, "iou": 0.932, "interior_alpha": 0.969},
+    "dino": {"geometry_psnr": 17.4, "blend_psnr": 19.4, "iou": 0.942, "interior_alpha": 0.971},
 }
 
 
@@ -104,9 +111,11 @@ def test_real_loo_both_holdouts(real_model):
     # the honest holdout can only be harder: the held-out silhouette no longer carves
     assert g["psnr_mean"] <= b["psnr_mean"] + 0.3
     assert b["coverage_iou_mean"] > t["iou"] and b["interior_alpha_mean"] > t["interior_alpha"], b
-    # where the hull draws, the blended mattes are opaque (measured 0.995 temple, 0.994
-    # dino); the rest of the deficit is where the held-out mask and the hull disagree
-    assert b["interior_alpha_covered_mean"] > 0.985, b
+    # where the hull draws, the blended mattes are opaque (measured 0.998 temple, 0.997
+    # dino; 0.995 / 0.994 without the opaque interior); the rest of the deficit is where
+    # the held-out mask and the hull disagree
+    assert b["interior_alpha_covered_mean"] > 0.994, b
+    assert g["interior_alpha_covered_mean"] > 0.993, g  # measured 0.998 / 0.996
     # against the mask with its shadow holes filled the rendering agrees better
     assert b["coverage_iou_holes_filled_mean"] >= b["coverage_iou_mean"], b
     # the interior is what geometry can explain; the band is where the silhouettes decide
