@@ -328,25 +328,27 @@ def render_image_ref(
         cov = coverage_from(geo[..., 2], wsum, cfg)
         if cfg.close_holes:
             depth, cov, winner = close_gbuffer(depth, wsum, cov, winner)
-        premul = deferred_shade_reference(
+        from functools import partial
+
+        # the same pixels, views and weights for the colour and for the dilated mattes
+        shade = partial(
+            deferred_shade_reference,
             depth,
             cov,
             winner,
             camera,
             surfels.visible_bool(),
             view_cameras,
-            view_rgba_premul,
             normals=surfels.normals,
             k=cfg.k,
             exclude_views=exclude_views,
             min_coverage=cfg.min_coverage,
             min_view_cos=cfg.min_view_cos,
         )
+        premul = shade(view_rgba_premul)
         clip_to = cov
         if cfg.opaque_interior:
-            premul, clip_to = _opaque_interior_ref(
-                premul, depth, cov, winner, camera, surfels, view_cameras, view_rgba_premul, cfg, exclude_views
-            )
+            premul, clip_to = _opaque_interior_ref(premul, cov, winner, view_rgba_premul, cfg, shade)
         if cfg.coverage_clip:
             a = premul[..., 3]
             clipped = np.minimum(a, clip_to)
@@ -475,12 +477,10 @@ def deferred_shade_reference(
     return out
 
 
-def _opaque_interior_ref(
-    premul, depth, cov, winner, camera, surfels, view_cameras, view_rgba_premul, cfg, exclude_views
-):
+def _opaque_interior_ref(premul, cov, winner, view_rgba_premul, cfg, shade):
     """NumPy twin of the renderer's opaque interior (``RenderConfig.opaque_interior``):
     returns the raised premultiplied image and the coverage the clip then uses (1 inside
-    the hull's interior)."""
+    the hull's interior). ``shade(views)`` is the deferred shading of the frame."""
     from scipy import ndimage
 
     from .renderer import ALPHA_MIN, OPAQUE_MATTE, hull_interior
@@ -497,20 +497,7 @@ def _opaque_interior_ref(
         grown = ndimage.binary_dilation(a >= OPAQUE_MATTE, structure=disc) if r > 0 else a >= OPAQUE_MATTE
         d = np.maximum(a, grown.astype(np.float32))
         dil_views.append(np.repeat(d[..., None], 4, axis=2))
-    dil = deferred_shade_reference(
-        depth,
-        cov,
-        winner,
-        camera,
-        surfels.visible_bool(),
-        view_cameras,
-        dil_views,
-        normals=surfels.normals,
-        k=cfg.k,
-        exclude_views=exclude_views,
-        min_coverage=cfg.min_coverage,
-        min_view_cos=cfg.min_view_cos,
-    )
+    dil = shade(dil_views)
     a = premul[..., 3]
     target = np.where(interior, np.maximum(a, np.clip(dil[..., 3], 0.0, 1.0)), a)
     out = np.array(premul, np.float32)

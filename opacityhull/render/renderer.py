@@ -447,29 +447,32 @@ def _render_deferred(
     if refined:
         depth = _shading_depth(surfels, cam_row, W, H, depth, config, threads, scratch)
     t_raster = _stage_end(progress, 2)
-    premul, n_shaded = D.deferred_shade(
-        depth,
-        cov,
-        winner,
-        cam_row,
-        C,
-        surfels.visibility,
-        surfels.normals,
-        pv,
-        allowed,
-        k=int(config.k),
-        min_coverage=float(config.min_coverage),
-        min_view_cos=float(config.min_view_cos),
-        fallback=bool(config.fallback_views),
-        threads=threads,
-        align=_align_config(config),
-    )
+
+    def shade(views: PreparedViews, align):
+        # the same pixels, views and weights for the colour and for the dilated mattes
+        return D.deferred_shade(
+            depth,
+            cov,
+            winner,
+            cam_row,
+            C,
+            surfels.visibility,
+            surfels.normals,
+            views,
+            allowed,
+            k=int(config.k),
+            min_coverage=float(config.min_coverage),
+            min_view_cos=float(config.min_view_cos),
+            fallback=bool(config.fallback_views),
+            threads=threads,
+            align=align,
+        )
+
+    premul, n_shaded = shade(pv, _align_config(config))
     interior = None
     if config.opaque_interior:
         interior = hull_interior(cov, winner, erode_px=int(config.interior_px))
-        premul = _opaque_interior(
-            premul, interior, depth, cov, winner, cam_row, C, surfels, pv, allowed, config, threads
-        )
+        premul = _opaque_interior(premul, interior, pv, config, shade)
     if config.coverage_clip:
         # inside the hull's projection the coverage's dips are the splats' sampling gaps,
         # not a silhouette: only the outline clips
@@ -567,7 +570,7 @@ def dilated_matte_views(pv: PreparedViews, radius_px: int, *, opaque: float = OP
     return out
 
 
-def _opaque_interior(premul, interior, depth, cov, winner, cam_row, C, surfels, pv, allowed, config, threads):
+def _opaque_interior(premul, interior, pv: PreparedViews, config, shade):
     """Interior α where the source mattes say opaque: inside the hull's projection
     (``interior``) α is raised to the blend, with the same views and weights, of the
     views' mattes whose opaque part is dilated by ``config.matte_tolerance_px``
@@ -576,28 +579,9 @@ def _opaque_interior(premul, interior, depth, cov, winner, cam_row, C, surfels, 
     crease the back-projected point lands just there. Colour stays the blend's
     (straight); pixels that no view gave colour take their neighbours' (normalised box
     filter of the premultiplied colour)."""
-    from . import deferred as D
-
     if not interior.any():
         return premul
-    pvd = dilated_matte_views(pv, int(config.matte_tolerance_px))
-    dil, _ = D.deferred_shade(
-        depth,
-        cov,
-        winner,
-        cam_row,
-        C,
-        surfels.visibility,
-        surfels.normals,
-        pvd,
-        allowed,
-        k=int(config.k),
-        min_coverage=float(config.min_coverage),
-        min_view_cos=float(config.min_view_cos),
-        fallback=bool(config.fallback_views),
-        threads=threads,
-        align=None,
-    )
+    dil, _ = shade(dilated_matte_views(pv, int(config.matte_tolerance_px)), None)
     a = premul[..., 3]
     target = np.where(interior, np.maximum(a, np.clip(dil[..., 3], 0.0, 1.0)), a).astype(np.float32)
     up = target > a
