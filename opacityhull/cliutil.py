@@ -153,7 +153,9 @@ def cli_errors(fn):
             err = _known_error(e)
             if err is None:
                 raise
-            console().print(f"[bold red]error:[/] {error_message(err)}", highlight=False, markup=True)
+            # one unbroken line: the message names files and values a user copies (Rich
+            # would otherwise break a long path mid-word at its 80-column default)
+            console().print(f"[bold red]error:[/] {error_message(err)}", highlight=False, markup=True, soft_wrap=True)
             raise typer.Exit(code=err.exit_code) from None
         except Terminated as e:
             console().print(f"[yellow]{e}[/] (the same clean-up as Ctrl-C ran)")
