@@ -10,7 +10,11 @@ view of one session through :func:`opacityhull.reconstruct.perview.matte_view_ch
 (the workers read the session from disk and send back a checksum: the same work a build
 does per view, without shipping pixels), warm (numba caches loaded in every worker first).
 
-    .venv/bin/python benchmarks/scale.py [--quick] [--json] [--storage-only] [--memory-only]
+    .venv/bin/python benchmarks/scale.py [--quick] [--json] [--storage-only] [--memory-only] [--paper-only]
+
+The goal point (``--paper-only``, merged into the existing scale.json/md): 432 views at
+1360x1032 without reflectance, the build's defaults, wall time and peak RSS, then the
+renderer's peak RSS on that model (~35 GB of scratch; ~15 min on 2 idle cores).
 
 Memory against views (also ``--memory-only``, merged into the existing scale.json/md):
 48/144/432 views at 320×240, where the views' data dominates the interpreter's import
@@ -579,8 +583,66 @@ def plot(rows: list[dict], sched: dict, path: Path, base_mb: float | None = None
     plt.close(fig)
 
 
+PAPER_POINT = (72, 1360, 1032)  # 432 views at the paper's camera resolution
+
+
+def paper_point(tmp: Path) -> dict:
+    """The issue's goal point: 432 views at 1360x1032 without reflectance, the build's
+    defaults (``--memory-gb`` at its default, numba on every core), then the renderer's
+    peak RSS on the model; wall seconds of the child."""
+    n_table, w, h = PAPER_POINT
+    s, m = tmp / "paper.session", tmp / "paper.model"
+    row: dict = {"views": 6 * n_table, "width": w, "height": h, "lights": 0}
+    row.update(make_session(s, n_table=n_table, width=w, height=h, lights=0))
+    print(f"  paper: session written in {row['write_s']:.0f} s ({row['session_bytes'] / 1e9:.1f} GB)", file=sys.stderr)
+    row.update(run_build_rss(s, m, reflectance=False))
+    rep = json.loads((m / "report.json").read_text())
+    row["memory_plan"] = rep.get("memory", {})
+    row["resolution"] = rep.get("hull", {}).get("resolution")
+    row["refine"] = {k: v for k, v in rep.get("hull", {}).get("refine", {}).items() if not isinstance(v, (list, dict))}
+    row.update(run_render_rss(m, tmp / "paper.png"))
+    row["cpu_count"] = os.cpu_count()
+    row["load_average_1m_after"] = os.getloadavg()[0]
+    shutil.rmtree(s, ignore_errors=True)
+    shutil.rmtree(m, ignore_errors=True)
+    print(
+        f"  paper: build {row['build_s']:.0f} s, peak {row['peak_rss_mb']:.0f} MB, render peak "
+        f"{row['render_peak_rss_mb']:.0f} MB",
+        file=sys.stderr,
+    )
+    return row
+
+
+def paper_table(row: dict) -> list[str]:
+    steps = ", ".join(f"{k} {v:.0f} s" for k, v in row["steps_s"].items() if k != "total" and v >= 0.5)
+    plan = row.get("memory_plan", {})
+    return [
+        "",
+        f"## The goal point: {row['views']} views at {row['width']}x{row['height']}, no reflectance",
+        "",
+        "`benchmarks/scale.py --paper-only`: the synthetic session written through `SessionWriter`, then "
+        "`opacityhull build SESSION --out MODEL --no-pictures --no-reflectance --json` with every default "
+        "(numba on both cores, `--memory-gb` its default), wall time of the child; then `opacityhull render MODEL`.",
+        "",
+        "| views | size | images | session GB | write s | build s | build peak RSS MB | render peak RSS MB | surfels | model GB |",
+        "|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|",
+        f"| {row['views']} | {row['width']}x{row['height']} | {row['images']} | {row['session_bytes'] / 1e9:.1f} | "
+        f"{row['write_s']:.0f} | {row['build_s']:.0f} ({row['build_s'] / 60:.1f} min) | {row['peak_rss_mb']:.0f} | "
+        f"{row['render_peak_rss_mb']:.0f} | {row['surfels']} | {row['model_bytes'] / 1e9:.2f} |",
+        "",
+        f"Steps: {steps}. Memory plan: {json.dumps({k: plan[k] for k in plan if not isinstance(plan[k], dict)})}. "
+        f"Resolution chosen: {(row.get('resolution') or {}).get('reason', '?')}.",
+    ]
+
+
 def table(
-    rows: list[dict], sched: dict, summary: dict, quick: bool, storage: dict | None = None, memory: dict | None = None
+    rows: list[dict],
+    sched: dict,
+    summary: dict,
+    quick: bool,
+    storage: dict | None = None,
+    memory: dict | None = None,
+    paper: dict | None = None,
 ) -> str:
     lines = [
         "# Paper scale (benchmarks/scale.py)",
@@ -639,6 +701,8 @@ def table(
             f"{sched['projected_16_workers_s']:.2f} s, {sched['projected_16_worker_speedup']:.1f}x serial "
             "(assumes 16 real cores and a file system that keeps up).",
         ]
+    if paper:
+        lines += paper_table(paper)
     if memory:
         lines += memory_table(memory, summary)
     if storage:
@@ -662,6 +726,11 @@ def main() -> None:
         action="store_true",
         help="only the peak RSS against views at 320x240 (build and renderer), merged into the existing scale.json/md",
     )
+    ap.add_argument(
+        "--paper-only",
+        action="store_true",
+        help="only the 432-view 1360x1032 build (~35 GB of scratch), merged into the existing scale.json/md",
+    )
     ap.add_argument("--compare-label", default=None, help="what the --compare-pythonpath copy is (for the table)")
     ap.add_argument(
         "--compare-pythonpath",
@@ -672,10 +741,12 @@ def main() -> None:
     OUT.mkdir(parents=True, exist_ok=True)
     tmp = Path(args.tmp or tempfile.mkdtemp(prefix="oh-scale-"))
     tmp.mkdir(parents=True, exist_ok=True)
-    if args.memory_only or args.storage_only:
+    if args.memory_only or args.storage_only or args.paper_only:
         # one part measured anew, merged into the earlier scale.json/md
         try:
-            if args.memory_only:
+            if args.paper_only:
+                part, made = "paper", paper_point(tmp)
+            elif args.memory_only:
                 part, made = (
                     "memory",
                     memory_sweep(tmp, compare_pythonpath=args.compare_pythonpath, compare_label=args.compare_label),
@@ -690,7 +761,15 @@ def main() -> None:
         if part == "memory":  # a new memory part replaces the old one's comparison too
             kept = {k: v for k, v in kept.items() if not k.endswith("_compare")}
             prev = {k: v for k, v in prev.items() if not k.endswith("_compare")}
-        summary = {**kept, **(_memory_summary if part == "memory" else _storage_summary)(made)}
+        if part == "paper":
+            summary = {
+                **kept,
+                "paper_432_views_1360x1032_build_s": made["build_s"],
+                "paper_432_views_1360x1032_peak_rss_mb": made["peak_rss_mb"],
+                "paper_432_views_1360x1032_render_peak_rss_mb": made["render_peak_rss_mb"],
+            }
+        else:
+            summary = {**kept, **(_memory_summary if part == "memory" else _storage_summary)(made)}
         res = {**prev, "summary": summary, **summary, part: made}
         (OUT / "scale.json").write_text(json.dumps(res, indent=1))
         text = table(
@@ -700,6 +779,7 @@ def main() -> None:
             summary.get("quick", True),
             res.get("storage"),
             res.get("memory"),
+            res.get("paper"),
         )
         (OUT / "scale.md").write_text(text)
         print(json.dumps(res) if args.json else text)
@@ -773,9 +853,13 @@ def main() -> None:
         summary["peak_rss_above_baseline_ratio_432_vs_48_at_200x150"] = (pick(432, big)["peak_rss_mb"] - base_mb) / max(
             pick(48, big)["peak_rss_mb"] - base_mb, 1.0
         )
+    prev = json.loads((OUT / "scale.json").read_text()) if (OUT / "scale.json").is_file() else {}
+    paper = prev.get("paper")  # measured on its own (--paper-only): kept
     res = {"summary": summary, **summary, "rows": rows, "schedulers": sched, "storage": storage, "memory": memory}
+    if paper:
+        res["paper"] = paper
     (OUT / "scale.json").write_text(json.dumps(res, indent=1))
-    (OUT / "scale.md").write_text(table(rows, sched, summary, args.quick, storage, memory))
+    (OUT / "scale.md").write_text(table(rows, sched, summary, args.quick, storage, memory, paper))
     plot(rows, sched, OUT / "scale.png", base_mb)
     if args.json:
         print(json.dumps(res))

@@ -866,6 +866,7 @@ def build_geometry(
     images=None,
     open_holes=None,
     carve_batch: int | None = None,
+    photo_slots: int | None = None,
 ) -> Geometry:
     """Silhouettes → hull → surfels → visibility from per-view alphas and cameras.
 
@@ -1056,6 +1057,8 @@ def build_geometry(
             # shading depth only: coverage and radii stay the hull's, so neither the outline
             # restoration nor the radius growth of moved surfels is needed
             pc = PhotoConfig() if move else PhotoConfig(keep_coverage=False, radius_neighbours=0)
+            if photo_slots is not None:  # the memory plan's share (MemoryPlan.photo_slots)
+                pc = replace(pc, max_views_in_memory=max(int(photo_slots), pc.n_views))
             pos, nrm, rad, st = refine_surfels(
                 sample.positions, sample.normals, sample.radii, vis, pin, imgs, alps, config=pc
             )
@@ -1376,6 +1379,9 @@ MEMORY_FRACTION = 0.25
 #: 5 bytes a pixel a view): more are carved in batches whose hulls are intersected,
 #: voxel for voxel the same hull
 CARVE_BATCH_MAX_VIEWS = 48
+#: the fewest view slots the memory plan gives the photo refinement (at least its
+#: ``n_views``, 5: one surfel's views are scored together)
+PHOTO_MIN_SLOTS = 8
 
 
 def total_ram_bytes() -> int:
@@ -1412,6 +1418,9 @@ class MemoryPlan:
     view_bytes: int
     in_flight: int
     carve_batch: int
+    #: views whose grey image and matte the photo refinement holds at once
+    #: (:attr:`opacityhull.reconstruct.photo.PhotoConfig.max_views_in_memory`)
+    photo_slots: int = 32
 
     @classmethod
     def for_build(cls, budget_gb: float, *, pixels: int, images_per_view: int, workers: int, views: int):
@@ -1421,7 +1430,11 @@ class MemoryPlan:
         view_bytes = int((images_per_view + 4) * pixels * 12 + 4 * pixels)
         in_flight = int(max(1, min(max(1, workers), (0.5 * budget) // max(view_bytes, 1))))
         carve = int(max(1, min(CARVE_BATCH_MAX_VIEWS, views, (0.25 * budget) // max(5 * pixels, 1))))
-        return cls(budget_gb, view_bytes, in_flight, carve)
+        # the refinement's slots cost 8 bytes a pixel (float32 grey + matte); a quarter of
+        # the budget, never fewer than one surfel's scored views nor more than the views
+        # (its result does not depend on the number: fewer slots only re-read photographs)
+        slots = int(max(PHOTO_MIN_SLOTS, min(max(views, PHOTO_MIN_SLOTS), (0.25 * budget) // max(8 * pixels, 1))))
+        return cls(budget_gb, view_bytes, in_flight, carve, slots)
 
 
 def peak_rss_mb() -> float:
@@ -1607,6 +1620,7 @@ def step_geometry(
     step=None,
     progress=None,
     carve_batch: int | None = None,
+    photo_slots: int | None = None,
     open_holes: "PackedMasks | None" = None,
 ) -> tuple[Geometry, str]:
     """Steps 3-6 (silhouettes, hull, surfels, visibility, refine): :func:`build_geometry`
@@ -1676,6 +1690,7 @@ def step_geometry(
         images=images,
         open_holes=holes,
         carve_batch=carve_batch,
+        photo_slots=photo_slots,
     )
     if holes is not None:
         write_hole_masks(store.dir / OPEN_HOLES, {v: h for v, h in zip(vids, holes) if h is not None})
@@ -1927,6 +1942,7 @@ def build_model(
         step=timer.step,
         progress=prog,
         carve_batch=plan.carve_batch,
+        photo_slots=plan.photo_slots,
         open_holes=open_holes,
     )
     notes.extend(g.notes)

@@ -15,6 +15,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -23,7 +24,7 @@ import pytest
 from opacityhull.acquire.synthetic import SyntheticSessionConfig, write_synthetic_session
 from opacityhull.executor import open_executor
 from opacityhull.model import OpacityHullModel
-from opacityhull.reconstruct.build import BuildConfig, MemoryPlan, PackedMasks, build_model
+from opacityhull.reconstruct.build import PHOTO_MIN_SLOTS, BuildConfig, MemoryPlan, PackedMasks, build_model
 from opacityhull.reconstruct.liveviews import LIVE_VIEWS
 
 CLI = Path(sys.executable).with_name("opacityhull")
@@ -100,6 +101,12 @@ def test_memory_budget_is_reported_and_changes_nothing_in_the_model(sessions, se
     rep = build_model(sessions[42], tmp_path / "tiny", config=CFG, memory_gb=1e-5)
     # the carve ran one view per batch, the batches' hulls intersected: the same hull
     assert rep.memory["carve_batch"] == 1 and rep.hull["carve_batches"] >= 2
+    # the photo refinement held only the plan's few slots of the 42 views (and read the
+    # photographs again as needed), where the default budget holds them all
+    assert rep.memory["photo_slots"] == PHOTO_MIN_SLOTS and ref_rep.memory["photo_slots"] == 42
+    assert ref_rep.hull["refine"]["views_in_memory"] > PHOTO_MIN_SLOTS
+    assert rep.hull["refine"]["views_in_memory"] <= PHOTO_MIN_SLOTS
+    assert rep.hull["refine"]["n_view_loads"] > ref_rep.hull["refine"]["n_view_loads"]
     assert rep.hull["occupied_voxels"] == ref_rep.hull["occupied_voxels"]
     assert_same_model(tmp_path / "tiny", ref)
     d = json.loads((tmp_path / "tiny" / "report.json").read_text())
@@ -115,8 +122,14 @@ def test_memory_plan_caps_in_flight_by_the_budget_not_the_views():
     big = MemoryPlan.for_build(64.0, views=432, **kw)
     assert small.in_flight == 1 and big.in_flight == 8
     assert small.carve_batch < big.carve_batch <= 48
-    # the plan depends on the views only through the carve batch's upper bound
-    assert MemoryPlan.for_build(64.0, views=4320, **kw) == big
+    # the refinement's slots: a quarter of the budget at 8 bytes a pixel, between its
+    # floor and the view count
+    assert small.photo_slots == PHOTO_MIN_SLOTS and big.photo_slots == 432
+    assert MemoryPlan.for_build(2.0, views=432, **kw).photo_slots == int(0.25 * 2 * 2**30 // (8 * 1360 * 1032))
+    # the plan depends on the views only through these upper bounds
+    more = MemoryPlan.for_build(64.0, views=4320, **kw)
+    assert more.photo_slots == int(0.25 * 64 * 2**30 // (8 * 1360 * 1032)) > big.photo_slots
+    assert replace(more, photo_slots=big.photo_slots) == big
 
 
 def test_packed_masks_round_trip():
