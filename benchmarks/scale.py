@@ -14,7 +14,7 @@ does per view, without shipping pixels), warm (numba caches loaded in every work
 
 The goal point (``--paper-only``, merged into the existing scale.json/md): 432 views at
 1360x1032 without reflectance, the build's defaults, wall time and peak RSS, then the
-renderer's peak RSS on that model (~35 GB of scratch; ~15 min on 2 idle cores).
+renderer's peak RSS on that model, and the same at 48 views (~35 GB of scratch; ~15 min).
 
 Memory against views (also ``--memory-only``, merged into the existing scale.json/md):
 48/144/432 views at 320×240, where the views' data dominates the interpreter's import
@@ -295,10 +295,11 @@ def memory_table(mem: dict, summary: dict) -> list[str]:
             else ""
         )
         + ". The photo refinement (`photo.refine_surfels`) streams its views: at most "
-        "`PhotoConfig.max_views_in_memory` (32) views' grey image and matte (8 B a pixel) in memory, "
-        "the silhouettes bit-packed, so it no longer holds (V, H, W) stacks. What still grows with "
-        "the views is the surfel bisection's silhouette and distance stacks "
-        "(`surfels.sample_hull_surfels`, 2 B a pixel a view) and the per-surfel visibility "
+        "`MemoryPlan.photo_slots` views' grey image and matte (8 B a pixel; a quarter of `--memory-gb`) in "
+        "memory, the silhouettes bit-packed, so it no longer holds (V, H, W) stacks; the surfel "
+        "bisection reads bit-packed silhouettes and a 4x4-pooled distance floor "
+        "(`surfels.packed_bisection_stacks`, 0.31 B a pixel a view). What still grows with the views "
+        "is the bit-packed masks (1/8 B a pixel a view each) and the per-surfel visibility "
         "(1 B a surfel a view); see ARCHITECTURE.md, build memory.",
     ]
     return lines
@@ -586,11 +587,24 @@ def plot(rows: list[dict], sched: dict, path: Path, base_mb: float | None = None
 PAPER_POINT = (72, 1360, 1032)  # 432 views at the paper's camera resolution
 
 
-def paper_point(tmp: Path) -> dict:
-    """The issue's goal point: 432 views at 1360x1032 without reflectance, the build's
-    defaults (``--memory-gb`` at its default, numba on every core), then the renderer's
-    peak RSS on the model; wall seconds of the child."""
+def paper_points(tmp: Path) -> dict:
+    """:func:`paper_point` at 48 views, then at 432 (the goal point), and their ratios."""
     n_table, w, h = PAPER_POINT
+    small = paper_point(tmp, n_table=8, width=w, height=h)
+    big = paper_point(tmp, n_table=n_table, width=w, height=h)
+    return {
+        **big,
+        "views_48": small,
+        "peak_rss_ratio_432_vs_48": big["peak_rss_mb"] / small["peak_rss_mb"],
+        "render_peak_rss_ratio_432_vs_48": big["render_peak_rss_mb"] / small["render_peak_rss_mb"],
+    }
+
+
+def paper_point(tmp: Path, *, n_table: int, width: int, height: int) -> dict:
+    """A build without reflectance at the paper's resolution, the build's defaults
+    (``--memory-gb`` at its default, numba on every core), then the renderer's peak RSS
+    on the model; wall seconds of the child."""
+    w, h = width, height
     s, m = tmp / "paper.session", tmp / "paper.model"
     row: dict = {"views": 6 * n_table, "width": w, "height": h, "lights": 0}
     row.update(make_session(s, n_table=n_table, width=w, height=h, lights=0))
@@ -616,6 +630,7 @@ def paper_point(tmp: Path) -> dict:
 def paper_table(row: dict) -> list[str]:
     steps = ", ".join(f"{k} {v:.0f} s" for k, v in row["steps_s"].items() if k != "total" and v >= 0.5)
     plan = row.get("memory_plan", {})
+    rows = [r for r in (row.get("views_48"), row) if r]
     return [
         "",
         f"## The goal point: {row['views']} views at {row['width']}x{row['height']}, no reflectance",
@@ -626,11 +641,21 @@ def paper_table(row: dict) -> list[str]:
         "",
         "| views | size | images | session GB | write s | build s | build peak RSS MB | render peak RSS MB | surfels | model GB |",
         "|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|",
-        f"| {row['views']} | {row['width']}x{row['height']} | {row['images']} | {row['session_bytes'] / 1e9:.1f} | "
-        f"{row['write_s']:.0f} | {row['build_s']:.0f} ({row['build_s'] / 60:.1f} min) | {row['peak_rss_mb']:.0f} | "
-        f"{row['render_peak_rss_mb']:.0f} | {row['surfels']} | {row['model_bytes'] / 1e9:.2f} |",
+        *(
+            f"| {r['views']} | {r['width']}x{r['height']} | {r['images']} | {r['session_bytes'] / 1e9:.1f} | "
+            f"{r['write_s']:.0f} | {r['build_s']:.0f} ({r['build_s'] / 60:.1f} min) | {r['peak_rss_mb']:.0f} | "
+            f"{r['render_peak_rss_mb']:.0f} | {r['surfels']} | {r['model_bytes'] / 1e9:.2f} |"
+            for r in rows
+        ),
         "",
-        f"Steps: {steps}. Memory plan: {json.dumps({k: plan[k] for k in plan if not isinstance(plan[k], dict)})}. "
+        (
+            f"432 / 48 views at {row['width']}x{row['height']}: build peak RSS {row['peak_rss_ratio_432_vs_48']:.2f}x, "
+            f"render {row['render_peak_rss_ratio_432_vs_48']:.2f}x."
+            if "peak_rss_ratio_432_vs_48" in row
+            else ""
+        ),
+        "",
+        f"Steps at {row['views']} views: {steps}. Memory plan: {json.dumps({k: plan[k] for k in plan if not isinstance(plan[k], dict)})}. "
         f"Resolution chosen: {(row.get('resolution') or {}).get('reason', '?')}.",
     ]
 
@@ -729,7 +754,7 @@ def main() -> None:
     ap.add_argument(
         "--paper-only",
         action="store_true",
-        help="only the 432-view 1360x1032 build (~35 GB of scratch), merged into the existing scale.json/md",
+        help="only the 48- and 432-view 1360x1032 builds (~35 GB of scratch), merged into the existing scale.json/md",
     )
     ap.add_argument("--compare-label", default=None, help="what the --compare-pythonpath copy is (for the table)")
     ap.add_argument(
@@ -745,7 +770,7 @@ def main() -> None:
         # one part measured anew, merged into the earlier scale.json/md
         try:
             if args.paper_only:
-                part, made = "paper", paper_point(tmp)
+                part, made = "paper", paper_points(tmp)
             elif args.memory_only:
                 part, made = (
                     "memory",
@@ -767,6 +792,7 @@ def main() -> None:
                 "paper_432_views_1360x1032_build_s": made["build_s"],
                 "paper_432_views_1360x1032_peak_rss_mb": made["peak_rss_mb"],
                 "paper_432_views_1360x1032_render_peak_rss_mb": made["render_peak_rss_mb"],
+                "peak_rss_ratio_432_vs_48_at_1360x1032": made["peak_rss_ratio_432_vs_48"],
             }
         else:
             summary = {**kept, **(_memory_summary if part == "memory" else _storage_summary)(made)}

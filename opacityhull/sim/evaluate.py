@@ -327,10 +327,16 @@ def _phase_error(
         r.clear_radiance_cache()
         return out
 
-    if warm:  # the selection twice: the first launch of a cached kernel still costs extra
+    if warm:
+        # the reference's kernels compiled first, the selection's launched twice right
+        # before it is timed: the first launch after another configuration's kernels costs
+        # ~0.1 s more (measured on the diffuse lightfield: 0.16 against 0.07 CPU s), which
+        # a capture — the same configuration shot after shot — does not pay; the
+        # reference (seconds) and the ``also`` candidates (each warmed right before its
+        # timing) are measured in the same steady state
+        run(ref, seed + 200)
         run(sel, seed + 100)
         run(sel, seed + 101)
-        run(ref, seed + 200)
     out_sel, t_sel = _timed(lambda: run(sel, seed))
     out_ref, t_ref = _timed(lambda: run(ref, seed + 1000))
 
