@@ -101,7 +101,7 @@ def bench_kind(kind: str, n: int) -> list[dict]:
             rows.append(row("echo", kind, timed(ping, n, warm), None, "transport + server floor"))
     emu = GrblEmulator(steps_per_deg=80.0)
     with EmulatorServer(emu, kind=kind) as srv:
-        ctl = GrblController.from_url(srv.url, timeout_s=2.0)
+        ctl = GrblController.from_url(srv.url)  # 2 s per reply
         ax = GrblAxis(ctl, axis="X", steps_per_deg=80.0, max_rate_deg_s=30.0, accel_deg_s2=60.0, name="turntable")
         with ctl:
             rows.append(row("status", kind, timed(ctl.status, n, warm), WIRE_STATUS_S, "'?' -> report"))
@@ -118,7 +118,7 @@ def bench_kind(kind: str, n: int) -> list[dict]:
             )
     emu = EnttecEmulator()
     with EmulatorServer(emu, kind=kind) as srv:
-        dmx = EnttecDmx.from_url(srv.url, timeout_s=2.0)
+        dmx = EnttecDmx.from_url(srv.url)  # 2 s per reply
         with dmx:
             rows.append(
                 row("dmx_params", kind, timed(dmx.get_widget_parameters, n, warm), None, "label 3 request/reply")

@@ -6,7 +6,8 @@ This module holds the device logic: one command at a time, each answered by ACK 
 NAK; timeouts, garbled or truncated replies and ``NAK bad frame``/``NAK busy`` resend
 the same frame (same sequence number — every command is idempotent) up to
 ``retries`` times; a vanished port is re-opened up to ``reconnect_attempts`` times
-before the error names the device and says what to check.
+before the error names the device and says what to check (both from the driver's
+:class:`~opacityhull.rigs.transport.SerialSettings`, default :data:`DISPLAY_SERIAL`).
 """
 
 from __future__ import annotations
@@ -20,11 +21,15 @@ import numpy as np
 from ..errors import ConfigError, DeviceError, InputError
 from . import display_protocol as dp
 from .interfaces import DeviceInfo
-from .transport import DeviceGone, DeviceTimeout, OverTransport, driver_name, ProtocolError, SerialTransport, Transport
+from .transport import DeviceGone, DeviceTimeout, OverTransport, ProtocolError, Transport, driver_name
+from .transport import SerialSettings, SerialTransport, reopen
 
 log = logging.getLogger(__name__)
 
-__all__ = ["DisplayController", "DisplayNak"]
+__all__ = ["DISPLAY_SERIAL", "DisplayController", "DisplayNak"]
+
+#: 115200 baud RS-232; a command is resent 3 times, a vanished port re-opened twice, 0.2 s apart.
+DISPLAY_SERIAL = SerialSettings(baudrate=115200, timeout_s=2.0, retries=3, reconnect_attempts=2, reconnect_delay_s=0.2)
 
 
 class DisplayNak(ProtocolError):
@@ -59,14 +64,13 @@ class DisplayController(OverTransport):
         E.g. ``{"bottom": 0, "back": 1}`` (names as in ``geometry.displays``).
     name : str, optional
         Device name used in messages (default: the transport's).
-    timeout_s : float
-        Per reply.
-    retries : int
-        Resends of one frame after a timeout, a garbled reply or a retryable NAK.
+    serial : SerialSettings
+        Default :data:`DISPLAY_SERIAL`. ``timeout_s`` per reply; ``retries``: resends of
+        one frame after a timeout, a garbled reply or a retryable NAK;
+        ``reconnect_attempts``, ``reconnect_delay_s``: re-opens of a vanished port before
+        giving up; ``baudrate`` is the transport's (:meth:`from_url` opens the port at it).
     chunk_bytes : int
         Pattern upload chunk size (1..1024); each chunk is acknowledged.
-    reconnect_attempts, reconnect_delay_s :
-        Re-opens of a vanished port before giving up.
 
     No I/O happens in ``__init__``; the port opens in :meth:`open` (or on first use).
     """
@@ -77,21 +81,18 @@ class DisplayController(OverTransport):
         *,
         outputs: Mapping[str, int],
         name: str | None = None,
-        timeout_s: float = 2.0,
-        retries: int = 3,
+        serial: SerialSettings = DISPLAY_SERIAL,
         chunk_bytes: int = 512,
-        reconnect_attempts: int = 2,
-        reconnect_delay_s: float = 0.2,
     ):
         name = driver_name(transport, name, driver="DisplayController", fallback="backdrops")
         _check_display_options(name, outputs, chunk_bytes)
         self.name = name
         self.outputs = dict(outputs)
-        self.timeout_s = float(timeout_s)
-        self.retries = int(retries)
+        self.timeout_s = float(serial.timeout_s)
+        self.retries = serial.retries
         self.chunk_bytes = int(chunk_bytes)
-        self.reconnect_attempts = int(reconnect_attempts)
-        self.reconnect_delay_s = float(reconnect_delay_s)
+        self.reconnect_attempts = serial.reconnect_attempts
+        self.reconnect_delay_s = float(serial.reconnect_delay_s)
         self.transport = transport
         self._decoder = dp.FrameDecoder()
         self._seq = 0
@@ -105,26 +106,12 @@ class DisplayController(OverTransport):
         *,
         outputs: Mapping[str, int],
         name: str = "backdrops",
-        timeout_s: float = 2.0,
-        baudrate: int = 115200,
-        retries: int = 3,
+        serial: SerialSettings = DISPLAY_SERIAL,
         chunk_bytes: int = 512,
-        reconnect_attempts: int = 2,
-        reconnect_delay_s: float = 0.2,
     ) -> "DisplayController":
-        """A controller on a serial URL; ``timeout_s`` bounds every reply and every write."""
-        _check_display_options(name, outputs, chunk_bytes)
-        transport = SerialTransport(url, name=name, baudrate=baudrate, timeout_s=timeout_s, write_timeout_s=timeout_s)
-        return cls(
-            transport,
-            outputs=outputs,
-            name=name,
-            timeout_s=timeout_s,
-            retries=retries,
-            chunk_bytes=chunk_bytes,
-            reconnect_attempts=reconnect_attempts,
-            reconnect_delay_s=reconnect_delay_s,
-        )
+        """A controller on a serial URL; ``serial.timeout_s`` bounds every reply and every write."""
+        transport = SerialTransport.from_settings(url, serial, name=name)
+        return cls(transport, outputs=outputs, name=name, serial=serial, chunk_bytes=chunk_bytes)
 
     # ---- lifecycle
     def open(self) -> "DisplayController":
@@ -140,22 +127,20 @@ class DisplayController(OverTransport):
         naming the device if it never comes back."""
         n = self.reconnect_attempts if max_attempts is None else int(max_attempts)
         d = self.reconnect_delay_s if delay_s is None else float(delay_s)
-        last: Exception | None = None
-        for i in range(max(1, n)):
+
+        def once(attempt: int) -> None:
             self.transport.close()
-            if i:
-                time.sleep(d)  # give a re-plugged USB adapter time to enumerate
-            try:
-                self.open()
-                self.stats["reconnects"] += 1
-                log.info("%s: reconnected to %s (attempt %d)", self.name, self.url, i + 1)
-                return
-            except DeviceGone as e:
-                last = e
-        raise DeviceGone(
-            f"{self.name}: port {self.url} did not come back after {max(1, n)} attempt(s) ({last}) — "
-            "check the cable and that the controller is powered"
-        ) from None
+            self.open()
+            self.stats["reconnects"] += 1
+            log.info("%s: reconnected to %s (attempt %d)", self.name, self.url, attempt)
+
+        def gave_up(tries: int, last: BaseException | None) -> DeviceGone:
+            return DeviceGone(
+                f"{self.name}: port {self.url} did not come back after {tries} attempt(s) ({last}) — "
+                "check the cable and that the controller is powered"
+            )
+
+        reopen(once, attempts=n, delay_s=d, gave_up=gave_up)
 
     # ---- protocol core
     def _next_seq(self) -> int:

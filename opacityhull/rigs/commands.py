@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
-from typing import List
+from typing import Annotated, List
 
 import typer
 
@@ -13,33 +13,32 @@ from ..cliutil import cli_errors, emit
 
 log = logging.getLogger(__name__)
 
+_WRITE_CONFIG_HELP = "Where to write the runtime rig TOML (same rig, real URLs)."
+_TCP_HELP = "Serve on TCP sockets (socket://127.0.0.1:PORT) instead of ptys (/dev/pts/N)."
+_TIME_SCALE_HELP = "Real seconds per physical second of motion (0 = instant, 1 = real)."
+_FAULT_HELP = (
+    "DEVICE:KIND[:ARGS] (repeatable): inject a fault, e.g. "
+    "turntable:babble:5000, backdrops:garble:3, light_array:vanish:10; kinds: "
+    "drop, garble, truncate, late, delay, silent, babble, vanish "
+    "(docs/emulator-faults.md)."
+)
+_CHECK_CONFIG_HELP = "Rig TOML with real URLs (e.g. written by `rig emulate`)."
+_CHECK_JSON_HELP = 'Print {"ok", "devices": [{"name", "ok", "detail"}]}.'
+
 
 def register(app, groups) -> None:
-    """Add this stage's commands to the root app and the subcommand groups."""
+    """Add ``rig emulate`` and ``rig check`` to the ``rig`` group."""
     rig = groups["rig"]
 
     @rig.command("emulate")
     @cli_errors
     def emulate(
-        config: Path = typer.Option(..., "--config", help="Rig TOML whose emulator:KIND URLs to serve."),
-        write_config: Path = typer.Option(
-            ..., "--write-config", help="Where to write the runtime rig TOML (same rig, real URLs)."
-        ),
-        tcp: bool = typer.Option(
-            False, "--tcp", help="Serve on TCP sockets (socket://127.0.0.1:PORT) instead of ptys (/dev/pts/N)."
-        ),
-        time_scale: float = typer.Option(
-            0.0, "--time-scale", min=0.0, help="Real seconds per physical second of motion (0 = instant, 1 = real)."
-        ),
-        fault: List[str] = typer.Option(
-            [],
-            "--fault",
-            help="DEVICE:KIND[:ARGS] (repeatable): inject a fault, e.g. "
-            "turntable:babble:5000, backdrops:garble:3, light_array:vanish:10; kinds: "
-            "drop, garble, truncate, late, delay, silent, babble, vanish "
-            "(docs/emulator-faults.md).",
-        ),
-        json_out: bool = typer.Option(False, "--json", help="Print {config, devices} as one JSON line."),
+        config: Annotated[Path, typer.Option("--config", help="Rig TOML whose emulator:KIND URLs to serve.")],
+        write_config: Annotated[Path, typer.Option("--write-config", help=_WRITE_CONFIG_HELP)],
+        tcp: Annotated[bool, typer.Option("--tcp", help=_TCP_HELP)] = False,
+        time_scale: Annotated[float, typer.Option("--time-scale", min=0.0, help=_TIME_SCALE_HELP)] = 0.0,
+        fault: Annotated[List[str], typer.Option("--fault", help=_FAULT_HELP)] = [],
+        json_out: Annotated[bool, typer.Option("--json", help="Print {config, devices} as one JSON line.")] = False,
     ):
         """Start an emulator for every `emulator:` device of a rig TOML and serve until Ctrl-C / SIGTERM.
 
@@ -100,9 +99,9 @@ def register(app, groups) -> None:
     @rig.command("check")
     @cli_errors
     def check(
-        config: Path = typer.Option(..., "--config", help="Rig TOML with real URLs (e.g. written by `rig emulate`)."),
-        timeout_s: float = typer.Option(1.0, "--timeout", min=0.05, help="Seconds to wait for each reply."),
-        json_out: bool = typer.Option(False, "--json", help='Print {"ok", "devices": [{"name", "ok", "detail"}]}.'),
+        config: Annotated[Path, typer.Option("--config", help=_CHECK_CONFIG_HELP)],
+        timeout_s: Annotated[float, typer.Option("--timeout", min=0.05, help="Seconds to wait for each reply.")] = 1.0,
+        json_out: Annotated[bool, typer.Option("--json", help=_CHECK_JSON_HELP)] = False,
     ):
         """Talk to every device of a rig and print its identity and state; exit 3 naming the devices that fail.
 

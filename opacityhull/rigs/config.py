@@ -27,7 +27,10 @@ from typing import Any, Mapping
 from ..errors import ConfigError
 from ..riggeometry import RigGeometry
 from ..tomlio import TomlContext, read_toml
-from .transport import check_url
+from .backdrops import DISPLAY_SERIAL
+from .lights import DMX_SERIAL
+from .motion import GRBL_SERIAL
+from .transport import SerialSettings, check_url
 
 log = logging.getLogger(__name__)
 
@@ -147,13 +150,13 @@ def _slot_map(ctx, key: str, table: Mapping, owners: list, owner_of, *, slots, u
 
 @dataclass(frozen=True, kw_only=True)
 class PortConfig:
-    """What every serial device of the rig has: its name, URL, reply timeout, baud rate
-    and the TOML key path of its table (for messages)."""
+    """What every serial device of the rig has: its name, URL, serial settings (the
+    table's ``timeout_s`` and ``baudrate``, and the backdrops' ``retries``; the rest are
+    the driver's defaults) and the TOML key path of its table (for messages)."""
 
     name: str
     url: str
-    timeout_s: float = 2.0
-    baudrate: int = 115200
+    serial: SerialSettings
     key: str = ""
 
 
@@ -161,6 +164,7 @@ class PortConfig:
 class AxisConfig(PortConfig):
     """A GRBL axis: the turntable or the light-array rotation."""
 
+    serial: SerialSettings = GRBL_SERIAL
     axis: str = "X"
     steps_per_deg: float = 80.0
     max_rate_deg_s: float = 30.0
@@ -175,7 +179,7 @@ class LightArrayConfig(PortConfig):
 
     channels: tuple[tuple[int, int], ...]
     rotation: AxisConfig | None = None
-    baudrate: int = 57600
+    serial: SerialSettings = DMX_SERIAL
     key: str = "devices.light_array"
 
     @property
@@ -189,7 +193,7 @@ class BackdropsConfig(PortConfig):
     """The plasma-display controller and the display name → output map."""
 
     outputs: tuple[tuple[str, int], ...]
-    retries: int = 3
+    serial: SerialSettings = DISPLAY_SERIAL
     chunk_bytes: int = 512
     key: str = "devices.backdrops"
 
@@ -342,6 +346,18 @@ class _Ctx(TomlContext):
         return u
 
 
+def _serial(ctx: _Ctx, key: str, d: Mapping, defaults: SerialSettings, *, retries: bool = False) -> SerialSettings:
+    """The device table's ``timeout_s``, ``baudrate`` (and, with ``retries``, ``retries``)
+    over the driver's ``defaults``."""
+    values: dict[str, Any] = {
+        "timeout_s": ctx.num(key, d, "timeout_s", defaults.timeout_s, positive=True),
+        "baudrate": ctx.int_(key, d, "baudrate", defaults.baudrate, 300, 4_000_000),
+    }
+    if retries:
+        values["retries"] = ctx.int_(key, d, "retries", defaults.retries, 0, 100)
+    return replace(defaults, **values)
+
+
 def _axis(ctx: _Ctx, key: str, name: str, d, defaults: AxisConfig | None = None) -> AxisConfig:
     d = ctx.table(key, d)
     ctx.keys(key, d, _AXIS_KEYS)
@@ -368,8 +384,7 @@ def _axis(ctx: _Ctx, key: str, name: str, d, defaults: AxisConfig | None = None)
         accel_deg_s2=ctx.num(key, d, "accel_deg_s2", 60.0, positive=True),
         backlash_deg=ctx.num(key, d, "backlash_deg", 0.0, nonneg=True),
         soft_limits_deg=limits,
-        timeout_s=ctx.num(key, d, "timeout_s", 2.0, positive=True),
-        baudrate=ctx.int_(key, d, "baudrate", 115200, 300, 4_000_000),
+        serial=_serial(ctx, key, d, GRBL_SERIAL),
         key=key,
     )
 
@@ -449,8 +464,7 @@ def parse_rig_config(data: Mapping[str, Any], *, source: str = "<rig config>", b
             url=url,
             channels=tuple(sorted(channels.items())),
             rotation=rotation,
-            timeout_s=ctx.num(key, la, "timeout_s", 2.0, positive=True),
-            baudrate=ctx.int_(key, la, "baudrate", 57600, 300, 4_000_000),
+            serial=_serial(ctx, key, la, DMX_SERIAL),
             key=key,
         )
     elif light_ids:
@@ -489,9 +503,7 @@ def parse_rig_config(data: Mapping[str, Any], *, source: str = "<rig config>", b
             name="backdrops",
             url=url,
             outputs=tuple((n, outputs[n]) for n in display_names),
-            timeout_s=ctx.num(key, bd, "timeout_s", 2.0, positive=True),
-            baudrate=ctx.int_(key, bd, "baudrate", 115200, 300, 4_000_000),
-            retries=ctx.int_(key, bd, "retries", 3, 0, 100),
+            serial=_serial(ctx, key, bd, DISPLAY_SERIAL, retries=True),
             chunk_bytes=ctx.int_(key, bd, "chunk_bytes", 512, 1, 1024),
             key=key,
         )
@@ -609,11 +621,11 @@ def parse_rig_config(data: Mapping[str, Any], *, source: str = "<rig config>", b
                 )
             axes_on[url + "|" + obj.axis] = obj
             for other in axes_on.values():
-                if other.url == url and other.baudrate != obj.baudrate:
+                if other.url == url and other.serial.baudrate != obj.serial.baudrate:
                     raise ctx.err(
                         f"{key}.baudrate",
-                        f"{obj.baudrate} differs from {other.key}.baudrate "
-                        f"{other.baudrate} on the same controller {url!r}",
+                        f"{obj.serial.baudrate} differs from {other.key}.baudrate "
+                        f"{other.serial.baudrate} on the same controller {url!r}",
                     )
 
     return RigConfig(

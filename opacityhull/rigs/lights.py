@@ -13,7 +13,6 @@ and remembers the first failure, which the next :meth:`~EnttecDmx.send_dmx` rais
 from __future__ import annotations
 
 import logging
-import math
 import threading
 import time
 from typing import Mapping
@@ -21,14 +20,18 @@ from typing import Mapping
 from ..errors import ConfigError, DeviceError, InputError
 from . import enttec_protocol as ep
 from .interfaces import DeviceInfo, RotaryAxis, check_opened
-from .transport import DeviceGone, DeviceTimeout, OverTransport, driver_name, SerialTransport, Transport
+from .transport import DeviceGone, DeviceTimeout, OverTransport, SerialSettings, SerialTransport, Transport, driver_name
 
 log = logging.getLogger(__name__)
 
-__all__ = ["EnttecDmx", "DmxLightArray"]
+__all__ = ["DMX_SERIAL", "EnttecDmx", "DmxLightArray"]
+
+#: The widget's virtual COM port ignores the baud rate (57600 by convention). DMX is never
+#: acknowledged and the rig re-opens a vanished widget: ``retries`` and ``reconnect_*`` are unused.
+DMX_SERIAL = SerialSettings(baudrate=57600, timeout_s=2.0, retries=0, reconnect_attempts=0, reconnect_delay_s=0.0)
 
 
-def _check_dmx_options(name: str, timeout_s: float, universe_size: int) -> None:
+def _check_universe_size(name: str, universe_size: int) -> None:
     if (
         isinstance(universe_size, bool)
         or not isinstance(universe_size, int)
@@ -37,8 +40,6 @@ def _check_dmx_options(name: str, timeout_s: float, universe_size: int) -> None:
         raise ConfigError(
             f"{name}: universe_size = {universe_size!r}, expected an integer {ep.MIN_DMX_CHANNELS}..{ep.DMX_CHANNELS}"
         )
-    if not (isinstance(timeout_s, (int, float)) and math.isfinite(timeout_s) and timeout_s > 0):
-        raise ConfigError(f"{name}: timeout_s = {timeout_s!r}, expected a number > 0")
 
 
 class EnttecDmx(OverTransport):
@@ -49,7 +50,8 @@ class EnttecDmx(OverTransport):
     transport : the byte transport (:meth:`from_url` builds a serial one on the widget's
         virtual COM port; its baud rate is a dummy value).
     name : device name in messages (default: the transport's).
-    timeout_s : per reply (labels 3, 10).
+    serial : :class:`~opacityhull.rigs.transport.SerialSettings` (default :data:`DMX_SERIAL`):
+        ``timeout_s`` per reply (labels 3, 10); ``baudrate`` is the transport's.
     universe_size : channels sent in every packet (24..512); unused channels are 0.
     verify_on_open : :meth:`open` asks for the widget parameters, so a wrong port or an
         Open DMX (no processor, never answers) fails at once.
@@ -60,14 +62,14 @@ class EnttecDmx(OverTransport):
         transport: Transport,
         *,
         name: str | None = None,
-        timeout_s: float = 2.0,
+        serial: SerialSettings = DMX_SERIAL,
         universe_size: int = 512,
         verify_on_open: bool = True,
     ):
         name = driver_name(transport, name, driver="EnttecDmx", fallback="dmx")
-        _check_dmx_options(name, timeout_s, universe_size)
+        _check_universe_size(name, universe_size)
         self.name = name
-        self.timeout_s = float(timeout_s)
+        self.timeout_s = float(serial.timeout_s)
         self.universe_size = universe_size
         self.verify_on_open = verify_on_open
         self.transport = transport
@@ -88,19 +90,13 @@ class EnttecDmx(OverTransport):
         url: str,
         *,
         name: str = "dmx",
-        timeout_s: float = 2.0,
+        serial: SerialSettings = DMX_SERIAL,
         universe_size: int = 512,
-        baudrate: int = 57600,
         verify_on_open: bool = True,
     ) -> "EnttecDmx":
-        """A widget on a serial URL; ``timeout_s`` bounds every reply and every write."""
-        _check_dmx_options(name, timeout_s, universe_size)
-        transport = SerialTransport(
-            url, name=name, baudrate=baudrate, timeout_s=float(timeout_s), write_timeout_s=float(timeout_s)
-        )
-        return cls(
-            transport, name=name, timeout_s=timeout_s, universe_size=universe_size, verify_on_open=verify_on_open
-        )
+        """A widget on a serial URL; ``serial.timeout_s`` bounds every reply and every write."""
+        transport = SerialTransport.from_settings(url, serial, name=name)
+        return cls(transport, name=name, serial=serial, universe_size=universe_size, verify_on_open=verify_on_open)
 
     # ------------------------------------------------------------------ lifecycle
     def open(self) -> "EnttecDmx":

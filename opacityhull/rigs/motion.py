@@ -56,11 +56,13 @@ from typing import Any
 from ..errors import ConfigError, DeviceError, InputError
 from . import grbl_protocol as gp
 from .interfaces import DeviceInfo, check_opened
-from .transport import DeviceGone, DeviceTimeout, OverTransport, driver_name, ProtocolError, SerialTransport, Transport
+from .transport import DeviceGone, DeviceTimeout, OverTransport, ProtocolError, Transport, driver_name
+from .transport import SerialSettings, SerialTransport, reopen
 
 log = logging.getLogger(__name__)
 
 __all__ = [
+    "GRBL_SERIAL",
     "GrblController",
     "GrblAxis",
     "GrblCommandError",
@@ -68,6 +70,11 @@ __all__ = [
     "GrblInterrupted",
     "move_duration_s",
 ]
+
+
+#: GRBL 1.1 talks at 115200 baud; a lost move line is re-sent once; :meth:`GrblController.reconnect`
+#: tries 5 times, 0.5 s apart.
+GRBL_SERIAL = SerialSettings(baudrate=115200, timeout_s=2.0, retries=1, reconnect_attempts=5, reconnect_delay_s=0.5)
 
 
 class GrblCommandError(DeviceError):
@@ -128,7 +135,11 @@ class GrblController(OverTransport):
     transport : the byte transport (a :class:`~opacityhull.rigs.transport.SerialTransport`
         from :meth:`from_url`, or the in-memory one of :mod:`opacityhull.rigs.testing`).
     name : device name in messages (default: the transport's).
-    timeout_s : per reply (a move adds its travel time on top).
+    serial : :class:`~opacityhull.rigs.transport.SerialSettings` (default
+        :data:`GRBL_SERIAL`): ``timeout_s`` per reply (a move adds its travel time on
+        top), ``retries`` the default of the axes, ``reconnect_attempts`` and
+        ``reconnect_delay_s`` those of :meth:`reconnect`; ``baudrate`` is the
+        transport's (:meth:`from_url` opens the port at it).
     poll_s : interval between ``?`` polls while waiting for a move.
     boot_timeout_s : how long :meth:`open` keeps asking ``?`` for a first answer (an
         Arduino resets when the port opens and takes 1-2 s to boot); then it sends a soft
@@ -142,15 +153,16 @@ class GrblController(OverTransport):
         transport: Transport,
         *,
         name: str | None = None,
-        timeout_s: float = 2.0,
+        serial: SerialSettings = GRBL_SERIAL,
         poll_s: float = 0.02,
         boot_timeout_s: float | None = None,
     ):
         name = driver_name(transport, name, driver="GrblController", fallback="grbl")
-        if not (isinstance(timeout_s, (int, float)) and timeout_s > 0 and math.isfinite(timeout_s)):
-            raise ConfigError(f"{name}: timeout_s must be a number > 0, got {timeout_s!r}")
         self.name = name
-        self.timeout_s = float(timeout_s)
+        self.timeout_s = float(serial.timeout_s)
+        self.retries = serial.retries
+        self.reconnect_attempts = serial.reconnect_attempts
+        self.reconnect_delay_s = float(serial.reconnect_delay_s)
         self.poll_s = float(poll_s)
         self.boot_timeout_s = max(1.0, 1.5 * self.timeout_s) if boot_timeout_s is None else float(boot_timeout_s)
         self.transport = transport
@@ -178,19 +190,14 @@ class GrblController(OverTransport):
         url: str,
         *,
         name: str = "grbl",
-        baudrate: int = 115200,
-        timeout_s: float = 2.0,
+        serial: SerialSettings = GRBL_SERIAL,
         poll_s: float = 0.02,
         boot_timeout_s: float | None = None,
     ) -> "GrblController":
         """A controller on a serial URL (``/dev/ttyUSB0``, ``socket://host:port``, a pty
-        path); GRBL 1.1 talks at 115200 baud."""
-        if not (isinstance(timeout_s, (int, float)) and timeout_s > 0 and math.isfinite(timeout_s)):
-            raise ConfigError(f"{name}: timeout_s must be a number > 0, got {timeout_s!r}")
-        transport = SerialTransport(
-            url, name=name, baudrate=int(baudrate), timeout_s=float(timeout_s), write_timeout_s=float(timeout_s)
-        )
-        return cls(transport, name=name, timeout_s=timeout_s, poll_s=poll_s, boot_timeout_s=boot_timeout_s)
+        path); ``serial.timeout_s`` bounds every reply and every write."""
+        transport = SerialTransport.from_settings(url, serial, name=name)
+        return cls(transport, name=name, serial=serial, poll_s=poll_s, boot_timeout_s=boot_timeout_s)
 
     # ------------------------------------------------------------------ lifecycle
     @property
@@ -278,29 +285,40 @@ class GrblController(OverTransport):
         self.transport.close()
 
     def reconnect(
-        self, max_attempts: int = 5, delay_s: float = 0.5, *, url: str | None = None, unlock: bool = False
+        self,
+        max_attempts: int | None = None,
+        delay_s: float | None = None,
+        *,
+        url: str | None = None,
+        unlock: bool = False,
     ) -> "GrblController":
         """Reopen the port after :class:`DeviceGone` and re-read state and settings.
 
-        Tries ``max_attempts`` times, ``delay_s`` apart; ``url`` replaces the port (a
+        Tries ``max_attempts`` times (default :attr:`reconnect_attempts`), ``delay_s``
+        apart (default :attr:`reconnect_delay_s`); ``url`` replaces the port (a
         re-enumerated USB device). Raises :class:`DeviceGone` naming the last error.
         """
-        if max_attempts < 1:
+        if max_attempts is not None and max_attempts < 1:
             raise InputError(f"{self.name}: max_attempts must be >= 1, got {max_attempts}")
-        last: Exception | None = None
-        for attempt in range(max_attempts):
+
+        def once(_attempt: int) -> "GrblController":
             self.close()
             if url is not None:
                 self.transport.url = url
-            try:
-                return self.open(unlock=unlock)
-            except DeviceError as e:
-                last = e
-                if attempt + 1 < max_attempts:
-                    time.sleep(delay_s)
-        raise DeviceGone(
-            f"{self.name}: could not reconnect to {self.url} after {max_attempts} attempts "
-            f"({last}) — check the USB cable and the controller's power, then reconnect"
+            return self.open(unlock=unlock)
+
+        def gave_up(tries: int, last: BaseException | None) -> DeviceGone:
+            return DeviceGone(
+                f"{self.name}: could not reconnect to {self.url} after {tries} attempts "
+                f"({last}) — check the USB cable and the controller's power, then reconnect"
+            )
+
+        return reopen(
+            once,
+            attempts=self.reconnect_attempts if max_attempts is None else max_attempts,
+            delay_s=self.reconnect_delay_s if delay_s is None else delay_s,
+            catch=DeviceError,
+            gave_up=gave_up,
         )
 
     def _require_open(self) -> None:
@@ -715,7 +733,8 @@ class GrblAxis:
     continuous : wrap angles and take the short way; default: ``soft_limits_deg is None``.
     tolerance_deg : |reported - target| accepted as arrived; default half a step (at least
         the 0.0005 degree print resolution of GRBL's reports).
-    retries : how often a move line that provably never arrived is re-sent.
+    retries : how often a move line that provably never arrived is re-sent; default the
+        controller's (``serial.retries``).
     homing_timeout_s : how long ``$H`` may take.
 
     No I/O in ``__init__``; the controller's :meth:`~GrblController.open` applies the
@@ -735,7 +754,7 @@ class GrblAxis:
         name: str | None = None,
         continuous: bool | None = None,
         tolerance_deg: float | None = None,
-        retries: int = 1,
+        retries: int | None = None,
         homing_timeout_s: float = 120.0,
     ):
         self.name = name or f"{controller.name}.{axis}"
@@ -776,6 +795,7 @@ class GrblAxis:
         self.continuous = (soft_limits_deg is None) if continuous is None else bool(continuous)
         res = max(0.5 / self.steps_per_deg, 0.0005) + 1e-9
         self.tolerance_deg = res if tolerance_deg is None else float(tolerance_deg)
+        retries = controller.retries if retries is None else retries
         if not isinstance(retries, int) or retries < 0:
             raise ConfigError(f"{self.name}: retries = {retries!r}, expected an integer >= 0")
         self.retries = retries

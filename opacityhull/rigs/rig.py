@@ -20,7 +20,7 @@ import threading
 import time
 import warnings
 from contextlib import contextmanager
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Any, Callable, Iterator, Sequence
 
 from ..errors import CaptureInterrupted, ConfigError, DeviceError, Terminated
@@ -29,7 +29,7 @@ from .backdrops import DisplayController
 from .interfaces import Backdrops, CameraDevice, DeviceInfo, LightArray, Port, RotaryAxis, Turntable
 from .lights import DmxLightArray, EnttecDmx
 from .motion import GrblAxis, GrblController, GrblInterrupted
-from .transport import DeviceGone, OpenClose
+from .transport import DeviceGone, OpenClose, SerialSettings, reopen
 
 if TYPE_CHECKING:  # cameras.py imports the image codecs: only when a camera is built
     from .cameras import DirectoryCamera, OpenCVCamera
@@ -151,29 +151,24 @@ class HardwareRig(OpenClose):
 
     # ---- lifecycle
     def _open_port(self, port: Port, attempts: int) -> None:
-        last: Exception | None = None
-        for i in range(max(1, attempts)):
-            if i:
-                time.sleep(self.reconnect_delay_s)  # a re-plugged USB adapter needs time to enumerate
+        def once(_attempt: int) -> None:
             try:
-                try:
-                    port.open()
-                except GrblInterrupted as e:
-                    # A feed hold left by an earlier safe() exit: GRBL keeps its position through
-                    # a soft reset from Hold:0, and the reset clears the hold.
-                    if not (self.clear_hold and e.state == "Hold" and isinstance(port, GrblController)):
-                        raise
-                    # A reset during Hold:1 (still decelerating) would lose the position: give
-                    # the slowest axis on this controller time to stop first.
-                    log.info("%s: clearing a feed hold left by an earlier run (soft reset)", port.name)
-                    time.sleep(port.stop_time_s() + 0.1)
-                    port.open(reset=True)
-                return
-            except DeviceGone as e:
-                last = e
-        raise DeviceGone(
-            f"{port.name}: could not open {port.url} after {max(1, attempts)} attempt(s) ({last})"
-        ) from None
+                port.open()
+            except GrblInterrupted as e:
+                # A feed hold left by an earlier safe() exit: GRBL keeps its position through
+                # a soft reset from Hold:0, and the reset clears the hold.
+                if not (self.clear_hold and e.state == "Hold" and isinstance(port, GrblController)):
+                    raise
+                # A reset during Hold:1 (still decelerating) would lose the position: give
+                # the slowest axis on this controller time to stop first.
+                log.info("%s: clearing a feed hold left by an earlier run (soft reset)", port.name)
+                time.sleep(port.stop_time_s() + 0.1)
+                port.open(reset=True)
+
+        def gave_up(tries: int, last: BaseException | None) -> DeviceGone:
+            return DeviceGone(f"{port.name}: could not open {port.url} after {tries} attempt(s) ({last})")
+
+        reopen(once, attempts=attempts, delay_s=self.reconnect_delay_s, gave_up=gave_up)
 
     def open(self) -> "HardwareRig":
         """Open every port (each retried up to ``reconnect_attempts`` times); on failure the ports
@@ -444,15 +439,16 @@ def _build_devices(config: RigConfig, *, timeout_s: float | None = None) -> _Dev
     ports: list[Port] = []
     checks: list[tuple[GrblAxis | DmxLightArray | DisplayController, Port]] = []
 
+    def serial(s: SerialSettings, **quick: int) -> SerialSettings:
+        """The device's settings; with ``timeout_s`` (a check), that timeout and ``quick``."""
+        return s if timeout_s is None else replace(s, timeout_s=timeout_s, **quick)
+
     def controller(ax: AxisConfig) -> GrblController:
         if ax.url not in controllers:
             _check_runnable_url(ax.url, ax.key, config.source)
             names = [a.name for a in config.grbl_ports()[ax.url]]
             c = GrblController.from_url(
-                ax.url,
-                name="+".join(names) if len(names) > 1 else ax.name,
-                baudrate=ax.baudrate,
-                timeout_s=ax.timeout_s if timeout_s is None else timeout_s,
+                ax.url, name="+".join(names) if len(names) > 1 else ax.name, serial=serial(ax.serial)
             )
             controllers[ax.url] = c
             ports.append(c)
@@ -477,12 +473,7 @@ def _build_devices(config: RigConfig, *, timeout_s: float | None = None) -> _Dev
     if config.light_array is not None:
         la = config.light_array
         _check_runnable_url(la.url, la.key, config.source)
-        dmx = EnttecDmx.from_url(
-            la.url,
-            name=f"{la.name}.dmx",
-            timeout_s=la.timeout_s if timeout_s is None else timeout_s,
-            baudrate=la.baudrate,
-        )
+        dmx = EnttecDmx.from_url(la.url, name=f"{la.name}.dmx", serial=serial(la.serial))
         ports.append(dmx)
         rotation = axis(la.rotation) if la.rotation is not None else None
         light_array = DmxLightArray(dmx, channels=la.channel_map, rotation=rotation, name=la.name)
@@ -491,16 +482,12 @@ def _build_devices(config: RigConfig, *, timeout_s: float | None = None) -> _Dev
     if config.backdrops is not None:
         bd = config.backdrops
         _check_runnable_url(bd.url, bd.key, config.source)
-        quick = timeout_s is not None
         backdrops = DisplayController.from_url(
             bd.url,
             outputs=bd.output_map,
             name=bd.name,
-            timeout_s=bd.timeout_s if timeout_s is None else timeout_s,
-            baudrate=bd.baudrate,
-            retries=0 if quick else bd.retries,
+            serial=serial(bd.serial, retries=0, reconnect_attempts=0),
             chunk_bytes=bd.chunk_bytes,
-            reconnect_attempts=0 if quick else 2,
         )
         ports.append(backdrops)
         checks.append((backdrops, backdrops))

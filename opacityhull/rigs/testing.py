@@ -8,7 +8,7 @@
   this package's drivers)::
 
       with expected_exchange(GrblController, [(b"?", b"<Idle|MPos:0.000,0.000,0.000|FS:0,0>\\r\\n"),
-                                              ...], timeout_s=0.2) as grbl:
+                                              ...], serial=replace(GRBL_SERIAL, timeout_s=0.2)) as grbl:
           grbl.open()
 
   A pair ``(None, reply)`` is a message the device sends unasked: it arrives as soon as

@@ -26,10 +26,12 @@ handler otherwise reads a TCP stream one byte per system call).
 from __future__ import annotations
 
 import logging
+import math
 import select
 import socket
 import time
-from typing import Any, Callable, Self
+from dataclasses import dataclass
+from typing import Any, Callable, Self, TypeVar
 
 from ..errors import ConfigError, DeviceError
 
@@ -48,8 +50,10 @@ __all__ = [
     "DeviceGone",
     "ProtocolError",
     "SerialTransport",
+    "SerialSettings",
     "URL_SCHEMES",
     "check_url",
+    "reopen",
 ]
 
 URL_SCHEMES = ("socket://", "loop://", "rfc2217://", "/dev/", "COM")
@@ -72,6 +76,97 @@ class DeviceGone(DeviceError):
 
 class ProtocolError(DeviceError):
     """The device answered something that is not valid in its protocol."""
+
+
+T = TypeVar("T")
+
+
+def _count(v: object, lo: int) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool) and v >= lo
+
+
+def _seconds(v: object, *, positive: bool) -> bool:
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+        return False
+    return v > 0 if positive else v >= 0
+
+
+@dataclass(frozen=True, kw_only=True)
+class SerialSettings:
+    """How a driver talks over its serial link: line speed, reply and write timeout, and
+    how hard it tries again. Every field is required: start from the driver's defaults
+    (``replace(GRBL_SERIAL, timeout_s=0.5)``; ``GRBL_SERIAL`` in
+    :mod:`~opacityhull.rigs.motion`, ``DMX_SERIAL`` in :mod:`~opacityhull.rigs.lights`,
+    ``DISPLAY_SERIAL`` in :mod:`~opacityhull.rigs.backdrops`), which differ.
+
+    Attributes
+    ----------
+    baudrate : int
+        Line speed, bit/s (8N1); also named in the "garbled" diagnosis. The Enttec
+        widget's virtual COM port ignores it.
+    timeout_s : float
+        Seconds allowed for each reply and for each write (> 0).
+    retries : int
+        Resends of one command whose reply did not come or came garbled (>= 0): a
+        display command; a GRBL move line that provably never arrived (the default of
+        the controller's axes). DMX is never acknowledged: the Enttec driver has
+        nothing to resend.
+    reconnect_attempts : int
+        Re-opens of a vanished port before the error names the device (>= 0). The
+        Enttec widget is re-opened by the rig (:class:`~opacityhull.rigs.rig.HardwareRig`).
+    reconnect_delay_s : float
+        Seconds between two re-opens (>= 0): a re-plugged USB adapter needs time to
+        enumerate.
+
+    Raises
+    ------
+    ConfigError
+        A field of the wrong type or out of range (it names the field, the value and
+        what was expected).
+    """
+
+    baudrate: int
+    timeout_s: float
+    retries: int
+    reconnect_attempts: int
+    reconnect_delay_s: float
+
+    def __post_init__(self) -> None:
+        checks = {
+            "baudrate": (_count(self.baudrate, 1), "an integer > 0 (bit/s)"),
+            "timeout_s": (_seconds(self.timeout_s, positive=True), "a number of seconds > 0"),
+            "retries": (_count(self.retries, 0), "an integer >= 0"),
+            "reconnect_attempts": (_count(self.reconnect_attempts, 0), "an integer >= 0"),
+            "reconnect_delay_s": (_seconds(self.reconnect_delay_s, positive=False), "a number of seconds >= 0"),
+        }
+        for key, (ok, expected) in checks.items():
+            if not ok:
+                raise ConfigError(f"SerialSettings: {key} = {getattr(self, key)!r}, expected {expected}")
+
+
+def reopen(
+    open_once: Callable[[int], T],
+    *,
+    attempts: int,
+    delay_s: float,
+    catch: type[BaseException] | tuple[type[BaseException], ...] = DeviceGone,
+    gave_up: Callable[[int, BaseException | None], DeviceError],
+) -> T:
+    """``open_once(attempt)`` (``attempt`` = 1, 2, ...) until it returns, at most
+    ``max(1, attempts)`` times, ``delay_s`` seconds apart (a re-plugged USB adapter needs
+    time to enumerate); only ``catch`` failures are retried. Then raises
+    ``gave_up(tries, last_error)``: the one loop behind every driver's and the rig's
+    reconnect."""
+    tries = max(1, attempts)
+    last: BaseException | None = None
+    for i in range(tries):
+        if i:
+            time.sleep(delay_s)
+        try:
+            return open_once(i + 1)
+        except catch as e:
+            last = e
+    raise gave_up(tries, last) from None
 
 
 def check_url(url: str, *, where: str = "url") -> str:
@@ -151,8 +246,9 @@ class Transport(OpenClose):
     baudrate : int
         Named in the "garbled" diagnosis.
     timeout_s : float
-        Default read timeout for :meth:`read_until` / :meth:`read_exact`.
+        Default read timeout for :meth:`read_until` / :meth:`read_exact`, seconds.
     write_timeout_s : float
+        Seconds a write may take to leave.
 
     Notes
     -----
@@ -411,34 +507,27 @@ class Transport(OpenClose):
 class SerialTransport(Transport):
     """A serial port (pyserial ``serial_for_url``) with timeouts on every operation.
 
-    Parameters
+    Takes the parameters of :class:`Transport` (``url``: a device path,
+    ``socket://host:port`` or ``loop://``); :meth:`from_settings` builds one from a
+    driver's :class:`SerialSettings`.
+
+    Attributes
     ----------
-    url : str
-        Device path, ``socket://host:port`` or ``loop://``.
-    name : str
-        Device name used in error messages (``turntable``).
-    baudrate : int
-    timeout_s : float
-        Default read timeout for :meth:`read_until` / :meth:`read_exact`.
-    write_timeout_s : float
     exclusive : bool
-        Request exclusive access (POSIX ports only; ignored for sockets).
+        Request exclusive access when opening (POSIX device paths only; sockets ignore
+        it). Set it before :meth:`open`.
     """
 
-    def __init__(
-        self,
-        url: str,
-        *,
-        name: str = "device",
-        baudrate: int = 115200,
-        timeout_s: float = 2.0,
-        write_timeout_s: float = 2.0,
-        exclusive: bool = True,
-    ):
-        super().__init__(url, name=name, baudrate=baudrate, timeout_s=timeout_s, write_timeout_s=write_timeout_s)
-        self.exclusive = exclusive
-        self._port: Any = None
-        self._fd: int | None = None
+    exclusive = True
+    _port: Any = None
+    _fd: int | None = None
+
+    @classmethod
+    def from_settings(cls, url: str, serial: SerialSettings, *, name: str) -> "SerialTransport":
+        """The port at ``url`` at ``serial.baudrate``, with ``serial.timeout_s`` for every read and write."""
+        return cls(
+            url, name=name, baudrate=serial.baudrate, timeout_s=serial.timeout_s, write_timeout_s=serial.timeout_s
+        )
 
     @property
     def is_open(self) -> bool:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import time
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import replace
 from types import SimpleNamespace
 
 import pytest
@@ -16,8 +17,8 @@ import pytest
 from opacityhull.rigs.emulators.base import EmulatorServer
 from opacityhull.rigs.emulators.enttec import EnttecEmulator
 from opacityhull.rigs.emulators.grbl import GrblEmulator
-from opacityhull.rigs.lights import DmxLightArray, EnttecDmx
-from opacityhull.rigs.motion import GrblAxis, GrblController
+from opacityhull.rigs.lights import DMX_SERIAL, DmxLightArray, EnttecDmx
+from opacityhull.rigs.motion import GRBL_SERIAL, GrblAxis, GrblController
 from opacityhull.rigs.transport import DeviceTimeout
 
 
@@ -92,7 +93,11 @@ def grbl(kind):
         srv = EmulatorServer(emu, kind=kind)
         srv.start()
         ctl = GrblController.from_url(
-            srv.url, name="grbl", timeout_s=timeout_s, boot_timeout_s=boot_timeout_s, **ctl_kw
+            srv.url,
+            name="grbl",
+            serial=replace(GRBL_SERIAL, timeout_s=timeout_s),
+            boot_timeout_s=boot_timeout_s,
+            **ctl_kw,
         )
         made.append((srv, ctl))
         tt = GrblAxis(ctl, axis="X", steps_per_deg=80.0, max_rate_deg_s=30.0, accel_deg_s2=60.0, name="turntable")
@@ -127,7 +132,7 @@ def enttec(kind):
         emu = EnttecEmulator(**(emu_kw or {}))
         srv = EmulatorServer(emu, kind=kind)
         srv.start()
-        dmx = EnttecDmx.from_url(srv.url, name="dmx", timeout_s=timeout_s)
+        dmx = EnttecDmx.from_url(srv.url, name="dmx", serial=replace(DMX_SERIAL, timeout_s=timeout_s))
         made.append((srv, dmx))
         arr = DmxLightArray(dmx, channels=channels or {0: 1, 1: 2, 2: 3, 3: 4}, rotation=rotation, name="light_array")
         if open:

@@ -2,13 +2,17 @@
 
 import copy
 import tomllib
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from opacityhull.errors import ConfigError
+from opacityhull.rigs.backdrops import DISPLAY_SERIAL
 from opacityhull.rigs.config import RigConfig, load_rig_config, parse_emulator_url, parse_rig_config
+from opacityhull.rigs.lights import DMX_SERIAL
+from opacityhull.rigs.motion import GRBL_SERIAL
 from opacityhull.session import toml_dumps
 
 EXAMPLE = Path(__file__).resolve().parents[2] / "examples" / "rig-emulated.toml"
@@ -107,6 +111,19 @@ def test_roundtrip_and_url_rewrite(tmp_path, example_dict):
         again.geometry.nominal_cameras()[3].world_from_cam, cfg.geometry.nominal_cameras()[3].world_from_cam
     )
     assert cfg.raw["devices"]["turntable"]["url"] == "emulator:grbl"  # the original is untouched
+
+
+def test_serial_settings_are_the_table_over_the_driver_defaults(example_dict):
+    d = copy.deepcopy(example_dict)
+    d["devices"]["backdrops"].update(retries=5, timeout_s=0.5)
+    d["devices"]["light_array"].pop("timeout_s")
+    d["devices"]["light_array"]["rotation"]["baudrate"] = 250000
+    d["devices"]["turntable"]["baudrate"] = 250000
+    cfg = parse_rig_config(d)
+    assert cfg.turntable.serial == replace(GRBL_SERIAL, baudrate=250000)  # retries and reconnects: GRBL's
+    assert cfg.light_array.serial == DMX_SERIAL
+    assert cfg.light_array.rotation.serial == cfg.turntable.serial
+    assert cfg.backdrops.serial == replace(DISPLAY_SERIAL, retries=5, timeout_s=0.5)
 
 
 def test_parse_emulator_url():

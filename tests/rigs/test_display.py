@@ -1,11 +1,13 @@
 """Display controller driver against the emulator, over a real pty / TCP socket."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
 from opacityhull.errors import InputError
 from opacityhull.rigs import display_protocol as dp
-from opacityhull.rigs.backdrops import DisplayController, DisplayNak
+from opacityhull.rigs.backdrops import DISPLAY_SERIAL, DisplayController, DisplayNak
 from opacityhull.rigs.emulators.base import EmulatorServer
 from opacityhull.rigs.emulators.display import DisplayEmulator
 from opacityhull.rigs.interfaces import Backdrops
@@ -31,11 +33,14 @@ def _small_chunk_controller(srv, *, retries: int, reconnect_attempts: int) -> Di
     return DisplayController.from_url(
         srv.url,
         outputs=OUTPUTS,
-        timeout_s=0.3,
-        retries=retries,
+        serial=replace(
+            DISPLAY_SERIAL,
+            timeout_s=0.3,
+            retries=retries,
+            reconnect_attempts=reconnect_attempts,
+            reconnect_delay_s=0.01,
+        ),
         chunk_bytes=256,
-        reconnect_attempts=reconnect_attempts,
-        reconnect_delay_s=0.01,
     )
 
 
@@ -156,7 +161,9 @@ def test_late_replies_do_not_confuse_later_commands(emu, ctl):
 def test_silent_controller_times_out_naming_device(emu):
     e, srv = emu
     e.faults.silent = True
-    c = DisplayController.from_url(srv.url, outputs=OUTPUTS, timeout_s=0.1, retries=2, name="backdrops")
+    c = DisplayController.from_url(
+        srv.url, outputs=OUTPUTS, serial=replace(DISPLAY_SERIAL, timeout_s=0.1, retries=2), name="backdrops"
+    )
     with c:
         with pytest.raises(
             DeviceTimeout,
@@ -230,7 +237,9 @@ def test_config_errors_and_bad_output(emu):
         DisplayController.from_url(srv.url, outputs={"a": 0, "b": 0})
     with pytest.raises(ConfigError, match="chunk_bytes"):
         DisplayController.from_url(srv.url, outputs={"a": 0}, chunk_bytes=4096)
-    c = DisplayController.from_url(srv.url, outputs={"bottom": 0, "side": 5}, timeout_s=0.3)
+    c = DisplayController.from_url(
+        srv.url, outputs={"bottom": 0, "side": 5}, serial=replace(DISPLAY_SERIAL, timeout_s=0.3)
+    )
     with c:
         with pytest.raises(InputError, match="no display named 'top'"):
             c.show("top", 1)
@@ -252,7 +261,9 @@ def test_check_reports_identity_and_state(emu, ctl):
 
 
 def test_missing_port_is_device_gone():
-    c = DisplayController.from_url("/dev/does-not-exist-42", outputs=OUTPUTS, reconnect_attempts=0)
+    c = DisplayController.from_url(
+        "/dev/does-not-exist-42", outputs=OUTPUTS, serial=replace(DISPLAY_SERIAL, reconnect_attempts=0)
+    )
     with pytest.raises(DeviceGone, match="backdrops: cannot open /dev/does-not-exist-42"):
         c.open()
     with pytest.raises(DeviceGone):

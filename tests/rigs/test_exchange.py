@@ -11,6 +11,7 @@ import binascii
 import logging
 import struct
 import zlib
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -18,10 +19,10 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from opacityhull.errors import ConfigError, InputError
-from opacityhull.rigs.backdrops import DisplayController, DisplayNak
+from opacityhull.rigs.backdrops import DISPLAY_SERIAL, DisplayController, DisplayNak
 from opacityhull.rigs.interfaces import Port
-from opacityhull.rigs.lights import DmxLightArray, EnttecDmx
-from opacityhull.rigs.motion import GrblAxis, GrblCommandError, GrblController
+from opacityhull.rigs.lights import DMX_SERIAL, DmxLightArray, EnttecDmx
+from opacityhull.rigs.motion import GRBL_SERIAL, GrblAxis, GrblCommandError, GrblController
 from opacityhull.rigs.testing import ExpectedExchangeTransport, expected_exchange
 from opacityhull.rigs.transport import DeviceTimeout, Transport
 
@@ -48,7 +49,7 @@ GRBL_OPEN = [
 
 
 def grbl_with_turntable(transport: Transport) -> GrblAxis:
-    ctl = GrblController(transport, timeout_s=0.3, boot_timeout_s=0.3, poll_s=0.001)
+    ctl = GrblController(transport, serial=replace(GRBL_SERIAL, timeout_s=0.3), boot_timeout_s=0.3, poll_s=0.001)
     return GrblAxis(ctl, axis="X", steps_per_deg=80.0, max_rate_deg_s=30.0, accel_deg_s2=60.0, name="turntable")
 
 
@@ -120,7 +121,7 @@ def test_grbl_silent_port_is_a_timeout_naming_the_device():
     script = [(b"?", b""), (b"?", b""), (b"\x18", b"")]
 
     def make(t):
-        return GrblController(t, timeout_s=0.1, boot_timeout_s=0.5)
+        return GrblController(t, serial=replace(GRBL_SERIAL, timeout_s=0.1), boot_timeout_s=0.5)
 
     with expected_exchange(make, script, name="grbl") as c:
         with pytest.raises(DeviceTimeout) as ei:
@@ -142,7 +143,7 @@ PARAMS = enttec(3, bytes([44, 1, 9, 1, 40]))
 
 
 def dmx_array(transport: Transport) -> DmxLightArray:
-    dmx = EnttecDmx(transport, universe_size=24, timeout_s=0.3)
+    dmx = EnttecDmx(transport, universe_size=24, serial=replace(DMX_SERIAL, timeout_s=0.3))
     return DmxLightArray(dmx, channels={0: 1, 1: 2}, name="light_array")
 
 
@@ -209,7 +210,9 @@ def ack(seq: int, cmd: int, data: bytes = b"") -> bytes:
 
 def displays(transport: Transport) -> DisplayController:
     return DisplayController(
-        transport, outputs={"bottom": 0, "back": 1}, timeout_s=0.2, retries=1, reconnect_attempts=0
+        transport,
+        outputs={"bottom": 0, "back": 1},
+        serial=replace(DISPLAY_SERIAL, timeout_s=0.2, retries=1, reconnect_attempts=0),
     )
 
 

@@ -7,12 +7,14 @@ test needs a move in progress; then it waits on the emulator's state, never on t
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import pytest
 
 from opacityhull.errors import ConfigError, DeviceError, InputError
 from opacityhull.rigs import grbl_protocol as gp
 from opacityhull.rigs.motion import (
+    GRBL_SERIAL,
     GrblAlarm,
     GrblAxis,
     GrblCommandError,
@@ -372,6 +374,16 @@ def test_reconnect_gives_up_after_bounded_attempts(grbl):
         g.ctl.reconnect(max_attempts=3, delay_s=0.01)
     assert g.server.url in str(ei.value) and not g.ctl.is_open
     g.turntable.stop()  # still safe
+
+
+def test_serial_settings_bound_reconnect_and_default_the_axes_retries():
+    serial = replace(GRBL_SERIAL, retries=3, reconnect_attempts=2, reconnect_delay_s=0.01)
+    c = GrblController.from_url("/dev/does-not-exist-42", name="grbl", serial=serial)
+    with pytest.raises(DeviceGone, match="grbl: could not reconnect to /dev/does-not-exist-42 after 2 attempts"):
+        c.reconnect()
+    assert GrblAxis(c, axis="X", steps_per_deg=80, max_rate_deg_s=30).retries == 3
+    assert GrblAxis(c, axis="Y", steps_per_deg=80, max_rate_deg_s=30, retries=0).retries == 0
+    assert GrblAxis(GrblController.from_url("loop://"), steps_per_deg=80, max_rate_deg_s=30).retries == 1
 
 
 def test_soft_reset_mid_move_surfaces_alarm_and_requeries_position(grbl, background, wait_for):

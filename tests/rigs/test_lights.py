@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -10,7 +11,7 @@ import pytest
 from opacityhull.errors import ConfigError, InputError
 from opacityhull.rigs import enttec_protocol as ep
 from opacityhull.rigs.emulators.enttec import EnttecEmulator
-from opacityhull.rigs.lights import DmxLightArray, EnttecDmx
+from opacityhull.rigs.lights import DMX_SERIAL, DmxLightArray, EnttecDmx
 from opacityhull.rigs.interfaces import LightArray
 from opacityhull.rigs.transport import DeviceGone, DeviceTimeout
 
@@ -181,7 +182,7 @@ def test_driver_config_errors():
     with pytest.raises(ConfigError, match="universe_size = 10"):
         EnttecDmx.from_url("loop://", universe_size=10)
     with pytest.raises(ConfigError, match="timeout_s"):
-        EnttecDmx.from_url("loop://", timeout_s=0)
+        EnttecDmx.from_url("loop://", serial=replace(DMX_SERIAL, timeout_s=0))
     with pytest.raises(InputError, match="513 DMX channels given"):
         EnttecDmx.from_url("loop://").send_dmx(bytes(513))
 

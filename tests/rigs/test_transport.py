@@ -2,11 +2,15 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import pytest
 
 from opacityhull.errors import ConfigError, DeviceError
 from opacityhull.rigs.emulators.base import EmulatedDevice, EmulatorServer, Faults, Reply
-from opacityhull.rigs.transport import DeviceGone, DeviceTimeout, SerialTransport, check_url
+from opacityhull.rigs.backdrops import DISPLAY_SERIAL
+from opacityhull.rigs.lights import DMX_SERIAL
+from opacityhull.rigs.transport import DeviceGone, DeviceTimeout, SerialTransport, check_url, reopen
 
 
 class Echo(EmulatedDevice):
@@ -189,3 +193,47 @@ def test_late_reply_is_overtaken_but_delayed_replies_keep_order(kind, wait_for):
             t.write(b"four\n")
             assert t.read_until(b"\n") == b"got:three\r\n"  # one serial line: order kept
             assert t.read_until(b"\n") == b"got:four\r\n"
+
+
+@pytest.mark.parametrize(
+    "change, match",
+    [
+        ({"timeout_s": 0}, r"SerialSettings: timeout_s = 0, expected a number of seconds > 0"),
+        ({"timeout_s": float("inf")}, r"timeout_s = inf"),
+        ({"baudrate": 9600.0}, r"baudrate = 9600.0, expected an integer > 0"),
+        ({"retries": -1}, r"retries = -1, expected an integer >= 0"),
+        ({"reconnect_attempts": True}, r"reconnect_attempts = True"),
+        ({"reconnect_delay_s": -0.1}, r"reconnect_delay_s = -0.1, expected a number of seconds >= 0"),
+    ],
+)
+def test_serial_settings_reject_bad_values_naming_the_field(change, match):
+    with pytest.raises(ConfigError, match=match):
+        replace(DISPLAY_SERIAL, **change)
+
+
+def test_serial_transport_from_settings_uses_the_timeout_for_reads_and_writes():
+    t = SerialTransport.from_settings("loop://", replace(DMX_SERIAL, timeout_s=0.25), name="dmx")
+    assert (t.name, t.baudrate, t.timeout_s, t.write_timeout_s) == ("dmx", 57600, 0.25, 0.25)
+    assert not t.is_open and t.exclusive
+
+
+def test_reopen_is_bounded_spaced_and_names_the_last_error(monkeypatch):
+    sleeps: list[float] = []
+    monkeypatch.setattr("opacityhull.rigs.transport.time.sleep", sleeps.append)
+    calls: list[int] = []
+
+    def fail(attempt: int) -> None:
+        calls.append(attempt)
+        raise DeviceGone(f"gone {attempt}")
+
+    with pytest.raises(DeviceGone, match=r"3 tries, last: gone 3") as ei:
+        reopen(fail, attempts=3, delay_s=0.2, gave_up=lambda n, e: DeviceGone(f"{n} tries, last: {e}"))
+    assert calls == [1, 2, 3] and sleeps == [0.2, 0.2] and ei.value.__cause__ is None
+    assert reopen(lambda attempt: attempt, attempts=0, delay_s=1.0, gave_up=lambda n, e: DeviceGone("")) == 1
+
+    def silent(_attempt: int) -> None:
+        raise DeviceTimeout("silent")
+
+    with pytest.raises(DeviceTimeout, match="silent"):  # not a failure it retries: raised at once
+        reopen(silent, attempts=5, delay_s=0.0, gave_up=lambda n, e: DeviceGone(""))
+    assert sleeps == [0.2, 0.2]
