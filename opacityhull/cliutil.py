@@ -12,12 +12,14 @@ import os
 import sys
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Annotated, Any, Callable, Iterator, Mapping, Optional
+from typing import Annotated, Any, Callable, Iterator, Mapping, Optional, Sequence, TypeVar, overload
 
 import numpy as np
 import typer
 
 from .errors import EXIT_CODES, InputError, OpacityHullError, Terminated, write_error
+
+_C = TypeVar("_C", bound=str)
 
 __all__ = [
     "cli_errors",
@@ -35,6 +37,11 @@ __all__ = [
     "JsonSummaryFlag",
     "ModelDirArg",
     "SessionDirArg",
+    "env_yaw_options",
+    "pick_env_yaw",
+    "check_choice",
+    "check_model_dir",
+    "check_orbit_fps",
 ]
 
 ProgressCallback = Callable[[int, int], None]
@@ -49,6 +56,71 @@ JsonSummaryFlag = Annotated[bool, typer.Option("--json", help="Print a JSON summ
 ModelDirArg = Annotated[Path, typer.Argument(help="Model folder (model.toml, surfels.ply, views/).")]
 #: The DIRECTORY argument of ``session verify|info|hdr``.
 SessionDirArg = Annotated[Path, typer.Argument(help="Session folder.")]
+
+
+def env_yaw_options(default: float | None, help: str) -> dict[str, tuple[Any, Any]]:
+    """``--env-yaw-deg`` (``default``, ``help``) and its hidden old spelling ``--yaw-deg``,
+    for :func:`option_group` with ``build=pick_env_yaw`` (``render``, ``relight``)."""
+    return {
+        "env_yaw_deg": (Optional[float], typer.Option(default, "--env-yaw-deg", help=help)),
+        "yaw_deg_alias": (
+            Optional[float],
+            typer.Option(None, "--yaw-deg", hidden=True, help="Old name of --env-yaw-deg."),
+        ),
+    }
+
+
+def pick_env_yaw(env_yaw_deg: float | None, yaw_deg_alias: float | None) -> float | None:
+    """The value of :func:`env_yaw_options`: the old spelling wins where it is given."""
+    return env_yaw_deg if yaw_deg_alias is None else yaw_deg_alias
+
+
+@overload
+def check_choice(
+    flag: str, value: str, choices: Sequence[_C], *, one_of: bool = False, error: type[InputError] = InputError
+) -> _C: ...
+@overload
+def check_choice(
+    flag: str, value: None, choices: Sequence[_C], *, one_of: bool = False, error: type[InputError] = InputError
+) -> None: ...
+@overload
+def check_choice(
+    flag: str, value: str | None, choices: Sequence[_C], *, one_of: bool = False, error: type[InputError] = InputError
+) -> _C | None: ...
+def check_choice(
+    flag: str, value: str | None, choices: Sequence[_C], *, one_of: bool = False, error: type[InputError] = InputError
+) -> _C | None:
+    """``value`` of ``flag`` as one of ``choices`` (None stays None: the option was left
+    out and the config's default applies), else ``error`` naming the flag, the value and
+    the choices: "expected a, b or c", or with ``one_of`` "expected one of a, b, c"."""
+    if value is None:
+        return None
+    for c in choices:
+        if value == c:
+            return c
+    if one_of:
+        listing = f"one of {', '.join(choices)}"
+    else:
+        listing = " or ".join([", ".join(choices[:-1]), choices[-1]]) if len(choices) > 1 else choices[0]
+    raise error(f"{flag} {value!r}: expected {listing}")
+
+
+def check_model_dir(model: Path) -> None:
+    """The MODEL argument: a path that is not there, or a file, is bad input (exit 2)."""
+    if not model.exists():
+        raise InputError(f"{model}: no such model folder")
+    if not model.is_dir():
+        raise InputError(f"{model} is a file, expected a model folder (from `opacityhull build`)")
+
+
+def check_orbit_fps(orbit: int | None, fps: float) -> None:
+    """``--orbit N`` (frames, when given) and ``--fps`` of the commands that write an orbit."""
+    import math
+
+    if orbit is not None and orbit < 1:
+        raise InputError(f"--orbit {orbit}: expected at least 1 frame")
+    if not (math.isfinite(fps) and fps > 0):
+        raise InputError(f"--fps {fps}: expected a frame rate > 0")
 
 
 def console():

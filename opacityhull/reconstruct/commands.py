@@ -3,11 +3,12 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import List, Literal, Optional, cast
+from typing import Annotated, List, Literal, Optional, get_args
 
 import typer
 
-from ..cliutil import cli_errors, console, emit, option_group, progress_bar, scheduler_options, writing_to
+from ..cliutil import JsonFlag, option_group, scheduler_options
+from ..cliutil import check_choice, cli_errors, console, emit, progress_bar, writing_to
 from ..errors import ConfigError
 
 __all__ = ["register"]
@@ -128,6 +129,95 @@ def _human_matte(summary: dict) -> None:
         c.print(f"[yellow]note:[/] {n}")
 
 
+#: ``--refine``: BuildConfig.refine's words (it also takes True/False, which the flag does not).
+REFINE_MODES: tuple[Literal["shading", "surfels", "none"], ...] = ("shading", "surfels", "none")
+
+_OUT_HELP = "Model folder to write (created; existing files are replaced)."
+_HULL_RES_HELP = (
+    "Voxels along the longest side of the hull's box (default: "
+    "from the photographs' pixel footprint, one surfel per "
+    "projected pixel)."
+)
+_MATTING_DRIFT_HELP = (
+    "Correct photometric drift and misregistration between backdrop and "
+    "object shots: auto (field, except on a drift-free simulated rig) | "
+    "none | gain | affine | field."
+)
+_CARVE_HELP = (
+    "A voxel survives when at most this many views reject "
+    "it (imperfect masks). Default: 1 for imported sets "
+    "of 8+ views, 0 for rig sessions."
+)
+_REFINE_HELP = (
+    "Photo-consistent depth inside the hull: shading (surfels stay "
+    "on the hull and carry the depth the renderer shades at) | "
+    "surfels (move the surfels there) | none. Default: "
+    "BuildConfig.refine (shading)."
+)
+_GROUND_TRUTH_HELP = (
+    "Compare with the simulator's groundtruth/ (alpha MAE, hull IoU, pose errors) and report the metrics."
+)
+_ALPHA_HELP = "Silhouette = alpha > threshold (default: BuildConfig.alpha_threshold)."
+_CAMERAS_HELP = "auto (calibration phase → calibration/ → cameras/), or for debugging only: groundtruth | nominal."
+_BACKDROPS_HELP = (
+    "Matting backdrops: auto (object-absent captures, else predicted from "
+    "the display geometry) | object-absent | geometry."
+)
+_EXCLUDE_HELP = "Leave a view out (repeatable), e.g. c0_t030.000."
+_BOUNDS_HELP = "Hull box x0,y0,z0,x1,y1,z1 in metres (object frame); default: from the silhouettes."
+_OVERSAMPLE_HELP = "Surfel rays per voxel column per axis (default: BuildConfig.surfel_oversample)."
+# build's and matte's --max-alpha-std are the same option (MattingOptions.max_alpha_std)
+_ALPHA_STD_HELP = (
+    "pixels whose predicted alpha std exceeds this are filled from their neighbours "
+    "(default: MattingOptions.max_alpha_std)."
+)
+_BUILD_ALPHA_STD_HELP = "Matting: " + _ALPHA_STD_HELP
+_MATTE_ALPHA_STD_HELP = _ALPHA_STD_HELP[0].upper() + _ALPHA_STD_HELP[1:]
+_REQUIRE_ALL_HELP = (
+    "With a calibration phase: fail when a camera cannot be "
+    "calibrated (default: leave it and its views out, with a "
+    "note)."
+)
+_NO_REFLECTANCE_HELP = "Do not attach one-light images."
+_STORAGE_HELP = (
+    "Pixel type of the model's view and reflectance EXRs: half (16-bit, half "
+    "the bytes; values beyond 65504 are clamped and listed in the report) | float "
+    "(32-bit). Default: BuildConfig.storage (half)."
+)
+_REFLECTANCE_STORAGE_HELP = (
+    "How the model stores the one-light images: layers (one EXR layer per "
+    "light) | pca (a PCA per pixel block of each view, error and ranks in the report; readers get "
+    "the layers back). Default: BuildConfig.reflectance_storage (layers)."
+)
+_PCA_ERROR_HELP = (
+    "With --reflectance-storage pca: per view the fewest components over its "
+    "blocks whose relative Frobenius error is at most this (default: "
+    "BuildConfig.pca_error, 0.01)."
+)
+_PCA_RANK_HELP = "With --reflectance-storage pca: this rank for every block (instead of --pca-error)."
+_PCA_BLOCK_HELP = (
+    "With --reflectance-storage pca: one PCA per block of this many pixels "
+    "square; 0 = one PCA per view (default: BuildConfig.pca_block, 8)."
+)
+_MEMORY_HELP = (
+    "Memory budget of the build, GB (default: a quarter of the RAM). Every "
+    "per-view step reads, processes and writes one view at a time; the budget caps "
+    "the views matted at once on --scheduler threads|processes (fewer than --workers "
+    "when one view's images would not fit) and the views the carve stacks at once. "
+    "The model does not depend on it; report.json gives memory_budget_gb and "
+    "peak_rss_mb."
+)
+_RESUME_HELP = (
+    "Reuse the steps of an earlier (or interrupted) build into --out whose "
+    "inputs and options are unchanged (OUT/build/manifest.json); the report "
+    "says which steps were reused."
+)
+_MATTE_OUT_HELP = "Folder to write alpha.png, foreground_premul.png/.exr, composite.png and matte.json (created)."
+_DRIFT_HELP = (
+    "Photometric drift correction of the backdrops: field (smooth per-channel "
+    "gain over the frame) | affine (3x3 + offset) | gain | none."
+)
+
 _BUILD_SCHEDULER = scheduler_options(
     "Where the per-view steps run: serial | threads | processes | "
     "tcp://HOST:PORT (a dask scheduler; see docs/distributed.md).",
@@ -136,143 +226,47 @@ _BUILD_SCHEDULER = scheduler_options(
 
 
 def register(app, groups) -> None:
-    """Add this stage's commands to the root app and the subcommand groups."""
+    """Add ``build`` and ``matte`` to the root app."""
 
     @app.command("build")
     @cli_errors
     @option_group(_BUILD_SCHEDULER, into="executor", before="as_json")
     def build(
-        session: Path = typer.Argument(..., help="Session folder (from `capture` or `import colmap`)."),
-        out: Path = typer.Option(..., "--out", help="Model folder to write (created; existing files are replaced)."),
-        hull_res: Optional[int] = typer.Option(
-            None,
-            "--hull-res",
-            help="Voxels along the longest side of the hull's box (default: "
-            "from the photographs' pixel footprint, one surfel per "
-            "projected pixel).",
-        ),
-        matting_drift: str = typer.Option(
-            "auto",
-            "--matting-drift",
-            help="Correct photometric drift and misregistration between backdrop and "
-            "object shots: auto (field, except on a drift-free simulated rig) | "
-            "none | gain | affine | field.",
-        ),
-        carve_tolerance: Optional[int] = typer.Option(
-            None,
-            "--carve-tolerance",
-            help="A voxel survives when at most this many views reject "
-            "it (imperfect masks). Default: 1 for imported sets "
-            "of 8+ views, 0 for rig sessions.",
-        ),
-        refine: Optional[str] = typer.Option(
-            None,
-            "--refine",
-            help="Photo-consistent depth inside the hull: shading (surfels stay "
-            "on the hull and carry the depth the renderer shades at) | "
-            "surfels (move the surfels there) | none. Default: "
-            "BuildConfig.refine (shading).",
-        ),
-        ground_truth: bool = typer.Option(
-            False,
-            "--ground-truth",
-            help="Compare with the simulator's groundtruth/ (alpha MAE, hull IoU, pose errors) and report the metrics.",
-        ),
-        alpha_threshold: Optional[float] = typer.Option(
-            None, "--alpha-threshold", help="Silhouette = alpha > threshold (default: BuildConfig.alpha_threshold)."
-        ),
-        cameras: str = typer.Option(
-            "auto",
-            "--cameras",
-            help="auto (calibration phase → calibration/ → cameras/), or for debugging only: groundtruth | nominal.",
-        ),
-        backdrops: str = typer.Option(
-            "auto",
-            "--backdrops",
-            help="Matting backdrops: auto (object-absent captures, else predicted from "
-            "the display geometry) | object-absent | geometry.",
-        ),
-        exclude_view: Optional[List[str]] = typer.Option(
-            None, "--exclude-view", help="Leave a view out (repeatable), e.g. c0_t030.000."
-        ),
-        bounds: Optional[str] = typer.Option(
-            None, "--bounds", help="Hull box x0,y0,z0,x1,y1,z1 in metres (object frame); default: from the silhouettes."
-        ),
-        oversample: Optional[int] = typer.Option(
-            None, "--oversample", help="Surfel rays per voxel column per axis (default: BuildConfig.surfel_oversample)."
-        ),
-        max_alpha_std: Optional[float] = typer.Option(
-            None,
-            "--max-alpha-std",
-            help="Matting: pixels whose predicted alpha std exceeds this "
-            "are filled from their neighbours (default: "
-            "MattingOptions.max_alpha_std).",
-        ),
-        require_all_cameras: bool = typer.Option(
-            False,
-            "--require-all-cameras",
-            help="With a calibration phase: fail when a camera cannot be "
-            "calibrated (default: leave it and its views out, with a "
-            "note).",
-        ),
-        no_reflectance: bool = typer.Option(False, "--no-reflectance", help="Do not attach one-light images."),
-        no_pictures: bool = typer.Option(False, "--no-pictures", help="Skip the PNG pictures."),
-        storage: Optional[str] = typer.Option(
-            None,
-            "--storage",
-            help="Pixel type of the model's view and reflectance EXRs: half (16-bit, half "
-            "the bytes; values beyond 65504 are clamped and listed in the report) | float "
-            "(32-bit). Default: BuildConfig.storage (half).",
-        ),
-        reflectance_storage: Optional[str] = typer.Option(
-            None,
-            "--reflectance-storage",
-            help="How the model stores the one-light images: layers (one EXR layer per "
-            "light) | pca (a PCA per pixel block of each view, error and ranks in the report; readers get "
-            "the layers back). Default: BuildConfig.reflectance_storage (layers).",
-        ),
-        pca_error: Optional[float] = typer.Option(
-            None,
-            "--pca-error",
-            help="With --reflectance-storage pca: per view the fewest components over its "
-            "blocks whose relative Frobenius error is at most this (default: "
-            "BuildConfig.pca_error, 0.01).",
-        ),
-        pca_rank: Optional[int] = typer.Option(
-            None,
-            "--pca-rank",
-            help="With --reflectance-storage pca: this rank for every block (instead of --pca-error).",
-        ),
-        pca_block: Optional[int] = typer.Option(
-            None,
-            "--pca-block",
-            help="With --reflectance-storage pca: one PCA per block of this many pixels "
-            "square; 0 = one PCA per view (default: BuildConfig.pca_block, 8).",
-        ),
-        memory_gb: Optional[float] = typer.Option(
-            None,
-            "--memory-gb",
-            help="Memory budget of the build, GB (default: a quarter of the RAM). Every "
-            "per-view step reads, processes and writes one view at a time; the budget caps "
-            "the views matted at once on --scheduler threads|processes (fewer than --workers "
-            "when one view's images would not fit) and the views the carve stacks at once. "
-            "The model does not depend on it; report.json gives memory_budget_gb and "
-            "peak_rss_mb.",
-        ),
-        resume: bool = typer.Option(
-            False,
-            "--resume",
-            help="Reuse the steps of an earlier (or interrupted) build into --out whose "
-            "inputs and options are unchanged (OUT/build/manifest.json); the report "
-            "says which steps were reused.",
-        ),
-        as_json: bool = typer.Option(False, "--json", help="Print one JSON object on stdout."),
+        session: Annotated[Path, typer.Argument(help="Session folder (from `capture` or `import colmap`).")],
+        out: Annotated[Path, typer.Option("--out", help=_OUT_HELP)],
+        hull_res: Annotated[Optional[int], typer.Option("--hull-res", help=_HULL_RES_HELP)] = None,
+        matting_drift: Annotated[str, typer.Option("--matting-drift", help=_MATTING_DRIFT_HELP)] = "auto",
+        carve_tolerance: Annotated[Optional[int], typer.Option("--carve-tolerance", help=_CARVE_HELP)] = None,
+        refine: Annotated[Optional[str], typer.Option("--refine", help=_REFINE_HELP)] = None,
+        ground_truth: Annotated[bool, typer.Option("--ground-truth", help=_GROUND_TRUTH_HELP)] = False,
+        alpha_threshold: Annotated[Optional[float], typer.Option("--alpha-threshold", help=_ALPHA_HELP)] = None,
+        cameras: Annotated[str, typer.Option("--cameras", help=_CAMERAS_HELP)] = "auto",
+        backdrops: Annotated[str, typer.Option("--backdrops", help=_BACKDROPS_HELP)] = "auto",
+        exclude_view: Annotated[Optional[List[str]], typer.Option("--exclude-view", help=_EXCLUDE_HELP)] = None,
+        bounds: Annotated[Optional[str], typer.Option("--bounds", help=_BOUNDS_HELP)] = None,
+        oversample: Annotated[Optional[int], typer.Option("--oversample", help=_OVERSAMPLE_HELP)] = None,
+        max_alpha_std: Annotated[Optional[float], typer.Option("--max-alpha-std", help=_BUILD_ALPHA_STD_HELP)] = None,
+        require_all_cameras: Annotated[bool, typer.Option("--require-all-cameras", help=_REQUIRE_ALL_HELP)] = False,
+        no_reflectance: Annotated[bool, typer.Option("--no-reflectance", help=_NO_REFLECTANCE_HELP)] = False,
+        no_pictures: Annotated[bool, typer.Option("--no-pictures", help="Skip the PNG pictures.")] = False,
+        storage: Annotated[Optional[str], typer.Option("--storage", help=_STORAGE_HELP)] = None,
+        reflectance_storage: Annotated[
+            Optional[str], typer.Option("--reflectance-storage", help=_REFLECTANCE_STORAGE_HELP)
+        ] = None,
+        pca_error: Annotated[Optional[float], typer.Option("--pca-error", help=_PCA_ERROR_HELP)] = None,
+        pca_rank: Annotated[Optional[int], typer.Option("--pca-rank", help=_PCA_RANK_HELP)] = None,
+        pca_block: Annotated[Optional[int], typer.Option("--pca-block", help=_PCA_BLOCK_HELP)] = None,
+        memory_gb: Annotated[Optional[float], typer.Option("--memory-gb", help=_MEMORY_HELP)] = None,
+        resume: Annotated[bool, typer.Option("--resume", help=_RESUME_HELP)] = False,
+        as_json: JsonFlag = False,
         *,
         executor: dict,
     ):
         """Build the opacity hull of a session: cameras, matting, visual hull, surfels,
         visibility, per-view RGBA and reflectance, pictures (and ground-truth metrics)."""
         from ..executor import open_executor, parse_scheduler
+        from ..model import Storage
+        from ..reflectance_pca import ReflectanceStorage
         from .build import DRIFT_MODES, BuildConfig, build_model
         from .matting import MattingOptions
 
@@ -283,14 +277,12 @@ def register(app, groups) -> None:
         if memory_gb is not None:
             check_memory_gb(memory_gb)  # exit 2 naming --memory-gb, before any work
 
-        if matting_drift not in DRIFT_MODES:
-            raise ConfigError(f"--matting-drift {matting_drift!r}: expected one of {', '.join(DRIFT_MODES)}")
-        if refine is not None and refine not in ("shading", "surfels", "none"):
-            raise ConfigError(f"--refine {refine!r}: expected shading, surfels or none")
-        if storage is not None and storage not in ("half", "float"):
-            raise ConfigError(f"--storage {storage!r}: expected half or float")
-        if reflectance_storage is not None and reflectance_storage not in ("layers", "pca"):
-            raise ConfigError(f"--reflectance-storage {reflectance_storage!r}: expected layers or pca")
+        drift_mode = check_choice("--matting-drift", matting_drift, DRIFT_MODES, one_of=True, error=ConfigError)
+        refine_mode = check_choice("--refine", refine, REFINE_MODES, error=ConfigError)
+        storage_type = check_choice("--storage", storage, get_args(Storage), error=ConfigError)
+        refl_storage = check_choice(
+            "--reflectance-storage", reflectance_storage, get_args(ReflectanceStorage), error=ConfigError
+        )
         if pca_rank is not None and pca_error is not None:
             raise ConfigError("--pca-rank and --pca-error: give one (a fixed rank, or the error that chooses it)")
         if (pca_rank is not None or pca_error is not None or pca_block is not None) and reflectance_storage != "pca":
@@ -307,7 +299,7 @@ def register(app, groups) -> None:
         cfg = BuildConfig(
             hull_res=hull_res,
             carve_tolerance=carve_tolerance,
-            matting_drift=matting_drift,
+            matting_drift=drift_mode,
             cameras=cameras,
             backdrops=backdrops,
             alpha_threshold=d.alpha_threshold if alpha_threshold is None else alpha_threshold,
@@ -318,13 +310,9 @@ def register(app, groups) -> None:
             reflectance=not no_reflectance,
             pictures=not no_pictures,
             drop_uncalibrated_cameras=not require_all_cameras,
-            refine=d.refine if refine is None else cast(Literal["shading", "surfels", "none"], refine),
-            storage=d.storage if storage is None else cast(Literal["half", "float"], storage),
-            reflectance_storage=(
-                d.reflectance_storage
-                if reflectance_storage is None
-                else cast(Literal["layers", "pca"], reflectance_storage)
-            ),
+            refine=d.refine if refine_mode is None else refine_mode,
+            storage=d.storage if storage_type is None else storage_type,
+            reflectance_storage=d.reflectance_storage if refl_storage is None else refl_storage,
             pca_rank=pca_rank,
             pca_error=d.pca_error if pca_error is None else pca_error,
             pca_block=d.pca_block if pca_block is None else (pca_block or None),
@@ -364,26 +352,11 @@ def register(app, groups) -> None:
     @cli_errors
     def matte(
         ctx: typer.Context,
-        out: Path = typer.Option(
-            ...,
-            "--out",
-            help="Folder to write alpha.png, foreground_premul.png/.exr, composite.png and matte.json (created).",
-        ),
-        over: Optional[Path] = typer.Option(None, "--over", help="New background for composite.png."),
-        drift: str = typer.Option(
-            "field",
-            "--drift",
-            help="Photometric drift correction of the backdrops: field (smooth per-channel "
-            "gain over the frame) | affine (3x3 + offset) | gain | none.",
-        ),
-        max_alpha_std: Optional[float] = typer.Option(
-            None,
-            "--max-alpha-std",
-            help="Pixels whose predicted alpha std exceeds this are "
-            "filled from their neighbours (default: "
-            "MattingOptions.max_alpha_std).",
-        ),
-        as_json: bool = typer.Option(False, "--json", help="Print one JSON object on stdout."),
+        out: Annotated[Path, typer.Option("--out", help=_MATTE_OUT_HELP)],
+        over: Annotated[Optional[Path], typer.Option("--over", help="New background for composite.png.")] = None,
+        drift: Annotated[str, typer.Option("--drift", help=_DRIFT_HELP)] = "field",
+        max_alpha_std: Annotated[Optional[float], typer.Option("--max-alpha-std", help=_MATTE_ALPHA_STD_HELP)] = None,
+        as_json: JsonFlag = False,
     ):
         """Triangulation matting of your own shots: --object A.jpg B.jpg [...] --backdrop A.jpg
         B.jpg [...] (pair k = object k in front of backdrop k, backdrop k alone; at least 2

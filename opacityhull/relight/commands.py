@@ -5,20 +5,23 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import Optional
+from typing import Annotated, Optional
 
 import typer
 from rich.markup import escape
 
-from ..cliutil import JsonSummaryFlag, cli_errors, console, emit, option_group, progress, writing_to
+from ..cliutil import JsonSummaryFlag, env_yaw_options, option_group, pick_env_yaw
+from ..cliutil import check_choice, check_model_dir, check_orbit_fps, cli_errors, console, emit, progress, writing_to
 from ..errors import InputError, check_writable
+from .basis import KernelConfig
+from .relit import RelightConfig
+
+# the flags' defaults are the configs' (numpy-only modules: --help stays fast)
+_K, _R = KernelConfig(), RelightConfig()
 
 
 def _config(kernel: str, kernel_width: float, lower_hemisphere: str, near_light: bool, pca_rank: Optional[int]):
     from typing import Any, cast
-
-    from .basis import KernelConfig
-    from .relit import RelightConfig
 
     # the flags arrive as plain strings; KernelConfig.__post_init__ checks them (ConfigError naming the value)
     kind, lower = cast(Any, kernel), cast(Any, lower_hemisphere)
@@ -31,13 +34,11 @@ def _config(kernel: str, kernel_width: float, lower_hemisphere: str, near_light:
 
 def _probe_format(value: str):
     """``--probe-format`` checked and typed (the runners take only the Literal)."""
-    from typing import cast
+    from typing import get_args
 
-    from .envmap import PROBE_FORMATS, ProbeFormat
+    from .envmap import ProbeFormat
 
-    if value not in PROBE_FORMATS:
-        raise InputError(f"--probe-format {value!r}: expected one of {', '.join(PROBE_FORMATS)}")
-    return cast(ProbeFormat, value)
+    return check_choice("--probe-format", value, get_args(ProbeFormat), one_of=True)
 
 
 _ENVMAP_HELP = (
@@ -53,53 +54,82 @@ _FORMAT_HELP = (
 )
 
 
-#: ``--env-yaw-deg`` and its old spelling, read as one value (see :func:`_yaw`).
-_YAW_OPTIONS = {
-    "env_yaw_deg": (Optional[float], typer.Option(None, "--env-yaw-deg", help=_YAW_HELP)),
-    "yaw_deg_alias": (Optional[float], typer.Option(None, "--yaw-deg", hidden=True, help="Old name of --env-yaw-deg.")),
-}
+def _map_options(*, required: bool) -> dict:
+    """``--envmap`` (``required``, else None: no map) and how both commands read it: its
+    rotation (``--env-yaw-deg``, None: the map's default; and its old spelling) and its
+    layout (``--probe-format``). See :func:`_load_map`."""
+    kind, default = (str, ...) if required else (Optional[str], None)
+    return {
+        "envmap": (kind, typer.Option(default, "--envmap", help=_ENVMAP_HELP)),
+        **env_yaw_options(None, _YAW_HELP),
+        "probe_format": (str, typer.Option("latlong", "--probe-format", help=_FORMAT_HELP)),
+    }
 
 
-def _yaw(env_yaw_deg: Optional[float], yaw_deg_alias: Optional[float]) -> Optional[float]:
-    return env_yaw_deg if yaw_deg_alias is None else yaw_deg_alias
+def _load_map(map_options: dict, *, flip_u: bool = False):
+    """``--envmap`` read with the rest of :func:`_map_options` (``--probe-format`` checked here)."""
+    from .envmap import default_yaw_deg, load_envmap
 
+    envmap = map_options["envmap"]
+    yaw = pick_env_yaw(map_options["env_yaw_deg"], map_options["yaw_deg_alias"])
+    return load_envmap(
+        envmap,
+        yaw_deg=default_yaw_deg(envmap) if yaw is None else yaw,
+        probe_format=_probe_format(map_options["probe_format"]),
+        flip_u=flip_u,
+    )
+
+
+_MODEL_HELP = "Model folder written by `opacityhull build` (with reflectance data)."
+_OUT_HELP = "Output folder (EXR + PNG per image, contact sheets, GIF, relight.json)."
+_FLIP_U_HELP = "The lat-long map is stored mirrored left-right."
+_LIGHTS_HELP = (
+    "Directional lights 'dx,dy,dz,r,g,b;...' (direction towards the light in the object frame, RGB "
+    "irradiance), or 'point:x,y,z,r,g,b' (position in metres, RGB intensity). Adds to --envmap."
+)
+_VIEW_HELP = "Also render camera CAM at table angle DEG: 'CAM,DEG'."
+_ORBIT_HELP = "Also render an orbit of N frames (PNGs + GIF)."
+_FPS_HELP = "Frame rate of the orbit GIF (> 0; GIF stores 1/100 s delays)."
+_EXPOSURE_HELP = "PNG exposure multiplier (default: automatic, key 0.18)."
+_EVAL_MODEL_HELP = "Model folder built from a simulated session (with reflectance data)."
+_EVAL_OUT_HELP = (
+    "Folder for the contact sheet and per-view EXRs (default "
+    "./MODELNAME_eval_relight in the current folder: an evaluation never "
+    "writes into the model)."
+)
+_MAX_VIEWS_HELP = "Evaluate at most this many views (spread evenly)."
+_EVAL_JSON_HELP = 'Print {"psnr_mean", "rel_err_mean", "per_view", ...} on stdout.'
+
+
+_KERNEL_HELP = (
+    "Light-cell partition: vmf (smooth, default), linear (barycentric on the "
+    "lights' triangulation) or voronoi (nearest light)."
+)
+_KERNEL_WIDTH_HELP = "vMF kernel sigma as a fraction of the light spacing."
+_LOWER_HELP = "Light from below the table plane: drop (the table blocks it) or nearest."
+_NEAR_HELP = "Correct the one-light images for the lights' finite distance (1/r^2 at the hull surface)."
+_PCA_RANK_HELP = "Relight from a rank-R PCA of each view's data (reports its error)."
 
 #: The flags of ``relight`` and ``eval relight`` that make their RelightConfig (see :func:`_config`).
 _CONFIG_OPTIONS = {
-    "kernel": (
-        str,
-        typer.Option(
-            "vmf",
-            "--kernel",
-            help="Light-cell partition: vmf (smooth, default), linear (barycentric on the "
-            "lights' triangulation) or voronoi (nearest light).",
-        ),
-    ),
-    "kernel_width": (
-        float,
-        typer.Option(0.25, "--kernel-width", help="vMF kernel sigma as a fraction of the light spacing."),
-    ),
-    "lower_hemisphere": (
-        str,
-        typer.Option(
-            "drop",
-            "--lower-hemisphere",
-            help="Light from below the table plane: drop (the table blocks it) or nearest.",
-        ),
-    ),
-    "near_light": (
-        bool,
-        typer.Option(
-            True,
-            "--near-light/--no-near-light",
-            help="Correct the one-light images for the lights' finite distance (1/r^2 at the hull surface).",
-        ),
-    ),
-    "pca_rank": (
-        Optional[int],
-        typer.Option(None, "--pca-rank", help="Relight from a rank-R PCA of each view's data (reports its error)."),
-    ),
+    "kernel": (str, typer.Option(_K.kind, "--kernel", help=_KERNEL_HELP)),
+    "kernel_width": (float, typer.Option(_K.width, "--kernel-width", help=_KERNEL_WIDTH_HELP)),
+    "lower_hemisphere": (str, typer.Option(_K.lower_hemisphere, "--lower-hemisphere", help=_LOWER_HELP)),
+    "near_light": (bool, typer.Option(_R.near_light, "--near-light/--no-near-light", help=_NEAR_HELP)),
+    "pca_rank": (Optional[int], typer.Option(_R.pca_rank, "--pca-rank", help=_PCA_RANK_HELP)),
 }
+
+
+def _shared_options(*, envmap_required: bool, map_before: str, config_before: str):
+    """The flags both commands take: :func:`_map_options` (into ``map_options``) placed
+    before the parameter ``map_before``, :data:`_CONFIG_OPTIONS` (``config_options``)
+    before ``config_before``."""
+
+    def decorate(fn):
+        fn = option_group(_CONFIG_OPTIONS, into="config_options", before=config_before)(fn)
+        return option_group(_map_options(required=envmap_required), into="map_options", before=map_before)(fn)
+
+    return decorate
 
 
 #: Fewer captured light directions than this and ``eval relight`` warns: the light
@@ -107,74 +137,44 @@ _CONFIG_OPTIONS = {
 FEW_LIGHTS = 8
 
 
-def _check_model(model: Path) -> None:
-    if not model.exists():
-        raise InputError(f"{model}: no such model folder")
-    if not model.is_dir():
-        raise InputError(f"{model} is a file, expected a model folder (from `opacityhull build`)")
-
-
 def register(app, groups) -> None:
     """Add ``relight`` to the root app and ``relight`` to the ``eval`` group."""
 
     @app.command("relight")
     @cli_errors
-    @option_group(_YAW_OPTIONS, into="yaw_deg", before="probe_format", build=_yaw)
-    @option_group(_CONFIG_OPTIONS, into="config_options", before="exposure")
+    @_shared_options(envmap_required=False, map_before="flip_u", config_before="exposure")
     def relight(
-        model: Path = typer.Argument(..., help="Model folder written by `opacityhull build` (with reflectance data)."),
-        out: Path = typer.Option(
-            ..., "--out", help="Output folder (EXR + PNG per image, contact sheets, GIF, relight.json)."
-        ),
-        envmap: Optional[str] = typer.Option(None, "--envmap", help=_ENVMAP_HELP),
-        probe_format: str = typer.Option("latlong", "--probe-format", help=_FORMAT_HELP),
-        flip_u: bool = typer.Option(False, "--flip-u", help="The lat-long map is stored mirrored left-right."),
-        lights: Optional[str] = typer.Option(
-            None,
-            "--lights",
-            help="Directional lights 'dx,dy,dz,r,g,b;...' (direction towards the light in the object frame, RGB "
-            "irradiance), or 'point:x,y,z,r,g,b' (position in metres, RGB intensity). Adds to --envmap.",
-        ),
-        view: Optional[str] = typer.Option(
-            None, "--view", help="Also render camera CAM at table angle DEG: 'CAM,DEG'."
-        ),
-        orbit: Optional[int] = typer.Option(None, "--orbit", help="Also render an orbit of N frames (PNGs + GIF)."),
-        fps: float = typer.Option(12.0, "--fps", help="Frame rate of the orbit GIF (> 0; GIF stores 1/100 s delays)."),
-        exposure: Optional[float] = typer.Option(
-            None, "--exposure", help="PNG exposure multiplier (default: automatic, key 0.18)."
-        ),
-        no_views: bool = typer.Option(False, "--no-views", help="Do not write the relit captured views."),
+        model: Annotated[Path, typer.Argument(help=_MODEL_HELP)],
+        out: Annotated[Path, typer.Option("--out", help=_OUT_HELP)],
+        flip_u: Annotated[bool, typer.Option("--flip-u", help=_FLIP_U_HELP)] = False,
+        lights: Annotated[Optional[str], typer.Option("--lights", help=_LIGHTS_HELP)] = None,
+        view: Annotated[Optional[str], typer.Option("--view", help=_VIEW_HELP)] = None,
+        orbit: Annotated[Optional[int], typer.Option("--orbit", help=_ORBIT_HELP)] = None,
+        fps: Annotated[float, typer.Option("--fps", help=_FPS_HELP)] = 12.0,
+        exposure: Annotated[Optional[float], typer.Option("--exposure", help=_EXPOSURE_HELP)] = None,
+        no_views: Annotated[bool, typer.Option("--no-views", help="Do not write the relit captured views.")] = False,
         json_out: JsonSummaryFlag = False,
         *,
-        yaw_deg: Optional[float],
+        map_options: dict,
         config_options: dict,
     ):
         """Relight a captured model under an environment map or lights: every captured view is relit as a weighted
         sum of its one-light images, then (--view/--orbit) blended onto the surfels with ULR over the environment."""
         from .basis import parse_lights
-        from .envmap import default_yaw_deg, load_envmap
         from .runner import parse_view_spec, relight_model
 
-        _check_model(model)
-        if orbit is not None and orbit < 1:
-            raise InputError(f"--orbit {orbit}: expected at least 1 frame")
-        if not (math.isfinite(fps) and fps > 0):
-            raise InputError(f"--fps {fps}: expected a frame rate > 0")
+        check_model_dir(model)
+        check_orbit_fps(orbit, fps)
         if exposure is not None and not (math.isfinite(exposure) and exposure > 0):
             raise InputError(f"--exposure {exposure}: expected a multiplier > 0 (omit it for automatic exposure)")
         check_writable(out)
         cfg = _config(**config_options)
         v = parse_view_spec(view) if view else None
-        if envmap is None and not lights:
+        if map_options["envmap"] is None and not lights:
             raise InputError("give --envmap X.exr|X.hdr or --lights 'dx,dy,dz,r,g,b;...'")
         env = None
-        if envmap is not None:
-            env = load_envmap(
-                envmap,
-                yaw_deg=default_yaw_deg(envmap) if yaw_deg is None else yaw_deg,
-                probe_format=_probe_format(probe_format),
-                flip_u=flip_u,
-            )
+        if map_options["envmap"] is not None:
+            env = _load_map(map_options, flip_u=flip_u)
         light_arrays = parse_lights(lights) if lights else None
         with progress("relight", enabled=not json_out) as cb:
             with writing_to(out):
@@ -216,37 +216,23 @@ def register(app, groups) -> None:
 
     @groups["eval"].command("relight")
     @cli_errors
-    @option_group(_YAW_OPTIONS, into="yaw_deg", before="probe_format", build=_yaw)
-    @option_group(_CONFIG_OPTIONS, into="config_options", before="json_out")
+    @_shared_options(envmap_required=True, map_before="out", config_before="json_out")
     def eval_relight_cmd(
-        model: Path = typer.Argument(..., help="Model folder built from a simulated session (with reflectance data)."),
-        envmap: str = typer.Option(..., "--envmap", help=_ENVMAP_HELP),
-        probe_format: str = typer.Option("latlong", "--probe-format", help=_FORMAT_HELP),
-        out: Optional[Path] = typer.Option(
-            None,
-            "--out",
-            help="Folder for the contact sheet and per-view EXRs (default "
-            "./MODELNAME_eval_relight in the current folder: an evaluation never "
-            "writes into the model).",
-        ),
-        spp: int = typer.Option(64, "--spp", help="Samples per pixel of Mitsuba's ground-truth render."),
-        max_views: Optional[int] = typer.Option(
-            None, "--max-views", help="Evaluate at most this many views (spread evenly)."
-        ),
-        json_out: bool = typer.Option(
-            False, "--json", help='Print {"psnr_mean", "rel_err_mean", "per_view", ...} on stdout.'
-        ),
+        model: Annotated[Path, typer.Argument(help=_EVAL_MODEL_HELP)],
+        out: Annotated[Optional[Path], typer.Option("--out", help=_EVAL_OUT_HELP)] = None,
+        spp: Annotated[int, typer.Option("--spp", help="Samples per pixel of Mitsuba's ground-truth render.")] = 64,
+        max_views: Annotated[Optional[int], typer.Option("--max-views", help=_MAX_VIEWS_HELP)] = None,
+        json_out: Annotated[bool, typer.Option("--json", help=_EVAL_JSON_HELP)] = False,
         *,
-        yaw_deg: Optional[float],
+        map_options: dict,
         config_options: dict,
     ):
         """Relit captured views of a simulated model against Mitsuba's direct render of the same object under the
         same environment map from the same cameras: PSNR and relative error inside the mask, and a contact sheet
         (truth | relit | error)."""
-        from .envmap import default_yaw_deg, load_envmap
         from .evaluate import eval_relight
 
-        _check_model(model)
+        check_model_dir(model)
         if spp < 1:
             raise InputError(f"--spp {spp}: expected at least 1 sample per pixel")
         if max_views is not None and max_views < 1:
@@ -255,11 +241,7 @@ def register(app, groups) -> None:
             # not inside MODEL: a model is an input here (it may be shared or read-only)
             out = Path(f"{model.resolve().name}_eval_relight")
         cfg = _config(**config_options)
-        env = load_envmap(
-            envmap,
-            yaw_deg=default_yaw_deg(envmap) if yaw_deg is None else yaw_deg,
-            probe_format=_probe_format(probe_format),
-        )
+        env = _load_map(map_options)
         with progress("eval relight", enabled=not json_out) as cb:
             s = eval_relight(model, envmap=env, out=out, spp=spp, max_views=max_views, config=cfg, progress=cb)
 

@@ -4,22 +4,20 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import List, Optional
+from typing import Annotated, List, Optional, get_args
 
 import typer
 
-from ..cliutil import cli_errors, console, emit, option_group, progress, scheduler_options, writing_to
+from ..cliutil import ModelDirArg, env_yaw_options, option_group, pick_env_yaw, scheduler_options
+from ..cliutil import check_choice, check_model_dir, check_orbit_fps, cli_errors, console, emit, progress, writing_to
 from ..errors import InputError
-from .config import RenderConfig
+from .config import RenderConfig, Shading
 
 _D = RenderConfig()
 
 
 def _config(k, filter_var, epsilon_z, cutoff, sigma_radius, shading=_D.shading):
-    if shading not in ("pixel", "surfel"):
-        from ..errors import InputError
-
-        raise InputError(f"--shading {shading!r}: expected pixel or surfel")
+    shading = check_choice("--shading", shading, get_args(Shading))
     return RenderConfig(
         k=k, filter=filter_var, epsilon_z=epsilon_z, cutoff_sigma=cutoff, sigma_radius=sigma_radius, shading=shading
     )
@@ -51,6 +49,48 @@ _RENDER_OPTIONS = {
 MAX_RENDER_PIXELS = 8192 * 8192
 
 BACKGROUND_KINDS = ("auto", "image", "envmap")
+HOLDOUTS = ("blend", "geometry", "both")
+
+_OUT_HELP = "Output image: X.png or X.exr (orbits write X_000.png ... and X.gif)."
+_VIEW_HELP = (
+    "CAM,TABLE_DEG: captured camera CAM with the table at TABLE_DEG "
+    "(any angle; captured views are reproduced exactly). Default: the first view."
+)
+_LOOK_AT_HELP = (
+    "EX,EY,EZ,TX,TY,TZ[,FOV_DEG]: eye and target in the "
+    "object frame (metres), vertical field of view (default: the cameras')."
+)
+_ORBIT_HELP = (
+    "N frames on a circle around the model at the captured "
+    "cameras' mean elevation and distance; also writes an animated GIF."
+)
+_BACKGROUND_HELP = (
+    "Composite over a colour (0.2,0.3,0.4 | 0.5 | "
+    "#rrggbb | black | white | grey), an image, or an environment map "
+    "(.hdr, or a 2:1 .exr). Without it, images keep their alpha."
+)
+_ENV_YAW_HELP = "Rotate the environment map about +Y (ICT probes: 180)."
+_WIDTH_HELP = "Output width in pixels (default: the views')."
+_HEIGHT_HELP = "Output height in pixels (default: keeps the aspect)."
+_EXCLUDE_HELP = "View id or index not to blend (repeatable)."
+_BUDGET_HELP = (
+    "Draw at most N splats per frame: the finest "
+    "view-dependent cut of the sequential point tree (the viewer's level "
+    "of detail). Default: every surfel."
+)
+_JSON_HELP = "Print a JSON summary (frames, paths, ms per frame) on stdout."
+
+_LOO_VIEWS_HELP = "all (default) | every:N | camera:C | comma list of view ids or indices."
+_LOO_OUT_HELP = (
+    "Folder for loo.json and loo_sheet.png (default "
+    "./MODELNAME_loo in the current folder: an evaluation never writes into "
+    "the model)."
+)
+_HOLDOUT_HELP = (
+    "blend: leave the view out of the ULR blend only | geometry: also rebuild "
+    "hull, surfels and visibility without it (honest, slower) | both."
+)
+_LOO_JSON_HELP = "Print {views, psnr_mean, ssim_mean, alpha_mae, per_view} on stdout."
 
 
 _SCHEDULER_HELP = (
@@ -65,13 +105,9 @@ _LOO_SCHEDULER = scheduler_options(
 
 def open_model_arg(model: Path):
     """The model folder argument, opened; a path that is not there is bad input (exit 2)."""
-    from ..errors import InputError
     from ..model import OpacityHullModel
 
-    if not model.exists():
-        raise InputError(f"{model}: no such model folder")
-    if not model.is_dir():
-        raise InputError(f"{model} is a file, expected a model folder (from `opacityhull build`)")
+    check_model_dir(model)
     return OpacityHullModel.open(model)
 
 
@@ -89,9 +125,7 @@ def check_render_args(
 ) -> None:
     """Reject bad ``render`` options before anything is rendered or written (exit 2),
     naming the flag, the value and what is expected."""
-    import math
-
-    from ..errors import InputError, check_writable
+    from ..errors import check_writable
 
     for flag, v in (("--width", width), ("--height", height)):
         if v is not None and v < 1:
@@ -103,12 +137,8 @@ def check_render_args(
             check_budget(budget)
         except InputError:
             raise InputError(f"--budget {budget}: expected a whole number of splats >= 1") from None
-    if orbit is not None and orbit < 1:
-        raise InputError(f"--orbit {orbit}: expected at least 1 frame")
-    if not (math.isfinite(fps) and fps > 0):
-        raise InputError(f"--fps {fps}: expected a frame rate > 0")
-    if background_kind not in BACKGROUND_KINDS:
-        raise InputError(f"--background-kind {background_kind!r}: expected one of {', '.join(BACKGROUND_KINDS)}")
+    check_orbit_fps(orbit, fps)
+    check_choice("--background-kind", background_kind, BACKGROUND_KINDS, one_of=True)
     m = open_model_arg(model)
     if out is not None:
         check_writable(out)
@@ -137,63 +167,28 @@ def register(app, groups) -> None:
     @app.command("render")
     @cli_errors
     @option_group(_RENDER_OPTIONS, into="render_options", before="background")
+    @option_group(env_yaw_options(0.0, _ENV_YAW_HELP), into="env_yaw_deg", before="width", build=pick_env_yaw)
     @option_group(scheduler_options(_SCHEDULER_HELP), into="executor", before="json_out")
     def render_cmd(
-        model: Path = typer.Argument(..., help="Model folder (model.toml, surfels.ply, views/)."),
-        out: Path = typer.Option(
-            ..., "--out", help="Output image: X.png or X.exr (orbits write X_000.png ... and X.gif)."
-        ),
-        view: Optional[str] = typer.Option(
-            None,
-            "--view",
-            help="CAM,TABLE_DEG: captured camera CAM with the table at TABLE_DEG "
-            "(any angle; captured views are reproduced exactly). Default: the first view.",
-        ),
-        look_at: Optional[str] = typer.Option(
-            None,
-            "--look-at",
-            help="EX,EY,EZ,TX,TY,TZ[,FOV_DEG]: eye and target in the "
-            "object frame (metres), vertical field of view (default: the cameras').",
-        ),
-        orbit: Optional[int] = typer.Option(
-            None,
-            "--orbit",
-            help="N frames on a circle around the model at the captured "
-            "cameras' mean elevation and distance; also writes an animated GIF.",
-        ),
-        background: Optional[str] = typer.Option(
-            None,
-            "--background",
-            help="Composite over a colour (0.2,0.3,0.4 | 0.5 | "
-            "#rrggbb | black | white | grey), an image, or an environment map "
-            "(.hdr, or a 2:1 .exr). Without it, images keep their alpha.",
-        ),
-        background_kind: str = typer.Option("auto", "--background-kind", help="auto | image | envmap."),
-        env_yaw_deg: float = typer.Option(
-            0.0, "--env-yaw-deg", help="Rotate the environment map about +Y (ICT probes: 180)."
-        ),
-        yaw_deg_alias: Optional[float] = typer.Option(
-            None, "--yaw-deg", hidden=True, help="Old name of --env-yaw-deg (relight's spelling)."
-        ),
-        width: Optional[int] = typer.Option(None, "--width", help="Output width in pixels (default: the views')."),
-        height: Optional[int] = typer.Option(
-            None, "--height", help="Output height in pixels (default: keeps the aspect)."
-        ),
-        exclude: List[str] = typer.Option([], "--exclude-view", help="View id or index not to blend (repeatable)."),
-        exclude_alias: List[str] = typer.Option([], "--exclude", hidden=True, help="Old name of --exclude-view."),
-        fps: float = typer.Option(12.0, "--fps", help="Frame rate of the orbit animation (> 0)."),
-        budget: Optional[int] = typer.Option(
-            None,
-            "--budget",
-            help="Draw at most N splats per frame: the finest "
-            "view-dependent cut of the sequential point tree (the viewer's level "
-            "of detail). Default: every surfel.",
-        ),
-        json_out: bool = typer.Option(
-            False, "--json", help="Print a JSON summary (frames, paths, ms per frame) on stdout."
-        ),
+        model: ModelDirArg,
+        out: Annotated[Path, typer.Option("--out", help=_OUT_HELP)],
+        view: Annotated[Optional[str], typer.Option("--view", help=_VIEW_HELP)] = None,
+        look_at: Annotated[Optional[str], typer.Option("--look-at", help=_LOOK_AT_HELP)] = None,
+        orbit: Annotated[Optional[int], typer.Option("--orbit", help=_ORBIT_HELP)] = None,
+        background: Annotated[Optional[str], typer.Option("--background", help=_BACKGROUND_HELP)] = None,
+        background_kind: Annotated[str, typer.Option("--background-kind", help="auto | image | envmap.")] = "auto",
+        width: Annotated[Optional[int], typer.Option("--width", help=_WIDTH_HELP)] = None,
+        height: Annotated[Optional[int], typer.Option("--height", help=_HEIGHT_HELP)] = None,
+        exclude: Annotated[List[str], typer.Option("--exclude-view", help=_EXCLUDE_HELP)] = [],
+        exclude_alias: Annotated[
+            List[str], typer.Option("--exclude", hidden=True, help="Old name of --exclude-view.")
+        ] = [],
+        fps: Annotated[float, typer.Option("--fps", help="Frame rate of the orbit animation (> 0).")] = 12.0,
+        budget: Annotated[Optional[int], typer.Option("--budget", help=_BUDGET_HELP)] = None,
+        json_out: Annotated[bool, typer.Option("--json", help=_JSON_HELP)] = False,
         *,
         render_options: dict,
+        env_yaw_deg: float,
         executor: dict,
     ):
         """Render a model from a captured view, a look-at camera, or an orbit (ULR-blended EWA surfel splatting)."""
@@ -202,8 +197,6 @@ def register(app, groups) -> None:
 
         serial = parse_scheduler(executor["scheduler"]).kind == "serial"
 
-        if yaw_deg_alias is not None:
-            env_yaw_deg = yaw_deg_alias
         exclude = list(exclude) + list(exclude_alias)
         check_render_args(
             model,
@@ -273,26 +266,11 @@ def register(app, groups) -> None:
     @option_group(_RENDER_OPTIONS, into="render_options", before="out")
     @option_group(_LOO_SCHEDULER, into="executor", before="json_out")
     def loo_cmd(
-        model: Path = typer.Argument(..., help="Model folder."),
-        views: Optional[str] = typer.Option(
-            None, "--views", help="all (default) | every:N | camera:C | comma list of view ids or indices."
-        ),
-        out: Optional[Path] = typer.Option(
-            None,
-            "--out",
-            help="Folder for loo.json and loo_sheet.png (default "
-            "./MODELNAME_loo in the current folder: an evaluation never writes into "
-            "the model).",
-        ),
-        holdout: str = typer.Option(
-            "blend",
-            "--holdout",
-            help="blend: leave the view out of the ULR blend only | geometry: also rebuild "
-            "hull, surfels and visibility without it (honest, slower) | both.",
-        ),
-        json_out: bool = typer.Option(
-            False, "--json", help="Print {views, psnr_mean, ssim_mean, alpha_mae, per_view} on stdout."
-        ),
+        model: Annotated[Path, typer.Argument(help="Model folder.")],
+        views: Annotated[Optional[str], typer.Option("--views", help=_LOO_VIEWS_HELP)] = None,
+        out: Annotated[Optional[Path], typer.Option("--out", help=_LOO_OUT_HELP)] = None,
+        holdout: Annotated[str, typer.Option("--holdout", help=_HOLDOUT_HELP)] = "blend",
+        json_out: Annotated[bool, typer.Option("--json", help=_LOO_JSON_HELP)] = False,
         *,
         render_options: dict,
         executor: dict,
@@ -307,8 +285,7 @@ def register(app, groups) -> None:
             # not MODEL/pictures: a model is an input here (it may be shared or read-only)
             out = Path(f"{model.resolve().name}_loo")
         cfg = _config(**render_options)
-        if holdout not in ("blend", "geometry", "both"):
-            raise InputError(f"--holdout {holdout!r}: expected blend, geometry or both")
+        check_choice("--holdout", holdout, HOLDOUTS)
         from ..executor import open_executor, parse_scheduler
 
         if parse_scheduler(executor["scheduler"]).kind != "serial" and holdout == "blend":

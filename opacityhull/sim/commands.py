@@ -4,7 +4,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Optional
+from typing import Annotated, Optional
 
 import typer
 from rich.markup import escape
@@ -65,39 +65,38 @@ def _camera_index(geometry, camera: str) -> int:
     return i
 
 
-def register(app, groups) -> None:
-    """Add this stage's commands to the root app and the subcommand groups."""
-    sim = groups["sim"]
+#: ``--scene`` of ``sim render`` and ``sim explain``.
+_SceneOpt = Annotated[str, typer.Option("--scene", help="Scene: builtin:NAME or a scene TOML path.")]
+_LIGHT_HELP = "Light id to switch on at full level (repeatable; default: all lights)."
+_PATTERN_HELP = f"Show a pattern on every display: {', '.join(PATTERNS)} or an image file (default: displays blank)."
+_BOARD_HELP = "Put the scene's (or a default) ChArUco board on the table instead of the object."
+_RIG_HELP = "Rig TOML (default: the built-in simulated rig)."
+_SPP_HELP = "Samples per pixel (default: effect selection)."
+_OUT_HELP = "Output image (.exr linear radiance; .png sRGB preview; an .exr also gets a .png preview beside it)."
+_PHASE_HELP = "calibration, matting, lightfield, reflectance, envmatte or groundtruth."
+_CAMERA_SIZE_HELP = "WxH of the camera the shots are for (matting samples depend on it); default: the built-in rig's."
 
-    @sim.command("render")
+
+def register(app, groups) -> None:
+    """Add ``sim render``, ``sim explain`` and ``sim scenes`` to the ``sim`` group."""
+
+    @groups["sim"].command("render")
     @cli_errors
     def render(
-        scene: str = typer.Option(..., "--scene", help="Scene: builtin:NAME or a scene TOML path."),
-        camera: str = typer.Option("0", "--camera", help="Camera name or index in the rig."),
-        table_deg: float = typer.Option(0.0, "--table-deg", help="Turntable angle (degrees)."),
-        light: Optional[list[int]] = typer.Option(
-            None, "--light", help="Light id to switch on at full level (repeatable; default: all lights)."
-        ),
-        lights_off: bool = typer.Option(False, "--lights-off", help="Switch every light off."),
-        array_deg: float = typer.Option(0.0, "--array-deg", help="Light-array rotation (degrees)."),
-        pattern: Optional[str] = typer.Option(
-            None,
-            "--pattern",
-            help=f"Show a pattern on every display: {', '.join(PATTERNS)} or an image file (default: displays blank).",
-        ),
-        board: bool = typer.Option(
-            False, "--board", help="Put the scene's (or a default) ChArUco board on the table instead of the object."
-        ),
-        rig: Optional[Path] = typer.Option(None, "--rig", help="Rig TOML (default: the built-in simulated rig)."),
-        scale: float = typer.Option(1.0, "--scale", min=0.01, help="Multiply the camera resolution."),
-        spp: Optional[int] = typer.Option(None, "--spp", min=1, help="Samples per pixel (default: effect selection)."),
-        seed: int = typer.Option(0, "--seed", help="Render seed."),
-        out: Optional[Path] = typer.Option(
-            None,
-            "--out",
-            help="Output image (.exr linear radiance; .png sRGB preview; an .exr also gets a .png preview beside it).",
-        ),
-        json_out: bool = typer.Option(False, "--json", help="Print a one-line JSON summary."),
+        scene: _SceneOpt,
+        camera: Annotated[str, typer.Option("--camera", help="Camera name or index in the rig.")] = "0",
+        table_deg: Annotated[float, typer.Option("--table-deg", help="Turntable angle (degrees).")] = 0.0,
+        light: Annotated[Optional[list[int]], typer.Option("--light", help=_LIGHT_HELP)] = None,
+        lights_off: Annotated[bool, typer.Option("--lights-off", help="Switch every light off.")] = False,
+        array_deg: Annotated[float, typer.Option("--array-deg", help="Light-array rotation (degrees).")] = 0.0,
+        pattern: Annotated[Optional[str], typer.Option("--pattern", help=_PATTERN_HELP)] = None,
+        board: Annotated[bool, typer.Option("--board", help=_BOARD_HELP)] = False,
+        rig: Annotated[Optional[Path], typer.Option("--rig", help=_RIG_HELP)] = None,
+        scale: Annotated[float, typer.Option("--scale", min=0.01, help="Multiply the camera resolution.")] = 1.0,
+        spp: Annotated[Optional[int], typer.Option("--spp", min=1, help=_SPP_HELP)] = None,
+        seed: Annotated[int, typer.Option("--seed", help="Render seed.")] = 0,
+        out: Annotated[Optional[Path], typer.Option("--out", help=_OUT_HELP)] = None,
+        json_out: Annotated[bool, typer.Option("--json", help="Print a one-line JSON summary.")] = False,
     ):
         """Render one camera of the simulated rig in a given state (no emulators involved).
 
@@ -200,19 +199,13 @@ def register(app, groups) -> None:
 
         emit(summary, json_out, human)
 
-    @sim.command("explain")
+    @groups["sim"].command("explain")
     @cli_errors
     def explain(
-        scene: str = typer.Option(..., "--scene", help="Scene: builtin:NAME or a scene TOML path."),
-        phase: str = typer.Option(
-            ..., "--phase", help="calibration, matting, lightfield, reflectance, envmatte or groundtruth."
-        ),
-        camera_size: str = typer.Option(
-            "",
-            "--camera-size",
-            help="WxH of the camera the shots are for (matting samples depend on it); default: the built-in rig's.",
-        ),
-        json_out: bool = typer.Option(False, "--json", help="Print the selection as one JSON line."),
+        scene: _SceneOpt,
+        phase: Annotated[str, typer.Option("--phase", help=_PHASE_HELP)],
+        camera_size: Annotated[str, typer.Option("--camera-size", help=_CAMERA_SIZE_HELP)] = "",
+        json_out: Annotated[bool, typer.Option("--json", help="Print the selection as one JSON line.")] = False,
     ):
         """Say which effects the simulator renders for a scene in a capture phase, and why;
         its expected cost relative to the full-effects reference, and the Mitsuba variant."""
@@ -279,9 +272,9 @@ def register(app, groups) -> None:
 
         emit(summary, json_out, human)
 
-    @sim.command("scenes")
+    @groups["sim"].command("scenes")
     @cli_errors
-    def scenes(json_out: bool = typer.Option(False, "--json", help="Print the list as one JSON line.")):
+    def scenes(json_out: Annotated[bool, typer.Option("--json", help="Print the list as one JSON line.")] = False):
         """List the built-in scenes (use them as builtin:NAME)."""
         from .scenes import builtin_names, load_scene
 

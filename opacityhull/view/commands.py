@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Optional
+from typing import Annotated, Optional
 
 import typer
 
@@ -39,73 +39,57 @@ def _bits(s: dict) -> str:
     return text
 
 
+_OUT_HELP = (
+    "Write the static web bundle here. Alone (without --port) it only writes the bundle, for any static web host."
+)
+_PORT_HELP = "Serve on 127.0.0.1:PORT (0: any free port; default 8765 when --out is not given)."
+_BACKGROUND_HELP = "Initial background: black | white | grey | R,G,B."
+_ENVMAP_HELP = (
+    "Environment map the page can show behind the "
+    "model: an equirectangular .hdr/.exr, or builtin:NAME (ennis grace pisa "
+    "uffizi wells)."
+)
+_ENV_YAW_HELP = "Its rotation about +Y (default 180 for builtin: probes, else 0); the page has a slider."
+_CELL_HELP = (
+    "Leaf cell edge (m) of the "
+    "octree position code (default: the surfels' median spacing; "
+    "smaller is more exact and costs more bits)."
+)
+_OFFSET_BITS_HELP = (
+    "Bits of the per-surfel offset along the normal that refines the octree cell centre (0-8; 0: cell centres)."
+)
+_RELIGHT_HELP = (
+    "For a model with reflectance: bundle the relighting data (environment-map picker and rotation slider in the page)."
+)
+_PROBES_HELP = (
+    "Builtin probes to relight with, comma-separated (default: all of ennis grace pisa "
+    "uffizi wells); --envmap adds its map."
+)
+_RELIGHT_ERROR_HELP = "Relative relit error the per-view PCA rank is chosen for."
+_RELIGHT_RANK_HELP = "Fix the PCA rank of the relighting data instead (1-16)."
+_YAW_STEPS_HELP = "Rotations of each map the light weights are tabulated at (72: every 5 deg)."
+_JSON_HELP = "Print a JSON summary (bundle path, bytes, URL) on stdout."
+
+
 def register(app, groups) -> None:
     @app.command("view")
     @cli_errors
     def view_cmd(
         model: ModelDirArg,
-        out: Optional[Path] = typer.Option(
-            None,
-            "--out",
-            help="Write the static web bundle here. Alone (without "
-            "--port) it only writes the bundle, for any static web host.",
-        ),
-        port: Optional[int] = typer.Option(
-            None, "--port", help="Serve on 127.0.0.1:PORT (0: any free port; default 8765 when --out is not given)."
-        ),
-        k: int = typer.Option(4, "--k", help="Initial ULR k of the page (1-8; the page has a slider)."),
-        background: str = typer.Option(
-            "black", "--background", help="Initial background: black | white | grey | R,G,B."
-        ),
-        envmap: Optional[str] = typer.Option(
-            None,
-            "--envmap",
-            help="Environment map the page can show behind the "
-            "model: an equirectangular .hdr/.exr, or builtin:NAME (ennis grace pisa "
-            "uffizi wells).",
-        ),
-        env_yaw_deg: Optional[float] = typer.Option(
-            None,
-            "--env-yaw-deg",
-            help="Its rotation about +Y (default 180 for builtin: probes, else 0); the page has a slider.",
-        ),
-        position_cell_m: Optional[float] = typer.Option(
-            None,
-            "--position-cell-m",
-            help="Leaf cell edge (m) of the "
-            "octree position code (default: the surfels' median spacing; "
-            "smaller is more exact and costs more bits).",
-        ),
-        offset_bits: int = typer.Option(
-            3,
-            "--offset-bits",
-            help="Bits of the per-surfel offset along the normal "
-            "that refines the octree cell centre (0-8; 0: cell centres).",
-        ),
-        relight: bool = typer.Option(
-            True,
-            "--relight/--no-relight",
-            help="For a model with reflectance: bundle the relighting data "
-            "(environment-map picker and rotation slider in the page).",
-        ),
-        probes: Optional[str] = typer.Option(
-            None,
-            "--probes",
-            help="Builtin probes to relight with, comma-separated (default: all of ennis grace pisa "
-            "uffizi wells); --envmap adds its map.",
-        ),
-        relight_error: float = typer.Option(
-            0.01, "--relight-error", help="Relative relit error the per-view PCA rank is chosen for."
-        ),
-        relight_rank: Optional[int] = typer.Option(
-            None, "--relight-rank", help="Fix the PCA rank of the relighting data instead (1-16)."
-        ),
-        yaw_steps: int = typer.Option(
-            72, "--yaw-steps", help="Rotations of each map the light weights are tabulated at (72: every 5 deg)."
-        ),
-        json_out: bool = typer.Option(
-            False, "--json", help="Print a JSON summary (bundle path, bytes, URL) on stdout."
-        ),
+        out: Annotated[Optional[Path], typer.Option("--out", help=_OUT_HELP)] = None,
+        port: Annotated[Optional[int], typer.Option("--port", help=_PORT_HELP)] = None,
+        k: Annotated[int, typer.Option("--k", help="Initial ULR k of the page (1-8; the page has a slider).")] = 4,
+        background: Annotated[str, typer.Option("--background", help=_BACKGROUND_HELP)] = "black",
+        envmap: Annotated[Optional[str], typer.Option("--envmap", help=_ENVMAP_HELP)] = None,
+        env_yaw_deg: Annotated[Optional[float], typer.Option("--env-yaw-deg", help=_ENV_YAW_HELP)] = None,
+        position_cell_m: Annotated[Optional[float], typer.Option("--position-cell-m", help=_CELL_HELP)] = None,
+        offset_bits: Annotated[int, typer.Option("--offset-bits", help=_OFFSET_BITS_HELP)] = 3,
+        relight: Annotated[bool, typer.Option("--relight/--no-relight", help=_RELIGHT_HELP)] = True,
+        probes: Annotated[Optional[str], typer.Option("--probes", help=_PROBES_HELP)] = None,
+        relight_error: Annotated[float, typer.Option("--relight-error", help=_RELIGHT_ERROR_HELP)] = 0.01,
+        relight_rank: Annotated[Optional[int], typer.Option("--relight-rank", help=_RELIGHT_RANK_HELP)] = None,
+        yaw_steps: Annotated[int, typer.Option("--yaw-steps", help=_YAW_STEPS_HELP)] = 72,
+        json_out: Annotated[bool, typer.Option("--json", help=_JSON_HELP)] = False,
     ):
         """Open a model in the browser: write a WebGL2 bundle (ULR-blended EWA splats) and serve it on 127.0.0.1."""
         import tempfile
