@@ -161,19 +161,31 @@ def run_render_rss(model: Path, out: Path, *, pythonpath: str | None = None, sin
     return {"render_s": time.perf_counter() - t, "render_peak_rss_mb": ru.ru_maxrss / 1024.0}
 
 
-def sweep_point(tmp: Path, *, n_table: int, width: int, height: int, lights: int, render: bool = False) -> dict:
+def sweep_point(
+    tmp: Path, *, n_table: int, width: int, height: int, lights: int, render: bool = False, report: bool = False
+) -> dict:
+    """One synthetic session written, built (and rendered with ``render``) in child
+    processes, then deleted; ``report`` adds the build report's memory plan, chosen
+    resolution and refinement counts."""
     name = f"v{6 * n_table}_{width}x{height}_l{lights}"
     s, m = tmp / f"{name}.session", tmp / f"{name}.model"
-    row = {"views": 6 * n_table, "width": width, "height": height, "lights": lights}
+    row: dict = {"views": 6 * n_table, "width": width, "height": height, "lights": lights}
     row.update(make_session(s, n_table=n_table, width=width, height=height, lights=lights))
     row.update(run_build_rss(s, m, reflectance=lights > 0))
+    if report:
+        rep = json.loads((m / "report.json").read_text())
+        hull = rep.get("hull", {})
+        row["memory_plan"] = rep.get("memory", {})
+        row["resolution"] = hull.get("resolution")
+        row["refine"] = {k: v for k, v in hull.get("refine", {}).items() if not isinstance(v, (list, dict))}
     if render:
         row.update(run_render_rss(m, tmp / f"{name}.png"))
     shutil.rmtree(s, ignore_errors=True)
     shutil.rmtree(m, ignore_errors=True)
     print(
-        f"  {name}: write {row['write_s']:.1f} s, build {row['build_s']:.1f} s, "
-        f"peak {row['peak_rss_mb']:.0f} MB, {row['disk_bytes_per_view'] / 1e3:.0f} kB/view",
+        f"  {name}: write {row['write_s']:.1f} s, build {row['build_s']:.1f} s, peak {row['peak_rss_mb']:.0f} MB"
+        + (f", render peak {row['render_peak_rss_mb']:.0f} MB" if render else "")
+        + f", {row['disk_bytes_per_view'] / 1e3:.0f} kB/view",
         file=sys.stderr,
     )
     return row
@@ -604,27 +616,8 @@ def paper_point(tmp: Path, *, n_table: int, width: int, height: int) -> dict:
     """A build without reflectance at the paper's resolution, the build's defaults
     (``--memory-gb`` at its default, numba on every core), then the renderer's peak RSS
     on the model; wall seconds of the child."""
-    w, h = width, height
-    s, m = tmp / "paper.session", tmp / "paper.model"
-    row: dict = {"views": 6 * n_table, "width": w, "height": h, "lights": 0}
-    row.update(make_session(s, n_table=n_table, width=w, height=h, lights=0))
-    print(f"  paper: session written in {row['write_s']:.0f} s ({row['session_bytes'] / 1e9:.1f} GB)", file=sys.stderr)
-    row.update(run_build_rss(s, m, reflectance=False))
-    rep = json.loads((m / "report.json").read_text())
-    row["memory_plan"] = rep.get("memory", {})
-    row["resolution"] = rep.get("hull", {}).get("resolution")
-    row["refine"] = {k: v for k, v in rep.get("hull", {}).get("refine", {}).items() if not isinstance(v, (list, dict))}
-    row.update(run_render_rss(m, tmp / "paper.png"))
-    row["cpu_count"] = os.cpu_count()
-    row["load_average_1m_after"] = os.getloadavg()[0]
-    shutil.rmtree(s, ignore_errors=True)
-    shutil.rmtree(m, ignore_errors=True)
-    print(
-        f"  paper: build {row['build_s']:.0f} s, peak {row['peak_rss_mb']:.0f} MB, render peak "
-        f"{row['render_peak_rss_mb']:.0f} MB",
-        file=sys.stderr,
-    )
-    return row
+    row = sweep_point(tmp, n_table=n_table, width=width, height=height, lights=0, render=True, report=True)
+    return {**row, "cpu_count": os.cpu_count(), "load_average_1m_after": os.getloadavg()[0]}
 
 
 def paper_table(row: dict) -> list[str]:
