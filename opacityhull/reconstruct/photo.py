@@ -52,7 +52,8 @@ Defaults were chosen by leave-one-out on templeSR/dinoSR at hull-res 256
 7×7 patch changed LOO by < 0.05 dB. The figures are in ``benchmarks/out/photo_refine.md``.
 
 :func:`cost_volume` is the numba kernel (parallel over surfels); :func:`cost_volume_reference`
-is the same arithmetic in plain NumPy (a loop over surfels), for the tests.
+(``cost_volume(..., oracle=True)``: one signature, one argument conversion) is the same
+arithmetic in plain NumPy (a loop over surfels), for the tests.
 
 **Memory.** :func:`refine_surfels` streams the photographs: the surfels are scored in
 batches of one reference view (split further when their views exceed the budget), each
@@ -69,6 +70,7 @@ buffers through :func:`.visibility.surfel_visibility`.
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
 import time
@@ -462,6 +464,7 @@ def cost_volume(
     texture_std: float,
     alpha_threshold: float,
     n_best: int = 0,
+    oracle: bool = False,
 ) -> np.ndarray:
     """Mean NCC (N, n_depths) of each surfel's candidates ``p − d·step_m·n`` (numba).
 
@@ -473,6 +476,7 @@ def cost_volume(
     views : (N, m) view indices per surfel (reference first), −1 = none.
     step_m, spacing_m : (N,) depth step and patch spacing in metres.
     n_best : average only the ``n_best`` best-matching views' NCC (0 = all).
+    oracle : compute with the kernel's NumPy twin instead (:func:`cost_volume_reference`).
 
     Returns
     -------
@@ -482,37 +486,21 @@ def cost_volume(
     args = _kernel_inputs(positions, normals, cameras, grey, alpha, views, step_m, spacing_m)
     out = np.empty((args[4].shape[0], int(n_depths)), np.float64)
     if out.size:
-        _cost_kernel(
+        (_cost_reference if oracle else _cost_kernel)(
             *args, int(n_depths), int(patch_size), float(texture_std) ** 2, float(alpha_threshold), int(n_best), out
         )
     return out
 
 
-def cost_volume_reference(
-    positions,
-    normals,
-    cameras,
-    grey,
-    alpha,
-    views,
-    step_m,
-    spacing_m,
-    *,
-    n_depths: int,
-    patch_size: int,
-    texture_std: float,
-    alpha_threshold: float,
-    n_best: int = 0,
-) -> np.ndarray:
-    """NumPy oracle of :func:`cost_volume` (loop over surfels and depths; vectorised over
-    the patch; small inputs only)."""
-    P, grey, alpha, sizes, pos, nrm, t1, t2, views, step, spacing = _kernel_inputs(
-        positions, normals, cameras, grey, alpha, views, step_m, spacing_m
-    )
-    K = int(patch_size)
+cost_volume_reference = functools.partial(cost_volume, oracle=True)
+"""NumPy oracle of :func:`cost_volume`: the same arguments, the same arithmetic written as a
+loop over surfels and depths, vectorised over the patch (small inputs only)."""
+
+
+def _cost_reference(P, grey, alpha, sizes, pos, nrm, t1, t2, views, step, spacing, D, K, eps2, athr, n_best, out):
+    """NumPy twin of :func:`_cost_kernel` (the same arguments; writes ``out``)."""
     half = (K - 1) // 2
     ab = np.array([(a, b) for a in range(-half, half + 1) for b in range(-half, half + 1)], dtype=np.float64)
-    eps2 = float(texture_std) ** 2
 
     def sample(img, v, pts):
         h = np.c_[pts, np.ones(len(pts))] @ P[v].T
@@ -531,14 +519,14 @@ def cost_volume_reference(
         val = (im[y0, x0] * (1 - fx) + im[y0, x1] * fx) * (1 - fy) + (im[y1, x0] * (1 - fx) + im[y1, x1] * fx) * fy
         return np.where(inside, val, np.nan)
 
-    out = np.full((pos.shape[0], int(n_depths)), np.nan)
+    out[:] = np.nan
     for n in range(pos.shape[0]):
         vs = [int(v) for v in views[n] if v >= 0]
         if len(vs) < 2:
             continue
-        for d in range(int(n_depths)):
+        for d in range(D):
             c = pos[n] - d * step[n] * nrm[n]
-            if d > 0 and not all(sample(alpha, v, c[None])[0] > alpha_threshold for v in vs):
+            if d > 0 and not all(sample(alpha, v, c[None])[0] > athr for v in vs):
                 break
             pts = c + spacing[n] * (ab[:, :1] * t1[n] + ab[:, 1:] * t2[n])
             patches = [sample(grey, v, pts) for v in vs]
@@ -555,7 +543,6 @@ def cost_volume_reference(
                 scores = sorted(scores, reverse=True)
                 k = len(scores) if (n_best <= 0 or n_best >= len(scores)) else n_best
                 out[n, d] = float(np.mean(scores[:k]))
-    return out
 
 
 # --------------------------------------------------------------------------- streaming

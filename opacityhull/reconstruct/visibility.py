@@ -18,11 +18,13 @@ a surfel on the far side of the object, or hidden behind another part, is not vi
 even though it is in the frustum.
 
 :func:`surfel_visibility` is numba (parallel over views); :func:`surfel_visibility_reference`
-is the same rule in plain NumPy (a loop over surfels, array maths over each footprint) for tests.
+(``surfel_visibility(..., oracle=True)``: one signature, one argument check) is the same rule
+in plain NumPy (a loop over surfels, array maths over each footprint) for tests.
 """
 
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -179,6 +181,7 @@ def surfel_visibility(
     slope_px: float = 1.0,
     facing_cos: float = -0.1,
     return_depth: bool = False,
+    oracle: bool = False,
 ):
     """Visibility of every surfel in every view by a z-buffer depth test (numba).
 
@@ -193,6 +196,7 @@ def surfel_visibility(
         pixel's depth in the z-buffer may come from a neighbouring disc that far away.
     facing_cos : minimum cosine between normal and direction to the camera.
     return_depth : also return the (V, Hmax, Wmax) z-buffers.
+    oracle : compute with the kernel's NumPy twin instead (:func:`surfel_visibility_reference`).
 
     Returns
     -------
@@ -207,7 +211,7 @@ def surfel_visibility(
     zb = np.full((V, Hm, Wm) if return_depth else (1, 1, 1), np.inf)
     if pos.shape[0] and V:
         R, t, Kinv = _frames(cameras)
-        _visibility_kernel(
+        (_visibility_reference if oracle else _visibility_kernel)(
             P,
             R,
             t,
@@ -230,29 +234,23 @@ def surfel_visibility(
     return (vis, zb) if return_depth else vis
 
 
+surfel_visibility_reference = functools.partial(surfel_visibility, oracle=True)
+"""NumPy oracle of :func:`surfel_visibility`: the same arguments, the same rule written per
+surfel with array maths over its footprint (small inputs)."""
+
+
 def depth_maps(positions, radii, cameras) -> np.ndarray:
     """Surfel z-buffers (V, Hmax, Wmax), inf where no surfel covers a pixel."""
     n = np.zeros_like(np.asarray(positions, dtype=np.float64))
     return surfel_visibility(positions, n, radii, cameras, return_depth=True)[1]
 
 
-def surfel_visibility_reference(
-    positions,
-    normals,
-    radii,
-    cameras,
-    *,
-    depth_tol_m: float | None = None,
-    slope_px: float = 1.0,
-    facing_cos: float = -0.1,
-) -> np.ndarray:
-    """NumPy oracle of :func:`surfel_visibility` (the same rule, written per surfel with
-    array maths over its footprint; small inputs)."""
-    pos, nrm, rad, P, C, sizes, f = _inputs(positions, normals, radii, cameras)
-    R, tc, Kinv = _frames(cameras)
-    tol = _default_tol(rad, depth_tol_m)
+def _visibility_reference(
+    P, R, tc, Kinv, C, sizes, f, pos, nrm, rad, tol, slope_px, facing_cos, Hm, Wm, vis, zbufs, keep_depth
+):
+    """NumPy twin of :func:`_visibility_kernel` (the same arguments; writes ``vis`` and,
+    with ``keep_depth``, ``zbufs``)."""
     N, V = pos.shape[0], P.shape[0]
-    vis = np.zeros((N, V), bool)
     for v in range(V):
         W, H = sizes[v]
         pc = pos @ R[v].T + tc[v]
@@ -281,6 +279,8 @@ def surfel_visibility_reference(
             xc, yc = int(np.floor(u[n] + 0.5)), int(np.floor(t[n] + 0.5))
             if 0 <= xc < W and 0 <= yc < H:
                 zbuf[yc, xc] = min(zbuf[yc, xc], z[n])
+        if keep_depth:
+            zbufs[v, :H, :W] = zbuf
         with np.errstate(invalid="ignore"):
             px = np.floor(u + 0.5)
             py = np.floor(t + 0.5)
@@ -293,4 +293,3 @@ def surfel_visibility_reference(
         zz = zbuf[py[idx].astype(int), px[idx].astype(int)]
         tol_n = tol + slope_px * (z[idx] / f[v]) * tan[idx]
         vis[idx, v] = (cosang[idx] >= facing_cos) & (z[idx] <= zz + tol_n)
-    return vis

@@ -85,24 +85,18 @@ def rasterize_geometry(splat, lists, counts, height, width, cutoff, band_h, lut,
     winner : (H, W) int64, −1: index of the winning surfel.
     wbest : (H, W) float32, 0: its weight.
     """
-    nb = counts.shape[0] - 1
-    c2 = np.float64(cutoff) * np.float64(cutoff)
-    lut_scale = (lut.shape[0] - 2) / c2
+    nb, c2, lut_scale = K._band_constants(counts, cutoff, lut)
     zero32 = np.float32(0.0)
     for b in range(b0, nb, stride):
-        ylo = b * band_h
-        yhi = min(height - 1, ylo + band_h - 1)
+        ylo, yhi = K._band_rows(b, band_h, height)
         K._depth_pass(splat, lists, counts[b], counts[b + 1], ylo, yhi, c2, zlim)
         for t in range(counts[b], counts[b + 1]):
             i = lists[t]
-            x0, y0, z0, A, B2, C, dzx, dzy, zlo, zhi, xa, xb = K._splat_geometry(splat, i)
+            x0, y0, z0, A, B2, C, dzx, dzy, zlo, zhi, xa, xb, ya, yb = K._splat_geometry(splat, i, ylo, yhi)
             w0 = splat[i, K.S_W]
             ar = splat[i, K.S_AREA]
-            for y in range(max(int(splat[i, K.S_BY0]), ylo), min(int(splat[i, K.S_BY1]), yhi) + 1):
-                dy = y - y0
-                tt = B2 * dy
-                cdy = C * dy * dy
-                zrow = z0 + dzy * dy
+            for y in range(ya, yb + 1):
+                tt, cdy, zrow = K._row_terms(y, y0, B2, C, z0, dzy)
                 for x in range(xa, xb + 1):
                     q, z, w = K._ewa_weight(A, tt, cdy, x - x0, zrow, dzx, zlo, zhi, c2, lut, lut_scale, w0)
                     w = w if (q <= c2 and z <= zlim[y, x]) else zero32
@@ -121,49 +115,13 @@ def geometry_frame(splat, draw, height, width, cutoff, band_h, *, threads: int =
     was drawn). With ``scratch`` (a :class:`~opacityhull.render.kernels.Scratch`) the
     arrays live in its buffers.
     """
-    counts, lists = K.bin_splats(splat, draw, height, band_h)
-    if scratch is None:
-        geo = np.zeros((height, width, 3), np.float32)
-        zlim = np.full((height, width), np.inf, np.float32)
-        winner = np.full((height, width), -1, np.int64)
-        wbest = np.zeros((height, width), np.float32)
-    else:
-        geo = scratch.get("geo", (height, width, 3), np.float32)
-        geo.fill(0.0)
-        zlim = scratch.get("zlim", (height, width), np.float32)
-        zlim.fill(np.inf)
-        winner = scratch.get("winner", (height, width), np.int64)
-        winner.fill(-1)
-        wbest = scratch.get("wbest", (height, width), np.float32)
-        wbest.fill(0.0)
-    lut = K.exp_table(cutoff)
-    nb = counts.shape[0] - 1
-    if threads <= 1 or nb < 2:
-        rasterize_geometry(splat, lists, counts, height, width, cutoff, band_h, lut, geo, zlim, winner, wbest, 0, 1)
-    else:
-        T = min(threads, nb)
-        futs = [
-            K._pool().submit(
-                rasterize_geometry,
-                splat,
-                lists,
-                counts,
-                height,
-                width,
-                cutoff,
-                band_h,
-                lut,
-                geo,
-                zlim,
-                winner,
-                wbest,
-                t,
-                T,
-            )
-            for t in range(T)
-        ]
-        for f in futs:
-            f.result()
+    geo = K.filled(scratch, "geo", (height, width, 3), np.float32, 0.0)
+    zlim = K.filled(scratch, "zlim", (height, width), np.float32, np.inf)
+    winner = K.filled(scratch, "winner", (height, width), np.int64, -1)
+    wbest = K.filled(scratch, "wbest", (height, width), np.float32, 0.0)
+    K.splat_bands(
+        rasterize_geometry, splat, draw, height, width, cutoff, band_h, (geo, zlim, winner, wbest), threads=threads
+    )
     return geo, winner
 
 

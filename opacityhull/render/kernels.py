@@ -20,7 +20,9 @@ Kernels
   conic of ``M = J V Jᵀ + H``, normalisation ``|J| / (2π √|M|)``, bounding box, depth plane.
 * :func:`bin_splats` / :func:`rasterize` — band-parallel
   two-pass ε-z-buffer splatting (depth pass, then accumulation) over the splat records
-  listed per band of rows, returning the unnormalised accumulators.
+  listed per band of rows, returning the unnormalised accumulators;
+  :func:`splat_bands` bins and runs it (or the deferred geometry pass, which draws the
+  same fragments through the same helpers) over interleaved bands on threads.
 
 Packed camera rows (``float64[21]``): ``R`` (cam_from_world rotation, row-major, 0–8),
 ``t`` (9–11), ``fx, fy, cx, cy`` (12–15), OpenCV distortion ``k1, k2, p1, p2, k3``
@@ -808,9 +810,25 @@ def bin_splats(splat, draw, height, band_h):
 
 
 @njit(cache=True, inline="always", error_model="numpy")
-def _splat_geometry(splat, i):
+def _band_constants(counts, cutoff, lut):
+    """Number of bands, cutoff² and the exp table's index scale of a rasteriser call
+    (:func:`rasterize`, :func:`~opacityhull.render.deferred.rasterize_geometry`)."""
+    c2 = np.float64(cutoff) * np.float64(cutoff)
+    return counts.shape[0] - 1, c2, (lut.shape[0] - 2) / c2
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _band_rows(b, band_h, height):
+    """First and last row of band ``b``."""
+    ylo = b * band_h
+    return ylo, min(height - 1, ylo + band_h - 1)
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _splat_geometry(splat, i, ylo, yhi):
     """Record ``i``'s centre (px), depth (m), conic A, 2B, C, depth gradients, depth
-    clamp range and column range, as the rasteriser's two passes both need them."""
+    clamp range, column range and row range within rows ``ylo..yhi`` (inclusive), as the
+    rasteriser's two passes both need them."""
     z0 = np.float64(splat[i, S_Z])
     dev = np.float64(splat[i, S_ZDEV])
     return (
@@ -826,7 +844,25 @@ def _splat_geometry(splat, i):
         z0 + dev,
         int(splat[i, S_BX0]),
         int(splat[i, S_BX1]),
+        max(int(splat[i, S_BY0]), ylo),
+        min(int(splat[i, S_BY1]), yhi),
     )
+
+
+@njit(cache=True, inline="always", error_model="numpy")
+def _row_terms(y, y0, B2, C, z0, dzy):
+    """Row ``y``'s part of a splat's footprint: 2B·dy, C·dy² and the tangent-plane depth
+    at the centre column (dy = y − y0), shared by every pixel of the row."""
+    dy = y - y0
+    return B2 * dy, C * dy * dy, z0 + dzy * dy
+
+
+@njit(cache=True, inline="always")
+def _fragment(A, tt, cdy, dx, zrow, dzx, zlo, zhi):
+    """Mahalanobis distance q and clamped tangent-plane depth (float64) of the pixel
+    ``dx`` columns off a splat's centre in a row (:func:`_row_terms`): the one
+    footprint both rasteriser passes test."""
+    return (A * dx + tt) * dx + cdy, min(max(zrow + dzx * dx, zlo), zhi)
 
 
 @njit(cache=True, inline="always", error_model="numpy")
@@ -836,17 +872,12 @@ def _depth_pass(splat, lists, t0, t1, ylo, yhi, c2, zlim):  # pragma: no cover -
     inf32 = np.float32(np.inf)
     for t in range(t0, t1):
         i = lists[t]
-        x0, y0, z0, A, B2, C, dzx, dzy, zlo, zhi, xa, xb = _splat_geometry(splat, i)
+        x0, y0, z0, A, B2, C, dzx, dzy, zlo, zhi, xa, xb, ya, yb = _splat_geometry(splat, i, ylo, yhi)
         eps = np.float64(splat[i, S_ZEPS])
-        for y in range(max(int(splat[i, S_BY0]), ylo), min(int(splat[i, S_BY1]), yhi) + 1):
-            dy = y - y0
-            tt = B2 * dy
-            cdy = C * dy * dy
-            zrow = z0 + dzy * dy
+        for y in range(ya, yb + 1):
+            tt, cdy, zrow = _row_terms(y, y0, B2, C, z0, dzy)
             for x in range(xa, xb + 1):
-                dx = x - x0
-                q = (A * dx + tt) * dx + cdy
-                z = min(max(zrow + dzx * dx, zlo), zhi)
+                q, z = _fragment(A, tt, cdy, x - x0, zrow, dzx, zlo, zhi)
                 zl = np.float32(z + eps) if q <= c2 else inf32
                 zlim[y, x] = min(zlim[y, x], zl)
 
@@ -856,8 +887,8 @@ def _ewa_weight(A, tt, cdy, dx, zrow, dzx, zlo, zhi, c2, lut, lut_scale, w0):
     """A splat's Mahalanobis distance q, clamped depth z and (unmasked) weight at one
     pixel of a row: shared by the colour rasteriser and the deferred geometry pass, so
     both draw exactly the same footprint."""
-    q = (A * dx + tt) * dx + cdy
-    z = np.float32(min(max(zrow + dzx * dx, zlo), zhi))
+    q, zd = _fragment(A, tt, cdy, dx, zrow, dzx, zlo, zhi)
+    z = np.float32(zd)
     f = min(q, c2) * lut_scale
     j = int(f)
     f -= j
@@ -889,28 +920,22 @@ def rasterize(splat, lists, counts, height, width, cutoff, band_h, lut, accum, z
         (the coverage: ≈ 1 where the surface covers the pixel's filter footprint).
     zlim : (H, W) float32 front depth + ε (inf where nothing was drawn).
     """
-    nb = counts.shape[0] - 1
-    c2 = np.float64(cutoff) * np.float64(cutoff)
-    lut_scale = (lut.shape[0] - 2) / c2
+    nb, c2, lut_scale = _band_constants(counts, cutoff, lut)
     zero32 = np.float32(0.0)
     for b in range(b0, nb, stride):
-        ylo = b * band_h
-        yhi = min(height - 1, ylo + band_h - 1)
+        ylo, yhi = _band_rows(b, band_h, height)
         _depth_pass(splat, lists, counts[b], counts[b + 1], ylo, yhi, c2, zlim)
         for t in range(counts[b], counts[b + 1]):
             i = lists[t]
-            x0, y0, z0, A, B2, C, dzx, dzy, zlo, zhi, xa, xb = _splat_geometry(splat, i)
+            x0, y0, z0, A, B2, C, dzx, dzy, zlo, zhi, xa, xb, ya, yb = _splat_geometry(splat, i, ylo, yhi)
             w0 = splat[i, S_W]
             r0 = splat[i, S_RGBA]
             r1 = splat[i, S_RGBA + 1]
             r2 = splat[i, S_RGBA + 2]
             r3 = splat[i, S_RGBA + 3]
             ar = splat[i, S_AREA]
-            for y in range(max(int(splat[i, S_BY0]), ylo), min(int(splat[i, S_BY1]), yhi) + 1):
-                dy = y - y0
-                tt = B2 * dy
-                cdy = C * dy * dy
-                zrow = z0 + dzy * dy
+            for y in range(ya, yb + 1):
+                tt, cdy, zrow = _row_terms(y, y0, B2, C, z0, dzy)
                 for x in range(xa, xb + 1):
                     q, z, w = _ewa_weight(A, tt, cdy, x - x0, zrow, dzx, zlo, zhi, c2, lut, lut_scale, w0)
                     w = w if (q <= c2 and z <= zlim[y, x]) else zero32
@@ -1035,29 +1060,41 @@ SCRATCH = Scratch()
 """The renderer's per-thread :class:`Scratch` (``SCRATCH.clear()`` releases the memory)."""
 
 
+def filled(scratch: Scratch | None, name: str, shape, dtype, value) -> np.ndarray:
+    """``np.full(shape, value, dtype)``; with ``scratch``, its buffer ``name`` refilled
+    with ``value`` (see :meth:`Scratch.get` for how long it stays valid)."""
+    if scratch is None:
+        # zeros come from calloc: pages the rasteriser never reaches are never written
+        return np.zeros(shape, dtype) if value == 0 else np.full(shape, value, dtype)
+    buf = scratch.get(name, shape, dtype)
+    buf.fill(value)
+    return buf
+
+
+def splat_bands(raster, splat, draw, height, width, cutoff, band_h, outputs: tuple, *, threads: int = 1) -> None:
+    """Bin the drawn splats into bands of ``band_h`` rows (:func:`bin_splats`) and run
+    ``raster(splat, lists, counts, height, width, cutoff, band_h, lut, *outputs, b0,
+    stride)`` over them (:func:`rasterize`, or
+    :func:`~opacityhull.render.deferred.rasterize_geometry`) on ``threads`` threads,
+    each taking every ``stride``-th band: interleaved bands balance the load when the
+    object fills only part of the frame, and bands own their pixels, so the threads
+    never race."""
+    counts, lists = bin_splats(splat, draw, height, band_h)
+    args = (splat, lists, counts, height, width, cutoff, band_h, exp_table(cutoff), *outputs)
+    nb = counts.shape[0] - 1
+    if threads <= 1 or nb < 2:
+        raster(*args, 0, 1)
+        return
+    T = min(threads, nb)
+    futs = [_pool().submit(raster, *args, t, T) for t in range(T)]
+    for f in futs:
+        f.result()
+
+
 def splat_frame(splat, draw, height, width, cutoff, band_h, *, threads: int = 1, scratch: Scratch | None = None):
     """Bin and rasterise the drawn splats. Returns (accum (H, W, 7), zlim); with
     ``scratch`` they live in its buffers."""
-    counts, lists = bin_splats(splat, draw, height, band_h)
-    if scratch is None:
-        accum = np.zeros((height, width, 7), np.float32)
-        zlim = np.full((height, width), np.inf, np.float32)
-    else:
-        accum = scratch.get("accum", (height, width, 7), np.float32)
-        accum.fill(0.0)
-        zlim = scratch.get("zlim", (height, width), np.float32)
-        zlim.fill(np.inf)
-    lut = exp_table(cutoff)
-    nb = counts.shape[0] - 1
-    if threads <= 1 or nb < 2:
-        rasterize(splat, lists, counts, height, width, cutoff, band_h, lut, accum, zlim, 0, 1)
-    else:
-        # interleaved bands balance the load when the object fills only part of the frame
-        T = min(threads, nb)
-        futs = [
-            _pool().submit(rasterize, splat, lists, counts, height, width, cutoff, band_h, lut, accum, zlim, t, T)
-            for t in range(T)
-        ]
-        for f in futs:
-            f.result()
+    accum = filled(scratch, "accum", (height, width, 7), np.float32, 0.0)
+    zlim = filled(scratch, "zlim", (height, width), np.float32, np.inf)
+    splat_bands(rasterize, splat, draw, height, width, cutoff, band_h, (accum, zlim), threads=threads)
     return accum, zlim

@@ -269,3 +269,75 @@ def test_bounding_sphere_ignores_nonfinite():
     assert r == pytest.approx(math.hypot(0.5, 1.0))
     c, r = K.bounding_sphere(np.zeros((0, 3), np.float32))
     assert r == 0.0
+
+
+# --------------------------------------------------------------------------- rasteriser helpers
+
+
+@pytest.mark.parametrize("height,band_h", [(1, 1), (30, 7), (32, 8), (24, 64)])
+def test_band_rows_cover_every_row_once(height, band_h):
+    counts = np.zeros(-(-height // band_h) + 1, np.int64)
+    nb, c2, scale = K._band_constants(counts, 2.0, K.exp_table(2.0))
+    assert nb == counts.shape[0] - 1 and c2 == 4.0 and scale == K.EXP_LUT_SIZE / 4.0
+    rows = []
+    for b in range(nb):
+        ylo, yhi = K._band_rows(b, band_h, height)
+        rows += range(ylo, yhi + 1)
+    assert rows == list(range(height))
+
+
+@settings(max_examples=50, deadline=None)
+@given(
+    coef=st.lists(st.floats(-50.0, 50.0), min_size=7, max_size=7),
+    dx=st.integers(-20, 20),
+    y=st.integers(0, 40),
+    y0=st.floats(-5.0, 45.0),
+)
+def test_fragment_is_the_conic_and_the_clamped_tangent_plane(coef, dx, y, y0):
+    """The footprint both passes test, to the bit: q = A dx² + 2B dx dy + C dy² (Horner
+    order) and z = clip(z0 + dz/dx·dx + dz/dy·dy, zlo, zhi)."""
+    A, B2, C, z0, dzx, dzy, dev = coef
+    zlo, zhi = z0 - abs(dev), z0 + abs(dev)
+    tt, cdy, zrow = K._row_terms(y, y0, B2, C, z0, dzy)
+    q, z = K._fragment(A, tt, cdy, float(dx), zrow, dzx, zlo, zhi)
+    dy = y - y0
+    assert q == (A * dx + B2 * dy) * dx + C * dy * dy
+    assert z == min(max(z0 + dzy * dy + dzx * dx, zlo), zhi)
+    q2, z32, _ = K._ewa_weight(A, tt, cdy, float(dx), zrow, dzx, zlo, zhi, 9.0, K.exp_table(3.0), 1.0, np.float32(1.0))
+    assert q2 == q and z32 == np.float32(z)
+
+
+def test_splat_geometry_rows_are_the_box_clipped_to_the_band():
+    rec = np.zeros((1, K.SPLAT_FIELDS), np.float32)
+    rec[0, [K.S_BX0, K.S_BX1, K.S_BY0, K.S_BY1]] = [3, 9, 5, 12]
+    for ylo, yhi, want in ((0, 7, (5, 7)), (8, 15, (8, 12)), (6, 10, (6, 10)), (13, 20, (13, 12))):
+        g = K._splat_geometry(rec, 0, ylo, yhi)
+        assert g[10:12] == (3, 9) and g[12:] == want
+
+
+def test_filled_buffers_with_and_without_scratch():
+    a = K.filled(None, "x", (3, 4), np.float32, np.inf)
+    assert a.dtype == np.float32 and a.shape == (3, 4) and np.all(np.isinf(a))
+    s = K.Scratch()
+    b = K.filled(s, "x", (3, 4), np.int64, -1)
+    b[:] = 7
+    c = K.filled(s, "x", (2, 2), np.int64, -1)  # the same buffer, refilled
+    assert np.shares_memory(b, c) and np.all(c == -1)
+
+
+def test_band_threads_are_bit_for_bit_the_serial_frame():
+    from opacityhull.render import deferred as D
+
+    rng = np.random.default_rng(3)
+    surf = random_surfels(rng, 300)
+    cam = make_cam((0.1, 0.3, 0.5))
+    cfg = RenderConfig(filter=0.5)
+    valid, rec = setup_fast(surf, cam, cfg, rng.uniform(1e-5, 1e-4, size=len(surf)).astype(np.float32))
+    rec[:, K.S_RGBA : K.S_RGBA + 4] = rng.random((len(surf), 4))
+    draw = np.flatnonzero(valid).astype(np.int64)
+    args = (rec, draw, cam.height, cam.width, cfg.cutoff_sigma, 4)
+    for frame in (K.splat_frame, D.geometry_frame):
+        serial = frame(*args, threads=1)
+        for got in (frame(*args, threads=3), frame(*args, threads=3, scratch=K.Scratch())):
+            for x, y in zip(serial, got):
+                np.testing.assert_array_equal(x, y)
