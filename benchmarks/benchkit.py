@@ -21,6 +21,26 @@ def pyplot():
     return plt
 
 
+def report_head(title: str, *paragraphs: str) -> list[str]:
+    """The first lines of a benchmark's Markdown report: the ``# title`` and the
+    paragraphs under it (what ran, on which machine), each followed by a blank line."""
+    out = [f"# {title}", ""]
+    for p in paragraphs:
+        out += [p, ""]
+    return out
+
+
+def save_figure(fig, path: Path, *, dpi: float | None = None) -> None:
+    """Write the matplotlib figure ``fig`` to ``path`` (the format from its suffix; ``dpi``
+    None: the figure's own) as a whole file or none (a temporary file renamed), and
+    close the figure."""
+    from opacityhull.imageio import atomic_path
+
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=dpi)
+    pyplot().close(fig)
+
+
 def print_result(res: dict, report: Path, *, as_json: bool) -> None:
     """Print ``res`` as one JSON object on stdout (``--json``), else the Markdown report
     the benchmark wrote at ``report``."""

@@ -44,7 +44,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from benchkit import print_result, pyplot
+from benchkit import print_result, pyplot, report_head, save_figure
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "benchmarks" / "out"
@@ -228,8 +228,6 @@ def kernel_figure(rng, out: Path, *, size):
     plt = pyplot()
     from matplotlib.patches import Rectangle
 
-    from opacityhull.imageio import atomic_path
-
     kinds = ["refraction", "diffuse", "glossy", "shadowed"]
     T = ns.transport_rows(kinds, rng, height=size, width=size)
     imgs = ns.natural_images(200, rng, height=size, width=size).mean(axis=3)
@@ -261,17 +259,13 @@ def kernel_figure(rng, out: Path, *, size):
     )
     fig.tight_layout()
     out.mkdir(parents=True, exist_ok=True)
-    with atomic_path(out / "natural_kernels.png") as tmp:
-        fig.savefig(tmp, dpi=110)
-    plt.close(fig)
+    save_figure(fig, out / "natural_kernels.png", dpi=110)
 
 
 def bench_glass(rng, out: Path, *, size, height, width):
     """The synthetic glass-ball image: PSNR under held-out images and the bar, and the
     estimate | truth | error sheet (``natural_sheet.png``)."""
     plt = pyplot()
-
-    from opacityhull.imageio import atomic_path
 
     T = ns.glass_scene(rng, height=height, width=width, domain_hw=(size, size))
     imgs = ns.natural_images(220, rng, height=size, width=size).mean(axis=3)
@@ -308,9 +302,7 @@ def bench_glass(rng, out: Path, *, size, height, width):
         f"synthetic glass ball in front of the display ({width}x{height} px, {size}x{size} display)", fontsize=10
     )
     fig.tight_layout()
-    with atomic_path(out / "natural_sheet.png") as tmp:
-        fig.savefig(tmp, dpi=100)
-    plt.close(fig)
+    save_figure(fig, out / "natural_sheet.png", dpi=100)
     return dict(
         pixels=height * width,
         time_s=dt,
@@ -325,16 +317,14 @@ def bench_glass(rng, out: Path, *, size, height, width):
 def write_report(res, out: Path) -> None:
     plt = pyplot()
 
-    from opacityhull.imageio import atomic_path
-
     out.mkdir(parents=True, exist_ok=True)
     sw, sp, rl = res["sweep"], res["speed"], res["relight"]
     lines = [
-        "# Natural-illumination reflectance fields",
-        "",
-        f"Synthetic transport, {sw['size']}×{sw['size']} display, {sw['n_pixels']} pixels (5 kinds), mono; "
-        "timings contended (2 shared cores), one numba thread unless noted.",
-        "",
+        *report_head(
+            "Natural-illumination reflectance fields",
+            f"Synthetic transport, {sw['size']}×{sw['size']} display, {sw['n_pixels']} pixels (5 kinds), mono; "
+            "timings contended (2 shared cores), one numba thread unless noted.",
+        ),
         "## Error against K and N",
         "",
         "PSNR over all pixels (peak = brightest true value); the median pixel's relative RMS error is "
@@ -416,9 +406,7 @@ def write_report(res, out: Path) -> None:
         a.grid(alpha=0.3)
         a.legend(fontsize=8)
     fig.tight_layout()
-    with atomic_path(out / "natural.png") as tmp:
-        fig.savefig(tmp, dpi=110)
-    plt.close(fig)
+    save_figure(fig, out / "natural.png", dpi=110)
 
 
 def bench_sim(out: Path, *, scenes, Ns, n_test, n_bar, scale, camera=2, table_deg=0.0):
@@ -531,9 +519,7 @@ def bench_sim(out: Path, *, scenes, Ns, n_test, n_bar, scale, camera=2, table_de
             ax[r, c].set_yticks([])
     fig.suptitle(f"natural-illumination fields vs Mitsuba, K = 25, N = {max(Ns)}", fontsize=10)
     fig.tight_layout()
-    with atomic_path(out / "natural_sim_sheet.png") as tmp:
-        fig.savefig(tmp, dpi=90)
-    plt.close(fig)
+    save_figure(fig, out / "natural_sim_sheet.png", dpi=90)
 
     fig, axb = plt.subplots(figsize=(6, 3.5))
     for scene, pb in bar_curves.items():
@@ -544,9 +530,7 @@ def bench_sim(out: Path, *, scenes, Ns, n_test, n_bar, scale, camera=2, table_de
     axb.set_title(f"moving white bar, K = 25, N = {max(Ns)}", fontsize=10)
     axb.legend(fontsize=8)
     fig.tight_layout()
-    with atomic_path(out / "natural_bar.png") as tmp:
-        fig.savefig(tmp, dpi=100)
-    plt.close(fig)
+    save_figure(fig, out / "natural_bar.png", dpi=100)
 
     lines = [
         "# Natural-illumination fields against Mitsuba (simulated rig)",

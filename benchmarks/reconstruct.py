@@ -32,7 +32,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from benchkit import pyplot
+from benchkit import pyplot, report_head, save_figure
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "benchmarks" / "out"
@@ -273,10 +273,10 @@ def write_report(res: dict) -> None:
     OUT.mkdir(parents=True, exist_ok=True)
     mt, cv, acc = res["matting"], res["carving"], res["accuracy"]
     L = [
-        "# Reconstruction benchmark",
-        "",
-        f"Machine: {os.cpu_count()} cores; measured copy bandwidth {mt['bandwidth_gbs']:.1f} GB/s (read + write).",
-        "",
+        *report_head(
+            "Reconstruction benchmark",
+            f"Machine: {os.cpu_count()} cores; measured copy bandwidth {mt['bandwidth_gbs']:.1f} GB/s (read + write).",
+        ),
         "## Matting (K = 6, 720×576)",
         "",
         "| threads | end to end (ms) | Mpx/s | kernel (ms) | kernel Mpx/s |",
@@ -347,8 +347,7 @@ def write_report(res: dict) -> None:
     ax[3].set_ylabel("seconds")
     ax[3].set_title(f"carve {cv['grid']} from {cv['views']} views")
     fig.tight_layout()
-    fig.savefig(OUT / "reconstruct.png")
-    plt.close(fig)
+    save_figure(fig, OUT / "reconstruct.png")
 
 
 def main() -> None:

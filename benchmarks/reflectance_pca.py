@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from benchkit import print_result, pyplot  # noqa: E402
+from benchkit import print_result, pyplot, save_figure  # noqa: E402
 
 OUT = Path(__file__).resolve().parent / "out"
 
@@ -77,7 +77,7 @@ def _load_seconds(model) -> float:
 
 def _noisy(base, dst: Path, sigma: float, seed: int = 0):
     """``base`` written again (float32) with each one-light value times (1 + sigma N(0, 1))."""
-    from opacityhull.model import OpacityHullModel, write_model
+    from opacityhull.model import copy_model
 
     rng = np.random.default_rng(seed)
 
@@ -87,16 +87,7 @@ def _noisy(base, dst: Path, sigma: float, seed: int = 0):
             for k, v in base.load_reflectance(i).items()
         }
 
-    write_model(
-        dst,
-        views=base.views,
-        surfels=base.surfels,
-        view_rgba=[base.load_view_rgba(i) for i in range(len(base.views))],
-        rig=base.meta.get("rig"),
-        provenance=base.meta.get("provenance"),
-        reflectance={"lights": base.light_samples, "images": images},
-    )
-    return OpacityHullModel.open(dst)
+    return copy_model(base, dst, storage="float", reflectance_storage="layers", reflectance_images=images)
 
 
 def run(*, quick: bool, size: tuple[int, int], noise: float) -> dict:
@@ -259,8 +250,7 @@ def _plot(res: dict, path: Path) -> None:
         ax[row, 1].legend(fontsize=7)
     fig.suptitle(res["model"], fontsize=9)
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    save_figure(fig, path, dpi=110)
 
 
 def main() -> None:

@@ -28,7 +28,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from benchkit import print_result, pyplot
+from benchkit import print_result, pyplot, report_head, save_figure
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "benchmarks" / "out"
@@ -289,10 +289,7 @@ def write_report(res: dict, out: Path) -> None:
 
     tp, acc, pca = res["throughput"], res["accuracy"], res["pca"]
     L = [
-        "# Relighting benchmark",
-        "",
-        f"Machine: {res['machine']}",
-        "",
+        *report_head("Relighting benchmark", f"Machine: {res['machine']}"),
         "## Throughput (analytic sphere model, warm)",
         "",
         "| quantity | value |",
@@ -401,9 +398,7 @@ def write_report(res: dict, out: Path) -> None:
     ax[2].set_title("PCA compression")
     ax[2].legend(loc="upper right")
     fig.tight_layout()
-    with atomic_path(out / "relight.png") as tmp:
-        fig.savefig(tmp, dpi=110)
-    plt.close(fig)
+    save_figure(fig, out / "relight.png", dpi=110)
 
 
 def main(argv=None) -> int:

@@ -64,7 +64,7 @@ import logging
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal, Sequence, get_args
+from typing import Callable, Literal, Sequence, get_args
 
 import numpy as np
 
@@ -378,6 +378,16 @@ class OpacityHullModel:
                 return v.index
         raise InputError(f"no view (camera {camera}, table {table_deg} deg) in model {self.root}")
 
+    def _meta_choice(self, table: str, key: str, *, default: str, choices: tuple[str, ...]) -> str:
+        """``model.toml`` ``[table] key`` (``default`` when absent); raises
+        :class:`FormatError` naming the file, the key and the choices when it is none of ``choices``."""
+        value = self.meta.get(table, {}).get(key, default)
+        if value not in choices:
+            raise FormatError(
+                f"{self.root / 'model.toml'}: {table}.{key} {value!r}, expected one of {', '.join(map(repr, choices))}"
+            )
+        return str(value)
+
     # ---- appearance
     @property
     def format(self) -> str:
@@ -387,13 +397,7 @@ class OpacityHullModel:
     def storage(self) -> str:
         """Pixel type of ``views/`` and ``reflectance/``: "half" or "float" (models
         written before ``[storage]`` existed are float32)."""
-        st = self.meta.get("storage", {}).get("pixel_type", "float")
-        if st not in STORAGE_TYPES:
-            raise FormatError(
-                f"{self.root / 'model.toml'}: storage.pixel_type {st!r}, expected one of "
-                f"{', '.join(map(repr, STORAGE_TYPES))}"
-            )
-        return str(st)
+        return self._meta_choice("storage", "pixel_type", default="float", choices=STORAGE_TYPES)
 
     @property
     def storage_clamped(self) -> list[dict]:
@@ -450,13 +454,7 @@ class OpacityHullModel:
         """How ``reflectance/`` holds the one-light images: "layers" (one EXR layer per
         light sample; models written before the option) or "pca" (a rank-R PCA per view,
         :mod:`opacityhull.reflectance_pca`)."""
-        st = self.meta.get("reflectance", {}).get("storage", "layers")
-        if st not in REFLECTANCE_STORAGES:
-            raise FormatError(
-                f"{self.root / 'model.toml'}: reflectance.storage {st!r}, expected one of "
-                f"{', '.join(map(repr, REFLECTANCE_STORAGES))}"
-            )
-        return str(st)
+        return self._meta_choice("reflectance", "storage", default="layers", choices=REFLECTANCE_STORAGES)
 
     def load_reflectance(self, i: int) -> dict[str, np.ndarray]:
         """``{light key: (H, W, 3) premultiplied radiance}`` of view ``i`` (rebuilt from
@@ -750,12 +748,17 @@ def copy_model(
     pca_rank: int | None = None,
     pca_error: float | None = None,
     pca_block: int | None = DEFAULT_PCA_BLOCK,
+    reflectance_images: Callable[[int], dict[str, np.ndarray]] | None = None,
 ) -> OpacityHullModel:
     """``model`` written again to ``dst`` through :func:`write_model` with the pixel type
     ``storage`` (e.g. a float32 model converted to half) and ``reflectance_storage``
     (None: the model's own; ``pca_rank`` / ``pca_error`` / ``pca_block`` as in
     :func:`write_model`, rank and error None: the model's own target or the default): views, surfels, reflectance, rig and
-    provenance; the pictures and the build report are not copied."""
+    provenance; the pictures and the build report are not copied.
+
+    ``reflectance_images``: view index -> ``{light key: (H, W, 3)}`` written in place of
+    the model's own one-light images (e.g. perturbed copies of them; None: the model's);
+    the model must have reflectance (else :class:`InputError`)."""
     r = model.meta.get("reflectance", {})
     if reflectance_storage is None:
         reflectance_storage = "pca" if model.has_reflectance and model.reflectance_storage == "pca" else "layers"
@@ -763,7 +766,10 @@ def copy_model(
             pca_rank = r.get("pca_rank")
             pca_error = r.get("pca_error_target")
             pca_block = int(r.get("pca_block", DEFAULT_PCA_BLOCK)) or None
-    refl = {"lights": model.light_samples, "images": model.load_reflectance} if model.has_reflectance else None
+    if reflectance_images is not None and not model.has_reflectance:
+        raise InputError(f"copy_model: reflectance_images given, but model {model.root} has no reflectance")
+    images = model.load_reflectance if reflectance_images is None else reflectance_images
+    refl = {"lights": model.light_samples, "images": images} if model.has_reflectance else None
     write_model(
         dst,
         views=model.views,

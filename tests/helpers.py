@@ -55,6 +55,17 @@ def ring_cameras(width: int, height: int, elevations_azimuths_deg, **fields: Any
     ]
 
 
+def invoke_cli(argv):
+    """Run the real CLI app in-process on ``argv`` (paths and numbers are passed as
+    ``str``); returns the click Result (stdout and stderr apart)."""
+    from typer.testing import CliRunner
+
+    from opacityhull.cli import app, normalize_argv
+
+    # a wide terminal: rich would otherwise break long paths inside the messages
+    return CliRunner().invoke(app, normalize_argv([str(a) for a in argv]), env={"COLUMNS": "4000"})
+
+
 def load_viewer(drv, url: str) -> dict:
     """Open the viewer page at ``url`` in the WebDriver ``drv``; its ready record (``ok``, ``error``)."""
     from opacityhull.view.browser import wait_ready

@@ -185,6 +185,17 @@ class _View:
     what: str  # how errors name the view ("COLMAP image 'a.png'", "frame 3 ('./r_3')")
 
 
+@dataclass(frozen=True, kw_only=True)
+class _Imported:
+    """What an importer read, for :func:`_write_session` to write."""
+
+    kind: str  # "colmap", "nerfstudio"
+    source: str  # the path imported from, as given
+    views: list[_View]
+    meta: dict  # the importer's own keys of the session's [import] table
+    report: dict  # the importer's own keys of the returned report (after the common ones)
+
+
 # --------------------------------------------------------------------------- staging
 
 
@@ -268,15 +279,9 @@ def _matte_problem(alpha: np.ndarray) -> str | None:
 
 
 def _write_session(
-    out: Path,
-    views: list[_View],
-    *,
-    kind: str,
-    source: str,
-    import_meta: dict,
-    allow_full_masks: bool,
-    progress: Callable[[int, int], None] | None,
+    out: Path, found: _Imported, *, allow_full_masks: bool, progress: Callable[[int, int], None] | None
 ) -> dict:
+    views, kind, source = found.views, found.kind, found.source
     centres = np.array([v.cam.centre_world for v in views])
     forwards = np.array([v.cam.forward_world for v in views])
     target = closest_point_to_axes(centres, forwards)
@@ -317,7 +322,7 @@ def _write_session(
         },
         "rig": {"target_m": [float(x) for x in target], "cameras": geo_cams},
         "plan": {"plan": {"name": f"import-{kind}"}},
-        "import": {"kind": kind, **import_meta, "names": [v.source for v in views]},
+        "import": {"kind": kind, **found.meta, "names": [v.source for v in views]},
         "camera_info": [
             {
                 "index": i,
@@ -385,6 +390,7 @@ def _write_session(
         "full_masks": len(full_views),
         "target_m": [float(x) for x in target],
         "cameras": len(views),
+        **found.report,
     }
 
 
@@ -452,17 +458,8 @@ def import_colmap(
         "images": str(images_dir.resolve()),
         "masks": str(Path(masks_dir).resolve()) if masks_dir is not None else "",
     }
-    rep = _write_session(
-        out,
-        views,
-        kind="colmap",
-        source=str(model_dir),
-        import_meta=meta,
-        allow_full_masks=allow_full_masks,
-        progress=progress,
-    )
-    rep["model_format"] = kind
-    return rep
+    found = _Imported(kind="colmap", source=str(model_dir), views=views, meta=meta, report={"model_format": kind})
+    return _write_session(out, found, allow_full_masks=allow_full_masks, progress=progress)
 
 
 # --------------------------------------------------------------------------- nerfstudio
@@ -650,17 +647,9 @@ def import_nerfstudio(
         "applied_transform": file_from_source[:3].tolist() if A is not None else [],
         "applied_transform_undone": A is not None,
     }
-    rep = _write_session(
-        out,
-        views,
-        kind="nerfstudio",
-        source=str(path),
-        import_meta=imeta,
-        allow_full_masks=allow_full_masks,
-        progress=progress,
-    )
-    rep["applied_transform_undone"] = A is not None
-    return rep
+    report = {"applied_transform_undone": A is not None}
+    found = _Imported(kind="nerfstudio", source=str(path), views=views, meta=imeta, report=report)
+    return _write_session(out, found, allow_full_masks=allow_full_masks, progress=progress)
 
 
 def _nerf_focal_px(num: dict, axis: str, size_px: float, where: str) -> float | None:

@@ -8,15 +8,20 @@ each sample sees the object or, behind it, the display texel the ray hits (the b
 panel turns with the table, the back panel is fixed), so composites and coverage alpha
 come from the same rays. This is independent of the code under test (it does not call
 ``matting.backdrop_from_displays``).
+
+The photo-refinement tests' scene is in memory instead: a textured sphere inside a
+larger sphere standing for the hull, both about the origin, seen by cameras on a sphere
+(:func:`sphere_cameras`, :func:`sphere_photo`, :func:`sphere_hull_surfels`).
 """
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
 
-from opacityhull.camera import Camera, object_from_rig, write_colmap_text, write_opencv_yaml
+from opacityhull.camera import Camera, look_at_world_from_cam, object_from_rig, write_colmap_text, write_opencv_yaml
 from opacityhull.imageio import read_png, write_exr, write_png
 from opacityhull.riggeometry import RigGeometry, view_id
 from opacityhull.session import SessionWriter
@@ -307,3 +312,79 @@ def built_sphere(tmp_path_factory, tag: str, config, *, reflectance: bool, seed:
     make_session(root, kind="sphere", n_angles=4, reflectance=reflectance, seed=seed)
     out = tmp_path_factory.mktemp(f"{tag}_model") / "model"
     return root, out, build_model(root, out, config=config)
+
+
+def cli_session(tmp_path_factory, tag: str) -> Path:
+    """A small sphere session under ``tag`` (2 cameras x 3 table angles, 40x30 px, with
+    one-light shots), for module-scoped fixtures of the build-CLI tests; its folder."""
+    root = tmp_path_factory.mktemp(tag) / "session"
+    make_session(root, kind="sphere", n_cams=2, n_angles=3, width=40, height=30, reflectance=True, seed=3, ss=2)
+    return root
+
+
+# --------------------------------------------------------------------------- the photo tests' spheres
+
+
+def fibonacci_directions(n: int) -> np.ndarray:
+    """(n, 3) unit vectors on a golden-angle spiral (near-uniform on the sphere)."""
+    i = np.arange(n) + 0.5
+    phi = np.arccos(1 - 2 * i / n)
+    th = math.pi * (1 + 5**0.5) * i
+    return np.stack([np.cos(th) * np.sin(phi), np.cos(phi), np.sin(th) * np.sin(phi)], axis=1)
+
+
+def sphere_cameras(n: int, *, distance_m: float, sizes=((64, 64),), focal_px: float | None = None) -> list[Camera]:
+    """``n`` pinhole cameras ``v0``, ``v1``, ... at ``distance_m`` from the origin along
+    :func:`fibonacci_directions`, looking at it; image sizes (w, h) cycling through
+    ``sizes`` (so stacks of them are padded), focal length ``focal_px`` (None: 1.1 w),
+    principal point at the image centre."""
+    out = []
+    for k, d in enumerate(fibonacci_directions(n)):
+        w, h = sizes[k % len(sizes)]
+        f = 1.1 * w if focal_px is None else focal_px
+        K = np.array([[f, 0, (w - 1) / 2], [0, f, (h - 1) / 2], [0, 0, 1.0]])
+        up = (0.0, 1.0, 0.0) if abs(d[1]) < 0.9 else (1.0, 0.0, 0.0)
+        wfc = look_at_world_from_cam(distance_m * d, (0, 0, 0), up)
+        out.append(Camera(K=K, width=w, height=h, world_from_cam=wfc, name=f"v{k}"))
+    return out
+
+
+def sphere_photo(cam: Camera, *, r_true: float, r_hull: float, textured: bool = True, seed: int = 1):
+    """Exact ray cast of ``cam``: the grey albedo of the true sphere (radius ``r_true``
+    m; Lambertian, view-independent), black elsewhere, and as alpha the disc of the hull
+    sphere (``r_hull``: the silhouettes the hull was carved from). The albedo is a smooth
+    random texture (features a few pixels wide, from ``seed``), or 0.4 without
+    ``textured``. Returns (H, W, 3) and (H, W) float32."""
+    o, d = cam.pixel_rays()
+    d = d.reshape(-1, 3)
+
+    def hit(r):
+        b = d @ o
+        disc = b * b - (o @ o - r * r)
+        return disc >= 0, -b - np.sqrt(np.maximum(disc, 0))
+
+    m_true, t = hit(r_true)
+    m_hull, _ = hit(r_hull)
+    n = (o + t[:, None] * d) / r_true
+    if textured:
+        rng = np.random.default_rng(seed)
+        g = np.full(n.shape[0], 0.45)
+        for _ in range(12):
+            g += 0.06 * np.sin(n @ (rng.normal(size=3) * 9.0) + rng.uniform(0, 2 * math.pi))
+    else:
+        g = np.full(n.shape[0], 0.4)
+    g = np.where(m_true, g, 0.0)
+    img = np.repeat(g.reshape(cam.height, cam.width, 1), 3, axis=2).astype(np.float32)
+    return img, m_hull.reshape(cam.height, cam.width).astype(np.float32)
+
+
+def sphere_hull_surfels(n: int, *, radius: float, cameras):
+    """``n`` surfels on the sphere of ``radius`` m about the origin (at
+    :func:`fibonacci_directions`, outward normals, radii covering the sphere), each
+    visible from the cameras it faces (the sphere is convex): ``(positions, normals,
+    radii, (n, V) visibility)``."""
+    nrm = fibonacci_directions(n)
+    pos = radius * nrm
+    C = np.array([c.centre_world for c in cameras])
+    vis = np.einsum("nk,vk->nv", nrm, C) - (pos * nrm).sum(1)[:, None] > 0
+    return pos, nrm, np.full(n, radius * math.sqrt(4 / n)), vis

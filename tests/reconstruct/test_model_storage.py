@@ -13,7 +13,7 @@ import numpy as np
 import OpenEXR
 import pytest
 
-import rcsynth
+from helpers import invoke_cli
 from opacityhull.errors import ConfigError, FormatError, InputError
 from opacityhull.imageio import HalfOverflowWarning
 from opacityhull.model import OpacityHullModel, Storage, ViewInfo, copy_model, write_model
@@ -242,25 +242,10 @@ def test_bad_storage_values_are_refused(tmp_path, relit_pair):
 # --------------------------------------------------------------------------- build CLI
 
 
-def _invoke(argv):
-    from typer.testing import CliRunner
-
-    from opacityhull.cli import app, normalize_argv
-
-    return CliRunner().invoke(app, normalize_argv([str(a) for a in argv]), env={"COLUMNS": "4000"})
-
-
-@pytest.fixture(scope="module")
-def session(tmp_path_factory):
-    root = tmp_path_factory.mktemp("storage_session") / "session"
-    rcsynth.make_session(root, kind="sphere", n_cams=2, n_angles=3, width=40, height=30, reflectance=True, seed=3, ss=2)
-    return root
-
-
-def test_build_storage_flag_and_the_bytes_per_view_in_the_report(session, tmp_path):
+def test_build_storage_flag_and_the_bytes_per_view_in_the_report(cli_session, tmp_path):
     out = tmp_path / "model"
-    base = ["build", session, "--out", out, "--hull-res", "24", "--no-pictures", "--json"]
-    res = _invoke([*base, "--storage", "float"])
+    base = ["build", cli_session, "--out", out, "--hull-res", "24", "--no-pictures", "--json"]
+    res = invoke_cli([*base, "--storage", "float"])
     assert res.exit_code == 0, res.output
     summ = json.loads(res.stdout)
     m = OpacityHullModel.open(out)
@@ -281,7 +266,7 @@ def test_build_storage_flag_and_the_bytes_per_view_in_the_report(session, tmp_pa
 
     # the default (half) on resume: only the write step reruns, the pixels are the float
     # build's rounded to half, in about half the bytes
-    res = _invoke([*base, "--resume"])
+    res = invoke_cli([*base, "--resume"])
     assert res.exit_code == 0, res.output
     summ = json.loads(res.stdout)
     assert summ["steps"]["write"] == "ran"
@@ -296,8 +281,8 @@ def test_build_storage_flag_and_the_bytes_per_view_in_the_report(session, tmp_pa
     assert summ["metrics"]["storage_clamped_values"] == 0
 
 
-def test_a_bad_storage_flag_is_exit_2_naming_it(session, tmp_path):
-    res = _invoke(["build", session, "--out", tmp_path / "m", "--storage", "double"])
+def test_a_bad_storage_flag_is_exit_2_naming_it(cli_session, tmp_path):
+    res = invoke_cli(["build", cli_session, "--out", tmp_path / "m", "--storage", "double"])
     assert res.exit_code == 2, res.output
     assert "--storage 'double': expected half or float" in " ".join(res.stderr.split())
     assert "Traceback" not in res.output

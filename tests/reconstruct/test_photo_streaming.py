@@ -6,13 +6,12 @@ traced memory stays far below the (V, H, W) stacks it used to build."""
 
 from __future__ import annotations
 
-import math
 import tracemalloc
 
 import numpy as np
 import pytest
+import rcsynth
 
-from opacityhull.camera import Camera, look_at_world_from_cam
 from opacityhull.errors import ConfigError
 from opacityhull.reconstruct import photo
 from opacityhull.reconstruct.hull import point_in_hull
@@ -24,53 +23,15 @@ DIST = 0.16
 
 
 def cameras(n, sizes=((64, 64),)):
-    """Cameras on a sphere (Fibonacci directions) looking at the origin, the image sizes
-    cycling through ``sizes`` (so the stacks are padded)."""
-    i = np.arange(n) + 0.5
-    phi = np.arccos(1 - 2 * i / n)
-    th = math.pi * (1 + 5**0.5) * i
-    dirs = np.stack([np.cos(th) * np.sin(phi), np.cos(phi), np.sin(th) * np.sin(phi)], axis=1)
-    out = []
-    for k, d in enumerate(dirs):
-        w, h = sizes[k % len(sizes)]
-        K = np.array([[1.1 * w, 0, (w - 1) / 2], [0, 1.1 * w, (h - 1) / 2], [0, 0, 1.0]])
-        up = (0.0, 1.0, 0.0) if abs(d[1]) < 0.9 else (1.0, 0.0, 0.0)
-        wfc = look_at_world_from_cam(DIST * d, (0, 0, 0), up)
-        out.append(Camera(K=K, width=w, height=h, world_from_cam=wfc, name=f"v{k}"))
-    return out
+    return rcsynth.sphere_cameras(n, distance_m=DIST, sizes=sizes)
 
 
 def render(cam, seed=1):
-    """Ray-cast grey texture of the true sphere; alpha = the hull sphere's disc."""
-    o, d = cam.pixel_rays()
-    d = d.reshape(-1, 3)
-
-    def hit(r):
-        b = d @ o
-        disc = b * b - (o @ o - r * r)
-        return disc >= 0, -b - np.sqrt(np.maximum(disc, 0))
-
-    m_true, t = hit(R_TRUE)
-    m_hull, _ = hit(R_HULL)
-    n = (o + t[:, None] * d) / R_TRUE
-    rng = np.random.default_rng(seed)
-    g = np.full(n.shape[0], 0.45)
-    for _ in range(12):
-        g += 0.06 * np.sin(n @ (rng.normal(size=3) * 9.0) + rng.uniform(0, 2 * math.pi))
-    g = np.where(m_true, g, 0.0)
-    img = np.repeat(g.reshape(cam.height, cam.width, 1), 3, axis=2).astype(np.float32)
-    return img, m_hull.reshape(cam.height, cam.width).astype(np.float32)
+    return rcsynth.sphere_photo(cam, r_true=R_TRUE, r_hull=R_HULL, seed=seed)
 
 
 def surfels(cams, n):
-    i = np.arange(n) + 0.5
-    phi = np.arccos(1 - 2 * i / n)
-    th = math.pi * (1 + 5**0.5) * i
-    nrm = np.stack([np.cos(th) * np.sin(phi), np.cos(phi), np.sin(th) * np.sin(phi)], axis=1)
-    pos = R_HULL * nrm
-    C = np.array([c.centre_world for c in cams])
-    vis = np.einsum("nk,vk->nv", nrm, C) - (pos * nrm).sum(1)[:, None] > 0
-    return pos, nrm, np.full(n, R_HULL * math.sqrt(4 / n)), vis
+    return rcsynth.sphere_hull_surfels(n, radius=R_HULL, cameras=cams)
 
 
 class Counted:
@@ -103,21 +64,8 @@ def _full_stack_scores(pos, nrm, cams, imgs, alphas, views, step, spacing, cfg):
     grey = photo._stack("images", imgs, cams, 3)
     alpha = photo._stack("alphas", alphas, cams, 1)
     np.nan_to_num(alpha, copy=False, nan=0.0)
-    return cost_volume(
-        pos,
-        nrm,
-        cams,
-        grey,
-        alpha,
-        views,
-        step,
-        spacing,
-        n_depths=cfg.n_depths,
-        patch_size=cfg.patch_size,
-        texture_std=cfg.texture_std,
-        alpha_threshold=cfg.alpha_threshold,
-        n_best=cfg.n_best,
-    )
+    kernel = {k: getattr(cfg, k) for k in ("n_depths", "patch_size", "texture_std", "alpha_threshold", "n_best")}
+    return cost_volume(pos, nrm, cams, grey, alpha, views, step, spacing, **kernel)
 
 
 @pytest.mark.parametrize("n_views,n_best,cap", [(5, 0, 5), (5, 2, 7), (3, 0, 3), (4, 0, 64)])

@@ -4,14 +4,13 @@ no drift where there is no texture; degenerate inputs; kernel == NumPy oracle.""
 
 from __future__ import annotations
 
-import math
 
 import numpy as np
 import pytest
+import rcsynth
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from opacityhull.camera import Camera, look_at_world_from_cam
 from opacityhull.errors import ConfigError, InputError, ShapeError
 from opacityhull.reconstruct.photo import (
     PhotoConfig,
@@ -29,73 +28,19 @@ F_PX = 70.0
 DIST = 0.16
 
 
-def cameras(n=12, seed=0):
-    """Cameras on a sphere around the origin (Fibonacci directions), looking at it."""
-    i = np.arange(n) + 0.5
-    phi = np.arccos(1 - 2 * i / n)
-    th = math.pi * (1 + 5**0.5) * i
-    dirs = np.stack([np.cos(th) * np.sin(phi), np.cos(phi), np.sin(th) * np.sin(phi)], axis=1)
-    K = np.array([[F_PX, 0, (W - 1) / 2], [0, F_PX, (H - 1) / 2], [0, 0, 1.0]])
-    out = []
-    for k, d in enumerate(dirs):
-        up = (0.0, 1.0, 0.0) if abs(d[1]) < 0.9 else (1.0, 0.0, 0.0)
-        out.append(
-            Camera(K=K, width=W, height=H, world_from_cam=look_at_world_from_cam(DIST * d, (0, 0, 0), up), name=f"v{k}")
-        )
-    return out
-
-
-def albedo(n, seed, textured=True):
-    """Smooth random texture on the unit sphere (features a few pixels wide)."""
-    if not textured:
-        return np.full(n.shape[0], 0.4)
-    rng = np.random.default_rng(seed)
-    out = np.full(n.shape[0], 0.45)
-    for _ in range(12):
-        f = rng.normal(size=3) * 9.0
-        out += 0.06 * np.sin(n @ f + rng.uniform(0, 2 * math.pi))
-    return out
+def cameras(n=12):
+    return rcsynth.sphere_cameras(n, distance_m=DIST, sizes=((W, H),), focal_px=F_PX)
 
 
 def render(cam, textured=True, seed=1):
-    """Exact ray cast: grey albedo of the true sphere (Lambertian, view-independent), black
-    elsewhere; alpha = the *hull* sphere's disc (the silhouettes the hull was carved from)."""
-    o, d = cam.pixel_rays()
-    d = d.reshape(-1, 3)
-
-    def hit(r):
-        b = d @ o
-        c = o @ o - r * r
-        disc = b * b - c
-        t = -b - np.sqrt(np.maximum(disc, 0))
-        return disc >= 0, t
-
-    m_true, t = hit(R_TRUE)
-    m_hull, _ = hit(R_HULL)
-    p = o + t[:, None] * d
-    g = np.where(m_true, albedo(p / R_TRUE, seed, textured), 0.0)
-    img = np.repeat(g.reshape(H, W, 1), 3, axis=2).astype(np.float32)
-    return img, m_hull.reshape(H, W).astype(np.float32)
-
-
-def hull_surfels(n=400, cams=None):
-    i = np.arange(n) + 0.5
-    phi = np.arccos(1 - 2 * i / n)
-    th = math.pi * (1 + 5**0.5) * i
-    nrm = np.stack([np.cos(th) * np.sin(phi), np.cos(phi), np.sin(th) * np.sin(phi)], axis=1)
-    pos = R_HULL * nrm
-    C = np.array([c.centre_world for c in cams])
-    # convex: visible = facing the camera
-    vis = np.einsum("nk,vk->nv", nrm, C) - (pos * nrm).sum(1)[:, None] > 0
-    rad = np.full(n, R_HULL * math.sqrt(4 / n))
-    return pos, nrm, rad, vis
+    return rcsynth.sphere_photo(cam, r_true=R_TRUE, r_hull=R_HULL, textured=textured, seed=seed)
 
 
 @pytest.fixture(scope="module")
 def scene():
     cams = cameras()
     imgs, alphas = zip(*[render(c) for c in cams])
-    pos, nrm, rad, vis = hull_surfels(400, cams)
+    pos, nrm, rad, vis = rcsynth.sphere_hull_surfels(400, radius=R_HULL, cameras=cams)
     return cams, list(imgs), list(alphas), pos, nrm, rad, vis
 
 

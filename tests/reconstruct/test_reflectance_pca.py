@@ -15,7 +15,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-import rcsynth
+from helpers import invoke_cli
 from opacityhull.errors import ConfigError, FormatError, InputError
 from opacityhull.model import OpacityHullModel, copy_model
 from opacityhull.reflectance_pca import (
@@ -396,25 +396,10 @@ def test_a_model_without_the_storage_key_reads_layers(models):
 # --------------------------------------------------------------------------- build CLI
 
 
-def _invoke(argv):
-    from typer.testing import CliRunner
-
-    from opacityhull.cli import app, normalize_argv
-
-    return CliRunner().invoke(app, normalize_argv([str(a) for a in argv]), env={"COLUMNS": "4000"})
-
-
-@pytest.fixture(scope="module")
-def session(tmp_path_factory):
-    root = tmp_path_factory.mktemp("pca_session") / "session"
-    rcsynth.make_session(root, kind="sphere", n_cams=2, n_angles=3, width=40, height=30, reflectance=True, seed=3, ss=2)
-    return root
-
-
-def test_build_reflectance_storage_flag_and_report(session, tmp_path):
+def test_build_reflectance_storage_flag_and_report(cli_session, tmp_path):
     out = tmp_path / "model"
-    base = ["build", session, "--out", out, "--hull-res", "24", "--no-pictures", "--json"]
-    res = _invoke(base)
+    base = ["build", cli_session, "--out", out, "--hull-res", "24", "--no-pictures", "--json"]
+    res = invoke_cli(base)
     assert res.exit_code == 0, res.output
     layers = json.loads(res.stdout)["metrics"]
     assert layers["reflectance_storage"] == "layers" and "reflectance_pca" not in layers
@@ -422,7 +407,7 @@ def test_build_reflectance_storage_flag_and_report(session, tmp_path):
     ref = [_stack(m, i) for i in range(len(m.views))]
 
     # only the write step reruns; the one-light images come back within the reported error
-    res = _invoke([*base, "--resume", "--reflectance-storage", "pca", "--pca-rank", "2"])
+    res = invoke_cli([*base, "--resume", "--reflectance-storage", "pca", "--pca-rank", "2"])
     assert res.exit_code == 0, res.output
     summ = json.loads(res.stdout)
     assert summ["steps"]["write"] == "ran" and summ["steps"]["matting"] == "reused"
@@ -441,7 +426,7 @@ def test_build_reflectance_storage_flag_and_report(session, tmp_path):
     on_disk = sum((out / "reflectance" / f"{v.id}.exr").stat().st_size for v in m.views) / len(m.views)
     assert summ["metrics"]["disk_bytes_per_view_reflectance"] == on_disk
 
-    res = _invoke([*base, "--resume", "--reflectance-storage", "pca", "--pca-error", "0.02"])
+    res = invoke_cli([*base, "--resume", "--reflectance-storage", "pca", "--pca-error", "0.02"])
     assert res.exit_code == 0, res.output
     pca = json.loads(res.stdout)["metrics"]["reflectance_pca"]
     assert pca["error_target"] == 0.02 and pca["rank"] is None
@@ -459,8 +444,8 @@ def test_build_reflectance_storage_flag_and_report(session, tmp_path):
         (["--reflectance-storage", "pca", "--pca-rank", "2", "--pca-error", "0.1"], "give one"),
     ],
 )
-def test_bad_pca_flags_are_exit_2_naming_them(session, tmp_path, flags, message):
-    res = _invoke(["build", session, "--out", tmp_path / "m", *flags])
+def test_bad_pca_flags_are_exit_2_naming_them(cli_session, tmp_path, flags, message):
+    res = invoke_cli(["build", cli_session, "--out", tmp_path / "m", *flags])
     assert res.exit_code == 2, res.output
     assert message in " ".join(res.stderr.split())
     assert not (tmp_path / "m").exists()
