@@ -60,6 +60,8 @@ __all__ = [
     "MATTING_MARGIN",
     "Candidate",
     "MEASURED_COST",
+    "ENVMATTE_LARGE",
+    "envmatte_spp",
     "BACKDROP_SPP",
     "PHASES",
     "ERROR_METRICS",
@@ -195,6 +197,28 @@ def _check_phase(phase: str) -> None:
         raise ConfigError(f"phase {phase!r}: expected one of {list(PHASES)}")
 
 
+#: scene kind -> (pixels, spp): envmatte shots of cameras above that many pixels take
+#: that many samples instead of the table's (:func:`envmatte_spp`)
+ENVMATTE_LARGE: dict[str, tuple[int, int]] = {"diffuse": (60_000, 100)}
+ENVMATTE_LARGE_WHY = (
+    "benchmarks/sim_effects.py, 256-spp reference: diffuse at 64 spp 0.065 / 0.074 / 0.082 at "
+    "200x150 / 280x210 / 400x300 against the bound 0.08; at 400x300 100 spp give 0.073 (sphere "
+    "0.067), still 5.1x (4.7x) cheaper than the reference at equal error"
+)
+
+
+def envmatte_spp(kind: str, pixels: int | None) -> int:
+    """The envmatte selection's samples for a scene kind and camera size (``pixels``
+    None: the default rig's 200x150): the table's, or :data:`ENVMATTE_LARGE`'s above its
+    size. An undeclared displays-on shot (it may be an envmatte one) takes at least as
+    many."""
+    spp = int(_TABLE[(kind, "backdrop")][2])
+    big = ENVMATTE_LARGE.get(kind)
+    if big is not None and pixels is not None and int(pixels) > big[0]:
+        spp = max(spp, int(big[1]))
+    return spp
+
+
 def select_effects(
     scene: SceneSpec,
     phase: str,
@@ -223,7 +247,8 @@ def select_effects(
         the resolution (fewer covered pixels are edge pixels), so a declared matting shot
         takes its candidate from the largest measured camera size not above ``pixels``
         (:func:`matting_candidates_for`); without it, from the smallest (the 64x48 test
-        camera: the most samples).
+        camera: the most samples). Envmatte: above :data:`ENVMATTE_LARGE`'s size a
+        scene kind takes more samples (:func:`envmatte_spp`).
 
     Raises
     ------
@@ -289,8 +314,15 @@ def select_effects(
     integrator, depth, spp, bound, why = row
     reasons.extend(why)
     bound = bound[phase] if isinstance(bound, dict) else bound
+    if phase in ("matting", "envmatte"):
+        env_spp = envmatte_spp(kind, pixels)
+        if phase == "envmatte" and env_spp != spp:
+            spp = env_spp
+            reasons.append(
+                f"envmatte on a camera of {pixels} px (> {ENVMATTE_LARGE[kind][0]}): {env_spp} spp — the "
+                f"error at the table's spp grows with the camera ({ENVMATTE_LARGE_WHY})"
+            )
     if phase == "matting" and kind in MATTING_CANDIDATES:
-        env_spp = _TABLE[(kind, "backdrop")][2]
         if declared:
             (mw, mh), cands = matting_candidates_for(kind, pixels)
             c = cheapest_within(cands, bound)

@@ -702,7 +702,7 @@ class SimRenderer:
             # a declared envmatte shot gets its own selection; every other displays pass
             # the matting one (at both phases' samples unless matting was declared)
             cfg_d = (
-                self._select("envmatte")
+                self._select("envmatte", camera=camera)
                 if state.phase == "envmatte"
                 else self._select("matting", declared=state.phase == "matting", camera=camera)
             )

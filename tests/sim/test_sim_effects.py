@@ -333,7 +333,13 @@ def test_matting_samples_follow_the_camera_size(scenes):
     """A larger camera takes the candidates measured at the largest size not above it
     (its matte error is lower: fewer covered pixels are edges), never a smaller size's;
     below every measured size, or without a size, the smallest (the most samples)."""
-    from opacityhull.sim.effects import MATTING_CANDIDATES, cheapest_within, matting_candidates_for, scene_kind
+    from opacityhull.sim.effects import (
+        ENVMATTE_LARGE,
+        MATTING_CANDIDATES,
+        cheapest_within,
+        matting_candidates_for,
+        scene_kind,
+    )
 
     for name in ("diffuse", "sphere", "glass", "glossy", "fuzzy"):
         sc = scenes[name]
@@ -353,12 +359,15 @@ def test_matting_samples_follow_the_camera_size(scenes):
             spp.append(sel.spp)
         assert spp == sorted(spp, reverse=True)  # more pixels never need more samples here
         assert select_effects(sc, "matting", pixels=None).spp == spp[0]
-        # the size only matters to declared matting shots
-        for phase in ("envmatte", "lightfield", "reflectance"):
+        # the size only matters to declared matting shots, and to the envmatte (and
+        # undeclared displays-on) shots of the kinds in ENVMATTE_LARGE
+        for phase in ("lightfield", "reflectance"):
             assert select_effects(sc, phase, pixels=10**7) == select_effects(sc, phase)
-        assert select_effects(sc, "matting", declared=False, pixels=10**7) == select_effects(
-            sc, "matting", declared=False
-        )
+        if kind not in ENVMATTE_LARGE:
+            assert select_effects(sc, "envmatte", pixels=10**7) == select_effects(sc, "envmatte")
+            assert select_effects(sc, "matting", declared=False, pixels=10**7) == select_effects(
+                sc, "matting", declared=False
+            )
 
 
 def test_renderer_picks_matting_samples_by_the_rendered_camera():
@@ -403,3 +412,20 @@ def test_declared_phase_picks_the_displays_selection():
     assert phase_for_state(SimState(displays={"back": pat}, phase="envmatte")) == "envmatte"
     # lights on: the declared phase does not turn a lightfield shot into an envmatte one
     assert phase_for_state(SimState(displays={"back": pat}, light_levels={1: 255}, phase="envmatte")) == "lightfield"
+
+
+def test_envmatte_takes_more_samples_on_large_cameras(scenes):
+    """The envmatte error at the table's 64 spp grows with the camera (diffuse 0.082 at
+    400x300 against the bound 0.08): above ENVMATTE_LARGE's size a diffuse scene takes
+    100 spp, and an undeclared displays-on shot of that camera at least as many; smaller
+    cameras and other kinds keep the table's."""
+    from opacityhull.sim.effects import ENVMATTE_LARGE, envmatte_spp
+
+    px, big = ENVMATTE_LARGE["diffuse"]
+    d = scenes["diffuse"]
+    assert select_effects(d, "envmatte").spp == select_effects(d, "envmatte", pixels=px).spp == 64
+    large = select_effects(d, "envmatte", pixels=400 * 300)
+    assert large.spp == big == envmatte_spp("diffuse", 400 * 300) and any("400x300" in r for r in large.reasons)
+    assert select_effects(d, "matting", declared=False, pixels=400 * 300).spp >= big
+    assert select_effects(d, "matting", declared=True, pixels=400 * 300).spp < big  # the matting candidates
+    assert select_effects(scenes["glossy"], "envmatte", pixels=400 * 300).spp == 64
