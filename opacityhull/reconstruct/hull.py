@@ -348,18 +348,26 @@ def _proj(P, v, x, y, z):
 
 
 @njit(cache=True, inline="always")
-def _centre_carves(P, sil, sizes, v, x, y, z):
-    """True when view v carves the point (in front, inside the image, not silhouette)."""
+def _centre_pixel(P, sizes, v, x, y, z):
+    """``(seen, column, row)``: the pixel view v sees the point in (nearest centre), and
+    whether the point is in front of the camera and inside the image at all."""
     a, b, w = _proj(P, v, x, y, z)
     if not (w > 0.0):
-        return False
+        return False, 0, 0
     u = a / w
     t = b / w
     fu = math.floor(u + 0.5)
     fv = math.floor(t + 0.5)
     if not (fu >= 0.0 and fu < sizes[v, 0] and fv >= 0.0 and fv < sizes[v, 1]):
-        return False
-    return sil[v, int(fv), int(fu)] == 0
+        return False, 0, 0
+    return True, int(fu), int(fv)
+
+
+@njit(cache=True, inline="always")
+def _centre_carves(P, sil, sizes, v, x, y, z):
+    """True when view v carves the point (in front, inside the image, not silhouette)."""
+    seen, iu, iv = _centre_pixel(P, sizes, v, x, y, z)
+    return seen and sil[v, iv, iu] == 0
 
 
 @njit(cache=True, parallel=True, nogil=True)

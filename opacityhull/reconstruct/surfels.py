@@ -43,7 +43,7 @@ import numpy as np
 from numba import njit, prange
 
 from ..errors import InputError, ShapeError
-from .hull import HullGrid, _proj, projection_matrices
+from .hull import HullGrid, _centre_pixel, _proj, projection_matrices
 
 __all__ = [
     "SurfelSample",
@@ -165,19 +165,10 @@ def packed_bisection_stacks(silhouettes, cameras, strong_silhouettes=None):
 
 @njit(cache=True, inline="always")
 def _centre_carves_bits(P, bits, sizes, v, x, y, z):
-    """:func:`.hull._centre_carves` on bit-packed silhouettes (the same arithmetic, so the
+    """:func:`.hull._centre_carves` on bit-packed silhouettes (the same pixel, so the
     same answer): True when view v carves the point."""
-    a, b, w = _proj(P, v, x, y, z)
-    if not (w > 0.0):
-        return False
-    u = a / w
-    t = b / w
-    fu = math.floor(u + 0.5)
-    fv = math.floor(t + 0.5)
-    if not (fu >= 0.0 and fu < sizes[v, 0] and fv >= 0.0 and fv < sizes[v, 1]):
-        return False
-    iu = int(fu)
-    return ((bits[v, int(fv), iu >> 3] >> (7 - (iu & 7))) & 1) == 0
+    seen, iu, iv = _centre_pixel(P, sizes, v, x, y, z)
+    return seen and ((bits[v, iv, iu >> 3] >> (7 - (iu & 7))) & 1) == 0
 
 
 @njit(cache=True, nogil=True)
