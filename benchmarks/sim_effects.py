@@ -442,7 +442,10 @@ def write_outputs(
         "selection's error (interpolated from its error at low spp).",
         "",
         f"Timings: {'CPU seconds of the benchmark process (all Mitsuba threads)' if CLOCK is time.process_time else 'wall seconds'}"
-        "; 2-core machine shared with ~8 other jobs (contended); ratios are measured in one process.",
+        "; 2-core machine shared with other jobs (contended); ratios are measured in one process. Each "
+        "configuration is timed right after a warm-up run of its own (the first launch after another "
+        "configuration's kernels costs ~0.1 s more, which a capture, shot after shot of one configuration, "
+        "does not pay).",
         "",
         "'before' = the same selection rendered as on 2026-12-01 (whole frame, backdrops at the shot's spp; "
         "matting: 64 spp, what a shot whose capture does not declare its phase still gets).",
@@ -628,6 +631,12 @@ def main() -> int:
         "parts, e.g. one process per scale; nothing is measured",
     )
     ap.add_argument(
+        "--notes",
+        type=Path,
+        default=None,
+        help="with --merge: a text file whose lines are appended to the table (how the parts were measured)",
+    )
+    ap.add_argument(
         "--accuracy-from",
         type=Path,
         default=None,
@@ -658,7 +667,8 @@ def main() -> int:
                 rows += d.get("accuracy", [])
                 tput += d.get("throughput", [])
                 cand += d.get("matting_candidates", [])
-        summary = write_outputs(rows, tput, args.quick, candidates=cand)
+        notes = args.notes.read_text().splitlines() if args.notes else None
+        summary = write_outputs(rows, tput, args.quick, notes=notes, candidates=cand)
         print(json.dumps(summary) if args.json else (OUT / "sim_effects.md").read_text())
         return 0
     scales = tuple(float(v) for v in (args.scales or ("1" if args.quick else "1,1.4,2")).split(","))

@@ -74,7 +74,7 @@ _RIG_HELP = "Rig TOML (default: the built-in simulated rig)."
 _SPP_HELP = "Samples per pixel (default: effect selection)."
 _OUT_HELP = "Output image (.exr linear radiance; .png sRGB preview; an .exr also gets a .png preview beside it)."
 _PHASE_HELP = "calibration, matting, lightfield, reflectance, envmatte or groundtruth."
-_CAMERA_SIZE_HELP = "WxH of the camera the shots are for (matting samples depend on it); default: the built-in rig's."
+_CAMERA_SIZE_HELP = "WxH of the camera the shots are for (matting samples, and envmatte samples of some kinds, depend on it); default: the built-in rig's."
 
 
 def register(app, groups) -> None:

@@ -712,73 +712,45 @@ def _apply_overrides(cfg: EffectConfig, overrides: Mapping[str, Any] | None) -> 
 
 #: Where :data:`MEASURED_COST` comes from.
 MEASURED_COST_SOURCE = (
-    "benchmarks/out/sim_effects.md (quick: 256-spp reference, camera 2 of the default rig, "
-    "200x150, contended 2-core machine; matting: the declared selection)"
+    "benchmarks/out/sim_effects.md (full: 256-spp reference, camera 2 of the default rig at 200x150, "
+    "2-core machine with other jobs beside; matting: the declared selection)"
 )
 
-#: (built-in scene, phase) -> time of the selection / time of the reference (path depth
-#: 16, whole frame) at equal error where measured (the reference's spp interpolated to the
-#: selection's error), else at 256 spp; CPU seconds, one measurement each on a contended
-#: machine (single runs vary by up to ~2x). 0: nothing is rendered (provably black).
-#: ``.venv/bin/python benchmarks/sim_effects.py --quick --json`` (the matting rows re-measured
-#: with ``--phases matting`` after the candidates table changed, merged with ``--merge``).
-MEASURED_COST: dict[tuple[str, str], float] = {
-    ("charuco", "calibration"): 0.062,
-    ("charuco", "groundtruth"): 0.133,
-    ("diffuse", "envmatte"): 0.241,
-    ("diffuse", "groundtruth"): 0.128,
-    ("diffuse", "lightfield"): 1.291,
-    ("diffuse", "matting"): 0.558,
-    ("diffuse", "reflectance"): 0.565,
-    ("fuzzy", "envmatte"): 0.568,
-    ("fuzzy", "groundtruth"): 0.067,
-    ("fuzzy", "lightfield"): 0.612,
-    ("fuzzy", "matting"): 0.449,
-    ("fuzzy", "reflectance"): 0.598,
-    ("glass", "envmatte"): 0.516,
-    ("glass", "groundtruth"): 0.113,
-    ("glass", "lightfield"): 0.0,
-    ("glass", "matting"): 0.391,
-    ("glass", "reflectance"): 0.0,
-    ("glossy", "envmatte"): 0.573,
-    ("glossy", "groundtruth"): 0.127,
-    ("glossy", "lightfield"): 1.094,
-    ("glossy", "matting"): 0.524,
-    ("glossy", "reflectance"): 0.58,
-    ("sphere", "envmatte"): 0.345,
-    ("sphere", "groundtruth"): 0.129,
-    ("sphere", "lightfield"): 0.864,
-    ("sphere", "matting"): 0.788,
-    ("sphere", "reflectance"): 0.205,
+#: (built-in scene, phase) -> (scene_kind, time of the selection / time of the reference
+#: at the selection's error): the reference configuration (path depth 16, whole frame)
+#: at the spp interpolated to the selection's error where it was measured, else at 256
+#: spp; CPU seconds, 200x150 (0: nothing is rendered, provably black). The kind lets a
+#: scene that is not a built-in inherit the worst figure of its kind. Measured with
+#: ``.venv/bin/python benchmarks/sim_effects.py --scenes S --scales 1,1.4,2 --ref-spp 256 --json``
+#: one process per scene, merged with ``--merge`` (see the table's notes).
+_MEASURED: dict[tuple[str, str], tuple[str, float]] = {
+    ("charuco", "calibration"): ("board", 0.054),
+    ("charuco", "groundtruth"): ("diffuse", 0.11),
+    ("diffuse", "envmatte"): ("diffuse", 0.127),
+    ("diffuse", "groundtruth"): ("diffuse", 0.209),
+    ("diffuse", "lightfield"): ("diffuse", 1.023),
+    ("diffuse", "matting"): ("diffuse", 0.176),
+    ("diffuse", "reflectance"): ("diffuse", 0.9),
+    ("fuzzy", "envmatte"): ("fibres", 0.469),
+    ("fuzzy", "groundtruth"): ("fibres", 0.099),
+    ("fuzzy", "lightfield"): ("fibres", 0.47),
+    ("fuzzy", "matting"): ("fibres", 0.241),
+    ("fuzzy", "reflectance"): ("fibres", 0.493),
+    ("glass", "envmatte"): ("transmissive", 0.618),
+    ("glass", "groundtruth"): ("transmissive", 0.202),
+    ("glass", "lightfield"): ("transmissive", 0.0),
+    ("glass", "matting"): ("transmissive", 0.254),
+    ("glass", "reflectance"): ("transmissive", 0.0),
+    ("glossy", "envmatte"): ("glossy", 0.612),
+    ("glossy", "groundtruth"): ("glossy", 0.225),
+    ("glossy", "lightfield"): ("glossy", 0.412),
+    ("glossy", "matting"): ("glossy", 0.242),
+    ("glossy", "reflectance"): ("glossy", 0.315),
+    ("sphere", "envmatte"): ("diffuse", 0.129),
+    ("sphere", "groundtruth"): ("diffuse", 0.219),
+    ("sphere", "lightfield"): ("diffuse", 0.321),
+    ("sphere", "matting"): ("diffuse", 0.195),
+    ("sphere", "reflectance"): ("diffuse", 0.369),
 }
-
-#: (built-in scene, phase) -> scene_kind, for scenes that are not built-ins.
-_BUILTIN_KIND: dict[tuple[str, str], str] = {
-    ("charuco", "calibration"): "board",
-    ("charuco", "groundtruth"): "diffuse",
-    ("diffuse", "envmatte"): "diffuse",
-    ("diffuse", "groundtruth"): "diffuse",
-    ("diffuse", "lightfield"): "diffuse",
-    ("diffuse", "matting"): "diffuse",
-    ("diffuse", "reflectance"): "diffuse",
-    ("fuzzy", "envmatte"): "fibres",
-    ("fuzzy", "groundtruth"): "fibres",
-    ("fuzzy", "lightfield"): "fibres",
-    ("fuzzy", "matting"): "fibres",
-    ("fuzzy", "reflectance"): "fibres",
-    ("glass", "envmatte"): "transmissive",
-    ("glass", "groundtruth"): "transmissive",
-    ("glass", "lightfield"): "transmissive",
-    ("glass", "matting"): "transmissive",
-    ("glass", "reflectance"): "transmissive",
-    ("glossy", "envmatte"): "glossy",
-    ("glossy", "groundtruth"): "glossy",
-    ("glossy", "lightfield"): "glossy",
-    ("glossy", "matting"): "glossy",
-    ("glossy", "reflectance"): "glossy",
-    ("sphere", "envmatte"): "diffuse",
-    ("sphere", "groundtruth"): "diffuse",
-    ("sphere", "lightfield"): "diffuse",
-    ("sphere", "matting"): "diffuse",
-    ("sphere", "reflectance"): "diffuse",
-}
+MEASURED_COST: dict[tuple[str, str], float] = {k: v[1] for k, v in _MEASURED.items()}
+_BUILTIN_KIND: dict[tuple[str, str], str] = {k: v[0] for k, v in _MEASURED.items()}
