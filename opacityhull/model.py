@@ -802,6 +802,10 @@ OPEN_HOLES = "open_holes.npz"
 """``MODEL/build/open_holes.npz``: per view id, the mask holes a tolerant carve trusted
 (:func:`opacityhull.reconstruct.build.open_hole_masks`, bit-packed rows with the image shape), so that the
 geometry holdout of ``eval loo`` carves as the build did without the photographs."""
+BRIGHT_EXTENSIONS = "bright_extensions.npz"
+"""``MODEL/build/bright_extensions.npz``: per view id, the bright extensions of the mask a
+tolerant carve doubted (:func:`opacityhull.reconstruct.build.bright_extension_masks`,
+bit-packed like :data:`OPEN_HOLES`), which the geometry holdout doubts alike."""
 
 
 def write_hole_masks(path: Path, holes: dict) -> None:

@@ -85,10 +85,13 @@ def geometry_without(model: OpacityHullModel, *, config: BuildConfig | None = No
     rig_session = not str(model.meta.get("provenance", {}).get("rig_source", "")).startswith("import:")
     lo, hi = report.get("lo_m"), report.get("hi_m")
     fallback = (np.asarray(lo), np.asarray(hi)) if lo and hi else None
-    from ..model import BUILD_DIR, OPEN_HOLES, read_hole_masks
+    from ..model import BRIGHT_EXTENSIONS, BUILD_DIR, OPEN_HOLES, read_hole_masks
 
     stored = read_hole_masks(Path(model.root) / BUILD_DIR / OPEN_HOLES)
     holes = [stored.get(v.id) for v in model.views]
+    # the outline extensions the build doubted are doubted again (no photograph needed)
+    doubted = read_hole_masks(Path(model.root) / BUILD_DIR / BRIGHT_EXTENSIONS)
+    extensions = [doubted.get(v.id) for v in model.views]
 
     def rebuild(i: int) -> Surfels:
         keep = [j for j in range(V) if j != i]
@@ -112,6 +115,7 @@ def geometry_without(model: OpacityHullModel, *, config: BuildConfig | None = No
             fallback_box=fallback,
             images=images,
             open_holes=[holes[j] for j in keep] if stored else None,
+            doubtful_extensions=[extensions[j] for j in keep] if doubted else None,
         )
         s = g.surfels
         vis = np.zeros((len(s), V), bool)

@@ -716,6 +716,83 @@ def backdrop_holes(silhouette, luminance, *, ring_px: int = 15, margin: float = 
     return filled & ~np.isin(lab, open_ids)
 
 
+def bright_extensions(
+    silhouette,
+    luminance,
+    *,
+    reach_px: int,
+    open_px: int = 3,
+    margin: float = 0.2,
+    ring_px: int = 15,
+    median_px: int = 5,
+) -> np.ndarray:
+    """Thick bright extensions of a silhouette: object parts a threshold lost at the
+    outline (a shadowed plate that sticks out past it), not the thin glow around it.
+
+    Pixels within ``reach_px`` of the filled silhouette (:func:`enclosed_holes`) whose
+    ``median_px`` median-filtered ``luminance`` is above the backdrop's median plus
+    ``margin`` × (object median − backdrop median), in the components that touch the
+    silhouette (8-connected), opened by a disc of ``open_px``: the lens and display glow
+    that lifts a band of a few pixels around every outline is thinner than the disc and
+    goes; a protrusion wider than it stays. The backdrop is the ring of ``ring_px``
+    pixels beyond the reach. An unknown (NaN) luminance is never bright.
+
+    Parameters
+    ----------
+    silhouette : (H, W) bool.
+    luminance : (H, W) float, any monotonic brightness of the photograph.
+    reach_px : how far beyond the outline to look (px), >= 0; 0 finds nothing.
+    open_px : the opening's disc radius (px), >= 0 (the glow's width).
+    margin : the brightness limit between backdrop (0) and object (1).
+    ring_px, median_px : the backdrop ring's width and the median filter's size (odd).
+
+    Returns
+    -------
+    (H, W) bool, disjoint from the filled silhouette: pixels a tolerant carve should
+    doubt (:func:`carve_robust`'s strong silhouettes).
+    """
+    import cv2
+    from scipy import ndimage
+
+    sil = np.asarray(silhouette, dtype=bool)
+    lum = np.asarray(luminance, dtype=np.float32)
+    if sil.ndim != 2:
+        raise ShapeError(f"bright_extensions: silhouette has shape {sil.shape}, expected (H, W)")
+    if lum.shape != sil.shape:
+        raise InputError(f"bright_extensions: luminance {lum.shape} must match the silhouette {sil.shape}")
+    if int(reach_px) < 0 or int(open_px) < 0 or int(ring_px) < 1 or int(median_px) < 1 or int(median_px) % 2 == 0:
+        raise InputError(
+            f"bright_extensions: reach_px {reach_px} and open_px {open_px} must be >= 0, ring_px {ring_px} >= 1, "
+            f"median_px {median_px} odd and >= 1"
+        )
+    none = np.zeros_like(sil)
+    filled = enclosed_holes(sil)
+    r = int(reach_px)
+    if r == 0 or not filled.any():
+        return none
+    lum = np.where(np.isfinite(lum), lum, -np.inf).astype(np.float32)
+    disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))
+    reach = cv2.dilate(filled.astype(np.uint8), disc) > 0
+    k = np.ones((2 * ring_px + 1, 2 * ring_px + 1), np.uint8)
+    ring = (cv2.dilate(reach.astype(np.uint8), k) > 0) & ~reach & np.isfinite(lum)
+    obj = sil & np.isfinite(lum)
+    if not ring.any() or not obj.any():
+        return none
+    bg = float(np.median(lum[ring]))
+    fg = float(np.median(lum[obj]))
+    limit = bg + float(margin) * max(fg - bg, 0.0)
+    # cv2's median filter takes float32 only up to a 5-px window; -inf sorts below all
+    sm = ndimage.median_filter(lum, size=int(median_px), mode="nearest") if median_px > 1 else lum
+    cand = (sm > limit) & reach & ~filled
+    lab, _ = cast("tuple[np.ndarray, int]", ndimage.label(cand | filled, structure=np.ones((3, 3), bool)))
+    ids = np.unique(lab[filled])
+    grown = np.isin(lab, ids[ids > 0]) & cand
+    if open_px > 0:
+        d = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * int(open_px) + 1, 2 * int(open_px) + 1))
+        grown = cv2.morphologyEx(grown.astype(np.uint8), cv2.MORPH_OPEN, d) > 0
+    return grown & ~filled
+
+
 def carve_robust(
     silhouettes,
     cameras,

@@ -38,9 +38,15 @@ pytestmark = pytest.mark.slow
 # drawn opaque, reaches IoU 0.961 / 0.972 and interior alpha 0.987 / 0.990 on these four
 # views (temple view 0's lit cloth fold, 5.6 k px the other views' outlines carve; the
 # dino's feet, lost at the outline of the neighbours' masks in views 8 and 12).
+# With the bright extensions doubted (BuildConfig.doubt_bright_extensions, the default
+# since: thick bright parts just outside a mask's outline, which the threshold lost, are
+# carved only by two views): temple blend 20.30 / geometry 19.01 dB, IoU 0.948, interior
+# alpha 0.986 (0.998 where the hull draws); dino blend 20.67 / geometry 18.39 dB, IoU
+# 0.964, interior alpha 0.9925 (0.996). The dino's thresholds sit between the rule's
+# figures and those without it (19.93 / 17.95 dB, alpha 0.986), so losing it fails.
 THRESHOLDS = {
     "temple": {"geometry_psnr": 18.55, "blend_psnr": 19.85, "iou": 0.932, "interior_alpha": 0.969},
-    "dino": {"geometry_psnr": 17.4, "blend_psnr": 19.4, "iou": 0.942, "interior_alpha": 0.971},
+    "dino": {"geometry_psnr": 18.15, "blend_psnr": 20.3, "iou": 0.949, "interior_alpha": 0.988},
 }
 
 
