@@ -873,14 +873,14 @@ def fill_shadow_holes(
         path.unlink(missing_ok=True)
         return mattes, none, None, None
     fill, opened = PackedMasks(), PackedMasks()
-    bays = PackedMasks() if _extensions_apply(config, bool(tolerant), mattes.use_masks) else None
+    extensions = PackedMasks() if _extensions_apply(config, bool(tolerant), mattes.use_masks) else None
     h = hashlib.sha256(mattes.content.encode())
     n_px = n_views = 0
     for i, shot in enumerate(colour):
         rgb = None if shot[0] is None else _rgb(session.load_radiance(shot[0]))
         o, m = (None, None) if rgb is None else hole_masks(mattes.alphas[i], rgb, threshold=config.alpha_threshold)
-        if bays is not None:
-            bays.append(
+        if extensions is not None:
+            extensions.append(
                 None if rgb is None else bright_extension_masks(mattes.alphas[i], rgb, threshold=config.alpha_threshold)
             )
         del rgb
@@ -892,10 +892,10 @@ def fill_shadow_holes(
             h.update(vids[i].encode() + np.packbits(m, axis=1).tobytes())
     if n_px == 0:
         path.unlink(missing_ok=True)
-        return mattes, none, opened, bays
+        return mattes, none, opened, extensions
     write_hole_masks(path, {vids[i]: m for i, m in enumerate(fill) if m is not None and m.any()})
     filled = replace(mattes, alphas=_HolesFilled(mattes.alphas, fill), content=h.hexdigest())
-    return filled, {"views": n_views, "px": n_px}, opened, bays
+    return filled, {"views": n_views, "px": n_px}, opened, extensions
 
 
 def _extensions_apply(config: "BuildConfig", tolerant: bool, use_masks: bool) -> bool:
@@ -938,7 +938,7 @@ def build_geometry(
     ``open_holes``: per view None or an (H, W) bool mask of the enclosed mask holes that
     show the backdrop (:func:`open_hole_masks`); a tolerant carve trusts rejections
     through them like those of the outer contour. ``doubtful_extensions``: per view None or an
-    (H, W) bool mask of outline concavities that show no backdrop
+    (H, W) bool mask of the outline's thick bright extensions
     (:func:`bright_extension_masks`); a tolerant carve doubts rejections through them like those
     through shadow holes (the counts go to ``info["bright_extensions"]``).
     """
@@ -1700,10 +1700,10 @@ def step_geometry(
     carve_batch: int | None = None,
     photo_slots: int | None = None,
     open_holes: "PackedMasks | None" = None,
-    bays: "PackedMasks | None" = None,
+    extensions: "PackedMasks | None" = None,
 ) -> tuple[Geometry, str]:
     """Steps 3-6 (silhouettes, hull, surfels, visibility, refine): :func:`build_geometry`
-    over the mattes, stored as ``build/geometry.pkl``. ``open_holes`` and ``bays``: the
+    over the mattes, stored as ``build/geometry.pkl``. ``open_holes`` and ``extensions``: the
     see-through holes and the bright extensions per view if already judged
     (:func:`fill_shadow_holes`), else judged here."""
     vids = [view_id(c, a) for c, a in views]
@@ -1748,7 +1748,7 @@ def step_geometry(
     want_holes = bool(tolerant and colour and config.backdrop_holes)
     want_ext = bool(colour) and _extensions_apply(config, bool(tolerant), mattes.use_masks)
     holes = open_holes if want_holes and open_holes is not None else None
-    doubtful = bays if want_ext and bays is not None else None
+    doubtful = extensions if want_ext and extensions is not None else None
     if (want_holes and holes is None) or (want_ext and doubtful is None):
         # one photograph at a time, the masks bit-packed
         new_holes = PackedMasks() if want_holes and holes is None else None
@@ -2001,7 +2001,9 @@ def build_model(
             f"{missing_colour[:5]}: nothing to colour the model with"
         )
     with timer.step("holes"):
-        mattes, shadow_filled, open_holes, bays = fill_shadow_holes(session, mattes, colour_shots, vids, config, store)
+        mattes, shadow_filled, open_holes, extensions = fill_shadow_holes(
+            session, mattes, colour_shots, vids, config, store
+        )
     alphas = mattes.alphas
     if shadow_filled["px"]:
         notes.append(
@@ -2038,7 +2040,7 @@ def build_model(
         carve_batch=plan.carve_batch,
         photo_slots=plan.photo_slots,
         open_holes=open_holes,
-        bays=bays,
+        extensions=extensions,
     )
     notes.extend(g.notes)
     sils, pin, occ, grid, surfels = g.sils, g.pin, g.occ, g.grid, g.surfels
