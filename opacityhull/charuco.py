@@ -17,7 +17,7 @@ the middle of the cameras' elevation range is seen by all of them at some table 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 
 import numpy as np
 
@@ -82,17 +82,8 @@ class CharucoSpec:
         return cls(**kw)
 
     def to_dict(self) -> dict:
-        return {
-            "squares_x": self.squares_x,
-            "squares_y": self.squares_y,
-            "square_m": self.square_m,
-            "marker_m": self.marker_m,
-            "dictionary": self.dictionary,
-            "offset_m": list(self.offset_m),
-            "yaw_deg": self.yaw_deg,
-            "height_m": self.height_m,
-            "tilt_deg": self.tilt_deg,
-        }
+        """Every field, as :meth:`from_dict` reads it back (``offset_m`` a list, for TOML/JSON)."""
+        return {**asdict(self), "offset_m": list(self.offset_m)}
 
     @property
     def size_m(self) -> tuple[float, float]:

@@ -376,13 +376,13 @@ def deferred_shade(
     order, s_lb = np.arange(views.n_views, dtype=np.int64), np.zeros(views.n_views)
     C = np.asarray(desired_centre, np.float64).reshape(3)
     # the points, their visibility and the views: the arguments ulr_shade and ulr_select share
-    head = (points, pvis, pok, allowed, C, views.centres, views.cams, views.sizes)
+    head = K.UlrHead(points, pvis, pok, allowed, C, views.centres, views.cams, views.sizes)
     if align is not None:
         return _aligned_shade(pix, head, views, order, s_lb, k, (H, W), align, threads)
     K.parallel_for(
         K.ulr_shade,
         P,
-        (*head, views.offsets, views.texels, order, s_lb, views.tie_rank, int(k), rgba, 0, ok),
+        (head, views.offsets, views.texels, order, s_lb, views.tie_rank, int(k), rgba, 0, ok),
         threads=threads,
     )
     flat = out.reshape(-1, 4)
@@ -396,14 +396,14 @@ def _aligned_shade(pix, head, views, order, s_lb, k, shape, align, threads):
     blended by :func:`.floating.float_blend`."""
     from .floating import float_blend
 
-    points = head[0]
+    points = head.positions
     P = pix.size
     kk = max(1, int(k))
     idx = np.empty((P, kk), np.int32)
     w = np.empty((P, kk), np.float32)
     uv = np.empty((P, kk, 2), np.float32)
     count = np.empty(P, np.int32)
-    K.parallel_for(K.ulr_select, P, (*head, order, s_lb, views.tie_rank, kk, idx, w, uv, count), threads=threads)
+    K.parallel_for(K.ulr_select, P, (head, order, s_lb, views.tie_rank, kk, idx, w, uv, count), threads=threads)
     ok = count > 0
     out, _ = float_blend(pix[ok], points[ok], idx[ok], w[ok], uv[ok], views, shape, config=align)
     return out, int(ok.sum())

@@ -42,6 +42,7 @@ from __future__ import annotations
 
 import math
 import threading
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit
@@ -500,107 +501,32 @@ _NO_TEX = np.zeros((0, 4), np.float32)
 _NO_OFF = np.zeros(0, np.int64)
 
 
-def ulr_select(
-    positions,
-    visibility,
-    drawable,
-    allowed,
-    desired_centre,
-    view_centres,
-    view_cams,
-    view_sizes,
-    order,
-    s_lb,
-    tie_rank,
-    k,
-    out_idx,
-    out_w,
-    out_uv,
-    out_count,
-    i0,
-    i1,
-    block=ULR_BLOCK,
-):
+class UlrHead(NamedTuple):
+    """The arguments :func:`ulr_select` and :func:`ulr_shade` share (see :func:`ulr_kernel`):
+    the points and their visibility, which are drawn, and the views."""
+
+    positions: np.ndarray
+    visibility: np.ndarray
+    drawable: np.ndarray
+    allowed: np.ndarray
+    desired_centre: np.ndarray
+    view_centres: np.ndarray
+    view_cams: np.ndarray
+    view_sizes: np.ndarray
+
+
+def ulr_select(head: UlrHead, order, s_lb, tie_rank, k, out_idx, out_w, out_uv, out_count, i0, i1, block=ULR_BLOCK):
     """ULR weights of surfels ``i0:i1`` (see :func:`ulr_kernel`, ``shade=False``)."""
-    ulr_kernel(
-        positions,
-        visibility,
-        drawable,
-        allowed,
-        desired_centre,
-        view_centres,
-        view_cams,
-        view_sizes,
-        _NO_OFF,
-        _NO_TEX,
-        order,
-        s_lb,
-        tie_rank,
-        k,
-        False,
-        _NO_F32_2,
-        0,
-        _NO_BOOL,
-        out_idx,
-        out_w,
-        out_uv,
-        out_count,
-        block,
-        i0,
-        i1,
-    )
+    no_shade = (_NO_OFF, _NO_TEX, order, s_lb, tie_rank, k, False, _NO_F32_2, 0, _NO_BOOL)
+    ulr_kernel(*head, *no_shade, out_idx, out_w, out_uv, out_count, block, i0, i1)
 
 
 def ulr_shade(
-    positions,
-    visibility,
-    drawable,
-    allowed,
-    desired_centre,
-    view_centres,
-    view_cams,
-    view_sizes,
-    view_offsets,
-    texels,
-    order,
-    s_lb,
-    tie_rank,
-    k,
-    out_rgba,
-    rgba_col,
-    ok,
-    i0,
-    i1,
-    block=ULR_BLOCK,
+    head: UlrHead, view_offsets, texels, order, s_lb, tie_rank, k, out_rgba, rgba_col, ok, i0, i1, block=ULR_BLOCK
 ):
     """ULR-blended premultiplied RGBA of surfels ``i0:i1`` (see :func:`ulr_kernel`, ``shade=True``)."""
-    ulr_kernel(
-        positions,
-        visibility,
-        drawable,
-        allowed,
-        desired_centre,
-        view_centres,
-        view_cams,
-        view_sizes,
-        view_offsets,
-        texels,
-        order,
-        s_lb,
-        tie_rank,
-        k,
-        True,
-        out_rgba,
-        rgba_col,
-        ok,
-        _NO_I32,
-        _NO_F32_2,
-        _NO_F32_3,
-        _NO_I32_1,
-        block,
-        i0,
-        i1,
-    )
+    shade = (view_offsets, texels, order, s_lb, tie_rank, k, True, out_rgba, rgba_col, ok)
+    ulr_kernel(*head, *shade, _NO_I32, _NO_F32_2, _NO_F32_3, _NO_I32_1, block, i0, i1)
 
 
 @njit(cache=True, nogil=True, error_model="numpy")

@@ -191,8 +191,8 @@ def test_shading_equals_reference(sphere_small, sphere_views_premul):
     out = np.zeros((N, 4), np.float32)
     ok = np.empty(N, bool)
     surfels = (m.surfels.positions, m.surfels.visibility, np.ones(N, bool))  # every surfel drawable
-    views = (np.ones(pv.n_views, np.uint8), C, pv.centres, pv.cams, pv.sizes, pv.offsets, pv.texels)  # all allowed
-    K.ulr_shade(*surfels, *views, order, s_lb, pv.tie_rank, 4, out, 0, ok, 0, N)
+    views = (np.ones(pv.n_views, np.uint8), C, pv.centres, pv.cams, pv.sizes)  # every view allowed
+    K.ulr_shade(K.UlrHead(*surfels, *views), pv.offsets, pv.texels, order, s_lb, pv.tie_rank, 4, out, 0, ok, 0, N)
     Wd = ulr_weights_ref(m.surfels.positions, m.surfels.visible_bool(), m.cameras, C, k=4)
     ref = shade_ref(m.surfels.positions, Wd, m.cameras, sphere_views_premul)
     np.testing.assert_array_equal(ok, Wd.sum(axis=1) > 0)

@@ -301,7 +301,7 @@ def test_block_search_equals_frame_search(sphere_small):
         cnt = np.empty(N, np.int32)
         surfels = (m.surfels.positions, m.surfels.visibility, np.ones(N, bool))  # every surfel drawable
         views = (np.ones(pv.n_views, np.uint8), C, pv.centres, pv.cams, pv.sizes)  # every view allowed
-        K.ulr_select(*surfels, *views, order, s_lb, pv.tie_rank, 4, idx, w, uv, cnt, 0, N, block=block)
+        K.ulr_select(K.UlrHead(*surfels, *views), order, s_lb, pv.tie_rank, 4, idx, w, uv, cnt, 0, N, block=block)
         outs.append((idx, w))
     for idx, w in outs[1:]:
         np.testing.assert_array_equal(idx, outs[0][0])
