@@ -78,11 +78,23 @@ def configurations():
         ),
         # the shadow holes of the masks opaque in the views' alpha
         ("auto-robust-pixel-shadingdepth-flow-shadowfill", {"refine": "shading"}, {**pixel, "align": "flow"}),
-        # today's defaults: the hull's interior opaque where the (tolerance-dilated) mattes say so
+        # the hull's interior opaque where the (tolerance-dilated) mattes say so
         (
             "auto-robust-pixel-shadingdepth-flow-shadowfill-opaqueinterior",
-            {"refine": "shading"},
+            {"refine": "shading", "carve_tolerance": 1, "doubt_bright_extensions": False},
             {**pixel, "align": "flow", "opaque_interior": True},
+        ),
+        # thick bright parts just outside a mask's outline doubted like shadow holes
+        (
+            "auto-robust-pixel-shadingdepth-flow-shadowfill-opaqueinterior-brightext",
+            {"refine": "shading", "carve_tolerance": 1},
+            {**pixel, "align": "flow", "opaque_interior": True},
+        ),
+        # today's defaults: carve tolerance 2 from 16 imported views (build.default_carve_tolerance)
+        (
+            "defaults",
+            {},
+            {},
         ),
     ]
 

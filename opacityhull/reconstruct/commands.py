@@ -145,8 +145,8 @@ _MATTING_DRIFT_HELP = (
 )
 _CARVE_HELP = (
     "A voxel survives when at most this many views reject "
-    "it (imperfect masks). Default: 1 for imported sets "
-    "of 8+ views, 0 for rig sessions."
+    "it (imperfect masks). Default: for imported sets 1 "
+    "from 8 views, 2 from 16; 0 for rig sessions."
 )
 _REFINE_HELP = (
     "Photo-consistent depth inside the hull: shading (surfels stay "

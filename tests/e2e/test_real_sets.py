@@ -44,9 +44,15 @@ pytestmark = pytest.mark.slow
 # alpha 0.986 (0.998 where the hull draws); dino blend 20.67 / geometry 18.39 dB, IoU
 # 0.964, interior alpha 0.9925 (0.996). The dino's thresholds sit between the rule's
 # figures and those without it (19.93 / 17.95 dB, alpha 0.986), so losing it fails.
+# With the carve tolerance 2 of 16 imported views (build.default_carve_tolerance, was 1)
+# and the shading depth's fainter texture (build.SHADING_TEXTURE_STD 0.003, was 0.01):
+# temple blend 20.28 / geometry 19.02 dB, IoU 0.949, interior alpha 0.988; dino blend
+# 21.26 / geometry 18.90 dB, IoU 0.967 (0.981 against the filled masks), interior alpha
+# 0.995 (0.997 where the hull draws). The dino's thresholds again sit between these and
+# the figures without the change (20.67 / 18.39 dB, IoU 0.964, alpha 0.9925).
 THRESHOLDS = {
     "temple": {"geometry_psnr": 18.55, "blend_psnr": 19.85, "iou": 0.932, "interior_alpha": 0.969},
-    "dino": {"geometry_psnr": 18.15, "blend_psnr": 20.3, "iou": 0.949, "interior_alpha": 0.988},
+    "dino": {"geometry_psnr": 18.65, "blend_psnr": 20.95, "iou": 0.958, "interior_alpha": 0.994},
 }
 
 
@@ -69,7 +75,7 @@ def test_default_build_reaches_capture_resolution(real_model):
     res = report.hull["resolution"]
     assert res["surfel_spacing_m"] <= 1.01 * res["pixel_footprint_m"], res
     assert res["reason"].startswith("auto")
-    assert report.hull["carve_tolerance"] == 1  # imported thresholded masks: robust carve
+    assert report.hull["carve_tolerance"] == 2  # 16 imported thresholded masks: robust carve
     assert report.surfels > 300_000
     # the photo-consistent shading depth is on by default and stored with the surfels
     from opacityhull.model import read_surfels_ply

@@ -15,7 +15,12 @@ import pytest
 from scipy import ndimage
 
 from opacityhull.errors import InputError, ShapeError
-from opacityhull.reconstruct.build import BuildConfig, _extensions_apply, bright_extension_masks
+from opacityhull.reconstruct.build import (
+    BuildConfig,
+    _extensions_apply,
+    bright_extension_masks,
+    default_carve_tolerance,
+)
 from opacityhull.reconstruct.hull import HullGrid, bright_extensions, carve_octree, carve_robust, enclosed_holes
 
 REAL = Path(__file__).resolve().parents[1] / "data" / "real"
@@ -159,6 +164,18 @@ def test_rule_applies_only_to_tolerant_carves_of_imported_masks():
     assert not _extensions_apply(BuildConfig(doubt_bright_extensions=False), True, True)
 
 
+def test_default_carve_tolerance_grows_with_the_imported_views():
+    """One rule for the carve, the hole filling and the bright extensions (they used to
+    disagree under 8 views: the carve was classical while holes were filled)."""
+    cfg = BuildConfig()
+    got = [default_carve_tolerance(cfg, rig_session=False, n_views=v) for v in (1, 7, 8, 15, 16, 100)]
+    assert got == [0, 0, 1, 1, 2, 2]
+    assert default_carve_tolerance(cfg, rig_session=True, n_views=400) == 0  # triangulation mattes
+    for tol in (0, 3):  # an explicit tolerance wins either way
+        assert default_carve_tolerance(BuildConfig(carve_tolerance=tol), rig_session=True, n_views=4) == tol
+        assert default_carve_tolerance(BuildConfig(carve_tolerance=tol), rig_session=False, n_views=50) == tol
+
+
 def test_rig_sessions_never_use_the_rule(tmp_path):
     from opacityhull.acquire.synthetic import SyntheticSessionConfig, write_synthetic_session
     from opacityhull.model import BRIGHT_EXTENSIONS, read_surfels_ply
@@ -187,7 +204,7 @@ def test_imported_build_records_what_it_doubted_and_the_holdout_reads_it(tmp_pat
     cfg = BuildConfig(hull_res=48, refine="none", pictures=False, reflectance=False, natural=False)
     on = build_model(tmp_path / "s", tmp_path / "on", config=cfg)
     ext = read_hole_masks(tmp_path / "on" / "build" / BRIGHT_EXTENSIONS)
-    assert on.hull["carve_tolerance"] == 1 and len(ext) == 16
+    assert on.hull["carve_tolerance"] == 2 and len(ext) == 16  # 16 imported views
     assert 0 < on.hull["bright_extensions"]["px"] <= sum(int(m.sum()) for m in ext.values())
     assert on.hull["bright_extensions"]["views"] >= 5  # measured 9 of 16 at full resolution
     off = build_model(tmp_path / "s", tmp_path / "off", config=replace(cfg, doubt_bright_extensions=False))
