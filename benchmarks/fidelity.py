@@ -91,11 +91,7 @@ def configurations():
             {**pixel, "align": "flow", "opaque_interior": True},
         ),
         # today's defaults: carve tolerance 2 from 16 imported views (build.default_carve_tolerance)
-        (
-            "defaults",
-            {},
-            {},
-        ),
+        ("defaults", {}, {}),
     ]
 
 
