@@ -17,13 +17,14 @@ import logging
 from dataclasses import fields, replace
 from functools import lru_cache
 from pathlib import Path
-from typing import Callable, Literal
+from typing import Callable, Literal, Sequence
 
 import numpy as np
 
-from ..errors import FormatError
+from ..errors import FormatError, InputError
 from ..model import OpacityHullModel, Surfels
-from .build import BuildConfig, build_geometry
+from ..render.config import Twins
+from .build import BuildConfig, build_geometry, default_dilate_base_px
 from .matting import MattingOptions
 
 __all__ = ["build_config_of", "geometry_without", "rebuild_without", "run_loo_holdouts"]
@@ -68,11 +69,15 @@ def build_config_of(model: OpacityHullModel) -> tuple[BuildConfig, dict]:
     return replace(cfg, pictures=False, reflectance=False), report
 
 
-def geometry_without(model: OpacityHullModel, *, config: BuildConfig | None = None) -> Callable[[int], Surfels]:
-    """A function ``i → Surfels`` rebuilding the model's geometry without view ``i``.
+def geometry_without(
+    model: OpacityHullModel, *, config: BuildConfig | None = None
+) -> Callable[[int | Sequence[int]], Surfels]:
+    """A function ``i → Surfels`` rebuilding the model's geometry without view ``i``, or
+    without every view of a tuple ``i`` (a view and its coincident twins,
+    :func:`~opacityhull.camera.coincident_views`, held out together).
 
-    The surfels' visibility covers all V views in the model's bit order, view ``i``'s
-    bit clear. ``config`` defaults to the build's own (:func:`build_config_of`); a
+    The surfels' visibility covers all V views in the model's bit order, the held-out
+    views' bits clear. ``config`` defaults to the build's own (:func:`build_config_of`); a
     tolerant carve keeps its tolerance unless that would exceed V − 2.
     """
     cfg, report = build_config_of(model) if config is None else (config, {})
@@ -81,8 +86,9 @@ def geometry_without(model: OpacityHullModel, *, config: BuildConfig | None = No
     alphas = [model.load_view_rgba(i)[..., 3] for i in range(V)]
     dil = report.get("dilate_px_per_view", {})
     # the build dilated by base + rms; recover the rms part per view (0 when unknown)
-    rms = [max(0.0, float(dil.get(v.id, 0)) - cfg.dilate_base_px) if dil else 0.0 for v in model.views]
     rig_session = not str(model.meta.get("provenance", {}).get("rig_source", "")).startswith("import:")
+    base_px = default_dilate_base_px(cfg, rig_session=rig_session)
+    rms = [max(0.0, float(dil.get(v.id, 0)) - base_px) if dil else 0.0 for v in model.views]
     lo, hi = report.get("lo_m"), report.get("hi_m")
     fallback = (np.asarray(lo), np.asarray(hi)) if lo and hi else None
     from ..model import BRIGHT_EXTENSIONS, BUILD_DIR, OPEN_HOLES, read_hole_masks
@@ -93,8 +99,11 @@ def geometry_without(model: OpacityHullModel, *, config: BuildConfig | None = No
     doubted = read_hole_masks(Path(model.root) / BUILD_DIR / BRIGHT_EXTENSIONS)
     extensions = [doubted.get(v.id) for v in model.views]
 
-    def rebuild(i: int) -> Surfels:
-        keep = [j for j in range(V) if j != i]
+    def rebuild(i: int | Sequence[int]) -> Surfels:
+        out = {int(i)} if isinstance(i, (int, np.integer)) else {int(j) for j in i}
+        if not out or not all(0 <= j < V for j in out):
+            raise InputError(f"geometry_without: views {sorted(out)} are not indices of the model's {V} views")
+        keep = [j for j in range(V) if j not in out]
         c = cfg
         if c.carve_tolerance is not None and c.carve_tolerance > max(0, len(keep) - 2):
             c = replace(c, carve_tolerance=max(0, len(keep) - 2))
@@ -120,7 +129,12 @@ def geometry_without(model: OpacityHullModel, *, config: BuildConfig | None = No
         s = g.surfels
         vis = np.zeros((len(s), V), bool)
         vis[:, keep] = s.visible_bool()
-        log.info("holdout %s: %d surfels rebuilt from %d views", model.views[i].id, len(s), len(keep))
+        log.info(
+            "holdout %s: %d surfels rebuilt from %d views",
+            "+".join(model.views[j].id for j in sorted(out)),
+            len(s),
+            len(keep),
+        )
         out = Surfels.from_bool(s.positions, s.normals, s.radii, vis)
         out.depth_m = s.depth_m
         return out
@@ -129,34 +143,35 @@ def geometry_without(model: OpacityHullModel, *, config: BuildConfig | None = No
 
 
 @lru_cache(maxsize=2)
-def _rebuilder(root: str, mtime_ns: int) -> Callable[[int], Surfels]:
+def _rebuilder(root: str, mtime_ns: int) -> Callable[[int | Sequence[int]], Surfels]:
     # one model (its alphas loaded once) per worker process, re-read if rewritten
     return geometry_without(OpacityHullModel.open(root))
 
 
 def rebuild_without(item: tuple) -> Surfels:
-    """``(model folder, i)`` → the model's surfels rebuilt without view ``i``
-    (:func:`geometry_without`): the per-view task of ``eval loo --holdout geometry
-    --scheduler ...``. Workers open the model from its path (a folder they all see)."""
+    """``(model folder, i)`` → the model's surfels rebuilt without view ``i`` (an index or
+    a tuple of them, :func:`geometry_without`): the per-view task of ``eval loo --holdout
+    geometry --scheduler ...``. Workers open the model from its path (a folder they all
+    see)."""
     root, i = item
     try:
         m = (Path(root) / "model.toml").stat().st_mtime_ns
     except OSError:
         m = -1  # OpacityHullModel.open names the problem
-    return _rebuilder(str(root), m)(int(i))
+    return _rebuilder(str(root), m)(int(i) if isinstance(i, (int, np.integer)) else tuple(int(j) for j in i))
 
 
 class _Prefetched:
-    """``i → Surfels`` for the views of ``order``, rebuilt ``batch`` at a time through
-    ``executor`` and dropped once handed out: memory holds one batch of rebuilt
-    geometries, not one per view."""
+    """``held → Surfels`` for the held-out views of ``order`` (each a view index or a
+    tuple of them), rebuilt ``batch`` at a time through ``executor`` and dropped once
+    handed out: memory holds one batch of rebuilt geometries, not one per view."""
 
     def __init__(self, executor, root: Path, order, *, batch: int):
         self.ex, self.root, self.order = executor, str(root), list(order)
         self.batch = max(1, int(batch))
-        self.cache: dict[int, Surfels] = {}
+        self.cache: dict = {}
 
-    def __call__(self, i: int) -> Surfels:
+    def __call__(self, i) -> Surfels:
         if i not in self.cache:
             k = self.order.index(i) if i in self.order else None
             todo = [i] if k is None else [j for j in self.order[k : k + self.batch] if j not in self.cache]
@@ -166,12 +181,22 @@ class _Prefetched:
 
 
 def run_loo_holdouts(
-    model_path, *, views=None, config=None, holdout: str = "both", out=None, progress=None, executor=None
+    model_path,
+    *,
+    views=None,
+    config=None,
+    holdout: str = "both",
+    twins: Twins = "together",
+    out=None,
+    progress=None,
+    executor=None,
 ) -> dict:
     """``eval loo`` with ``--holdout blend|geometry|both``: the render stage's
     leave-one-out (:func:`opacityhull.render.evaluate.leave_one_out`) with the geometry
     rebuilt here. ``both`` reports both; the top-level figures are the geometry
-    holdout's (the honest one). Writes ``loo.json`` and the contact sheets to ``out``.
+    holdout's (the honest one). ``twins``: a view's coincident twins are held out with
+    it (``"together"``) or stay in the model (``"keep"``), see :func:`leave_one_out`.
+    Writes ``loo.json`` and the contact sheets to ``out``.
 
     ``executor`` (:mod:`opacityhull.executor`, default serial): the geometry rebuilds,
     the costly part, run there two per worker ahead of the renders; the figures are
@@ -179,13 +204,11 @@ def run_loo_holdouts(
     ``rebuild_ms`` then measures the wait for a rebuild, not its cost."""
     from ..cliutil import to_jsonable
     from ..imageio import atomic_path
-    from ..render.evaluate import leave_one_out, select_views
+    from ..render.evaluate import held_out_groups, leave_one_out, select_views
     from ..render.renderer import RenderConfig, prepare_model_views
 
     if holdout not in ("blend", "geometry", "both"):
-        from ..errors import InputError
-
-        raise InputError(f"--holdout {holdout!r}: expected blend, geometry or both")
+        raise InputError(f"holdout {holdout!r}: expected blend, geometry or both")
     model = OpacityHullModel.open(model_path)
     idx = select_views(model, views)
     config = config or RenderConfig()
@@ -199,7 +222,8 @@ def run_loo_holdouts(
         gw = None
         if kind == "geometry":
             if executor is not None and executor.scheduler != "serial":
-                gw = _Prefetched(executor, model.root, idx, batch=2 * executor.n_workers)
+                held = held_out_groups(model, idx, twins=twins)
+                gw = _Prefetched(executor, model.root, [held[i] for i in idx], batch=2 * executor.n_workers)
             else:
                 gw = geometry_without(model)
         sheet = out / ("loo_sheet.png" if len(kinds) == 1 else f"loo_sheet_{kind}.png")
@@ -211,6 +235,7 @@ def run_loo_holdouts(
             prepared=pv,
             progress=progress,
             holdout=kind,
+            twins=twins,
             geometry_without=gw,
         )
     main = results["geometry" if "geometry" in results else "blend"]
@@ -220,7 +245,7 @@ def run_loo_holdouts(
             k
             for k in main
             if k.endswith("_mean")
-            or k in ("alpha_mae", "coverage_iou_min", "ms_per_view", "rebuild_ms_per_view", "sheet")
+            or k in ("alpha_mae", "coverage_iou_min", "ms_per_view", "rebuild_ms_per_view", "sheet", "twins")
         ]
         summary["holdouts"] = {k: {kk: r.get(kk) for kk in keys} for k, r in results.items()}
     with atomic_path(out / "loo.json") as tmp:

@@ -11,7 +11,7 @@ import typer
 from ..cliutil import ModelDirArg, env_yaw_options, option_group, pick_env_yaw, scheduler_options
 from ..cliutil import check_choice, check_model_dir, check_orbit_fps, cli_errors, console, emit, progress, writing_to
 from ..errors import InputError
-from .config import RenderConfig, Shading
+from .config import RenderConfig, Shading, Twins
 
 _D = RenderConfig()
 
@@ -85,6 +85,10 @@ _LOO_OUT_HELP = (
     "Folder for loo.json and loo_sheet.png (default "
     "./MODELNAME_loo in the current folder: an evaluation never writes into "
     "the model)."
+)
+_TWINS_HELP = (
+    "together: hold out a view's coincident twins (the same viewpoint photographed again) with it | "
+    "keep: leave them in the model (a plain leave-one-out script's protocol; the twin's score is no novel view)."
 )
 _HOLDOUT_HELP = (
     "blend: leave the view out of the ULR blend only | geometry: also rebuild "
@@ -270,6 +274,7 @@ def register(app, groups) -> None:
         views: Annotated[Optional[str], typer.Option("--views", help=_LOO_VIEWS_HELP)] = None,
         out: Annotated[Optional[Path], typer.Option("--out", help=_LOO_OUT_HELP)] = None,
         holdout: Annotated[str, typer.Option("--holdout", help=_HOLDOUT_HELP)] = "blend",
+        twins: Annotated[str, typer.Option("--twins", help=_TWINS_HELP)] = "together",
         json_out: Annotated[bool, typer.Option("--json", help=_LOO_JSON_HELP)] = False,
         *,
         render_options: dict,
@@ -286,6 +291,7 @@ def register(app, groups) -> None:
             out = Path(f"{model.resolve().name}_loo")
         cfg = _config(**render_options)
         check_choice("--holdout", holdout, HOLDOUTS)
+        twins_mode = check_choice("--twins", twins, get_args(Twins))
         from ..executor import open_executor, parse_scheduler
 
         if parse_scheduler(executor["scheduler"]).kind != "serial" and holdout == "blend":
@@ -296,13 +302,20 @@ def register(app, groups) -> None:
             )
         with open_executor(**executor) as ex, progress("leave-one-out", None) as cb:
             if holdout == "blend":
-                summary = run_loo(model, views=views, config=cfg, out=out, progress=cb)
+                summary = run_loo(model, views=views, config=cfg, twins=twins_mode, out=out, progress=cb)
             else:
                 # the CLI composes stages: the geometry holdout rebuilds the hull (reconstruct)
                 from ..reconstruct.holdout import run_loo_holdouts
 
                 summary = run_loo_holdouts(
-                    model, views=views, config=cfg, holdout=holdout, out=out, progress=cb, executor=ex
+                    model,
+                    views=views,
+                    config=cfg,
+                    holdout=holdout,
+                    twins=twins_mode,
+                    out=out,
+                    progress=cb,
+                    executor=ex,
                 )
             summary["scheduler"] = ex.scheduler
 
@@ -317,6 +330,9 @@ def register(app, groups) -> None:
                     f"({h['ms_per_view']:.0f} ms/view)",
                     markup=False,
                 )
+            for g in s.get("coincident_views") or ():
+                how = "held out together" if s.get("twins") == "together" else "kept in (--twins keep)"
+                c.print(f"  coincident views {' = '.join(g)}: {how}", markup=False)
             if "sheet" in s:
                 c.print(f"  contact sheet: {s['sheet']}")
             c.print(f"  details: {s['json']}")

@@ -15,6 +15,8 @@ __all__ = ["RenderConfig", "KMAX", "Shading", "ShadingSurface", "default_threads
 Shading = Literal["pixel", "surfel"]
 ShadingSurface = Literal["refined", "hull"]
 Align = Literal["none", "flow"]
+#: leave-one-out: hold a view's coincident twins out with it, or keep them in the model
+Twins = Literal["together", "keep"]
 
 KMAX = 16
 """Largest supported ULR k (the kernels keep per-surfel candidate lists on the stack)."""

@@ -18,6 +18,7 @@ from ..imageio import write_exr, write_png
 from ..model import OpacityHullModel, Surfels
 from .background import EnvMap, fit_image, load_background
 from .cameras import captured_view_camera, look_at_camera, mean_fov_y_deg, orbit_cameras, resize_camera, scene_target
+from .config import Twins
 from .renderer import RenderConfig, RenderResult, model_surfels, prepare_model_views, render_image
 
 __all__ = [
@@ -443,11 +444,13 @@ def run_loo(
     *,
     views=None,
     config: RenderConfig = RenderConfig(),
+    twins: Twins = "together",
     out=None,
     progress: Callable[[int, int], None] | None = None,
 ) -> dict:
     """Leave-one-out evaluation of a model folder; writes ``loo.json`` and
-    ``loo_sheet.png`` to ``out`` (default ``MODEL/pictures``)."""
+    ``loo_sheet.png`` to ``out`` (default ``MODEL/pictures``). ``twins``: see
+    :func:`~opacityhull.render.evaluate.leave_one_out`."""
     import json
 
     from ..cliutil import to_jsonable
@@ -457,7 +460,9 @@ def run_loo(
     model = OpacityHullModel.open(model_path)
     idx = select_views(model, views)
     out = Path(out) if out is not None else Path(model_path) / "pictures"
-    summary = leave_one_out(model, views=idx, config=config, sheet_path=out / "loo_sheet.png", progress=progress)
+    summary = leave_one_out(
+        model, views=idx, config=config, twins=twins, sheet_path=out / "loo_sheet.png", progress=progress
+    )
     with atomic_path(out / "loo.json") as tmp:
         tmp.write_text(json.dumps(to_jsonable(summary), indent=1))
     summary["json"] = str(out / "loo.json")

@@ -41,6 +41,12 @@ CASES = [
     _render("model-missing", (), r"nosuch: no such model folder", model="{T}/nosuch"),
     _render("model-is-a-file", (), r"model.toml is a file, expected a model folder", model="{M}/model.toml"),
     Case("loo-model-missing", ("eval", "loo", "{T}/nosuch"), 2, r"nosuch: no such model folder"),
+    Case(
+        "loo-twins-unknown",
+        ("eval", "loo", "{M}", "--twins", "drop", "--out", "{T}/loo"),
+        2,
+        r"--twins.*drop.*expected together or keep",
+    ),
 ]
 
 

@@ -10,8 +10,11 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from opacityhull.camera import (
+    COINCIDENT_ANGLE_DEG,
+    COINCIDENT_CENTRE_REL,
     Camera,
     camera_from_mitsuba_params,
+    coincident_views,
     look_at_world_from_cam,
     mitsuba_sensor_params,
     nerfstudio_transform_matrix,
@@ -211,3 +214,69 @@ def test_look_at_image_up_is_world_up_and_right_handed():
     assert v_up < 50 and abs(u_up - 50) < 1e-9  # world +Y appears above the centre
     assert u_right > 50  # seen from +Z, world +X is on the right
     assert np.linalg.det(T[:3, :3]) == pytest.approx(1.0)
+
+
+def _ring(n, *, radius=0.6, height=0.2):
+    cams = []
+    for k in range(n):
+        a = 2 * math.pi * k / n
+        eye = (radius * math.sin(a), height, radius * math.cos(a))
+        cams.append(
+            Camera(
+                K=np.diag([500.0, 500.0, 1.0]) + np.array([[0, 0, 320], [0, 0, 240], [0, 0, 0]]),
+                width=640,
+                height=480,
+                world_from_cam=look_at_world_from_cam(eye, (0, 0.05, 0)),
+                name=f"c{k}",
+            )
+        )
+    return cams
+
+
+def _rotated(cam, angle_deg, axis=(0.0, 1.0, 0.0)):
+    R, _ = cv2.Rodrigues(np.asarray(axis, float) / np.linalg.norm(axis) * math.radians(angle_deg))
+    T = cam.world_from_cam.copy()
+    T[:3, :3] = T[:3, :3] @ R
+    return cam.with_pose(T)
+
+
+@settings(max_examples=40, deadline=None)
+@given(n=st.integers(2, 24), dup=st.lists(st.integers(0, 23), min_size=0, max_size=4, unique=True))
+def test_coincident_views_finds_exactly_the_repeated_viewpoints(n, dup):
+    """A ring of distinct viewpoints has no twins; appending copies of some of them (the
+    temple ring photographs its first viewpoint twice) groups each with its original."""
+    ring = _ring(n)
+    assert coincident_views(ring) == []
+    dup = [d for d in dup if d < n]
+    cams = ring + [ring[d] for d in dup]
+    assert coincident_views(cams) == sorted((d, n + k) for k, d in enumerate(dup))
+
+
+def test_coincident_views_tolerances_and_chains():
+    ring = _ring(12)
+    spread = float(
+        np.median([np.linalg.norm(c.centre_world - np.mean([q.centre_world for q in ring], 0)) for c in ring])
+    )
+    T = ring[3].world_from_cam.copy()
+    T[:3, 3] += [0.4 * COINCIDENT_CENTRE_REL * spread, 0, 0]
+    near = ring[3].with_pose(T)
+    T2 = ring[3].world_from_cam.copy()
+    T2[:3, 3] += [2.0 * COINCIDENT_CENTRE_REL * spread, 0, 0]
+    far = ring[3].with_pose(T2)
+    assert coincident_views(ring + [near]) == [(3, 12)]
+    assert coincident_views(ring + [far]) == []
+    # the same centre, turned: within the angle tolerance a twin, beyond it another view
+    assert coincident_views(ring + [_rotated(ring[5], 0.5 * COINCIDENT_ANGLE_DEG)]) == [(5, 12)]
+    assert coincident_views(ring + [_rotated(ring[5], 3.0 * COINCIDENT_ANGLE_DEG, (1, 0, 0))]) == []
+    # a chain of near-duplicates is one group
+    T3 = near.world_from_cam.copy()
+    T3[:3, 3] += [0.4 * COINCIDENT_CENTRE_REL * spread, 0, 0]
+    assert coincident_views(ring + [near, near.with_pose(T3)]) == [(3, 12, 13)]
+    # every view at one centre (a pure rotation set): only equal orientations group
+    hub = [_rotated(ring[0], a) for a in (0.0, 10.0, 20.0, 0.1)]
+    assert coincident_views(hub) == [(0, 3)]
+    assert coincident_views(ring[:1]) == [] and coincident_views([]) == []
+    with pytest.raises(InputError, match="centre_tol_rel"):
+        coincident_views(ring, centre_tol_rel=0.0)
+    with pytest.raises(InputError, match="angle_tol_deg"):
+        coincident_views(ring, angle_tol_deg=float("nan"))

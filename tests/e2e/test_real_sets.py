@@ -50,9 +50,20 @@ pytestmark = pytest.mark.slow
 # 21.26 / geometry 18.90 dB, IoU 0.967 (0.981 against the filled masks), interior alpha
 # 0.995 (0.997 where the hull draws). The dino's thresholds again sit between these and
 # the figures without the change (20.67 / 18.39 dB, IoU 0.964, alpha 0.9925).
+# The temple ring photographs its first viewpoint twice (templeSR0001 and templeSR0011:
+# the same pose, the photographs 41.5 dB apart), so eval loo holds c0 and c10 out together
+# (camera.coincident_views, the default since): with its twin in the model view c0 scored
+# 25.3 dB, without it 14.8 dB (geometry holdout). Every 4th view, twins held out
+# together: temple blend 18.50 / geometry 16.38 dB, IoU 0.946, interior alpha 0.988
+# (the figures above are the twins-kept protocol); the dino has no twins, unchanged.
+# Imported masks no longer dilated by a pixel (build.default_dilate_base_px: 0 for
+# imported sets, ½ px rounded up to 1 before): temple blend 19.37 / geometry 16.89 dB,
+# IoU 0.946, interior alpha 0.987; dino blend 21.97 / geometry 19.29 dB, IoU 0.967,
+# interior alpha 0.994. Both sets' PSNR thresholds sit between these and the dilated
+# figures (temple 18.50 / 16.38, dino 21.26 / 18.90), so restoring the dilation fails.
 THRESHOLDS = {
-    "temple": {"geometry_psnr": 18.55, "blend_psnr": 19.85, "iou": 0.932, "interior_alpha": 0.969},
-    "dino": {"geometry_psnr": 18.65, "blend_psnr": 20.95, "iou": 0.958, "interior_alpha": 0.994},
+    "temple": {"geometry_psnr": 16.6, "blend_psnr": 18.95, "iou": 0.932, "interior_alpha": 0.969},
+    "dino": {"geometry_psnr": 19.05, "blend_psnr": 21.6, "iou": 0.958, "interior_alpha": 0.992},
 }
 
 
@@ -76,6 +87,8 @@ def test_default_build_reaches_capture_resolution(real_model):
     assert res["surfel_spacing_m"] <= 1.01 * res["pixel_footprint_m"], res
     assert res["reason"].startswith("auto")
     assert report.hull["carve_tolerance"] == 2  # 16 imported thresholded masks: robust carve
+    # another tool's masks are taken as they are: no silhouette dilation
+    assert report.hull["dilate_base_px"] == 0.0 and set(report.hull["dilate_px_per_view"].values()) == {0}
     assert report.surfels > 300_000
     # the photo-consistent shading depth is on by default and stored with the surfels
     from opacityhull.model import read_surfels_ply
@@ -118,6 +131,10 @@ def test_real_loo_both_holdouts(real_model):
     s = run_loo_holdouts(tmp / "model", views="every:4", holdout="both", out=tmp / "loo")
     g, b = s["holdouts"]["geometry"], s["holdouts"]["blend"]
     t = THRESHOLDS[name]
+    twins = [["c0_t000.000", "c10_t000.000"]] if name == "temple" else []
+    assert s["coincident_views"] == twins and s["twins"] == "together"
+    first = s["per_view"][0]  # the geometry holdout's
+    assert first["view"] == "c0_t000.000" and first["held_out_with"] == [v for g_ in twins for v in g_[1:]]
     assert g["psnr_mean"] > t["geometry_psnr"], g
     assert b["psnr_mean"] > t["blend_psnr"], b
     # the honest holdout can only be harder: the held-out silhouette no longer carves

@@ -14,12 +14,13 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from opacityhull.errors import InputError, ShapeError
+from opacityhull.errors import ConfigError, InputError, ShapeError
 from opacityhull.reconstruct.build import (
     BuildConfig,
     _extensions_apply,
     bright_extension_masks,
     default_carve_tolerance,
+    default_dilate_base_px,
 )
 from opacityhull.reconstruct.hull import HullGrid, bright_extensions, carve_octree, carve_robust, enclosed_holes
 
@@ -174,6 +175,20 @@ def test_default_carve_tolerance_grows_with_the_imported_views():
     for tol in (0, 3):  # an explicit tolerance wins either way
         assert default_carve_tolerance(BuildConfig(carve_tolerance=tol), rig_session=True, n_views=4) == tol
         assert default_carve_tolerance(BuildConfig(carve_tolerance=tol), rig_session=False, n_views=50) == tol
+
+
+def test_imported_masks_are_not_dilated_by_default():
+    """Half a pixel (one, rounded up) for a rig's mattes thresholded at ½; none for the
+    masks of other tools, whose threshold already reaches past the edge."""
+    cfg = BuildConfig()
+    assert cfg.dilate_base_px is None
+    assert default_dilate_base_px(cfg, rig_session=True) == 0.5
+    assert default_dilate_base_px(cfg, rig_session=False) == 0.0
+    for d in (0.0, 1.5):  # an explicit value wins either way
+        for rig in (True, False):
+            assert default_dilate_base_px(BuildConfig(dilate_base_px=d), rig_session=rig) == d
+    with pytest.raises(ConfigError, match="dilate_base_px"):
+        BuildConfig(dilate_base_px=-0.5)
 
 
 def test_rig_sessions_never_use_the_rule(tmp_path):

@@ -107,3 +107,39 @@ def test_select_views(sphere_dir):
     for bad in ("every:0", "camera:7", "99", "c7_t000.000"):
         with pytest.raises(InputError):
             select_views(m, bad)
+
+
+def test_loo_holds_a_views_coincident_twin_out_with_it(tmp_path):
+    """A model whose view 5 was photographed twice (the Middlebury temple ring has such a
+    pair). Held out alone, view 5's twin gives the renderer its own photograph; held out
+    together, the score is the one of the model without the twin, to the bit."""
+    from opacityhull.model import Surfels, ViewInfo, write_model
+    from opacityhull.render.synthetic import make_sphere_model
+
+    sm = make_sphere_model(n_surfels=4000, width=64, height=48)
+    plain = write_model(tmp_path / "plain", views=sm.views, surfels=sm.surfels, view_rgba=sm.view_rgba, rig=sm.rig)
+    V = len(sm.views)
+    src = sm.views[5]
+    views = list(sm.views) + [ViewInfo(V, src.id + "_again", src.camera_index, src.table_deg, src.camera)]
+    vb = sm.surfels.visible_bool()
+    s = sm.surfels
+    surfels = Surfels.from_bool(s.positions, s.normals, s.radii, np.concatenate([vb, vb[:, 5:6]], axis=1))
+    twin = write_model(
+        tmp_path / "twin", views=views, surfels=surfels, view_rgba=list(sm.view_rgba) + [sm.view_rgba[5]], rig=sm.rig
+    )
+    m, p = OpacityHullModel.open(twin), OpacityHullModel.open(plain)
+    together = leave_one_out(m, views=[5, 9])
+    keep = leave_one_out(m, views=[5, 9], twins="keep")
+    base = leave_one_out(p, views=[5, 9])
+    assert together["coincident_views"] == keep["coincident_views"] == [[src.id, src.id + "_again"]]
+    assert base["coincident_views"] == []
+    assert together["twins"] == "together" and keep["twins"] == "keep"
+    t5, t9 = together["per_view"]
+    assert t5["held_out_with"] == [src.id + "_again"] and t9["held_out_with"] == []
+    assert keep["per_view"][0]["held_out_with"] == []
+    assert t5["psnr"] == pytest.approx(base["per_view"][0]["psnr"], abs=1e-6)
+    # the twin left in: view 5 is rendered from its own photograph, 10+ dB better
+    assert keep["per_view"][0]["psnr"] > t5["psnr"] + 10
+    assert keep["per_view"][1]["psnr"] == pytest.approx(t9["psnr"], abs=1e-6)
+    with pytest.raises(InputError, match="twins"):
+        leave_one_out(m, views=[5], twins="both")  # type: ignore[arg-type]
