@@ -414,7 +414,7 @@ def coincident_views(
     c = np.array([cam.centre_world for cam in cams])
     R = np.array([cam.world_from_cam[:3, :3] for cam in cams])
     spread = float(np.median(np.linalg.norm(c - c.mean(axis=0), axis=1)))
-    # all views at one centre (a pure rotation set): the scale is the tolerance itself
+    # all views at one centre (a pure rotation set): only equal centres coincide
     tol_c = centre_tol_rel * spread if spread > 0 else 0.0
     cos_tol = math.cos(math.radians(angle_tol_deg))
     parent = list(range(V))

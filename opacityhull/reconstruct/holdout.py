@@ -100,10 +100,10 @@ def geometry_without(
     extensions = [doubted.get(v.id) for v in model.views]
 
     def rebuild(i: int | Sequence[int]) -> Surfels:
-        out = {int(i)} if isinstance(i, (int, np.integer)) else {int(j) for j in i}
-        if not out or not all(0 <= j < V for j in out):
-            raise InputError(f"geometry_without: views {sorted(out)} are not indices of the model's {V} views")
-        keep = [j for j in range(V) if j not in out]
+        held = {int(i)} if isinstance(i, (int, np.integer)) else {int(j) for j in i}
+        if not held or not all(0 <= j < V for j in held):
+            raise InputError(f"geometry_without: views {sorted(held)} are not indices of the model's {V} views")
+        keep = [j for j in range(V) if j not in held]
         c = cfg
         if c.carve_tolerance is not None and c.carve_tolerance > max(0, len(keep) - 2):
             c = replace(c, carve_tolerance=max(0, len(keep) - 2))
@@ -131,7 +131,7 @@ def geometry_without(
         vis[:, keep] = s.visible_bool()
         log.info(
             "holdout %s: %d surfels rebuilt from %d views",
-            "+".join(model.views[j].id for j in sorted(out)),
+            "+".join(model.views[j].id for j in sorted(held)),
             len(s),
             len(keep),
         )
@@ -158,7 +158,7 @@ def rebuild_without(item: tuple) -> Surfels:
         m = (Path(root) / "model.toml").stat().st_mtime_ns
     except OSError:
         m = -1  # OpacityHullModel.open names the problem
-    return _rebuilder(str(root), m)(int(i) if isinstance(i, (int, np.integer)) else tuple(int(j) for j in i))
+    return _rebuilder(str(root), m)(i)
 
 
 class _Prefetched:

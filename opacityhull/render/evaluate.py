@@ -290,18 +290,26 @@ def _photograph(model: OpacityHullModel, i: int, filled: dict, render_rgba: np.n
 
 
 def held_out_groups(
-    model: OpacityHullModel, views: Sequence[int], *, twins: Twins = "together"
+    model: OpacityHullModel,
+    views: Sequence[int],
+    *,
+    twins: Twins = "together",
+    groups: Sequence[Sequence[int]] | None = None,
 ) -> dict[int, tuple[int, ...]]:
     """``{i: views held out with i}`` (``i`` first, then its twins ascending) for the
     chosen ``views``. ``twins="together"``: a view and the views coincident with it
-    (:func:`~opacityhull.camera.coincident_views`: the same viewpoint photographed
-    again), since a view whose twin stays in the model is no novel view; ``"keep"``:
-    each view alone (the protocol of a plain leave-one-out script)."""
+    (``groups``, default :func:`~opacityhull.camera.coincident_views` of the model's
+    cameras: the same viewpoint photographed again), since a view whose twin stays in
+    the model is no novel view; ``"keep"``: each view alone (the protocol of a plain
+    leave-one-out script)."""
     from ..camera import coincident_views
 
     if twins not in ("together", "keep"):
         raise InputError(f"twins {twins!r}: expected 'together' or 'keep'")
-    groups = coincident_views([v.camera for v in model.views]) if twins == "together" else []
+    if twins == "keep":
+        groups = []
+    elif groups is None:
+        groups = coincident_views([v.camera for v in model.views])
     of = {j: g for g in groups for j in g}
     return {int(i): (int(i), *(j for j in of.get(int(i), ()) if j != int(i))) for i in views}
 
@@ -351,10 +359,11 @@ def leave_one_out(
     per_view, rows = [], []
     build_ms = []
     filled = read_hole_masks(Path(model.root) / BUILD_DIR / FILLED_HOLES)
-    held = held_out_groups(model, idx, twins=twins)
     from ..camera import coincident_views
 
-    coincident = [[model.views[v].id for v in g] for g in coincident_views(cams)]
+    groups = coincident_views(cams)
+    held = held_out_groups(model, idx, twins=twins, groups=groups)
+    coincident = [[model.views[v].id for v in g] for g in groups]
     if coincident:
         log.warning(
             "views %s photograph the same viewpoint: %s",
