@@ -15,7 +15,6 @@ Writes ``benchmarks/out/acquire.md`` and ``benchmarks/out/acquire.png``.
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import shutil
@@ -25,7 +24,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from benchkit import pyplot
+from benchkit import parser, pyplot
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "benchmarks" / "out"
@@ -141,7 +140,7 @@ def bench_capture(rig_spec: str, plan_spec: str, tmp: Path) -> dict:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = parser(__doc__)
     ap.add_argument("--quick", action="store_true", help="fewer images")
     ap.add_argument("--json", action="store_true", help="print one JSON object")
     ap.add_argument("--rig", default=None, help="rig for the capture part (default sim:builtin:diffuse, else lab)")

@@ -33,7 +33,6 @@ Writes ``benchmarks/out/baseline.md`` and ``baseline.json``; ``--json`` prints o
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
 import sys
@@ -42,6 +41,7 @@ from pathlib import Path
 
 import numpy as np
 from numba import njit
+from benchkit import parser
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
@@ -281,7 +281,7 @@ def write_table(rows, path: Path) -> None:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap = parser(__doc__)
     ap.add_argument("--sets", default="temple,dino")
     ap.add_argument("--views", default="every:2")
     ap.add_argument("--res", type=int, default=300)

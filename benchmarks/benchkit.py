@@ -6,8 +6,15 @@ Running this file does nothing: ``make bench`` runs every ``benchmarks/*.py``.
 
 from __future__ import annotations
 
+import argparse
 import json
 from pathlib import Path
+
+
+def parser(doc: str | None) -> argparse.ArgumentParser:
+    """The command line of a benchmark: ``--help`` prints its module docstring ``doc``
+    as written (what it measures and how to read the report)."""
+    return argparse.ArgumentParser(description=doc, formatter_class=argparse.RawDescriptionHelpFormatter)
 
 
 def pyplot():

@@ -21,7 +21,6 @@ is evaluations per refinement and time per evaluation, both reported.
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
 import sys
@@ -29,6 +28,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from benchkit import parser
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "benchmarks" / "out"
@@ -59,7 +59,7 @@ def build_rig(width: int, height: int, rng):
         K = cam.K.copy()
         K[0, 0] *= 1.045
         K[1, 1] *= 1.045
-        dist = [-0.2, 0.05, 0.0, 0.0, 0.0] if i == 1 else np.zeros(5)
+        dist = np.array([-0.2, 0.05, 0.0, 0.0, 0.0]) if i == 1 else np.zeros(5)
         true.append(
             Camera(K=K, dist=dist, width=width, height=height, world_from_cam=cam.world_from_cam @ dT, name=cam.name)
         )
@@ -221,7 +221,7 @@ def write_outputs(summary: dict) -> tuple[Path, Path]:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = parser(__doc__)
     ap.add_argument("--quick", action="store_true", help="320x240, one seed, 4/6/12 angles")
     ap.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     a = ap.parse_args(argv)

@@ -22,7 +22,6 @@ Writes ``benchmarks/out/capture_rate.md`` and ``benchmarks/out/capture_rate.png`
 
 from __future__ import annotations
 
-import argparse
 import copy
 import json
 import shutil
@@ -31,6 +30,7 @@ import tempfile
 import threading
 import time
 from pathlib import Path
+from benchkit import parser
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "benchmarks" / "out"
@@ -111,7 +111,7 @@ def run_once(rig, plan, tmp: Path, *, queue_images: int, expose_s: float) -> dic
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = parser(__doc__)
     ap.add_argument("--quick", action="store_true", help="one small resolution, one repeat")
     ap.add_argument("--json", action="store_true", help="print one JSON object")
     ap.add_argument("--repeats", type=int, default=None, help="alternating on/off repetitions (default 3, quick 1)")

@@ -31,12 +31,12 @@ against build + render time) and ``fidelity.json`` (``fidelity_quick.*`` with
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 import tempfile
 import time
 from pathlib import Path
+from benchkit import parser
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
@@ -227,7 +227,7 @@ def plot(rows, path: Path) -> None:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap = parser(__doc__)
     ap.add_argument("--quick", action="store_true", help="every 4th view held out")
     ap.add_argument("--json", action="store_true")
     ap.add_argument("--sets", default="temple,dino")

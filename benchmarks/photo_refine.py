@@ -27,7 +27,6 @@ Writes ``benchmarks/out/photo_refine.md`` and ``.png``; scratch models under
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import shutil
@@ -37,6 +36,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from benchkit import parser
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = Path("/work/shared/data/real")
@@ -153,7 +153,7 @@ def photo_holdout_loo(m, cams, rgba, config, views):
 
 
 def main(argv=None):
-    ap = argparse.ArgumentParser(description=(__doc__ or "").split("\n")[0])
+    ap = parser(__doc__)
     ap.add_argument("--hull-res", type=int, default=256)
     ap.add_argument("--sets", default="templeSR,dinoSR")
     ap.add_argument("--scratch", default="/tmp/helper-photo/bench")

@@ -21,7 +21,6 @@ are warm (numba compiled first; compile time reported separately), best of N.
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
 import os
@@ -32,7 +31,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from benchkit import pyplot, report_head, save_figure
+from benchkit import parser, pyplot, report_head, save_figure
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "benchmarks" / "out"
@@ -64,6 +63,7 @@ def memory_bandwidth_gbs() -> float:
 def bench_matting(quick: bool) -> dict:
     import numba
 
+    from opacityhull.executor import numba_max_threads
     from opacityhull.reconstruct import matting as m
 
     K, H, W = 6, 576, 720
@@ -88,7 +88,7 @@ def bench_matting(quick: bool) -> dict:
         np.empty(N, np.uint8),
     ]  # as solve_matte allocates them
     inf = np.full(K, np.inf, np.float32)
-    threads = numba.config.NUMBA_NUM_THREADS
+    threads = numba_max_threads()
     for nt in sorted({1, threads}):
         numba.set_num_threads(nt)
         te = best_of(lambda: m.solve_matte(C, B), reps)
@@ -201,7 +201,7 @@ def bench_carving(quick: bool) -> dict:
         "speedup_over_dense": t_dense / t_oct,
     }
     try:  # pragma: no cover - optional
-        import open3d  # noqa: F401
+        import open3d  # noqa: F401  # pyright: ignore[reportMissingImports]
 
         out["open3d"] = "installed but not benchmarked here"
     except ImportError:
@@ -351,7 +351,7 @@ def write_report(res: dict) -> None:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = parser(__doc__)
     ap.add_argument("--quick", action="store_true", help="fewer repeats and sweep points")
     ap.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     args = ap.parse_args()

@@ -20,7 +20,6 @@ Writes ``benchmarks/out/reflectance_pca.md``, ``.json`` and ``.png``.
 
 from __future__ import annotations
 
-import argparse
 import json
 import shutil
 import sys
@@ -31,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from benchkit import print_result, pyplot, save_figure  # noqa: E402
+from benchkit import parser, print_result, pyplot, save_figure  # noqa: E402
 
 OUT = Path(__file__).resolve().parent / "out"
 
@@ -148,8 +147,15 @@ def _sweep(base, tmp: Path, *, quick: bool) -> dict:
             if True:
                 d = tmp / f"pca_{block}_{kind}_{v}"
                 t = time.perf_counter()
-                kw = {"pca_rank": int(v)} if kind == "rank" else {"pca_error": float(v)}
-                m = copy_model(layers, d, storage="half", reflectance_storage="pca", pca_block=block, **kw)
+                m = copy_model(
+                    layers,
+                    d,
+                    storage="half",
+                    reflectance_storage="pca",
+                    pca_block=block,
+                    pca_rank=int(v) if kind == "rank" else None,
+                    pca_error=float(v) if kind == "error" else None,
+                )
                 wsec = (time.perf_counter() - t) / len(base.views)
                 r = m.meta["reflectance"]
                 b = _bytes_per_view(d)
@@ -254,7 +260,7 @@ def _plot(res: dict, path: Path) -> None:
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = parser(__doc__)
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--json", action="store_true")
     ap.add_argument("--size", default="320x240", help="view size WxH (default 320x240)")

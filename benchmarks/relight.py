@@ -20,26 +20,30 @@ warm (the numba kernels run once first; compile time is reported separately).
 
 from __future__ import annotations
 
-import argparse
 import math
 import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import Callable, TypeVar
 
 import numpy as np
-from benchkit import print_result, pyplot, report_head, save_figure
+from benchkit import parser, print_result, pyplot, report_head, save_figure
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "benchmarks" / "out"
 sys.path.insert(0, str(ROOT))
 from opacityhull.data import PROBES_DIR as PROBES  # noqa: E402  (shipped with the package)
 
+T = TypeVar("T")
 
-def _t(fn, *a, repeat=1, **kw):
-    best = float("inf")
-    out = None
-    for _ in range(repeat):
+
+def _t(fn: Callable[..., T], *a, repeat: int = 1, **kw) -> tuple[float, T]:
+    """``(best wall seconds of repeat calls, the last call's result)``."""
+    t0 = time.perf_counter()
+    out = fn(*a, **kw)
+    best = time.perf_counter() - t0
+    for _ in range(repeat - 1):
         t0 = time.perf_counter()
         out = fn(*a, **kw)
         best = min(best, time.perf_counter() - t0)
@@ -402,7 +406,7 @@ def write_report(res: dict, out: Path) -> None:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = parser(__doc__)
     ap.add_argument("--quick", action="store_true", help="small images, two probes, fewer arrays")
     ap.add_argument("--json", action="store_true", help="print the results as one JSON object")
     ap.add_argument("--out", type=Path, default=OUT)

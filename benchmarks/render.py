@@ -18,7 +18,6 @@ given, else on an analytic sphere, and adds coverage IoU, interior alpha and spi
 
 from __future__ import annotations
 
-import argparse
 import json
 import math
 import os
@@ -27,6 +26,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from benchkit import parser
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
@@ -158,10 +158,8 @@ def accuracy(model_dir: str | None, quick: bool, shadings=("surfel", "pixel")) -
     views = select_views(model, ("every:3" if quick else None) if n_views > 20 else "every:2")
 
     def run(knob, value, cfg, surfels=None):
-        if surfels is not None:
-            model._render_sorted_surfels = surfels
-        s = leave_one_out(model, views=views, config=cfg, prepared=pv)
-        n = len(model_surfels(model))
+        s = leave_one_out(model, views=views, config=cfg, prepared=pv, surfels=surfels)
+        n = len(model_surfels(model) if surfels is None else surfels)
         extra = {
             key[:-5]: s[key]
             for key in (
@@ -211,7 +209,6 @@ def accuracy(model_dir: str | None, quick: bool, shadings=("surfel", "pixel")) -
             # fewer surfels cover the same surface: radii grow with the spacing
             sub = Surfels(sub.positions, sub.normals, sub.radii / math.sqrt(frac), sub.visibility, sub.n_views)
             run("density", frac, base, sub)
-        model._render_sorted_surfels = full
     return rows, source
 
 
@@ -276,7 +273,7 @@ def plots(tp_rows, acc_rows, source):
 
 
 def main():
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap = parser(__doc__)
     ap.add_argument("--quick", action="store_true", help="100 k and 500 k surfels, k in {1, 4, 8}, fewer LOO views")
     ap.add_argument("--json", action="store_true", help="print the summary as one JSON object on stdout")
     ap.add_argument(

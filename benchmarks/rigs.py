@@ -24,7 +24,6 @@ Writes ``benchmarks/out/rigs.md`` and ``benchmarks/out/rigs.png``.
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import platform
@@ -44,6 +43,7 @@ from opacityhull.rigs.emulators.grbl import GrblEmulator  # noqa: E402
 from opacityhull.rigs.lights import EnttecDmx  # noqa: E402
 from opacityhull.rigs.motion import GrblAxis, GrblController  # noqa: E402
 from opacityhull.rigs.transport import SerialTransport  # noqa: E402
+from benchkit import parser  # noqa: E402
 
 BAUD = 115200
 WIRE_STATUS_S = (1 + 41) * 10 / BAUD  # '?' out, '<Idle|MPos:0.000,0.000,0.000|FS:0,0>\r\n' back
@@ -142,7 +142,7 @@ def bench_kind(kind: str, n: int) -> list[dict]:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = parser(__doc__)
     ap.add_argument("--quick", action="store_true", help="fewer samples (~5 s)")
     ap.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     args = ap.parse_args(argv)

@@ -38,7 +38,6 @@ and the scheduler comparison on 144 views at 640×480. Writes
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import shutil
@@ -50,6 +49,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
+from benchkit import parser
 
 if TYPE_CHECKING:
     from opacityhull.model import Storage
@@ -330,7 +330,12 @@ def scheduler_comparison(tmp: Path, *, n_table: int, width: int, height: int, re
     tasks = view_tasks(s)
     res: dict = {"views": len(tasks), "width": width, "height": height}
     lc = LocalCluster(
-        n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1", dashboard_address=None, silence_logs=40
+        n_workers=2,
+        threads_per_worker=1,
+        processes=True,
+        host="127.0.0.1",
+        dashboard_address=None,  # pyright: ignore[reportArgumentType]  (None: no dashboard, as distributed documents)
+        silence_logs=40,
     )
     try:
         execs = {
@@ -339,10 +344,9 @@ def scheduler_comparison(tmp: Path, *, n_table: int, width: int, height: int, re
             "processes": open_executor("processes", workers=2),
             "cluster": open_executor(lc.scheduler_address),
         }
-        ref = None
+        ref = execs["serial"].map(matte_view_checksum, tasks[:4])
         for name, ex in execs.items():  # warm: numba caches, the session's manifest per worker
             got = ex.map(matte_view_checksum, tasks[:4])
-            ref = ref or got
             if got != ref:
                 raise RuntimeError(f"{name}: mattes differ from serial")
         # several views per task amortise the scheduler's per-task cost (4 tasks per worker)
@@ -730,7 +734,7 @@ def table(
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = parser(__doc__)
     ap.add_argument("--quick", action="store_true", help="the small sweep (a few minutes)")
     ap.add_argument("--json", action="store_true", help="print one JSON object on stdout")
     ap.add_argument("--tmp", default=None, help="scratch folder (default: a temporary one)")

@@ -48,6 +48,7 @@ from functools import partial
 from pathlib import Path
 
 import numpy as np
+from benchkit import parser
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "benchmarks" / "out"
@@ -591,7 +592,7 @@ def write_outputs(
 
 
 def main() -> int:
-    ap = argparse.ArgumentParser(description=(__doc__ or "").split("\n\n")[0])
+    ap = parser(__doc__)
     ap.add_argument(
         "--quick", action="store_true", help="256-spp reference, default size only, fewer throughput renders"
     )

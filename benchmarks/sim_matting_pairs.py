@@ -17,7 +17,6 @@ Writes ``benchmarks/out/sim_matting_pairs.md`` and ``.json``.
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 import time
@@ -25,7 +24,7 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
-from benchkit import print_result
+from benchkit import parser, print_result
 
 OUT = Path(__file__).resolve().parent / "out"
 SCENES = ("diffuse", "sphere", "glass", "glossy", "fuzzy")
@@ -92,7 +91,7 @@ def measure(scales, rounds: int) -> list[dict]:
 
 
 def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = parser(__doc__)
     ap.add_argument("--scales", default="1,2", help="camera scales of the default rig (1 = 200x150)")
     ap.add_argument("--rounds", type=int, default=4)
     ap.add_argument("--json", action="store_true", help="print one JSON object on stdout")

@@ -23,7 +23,6 @@ shared: timings are contended wall times, to be read as orders of magnitude.
 
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 import tempfile
@@ -31,6 +30,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from benchkit import parser
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
@@ -383,7 +383,7 @@ def relit_main(args) -> int:
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=(__doc__ or "").split("\n")[0])
+    ap = parser(__doc__)
     ap.add_argument("--quick", action="store_true", help="50 k and 500 k surfels only")
     ap.add_argument("--json", action="store_true", help="print the results as one JSON object on stdout")
     ap.add_argument("--models", nargs="*", default=[], help="model folders whose position-code bits to measure")

@@ -102,6 +102,15 @@ def _check_shippable(fn: Callable, scheduler: str) -> None:
         )
 
 
+def numba_max_threads() -> int:
+    """The size of numba's thread pool in this process (``NUMBA_NUM_THREADS``, fixed when
+    numba is imported): the most :func:`numba.set_num_threads` accepts."""
+    from numba.core import config as numba_config
+
+    # set at import from the environment, so not a declared attribute of the module
+    return int(getattr(numba_config, "NUMBA_NUM_THREADS"))
+
+
 def set_numba_threads(n: int | None) -> None:
     """Limit numba's thread pool in this process (a worker) to ``n`` threads (None: leave)."""
     if n is None:
@@ -110,10 +119,7 @@ def set_numba_threads(n: int | None) -> None:
     try:
         import numba
 
-        from numba.core import config as numba_config
-
-        # NUMBA_NUM_THREADS is set at import from the environment (not a declared attribute)
-        numba.set_num_threads(max(1, min(int(n), int(getattr(numba_config, "NUMBA_NUM_THREADS", n)))))
+        numba.set_num_threads(max(1, min(int(n), numba_max_threads())))
     except Exception as e:  # numba missing or its pool already fixed: only slower, never wrong
         log.debug("could not set numba threads to %s: %s", n, e)
 

@@ -33,6 +33,7 @@ __all__ = [
     "read_image",
     "write_image",
     "read_exr",
+    "exr_attribute",
     "write_exr",
     "read_hdr",
     "write_hdr",
@@ -207,7 +208,7 @@ def write_exr(
     channels : str, optional
         Channel names, one letter each (default Y, YA, RGB, RGBA by channel count).
     header : dict, optional
-        Extra header attributes, typed by :func:`_exr_attribute` (str → string,
+        Extra header attributes, typed by :func:`exr_attribute` (str → string,
         int → int, float → float, 3 numbers → v3f, ``chromaticities`` → its 8 floats).
 
     Returns
@@ -245,18 +246,18 @@ def _read_exr_channels(path: Path) -> dict[str, np.ndarray]:
 
 def _write_exr_channels(path, chans: dict, header) -> None:
     """Write named float channels as a ZIP-compressed scanline EXR, atomically, with the
-    extra ``header`` attributes (checked by :func:`_exr_attribute`)."""
+    extra ``header`` attributes (checked by :func:`exr_attribute`)."""
     import OpenEXR
 
     hdr = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
     for k, v in (header or {}).items():
-        hdr[k] = _exr_attribute(k, v, path)
+        hdr[k] = exr_attribute(k, v, path)
     with atomic_path(path) as tmp:
         with OpenEXR.File(hdr, chans) as f:
             f.write(str(tmp))
 
 
-def _exr_attribute(name: str, value, path):
+def exr_attribute(name: str, value, path):
     """A header value as the OpenEXR package types it: str → string, bool/int → int,
     float → float, ``chromaticities`` → a tuple of 8 floats, 3 numbers → v3f."""
     if name == "chromaticities":

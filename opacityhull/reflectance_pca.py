@@ -397,7 +397,7 @@ def write_reflectance_pca(
     """
     import OpenEXR
 
-    from .imageio import _exr_attribute, atomic_path
+    from .imageio import exr_attribute, atomic_path
 
     path = Path(path)
     H, W = (int(x) for x in shape)
@@ -427,7 +427,7 @@ def write_reflectance_pca(
         "displayWindow": display,
     }
     for k, v in (header or {}).items():
-        h0[k] = _exr_attribute(k, v, path)
+        h0[k] = exr_attribute(k, v, path)
     h0.update(
         {
             "reflectanceStorage": "pca",

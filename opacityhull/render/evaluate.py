@@ -327,6 +327,7 @@ def leave_one_out(
     holdout: Literal["blend", "geometry"] = "blend",
     twins: Twins = "together",
     geometry_without: Callable[[tuple[int, ...]], Surfels] | None = None,
+    surfels: Surfels | None = None,
 ) -> dict:
     """Leave-one-out rendering of the chosen views (default all).
 
@@ -338,7 +339,9 @@ def leave_one_out(
     (:func:`held_out_groups`): with ``"together"`` (default) a view's coincident twins
     are held out with it, from the blend and from the rebuilt geometry, and
     ``per_view[...]["held_out_with"]`` names them; ``"keep"`` leaves them in. The
-    summary's ``coincident_views`` lists the groups either way.
+    summary's ``coincident_views`` lists the groups either way. ``surfels`` replaces the
+    model's own in the blend holdout (a benchmark's thinned or altered geometry, visibility
+    over the model's V views).
 
     Returns ``{"views", "psnr_mean", "ssim_mean", "alpha_mae", ..., "per_view": [...]}``
     with the means of every :func:`loo_metrics` key over views with a non-empty mask.
@@ -353,8 +356,11 @@ def leave_one_out(
     if not idx:
         raise InputError("leave_one_out: no views selected")
     pv = prepared if prepared is not None else prepare_model_views(model)
-    surfels = model_surfels(model)
     cams = [v.camera for v in model.views]
+    if surfels is None:
+        surfels = model_surfels(model)
+    elif surfels.n_views != len(cams):
+        raise InputError(f"surfels have visibility over {surfels.n_views} views, expected the model's {len(cams)}")
     sheet_pick = set(np.unique(np.linspace(0, len(idx) - 1, min(max_sheet_rows, len(idx))).round().astype(int)))
     per_view, rows = [], []
     build_ms = []

@@ -170,7 +170,7 @@ class EmulatorServer:
         self.device = device
         self.kind = kind
         self._port = port
-        self.url: str | None = None
+        self._url: str | None = None
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
         self._master: int | None = None
@@ -185,6 +185,15 @@ class EmulatorServer:
         self.connections = 0
         self._babble_t: float | None = None
         self._babble_sent = 0
+
+    @property
+    def url(self) -> str:
+        """What a driver opens: the pty's device path, or ``socket://127.0.0.1:PORT``."""
+        if self._url is None:
+            raise RuntimeError(
+                f"emulator {self.device.name}: not serving yet; use it as a context manager or call start()"
+            )
+        return self._url
 
     # ---- lifecycle
     def _open_endpoint(self) -> str:
@@ -203,10 +212,10 @@ class EmulatorServer:
     def start(self) -> str:
         self._stop.clear()
         self._gone = False
-        self.url = self._open_endpoint()
+        self._url = url = self._open_endpoint()
         self._thread = threading.Thread(target=self._run, name=f"emu-{self.device.name}", daemon=True)
         self._thread.start()
-        return self.url
+        return url
 
     def _join(self) -> None:
         t = self._thread
