@@ -10,6 +10,7 @@ import functools
 import json
 import os
 import sys
+import time
 from contextlib import contextmanager
 from pathlib import Path
 from typing import Annotated, Any, Callable, Iterator, Mapping, Optional, Sequence, TypeVar, overload
@@ -32,6 +33,7 @@ __all__ = [
     "scheduler_options",
     "console",
     "ProgressCallback",
+    "step_progress",
     "to_jsonable",
     "JsonFlag",
     "JsonSummaryFlag",
@@ -339,3 +341,42 @@ def progress(description: str, total: int | None = None, *, enabled: bool = True
             bar.update(task, completed=done, total=tot if tot is not None else total)
 
         yield cb
+
+
+@contextmanager
+def step_progress(command: str) -> Iterator[tuple[Callable[[str], None], Callable[..., None]]]:
+    """Progress of a command made of named steps, on stderr; yields ``(on_step, progress)``:
+    ``on_step(name)`` when a step starts, ``progress(done, total=None)`` within it.
+
+    On a terminal there is one live bar line, the current step's (its count and ETA are
+    the step's). A pipe or a log gets no live bar (rich draws only its last frame there),
+    so each finished step prints ``COMMAND: STEP done in S s`` instead. Either way the
+    command ends with ``COMMAND: done in S s``.
+    """
+    t0 = time.perf_counter()
+    with progress_bar(f"{command}: {{task.description}}") as bar:
+        plain = not bar.console.is_terminal
+        # a new task per step: rich's update() ignores total=None, so resetting one task
+        # left the previous step's "0/24" on every later step
+        tasks = [bar.add_task("start", total=None)]
+        step = {"name": "", "t": t0}
+
+        def finish_step() -> None:
+            now = time.perf_counter()
+            if plain and step["name"]:
+                bar.console.print(f"{command}: {step['name']} done in {now - step['t']:.1f} s", highlight=False)
+            step["t"] = now
+
+        def on_step(name: str) -> None:
+            finish_step()
+            step["name"] = name
+            bar.remove_task(tasks[-1])
+            tasks.append(bar.add_task(name, total=None))
+
+        def progress(done: int, total: int | None = None) -> None:
+            bar.update(tasks[-1], completed=done, total=total)
+
+        yield on_step, progress
+        finish_step()
+        bar.remove_task(tasks[-1])
+    bar.console.print(f"{command}: done in {time.perf_counter() - t0:.1f} s", highlight=False)

@@ -8,7 +8,7 @@ from typing import Annotated, List, Literal, Optional, get_args
 import typer
 
 from ..cliutil import JsonFlag, option_group, scheduler_options
-from ..cliutil import check_choice, cli_errors, console, emit, progress_bar, writing_to
+from ..cliutil import check_choice, cli_errors, console, emit, step_progress, writing_to
 from ..errors import ConfigError
 
 __all__ = ["register"]
@@ -317,20 +317,7 @@ def register(app, groups) -> None:
             pca_error=d.pca_error if pca_error is None else pca_error,
             pca_block=d.pca_block if pca_block is None else (pca_block or None),
         )
-        with progress_bar("build: {task.description}") as bar:
-            # one bar line per step: its description names the step, its count and ETA
-            # are the step's (views matted, images calibrated, ...). A new task per step:
-            # rich's update() ignores total=None, so resetting one task left the previous
-            # step's "0/24" on every later step.
-            tasks = [bar.add_task("start", total=None)]
-
-            def on_step(name: str) -> None:
-                bar.remove_task(tasks[-1])
-                tasks.append(bar.add_task(name, total=None))
-
-            def prog(done: int, total: int | None = None) -> None:
-                bar.update(tasks[-1], completed=done, total=total)
-
+        with step_progress("build") as (on_step, prog):
             with open_executor(**executor) as ex, writing_to(out):
                 report = build_model(
                     session,
@@ -343,7 +330,6 @@ def register(app, groups) -> None:
                     executor=ex,
                     memory_gb=memory_gb,
                 )
-            bar.update(tasks[-1], description="done")
         summary = report.summary()
         summary["notes"] = list(report.notes)
         emit(summary, as_json, _human)

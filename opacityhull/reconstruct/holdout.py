@@ -190,6 +190,7 @@ def run_loo_holdouts(
     out=None,
     progress=None,
     executor=None,
+    on_step: Callable[[str], None] | None = None,
 ) -> dict:
     """``eval loo`` with ``--holdout blend|geometry|both``: the render stage's
     leave-one-out (:func:`opacityhull.render.evaluate.leave_one_out`) with the geometry
@@ -201,7 +202,9 @@ def run_loo_holdouts(
     ``executor`` (:mod:`opacityhull.executor`, default serial): the geometry rebuilds,
     the costly part, run there two per worker ahead of the renders; the figures are
     the same as serial (each rebuild is the same deterministic function of the model).
-    ``rebuild_ms`` then measures the wait for a rebuild, not its cost."""
+    ``rebuild_ms`` then measures the wait for a rebuild, not its cost. ``on_step(name)``
+    is called as each holdout starts (``"blend holdout"``, ``"geometry holdout"``), and
+    ``progress(done, total)`` counts that holdout's views."""
     from ..cliutil import to_jsonable
     from ..imageio import atomic_path
     from ..render.evaluate import held_out_groups, leave_one_out, select_views
@@ -219,6 +222,8 @@ def run_loo_holdouts(
         ["blend", "geometry"] if holdout == "both" else ["geometry" if holdout == "geometry" else "blend"]
     )
     for kind in kinds:
+        if on_step is not None:
+            on_step(f"{kind} holdout")
         gw = None
         if kind == "geometry":
             if executor is not None and executor.scheduler != "serial":

@@ -9,7 +9,17 @@ from typing import Annotated, List, Optional, get_args
 import typer
 
 from ..cliutil import ModelDirArg, env_yaw_options, option_group, pick_env_yaw, scheduler_options
-from ..cliutil import check_choice, check_model_dir, check_orbit_fps, cli_errors, console, emit, progress, writing_to
+from ..cliutil import (
+    check_choice,
+    check_model_dir,
+    check_orbit_fps,
+    cli_errors,
+    console,
+    emit,
+    progress,
+    step_progress,
+    writing_to,
+)
 from ..errors import InputError
 from .config import RenderConfig, Shading, Twins
 
@@ -300,8 +310,9 @@ def register(app, groups) -> None:
                 "distribute (the renders run in this process); use --holdout geometry|both, or "
                 "--scheduler serial"
             )
-        with open_executor(**executor) as ex, progress("leave-one-out", None) as cb:
+        with open_executor(**executor) as ex, step_progress("leave-one-out") as (on_step, cb):
             if holdout == "blend":
+                on_step("blend holdout")
                 summary = run_loo(model, views=views, config=cfg, twins=twins_mode, out=out, progress=cb)
             else:
                 # the CLI composes stages: the geometry holdout rebuilds the hull (reconstruct)
@@ -316,6 +327,7 @@ def register(app, groups) -> None:
                     out=out,
                     progress=cb,
                     executor=ex,
+                    on_step=on_step,
                 )
             summary["scheduler"] = ex.scheduler
 

@@ -48,7 +48,12 @@ def test_build_json_summary_and_files(session):
         "views"
     }
     assert s["metrics"]["alpha_mae"] < 0.01 and s["metrics"]["hull_object_in_hull"] > 0.999
-    assert "build" in p.stderr  # progress went to stderr
+    # progress went to stderr; a pipe gets one line per finished step (no live bar), each
+    # step of the summary's timings once, then the total
+    err = p.stderr
+    for step in ("cameras", "matting", "hull", "surfels", "visibility"):
+        assert err.count(f"build: {step} done in ") == 1, (step, err)
+    assert "build: done in " in err and "0/?" not in err
     m = OpacityHullModel.open(out)
     assert len(m.views) == 12
     for pic in ("mattes.png", "hull_overlay.png", "reprojection.png"):

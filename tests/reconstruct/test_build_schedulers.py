@@ -139,3 +139,17 @@ def test_a_scheduler_with_nothing_to_distribute_is_refused_not_ignored(serial_mo
     assert res.exit_code == 2, res.output
     assert "--scheduler threads: with --holdout blend there is no per-view rebuild" in " ".join(res.stderr.split())
     assert not (tmp_path / "loo").exists()
+
+
+def test_loo_progress_names_each_holdout_on_a_pipe(serial_model, tmp_path):
+    """Off a terminal (here: the test runner's pipe) rich draws no live bar, so ``eval
+    loo --holdout both`` prints one line per finished holdout and its total; before, the
+    two holdouts shared one bar, whose elapsed time froze when the first was complete."""
+    res = _invoke(["eval", "loo", serial_model, "--holdout", "both", "--views", "0,3", "--out", tmp_path / "loo"])
+    assert res.exit_code == 0, res.output
+    err = " ".join(res.stderr.split())
+    blend, geometry = (
+        err.find("leave-one-out: blend holdout done in "),
+        err.find("leave-one-out: geometry holdout done in "),
+    )
+    assert 0 <= blend < geometry < err.find("leave-one-out: done in ")
