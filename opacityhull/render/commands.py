@@ -342,6 +342,12 @@ def register(app, groups) -> None:
                     f"({h['ms_per_view']:.0f} ms/view)",
                     markup=False,
                 )
+                if any(p.get("shadow_holes_px") for p in s.get("per_view", ())):
+                    c.print(
+                        f"  against the masks with the shadow holes the build filled: PSNR "
+                        f"{h['psnr_holes_filled_mean']:.2f} dB, coverage IoU {h['coverage_iou_holes_filled_mean']:.4f}",
+                        markup=False,
+                    )
             for g in s.get("coincident_views") or ():
                 how = "held out together" if s.get("twins") == "together" else "kept in (--twins keep)"
                 c.print(f"  coincident views {' = '.join(g)}: {how}", markup=False)

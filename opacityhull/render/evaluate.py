@@ -391,12 +391,18 @@ def leave_one_out(
         ms = 1e3 * (time.perf_counter() - t0)
         photo, filled_px, iou_filled = _photograph(model, i, filled, res.rgba)
         m = loo_metrics(photo, res.rgba, alpha_threshold=alpha_threshold, coverage=res.coverage)
+        # the same rendering against the mask the build used (shadow holes opaque): how much
+        # of the score is the threshold's loss of shadowed object, not the rendering's
+        psnr_filled = m["psnr"]
+        if filled_px:
+            psnr_filled = loo_metrics(model.load_view_rgba(i), res.rgba, alpha_threshold=alpha_threshold)["psnr"]
         per_view.append(
             {
                 "view": model.views[i].id,
                 "index": i,
                 **m,
                 "coverage_iou_holes_filled": m["coverage_iou"] if iou_filled is None else iou_filled,
+                "psnr_holes_filled": psnr_filled,
                 "shadow_holes_px": filled_px,
                 "held_out_with": [model.views[v].id for v in held[i][1:]],
                 "ms": ms,
@@ -430,6 +436,7 @@ def leave_one_out(
                 "ssim_band",
                 "coverage_iou",
                 "coverage_iou_holes_filled",
+                "psnr_holes_filled",
                 "interior_alpha",
                 "interior_alpha_deficit",
                 "interior_alpha_covered",
@@ -455,7 +462,7 @@ def leave_one_out(
         "metric_space": "sRGB-encoded colour over black, inside the union of photo and render masks "
         "(interior: photo mask eroded 3 px; band: the 7-px band around its silhouette); the photograph's "
         "own mask, also where the build filled its shadow holes (coverage_iou_holes_filled: against the "
-        "filled mask)",
+        "filled mask; psnr_holes_filled: the PSNR against it)",
     }
     if build_ms:
         summary["rebuild_ms_per_view"] = float(np.mean(build_ms))

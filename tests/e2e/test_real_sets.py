@@ -9,6 +9,8 @@ per-pixel ULR, hull rebuilt without the held-out view: 17.9 dB temple, 17.6 dB d
 
 from __future__ import annotations
 
+import json
+
 from pathlib import Path
 
 import numpy as np
@@ -147,6 +149,12 @@ def test_real_loo_both_holdouts(real_model):
     assert g["interior_alpha_covered_mean"] > 0.993, g  # measured 0.998 / 0.996
     # against the mask with its shadow holes filled the rendering agrees better
     assert b["coverage_iou_holes_filled_mean"] >= b["coverage_iou_mean"], b
+    # ... and scores better: the shadows a threshold lost are object, and the rendering
+    # draws them (measured +0.35 dB dino, +0.17 temple); views without holes score alike
+    assert b["psnr_holes_filled_mean"] > b["psnr_mean"] + 0.1, b
+    blend_views = json.loads((tmp / "loo" / "loo.json").read_text())["all"]["blend"]["per_view"]
+    assert all(p["psnr_holes_filled"] == p["psnr"] for p in blend_views if p["shadow_holes_px"] == 0)
+    assert all(p["psnr_holes_filled"] > p["psnr"] - 0.05 for p in blend_views), blend_views
     # the interior is what geometry can explain; the band is where the silhouettes decide
     assert b["psnr_interior_mean"] > b["psnr_band_mean"] + 3.0
     assert (tmp / "loo" / "loo.json").is_file()
