@@ -120,7 +120,7 @@ class ExactOutline:
 
     def __init__(self, model):
         from opacityhull.model import BRIGHT_EXTENSIONS, BUILD_DIR, OPEN_HOLES, read_hole_masks
-        from opacityhull.reconstruct.hull import enclosed_holes
+        from opacityhull.reconstruct.build import strong_silhouette
 
         root = Path(model.root)
         with open(root / BUILD_DIR / "geometry.pkl", "rb") as f:
@@ -129,14 +129,10 @@ class ExactOutline:
         sils = [np.asarray(s, bool) for s in g.sils]
         opened = read_hole_masks(root / BUILD_DIR / OPEN_HOLES)
         doubted = read_hole_masks(root / BUILD_DIR / BRIGHT_EXTENSIONS)
-        strong = []
-        for v, s in zip(model.views, sils):
-            t = enclosed_holes(s)  # as build_geometry: filled, minus the see-through holes, plus the doubted extensions
-            if v.id in opened:
-                t &= ~opened[v.id]
-            if v.id in doubted:
-                t |= doubted[v.id]
-            strong.append(t | s)
+        strong = [
+            strong_silhouette(s, open_holes=opened.get(v.id), doubtful_extensions=doubted.get(v.id))[0] | s
+            for v, s in zip(model.views, sils)
+        ]
         self.sil = np.stack(sils).astype(np.uint8)
         self.strong = np.stack(strong).astype(np.uint8)
         self.P = np.stack([c.projection_matrix() for c in self.pin])

@@ -880,6 +880,26 @@ def shadow_hole_masks(alpha: np.ndarray, photo_rgb: np.ndarray, *, threshold: fl
     return hole_masks(alpha, photo_rgb, threshold=threshold)[1]
 
 
+def strong_silhouette(
+    silhouette: np.ndarray, *, open_holes: np.ndarray | None = None, doubtful_extensions: np.ndarray | None = None
+) -> tuple[np.ndarray, int]:
+    """The strong silhouette of a tolerant carve (:func:`.hull.carve_robust`), outside which a
+    rejection is trusted: the silhouette with its enclosed holes filled, minus the holes
+    that show the backdrop (``open_holes``), plus the outline's bright extensions
+    (``doubtful_extensions``: doubted, not trusted). Returns it ((H, W) bool) and the
+    number of extension pixels it added. The build applies it to each view's dilated
+    silhouette before undistorting; ``benchmarks/outline.py`` to the stored pinhole ones."""
+    t = enclosed_holes(np.asarray(silhouette, bool))
+    if open_holes is not None:
+        t &= ~np.asarray(open_holes, bool)
+    n_ext = 0
+    if doubtful_extensions is not None:
+        db = np.asarray(doubtful_extensions, bool) & ~t
+        n_ext = int(db.sum())
+        t |= db
+    return t, n_ext
+
+
 class _HolesFilled(Sequence):
     """``alphas`` with each view's ``fill`` mask (:class:`PackedMasks`, entries may be
     None) set to 1 on access; one view at a time, like the alphas it wraps."""
@@ -1023,17 +1043,10 @@ def build_geometry(
                 if m is not None and np.shape(m) != s.shape:
                     raise InputError(f"{what} of view {view_ids[i]}: {np.shape(m)}, expected {s.shape}")
             if oh is not None or db is not None:
-                # the dilated silhouette's filled holes, minus the backdrop ones, plus the
-                # bright extensions of the outline (doubted, not trusted)
-                t = enclosed_holes(s)
-                if oh is not None:
-                    t &= ~np.asarray(oh, bool)
-                if db is not None:
-                    db = np.asarray(db, bool) & ~t
-                    if db.any():
-                        ext_px += int(db.sum())
-                        ext_views += 1
-                    t |= db
+                t, n_ext = strong_silhouette(s, open_holes=oh, doubtful_extensions=db)
+                if n_ext:
+                    ext_px += n_ext
+                    ext_views += 1
                 strong_in.append(undistort_silhouette(t, cam)[0])
                 del t
             else:
