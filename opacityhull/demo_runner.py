@@ -157,7 +157,7 @@ def glass_step(
 
     from .acquire.plan import parse_plan
     from .reconstruct.build import BuildConfig, build_model
-    from .relight.evaluate import eval_relight
+    from .evaluate.relight import eval_relight
     from .relight.runner import builtin_envmap, relight_model
 
     out = Path(out_dir)

@@ -230,7 +230,7 @@ def register(app, groups) -> None:
         """Relit captured views of a simulated model against Mitsuba's direct render of the same object under the
         same environment map from the same cameras: PSNR and relative error inside the mask, and a contact sheet
         (truth | relit | error)."""
-        from .evaluate import eval_relight
+        from ..evaluate.relight import eval_relight
 
         check_model_dir(model)
         if spp < 1:

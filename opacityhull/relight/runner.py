@@ -301,7 +301,7 @@ def demo_step(
         "orbit_s": s["orbit"]["total_s"],
     }
     if eval_views:
-        from .evaluate import eval_relight
+        from ..evaluate.relight import eval_relight
 
         try:
             e = eval_relight(model_dir, envmap=builtin_envmap(probe), out=out / "eval", max_views=eval_views, spp=32)

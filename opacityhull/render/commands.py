@@ -292,7 +292,7 @@ def register(app, groups) -> None:
     ):
         """Leave-one-out: render each chosen captured view without blending it, compare with its photograph
         (PSNR, SSIM, alpha MAE inside the union of the masks), and write a contact sheet photo | render | error."""
-        from .evaluate import select_views  # noqa: F401  (fail fast on import errors)
+        from ..evaluate.loo import select_views  # noqa: F401  (fail fast on import errors)
         from .runner import run_loo
 
         open_model_arg(model)
@@ -316,7 +316,7 @@ def register(app, groups) -> None:
                 summary = run_loo(model, views=views, config=cfg, twins=twins_mode, out=out, progress=cb)
             else:
                 # the CLI composes stages: the geometry holdout rebuilds the hull (reconstruct)
-                from ..reconstruct.holdout import run_loo_holdouts
+                from ..evaluate.holdout import run_loo_holdouts
 
                 summary = run_loo_holdouts(
                     model,

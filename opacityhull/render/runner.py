@@ -450,12 +450,12 @@ def run_loo(
 ) -> dict:
     """Leave-one-out evaluation of a model folder; writes ``loo.json`` and
     ``loo_sheet.png`` to ``out`` (default ``MODEL/pictures``). ``twins``: see
-    :func:`~opacityhull.render.evaluate.leave_one_out`."""
+    :func:`~opacityhull.evaluate.loo.leave_one_out`."""
     import json
 
     from ..cliutil import to_jsonable
     from ..imageio import atomic_path
-    from .evaluate import leave_one_out, select_views
+    from ..evaluate.loo import leave_one_out, select_views
 
     model = OpacityHullModel.open(model_path)
     idx = select_views(model, views)

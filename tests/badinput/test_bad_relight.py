@@ -41,7 +41,7 @@ def test_bad_relight_input(case, relight_model_dir, tmp_path):
 
 
 def test_eval_relight_default_out_is_outside_the_model_and_old_yaw_flag_works(relight_model_dir, tmp_path, monkeypatch):
-    import opacityhull.relight.evaluate as ev
+    import opacityhull.evaluate.relight as ev
 
     got = {}
 
@@ -66,7 +66,7 @@ def test_eval_relight_default_out_is_outside_the_model_and_old_yaw_flag_works(re
 def test_eval_relight_warns_when_few_lights_were_captured(relight_model_dir, tmp_path, monkeypatch):
     import json
 
-    import opacityhull.relight.evaluate as ev
+    import opacityhull.evaluate.relight as ev
     from badkit import flat
 
     def fake(model, **kw):

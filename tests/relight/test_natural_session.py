@@ -241,7 +241,7 @@ def test_envmap_display_layers_reconstruct_the_display_image():
     """The layers the eval truth renders sum (as emitted radiance x to_env) to the image
     relight feeds the field, to 1/2 of 255^-2 of the peak; one 8-bit layer loses the dim
     part of a map with a bright lamp in the display's solid angle."""
-    from opacityhull.relight.natural_eval import envmap_display_layers
+    from opacityhull.evaluate.natural import envmap_display_layers
 
     geo = RigGeometry.from_dict(GEO)
     back = geo.display("back")

@@ -16,7 +16,7 @@ table angle a):
   (parallax over the object's size), not the missing rest of the sphere.
 
 Metrics over a mask (default: the field's pixels): PSNR with the truth's peak in the
-mask (``relight.metrics.relight_metrics``), relative L2 error.
+mask (``evaluate.metrics.relight_metrics``), relative L2 error.
 """
 
 from __future__ import annotations
@@ -83,7 +83,7 @@ def held_out_images(display, n: int, *, seed: int = 987_654) -> list[np.ndarray]
 def bar_patterns(display, n_positions: int = 16, *, bar_fraction: float = 0.125) -> list[np.ndarray]:
     """The moving white bar: uint8 patterns, a vertical white bar ``bar_fraction`` of the
     display's width on black at ``n_positions`` evenly spaced positions."""
-    from .natural_synthetic import white_bar
+    from ..relight.natural_synthetic import white_bar
 
     w, h = display.resolution
     return [
@@ -95,8 +95,8 @@ def bar_patterns(display, n_positions: int = 16, *, bar_fraction: float = 0.125)
 def masked_envmap(envmap, geometry, table_deg: float, *, centre_m, displays: Sequence[str] | None = None):
     """``envmap`` with every direction that misses the displays (from ``centre_m``,
     object frame at ``table_deg``) set to 0: what a display-domain field can reproduce."""
-    from .envmap import EnvironmentMap
-    from .natural import display_hit_mask
+    from ..relight.envmap import EnvironmentMap
+    from ..relight.natural import display_hit_mask
 
     dirs = envmap.directions()
     hit = np.zeros(dirs.shape[:2], bool)
@@ -128,7 +128,7 @@ def envmap_display_layers(
     truth would then score quantisation. Light transport is linear, so the truth renders
     each layer and sums (the first layer floors, the residual goes to the next, scaled
     by 255; the last rounds). An all-black solid angle gives no layer."""
-    from .natural import envmap_display_image
+    from ..relight.natural import envmap_display_image
 
     if layers < 1:
         raise InputError(f"layers must be >= 1, got {layers}")
@@ -188,7 +188,7 @@ def render_envmap_on_displays(
 def natural_part_of_view(model, index: int, envmap, *, centre_m, supersample: int = 3) -> np.ndarray | None:
     """The display-domain part of captured view ``index`` under ``envmap`` (premultiplied
     float32 (H, W, 3)), exactly as ``relight`` adds it; None without fields."""
-    from .natural import load_view_fields, relight_view_natural
+    from ..relight.natural import load_view_fields, relight_view_natural
 
     v = model.views[index]
     fields = load_view_fields(model.root, v.id)

@@ -37,8 +37,8 @@ import numpy as np
 from ..errors import InputError
 from ..imageio import srgb_encode
 from ..model import BUILD_DIR, FILLED_HOLES, OpacityHullModel, Surfels, read_hole_masks
-from .config import Twins
-from .renderer import RenderConfig, model_surfels, prepare_model_views, render_image
+from ..render.config import Twins
+from ..render.renderer import RenderConfig, model_surfels, prepare_model_views, render_image
 
 __all__ = [
     "loo_metrics",
@@ -335,7 +335,7 @@ def leave_one_out(
     renders surfels whose hull and visibility were rebuilt without it
     (``geometry_without(held)`` returns them for the tuple of held-out views, visibility
     over all V views with their bits clear: the reconstruct stage provides it, see
-    :func:`opacityhull.reconstruct.holdout.geometry_without`). ``twins``
+    :func:`opacityhull.evaluate.holdout.geometry_without`). ``twins``
     (:func:`held_out_groups`): with ``"together"`` (default) a view's coincident twins
     are held out with it, from the blend and from the rebuilt geometry, and
     ``per_view[...]["held_out_with"]`` names them; ``"keep"`` leaves them in. The
