@@ -208,6 +208,7 @@ def run_loo_holdouts(
     from ..cliutil import to_jsonable
     from ..imageio import atomic_path
     from .loo import held_out_groups, leave_one_out, select_views
+    from .runner import default_out
     from ..render.renderer import RenderConfig, prepare_model_views
 
     if holdout not in ("blend", "geometry", "both"):
@@ -215,7 +216,7 @@ def run_loo_holdouts(
     model = OpacityHullModel.open(model_path)
     idx = select_views(model, views)
     config = config or RenderConfig()
-    out = Path(out) if out is not None else Path(model_path) / "pictures"
+    out = Path(out) if out is not None else default_out(model_path, "loo")
     pv = prepare_model_views(model)
     results = {}
     kinds: list[Literal["blend", "geometry"]] = (
