@@ -49,7 +49,7 @@ ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "benchmarks" / "out"
 sys.path.insert(0, str(ROOT))
 
-from opacityhull.relight import natural as nt  # noqa: E402
+from opacityhull.reconstruct import natural as nt  # noqa: E402
 from opacityhull.relight import natural_synthetic as ns  # noqa: E402
 
 

@@ -12,7 +12,7 @@ Mitsuba's render of each field's display showing the environment map over the
 display's solid angle as the object centre sees it (as two 8-bit layers rendered and
 summed, so a bright probe's dim part is not lost to quantisation:
 :func:`~opacityhull.evaluate.natural.render_envmap_on_displays`), the same mapping
-relight uses (:func:`~opacityhull.relight.natural.envmap_display_image`). The analytic sphere of
+relight uses (:func:`~opacityhull.reconstruct.natural.envmap_display_image`). The analytic sphere of
 :mod:`.synthetic` (provenance ``scene = "analytic:lambertian-sphere"``) is evaluated
 against its exact quadrature instead, so the command can be exercised without Mitsuba.
 
@@ -165,7 +165,7 @@ def _natural_eval(model, kind, ref) -> dict | None:
     nat = model.meta.get("natural", {}) or {}
     if kind != "sim" or not nat.get("present"):
         return None
-    from ..relight.natural import natural_centre_m
+    from ..reconstruct.natural import natural_centre_m
     from .natural import natural_part_of_view, render_envmap_on_displays
 
     spec, sess = ref

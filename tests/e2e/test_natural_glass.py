@@ -67,7 +67,7 @@ def glass():
 
 
 def _view(glass, i=0):
-    from opacityhull.relight import natural as nt
+    from opacityhull.reconstruct import natural as nt
     from opacityhull.evaluate import natural as ne
 
     sess, model, out, rep = glass
@@ -80,7 +80,7 @@ def _view(glass, i=0):
 
 
 def _psnr_of(rig, v, f, mask, pat):
-    from opacityhull.relight import natural as nt
+    from opacityhull.reconstruct import natural as nt
     from opacityhull.evaluate import natural as ne
 
     back = rig.geometry.display("back")
@@ -117,7 +117,7 @@ def test_b_moving_white_bar(glass):
 def test_c_new_viewpoint_under_an_envmap(glass):
     from opacityhull.render import prepare_views, render_image
     from opacityhull.render.renderer import model_surfels
-    from opacityhull.relight import natural as nt
+    from opacityhull.reconstruct import natural as nt
     from opacityhull.evaluate import natural as ne
     from opacityhull.relight.envmap import default_yaw_deg, load_envmap
     from opacityhull.riggeometry import RigGeometry

@@ -18,7 +18,7 @@ from opacityhull.acquire.patterns import plan_patterns
 from opacityhull.acquire.plan import parse_plan
 from opacityhull.errors import InputError
 from opacityhull.reconstruct.natural_field import estimate_session_natural
-from opacityhull.relight import natural as nt
+from opacityhull.reconstruct import natural as nt
 from opacityhull.relight import natural_synthetic as ns
 from opacityhull.relight.envmap import EnvironmentMap
 from opacityhull.riggeometry import RigGeometry, back_display, bottom_display
