@@ -165,7 +165,7 @@ def _natural_eval(model, kind, ref) -> dict | None:
     nat = model.meta.get("natural", {}) or {}
     if kind != "sim" or not nat.get("present"):
         return None
-    from ..reconstruct.natural import natural_centre_m
+    from ..relight.natural_views import natural_centre_m
     from .natural import natural_part_of_view, render_envmap_on_displays
 
     spec, sess = ref

@@ -158,7 +158,7 @@ def relight_model(
     if env is not None and model.meta.get("natural", {}).get("present"):
         # the display-domain field (refraction, high resolution) adds to the light-array
         # field (everything else): the environment seen through the displays' solid angles
-        from ..reconstruct.natural import relight_model_views_natural
+        from .natural_views import relight_model_views_natural
 
         t_nat = time.perf_counter()
         for i, part in enumerate(relight_model_views_natural(model, env)):

@@ -77,7 +77,7 @@ def test_relit_part_and_truth_use_one_mapping(glass_model):
     from opacityhull.evaluate import natural as ne
     from opacityhull.relight.envmap import EnvironmentMap, default_yaw_deg, load_envmap
     from opacityhull.evaluate.relight import find_scene
-    from opacityhull.reconstruct.natural import natural_centre_m
+    from opacityhull.relight.natural_views import natural_centre_m
 
     model = OpacityHullModel.open(glass_model)
     _, (spec, sess) = find_scene(model)

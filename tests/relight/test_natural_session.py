@@ -1,5 +1,5 @@
 """The natural-illumination build step (reconstruct/natural_field.py) and environment-map
-relighting of its fields (relight/natural.py), without Mitsuba.
+relighting of its fields (reconstruct/natural.py, relight/natural_views.py), without Mitsuba.
 
 A stand-in session holds the display patterns of a plan's natural phase and photographs
 made by synthetic transport (``natural_synthetic``): the true transport is known, so
