@@ -96,8 +96,8 @@ def random_scene(seed: int, n: int, cam: RasterCamera, degenerate: tuple[str, ..
         elif kind == "near":  # centre just in front of near_m, disc reaching behind the camera
             m = eye + 0.0101 * Rcw[2] + 0.002 * Rcw[0]
             ls = np.array([-2.0, -2.5])
-        elif kind == "coincident":
-            m, q, ls = means[0].copy(), quats[0].copy(), log_scales[0].copy()
+        elif kind == "coincident":  # two identical surfels (same depth: the index breaks the tie)
+            extra.append((m, q, ls, lg, rng.uniform(0.0, 1.0, 3)))
         elif kind == "outside":
             m = eye + 2.0 * Rcw[2] + 9.0 * Rcw[0]
         elif kind == "zero_quat":
