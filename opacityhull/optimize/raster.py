@@ -19,13 +19,18 @@ transmittance before each fragment from the final one, and chains the gradients 
 the compositing, the 2-D Gaussian, the conic, the projection (``J`` and the world-to-camera
 rotation ``W``), the covariance from quaternion and scales, and the colour.
 
-Layout of the work: a per-surfel set-up (``prange`` over surfels), one global depth sort,
-a deterministic counting fill of the tile lists (a fixed number of chunks, whatever the
-thread count), then ``prange`` over groups of tiles for the per-pixel passes. A tile's
-pixels are touched only by the splats' own cutoff ellipses (row by row), not the whole
-tile. The backward pass writes each (tile, surfel) entry's partial gradient into its own
-slot and the slots are summed per surfel in entry order: no races, and the same bytes
-whatever the thread count. The NumPy twin is :mod:`opacityhull.optimize.raster_reference`.
+Layout of the work (numba, ``prange`` wherever the work splits): a per-surfel set-up in
+input order; one sort of the visible surfels by (float32 view depth, index); their records
+gathered into (centre tile, depth) order, so that a tile's entries read memory forwards;
+one key per (surfel, tile) = tile << 32 | depth rank, sorted, gives every tile's list in
+depth order; then ``prange`` over tiles dealt round-robin to 64 groups (a balanced static
+split) for the per-pixel passes. A tile's pixels are touched only by each splat's own
+cutoff ellipse, row by row, not the whole tile. The backward pass writes each (tile,
+surfel) entry's partial gradient into its own slot, slots laid out surfel by surfel, and
+the per-surfel pass sums them in a fixed order: no races, and the same bytes whatever the
+thread count, the tile size or the surfels' memory order. Input in random memory order
+costs cache misses (``spatial_order`` gives a Morton order). The NumPy twin is
+:mod:`opacityhull.optimize.raster_reference`.
 """
 
 from __future__ import annotations
