@@ -70,7 +70,7 @@ class Adam:
 
     def state(self) -> dict[str, np.ndarray]:
         """The moments and step count as flat arrays (for a checkpoint)."""
-        out = {"adam_t": np.array(self.t, np.int64)}
+        out: dict[str, np.ndarray] = {"adam_t": np.array(self.t, np.int64)}
         for k in self.m:
             out[f"adam_m_{k}"] = self.m[k]
             out[f"adam_v_{k}"] = self.v[k]

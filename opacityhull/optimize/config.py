@@ -52,12 +52,12 @@ class FitConfig:
     iterations: int = 600
     time_budget_s: float | None = None
     seed: int = 0
-    lr_position: float = 1.6e-4
-    lr_position_final: float = 1.6e-6
+    lr_position: float = 1e-2
+    lr_position_final: float = 1e-4
     lr_sh_dc: float = 2.5e-3
     lr_sh_rest: float = 1.25e-4
-    lr_opacity: float = 2.5e-2
-    lr_scale: float = 5e-3
+    lr_opacity: float = 5e-2
+    lr_scale: float = 1e-2
     lr_rotation: float = 1e-3
     ssim_weight: float = 0.2
     alpha_weight: float = 0.5
@@ -66,7 +66,7 @@ class FitConfig:
     densify_from: int = 100
     densify_until: int = 450
     densify_every: int = 100
-    densify_grad_threshold: float = 2e-4
+    densify_grad_threshold: float = 1e-3
     densify_scale_fraction: float = 0.01
     prune_opacity: float = 0.005
     prune_scale_fraction: float = 0.1
