@@ -19,18 +19,24 @@ transmittance before each fragment from the final one, and chains the gradients 
 the compositing, the 2-D Gaussian, the conic, the projection (``J`` and the world-to-camera
 rotation ``W``), the covariance from quaternion and scales, and the colour.
 
-Layout of the work: a per-surfel set-up (``prange`` over surfels), one global depth sort,
-a deterministic counting fill of the tile lists (a fixed number of chunks, whatever the
-thread count), then ``prange`` over groups of tiles for the per-pixel passes. A tile's
-pixels are touched only by the splats' own cutoff ellipses (row by row), not the whole
-tile. The backward pass writes each (tile, surfel) entry's partial gradient into its own
-slot and the slots are summed per surfel in entry order: no races, and the same bytes
-whatever the thread count. The NumPy twin is :mod:`opacityhull.optimize.raster_reference`.
+Layout of the work (numba, ``prange`` wherever the work splits): a per-surfel set-up in
+input order; one sort of the visible surfels by (float32 view depth, index); their records
+gathered into (centre tile, depth) order, so that a tile's entries read memory forwards;
+one key per (surfel, tile) = tile << 32 | depth rank, sorted, gives every tile's list in
+depth order; then ``prange`` over tiles dealt round-robin to 64 groups (a balanced static
+split) for the per-pixel passes. A tile's pixels are touched only by each splat's own
+cutoff ellipse, row by row, not the whole tile. The backward pass writes each (tile,
+surfel) entry's partial gradient into its own slot, slots laid out surfel by surfel, and
+the per-surfel pass sums them in a fixed order: no races, and the same bytes whatever the
+thread count, the tile size or the surfels' memory order. Input in random memory order
+costs cache misses (``spatial_order`` gives a Morton order). The NumPy twin is
+:mod:`opacityhull.optimize.raster_reference`.
 """
 
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -46,13 +52,13 @@ __all__ = [
     "SplatGrads",
     "rasterize",
     "rasterize_backward",
+    "spatial_order",
     "ALPHA_MAX",
 ]
 
 ALPHA_MAX = 0.99
 """The per-fragment opacity clamp (keeps ``1 - alpha`` invertible in the backward pass)."""
 
-_FILL_CHUNKS = 16  # fixed, so the tile lists do not depend on the thread count
 _TILE_GROUPS = 64  # tiles are dealt round-robin to this many groups: balanced static split
 
 
@@ -163,16 +169,14 @@ class _RasterContext:
     width: int
     height: int
     config: RasterConfig
-    mu: np.ndarray  # (N, 2) f64 projected centre, px
-    conic: np.ndarray  # (N, 3) f64 inverse screen covariance (A, B, C)
-    ext: np.ndarray  # (N, 2) f64 half extent of the cutoff ellipse, px
-    opac: np.ndarray  # (N,) f64 sigmoid(logit)
-    depth: np.ndarray  # (N,) f64 view depth
-    colors: np.ndarray  # (N, 3) f64
+    recs: np.ndarray  # (M, 16) f64 the visible surfels' records by (centre tile, depth) (layout: R_* below)
+    order: np.ndarray  # (M,) int64 surfel of each record
     tile_off: np.ndarray  # (n_tiles + 1,) int64
-    ent_sid: np.ndarray  # (E,) int32 surfel of each entry, per tile in depth order
+    ent: np.ndarray  # (E,) int32 record of each entry, per tile in depth order
+    rank_off: np.ndarray  # (M + 1,) int64 a record's gradient slots
+    ent_slot: np.ndarray  # (E,) int64 gradient slot of each entry (grouped by record)
     t_final: np.ndarray  # (H, W) f64
-    last: np.ndarray  # (H, W) int64 entry index of the last fragment composited, -1 none
+    last: np.ndarray  # (H, W) int32 entry index of the last fragment composited, -1 none
     n_tx: int
 
 
@@ -191,6 +195,7 @@ class RasterOutput:
     visible : (N,) bool, surfels that passed culling (in front of ``near_m``, ellipse on a
         pixel centre).
     ctx : state for :func:`rasterize_backward`.
+    timings_s : wall seconds per stage (``setup``, ``sort``, ``bin``, ``composite``).
     """
 
     image: np.ndarray
@@ -200,13 +205,15 @@ class RasterOutput:
     n_entries: int
     visible: np.ndarray
     ctx: _RasterContext = field(repr=False)
+    timings_s: dict[str, float] = field(default_factory=dict)
 
 
 @dataclass(frozen=True, kw_only=True, eq=False)
 class SplatGrads:
     """Gradients of a scalar loss with respect to :class:`SplatParams` (same shapes,
     float32), plus ``means2d_abs`` (N,) float32 = |dL/d(projected 2-D centre)| in
-    loss per pixel (the densification statistic) and ``visible`` (N,) bool."""
+    loss per pixel (the densification statistic), ``visible`` (N,) bool and
+    ``timings_s`` (wall seconds per stage: ``composite``, ``params``)."""
 
     means: np.ndarray
     quats: np.ndarray
@@ -215,166 +222,226 @@ class SplatGrads:
     colors: np.ndarray
     means2d_abs: np.ndarray
     visible: np.ndarray
+    timings_s: dict[str, float] = field(default_factory=dict)
 
 
 # ---------------------------------------------------------------------------- kernels
 
+# A visible surfel's record (one row of 16 float64, two cache lines), in depth order so
+# that a tile's entries read memory forwards: projected centre (px), conic (A, B, C) of
+# q = A dx² + 2B dx dy + C dy², opacity, colour, view depth, half height of the cutoff
+# ellipse, and its row-span constants cut²/A, (AC - B²)/A², B/A.
+R_M0, R_M1, R_A, R_B, R_C, R_O, R_R, R_G, R_BL, R_Z, R_HY, R_P1, R_P2, R_P3 = range(14)
+_REC = 16
+
 
 @njit(cache=True, error_model="numpy")
 def _frame(quat, log_scale):
-    """Unit quaternion → the disc's two scaled tangent axes (world) and their parts."""
+    """Normalised quaternion (w, x, y, z), its norm, the two unit tangent axes (world) and
+    the two standard deviations."""
     qw, qx, qy, qz = float(quat[0]), float(quat[1]), float(quat[2]), float(quat[3])
-    nq = math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz)
-    nq = max(nq, 1e-12)
+    nq = max(math.sqrt(qw * qw + qx * qx + qy * qy + qz * qz), 1e-12)
     w, x, y, z = qw / nq, qx / nq, qy / nq, qz / nq
-    c0 = np.empty(3)
-    c1 = np.empty(3)
-    c0[0] = 1.0 - 2.0 * (y * y + z * z)
-    c0[1] = 2.0 * (x * y + w * z)
-    c0[2] = 2.0 * (x * z - w * y)
-    c1[0] = 2.0 * (x * y - w * z)
-    c1[1] = 1.0 - 2.0 * (x * x + z * z)
-    c1[2] = 2.0 * (y * z + w * x)
-    su = math.exp(float(log_scale[0]))
-    sv = math.exp(float(log_scale[1]))
-    return w, x, y, z, nq, c0, c1, su, sv
+    a0 = 1.0 - 2.0 * (y * y + z * z)
+    a1 = 2.0 * (x * y + w * z)
+    a2 = 2.0 * (x * z - w * y)
+    b0 = 2.0 * (x * y - w * z)
+    b1 = 1.0 - 2.0 * (x * x + z * z)
+    b2 = 2.0 * (y * z + w * x)
+    return w, x, y, z, nq, a0, a1, a2, b0, b1, b2, math.exp(float(log_scale[0])), math.exp(float(log_scale[1]))
+
+
+@njit(cache=True, error_model="numpy")
+def _project(mean, quat, log_scale, K, M, lowpass):
+    """Camera-frame centre, projected centre and screen covariance (a, b, c) of one surfel,
+    with the intermediate values the backward pass reuses."""
+    m0, m1, m2 = float(mean[0]), float(mean[1]), float(mean[2])
+    t0 = M[0, 0] * m0 + M[0, 1] * m1 + M[0, 2] * m2 + M[0, 3]
+    t1 = M[1, 0] * m0 + M[1, 1] * m1 + M[1, 2] * m2 + M[1, 3]
+    t2 = M[2, 0] * m0 + M[2, 1] * m1 + M[2, 2] * m2 + M[2, 3]
+    w, x, y, z, nq, a0, a1, a2, b0, b1, b2, su, sv = _frame(quat, log_scale)
+    # camera-frame scaled tangent axes Ta = W a su, Tb = W b sv
+    Ta0 = (M[0, 0] * a0 + M[0, 1] * a1 + M[0, 2] * a2) * su
+    Ta1 = (M[1, 0] * a0 + M[1, 1] * a1 + M[1, 2] * a2) * su
+    Ta2 = (M[2, 0] * a0 + M[2, 1] * a1 + M[2, 2] * a2) * su
+    Tb0 = (M[0, 0] * b0 + M[0, 1] * b1 + M[0, 2] * b2) * sv
+    Tb1 = (M[1, 0] * b0 + M[1, 1] * b1 + M[1, 2] * b2) * sv
+    Tb2 = (M[2, 0] * b0 + M[2, 1] * b1 + M[2, 2] * b2) * sv
+    iz = 1.0 / t2
+    u0 = K[0, 0] * t0 + K[0, 1] * t1
+    u1 = K[1, 0] * t0 + K[1, 1] * t1
+    # J = d(pixel)/d(camera point) at the centre; rows (K_r0/z, K_r1/z, -u_r/z²)
+    J00, J01, J02 = K[0, 0] * iz, K[0, 1] * iz, -u0 * iz * iz
+    J10, J11, J12 = K[1, 0] * iz, K[1, 1] * iz, -u1 * iz * iz
+    ja0 = J00 * Ta0 + J01 * Ta1 + J02 * Ta2
+    ja1 = J10 * Ta0 + J11 * Ta1 + J12 * Ta2
+    jb0 = J00 * Tb0 + J01 * Tb1 + J02 * Tb2
+    jb1 = J10 * Tb0 + J11 * Tb1 + J12 * Tb2
+    ca = ja0 * ja0 + jb0 * jb0 + lowpass
+    cb = ja0 * ja1 + jb0 * jb1
+    cc = ja1 * ja1 + jb1 * jb1 + lowpass
+    return t0, t1, t2, u0 * iz + K[0, 2], u1 * iz + K[1, 2], ca, cb, cc
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
 def _preprocess(means, quats, log_scales, logits, colors, K, M, width, height, lowpass, cutoff, near, tile):
     n = means.shape[0]
-    mu = np.zeros((n, 2))
-    conic = np.zeros((n, 3))
-    ext = np.zeros((n, 2))
-    opac = np.zeros(n)
-    depth = np.zeros(n)
-    col = np.zeros((n, 3))
+    rec = np.zeros((n, _REC))
     rect = np.zeros((n, 4), np.int64)
+    ctile = np.zeros(n, np.int64)
     valid = np.zeros(n, np.bool_)
     n_tx = (width + tile - 1) // tile
     n_ty = (height + tile - 1) // tile
+    cut2 = cutoff * cutoff
     for i in prange(n):
-        for c in range(3):
-            col[i, c] = colors[i, c]
-        lg = float(logits[i])
-        opac[i] = 1.0 / (1.0 + math.exp(-lg))
-        m0, m1, m2 = float(means[i, 0]), float(means[i, 1]), float(means[i, 2])
-        t0 = M[0, 0] * m0 + M[0, 1] * m1 + M[0, 2] * m2 + M[0, 3]
-        t1 = M[1, 0] * m0 + M[1, 1] * m1 + M[1, 2] * m2 + M[1, 3]
-        t2 = M[2, 0] * m0 + M[2, 1] * m1 + M[2, 2] * m2 + M[2, 3]
-        depth[i] = t2
+        t0, t1, t2, mx, my, ca, cb, cc = _project(means[i], quats[i], log_scales[i], K, M, lowpass)
+        rec[i, R_Z] = t2
         if not t2 >= near:
             continue
-        w, x, y, z, nq, c0, c1, su, sv = _frame(quats[i], log_scales[i])
-        iz = 1.0 / t2
-        ja0 = 0.0
-        ja1 = 0.0
-        jb0 = 0.0
-        jb1 = 0.0
-        for r in range(2):
-            u = K[r, 0] * t0 + K[r, 1] * t1
-            mu[i, r] = u * iz + K[r, 2]
-            J0 = K[r, 0] * iz
-            J1 = K[r, 1] * iz
-            J2 = -u * iz * iz
-            # camera-frame axes W c · s, then their images J (W c s)
-            ta = 0.0
-            tb = 0.0
-            for k in range(3):
-                wa = M[k, 0] * c0[0] + M[k, 1] * c0[1] + M[k, 2] * c0[2]
-                wb = M[k, 0] * c1[0] + M[k, 1] * c1[1] + M[k, 2] * c1[2]
-                Jk = J0 if k == 0 else (J1 if k == 1 else J2)
-                ta += Jk * wa
-                tb += Jk * wb
-            if r == 0:
-                ja0 = ta * su
-                jb0 = tb * sv
-            else:
-                ja1 = ta * su
-                jb1 = tb * sv
-        a = ja0 * ja0 + jb0 * jb0 + lowpass
-        b = ja0 * ja1 + jb0 * jb1
-        c = ja1 * ja1 + jb1 * jb1 + lowpass
-        det = a * c - b * b
-        if not (det > 0 and math.isfinite(det) and math.isfinite(mu[i, 0]) and math.isfinite(mu[i, 1])):
+        det = ca * cc - cb * cb
+        if not (det > 0 and math.isfinite(det) and math.isfinite(mx) and math.isfinite(my)):
             continue
-        conic[i, 0] = c / det
-        conic[i, 1] = -b / det
-        conic[i, 2] = a / det
-        hx = cutoff * math.sqrt(a)
-        hy = cutoff * math.sqrt(c)
-        ext[i, 0] = hx
-        ext[i, 1] = hy
+        A = cc / det
+        B = -cb / det
+        C = ca / det
+        hx = cutoff * math.sqrt(ca)
+        hy = cutoff * math.sqrt(cc)
         # pixel centres inside the ellipse's box, clamped before the integer conversion
-        x0 = math.ceil(min(max(mu[i, 0] - hx, -1.0), width + 1.0))
-        x1 = math.floor(min(max(mu[i, 0] + hx, -1.0), width + 1.0))
-        y0 = math.ceil(min(max(mu[i, 1] - hy, -1.0), height + 1.0))
-        y1 = math.floor(min(max(mu[i, 1] + hy, -1.0), height + 1.0))
-        x0 = max(x0, 0)
-        y0 = max(y0, 0)
-        x1 = min(x1, width - 1)
-        y1 = min(y1, height - 1)
+        x0 = max(math.ceil(min(max(mx - hx, -1.0), width + 1.0)), 0)
+        x1 = min(math.floor(min(max(mx + hx, -1.0), width + 1.0)), width - 1)
+        y0 = max(math.ceil(min(max(my - hy, -1.0), height + 1.0)), 0)
+        y1 = min(math.floor(min(max(my + hy, -1.0), height + 1.0)), height - 1)
         if x0 > x1 or y0 > y1:
             continue
-        rect[i, 0] = min(int(x0) // tile, n_tx - 1)
-        rect[i, 1] = min(int(y0) // tile, n_ty - 1)
-        rect[i, 2] = min(int(x1) // tile, n_tx - 1) + 1
-        rect[i, 3] = min(int(y1) // tile, n_ty - 1) + 1
+        rec[i, R_M0] = mx
+        rec[i, R_M1] = my
+        rec[i, R_A] = A
+        rec[i, R_B] = B
+        rec[i, R_C] = C
+        rec[i, R_O] = 1.0 / (1.0 + math.exp(-float(logits[i])))
+        rec[i, R_R] = colors[i, 0]
+        rec[i, R_G] = colors[i, 1]
+        rec[i, R_BL] = colors[i, 2]
+        rec[i, R_HY] = hy
+        rec[i, R_P1] = cut2 / A
+        rec[i, R_P2] = (A * C - B * B) / (A * A)
+        rec[i, R_P3] = B / A
+        rect[i, 0] = min(x0 // tile, n_tx - 1)
+        rect[i, 1] = min(y0 // tile, n_ty - 1)
+        rect[i, 2] = min(x1 // tile, n_tx - 1) + 1
+        rect[i, 3] = min(y1 // tile, n_ty - 1) + 1
+        cx = int(min(max(mx, 0.0), width - 1.0)) // tile
+        cy = int(min(max(my, 0.0), height - 1.0)) // tile
+        ctile[i] = cy * n_tx + cx
         valid[i] = True
-    return mu, conic, ext, opac, depth, col, rect, valid
+    return rec, rect, ctile, valid
+
+
+@njit(cache=True, error_model="numpy")
+def _tile_major(order_d, ctile, n_tiles):
+    """Records ordered by (centre tile, depth, index): a stable counting sort of the depth
+    order by centre tile. Returns the record order and each record's depth rank."""
+    m = order_d.shape[0]
+    start = np.zeros(n_tiles + 1, np.int64)
+    for j in range(m):
+        start[ctile[order_d[j]] + 1] += 1
+    for t in range(n_tiles):
+        start[t + 1] += start[t]
+    order = np.empty(m, np.int64)
+    rank_d = np.empty(m, np.int64)
+    rec_of_rank = np.empty(m, np.int64)
+    for j in range(m):
+        s = order_d[j]
+        r = start[ctile[s]]
+        start[ctile[s]] += 1
+        order[r] = s
+        rank_d[r] = j
+        rec_of_rank[j] = r
+    return order, rank_d, rec_of_rank
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
-def _count_entries(order, rect, n_tx, n_tiles, chunks):
+def _gather(rec, rect, order):
     m = order.shape[0]
-    counts = np.zeros((chunks, n_tiles), np.int64)
-    for c in prange(chunks):
-        for j in range(c * m // chunks, (c + 1) * m // chunks):
-            s = order[j]
-            for ty in range(rect[s, 1], rect[s, 3]):
-                for tx in range(rect[s, 0], rect[s, 2]):
-                    counts[c, ty * n_tx + tx] += 1
-    return counts
+    recs = np.empty((m, _REC))
+    rects = np.empty((m, 4), np.int64)
+    ntile = np.empty(m, np.int64)
+    for j in prange(m):
+        s = order[j]
+        for c in range(_REC):
+            recs[j, c] = rec[s, c]
+        for c in range(4):
+            rects[j, c] = rect[s, c]
+        ntile[j] = (rect[s, 2] - rect[s, 0]) * (rect[s, 3] - rect[s, 1])
+    return recs, rects, ntile
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
-def _fill_entries(order, rect, n_tx, start, n_entries):
-    chunks = start.shape[0]
-    m = order.shape[0]
-    ent = np.empty(n_entries, np.int32)
-    for c in prange(chunks):
-        pos = start[c].copy()
-        for j in range(c * m // chunks, (c + 1) * m // chunks):
-            s = order[j]
-            for ty in range(rect[s, 1], rect[s, 3]):
-                for tx in range(rect[s, 0], rect[s, 2]):
-                    t = ty * n_tx + tx
-                    ent[pos[t]] = s
-                    pos[t] += 1
-    return ent
+def _entry_keys(rects, rank_d, rank_off, n_tx):
+    """One key per (record, tile): tile << 32 | depth rank, written record by record (so
+    position = gradient slot). Sorted, the keys are the tile lists in depth order."""
+    m = rects.shape[0]
+    keys = np.empty(rank_off[m], np.uint64)
+    for r in prange(m):
+        i = rank_off[r]
+        for ty in range(rects[r, 1], rects[r, 3]):
+            for tx in range(rects[r, 0], rects[r, 2]):
+                keys[i] = (np.uint64(ty * n_tx + tx) << np.uint64(32)) | np.uint64(rank_d[r])
+                i += 1
+    return keys
+
+
+@njit(cache=True, parallel=True, error_model="numpy")
+def _decode_entries(keys, rec_of_rank, rects, rank_off, n_tx, n_tiles):
+    """Sorted keys → each entry's record and gradient slot, and the tiles' offsets."""
+    e = keys.shape[0]
+    ent = np.empty(e, np.int32)
+    slot = np.empty(e, np.int64)
+    tile_off = np.empty(n_tiles + 1, np.int64)
+    lo32 = np.uint64(0xFFFFFFFF)
+    for k in prange(e):
+        t = np.int64(keys[k] >> np.uint64(32))
+        r = rec_of_rank[np.int64(keys[k] & lo32)]
+        ty = t // n_tx
+        tx = t - ty * n_tx
+        ent[k] = r
+        slot[k] = rank_off[r] + (ty - rects[r, 1]) * (rects[r, 2] - rects[r, 0]) + (tx - rects[r, 0])
+        # the first entry of each tile writes the offsets of the tiles up to it
+        tp = -1 if k == 0 else np.int64(keys[k - 1] >> np.uint64(32))
+        if tp != t:
+            for u in range(tp + 1, t + 1):
+                tile_off[u] = k
+    t_last = -1 if e == 0 else np.int64(keys[e - 1] >> np.uint64(32))
+    for u in range(t_last + 1, n_tiles + 1):
+        tile_off[u] = e
+    return ent, slot, tile_off
 
 
 @njit(cache=True, inline="always", error_model="numpy")
-def _row_span(A, B, C, dy, cut2, xc0, xa, xb):
-    """Pixel-centre x range [x0, x1] of one row of the cutoff ellipse inside the tile's
-    columns [xa, xb), widened by a hair: the exact ``q <= cut2`` test is applied per pixel."""
-    disc = B * B * dy * dy - A * (C * dy * dy - cut2)
-    if disc < 0.0:
-        disc = 0.0
-    r = math.sqrt(disc) / A
-    xc = xc0 - B * dy / A
+def _row_span(p1, p2, p3, dy, m0, xa, xb):
+    """Pixel-centre columns [x0, x1] of one row of the cutoff ellipse inside the tile's
+    columns [xa, xb), widened by a hair: the exact ``q <= cut²`` test is made per pixel."""
+    r = math.sqrt(max(p1 - p2 * dy * dy, 0.0))
+    xc = m0 - p3 * dy
     lo = min(max(xc - r - 1e-6, xa - 1.0), xb + 1.0)
     hi = min(max(xc + r + 1e-6, xa - 1.0), xb + 1.0)
     return max(xa, math.ceil(lo)), min(xb - 1, math.floor(hi))
 
 
+@njit(cache=True, inline="always", error_model="numpy")
+def _row_range(m1, hy, ya, yb):
+    lo = max(ya, math.ceil(max(m1 - hy - 1e-6, ya - 1.0)))
+    hi = min(yb - 1, math.floor(min(m1 + hy + 1e-6, yb + 1.0)))
+    return lo, hi
+
+
 @njit(cache=True, parallel=True, error_model="numpy")
-def _forward(tile_off, ent, mu, conic, ext, opac, depth, col, width, height, tile, n_tx, cut2, amin, tmin, bg):
+def _forward(tile_off, ent, recs, width, height, tile, n_tx, cut2, amin, tmin, bg):
     n_tiles = tile_off.shape[0] - 1
     rgb = np.zeros((height, width, 3))
     dep = np.zeros((height, width))
     T = np.ones((height, width))
-    last = np.full((height, width), -1, np.int64)
+    last = np.full((height, width), -1, np.int32)
     nfrag = np.zeros(_TILE_GROUPS, np.int64)
     for g in prange(_TILE_GROUPS):
         for t in range(g, n_tiles, _TILE_GROUPS):
@@ -387,35 +454,43 @@ def _forward(tile_off, ent, mu, conic, ext, opac, depth, col, width, height, til
             live = (xb - xa) * (yb - ya)
             nf = 0
             for k in range(tile_off[t], tile_off[t + 1]):
-                s = ent[k]
-                m0 = mu[s, 0]
-                m1 = mu[s, 1]
-                A = conic[s, 0]
-                B = conic[s, 1]
-                C = conic[s, 2]
-                o = opac[s]
-                ylo = max(ya, math.ceil(max(m1 - ext[s, 1] - 1e-6, ya - 1.0)))
-                yhi = min(yb - 1, math.floor(min(m1 + ext[s, 1] + 1e-6, yb + 1.0)))
-                for y in range(ylo, yhi + 1):
+                j = ent[k]
+                m0 = recs[j, R_M0]
+                m1 = recs[j, R_M1]
+                A = recs[j, R_A]
+                B2 = 2.0 * recs[j, R_B]
+                C = recs[j, R_C]
+                o = recs[j, R_O]
+                cr = recs[j, R_R]
+                cg = recs[j, R_G]
+                cbl = recs[j, R_BL]
+                z = recs[j, R_Z]
+                p1 = recs[j, R_P1]
+                p2 = recs[j, R_P2]
+                p3 = recs[j, R_P3]
+                y0, y1 = _row_range(m1, recs[j, R_HY], ya, yb)
+                for y in range(y0, y1 + 1):
                     dy = y - m1
-                    x0, x1 = _row_span(A, B, C, dy, cut2, m0, xa, xb)
+                    x0, x1 = _row_span(p1, p2, p3, dy, m0, xa, xb)
+                    bq = B2 * dy
+                    cq = C * dy * dy
                     for x in range(x0, x1 + 1):
                         Tp = T[y, x]
                         if Tp < tmin:
                             continue
                         dx = x - m0
-                        q = A * dx * dx + 2.0 * B * dx * dy + C * dy * dy
+                        q = (A * dx + bq) * dx + cq
                         if q > cut2:
                             continue
                         a = min(ALPHA_MAX, o * math.exp(-0.5 * q))
                         if a < amin:
                             continue
                         w = a * Tp
-                        rgb[y, x, 0] += w * col[s, 0]
-                        rgb[y, x, 1] += w * col[s, 1]
-                        rgb[y, x, 2] += w * col[s, 2]
-                        dep[y, x] += w * depth[s]
-                        Tn = Tp * (1.0 - a)
+                        rgb[y, x, 0] += w * cr
+                        rgb[y, x, 1] += w * cg
+                        rgb[y, x, 2] += w * cbl
+                        dep[y, x] += w * z
+                        Tn = Tp - w
                         T[y, x] = Tn
                         last[y, x] = k
                         nf += 1
@@ -437,9 +512,7 @@ def _forward(tile_off, ent, mu, conic, ext, opac, depth, col, width, height, til
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
-def _backward(
-    tile_off, ent, mu, conic, ext, opac, col, width, height, tile, n_tx, cut2, amin, t_final, last, bg, dimg, dalpha
-):
+def _backward(tile_off, ent, ent_slot, recs, width, height, tile, n_tx, cut2, amin, t_final, last, bg, dimg, dalpha):
     """Per entry: dL/d(mu0, mu1, A, B, C, opacity, r, g, b), into its own slot."""
     n_tiles = tile_off.shape[0] - 1
     slots = np.zeros((ent.shape[0], 9))
@@ -460,16 +533,20 @@ def _backward(
                     for c in range(3):
                         Bacc[y, x, c] = bg[c]
             for k in range(kend, tile_off[t] - 1, -1):
-                s = ent[k]
-                m0 = mu[s, 0]
-                m1 = mu[s, 1]
-                A = conic[s, 0]
-                B = conic[s, 1]
-                C = conic[s, 2]
-                o = opac[s]
-                c0 = col[s, 0]
-                c1 = col[s, 1]
-                c2 = col[s, 2]
+                j = ent[k]
+                m0 = recs[j, R_M0]
+                m1 = recs[j, R_M1]
+                A = recs[j, R_A]
+                B = recs[j, R_B]
+                B2 = 2.0 * B
+                C = recs[j, R_C]
+                o = recs[j, R_O]
+                c0 = recs[j, R_R]
+                c1 = recs[j, R_G]
+                c2 = recs[j, R_BL]
+                p1 = recs[j, R_P1]
+                p2 = recs[j, R_P2]
+                p3 = recs[j, R_P3]
                 g_m0 = 0.0
                 g_m1 = 0.0
                 g_A = 0.0
@@ -479,16 +556,17 @@ def _backward(
                 g_c0 = 0.0
                 g_c1 = 0.0
                 g_c2 = 0.0
-                ylo = max(ya, math.ceil(max(m1 - ext[s, 1] - 1e-6, ya - 1.0)))
-                yhi = min(yb - 1, math.floor(min(m1 + ext[s, 1] + 1e-6, yb + 1.0)))
-                for y in range(ylo, yhi + 1):
+                y0, y1 = _row_range(m1, recs[j, R_HY], ya, yb)
+                for y in range(y0, y1 + 1):
                     dy = y - m1
-                    x0, x1 = _row_span(A, B, C, dy, cut2, m0, xa, xb)
+                    x0, x1 = _row_span(p1, p2, p3, dy, m0, xa, xb)
+                    bq = B2 * dy
+                    cq = C * dy * dy
                     for x in range(x0, x1 + 1):
                         if k > last[y, x]:
                             continue
                         dx = x - m0
-                        q = A * dx * dx + 2.0 * B * dx * dy + C * dy * dy
+                        q = (A * dx + bq) * dx + cq
                         if q > cut2:
                             continue
                         gs = math.exp(-0.5 * q)
@@ -523,31 +601,22 @@ def _backward(
                             g_C += dLq * dy * dy
                             g_m0 -= dLq * 2.0 * (A * dx + B * dy)
                             g_m1 -= dLq * 2.0 * (B * dx + C * dy)
-                slots[k, 0] = g_m0
-                slots[k, 1] = g_m1
-                slots[k, 2] = g_A
-                slots[k, 3] = g_B
-                slots[k, 4] = g_C
-                slots[k, 5] = g_o
-                slots[k, 6] = g_c0
-                slots[k, 7] = g_c1
-                slots[k, 8] = g_c2
+                e = ent_slot[k]
+                slots[e, 0] = g_m0
+                slots[e, 1] = g_m1
+                slots[e, 2] = g_A
+                slots[e, 3] = g_B
+                slots[e, 4] = g_C
+                slots[e, 5] = g_o
+                slots[e, 6] = g_c0
+                slots[e, 7] = g_c1
+                slots[e, 8] = g_c2
     return slots
 
 
-@njit(cache=True, error_model="numpy")
-def _reduce_slots(ent, slots, n):
-    # serial, in entry order: a fixed summation order, so the same bytes every run
-    G = np.zeros((n, 9))
-    for e in range(ent.shape[0]):
-        s = ent[e]
-        for j in range(9):
-            G[s, j] += slots[e, j]
-    return G
-
-
 @njit(cache=True, parallel=True, error_model="numpy")
-def _backward_params(G, valid, means, quats, log_scales, opac, conic, K, M, lowpass):
+def _backward_params(slots, rank_off, order, recs, means, quats, log_scales, K, M, lowpass):
+    """Sum each record's entry slots in a fixed order, then chain to the parameters."""
     n = means.shape[0]
     g_means = np.zeros((n, 3), np.float32)
     g_quats = np.zeros((n, 4), np.float32)
@@ -555,108 +624,152 @@ def _backward_params(G, valid, means, quats, log_scales, opac, conic, K, M, lowp
     g_lg = np.zeros(n, np.float32)
     g_col = np.zeros((n, 3), np.float32)
     g_mu_abs = np.zeros(n, np.float32)
-    for i in prange(n):
-        if not valid[i]:
-            continue
-        o = opac[i]
-        g_lg[i] = G[i, 5] * o * (1.0 - o)
-        for c in range(3):
-            g_col[i, c] = G[i, 6 + c]
-        gm0 = G[i, 0]
-        gm1 = G[i, 1]
+    for j in prange(order.shape[0]):
+        gm0 = 0.0
+        gm1 = 0.0
+        gA = 0.0
+        gB = 0.0
+        gC = 0.0
+        go = 0.0
+        gr = 0.0
+        gg = 0.0
+        gb = 0.0
+        for k in range(rank_off[j], rank_off[j + 1]):
+            gm0 += slots[k, 0]
+            gm1 += slots[k, 1]
+            gA += slots[k, 2]
+            gB += slots[k, 3]
+            gC += slots[k, 4]
+            go += slots[k, 5]
+            gr += slots[k, 6]
+            gg += slots[k, 7]
+            gb += slots[k, 8]
+        i = order[j]
+        o = recs[j, R_O]
+        g_lg[i] = go * o * (1.0 - o)
+        g_col[i, 0] = gr
+        g_col[i, 1] = gg
+        g_col[i, 2] = gb
         g_mu_abs[i] = math.sqrt(gm0 * gm0 + gm1 * gm1)
-        # conic (A, B, C) = inverse of Σ2 = [[a, b], [b, c]]:  dL/dΣ2 = -Q Gm Q
-        A = conic[i, 0]
-        B = conic[i, 1]
-        C = conic[i, 2]
-        gA = G[i, 2]
-        gB = 0.5 * G[i, 3]
-        gC = G[i, 4]
-        # P = Gm Q, with Gm = [[gA, gB], [gB, gC]], Q = [[A, B], [B, C]]
-        p00 = gA * A + gB * B
-        p01 = gA * B + gB * C
-        p10 = gB * A + gC * B
-        p11 = gB * B + gC * C
+        # conic Q = [[A, B], [B, C]] = Σ2⁻¹ and dL/dΣ2 = -Q Gm Q with Gm = [[gA, gB/2], [gB/2, gC]]
+        A = recs[j, R_A]
+        B = recs[j, R_B]
+        C = recs[j, R_C]
+        hB = 0.5 * gB
+        p00 = gA * A + hB * B
+        p01 = gA * B + hB * C
+        p10 = hB * A + gC * B
+        p11 = hB * B + gC * C
         da = -(A * p00 + B * p10)
         db = -2.0 * (A * p01 + B * p11)
         dc = -(B * p01 + C * p11)
+        # recompute the projection's intermediates (cheaper than storing them)
         m0, m1, m2 = float(means[i, 0]), float(means[i, 1]), float(means[i, 2])
-        t = np.empty(3)
-        for r in range(3):
-            t[r] = M[r, 0] * m0 + M[r, 1] * m1 + M[r, 2] * m2 + M[r, 3]
-        w, x, y, z, nq, c0, c1, su, sv = _frame(quats[i], log_scales[i])
-        iz = 1.0 / t[2]
-        J = np.empty((2, 3))
-        u = np.empty(2)
-        for r in range(2):
-            u[r] = K[r, 0] * t[0] + K[r, 1] * t[1]
-            J[r, 0] = K[r, 0] * iz
-            J[r, 1] = K[r, 1] * iz
-            J[r, 2] = -u[r] * iz * iz
-        Ta = np.empty(3)  # W c0 su, camera frame
-        Tb = np.empty(3)
-        for k in range(3):
-            Ta[k] = (M[k, 0] * c0[0] + M[k, 1] * c0[1] + M[k, 2] * c0[2]) * su
-            Tb[k] = (M[k, 0] * c1[0] + M[k, 1] * c1[1] + M[k, 2] * c1[2]) * sv
-        ja = np.empty(2)
-        jb = np.empty(2)
-        for r in range(2):
-            ja[r] = J[r, 0] * Ta[0] + J[r, 1] * Ta[1] + J[r, 2] * Ta[2]
-            jb[r] = J[r, 0] * Tb[0] + J[r, 1] * Tb[1] + J[r, 2] * Tb[2]
+        t0 = M[0, 0] * m0 + M[0, 1] * m1 + M[0, 2] * m2 + M[0, 3]
+        t1 = M[1, 0] * m0 + M[1, 1] * m1 + M[1, 2] * m2 + M[1, 3]
+        t2 = M[2, 0] * m0 + M[2, 1] * m1 + M[2, 2] * m2 + M[2, 3]
+        w, x, y, z, nq, a0, a1, a2, b0, b1, b2, su, sv = _frame(quats[i], log_scales[i])
+        Ta0 = (M[0, 0] * a0 + M[0, 1] * a1 + M[0, 2] * a2) * su
+        Ta1 = (M[1, 0] * a0 + M[1, 1] * a1 + M[1, 2] * a2) * su
+        Ta2 = (M[2, 0] * a0 + M[2, 1] * a1 + M[2, 2] * a2) * su
+        Tb0 = (M[0, 0] * b0 + M[0, 1] * b1 + M[0, 2] * b2) * sv
+        Tb1 = (M[1, 0] * b0 + M[1, 1] * b1 + M[1, 2] * b2) * sv
+        Tb2 = (M[2, 0] * b0 + M[2, 1] * b1 + M[2, 2] * b2) * sv
+        iz = 1.0 / t2
+        iz2 = iz * iz
+        u0 = K[0, 0] * t0 + K[0, 1] * t1
+        u1 = K[1, 0] * t0 + K[1, 1] * t1
+        J00, J01, J02 = K[0, 0] * iz, K[0, 1] * iz, -u0 * iz2
+        J10, J11, J12 = K[1, 0] * iz, K[1, 1] * iz, -u1 * iz2
+        ja0 = J00 * Ta0 + J01 * Ta1 + J02 * Ta2
+        ja1 = J10 * Ta0 + J11 * Ta1 + J12 * Ta2
+        jb0 = J00 * Tb0 + J01 * Tb1 + J02 * Tb2
+        jb1 = J10 * Tb0 + J11 * Tb1 + J12 * Tb2
         # Σ2 = ja jaᵀ + jb jbᵀ + lowpass I
-        gja0 = 2.0 * ja[0] * da + ja[1] * db
-        gja1 = 2.0 * ja[1] * dc + ja[0] * db
-        gjb0 = 2.0 * jb[0] * da + jb[1] * db
-        gjb1 = 2.0 * jb[1] * dc + jb[0] * db
-        gTa = np.empty(3)
-        gTb = np.empty(3)
-        gJ = np.empty((2, 3))
-        for k in range(3):
-            gTa[k] = J[0, k] * gja0 + J[1, k] * gja1
-            gTb[k] = J[0, k] * gjb0 + J[1, k] * gjb1
-            gJ[0, k] = gja0 * Ta[k] + gjb0 * Tb[k]
-            gJ[1, k] = gja1 * Ta[k] + gjb1 * Tb[k]
-        g_ls[i, 0] = Ta[0] * gTa[0] + Ta[1] * gTa[1] + Ta[2] * gTa[2]
-        g_ls[i, 1] = Tb[0] * gTb[0] + Tb[1] * gTb[1] + Tb[2] * gTb[2]
-        # world-frame gradients of the unit tangent columns: su Wᵀ gTa, sv Wᵀ gTb
-        gc0 = np.empty(3)
-        gc1 = np.empty(3)
-        for k in range(3):
-            gc0[k] = su * (M[0, k] * gTa[0] + M[1, k] * gTa[1] + M[2, k] * gTa[2])
-            gc1[k] = sv * (M[0, k] * gTb[0] + M[1, k] * gTb[1] + M[2, k] * gTb[2])
-        # d col0 / d(w, x, y, z) and d col1 / d(w, x, y, z) of the unit quaternion
-        gw = gc0[1] * 2 * z - gc0[2] * 2 * y - gc1[0] * 2 * z + gc1[2] * 2 * x
-        gx = gc0[1] * 2 * y + gc0[2] * 2 * z + gc1[0] * 2 * y - gc1[1] * 4 * x + gc1[2] * 2 * w
-        gy = -gc0[0] * 4 * y + gc0[1] * 2 * x - gc0[2] * 2 * w + gc1[0] * 2 * x + gc1[2] * 2 * z
-        gz = -gc0[0] * 4 * z + gc0[1] * 2 * w + gc0[2] * 2 * x - gc1[0] * 2 * w - gc1[1] * 4 * z + gc1[2] * 2 * y
+        gja0 = 2.0 * ja0 * da + ja1 * db
+        gja1 = 2.0 * ja1 * dc + ja0 * db
+        gjb0 = 2.0 * jb0 * da + jb1 * db
+        gjb1 = 2.0 * jb1 * dc + jb0 * db
+        # ja = J Ta: dL/dTa = Jᵀ dL/dja, dL/dJ = dL/dja Taᵀ + dL/djb Tbᵀ
+        gTa0 = J00 * gja0 + J10 * gja1
+        gTa1 = J01 * gja0 + J11 * gja1
+        gTa2 = J02 * gja0 + J12 * gja1
+        gTb0 = J00 * gjb0 + J10 * gjb1
+        gTb1 = J01 * gjb0 + J11 * gjb1
+        gTb2 = J02 * gjb0 + J12 * gjb1
+        gJ00 = gja0 * Ta0 + gjb0 * Tb0
+        gJ01 = gja0 * Ta1 + gjb0 * Tb1
+        gJ02 = gja0 * Ta2 + gjb0 * Tb2
+        gJ10 = gja1 * Ta0 + gjb1 * Tb0
+        gJ11 = gja1 * Ta1 + gjb1 * Tb1
+        gJ12 = gja1 * Ta2 + gjb1 * Tb2
+        # Ta = W a su: d/dlog su = Ta · dL/dTa
+        g_ls[i, 0] = Ta0 * gTa0 + Ta1 * gTa1 + Ta2 * gTa2
+        g_ls[i, 1] = Tb0 * gTb0 + Tb1 * gTb1 + Tb2 * gTb2
+        # world-frame gradients of the unit tangent axes: su Wᵀ dL/dTa, sv Wᵀ dL/dTb
+        ga0 = su * (M[0, 0] * gTa0 + M[1, 0] * gTa1 + M[2, 0] * gTa2)
+        ga1 = su * (M[0, 1] * gTa0 + M[1, 1] * gTa1 + M[2, 1] * gTa2)
+        ga2 = su * (M[0, 2] * gTa0 + M[1, 2] * gTa1 + M[2, 2] * gTa2)
+        gb0 = sv * (M[0, 0] * gTb0 + M[1, 0] * gTb1 + M[2, 0] * gTb2)
+        gb1 = sv * (M[0, 1] * gTb0 + M[1, 1] * gTb1 + M[2, 1] * gTb2)
+        gb2 = sv * (M[0, 2] * gTb0 + M[1, 2] * gTb1 + M[2, 2] * gTb2)
+        # the axes as functions of the unit quaternion (the first two columns of R)
+        gw = 2.0 * (ga1 * z - ga2 * y - gb0 * z + gb2 * x)
+        gx = 2.0 * (ga1 * y + ga2 * z + gb0 * y - 2.0 * gb1 * x + gb2 * w)
+        gy = 2.0 * (-2.0 * ga0 * y + ga1 * x - ga2 * w + gb0 * x + gb2 * z)
+        gz = 2.0 * (-2.0 * ga0 * z + ga1 * w + ga2 * x - gb0 * w - 2.0 * gb1 * z + gb2 * y)
+        # through the normalisation q / |q|
         dot = w * gw + x * gx + y * gy + z * gz
         g_quats[i, 0] = (gw - w * dot) / nq
         g_quats[i, 1] = (gx - x * dot) / nq
         g_quats[i, 2] = (gy - y * dot) / nq
         g_quats[i, 3] = (gz - z * dot) / nq
-        # camera-frame centre: through mu (its Jacobian is J) and through J itself
-        iz2 = iz * iz
-        gt0 = J[0, 0] * gm0 + J[1, 0] * gm1
-        gt1 = J[0, 1] * gm0 + J[1, 1] * gm1
-        gt2 = J[0, 2] * gm0 + J[1, 2] * gm1
-        for r in range(2):
-            gt0 -= gJ[r, 2] * K[r, 0] * iz2
-            gt1 -= gJ[r, 2] * K[r, 1] * iz2
-            gt2 += -gJ[r, 0] * K[r, 0] * iz2 - gJ[r, 1] * K[r, 1] * iz2 + gJ[r, 2] * 2.0 * u[r] * iz2 * iz
-        for k in range(3):
-            g_means[i, k] = M[0, k] * gt0 + M[1, k] * gt1 + M[2, k] * gt2
+        # camera-frame centre: through the projected centre (its Jacobian is J) and through J
+        gt0 = J00 * gm0 + J10 * gm1 - (gJ02 * K[0, 0] + gJ12 * K[1, 0]) * iz2
+        gt1 = J01 * gm0 + J11 * gm1 - (gJ02 * K[0, 1] + gJ12 * K[1, 1]) * iz2
+        gt2 = J02 * gm0 + J12 * gm1
+        gt2 += -(gJ00 * K[0, 0] + gJ01 * K[0, 1] + gJ10 * K[1, 0] + gJ11 * K[1, 1]) * iz2
+        gt2 += 2.0 * (gJ02 * u0 + gJ12 * u1) * iz2 * iz
+        for c in range(3):
+            g_means[i, c] = M[0, c] * gt0 + M[1, c] * gt1 + M[2, c] * gt2
     return g_means, g_quats, g_ls, g_lg, g_col, g_mu_abs
 
 
 # ------------------------------------------------------------------------- drivers
 
 
-def _depth_order(depth: np.ndarray, valid: np.ndarray) -> np.ndarray:
-    """Indices of the valid surfels by (float32 view depth, index): a unique key, so any
-    sort gives the same order."""
+def _depth_order(rec: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """Indices of the visible surfels by (float32 view depth, index): a unique key (depth
+    ≥ near_m > 0, so the float bits sort as the numbers), so any sort gives the same order."""
     idx = np.flatnonzero(valid)
-    key = (depth[idx].astype(np.float32).view(np.uint32).astype(np.uint64) << np.uint64(32)) | idx.astype(np.uint64)
-    return idx[np.argsort(key)]
+    key = (rec[idx, R_Z].astype(np.float32).view(np.uint32).astype(np.uint64) << np.uint64(32)) | idx.astype(np.uint64)
+    key.sort()
+    return (key & np.uint64(0xFFFFFFFF)).astype(np.int64)
+
+
+def spatial_order(means: np.ndarray, *, bits: int = 10) -> np.ndarray:
+    """A permutation (N,) int64 that puts surfels in Morton (Z-curve) order of their
+    positions quantised to ``2**bits`` cells per axis of their bounding box.
+
+    The rasterizer's per-tile passes read the surfel records in (tile, depth) order; when
+    the surfels are spatially coherent in memory those reads stream, when they are in
+    random order each one is a cache miss (measured in ``benchmarks/optimize_raster.py``).
+    A fitting loop that appends clones at densification should reorder with this now and
+    then (apply the permutation to every per-surfel array, optimizer state included).
+    """
+    p = np.asarray(means, np.float64)
+    if p.ndim != 2 or p.shape[1] != 3:
+        raise ShapeError(f"spatial_order: means has shape {p.shape}, expected (N, 3)")
+    if len(p) == 0:
+        return np.zeros(0, np.int64)
+    lo = p.min(axis=0)
+    span = np.maximum(p.max(axis=0) - lo, 1e-30)
+    q = np.clip(((p - lo) / span * (2**bits - 1)).round(), 0, 2**bits - 1).astype(np.uint64)
+    code = np.zeros(len(p), np.uint64)
+    for b in range(bits):
+        for axis in range(3):
+            code |= ((q[:, axis] >> np.uint64(b)) & np.uint64(1)) << np.uint64(3 * b + axis)
+    return np.argsort(code, kind="stable")
 
 
 def rasterize(params: SplatParams, cam: RasterCamera, *, config: RasterConfig = RasterConfig()) -> RasterOutput:
@@ -669,7 +782,16 @@ def rasterize(params: SplatParams, cam: RasterCamera, *, config: RasterConfig = 
     :func:`rasterize_backward` needs.
     """
     W, H, tile = int(cam.width), int(cam.height), int(config.tile_px)
-    mu, conic, ext, opac, depth, col, rect, valid = _preprocess(
+    if params.n >= 2**31:
+        raise InputError(f"rasterize: {params.n} surfels, at most 2**31 - 1")
+    clock = [time.perf_counter()]
+
+    def lap() -> float:
+        clock.append(time.perf_counter())
+        return clock[-1] - clock[-2]
+
+    timings: dict[str, float] = {}
+    rec, rect, ctile, valid = _preprocess(
         np.ascontiguousarray(params.means),
         np.ascontiguousarray(params.quats),
         np.ascontiguousarray(params.log_scales),
@@ -686,52 +808,57 @@ def rasterize(params: SplatParams, cam: RasterCamera, *, config: RasterConfig = 
     )
     n_tx = (W + tile - 1) // tile
     n_tiles = n_tx * ((H + tile - 1) // tile)
-    order = _depth_order(depth, valid)
-    counts = _count_entries(order, rect, n_tx, n_tiles, _FILL_CHUNKS)
-    per_tile = counts.sum(axis=0)
-    tile_off = np.zeros(n_tiles + 1, np.int64)
-    np.cumsum(per_tile, out=tile_off[1:])
-    start = tile_off[:-1][None, :] + np.cumsum(counts, axis=0) - counts
-    ent = _fill_entries(order, rect, n_tx, np.ascontiguousarray(start), int(tile_off[-1]))
-    bg = np.asarray(config.background, np.float64)
-    cut2 = float(config.cutoff_sigma) ** 2
+    timings["setup"] = lap()
+    order_d = _depth_order(rec, valid)
+    timings["sort"] = lap()
+    order, rank_d, rec_of_rank = _tile_major(order_d, ctile, n_tiles)
+    recs, rects, ntile = _gather(rec, rect, order)
+    rank_off = np.zeros(len(order) + 1, np.int64)
+    np.cumsum(ntile, out=rank_off[1:])
+    if rank_off[-1] >= 2**31:
+        raise InputError(f"rasterize: {rank_off[-1]} tile entries, at most 2**31 - 1 (surfels too large on screen?)")
+    keys = _entry_keys(rects, rank_d, rank_off, n_tx)
+    keys.sort()
+    ent, ent_slot, tile_off = _decode_entries(keys, rec_of_rank, rects, rank_off, n_tx, n_tiles)
+    timings["bin"] = lap()
     image, alpha, dep, T, last, nfrag = _forward(
         tile_off,
         ent,
-        mu,
-        conic,
-        ext,
-        opac,
-        depth,
-        col,
+        recs,
         W,
         H,
         tile,
         n_tx,
-        cut2,
+        float(config.cutoff_sigma) ** 2,
         float(config.alpha_min),
         float(config.transmittance_min),
-        bg,
+        np.asarray(config.background, np.float64),
     )
+    timings["composite"] = lap()
     ctx = _RasterContext(
         n=params.n,
         width=W,
         height=H,
         config=config,
-        mu=mu,
-        conic=conic,
-        ext=ext,
-        opac=opac,
-        depth=depth,
-        colors=col,
+        recs=recs,
+        order=order,
         tile_off=tile_off,
-        ent_sid=ent,
+        ent=ent,
+        rank_off=rank_off,
+        ent_slot=ent_slot,
         t_final=T,
         last=last,
         n_tx=n_tx,
     )
     return RasterOutput(
-        image=image, alpha=alpha, depth=dep, n_fragments=int(nfrag), n_entries=int(ent.shape[0]), visible=valid, ctx=ctx
+        image=image,
+        alpha=alpha,
+        depth=dep,
+        n_fragments=int(nfrag),
+        n_entries=int(ent.shape[0]),
+        visible=valid,
+        ctx=ctx,
+        timings_s=timings,
     )
 
 
@@ -751,6 +878,10 @@ def rasterize_backward(
     out : the forward pass's output for the same ``params``, ``cam`` and ``config``.
     dL_dimage : (H, W, 3) dL/d``out.image``.
     dL_dalpha : (H, W) dL/d``out.alpha``, or None (zero).
+
+    Returns
+    -------
+    SplatGrads (float32; zero for surfels that were culled).
     """
     ctx = out.ctx
     W, H = ctx.width, ctx.height
@@ -762,15 +893,12 @@ def rasterize_backward(
     dal = np.zeros((H, W)) if dL_dalpha is None else np.ascontiguousarray(dL_dalpha, np.float64)
     if dal.shape != (H, W):
         raise ShapeError(f"dL_dalpha has shape {dal.shape}, expected {(H, W)}")
-    bg = np.asarray(config.background, np.float64)
+    t0 = time.perf_counter()
     slots = _backward(
         ctx.tile_off,
-        ctx.ent_sid,
-        ctx.mu,
-        ctx.conic,
-        ctx.ext,
-        ctx.opac,
-        ctx.colors,
+        ctx.ent,
+        ctx.ent_slot,
+        ctx.recs,
         W,
         H,
         int(config.tile_px),
@@ -779,23 +907,31 @@ def rasterize_backward(
         float(config.alpha_min),
         ctx.t_final,
         ctx.last,
-        bg,
+        np.asarray(config.background, np.float64),
         dimg,
         dal,
     )
-    G = _reduce_slots(ctx.ent_sid, slots, ctx.n)
+    t1 = time.perf_counter()
     gm, gq, gs, gl, gc, gabs = _backward_params(
-        G,
-        out.visible,
+        slots,
+        ctx.rank_off,
+        ctx.order,
+        ctx.recs,
         np.ascontiguousarray(params.means),
         np.ascontiguousarray(params.quats),
         np.ascontiguousarray(params.log_scales),
-        ctx.opac,
-        ctx.conic,
         cam.K,
         cam.cam_from_world,
         float(config.lowpass_px2),
     )
+    timings = {"composite": t1 - t0, "params": time.perf_counter() - t1}
     return SplatGrads(
-        means=gm, quats=gq, log_scales=gs, opacity_logits=gl, colors=gc, means2d_abs=gabs, visible=out.visible.copy()
+        means=gm,
+        quats=gq,
+        log_scales=gs,
+        opacity_logits=gl,
+        colors=gc,
+        means2d_abs=gabs,
+        visible=out.visible.copy(),
+        timings_s=timings,
     )
