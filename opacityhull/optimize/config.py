@@ -43,6 +43,8 @@ class FitConfig:
     prune_opacity : surfels with opacity below this are removed at each densification.
     prune_scale_fraction : surfels larger than this fraction of the extent are removed.
     max_surfels : densification stops adding past this count.
+    max_start_surfels : the start keeps a seeded subset of at most this many hull
+        surfels, their radii grown to cover the same area (None: all).
     train_scale : the training views are fitted at this fraction of their resolution
         (intrinsics scaled to match); 1 fits at full resolution.
     checkpoint_every : iterations between checkpoints (0: none).
@@ -71,6 +73,7 @@ class FitConfig:
     prune_opacity: float = 0.005
     prune_scale_fraction: float = 0.1
     max_surfels: int = 1_000_000
+    max_start_surfels: int | None = 150_000
     train_scale: float = 1.0
     checkpoint_every: int = 200
 

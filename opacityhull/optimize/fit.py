@@ -32,7 +32,7 @@ from .data import FitData, load_fit_data, model_fingerprint
 from .densify import GradStats, densify_and_prune
 from .splatply import read_splat_ply, write_splat_ply
 from .ssim import ssim_and_grad
-from .surfelparams import PARAM_NAMES, scene_extent, start_params
+from .surfelparams import PARAM_NAMES, scene_extent, start_params, thin_start
 
 __all__ = [
     "OPTIMIZED_DIR",
@@ -227,18 +227,26 @@ def fit_params(
     progress: Callable[[FitProgress], None] | None = None,
     checkpoint_path: Path | None = None,
     checkpoint_meta: dict | None = None,
+    observe: Callable[[int, dict[str, np.ndarray]], None] | None = None,
+    observe_every: int = 0,
 ) -> tuple[dict[str, np.ndarray], FitReport]:
-    """The optimization itself over in-memory :class:`FitData` (see :func:`fit_model`)."""
-    from .raster import RasterConfig, rasterize, rasterize_backward
+    """The optimization itself over in-memory :class:`FitData` (see :func:`fit_model`).
+
+    ``observe(step, params)`` is called every ``observe_every`` steps and after the
+    last (a benchmark scores held-out views there; its time is not in ``step_ms``)."""
+    from .raster import RasterConfig, rasterize, rasterize_backward, spatial_order
 
     t_start = time.perf_counter()
     rc = RasterConfig()
     surf = data.surfels
-    params = start_params(surf.positions, surf.normals, surf.radii, data.sh_dc, sh_degree=config.sh_degree)
+    keep, grow = thin_start(len(surf), config.max_start_surfels, seed=config.seed)
+    params = start_params(
+        surf.positions[keep], surf.normals[keep], surf.radii[keep] * grow, data.sh_dc[keep], sh_degree=config.sh_degree
+    )
     extent = scene_extent(surf.positions)
     adam = Adam(params)
-    stats = GradStats(len(surf))
-    report = FitReport(n_surfels_start=len(surf), config=asdict(config))
+    stats = GradStats(len(params["means"]))
+    report = FitReport(n_surfels_start=len(params["means"]), config=asdict(config))
     start_it = 0
     if checkpoint_path is not None and checkpoint_path.is_file():
         got, params, z = _load_checkpoint(checkpoint_path, checkpoint_meta or {})
@@ -299,7 +307,7 @@ def fit_params(
             "opacity_logits": config.lr_opacity,
             "sh": sh_lr,
         }
-        adam.step(params, grads, lrs)
+        adam.step(params, grads, lrs, active_cols={"sh": 3 * (deg + 1) ** 2})
         if config.densify_from <= it < config.densify_until:
             stats.add(np.asarray(g.means2d_abs, np.float64) * 0.5 * view.camera.width, np.asarray(g.visible, bool))
             if (it + 1) % config.densify_every == 0 and it + 1 > config.densify_from:
@@ -314,6 +322,11 @@ def fit_params(
                     max_surfels=config.max_surfels,
                     rng=np.random.default_rng([config.seed, it]),
                 )
+                # new surfels were appended: back to a spatially coherent memory order
+                # (the rasterizer's tile passes stream through it)
+                perm = spatial_order(params["means"])
+                params = {k: np.ascontiguousarray(v[perm]) for k, v in params.items()}
+                adam.keep(perm)
                 stats = GradStats(len(params["means"]))
                 report.densify.append({"iteration": it + 1, **asdict(res)})
                 log.info("fit: step %d densify %s", it + 1, res)
@@ -332,11 +345,15 @@ def fit_params(
                     time.perf_counter() - t_start,
                 )
             )
+        if observe is not None and observe_every and (it + 1) % observe_every == 0:
+            observe(it + 1, params)
         if checkpoint_path is not None and config.checkpoint_every and (it + 1) % config.checkpoint_every == 0:
             _save_checkpoint(checkpoint_path, checkpoint_meta or {}, it + 1, params, adam, stats, report)
     else:
         it = T
     report.iterations = len(report.loss)
+    if observe is not None and (not observe_every or report.iterations % observe_every):
+        observe(report.iterations, params)
     report.n_surfels_end = len(params["means"])
     report.seconds = time.perf_counter() - t_start
     return params, report

@@ -18,6 +18,7 @@ __all__ = [
     "logit",
     "scene_extent",
     "start_params",
+    "thin_start",
 ]
 
 PARAM_NAMES = ("means", "quats", "log_scales", "opacity_logits", "sh")
@@ -114,3 +115,15 @@ def start_params(
         "opacity_logits": np.full(N, logit(opacity), np.float32),
         "sh": sh,
     }
+
+
+def thin_start(n: int, max_n: int | None, *, seed: int) -> tuple[np.ndarray, float]:
+    """A seeded subset of at most ``max_n`` of ``n`` start surfels (sorted indices) and
+    the factor √(n / kept) their radii grow by to cover the same area. The hull samples
+    a surfel per projected pixel (templeSR: 364 k); the rasterizer's cost grows with
+    the count, and densification adds surfels back where the photographs ask for them."""
+    if max_n is None or n <= max_n:
+        return np.arange(n), 1.0
+    rng = np.random.default_rng([seed, 7])
+    keep = np.sort(rng.choice(n, size=int(max_n), replace=False))
+    return keep, float(np.sqrt(n / max_n))

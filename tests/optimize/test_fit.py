@@ -113,3 +113,19 @@ def test_mode_none_writes_nothing(sphere, tmp_path):
     m = _scene(tmp_path / "m")
     rep = fit_model(tmp_path / "m", train_views=_train(m), config=FitConfig(mode="none", iterations=0))
     assert rep.iterations == 0 and not (tmp_path / "m" / OPTIMIZED_DIR).exists()
+
+
+def test_a_thinned_start_densifies_and_stays_finite(sphere):
+    root, m = sphere
+    cfg = FitConfig(
+        iterations=12,
+        max_start_surfels=1000,
+        densify_from=4,
+        densify_until=10,
+        densify_every=4,
+        densify_grad_threshold=0.0,
+        checkpoint_every=0,
+    )
+    rep = fit_model(root, train_views=_train(m), config=cfg)
+    assert rep.n_surfels_start == 1000 and rep.n_surfels_end > 1000
+    assert np.all(np.isfinite(rep.loss))

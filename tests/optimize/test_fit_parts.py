@@ -101,7 +101,19 @@ def test_adam_equals_a_hand_computed_step():
     m = 0.9 * 0.1 * g["a"] + 0.1 * g["a"]
     v = 0.999 * 0.001 * g["a"] ** 2 + 0.001 * g["a"] ** 2
     upd = 0.1 * (m / (1 - 0.9**2)) / (np.sqrt(v / (1 - 0.999**2)) + 1e-8)
-    np.testing.assert_allclose(p["a"], np.array([0.9, -1.9]) - upd, rtol=1e-6)
+    np.testing.assert_allclose(p["a"], np.array([0.9, -1.9]) - upd, rtol=1e-5)
+
+
+def test_adam_per_coefficient_rates_and_inactive_columns():
+    sh = np.zeros((2, 3, 3), np.float32)
+    p = {"sh": sh}
+    g = {"sh": np.ones_like(sh)}
+    opt = Adam(p, eps=1e-8)
+    lr = np.array([[0.1], [0.01], [0.001]], np.float32)  # per coefficient, broadcast over RGB
+    opt.step(p, g, {"sh": lr}, active_cols={"sh": 6})  # the first two coefficients only
+    np.testing.assert_allclose(p["sh"][:, 0], -0.1, rtol=1e-5)
+    np.testing.assert_allclose(p["sh"][:, 1], -0.01, rtol=1e-5)
+    assert np.all(p["sh"][:, 2] == 0) and np.all(opt.m["sh"][:, 2] == 0)
 
 
 def test_exp_decay_ends():
