@@ -48,9 +48,15 @@ def _bilinear_premul(img_straight: np.ndarray, uv: np.ndarray) -> np.ndarray:
 
     pre = np.ascontiguousarray(img_straight, dtype=np.float32).copy()
     pre[..., :3] *= pre[..., 3:4]
-    mx = np.ascontiguousarray(uv[:, 0].reshape(1, -1), dtype=np.float32)
-    my = np.ascontiguousarray(uv[:, 1].reshape(1, -1), dtype=np.float32)
-    out = cv2.remap(pre, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).reshape(-1, 4)
+    # cv2.remap refuses maps of 32767 columns or more: lay the samples out in rows
+    n = len(uv)
+    cols = max(1, min(n, 4096))
+    rows = -(-n // cols)
+    pad = np.zeros((rows * cols, 2), np.float32)
+    pad[:n] = uv
+    mx = np.ascontiguousarray(pad[:, 0].reshape(rows, cols))
+    my = np.ascontiguousarray(pad[:, 1].reshape(rows, cols))
+    out = cv2.remap(pre, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).reshape(-1, 4)[:n]
     a = out[:, 3:4]
     out[:, :3] = np.where(a > 1e-6, out[:, :3] / np.maximum(a, 1e-6), 0.0)
     return out

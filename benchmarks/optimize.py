@@ -1,0 +1,299 @@
+"""Fitting benchmark: test PSNR of the optimized opacity hull against iterations and
+seconds, per set and appearance mode (issue 29, item 7).
+
+    .venv/bin/python benchmarks/optimize.py [--quick] [--json] [--sets temple,dino]
+        [--model NAME=DIR ...] [--iterations N] [--train-scale S]
+
+Sets: the Middlebury rings (``tests/data/real/templeSR``, ``dinoSR``; imported and
+built with the defaults unless ``--model temple=DIR`` names a built model), every 4th
+view held out; ``--model demo=DIR`` (e.g. ``out/demo/model``) every 8th. A held-out
+view's coincident twins are held out with it. The held-out views are in nothing the fit
+sees: the hull, surfels and visibility are rebuilt without them
+(:func:`opacityhull.reconstruct.holdout.geometry_without`, what ``eval loo --holdout
+geometry`` runs), the start colour and the fit use the other views only.
+
+Appearance modes, scored on the held-out views with ``eval loo``'s metric
+(:func:`opacityhull.render.evaluate.loo_metrics`: PSNR over the union of the masks,
+colour over black, sRGB; the photograph's own mask where the build filled shadow
+holes):
+
+* ``hull`` — today's model: the rebuilt hull rendered by ULR blending of the training
+  views (the default render);
+* ``sh`` — the fitted surfels with their SH colour, rendered by the rasterizer;
+* ``ulr`` — the fitted geometry (positions, normals, sizes; surfels of opacity < ½
+  dropped; visibility recomputed by the z-buffer test) shaded by today's ULR of the
+  captured training views: the opacity light field on optimized geometry.
+
+Writes ``benchmarks/out/optimize.md``, ``.json`` and ``.png`` (``optimize_quick.*``
+with ``--quick``: fewer steps at half resolution, untracked). Figures taken while other
+work shares the two cores are slow by that load.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+import tempfile
+import time
+from dataclasses import asdict, replace
+from pathlib import Path
+
+import numpy as np
+from benchkit import parser, print_result, pyplot, report_head, save_figure
+
+ROOT = Path(__file__).resolve().parents[1]
+DATA = ROOT / "tests" / "data" / "real"
+OUT = ROOT / "benchmarks" / "out"
+EVERY = {"temple": 4, "dino": 4, "demo": 8}
+GOALS = {"temple": 20.0, "dino": 19.0, "demo": 30.0}
+
+
+def build_real(name: str, tmp: Path) -> Path:
+    from opacityhull.acquire.importers import import_colmap
+    from opacityhull.reconstruct.build import BuildConfig, build_model
+
+    src = DATA / f"{name}SR"
+    session, model = tmp / f"{name}_session", tmp / f"{name}_model"
+    import_colmap(src / "sparse", src / "images", session, masks_dir=src / "masks")
+    build_model(session, model, config=BuildConfig(pictures=False))
+    return model
+
+
+def work_model(model_dir: Path, surfels, tmp: Path, name: str) -> Path:
+    """A model folder sharing the model's views and cameras, with ``surfels`` (the hull
+    rebuilt without the held-out views) as its surfels."""
+    from opacityhull.model import write_surfels_ply
+
+    out = tmp / f"{name}_heldout_model"
+    out.mkdir(parents=True, exist_ok=True)
+    for sub in ("views", "cameras"):
+        if not (out / sub).exists():
+            (out / sub).symlink_to((model_dir / sub).resolve())
+    for f in ("model.toml", "report.json"):
+        if (model_dir / f).is_file():
+            (out / f).write_bytes((model_dir / f).read_bytes())
+    write_surfels_ply(out / "surfels.ply", surfels)
+    return out
+
+
+def score(model, test: list[int], render) -> dict:
+    """Mean ``loo_metrics`` over the test views of ``render(i) -> straight RGBA``."""
+    from opacityhull.model import BUILD_DIR, FILLED_HOLES, read_hole_masks
+    from opacityhull.render.evaluate import _photograph, loo_metrics
+
+    filled = read_hole_masks(Path(model.root) / BUILD_DIR / FILLED_HOLES)
+    ms, rows = [], []
+    for i in test:
+        t0 = time.perf_counter()
+        rgba = render(i)
+        ms.append(1e3 * (time.perf_counter() - t0))
+        photo, _, _ = _photograph(model, i, filled, rgba)
+        rows.append(loo_metrics(photo, rgba))
+    return {
+        "psnr": float(np.mean([r["psnr"] for r in rows])),
+        "ssim": float(np.mean([r["ssim"] for r in rows])),
+        "coverage_iou": float(np.mean([r["coverage_iou"] for r in rows])),
+        "render_ms": float(np.mean(ms)),
+    }
+
+
+def ulr_surfels(params: dict, cameras, held: list[int]):
+    """The fitted geometry as ULR surfels: opaque ones only, radius from the larger
+    tangent std-dev (the renderer's σ = ½ r), visibility by the z-buffer test."""
+    from opacityhull.model import Surfels
+    from opacityhull.optimize.surfelparams import normals_of, sigmoid
+    from opacityhull.reconstruct.visibility import surfel_visibility
+
+    keep = sigmoid(params["opacity_logits"]) >= 0.5
+    pos = params["means"][keep].astype(np.float64)
+    nrm = normals_of(params["quats"][keep]).astype(np.float64)
+    rad = np.exp(params["log_scales"][keep].astype(np.float64)).max(axis=1) / 0.5
+    vis = np.asarray(surfel_visibility(pos, nrm, rad, cameras), bool)
+    vis[:, held] = False
+    return Surfels.from_bool(pos, nrm, rad, vis)
+
+
+def run_set(name: str, model_dir: Path, tmp: Path, cfg, *, observe_every: int, modes: list[str]) -> dict:
+    from opacityhull.model import OpacityHullModel
+    from opacityhull.optimize.data import load_fit_data
+    from opacityhull.optimize.fit import fit_params, render_params
+    from opacityhull.optimize.surfelparams import start_params, thin_start
+    from opacityhull.reconstruct.holdout import geometry_without
+    from opacityhull.render.evaluate import held_out_groups
+    from opacityhull.render.renderer import RenderConfig, prepare_model_views, render_image
+
+    model = OpacityHullModel.open(model_dir)
+    V = len(model.views)
+    test = list(range(0, V, EVERY[name]))
+    groups = held_out_groups(model, test)
+    held = sorted({j for g in groups.values() for j in g})
+    train = [i for i in range(V) if i not in held]
+    t0 = time.perf_counter()
+    surf = geometry_without(model)(tuple(held))
+    rebuild_s = time.perf_counter() - t0
+    work = work_model(Path(model_dir), surf, tmp, name)
+    wm = OpacityHullModel.open(work)
+    cams = [v.camera for v in wm.views]
+    res: dict = {"set": name, "views": V, "test": test, "held": held, "train": len(train), "surfels_hull": len(surf)}
+    res["rebuild_s"] = round(rebuild_s, 1)
+    pv = prepare_model_views(wm)
+    rc = RenderConfig()
+    if "hull" in modes:
+        res["hull"] = score(
+            wm, test, lambda i: render_image(surf, cams, pv, cams[i], config=rc, exclude_views=held).rgba
+        )
+        print(f"{name}: hull (today's model) {res['hull']['psnr']:.2f} dB", file=sys.stderr)
+    t0 = time.perf_counter()
+    data = load_fit_data(work, train, train_scale=cfg.train_scale)
+    res["load_s"] = round(time.perf_counter() - t0, 1)
+    keep, grow = thin_start(len(surf), cfg.max_start_surfels, seed=cfg.seed)
+    p0 = start_params(surf.positions[keep], surf.normals[keep], surf.radii[keep] * grow, data.sh_dc[keep], sh_degree=0)
+    res["start"] = score(wm, test, lambda i: render_params(p0, cams[i]))
+    print(f"{name}: start (hull surfels, blended colour) {res['start']['psnr']:.2f} dB", file=sys.stderr)
+    curve = [{"iteration": 0, "seconds": 0.0, **res["start"]}]
+    clock = {"start": 0.0, "scoring": 0.0}
+
+    def observe(it, params):
+        t_obs = time.perf_counter()
+        secs = t_obs - clock["start"] - clock["scoring"]  # the steps' time, scoring excluded
+        sc = score(wm, test, lambda i: render_params(params, cams[i]))
+        curve.append({"iteration": it, "seconds": secs, "n_surfels": len(params["means"]), **sc})
+        print(f"{name}: step {it} test {sc['psnr']:.2f} dB ({secs:.0f} s of steps)", file=sys.stderr)
+        clock["scoring"] += time.perf_counter() - t_obs
+
+    clock["start"] = t0 = time.perf_counter()
+    params, rep = fit_params(data, cfg, observe=observe, observe_every=observe_every)
+    res["fit_wall_s"] = round(time.perf_counter() - t0, 1)
+    res["fit"] = {**rep.summary(), "step_s": round(float(np.sum(rep.step_ms)) / 1e3, 1)}
+    res["sh"] = curve[-1]
+    res["curve"] = curve
+    res["densify"] = rep.densify
+    if "ulr" in modes:
+        us = ulr_surfels(params, cams, held)
+        res["ulr"] = {
+            **score(wm, test, lambda i: render_image(us, cams, pv, cams[i], config=rc, exclude_views=held).rgba),
+            "surfels": len(us),
+        }
+        print(f"{name}: ulr on fitted geometry {res['ulr']['psnr']:.2f} dB", file=sys.stderr)
+    return res
+
+
+def table(rows: list[dict]) -> str:
+    out = [
+        "| set | mode | test PSNR (dB) | SSIM | coverage IoU | steps | fit s (steps) | ms / step | surfels | goal |",
+        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|",
+    ]
+    for r in rows:
+        fit = r["fit"]
+        for mode in ("hull", "start", "sh", "ulr"):
+            if mode not in r:
+                continue
+            m = r[mode]
+            steps = fit["iterations"] if mode in ("sh", "ulr") else 0
+            secs = fit["step_s"] if mode in ("sh", "ulr") else 0
+            n = m.get("surfels", m.get("n_surfels", r["surfels_hull"] if mode == "hull" else fit["n_surfels_start"]))
+            out.append(
+                f"| {r['set']} | {mode} | {m['psnr']:.2f} | {m['ssim']:.3f} | {m['coverage_iou']:.3f} | {steps} | "
+                f"{secs:.0f} | {fit['ms_per_iteration'] if mode in ('sh', 'ulr') else float('nan'):.0f} | {n} | "
+                f"{GOALS.get(r['set'], float('nan')):.1f} |"
+            )
+    return "\n".join(out)
+
+
+def plot(rows: list[dict], path: Path) -> None:
+    plt = pyplot()
+    fig, ax = plt.subplots(1, 2, figsize=(11, 4))
+    for r in rows:
+        c = r["curve"]
+        it = [p["iteration"] for p in c]
+        s = [p["seconds"] for p in c]
+        ps = [p["psnr"] for p in c]
+        (line,) = ax[0].plot(it, ps, "o-", label=f"{r['set']} sh")
+        ax[1].plot(s, ps, "o-", color=line.get_color(), label=f"{r['set']} sh")
+        for mode, mk in (("hull", "--"), ("ulr", ":")):
+            if mode in r:
+                for a in ax:
+                    a.axhline(r[mode]["psnr"], ls=mk, color=line.get_color(), lw=1, label=f"{r['set']} {mode}")
+    ax[0].set_xlabel("fitting steps")
+    ax[1].set_xlabel("seconds of fitting steps (shared 2-core machine)")
+    for a in ax:
+        a.set_ylabel("held-out PSNR, mask union (dB)")
+        a.grid(alpha=0.3)
+    ax[1].legend(fontsize=7)
+    fig.tight_layout()
+    save_figure(fig, path, dpi=110)
+
+
+def main(argv=None) -> int:
+    from opacityhull.optimize.config import fit_preset
+
+    ap = parser(__doc__)
+    ap.add_argument("--quick", action="store_true", help="fewer steps, half resolution (untracked files)")
+    ap.add_argument("--json", action="store_true")
+    ap.add_argument("--sets", default="temple,dino", help="comma list of temple, dino (imported and built)")
+    ap.add_argument("--model", action="append", default=[], help="NAME=DIR: a built model (temple, dino, demo)")
+    ap.add_argument("--iterations", type=int, default=None)
+    ap.add_argument("--train-scale", type=float, default=None)
+    ap.add_argument("--modes", default="hull,ulr", help="besides sh: hull, ulr")
+    ap.add_argument("--observe-every", type=int, default=None)
+    a = ap.parse_args(argv)
+    mode = "fast"
+    cfg = fit_preset(mode, checkpoint_every=0)
+    if a.quick:
+        cfg = replace(
+            cfg,
+            iterations=200,
+            train_scale=0.5,
+            densify_from=50,
+            densify_until=150,
+            densify_every=50,
+            sh_degree_every=60,
+            max_start_surfels=100_000,
+        )
+    if a.iterations:
+        cfg = replace(cfg, iterations=a.iterations)
+    if a.train_scale:
+        cfg = replace(cfg, train_scale=a.train_scale)
+    every = a.observe_every or max(1, cfg.iterations // 4)
+    models = dict(s.split("=", 1) for s in a.model)
+    names = [s for s in a.sets.split(",") if s] + [n for n in models if n not in a.sets.split(",")]
+    rows = []
+    with tempfile.TemporaryDirectory(prefix="optimize_") as td:
+        tmp = Path(td)
+        for name in names:
+            if name not in EVERY:
+                print(f"unknown set {name!r}: expected one of {', '.join(EVERY)}", file=sys.stderr)
+                return 2
+            md = Path(models[name]) if name in models else build_real(name, tmp)
+            rows.append(run_set(name, md, tmp, cfg, observe_every=every, modes=a.modes.split(",")))
+    OUT.mkdir(parents=True, exist_ok=True)
+    stem = "optimize_quick" if a.quick else "optimize"
+    md = report_head(
+        "Optimized opacity hull: held-out PSNR against fitting steps and time",
+        f"`benchmarks/optimize.py{' --quick' if a.quick else ''}`: every 4th view held out (demo every 8th), "
+        "with its coincident twins, out of the hull, the start colour and the fit. PSNR/SSIM over the union of "
+        "the photograph's mask and the rendered coverage, colour over black, sRGB (`eval loo`'s metric). "
+        "`hull` is today's model (hull rebuilt without the held-out views, ULR of the training views), `start` "
+        "the fit's start (hull surfels, blended colour, the rasterizer), `sh` the fitted surfels with SH colour, "
+        "`ulr` the fitted geometry shaded by ULR. Times are wall seconds of the fitting steps alone on a 2-core "
+        "machine shared with other work (slow by that load).",
+        "Fit options: " + json.dumps({k: v for k, v in asdict(cfg).items()}),
+    )
+    md += [table(rows), ""]
+    for r in rows:
+        md.append(
+            f"- {r['set']}: "
+            + ", ".join(f"step {p['iteration']} {p['psnr']:.2f} dB ({p['seconds']:.0f} s)" for p in r["curve"])
+        )
+    md.append("")
+    path = OUT / f"{stem}.md"
+    path.write_text("\n".join(md))
+    (OUT / f"{stem}.json").write_text(json.dumps({"config": asdict(cfg), "rows": rows}, indent=1, default=float))
+    plot(rows, OUT / f"{stem}.png")
+    print_result({"rows": rows, "table": str(path)}, path, as_json=a.json)
+    return 0 if all(math.isfinite(r["sh"]["psnr"]) for r in rows) else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

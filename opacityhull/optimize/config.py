@@ -1,0 +1,135 @@
+"""The fitting's options: one frozen, keyword-only :class:`FitConfig` with presets."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+from typing import Literal
+
+from ..errors import ConfigError
+
+__all__ = ["FitMode", "FIT_MODES", "FitConfig", "fit_preset"]
+
+FitMode = Literal["none", "fast", "full"]
+FIT_MODES: tuple[str, ...] = ("none", "fast", "full")
+
+
+@dataclass(frozen=True, kw_only=True)
+class FitConfig:
+    """Options of :func:`opacityhull.optimize.fit.fit_model`.
+
+    mode : ``"none"`` (no fitting: the hull model as built), ``"fast"`` or ``"full"``;
+        :func:`fit_preset` fills the iteration count and schedule of each.
+    iterations : optimizer steps (one training view each).
+    time_budget_s : stop after this many seconds of fitting (None: no limit); the
+        report says whether the budget or the iteration count ended the fit.
+    seed : the random view order (same inputs and seed give the same bytes).
+    lr_position : position learning rate as a fraction of the scene extent (the
+        bounding-sphere radius of the start surfels, 3DGS practice), decayed
+        exponentially to ``lr_position_final`` over the iterations.
+    lr_sh_dc, lr_sh_rest : SH colour coefficients (DC, higher degrees).
+    lr_opacity, lr_scale, lr_rotation : opacity logits, log tangent scales, quaternions.
+    ssim_weight : λ of (1 − λ)·L1 + λ·D-SSIM on the display (sRGB-encoded) colour.
+    alpha_weight : weight of the L1 between rendered α and each view's matte.
+    sh_degree : final SH degree (0..3); the degree grows by one every
+        ``sh_degree_every`` iterations from 0 (3DGS practice), or starts at the final
+        degree when ``sh_degree_every`` is 0.
+    densify_from, densify_until, densify_every : the densification window (iterations).
+    densify_grad_threshold : mean |∂L/∂(2-D mean)| per view, in NDC-equivalent units
+        (pixel gradient × W/2, the 3DGS convention), above which a surfel is cloned or
+        split.
+    densify_scale_fraction : a surfel whose largest tangent std-dev is above this
+        fraction of the scene extent is split, below it cloned.
+    prune_opacity : surfels with opacity below this are removed at each densification.
+    prune_scale_fraction : surfels larger than this fraction of the extent are removed.
+    max_surfels : densification stops adding past this count.
+    max_start_surfels : the start keeps a seeded subset of at most this many hull
+        surfels, their radii grown to cover the same area (None: all).
+    train_scale : the training views are fitted at this fraction of their resolution
+        (intrinsics scaled to match); 1 fits at full resolution.
+    checkpoint_every : iterations between checkpoints (0: none).
+    """
+
+    mode: FitMode = "fast"
+    iterations: int = 600
+    time_budget_s: float | None = None
+    seed: int = 0
+    lr_position: float = 1e-2
+    lr_position_final: float = 1e-4
+    lr_sh_dc: float = 2.5e-3
+    lr_sh_rest: float = 1.25e-4
+    lr_opacity: float = 5e-2
+    lr_scale: float = 1e-2
+    lr_rotation: float = 1e-3
+    ssim_weight: float = 0.2
+    alpha_weight: float = 0.5
+    sh_degree: int = 3
+    sh_degree_every: int = 150
+    densify_from: int = 100
+    densify_until: int = 450
+    densify_every: int = 100
+    densify_grad_threshold: float = 1e-3
+    densify_scale_fraction: float = 0.01
+    prune_opacity: float = 0.005
+    prune_scale_fraction: float = 0.1
+    max_surfels: int = 1_000_000
+    max_start_surfels: int | None = 150_000
+    train_scale: float = 1.0
+    checkpoint_every: int = 200
+
+    def __post_init__(self):
+        if self.mode not in FIT_MODES:
+            raise ConfigError(f"optimize mode {self.mode!r}: expected one of {', '.join(FIT_MODES)}")
+        if int(self.iterations) < 0 or (self.mode != "none" and int(self.iterations) == 0):
+            raise ConfigError(f"optimize iterations {self.iterations!r}: expected a count > 0")
+        if self.time_budget_s is not None and not (math.isfinite(self.time_budget_s) and self.time_budget_s > 0):
+            raise ConfigError(f"optimize time budget {self.time_budget_s!r} s: expected a number of seconds > 0")
+        if not 0 <= int(self.sh_degree) <= 3:
+            raise ConfigError(f"optimize sh_degree {self.sh_degree!r}: expected 0..3")
+        if not 0.0 <= self.ssim_weight <= 1.0:
+            raise ConfigError(f"optimize ssim_weight {self.ssim_weight!r}: expected 0..1")
+        if not 0.0 < self.train_scale <= 1.0:
+            raise ConfigError(f"optimize train_scale {self.train_scale!r}: expected 0 < scale <= 1")
+        for name in (
+            "lr_position",
+            "lr_position_final",
+            "lr_sh_dc",
+            "lr_sh_rest",
+            "lr_opacity",
+            "lr_scale",
+            "lr_rotation",
+            "alpha_weight",
+            "densify_grad_threshold",
+            "prune_opacity",
+        ):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v >= 0):
+                raise ConfigError(f"optimize {name} {v!r}: expected a finite number >= 0")
+        if int(self.checkpoint_every) < 0 or int(self.max_surfels) < 1:
+            raise ConfigError("optimize checkpoint_every must be >= 0 and max_surfels >= 1")
+
+
+def fit_preset(mode: FitMode, **overrides) -> FitConfig:
+    """The :class:`FitConfig` of a mode (``none``, ``fast``, ``full``), with ``overrides``.
+
+    ``fast`` is a few hundred steps with one densification pass (a build of a few
+    minutes); ``full`` runs 3000 steps with densification through step 1500 and the
+    SH degree grown to 3.
+    """
+    if mode not in FIT_MODES:
+        raise ConfigError(f"optimize mode {mode!r}: expected one of {', '.join(FIT_MODES)}")
+    if mode == "none":
+        base = FitConfig(mode="none", iterations=0)
+    elif mode == "fast":
+        base = FitConfig(mode="fast")
+    else:
+        base = FitConfig(
+            mode="full",
+            iterations=3000,
+            sh_degree_every=500,
+            densify_from=200,
+            densify_until=1500,
+            densify_every=100,
+            checkpoint_every=500,
+        )
+    return replace(base, **overrides)
