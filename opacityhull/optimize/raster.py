@@ -286,9 +286,10 @@ def _project(mean, quat, log_scale, K, M, lowpass):
 @njit(cache=True, parallel=True, error_model="numpy")
 def _preprocess(means, quats, log_scales, logits, colors, K, M, width, height, lowpass, cutoff, near, tile):
     n = means.shape[0]
-    rec = np.zeros((n, _REC))
-    rect = np.zeros((n, 4), np.int64)
-    ctile = np.zeros(n, np.int64)
+    # rows of culled surfels are never read again: no need to clear them
+    rec = np.empty((n, _REC))
+    rect = np.empty((n, 4), np.int64)
+    ctile = np.empty(n, np.int64)
     valid = np.zeros(n, np.bool_)
     n_tx = (width + tile - 1) // tile
     n_ty = (height + tile - 1) // tile
@@ -443,6 +444,7 @@ def _forward(tile_off, ent, recs, width, height, tile, n_tx, cut2, amin, tmin, b
     T = np.ones((height, width))
     last = np.full((height, width), -1, np.int32)
     nfrag = np.zeros(_TILE_GROUPS, np.int64)
+    rowlive = np.empty((_TILE_GROUPS, tile), np.int64)  # live pixels per row of the tile
     for g in prange(_TILE_GROUPS):
         for t in range(g, n_tiles, _TILE_GROUPS):
             ty = t // n_tx
@@ -452,6 +454,8 @@ def _forward(tile_off, ent, recs, width, height, tile, n_tx, cut2, amin, tmin, b
             xb = min(xa + tile, width)
             yb = min(ya + tile, height)
             live = (xb - xa) * (yb - ya)
+            for y in range(ya, yb):
+                rowlive[g, y - ya] = xb - xa
             nf = 0
             for k in range(tile_off[t], tile_off[t + 1]):
                 j = ent[k]
@@ -470,6 +474,8 @@ def _forward(tile_off, ent, recs, width, height, tile, n_tx, cut2, amin, tmin, b
                 p3 = recs[j, R_P3]
                 y0, y1 = _row_range(m1, recs[j, R_HY], ya, yb)
                 for y in range(y0, y1 + 1):
+                    if rowlive[g, y - ya] == 0:
+                        continue
                     dy = y - m1
                     x0, x1 = _row_span(p1, p2, p3, dy, m0, xa, xb)
                     bq = B2 * dy
@@ -496,6 +502,7 @@ def _forward(tile_off, ent, recs, width, height, tile, n_tx, cut2, amin, tmin, b
                         nf += 1
                         if Tn < tmin:
                             live -= 1
+                            rowlive[g, y - ya] -= 1
                 if live == 0:
                     break
             nfrag[g] += nf
@@ -518,6 +525,7 @@ def _backward(tile_off, ent, ent_slot, recs, width, height, tile, n_tx, cut2, am
     slots = np.zeros((ent.shape[0], 9))
     T = t_final.copy()
     Bacc = np.empty((height, width, 3))
+    rowlast = np.empty((_TILE_GROUPS, tile), np.int64)  # last entry composited per row of the tile
     for g in prange(_TILE_GROUPS):
         for t in range(g, n_tiles, _TILE_GROUPS):
             ty = t // n_tx
@@ -528,10 +536,13 @@ def _backward(tile_off, ent, ent_slot, recs, width, height, tile, n_tx, cut2, am
             yb = min(ya + tile, height)
             kend = -1
             for y in range(ya, yb):
+                rl = -1
                 for x in range(xa, xb):
-                    kend = max(kend, last[y, x])
+                    rl = max(rl, last[y, x])
                     for c in range(3):
                         Bacc[y, x, c] = bg[c]
+                rowlast[g, y - ya] = rl
+                kend = max(kend, rl)
             for k in range(kend, tile_off[t] - 1, -1):
                 j = ent[k]
                 m0 = recs[j, R_M0]
@@ -558,6 +569,8 @@ def _backward(tile_off, ent, ent_slot, recs, width, height, tile, n_tx, cut2, am
                 g_c2 = 0.0
                 y0, y1 = _row_range(m1, recs[j, R_HY], ya, yb)
                 for y in range(y0, y1 + 1):
+                    if k > rowlast[g, y - ya]:
+                        continue
                     dy = y - m1
                     x0, x1 = _row_span(p1, p2, p3, dy, m0, xa, xb)
                     bq = B2 * dy
@@ -574,8 +587,9 @@ def _backward(tile_off, ent, ent_slot, recs, width, height, tile, n_tx, cut2, am
                         a = min(ALPHA_MAX, a0)
                         if a < amin:
                             continue
+                        inv_om = 1.0 / (1.0 - a)
                         om = 1.0 - a
-                        Tb = T[y, x] / om
+                        Tb = T[y, x] * inv_om
                         w = a * Tb
                         d0 = dimg[y, x, 0]
                         d1 = dimg[y, x, 1]
@@ -587,7 +601,8 @@ def _backward(tile_off, ent, ent_slot, recs, width, height, tile, n_tx, cut2, am
                         b1 = Bacc[y, x, 1]
                         b2 = Bacc[y, x, 2]
                         dLa = (
-                            Tb * ((c0 - b0) * d0 + (c1 - b1) * d1 + (c2 - b2) * d2) + dalpha[y, x] * t_final[y, x] / om
+                            Tb * ((c0 - b0) * d0 + (c1 - b1) * d1 + (c2 - b2) * d2)
+                            + dalpha[y, x] * t_final[y, x] * inv_om
                         )
                         Bacc[y, x, 0] = a * c0 + om * b0
                         Bacc[y, x, 1] = a * c1 + om * b1
