@@ -138,9 +138,16 @@ def stage_cpu(params, cam, d_img, d_alpha, reps: int) -> dict:
         return res
 
     p = params
-    rec, rect, ctile, valid = run(
+    depth, ctile, front = run(
+        "fwd_centres", lambda: R._centres(p.means, cam.K, cam.cam_from_world, W, H, cfg.near_m, tile)
+    )
+    order_d = run("fwd_depth_sort", lambda: R._depth_order(depth, front))
+    order, rank_d, rec_of_rank = run("fwd_tile_major", lambda: R._tile_major(order_d, ctile, n_tiles))
+    visible = np.zeros(p.n, np.bool_)
+    recs, rects, ntile = run(
         "fwd_setup",
-        lambda: R._preprocess(
+        lambda: R._setup_records(
+            order,
             p.means,
             p.quats,
             p.log_scales,
@@ -152,13 +159,10 @@ def stage_cpu(params, cam, d_img, d_alpha, reps: int) -> dict:
             H,
             cfg.lowpass_px2,
             cfg.cutoff_sigma,
-            cfg.near_m,
             tile,
+            visible,
         ),
     )
-    order_d = run("fwd_depth_sort", lambda: R._depth_order(rec, valid))
-    order, rank_d, rec_of_rank = run("fwd_tile_major", lambda: R._tile_major(order_d, ctile, n_tiles))
-    recs, rects, ntile = run("fwd_gather", lambda: R._gather(rec, rect, order))
     rank_off = np.zeros(len(order) + 1, np.int64)
     np.cumsum(ntile, out=rank_off[1:])
     keys = run("fwd_keys", lambda: np.sort(R._entry_keys(rects, rank_d, rank_off, n_tx)))

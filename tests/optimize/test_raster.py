@@ -378,3 +378,31 @@ def test_surfel_order_does_not_change_results(cam, seed):
     gb = rasterize_backward(b, q, cam, dL_dimage=wi, dL_dalpha=wa)
     for k in (*FIELDS, "means2d_abs"):
         np.testing.assert_array_equal(getattr(ga, k)[perm], getattr(gb, k), err_msg=k)
+
+
+def test_no_surfels_and_all_culled_give_the_background():
+    cam = look_at_camera((0.0, 0.0, 3.0))
+    empty = SplatParams(
+        means=np.zeros((0, 3), np.float32),
+        quats=np.zeros((0, 4), np.float32),
+        log_scales=np.zeros((0, 2), np.float32),
+        opacity_logits=np.zeros(0, np.float32),
+        colors=np.zeros((0, 3), np.float32),
+    )
+    culled = random_scene(2, 0, cam, ("behind", "outside"))
+    for p in (empty, culled):
+        out = rasterize(p, cam, config=RasterConfig(background=(0.25, 0.5, 1.0)))
+        assert out.n_fragments == 0 and not out.visible.any()
+        np.testing.assert_array_equal(out.image, np.broadcast_to(np.float32([0.25, 0.5, 1.0]), (H, W, 3)))
+        assert not out.alpha.any() and not out.depth.any()
+        g = rasterize_backward(
+            out,
+            p,
+            cam,
+            dL_dimage=np.ones((H, W, 3)),
+            dL_dalpha=np.ones((H, W)),
+            config=RasterConfig(background=(0.25, 0.5, 1.0)),
+        )
+        for k in (*FIELDS, "means2d_abs"):
+            assert getattr(g, k).shape == getattr(p, k if k != "means2d_abs" else "opacity_logits").shape
+            assert not getattr(g, k).any()
