@@ -24,6 +24,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..imageio import replacing_dir
+from ..outputs import check_output, check_replaceable
 from ..model import OpacityHullModel
 
 log = logging.getLogger(__name__)
@@ -308,18 +309,18 @@ def export_model(model_dir, fmt: str, out, *, overwrite: bool = False, **options
     """
     if fmt not in FORMATS:
         raise InputError(f"--format {fmt!r}: expected one of {', '.join(FORMATS)}")
-    model = OpacityHullModel.open(model_dir)
     out = Path(out)
-    if out.exists() and (not out.is_dir() or any(out.iterdir())):
-        if not overwrite:
-            raise InputError(f"--out {out}: exists and is not empty (pass --overwrite to replace it)")
+    # before anything is read: `export M --out M --overwrite` deleted the model
+    check_output(out, {"MODEL": model_dir}, replaces=True)
+    check_replaceable(out, command="export", overwrite=overwrite)
+    model = OpacityHullModel.open(model_dir)
     fn = {
         "nerfstudio": export_nerfstudio_model,
         "colmap": export_colmap_model,
         "ply": export_ply,
         "opencv": export_opencv,
     }[fmt]
-    with replacing_dir(out) as tmp:
+    with replacing_dir(out, command="export") as tmp:
         summary = fn(model, tmp, **options)
     summary = {k: (out / Path(v).relative_to(tmp) if isinstance(v, Path) else v) for k, v in summary.items()}
     return {"format": fmt, "model": str(Path(model_dir)), "out": str(out), **summary}

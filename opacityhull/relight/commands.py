@@ -13,6 +13,7 @@ from rich.markup import escape
 from ..cliutil import JsonSummaryFlag, env_yaw_options, option_group, pick_env_yaw
 from ..cliutil import check_choice, check_model_dir, check_orbit_fps, cli_errors, console, emit, progress, writing_to
 from ..errors import InputError, check_writable
+from ..outputs import check_output
 from .basis import KernelConfig
 from .relit import RelightConfig
 
@@ -167,6 +168,7 @@ def register(app, groups) -> None:
         check_orbit_fps(orbit, fps)
         if exposure is not None and not (math.isfinite(exposure) and exposure > 0):
             raise InputError(f"--exposure {exposure}: expected a multiplier > 0 (omit it for automatic exposure)")
+        check_output(out, {"MODEL": model, "--envmap": map_options["envmap"]})
         check_writable(out)
         cfg = _config(**config_options)
         v = parse_view_spec(view) if view else None
@@ -237,6 +239,8 @@ def register(app, groups) -> None:
             raise InputError(f"--spp {spp}: expected at least 1 sample per pixel")
         if max_views is not None and max_views < 1:
             raise InputError(f"--max-views {max_views}: expected at least 1")
+        if out is not None:
+            check_output(out, {"MODEL": model, "--envmap": map_options["envmap"]})
         if out is None:
             # not inside MODEL: a model is an input here (it may be shared or read-only)
             out = Path(f"{model.resolve().name}_eval_relight")
