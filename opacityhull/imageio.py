@@ -89,9 +89,17 @@ def library_output() -> Iterator[list[str]]:
         with tempfile.TemporaryFile() as tmp:
             os.dup2(tmp.fileno(), 1)
             os.dup2(tmp.fileno(), 2)
+            py_out, py_err = sys.stdout, sys.stderr
             try:
                 yield lines
             finally:
+                # Python-level prints of the bindings (pybind's "Warning: ...") sit in
+                # sys.stdout's buffer: flush them into the capture before restoring
+                for stream in (py_out, py_err):
+                    try:
+                        stream.flush()
+                    except (OSError, ValueError, AttributeError):
+                        pass
                 try:
                     import ctypes
 

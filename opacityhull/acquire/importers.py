@@ -541,7 +541,7 @@ def import_nerfstudio(
     out = Path(out)
     if not path.is_file():
         raise InputError(f"--transforms {path}: no such file (expected a nerfstudio transforms.json)")
-    check_output(out, {"--transforms": path, "the folder of --transforms (its images)": path.parent}, replaces=True)
+    check_output(out, {"--transforms": path, "--transforms' folder (its images)": path.parent}, replaces=True)
     _check_out(out)
     try:
         meta = json.loads(path.read_text(encoding="utf-8"))

@@ -127,7 +127,7 @@ def export_nerfstudio_model(model: OpacityHullModel, out: Path, *, alpha: Litera
 
 
 def export_colmap_model(model: OpacityHullModel, out: Path, *, max_points: int = 50000) -> dict:
-    """COLMAP dataset: ``images/<view>.png`` (8-bit sRGB RGB over black) and ``sparse/0``
+    """COLMAP dataset: ``images/<view>.png`` (8-bit sRGB RGBA, straight colour, alpha the matte) and ``sparse/0``
     (text and binary, written by pycolmap).
 
     points3D: up to ``max_points`` surfels (evenly spaced in file order), colour = mean
@@ -148,7 +148,9 @@ def export_colmap_model(model: OpacityHullModel, out: Path, *, max_points: int =
     names = [f"{v.id}.png" for v in model.views]
     images = _views(model)
     for v, rgba in zip(model.views, images):
-        _write_png_u8(out / "images" / f"{v.id}.png", rgba[..., :3] * rgba[..., 3:4])
+        # RGBA (straight colour, alpha = the matte) as the nerfstudio export: RGB over
+        # black dropped the matte, so the export could not be imported and built again
+        _write_png_u8(out / "images" / f"{v.id}.png", rgba)
     sparse = out / "sparse" / "0"
     write_colmap_text(sparse, cams, names, share_intrinsics=[v.camera_index for v in model.views])
     rec = pycolmap.Reconstruction(str(sparse))

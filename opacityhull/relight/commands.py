@@ -72,6 +72,9 @@ def _load_map(map_options: dict, *, flip_u: bool = False):
     from .envmap import default_yaw_deg, load_envmap
 
     envmap = map_options["envmap"]
+    if not str(envmap).startswith("builtin:") and not Path(envmap).is_file():
+        # a missing file is bad input naming the flag (it was "image X not found", exit 4)
+        raise InputError(f"--envmap {envmap}: no such file (give an .exr/.hdr map or builtin:NAME)")
     yaw = pick_env_yaw(map_options["env_yaw_deg"], map_options["yaw_deg_alias"])
     return load_envmap(
         envmap,
