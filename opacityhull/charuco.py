@@ -69,6 +69,19 @@ class CharucoSpec:
             raise ConfigError(f"charuco: marker_m={self.marker_m} must be in (0, square_m={self.square_m})")
         if not 0.0 <= self.tilt_deg < 90.0:
             raise ConfigError(f"charuco.tilt_deg: must be in [0, 90), got {self.tilt_deg}")
+        # checked here, not when the board is first drawn: a dry run accepted DICT_BOGUS and
+        # the capture failed after writing session.toml
+        import cv2
+
+        name = self.dictionary
+        if not (isinstance(name, str) and name.startswith("DICT_") and isinstance(getattr(cv2.aruco, name, None), int)):
+            known = sorted(
+                k for k in dir(cv2.aruco) if k.startswith("DICT_") and isinstance(getattr(cv2.aruco, k), int)
+            )
+            raise ConfigError(
+                f"charuco.dictionary: unknown ArUco dictionary {name!r}; expected one of OpenCV's, e.g. "
+                f"{', '.join(known[:4])} ... ({len(known)} in all)"
+            )
 
     @classmethod
     def from_dict(cls, d: dict, where: str = "charuco") -> "CharucoSpec":
@@ -79,7 +92,13 @@ class CharucoSpec:
         kw = dict(d)
         if "offset_m" in kw:
             kw["offset_m"] = tuple(float(v) for v in kw["offset_m"])
-        return cls(**kw)
+        try:
+            return cls(**kw)
+        except ConfigError as e:  # name the file and table (the checks say only "charuco.KEY")
+            msg = str(e)
+            raise ConfigError(
+                f"{where}{msg[len('charuco') :]}" if msg.startswith("charuco") else f"{where}: {msg}"
+            ) from None
 
     def to_dict(self) -> dict:
         """Every field, as :meth:`from_dict` reads it back (``offset_m`` a list, for TOML/JSON)."""

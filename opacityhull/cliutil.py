@@ -44,6 +44,8 @@ __all__ = [
     "check_choice",
     "check_model_dir",
     "check_orbit_fps",
+    "flag_names",
+    "terminate_as_interrupt",
 ]
 
 ProgressCallback = Callable[[int, int], None]
@@ -107,6 +109,26 @@ def check_choice(
     raise error(f"{flag} {value!r}: expected {listing}")
 
 
+@contextmanager
+def flag_names(fields: Mapping[str, str]) -> Iterator[None]:
+    """Name the CLI flags, not the config fields, in the bad-input errors raised inside
+    the block: ``fields`` maps a field (``hull_res``, ``RenderConfig.k``) to its flag
+    (``--hull-res``, ``--k``). The user typed the flag; the dataclass field means
+    nothing to them."""
+    import re
+
+    try:
+        yield
+    except InputError as e:
+        msg = str(e)
+        new = msg
+        for name in sorted(fields, key=len, reverse=True):
+            new = re.sub(rf"(?<![\w.-]){re.escape(name)}\b", fields[name], new)
+        if new == msg:
+            raise
+        raise type(e)(new) from None
+
+
 def check_model_dir(model: Path) -> None:
     """The MODEL argument: a path that is not there, or a file, is bad input (exit 2)."""
     if not model.exists():
@@ -128,7 +150,8 @@ def check_orbit_fps(orbit: int | None, fps: float) -> None:
 def console():
     from rich.console import Console
 
-    return Console(stderr=True)
+    # no emoji: user values reach the messages (`--view 0,:smile:` was shown as '0,😄')
+    return Console(stderr=True, emoji=False)
 
 
 def to_jsonable(obj: Any):
@@ -380,3 +403,52 @@ def step_progress(command: str) -> Iterator[tuple[Callable[[str], None], Callabl
         finish_step()
         bar.remove_task(tasks[-1])
     bar.console.print(f"{command}: done in {time.perf_counter() - t0:.1f} s", highlight=False)
+
+
+class terminate_as_interrupt:
+    """While active (main thread only), SIGTERM and SIGHUP raise :class:`Terminated`, a
+    KeyboardInterrupt: a scheduler or systemd stopping the job gets what Ctrl-C gets —
+    ``rig.safe()`` (feed hold, lights off, displays blank), the lock removed, a resumable
+    session — and the exit code 128 + signal (143, 129). Ctrl-C itself is untouched, and
+    so is a signal already ignored (``nohup`` ignores SIGHUP)."""
+
+    SIGNALS = ("SIGTERM", "SIGHUP")
+
+    def __init__(self):
+        self._old: dict = {}
+
+    def _raise(self, signum, frame):
+        import signal as _signal
+
+        # one is enough: further signals during the clean-up are ignored until we leave
+        for name in self.SIGNALS:
+            sig = getattr(_signal, name, None)
+            if sig is not None:
+                _signal.signal(sig, _signal.SIG_IGN)
+        raise Terminated(signum)
+
+    def __enter__(self):
+        import signal as _signal
+        import threading
+
+        if threading.current_thread() is not threading.main_thread():
+            return self
+        for name in self.SIGNALS:
+            sig = getattr(_signal, name, None)
+            if sig is None:
+                continue
+            try:
+                if _signal.getsignal(sig) is _signal.SIG_IGN:
+                    continue  # `nohup opacityhull capture ...` asked to ignore hangups: keep it so
+                self._old[sig] = _signal.signal(sig, self._raise)
+            except ValueError:  # not the main interpreter
+                pass
+        return self
+
+    def __exit__(self, *exc):
+        import signal as _signal
+
+        for sig, h in self._old.items():
+            _signal.signal(sig, h)
+        self._old.clear()
+        return False

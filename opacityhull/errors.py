@@ -164,9 +164,18 @@ def write_error(exc: BaseException, path=None) -> WriteError | None:
         why = _fs_problem(where)
     if why is None:
         return None
-    return WriteError(
-        f"cannot write {where}: {why} — free space or choose another --out; files already written are intact"
-    )
+    what = f"cannot write {where}" if where is not None else "cannot write the output"
+    return WriteError(f"{what}: {why} — {_advice(why)}; files already written are intact")
+
+
+def _advice(why: str, flag: str = "--out") -> str:
+    """What to do about ``why`` (one of :data:`WRITE_ERRNOS`' words): a read-only disk is
+    not helped by freeing space."""
+    if "read-only" in why:
+        return f"remount it read-write or choose another {flag}"
+    if "permission" in why or "not permitted" in why:
+        return f"choose a {flag} you may write to"
+    return f"free space or choose another {flag}"
 
 
 def check_writable(path, *, flag: str = "--out") -> None:
@@ -175,4 +184,4 @@ def check_writable(path, *, flag: str = "--out") -> None:
     an output that cannot be saved. Creates nothing."""
     why = _fs_problem(path)
     if why is not None:
-        raise WriteError(f"{flag} {path}: cannot write there: {why} — free space or choose another {flag}")
+        raise WriteError(f"{flag} {path}: cannot write there: {why} — {_advice(why, flag)}")

@@ -218,7 +218,8 @@ class _PoolExecutor(Executor):
 
     def __init__(self, kind: str, *, workers: int | None, retries: int, numba_threads: int | None):
         self.scheduler = kind
-        self.n_workers = int(workers or os.cpu_count() or 1)
+        # 0 is not "the default": `or` took --workers 0 for the core count
+        self.n_workers = int(os.cpu_count() or 1) if workers is None else int(workers)
         if self.n_workers < 1:
             raise InputError(f"--workers {workers}: expected at least 1")
         self.retries = int(retries)
@@ -419,6 +420,8 @@ def open_executor(
     Executor (close it, or use ``with``).
     """
     spec = parse_scheduler(scheduler)
+    if workers is not None and workers < 1:
+        raise InputError(f"--workers {workers}: expected at least 1 (leave it out for one per core)")
     if spec.kind == "serial":
         return SerialExecutor()
     if spec.kind in ("threads", "processes"):

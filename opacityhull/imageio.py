@@ -59,6 +59,88 @@ REC709_CHROMATICITIES = (0.64, 0.33, 0.30, 0.60, 0.15, 0.06, 0.3127, 0.3290)
 _CHANNEL_SETS = {1: "Y", 2: "YA", 3: "RGB", 4: "RGBA"}
 
 
+_LIBRARY_LOCK = __import__("threading").Lock()
+#: Lines the image libraries print on a damaged file (OpenEXR's C core and its Python
+#: binding, libjpeg, libpng, OpenCV's log): they go into the error message instead.
+_LIBRARY_NOISE = ("EXR_ERR_", "Warning: Exception raised", "libpng", "JPEG", "[ERROR:", "[ WARN:", "imread_")
+
+
+@contextmanager
+def library_output() -> Iterator[list[str]]:
+    """Capture what C libraries print on file descriptors 1 and 2 inside the block, so a
+    damaged file gives one clean error and not raw lines (``EXR_ERR_BAD_CHUNK_LEADER``,
+    ``[ERROR:0@0.013] ... RGBE read error``, ``Premature end of JPEG file``) before it.
+
+    Yields a list that receives the library's lines (for the error message). Anything
+    else written meanwhile (another thread's progress) is written back to stderr. One
+    block at a time (the descriptors are process-wide)."""
+    import sys
+    import tempfile
+
+    lines: list[str] = []
+    with _LIBRARY_LOCK:
+        try:
+            sys.stdout.flush()
+            sys.stderr.flush()
+            saved = (os.dup(1), os.dup(2))
+        except (OSError, ValueError, AttributeError):  # no real descriptors (embedded): nothing to capture
+            yield lines
+            return
+        with tempfile.TemporaryFile() as tmp:
+            os.dup2(tmp.fileno(), 1)
+            os.dup2(tmp.fileno(), 2)
+            py_out, py_err = sys.stdout, sys.stderr
+            try:
+                yield lines
+            finally:
+                # Python-level prints of the bindings (pybind's "Warning: ...") sit in
+                # sys.stdout's buffer: flush them into the capture before restoring
+                for stream in (py_out, py_err):
+                    try:
+                        stream.flush()
+                    except (OSError, ValueError, AttributeError):
+                        pass
+                try:
+                    import ctypes
+
+                    ctypes.CDLL(None).fflush(None)
+                except (OSError, AttributeError):
+                    pass
+                os.dup2(saved[0], 1)
+                os.dup2(saved[1], 2)
+                os.close(saved[0])
+                os.close(saved[1])
+                tmp.seek(0)
+                other = []
+                for line in tmp.read().decode("utf-8", "replace").splitlines():
+                    (lines if any(k in line for k in _LIBRARY_NOISE) else other).append(line)
+                if other:
+                    os.write(2, ("\n".join(other) + "\n").encode())
+                for line in lines:
+                    log.debug("image library: %s", line)
+
+
+def _first_noise(lines: list[str]) -> str:
+    """The most telling captured library line (OpenEXR's error code first), for a message."""
+    best = [ln for ln in lines if "EXR_ERR_" in ln] or lines
+    return f": {best[0].strip()}" if best else ""
+
+
+def _check_jpeg_complete(path: Path) -> None:
+    """A JPEG cut short decodes with grey or repeated rows and only libjpeg's warning
+    "Premature end of JPEG file": refuse it when the end-of-image marker is missing."""
+    with open(path, "rb") as f:
+        head = f.read(2)
+        if head != b"\xff\xd8":
+            return  # not a JPEG by content: OpenCV decides (or fails) by its own sniffing
+        f.seek(0, os.SEEK_END)
+        n = f.tell()
+        f.seek(max(0, n - 4096))
+        tail = f.read().rstrip(b"\x00")  # some cameras pad after the marker
+    if not tail.endswith(b"\xff\xd9"):
+        raise FormatError(f"{path}: truncated JPEG ({n} bytes, no end-of-image marker); copy the file again")
+
+
 class HalfOverflowWarning(RuntimeWarning):
     """Values above the half-float range were clamped before a half EXR write."""
 
@@ -79,9 +161,13 @@ def fsync_dir(directory) -> None:
 
 
 @contextmanager
-def replacing_dir(out) -> Iterator[Path]:
+def replacing_dir(out, *, command: str | None = None) -> Iterator[Path]:
     """A fresh temporary folder next to ``out`` to write into; on success it replaces ``out``
-    (removing what was there), on error it is removed and ``out`` is left as it was."""
+    (removing what was there), on error it is removed and ``out`` is left as it was.
+
+    With ``command`` the folder gets the list of the files written (``outputs.WRITTEN``),
+    so a later ``--overwrite`` can tell its own output from anything else: call
+    :func:`opacityhull.outputs.check_replaceable` before the work starts."""
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.with_name(f".{out.name}.tmp{os.getpid()}")
@@ -92,6 +178,10 @@ def replacing_dir(out) -> Iterator[Path]:
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+    if command is not None:
+        from .outputs import write_written_manifest
+
+        write_written_manifest(tmp, command=command)
     if out.exists():
         shutil.rmtree(out)
     os.replace(tmp, out)
@@ -237,11 +327,17 @@ def _read_exr_channels(path: Path) -> dict[str, np.ndarray]:
 
     if not path.is_file():
         raise FormatError(f"image {path} not found")
+    noise: list[str] = []
     try:
-        with OpenEXR.File(str(path), separate_channels=True) as f:
-            return {k: np.asarray(v.pixels) for k, v in f.channels().items()}
+        with library_output() as noise:
+            with OpenEXR.File(str(path), separate_channels=True) as f:
+                chans = {k: np.asarray(v.pixels) for k, v in f.channels().items()}
     except Exception as e:  # OpenEXR raises bare exceptions on truncated files; re-raised, named
-        raise FormatError(f"{path}: not a readable EXR file ({e})") from None
+        raise FormatError(f"{path}: not a readable EXR file ({e}{_first_noise(noise)})") from None
+    if noise or not chans or any(v.dtype == object or v.ndim != 2 for v in chans.values()):
+        # the binding may warn and hand back partial pixel data instead of raising
+        raise FormatError(f"{path}: damaged EXR file{_first_noise(noise) or ' (no pixel data)'}")
+    return chans
 
 
 def _write_exr_channels(path, chans: dict, header) -> None:
@@ -288,11 +384,13 @@ def read_exr_header(path) -> dict:
     path = Path(path)
     if not path.is_file():
         raise FormatError(f"image {path} not found")
+    noise: list[str] = []
     try:
-        with OpenEXR.File(str(path), header_only=True) as f:
-            return dict(f.header())
+        with library_output() as noise:
+            with OpenEXR.File(str(path), header_only=True) as f:
+                return dict(f.header())
     except Exception as e:
-        raise FormatError(f"{path}: not a readable EXR file ({e})") from None
+        raise FormatError(f"{path}: not a readable EXR file ({e}{_first_noise(noise)})") from None
 
 
 def read_exr(path, *, channels: str | None = None) -> np.ndarray:
@@ -328,9 +426,19 @@ def read_hdr(path) -> np.ndarray:
     path = Path(path)
     if not path.is_file():
         raise FormatError(f"image {path} not found")
-    bgr = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if bgr is None or bgr.ndim != 3:
-        raise FormatError(f"{path}: not a readable Radiance .hdr file")
+    with open(path, "rb") as f:
+        magic = f.read(10)
+    # OpenCV picks the codec by content: a JPEG renamed .hdr came back as 8-bit pixels,
+    # taken as radiance
+    if not (magic.startswith(b"#?RADIANCE") or magic.startswith(b"#?RGBE")):
+        raise FormatError(
+            f"{path}: not a Radiance .hdr file (it starts with {magic[:4]!r}, not '#?RADIANCE'); "
+            "convert it to .hdr or .exr (linear radiance)"
+        )
+    with library_output() as noise:
+        bgr = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if bgr is None or bgr.ndim != 3 or bgr.dtype != np.float32:
+        raise FormatError(f"{path}: not a readable Radiance .hdr file (truncated or damaged{_first_noise(noise)})")
     return np.ascontiguousarray(bgr[:, :, ::-1].astype(np.float32))
 
 
@@ -397,9 +505,11 @@ def read_png(path, *, linear: bool = False) -> np.ndarray:
     path = Path(path)
     if not path.is_file():
         raise FormatError(f"image {path} not found")
-    q = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    _check_jpeg_complete(path)
+    with library_output() as noise:
+        q = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if q is None:
-        raise FormatError(f"{path}: not a readable PNG/JPEG file")
+        raise FormatError(f"{path}: not a readable PNG/JPEG file{_first_noise(noise)}")
     if q.ndim == 2:
         q = q[:, :, None]
     if q.shape[2] == 3:

@@ -470,8 +470,11 @@ def read_reflectance_pca(path, keys: Sequence[str], *, shape: tuple[int, int]) -
     H, W = (int(x) for x in shape)
     if not path.is_file():
         raise FormatError(f"{path}: PCA reflectance file not found")
+    from .imageio import library_output
+
+    noise: list[str] = []
     try:
-        with OpenEXR.File(str(path), separate_channels=True) as f:
+        with library_output() as noise, OpenEXR.File(str(path), separate_channels=True) as f:
             n_parts = len(f.parts)
             h = dict(f.header(0))
             basis_ch = {k: np.asarray(v.pixels) for k, v in f.channels(0).items()}
@@ -479,6 +482,8 @@ def read_reflectance_pca(path, keys: Sequence[str], *, shape: tuple[int, int]) -
             h1 = dict(f.header(1)) if n_parts > 1 else {}
     except Exception as e:  # OpenEXR raises bare exceptions on truncated files
         raise FormatError(f"{path}: not a readable EXR file ({e})") from None
+    if noise:  # the binding warned and returned partial pixel data
+        raise FormatError(f"{path}: damaged EXR file: {noise[0].strip()}")
     if h.get("reflectanceStorage") != "pca":
         raise FormatError(
             f"{path}: header reflectanceStorage is {h.get('reflectanceStorage')!r}, expected 'pca' "

@@ -234,7 +234,9 @@ class RigGeometry:
         names = set()
         raw_cams = g.get("cameras")
         if not raw_cams:
-            raise ConfigError(f"{where}.cameras: at least one [[{where}.cameras]] entry is required")
+            # the TOML table is [[geometry.cameras]] wherever `where` says the file is
+            table = where.rsplit(": ", 1)[-1]
+            raise ConfigError(f"{where}.cameras: at least one [[{table}.cameras]] entry is required")
         for i, c in enumerate(raw_cams):
             w = f"{where}.cameras[{i}]"
             _check_keys(

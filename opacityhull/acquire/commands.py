@@ -68,7 +68,10 @@ def rig_static(spec: str):
 
     if spec.startswith("sim:"):
         from ..sim import simrig
+        from ..sim.scenes import load_scene
 
+        # the scene too, as the capture will read it: a dry run blessed sim:builtin:nosuch
+        load_scene(simrig.parse_sim_spec(spec)[0])
         if hasattr(simrig, "sim_rig_config"):
             cfg = simrig.sim_rig_config(spec)
         else:  # the simulator offers no static description: build its rig but do not open it
@@ -221,6 +224,10 @@ def register(app, groups) -> None:
             return
         if out is None:
             raise ConfigError("--out: a session folder is required (except with --dry-run)")
+        from ..outputs import check_output
+
+        files = {"--rig": rig.split("@", 1)[-1].split("?", 1)[0] if rig.startswith("sim:") else rig, "--plan": plan}
+        check_output(out, {k: v for k, v in files.items() if not v.startswith("builtin:") and Path(v).is_file()})
         from rich.markup import escape
 
         from .runner import run_capture

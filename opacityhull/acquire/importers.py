@@ -73,6 +73,7 @@ from ..camera import Camera, camera_from_nerfstudio, colmap_model_kind, read_col
 from ..errors import FormatError, InputError, OpacityHullError
 from ..imageio import fsync_dir, read_exr, read_png
 from ..riggeometry import view_id
+from ..outputs import check_output
 from ..session import SessionWriter, shot_key
 
 try:  # the shared write-failure mapping (errors.py); older trees lack it
@@ -194,6 +195,7 @@ class _Imported:
     views: list[_View]
     meta: dict  # the importer's own keys of the session's [import] table
     report: dict  # the importer's own keys of the returned report (after the common ones)
+    how_to_mask: str = "give masks or RGBA images"  # how the user supplies a matte for this format
 
 
 # --------------------------------------------------------------------------- staging
@@ -375,6 +377,12 @@ def _write_session(
                             "pass --allow-full-masks (such a view carves nothing)"
                         )
                     full_views.append(v.what)
+            if alpha is None:
+                # `build` needs a silhouette per view: without one it failed later with exit 4
+                raise InputError(
+                    f"{v.image}: {v.what} has no matte: the image has no alpha channel and no mask was given; "
+                    f"`build` needs one silhouette per view — {found.how_to_mask}"
+                )
             _add_view_image(w, "lightfield", i, rgb, v.source, exposure_s=1.0)
             if alpha is not None:
                 _add_view_image(w, "mask", i, np.clip(alpha, 0, 1)[..., None], str(matte_file.name))
@@ -433,8 +441,13 @@ def import_colmap(
         raise InputError(f"--images {images_dir}: not a folder")
     if masks_dir is not None and not Path(masks_dir).is_dir():
         raise InputError(f"--masks {masks_dir}: not a folder")
+    check_output(out, {"--model": model_dir, "--images": images_dir, "--masks": masks_dir}, replaces=True)
     _check_out(out)
     kind = colmap_model_kind(model_dir)
+    if kind == "binary":
+        from ..colmapbin import check_colmap_binary
+
+        check_colmap_binary(model_dir)  # pycolmap reads past the end of a truncated file
     entries = read_colmap_model(model_dir)
     if not entries:
         raise FormatError(f"--model {model_dir}: the {kind} model lists no registered images")
@@ -458,7 +471,15 @@ def import_colmap(
         "images": str(images_dir.resolve()),
         "masks": str(Path(masks_dir).resolve()) if masks_dir is not None else "",
     }
-    found = _Imported(kind="colmap", source=str(model_dir), views=views, meta=meta, report={"model_format": kind})
+    found = _Imported(
+        kind="colmap",
+        source=str(model_dir),
+        views=views,
+        meta=meta,
+        report={"model_format": kind},
+        how_to_mask="pass --masks DIR (one mask per image, named like it, e.g. IMG.png) or use RGBA images "
+        "whose alpha is the matte",
+    )
     return _write_session(out, found, allow_full_masks=allow_full_masks, progress=progress)
 
 
@@ -520,6 +541,7 @@ def import_nerfstudio(
     out = Path(out)
     if not path.is_file():
         raise InputError(f"--transforms {path}: no such file (expected a nerfstudio transforms.json)")
+    check_output(out, {"--transforms": path, "--transforms' folder (its images)": path.parent}, replaces=True)
     _check_out(out)
     try:
         meta = json.loads(path.read_text(encoding="utf-8"))
@@ -648,8 +670,39 @@ def import_nerfstudio(
         "applied_transform_undone": A is not None,
     }
     report = {"applied_transform_undone": A is not None}
-    found = _Imported(kind="nerfstudio", source=str(path), views=views, meta=imeta, report=report)
+    _check_duplicate_frames(path, views)
+    found = _Imported(
+        kind="nerfstudio",
+        source=str(path),
+        views=views,
+        meta=imeta,
+        report=report,
+        how_to_mask="add a mask_path to every frame of transforms.json, or use RGBA images whose alpha is the matte",
+    )
     return _write_session(out, found, allow_full_masks=allow_full_masks, progress=progress)
+
+
+def _check_duplicate_frames(path: Path, views: list[_View]) -> None:
+    """Two frames of one image file with different cameras cannot both be right: refuse
+    (an exact repeat is harmless and kept)."""
+    first: dict[Path, tuple[int, _View]] = {}
+    for i, v in enumerate(views):
+        key = v.image.resolve()
+        if key not in first:
+            first[key] = (i, v)
+            continue
+        j, u = first[key]
+        a, b = u.cam, v.cam
+        same = (
+            np.allclose(a.world_from_cam, b.world_from_cam, rtol=0, atol=1e-9)
+            and np.allclose(a.K, b.K, rtol=0, atol=1e-9)
+            and np.allclose(a.dist, b.dist, rtol=0, atol=1e-12)
+        )
+        if not same:
+            raise FormatError(
+                f"{path}: frames {j} and {i} both use the image {v.source!r} with different cameras "
+                "(pose or intrinsics); one photograph has one camera — remove the wrong frame"
+            )
 
 
 def _nerf_focal_px(num: dict, axis: str, size_px: float, where: str) -> float | None:

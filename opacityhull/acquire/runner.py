@@ -40,6 +40,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from .. import __version__
+from ..cliutil import terminate_as_interrupt
 from ..errors import (
     CaptureInterrupted,
     ConfigError,
@@ -790,6 +791,12 @@ def _capture(
         todo.append((st, pend))
     n_done = sum(1 for st in stages for s in st.shots for iid in s.ids() if iid in done)
 
+    from ..errors import WRITE_ERRNOS, WriteError, _advice, _fs_problem
+
+    why = _fs_problem(out)
+    if why is not None and why != WRITE_ERRNOS[28]:
+        # a read-only disk has no free space either: say what is really wrong (exit 2)
+        raise WriteError(f"--out {out}: cannot write there: {why} — {_advice(why)}; nothing was written")
     free = _free_bytes(out)
     margin = 1 << 20
     if need_bytes + margin > free:
@@ -1067,55 +1074,6 @@ def _check_resume_source(sess: Session, rig_source: str, out: Path) -> None:
             f"--rig {rig_source}: {out / 'session.toml'} was captured with rig_source = {old!r}; "
             "resume it with the same --rig, or capture into a new folder"
         )
-
-
-class terminate_as_interrupt:
-    """While active (main thread only), SIGTERM and SIGHUP raise :class:`Terminated`, a
-    KeyboardInterrupt: a scheduler or systemd stopping the job gets what Ctrl-C gets —
-    ``rig.safe()`` (feed hold, lights off, displays blank), the lock removed, a resumable
-    session — and the exit code 128 + signal (143, 129). Ctrl-C itself is untouched, and
-    so is a signal already ignored (``nohup`` ignores SIGHUP)."""
-
-    SIGNALS = ("SIGTERM", "SIGHUP")
-
-    def __init__(self):
-        self._old: dict = {}
-
-    def _raise(self, signum, frame):
-        import signal as _signal
-
-        # one is enough: further signals during the clean-up are ignored until we leave
-        for name in self.SIGNALS:
-            sig = getattr(_signal, name, None)
-            if sig is not None:
-                _signal.signal(sig, _signal.SIG_IGN)
-        raise Terminated(signum)
-
-    def __enter__(self):
-        import signal as _signal
-        import threading
-
-        if threading.current_thread() is not threading.main_thread():
-            return self
-        for name in self.SIGNALS:
-            sig = getattr(_signal, name, None)
-            if sig is None:
-                continue
-            try:
-                if _signal.getsignal(sig) is _signal.SIG_IGN:
-                    continue  # `nohup opacityhull capture ...` asked to ignore hangups: keep it so
-                self._old[sig] = _signal.signal(sig, self._raise)
-            except ValueError:  # not the main interpreter
-                pass
-        return self
-
-    def __exit__(self, *exc):
-        import signal as _signal
-
-        for sig, h in self._old.items():
-            _signal.signal(sig, h)
-        self._old.clear()
-        return False
 
 
 def _check_resume_matches(sess: Session, plan: CapturePlan, geometry, out: Path) -> None:

@@ -16,6 +16,7 @@ from rich.markup import escape
 from ..cliutil import check_choice, check_model_dir, cli_errors, console, emit, option_group, progress
 from ..cliutil import scheduler_options, step_progress
 from ..errors import InputError
+from ..outputs import check_output
 from ..relight.commands import _config as _relight_config
 from ..relight.commands import _load_map, _shared_options
 from ..render.commands import _RENDER_OPTIONS, _SCHEDULER_HELP, open_model_arg
@@ -74,6 +75,8 @@ def register(app, groups) -> None:
         from .runner import default_out, run_loo
 
         open_model_arg(model)
+        if out is not None:
+            check_output(out, {"MODEL": model})
         if out is None:
             out = default_out(model, "loo")
         cfg = _render_config(**render_options)
@@ -157,6 +160,8 @@ def register(app, groups) -> None:
             raise InputError(f"--spp {spp}: expected at least 1 sample per pixel")
         if max_views is not None and max_views < 1:
             raise InputError(f"--max-views {max_views}: expected at least 1")
+        if out is not None:
+            check_output(out, {"MODEL": model, "--envmap": map_options["envmap"]})
         if out is None:
             out = default_out(model, "relight")
         cfg = _relight_config(**config_options)

@@ -6,7 +6,7 @@ from pathlib import Path
 
 import typer
 
-from ..cliutil import JsonSummaryFlag, ModelDirArg, cli_errors, console, emit
+from ..cliutil import JsonSummaryFlag, ModelDirArg, check_model_dir, cli_errors, console, emit
 
 
 def register(app, groups) -> None:
@@ -29,6 +29,7 @@ def register(app, groups) -> None:
         """Export a model for other tools: nerfstudio, COLMAP (sparse/0 text+binary), PLY (points + 3DGS splats), OpenCV YAML."""
         from .formats import FORMATS, export_model
 
+        check_model_dir(model)
         if fmt not in FORMATS:
             from ..errors import InputError
 

@@ -24,6 +24,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..imageio import replacing_dir
+from ..outputs import check_output, check_replaceable
 from ..model import OpacityHullModel
 
 log = logging.getLogger(__name__)
@@ -126,7 +127,7 @@ def export_nerfstudio_model(model: OpacityHullModel, out: Path, *, alpha: Litera
 
 
 def export_colmap_model(model: OpacityHullModel, out: Path, *, max_points: int = 50000) -> dict:
-    """COLMAP dataset: ``images/<view>.png`` (8-bit sRGB RGB over black) and ``sparse/0``
+    """COLMAP dataset: ``images/<view>.png`` (8-bit sRGB RGBA, straight colour, alpha the matte) and ``sparse/0``
     (text and binary, written by pycolmap).
 
     points3D: up to ``max_points`` surfels (evenly spaced in file order), colour = mean
@@ -147,7 +148,9 @@ def export_colmap_model(model: OpacityHullModel, out: Path, *, max_points: int =
     names = [f"{v.id}.png" for v in model.views]
     images = _views(model)
     for v, rgba in zip(model.views, images):
-        _write_png_u8(out / "images" / f"{v.id}.png", rgba[..., :3] * rgba[..., 3:4])
+        # RGBA (straight colour, alpha = the matte) as the nerfstudio export: RGB over
+        # black dropped the matte, so the export could not be imported and built again
+        _write_png_u8(out / "images" / f"{v.id}.png", rgba)
     sparse = out / "sparse" / "0"
     write_colmap_text(sparse, cams, names, share_intrinsics=[v.camera_index for v in model.views])
     rec = pycolmap.Reconstruction(str(sparse))
@@ -308,18 +311,18 @@ def export_model(model_dir, fmt: str, out, *, overwrite: bool = False, **options
     """
     if fmt not in FORMATS:
         raise InputError(f"--format {fmt!r}: expected one of {', '.join(FORMATS)}")
-    model = OpacityHullModel.open(model_dir)
     out = Path(out)
-    if out.exists() and (not out.is_dir() or any(out.iterdir())):
-        if not overwrite:
-            raise InputError(f"--out {out}: exists and is not empty (pass --overwrite to replace it)")
+    # before anything is read: `export M --out M --overwrite` deleted the model
+    check_output(out, {"MODEL": model_dir}, replaces=True)
+    check_replaceable(out, command="export", overwrite=overwrite)
+    model = OpacityHullModel.open(model_dir)
     fn = {
         "nerfstudio": export_nerfstudio_model,
         "colmap": export_colmap_model,
         "ply": export_ply,
         "opencv": export_opencv,
     }[fmt]
-    with replacing_dir(out) as tmp:
+    with replacing_dir(out, command="export") as tmp:
         summary = fn(model, tmp, **options)
     summary = {k: (out / Path(v).relative_to(tmp) if isinstance(v, Path) else v) for k, v in summary.items()}
     return {"format": fmt, "model": str(Path(model_dir)), "out": str(out), **summary}

@@ -2,22 +2,14 @@
 
 from __future__ import annotations
 
+from contextlib import contextmanager
 from pathlib import Path
-from typing import Annotated, List, Literal, Optional, get_args
+from typing import Annotated, Iterator, List, Literal, Optional, get_args
 
 import typer
 
-from ..cliutil import (
-    JsonFlag,
-    check_choice,
-    cli_errors,
-    console,
-    emit,
-    option_group,
-    scheduler_options,
-    step_progress,
-    writing_to,
-)
+from ..cliutil import JsonFlag, option_group, scheduler_options
+from ..cliutil import check_choice, cli_errors, console, emit, flag_names, step_progress, writing_to
 from ..errors import ConfigError
 
 __all__ = ["register"]
@@ -90,6 +82,40 @@ def check_build_paths(session: Path, out: Path) -> None:
                 raise InputError(f"--out {out}: is inside another session folder {p}")
             break
     check_writable(out)
+
+
+#: BuildConfig / MattingOptions fields as `build`'s flags name them (for messages).
+BUILD_FLAGS = {
+    "hull_res": "--hull-res",
+    "bounds_m": "--bounds",
+    "alpha_threshold": "--alpha-threshold",
+    "carve_tolerance": "--carve-tolerance",
+    "exclude_views": "--exclude-view",
+    "surfel_oversample": "--oversample",
+    "matting max_alpha_std": "--max-alpha-std",
+    "max_alpha_std": "--max-alpha-std",
+    "matting_drift": "--matting-drift",
+    "pca_error": "--pca-error",
+    "pca_rank": "--pca-rank",
+    "pca_block": "--pca-block",
+}
+
+
+@contextmanager
+def _terminated_says_resume() -> Iterator[None]:
+    """A SIGTERM'd (or SIGHUP'd) build exited 143 without a word: say how to go on, as
+    ``capture`` does. The exit code stays 128 + the signal (cli_errors)."""
+    from ..cliutil import terminate_as_interrupt
+    from ..errors import Terminated
+
+    try:
+        with terminate_as_interrupt():
+            yield
+    except Terminated as e:
+        console().print(
+            f"[yellow]{e}[/]: the steps finished so far are kept; `build --resume` continues", highlight=False
+        )
+        raise
 
 
 def _parse_image_lists(args, flags) -> dict:
@@ -304,8 +330,73 @@ def register(app, groups) -> None:
             raise ConfigError(f"--pca-error {pca_error}: expected a relative error in (0, 1), e.g. 0.01")
         # options left out keep the config dataclasses' defaults (one place for them)
         d, dm = BuildConfig(), MattingOptions()
-        matting = MattingOptions(max_alpha_std=dm.max_alpha_std if max_alpha_std is None else max_alpha_std)
-        cfg = BuildConfig(
+        with flag_names(BUILD_FLAGS):
+            matting = MattingOptions(max_alpha_std=dm.max_alpha_std if max_alpha_std is None else max_alpha_std)
+            cfg = _build_config(
+                d,
+                hull_res=hull_res,
+                carve_tolerance=carve_tolerance,
+                drift_mode=drift_mode,
+                cameras=cameras,
+                backdrops=backdrops,
+                alpha_threshold=alpha_threshold,
+                oversample=oversample,
+                exclude_view=exclude_view,
+                bounds=bounds,
+                matting=matting,
+                no_reflectance=no_reflectance,
+                no_pictures=no_pictures,
+                require_all_cameras=require_all_cameras,
+                refine_mode=refine_mode,
+                storage_type=storage_type,
+                refl_storage=refl_storage,
+                pca_rank=pca_rank,
+                pca_error=pca_error,
+                pca_block=pca_block,
+            )
+        with step_progress("build") as (on_step, prog), flag_names(BUILD_FLAGS), _terminated_says_resume():
+            with open_executor(**executor) as ex, writing_to(out):
+                report = build_model(
+                    session,
+                    out,
+                    config=cfg,
+                    ground_truth=ground_truth,
+                    progress=prog,
+                    on_step=on_step,
+                    resume=resume,
+                    executor=ex,
+                    memory_gb=memory_gb,
+                )
+        summary = report.summary()
+        summary["notes"] = list(report.notes)
+        emit(summary, as_json, _human)
+
+    def _build_config(
+        d,
+        *,
+        hull_res,
+        carve_tolerance,
+        drift_mode,
+        cameras,
+        backdrops,
+        alpha_threshold,
+        oversample,
+        exclude_view,
+        bounds,
+        matting,
+        no_reflectance,
+        no_pictures,
+        require_all_cameras,
+        refine_mode,
+        storage_type,
+        refl_storage,
+        pca_rank,
+        pca_error,
+        pca_block,
+    ):
+        from .build import BuildConfig
+
+        return BuildConfig(
             hull_res=hull_res,
             carve_tolerance=carve_tolerance,
             matting_drift=drift_mode,
@@ -326,22 +417,6 @@ def register(app, groups) -> None:
             pca_error=d.pca_error if pca_error is None else pca_error,
             pca_block=d.pca_block if pca_block is None else (pca_block or None),
         )
-        with step_progress("build") as (on_step, prog):
-            with open_executor(**executor) as ex, writing_to(out):
-                report = build_model(
-                    session,
-                    out,
-                    config=cfg,
-                    ground_truth=ground_truth,
-                    progress=prog,
-                    on_step=on_step,
-                    resume=resume,
-                    executor=ex,
-                    memory_gb=memory_gb,
-                )
-        summary = report.summary()
-        summary["notes"] = list(report.notes)
-        emit(summary, as_json, _human)
 
     @app.command("matte", context_settings={"allow_extra_args": True, "ignore_unknown_options": True})
     @cli_errors

@@ -35,6 +35,10 @@ __all__ = ["matte_files", "load_rgb", "matte_stats", "IDENTICAL_BACKDROP_LEVEL"]
 IDENTICAL_BACKDROP_LEVEL = 2e-3
 
 
+#: The files ``matte`` writes into ``--out``.
+MATTE_FILES = ("alpha.png", "foreground_premul.png", "foreground_premul.exr", "composite.png", "matte.json")
+
+
 def load_rgb(path, flag: str) -> np.ndarray:
     """(H, W, 3) float32 linear RGB of an image file; errors name the flag and the file."""
     from ..imageio import read_image
@@ -94,6 +98,10 @@ def matte_files(
         )
     if len(obj) < 2:
         raise InputError(f"triangulation matting needs at least 2 (object, backdrop) pairs, got {len(obj)}")
+    from ..outputs import check_output
+
+    inputs = {f"--object {p}": p for p in obj} | {f"--backdrop {p}": p for p in back} | {"--over": over}
+    check_output(out_dir, inputs, writes=MATTE_FILES)
     # MattingOptions checks drift against DriftMode (ConfigError naming the value)
     opts = MattingOptions(
         drift=cast(Any, drift), max_alpha_std=MattingOptions().max_alpha_std if max_alpha_std is None else max_alpha_std

@@ -12,6 +12,7 @@ import typer
 from ..cliutil import JsonSummaryFlag, env_yaw_options, option_group, pick_env_yaw
 from ..cliutil import check_choice, check_model_dir, check_orbit_fps, cli_errors, console, emit, progress, writing_to
 from ..errors import InputError, check_writable
+from ..outputs import check_output
 from .basis import KernelConfig
 from .relit import RelightConfig
 
@@ -70,6 +71,9 @@ def _load_map(map_options: dict, *, flip_u: bool = False):
     from .envmap import default_yaw_deg, load_envmap
 
     envmap = map_options["envmap"]
+    if not str(envmap).startswith("builtin:") and not Path(envmap).is_file():
+        # a missing file is bad input naming the flag (it was "image X not found", exit 4)
+        raise InputError(f"--envmap {envmap}: no such file (give an .exr/.hdr map or builtin:NAME)")
     yaw = pick_env_yaw(map_options["env_yaw_deg"], map_options["yaw_deg_alias"])
     return load_envmap(
         envmap,
@@ -153,6 +157,7 @@ def register(app, groups) -> None:
         check_orbit_fps(orbit, fps)
         if exposure is not None and not (math.isfinite(exposure) and exposure > 0):
             raise InputError(f"--exposure {exposure}: expected a multiplier > 0 (omit it for automatic exposure)")
+        check_output(out, {"MODEL": model, "--envmap": map_options["envmap"]})
         check_writable(out)
         cfg = _config(**config_options)
         v = parse_view_spec(view) if view else None

@@ -232,8 +232,10 @@ def _exr_is_half(path: Path) -> bool:
     """Whether the EXR stores half floats; only chooses the wording of the Inf error."""
     import OpenEXR
 
+    from ..imageio import library_output
+
     try:
-        with OpenEXR.File(str(path), separate_channels=True) as f:
+        with library_output(), OpenEXR.File(str(path), separate_channels=True) as f:
             return any(np.asarray(c.pixels).dtype == np.float16 for c in f.channels().values())
     except (OSError, RuntimeError, ValueError) as e:  # OpenEXR's bare RuntimeError on odd files
         log.debug("%s: cannot read the channel types (%s); Inf reported without the half-float hint", path, e)

@@ -8,7 +8,7 @@ from typing import Annotated, List, Optional, get_args
 
 import typer
 
-from ..cliutil import ModelDirArg, env_yaw_options, option_group, pick_env_yaw, scheduler_options
+from ..cliutil import ModelDirArg, env_yaw_options, flag_names, option_group, pick_env_yaw, scheduler_options
 from ..cliutil import (
     check_choice,
     check_model_dir,
@@ -20,6 +20,7 @@ from ..cliutil import (
     writing_to,
 )
 from ..errors import InputError
+from ..outputs import check_output
 from .config import RenderConfig, Shading
 
 _D = RenderConfig()
@@ -27,9 +28,26 @@ _D = RenderConfig()
 
 def _config(k, filter_var, epsilon_z, cutoff, sigma_radius, shading=_D.shading):
     shading = check_choice("--shading", shading, get_args(Shading))
-    return RenderConfig(
-        k=k, filter=filter_var, epsilon_z=epsilon_z, cutoff_sigma=cutoff, sigma_radius=sigma_radius, shading=shading
-    )
+    with flag_names(RENDER_FLAGS):
+        return RenderConfig(
+            k=k, filter=filter_var, epsilon_z=epsilon_z, cutoff_sigma=cutoff, sigma_radius=sigma_radius, shading=shading
+        )
+
+
+#: RenderConfig's fields as the flags of `render` and `eval loo` name them (for messages).
+RENDER_FLAGS = {
+    f"{p}{k}": v
+    for p in ("RenderConfig.", "")
+    for k, v in {
+        "k": "--k",
+        "filter": "--filter",
+        "epsilon_z": "--epsilon-z",
+        "cutoff_sigma": "--cutoff",
+        "sigma_radius": "--sigma-radius",
+        "shading": "--shading",
+    }.items()
+    if p or len(k) > 1
+}
 
 
 _K_HELP = "ULR neighbourhood: the k nearest visible views by angle (k-1 blend; the k-th is the threshold)."
@@ -113,6 +131,7 @@ def check_render_args(
     exclude=(),
     out: Path | None = None,
     budget=None,
+    background: str | None = None,
 ) -> None:
     """Reject bad ``render`` options before anything is rendered or written (exit 2),
     naming the flag, the value and what is expected."""
@@ -132,10 +151,20 @@ def check_render_args(
     check_choice("--background-kind", background_kind, BACKGROUND_KINDS, one_of=True)
     m = open_model_arg(model)
     if out is not None:
+        check_output(out, {"MODEL": model, "--background": background})
         check_writable(out)
+    from .cameras import resize_camera
+
+    # the largest frame any camera choice gives: captured views and orbits keep each
+    # view's aspect (`--height` alone scales the width too), a look-at camera takes the
+    # first view's width when only --height is given
     ref = m.views[0].camera
-    w = int(width) if width else ref.width
-    h = int(height) if height else (ref.height if not width else max(1, round(ref.height * w / ref.width)))
+    sizes = [(c.width, c.height) for c in (resize_camera(v.camera, width, height) for v in m.views)]
+    lw = int(width) if width else ref.width
+    sizes.append(
+        (lw, int(height) if height else (ref.height if not width else max(1, round(ref.height * lw / ref.width))))
+    )
+    w, h = max(sizes, key=lambda s: s[0] * s[1])
     if w * h > MAX_RENDER_PIXELS:
         raise InputError(
             f"--width/--height: {w} x {h} = {w * h / 1e6:.0f} Mpx is more than the "
@@ -199,6 +228,7 @@ def register(app, groups) -> None:
             exclude=exclude,
             out=out,
             budget=budget,
+            background=background,
         )
 
         from .cameras import parse_look_at, parse_view_spec

@@ -45,6 +45,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..imageio import replacing_dir
+from ..outputs import check_output, check_replaceable
 from ..model import OpacityHullModel
 from .octree_code import decode_positions, encode_offsets, encode_positions, median_spacing, pack
 
@@ -162,6 +163,7 @@ def write_bundle(
     bg = np.asarray(background, float).reshape(-1)
     if bg.shape != (3,) or not np.all(np.isfinite(bg)):
         raise InputError(f"background {background!r}: expected three finite numbers")
+    check_output(out, {"MODEL": model_dir, "--envmap": envmap}, replaces=True)
     model = OpacityHullModel.open(model_dir)
     s = model.surfels
     V = len(model.views)
@@ -189,14 +191,10 @@ def write_bundle(
         if not np.all(np.isfinite(img)) or (img < 0).any():
             raise InputError(f"--envmap {envmap}: the map has non-finite or negative texels")
     out = Path(out)
-    if out.exists() and (not out.is_dir() or any(out.iterdir())):
-        # replace only an earlier bundle, never a folder of something else
-        if not overwrite or not _is_bundle(out):
-            raise InputError(
-                f"--out {out}: exists and is not an earlier viewer bundle (no manifest.json of "
-                f"format {VIEWER_FORMAT}); choose an empty or new folder"
-            )
-    with replacing_dir(out) as tmp:
+    # replace only an earlier bundle (its written-files list, or an older bundle's
+    # manifest.json), never a folder of something else
+    check_replaceable(out, command="view", overwrite=overwrite, legacy=_is_bundle)
+    with replacing_dir(out, command="view") as tmp:
         summary = _write(tmp, model, k, bg, first_chunk, progress, position_cell_m, int(offset_bits))
         if env is not None:
             summary["envmap"] = _write_envmap(tmp, env, str(envmap))

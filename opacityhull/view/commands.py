@@ -7,7 +7,7 @@ from typing import Annotated, Optional
 
 import typer
 
-from ..cliutil import ModelDirArg, cli_errors, console, emit, progress
+from ..cliutil import ModelDirArg, check_model_dir, cli_errors, console, emit, progress
 
 
 def _parse_bg(text: str):
@@ -100,6 +100,7 @@ def register(app, groups) -> None:
         import shutil
         import signal
 
+        check_model_dir(model)
         bg = _parse_bg(background)
         serve = port is not None or out is None
         target = out if out is not None else Path(tempfile.mkdtemp(prefix="opacityhull-view-")) / "bundle"

@@ -114,7 +114,7 @@ def test_session_verify_info_hdr(runner, lab_session, tmp_path):
 def test_import_colmap_cli(runner, tmp_path):
     from test_acq_import import _synthetic_set
 
-    _synthetic_set(tmp_path, n=3)
+    _synthetic_set(tmp_path, n=3, rgba_every=1)
     model, images, out = (str(tmp_path / name) for name in ("model", "images", "s"))
     res = runner.invoke(app, ["import", "colmap", "--model", model, "--images", images, "--out", out, "--json"])
     assert res.exit_code == 0, res.output

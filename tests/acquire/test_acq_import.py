@@ -55,13 +55,13 @@ def _synthetic_set(tmp_path, n=5, *, rgba_every=2, masks=False, size=(40, 30)):
 
 def test_import_colmap_session(tmp_path):
     pycolmap = pytest.importorskip("pycolmap")
-    cams, names, pixels, img_dir, _ = _synthetic_set(tmp_path)
+    cams, names, pixels, img_dir, _ = _synthetic_set(tmp_path, rgba_every=1)
     out = tmp_path / "session"
     rep = import_colmap(tmp_path / "model", img_dir, out)
-    assert rep["images"] == 5 and rep["masks"] == 3  # images 0, 2, 4 carry alpha
+    assert rep["images"] == 5 and rep["masks"] == 5  # every image carries alpha
     np.testing.assert_allclose(rep["target_m"], TARGET, atol=1e-9)
     v = verify_session(out)
-    assert v["ok"] and v["per_phase"] == {"lightfield": 5, "mask": 3} and v["complete"] is None
+    assert v["ok"] and v["per_phase"] == {"lightfield": 5, "mask": 5} and v["complete"] is None
     s = Session.open(out)
     # per-view cameras = the input poses, named by view id
     vc = s.view_cameras()
@@ -93,6 +93,15 @@ def test_import_colmap_session(tmp_path):
     m = s.load_image(s.select(phase="mask", camera=2)[0])
     assert m.shape == (30, 40, 1)
     np.testing.assert_allclose(m[..., 0], pixels[2][..., 3] / 255.0, atol=1e-6)
+
+
+def test_import_refuses_views_without_a_matte(tmp_path):
+    """#33: images 1 and 3 have no alpha and there is no --masks: `build` could not use
+    the session (exit 4 on the first view), so the import refuses it, saying how to fix it."""
+    _, _, _, img_dir, _ = _synthetic_set(tmp_path, rgba_every=2)
+    with pytest.raises(InputError, match=r"img_01.png: COLMAP image 'img_01.png' has no matte.*--masks DIR"):
+        import_colmap(tmp_path / "model", img_dir, tmp_path / "session")
+    assert not (tmp_path / "session").exists()
 
 
 def test_import_with_mask_folder_and_errors(tmp_path):

@@ -245,6 +245,14 @@ def test_cli_exit_codes(diffuse_model, tmp_path):
         capture_output=True,
         text=True,
     )
+    # a path that is not there is bad input (#35); a folder without model.toml is not a model
+    assert r.returncode == 2 and "no such model folder" in r.stderr and "Traceback" not in r.stderr
+    (tmp_path / "empty").mkdir()
+    r = subprocess.run(
+        exe + [str(tmp_path / "empty"), "--format", "ply", "--out", str(tmp_path / "o")],
+        capture_output=True,
+        text=True,
+    )
     assert r.returncode == 4 and "model.toml" in r.stderr and "Traceback" not in r.stderr
     r = subprocess.run(
         exe + [str(root), "--format", "obj", "--out", str(tmp_path / "o")], capture_output=True, text=True
