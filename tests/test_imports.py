@@ -163,6 +163,8 @@ FORBIDDEN: dict[str, set[str]] = {
 EXCEPTIONS: dict[tuple[str, str], str] = {
     ("opacityhull.acquire.commands", "opacityhull.sim.simrig"): "the CLI resolves --rig sim:SCENE",
     ("opacityhull.acquire.commands", "opacityhull.sim"): "the CLI resolves --rig sim:SCENE",
+    ("opacityhull.acquire.commands", "opacityhull.sim.scenes"): "the CLI resolves --rig sim:SCENE (a dry run "
+    "loads the scene as the capture will)",
     # the fitting library uses the exporters' SH basis and per-view samples (pure NumPy on
     # the model format); they should move to the core with the optimize merge
     ("opacityhull.optimize.appearance", "opacityhull.export.sh"): "SH basis (to move to the core)",
