@@ -340,7 +340,7 @@ def run_render(
     config: RenderConfig = RenderConfig(),
     background: str | None = None,
     background_kind: str = "auto",
-    env_yaw_deg: float = 0.0,
+    env_yaw_deg: float | None = None,
     exclude: Sequence[str] = (),
     fps: float = 12.0,
     budget: int | None = None,

@@ -125,3 +125,22 @@ def test_eval_loo_json_and_contact_sheet(sphere_dir, tmp_path):
     assert saved["psnr_mean"] == pytest.approx(s["psnr_mean"])
     res = run("eval", "loo", root, "--views", "c9_t000.000")
     assert res.exit_code == 2 and "c9_t000.000" in res.flat
+
+
+def test_render_background_takes_builtin_probes_as_relight_does(sphere_dir, tmp_path):
+    """``render --background builtin:grace`` was refused though ``relight`` takes it (#33):
+    one resolver (``opacityhull.envmap``), with the shipped probes' default yaw of 180°."""
+    from opacityhull.data import probe_path
+
+    root, _ = sphere_dir
+    a = run_json("render", root, "--out", tmp_path / "a.exr", "--view", "0,0", "--background", "builtin:grace")
+    b = run_json(
+        "render", root, "--out", tmp_path / "b.exr", "--view", "0,0", "--background", probe_path("grace"),
+        "--env-yaw-deg", "180",
+    )  # fmt: skip
+    assert a["background"] == b["background"] == "envmap"
+    np.testing.assert_array_equal(read_exr(tmp_path / "a.exr"), read_exr(tmp_path / "b.exr"))
+    run_json("render", root, "--out", tmp_path / "c.exr", "--view", "0,0", "--background", probe_path("grace"))
+    assert not np.allclose(read_exr(tmp_path / "a.exr"), read_exr(tmp_path / "c.exr"))  # a path's yaw stays 0
+    r = run("render", root, "--out", tmp_path / "d.exr", "--background", "builtin:nowhere")
+    assert r.exit_code == 2 and "nowhere" in r.flat and "grace" in r.flat
