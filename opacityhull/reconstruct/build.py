@@ -2185,7 +2185,7 @@ def build_model(
         "camera_source": cams.source,
         "backdrop_source": backdrop_source,
         "reflectance_units": "radiance at full DMX level (one-light images scaled by 255/level)",
-        "build_config": json.dumps(_jsonable(config.to_dict()), sort_keys=True),
+        "build_config": _jsonable(config.to_dict()),  # a TOML table (model.py: build_config_none)
     }
     write_in = {
         "geometry": geometry_key,
