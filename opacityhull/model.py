@@ -120,7 +120,6 @@ READABLE_FORMATS = ("opacityhull-model/1", MODEL_FORMAT)
 
 #: Below this alpha a premultiplied view texel has no recoverable straight colour (0 is
 #: returned): ``premul / alpha`` would only amplify rounding.
-STRAIGHT_ALPHA_EPS = 1e-6
 
 
 #: Pixel type of ``views/`` and ``reflectance/``: 16-bit half or 32-bit float EXR.
@@ -441,15 +440,14 @@ class OpacityHullModel:
 
     def load_view_rgba(self, i: int) -> np.ndarray:
         """(H, W, 4) float32 RGBA of view ``i``, straight alpha. From a premultiplied
-        (format 2) file the colour is divided by alpha where alpha >
-        :data:`STRAIGHT_ALPHA_EPS` and is 0 elsewhere."""
-        from .imageio import read_exr
+        (format 2) file through :func:`opacityhull.imageio.straight_from_premul` (colour 0
+        where alpha < its cut-off, 2⁻¹²; built models' colour is 0 there already, below the
+        build's matte floor ``alpha_eps``)."""
+        from .imageio import read_exr, straight_from_premul
 
         a = read_exr(self.view_path(i), channels="RGBA")
         if self.views_premultiplied:
-            al = a[..., 3:4]
-            ok = al > STRAIGHT_ALPHA_EPS
-            a[..., :3] = np.where(ok, a[..., :3] / np.where(ok, al, 1.0), 0.0)
+            return straight_from_premul(a)
         return a
 
     def load_views_premul(self, indices: Sequence[int] | None = None) -> list[np.ndarray]:

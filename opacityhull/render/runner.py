@@ -77,13 +77,15 @@ def choose_cameras(
 
 
 def write_frame(path: Path, result: RenderResult, background) -> Path:
-    """EXR: straight RGBA float (or composited RGB when a background is given). PNG:
-    sRGB-encoded RGBA with straight alpha (or composited RGB)."""
+    """EXR: premultiplied RGBA float, the file saying so (:mod:`opacityhull.imageio`'s
+    convention), or composited RGB when a background is given. PNG: sRGB-encoded RGBA
+    with straight alpha (or composited RGB)."""
+    exr = path.suffix.lower() == ".exr"
     if background is None:
-        img = result.rgba
+        img = result.premul if exr else result.rgba
     else:
         img = result.over(background)
-    if path.suffix.lower() == ".exr":
+    if exr:
         write_exr(path, img)
     else:
         write_png(path, img)

@@ -35,7 +35,7 @@ def test_render_captured_view_png_and_exr(sphere_dir, tmp_path):
     img = read_exr(tmp_path / "v.exr")
     assert img.shape == (48, 64, 4)
     ref = render_model(OpacityHullModel.open(root), m.cameras[4])
-    np.testing.assert_allclose(img, ref.rgba, atol=1e-6)  # the CLI renders what the API renders
+    np.testing.assert_allclose(img, ref.premul, atol=1e-6)  # the CLI renders what the API renders (premultiplied)
     s = run_json("render", root, "--out", tmp_path / "v.png", "--view", "1,15", "--width", "128")
     png = read_png(tmp_path / "v.png")
     assert png.shape == (96, 128, 4) and png[..., 3].max() > 0.99 and png[0, 0, 3] == 0
