@@ -132,11 +132,6 @@ def _shared_options(*, envmap_required: bool, map_before: str, config_before: st
     return decorate
 
 
-#: Fewer captured light directions than this and ``eval relight`` warns: the light
-#: basis is too coarse for an environment map (a judgement, not a measured threshold).
-FEW_LIGHTS = 8
-
-
 def register(app, groups) -> None:
     """Add ``relight`` to the root app and ``relight`` to the ``eval`` group."""
 
@@ -245,13 +240,7 @@ def register(app, groups) -> None:
         with progress("eval relight", enabled=not json_out) as cb:
             s = eval_relight(model, envmap=env, out=out, spp=spp, max_views=max_views, config=cfg, progress=cb)
 
-        n_lights = s.get("n_lights_captured")
-        if n_lights is not None and n_lights < FEW_LIGHTS:
-            s.setdefault("warnings", []).append(
-                f"only {n_lights} captured light direction(s): relighting sums one-light images, so an environment "
-                f"map is seen through {n_lights} cell(s) of the sphere — expect large errors (the tiny plan's 2 "
-                f"lights measured 58-82 %); capture with more lights (plan [phases.reflectance] lights/array_steps)"
-            )
+        # a capture with few lights: eval_relight put the warning in s['warnings'] and on the sheet
 
         def human(s):
             c = console()
