@@ -266,7 +266,8 @@ def register(app, groups) -> None:
             c = console()
             c.print(
                 f"rendered {s['frames']} frame(s) {s['width']}x{s['height']}, {s['ms_per_frame']:.0f} ms/frame "
-                f"({s['surfels']} surfels, k={s['k']})"
+                f"({s['surfels']} surfels, k={s['k']}); warm-up {s['ms_warmup']:.0f} ms and model load "
+                f"{s['ms_load']:.0f} ms apart"
             )
             if s.get("budget") is not None:
                 c.print(f"  budget {s['budget']} splats: drew {max(s['splats_per_frame'])} at most per frame")

@@ -144,3 +144,28 @@ def test_render_background_takes_builtin_probes_as_relight_does(sphere_dir, tmp_
     assert not np.allclose(read_exr(tmp_path / "a.exr"), read_exr(tmp_path / "c.exr"))  # a path's yaw stays 0
     r = run("render", root, "--out", tmp_path / "d.exr", "--background", "builtin:nowhere")
     assert r.exit_code == 2 and "nowhere" in r.flat and "grace" in r.flat
+
+
+def test_frame_timings_leave_the_warm_up_out(sphere_dir, tmp_path):
+    """``render --view`` reported 15 s "per frame", numba's compile included (#33): one
+    small warm-up render per opened model is timed apart (``ms_warmup``), the frames'
+    ``ms_per_frame`` are warm, and the pixels do not change."""
+    from opacityhull.render.runner import _FrameState, _render_chunk, choose_cameras
+
+    root, _ = sphere_dir
+    s = run_json("render", root, "--out", tmp_path / "w.exr", "--view", "0,0")
+    assert s["ms_warmup"] > 0 and s["ms_per_frame"] > 0 and "warm-up" not in s  # reported apart, not mixed in
+    model = OpacityHullModel.open(root)
+    st = _FrameState(root, model)
+    cams = choose_cameras(model, orbit=2)
+    from opacityhull.render.renderer import RenderConfig
+
+    a = _render_chunk(st, cams, config=RenderConfig(), exclude=[], budget=None,
+                      paths=[str(tmp_path / f"f{i}.exr") for i in range(2)], background=None, anim_background=None)  # fmt: skip
+    b = _render_chunk(st, cams, config=RenderConfig(), exclude=[], budget=None,
+                      paths=[str(tmp_path / f"g{i}.exr") for i in range(2)], background=None, anim_background=None)  # fmt: skip
+    assert a["ms_warmup"] > 0 and b["ms_warmup"] == 0.0  # once per opened model
+    for i in range(2):
+        np.testing.assert_array_equal(read_exr(tmp_path / f"f{i}.exr"), read_exr(tmp_path / f"g{i}.exr"))
+    ref = render_model(model, cams[0])
+    np.testing.assert_array_equal(read_exr(tmp_path / "f0.exr"), ref.premul)
