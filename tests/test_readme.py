@@ -18,7 +18,6 @@ silently: a command in no table is slow, and every skip names its reason):
 from __future__ import annotations
 
 import os
-import re
 import shlex
 import signal
 import subprocess
