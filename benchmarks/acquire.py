@@ -24,10 +24,10 @@ import time
 from pathlib import Path
 
 import numpy as np
-from benchkit import parser, pyplot
+from benchkit import out_dir, parser, pyplot
 
 ROOT = Path(__file__).resolve().parents[1]
-OUT = ROOT / "benchmarks" / "out"
+OUT = out_dir()  # benchmarks/out, or benchmarks/out/quick with --quick (benchkit)
 
 
 def bench_writer(n: int, width: int, height: int, *, half: bool, fsync: bool, compression: str, tmp: Path) -> dict:

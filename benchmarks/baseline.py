@@ -41,12 +41,12 @@ from pathlib import Path
 
 import numpy as np
 from numba import njit
-from benchkit import parser
+from benchkit import out_dir, parser
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 ROOT = Path(__file__).resolve().parents[1]
-OUT = ROOT / "benchmarks" / "out"
+OUT = out_dir()  # benchmarks/out, or benchmarks/out/quick with --quick (benchkit)
 DATA = ROOT / "tests" / "data" / "real"
 #: the data sets' own tight boxes (SOURCE.txt), metres
 BOXES = {

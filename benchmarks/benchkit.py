@@ -2,13 +2,32 @@
 (``python benchmarks/<name>.py`` puts ``benchmarks/`` first on ``sys.path``).
 
 Running this file does nothing: ``make bench`` runs every ``benchmarks/*.py``.
+
+Where reports go is decided here, once (:func:`out_dir`): a full run writes the tracked
+tables and plots in ``benchmarks/out/``; a ``--quick`` run (what ``make bench`` does)
+writes the same names under ``benchmarks/out/quick/``, which git ignores, so a quick run
+never rewrites a tracked table.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
+
+#: The tracked reports of full runs.
+OUT_FULL = Path(__file__).resolve().parent / "out"
+#: Where ``--quick`` runs write (ignored by git).
+OUT_QUICK = OUT_FULL / "quick"
+
+
+def out_dir(argv=None) -> Path:
+    """The folder a benchmark writes its reports to: :data:`OUT_QUICK` when its command
+    line (``argv``, default ``sys.argv[1:]``) has ``--quick``, else :data:`OUT_FULL`.
+    The scripts set their module-level ``OUT`` from it, so the rule is this one place."""
+    args = sys.argv[1:] if argv is None else list(argv)
+    return OUT_QUICK if "--quick" in args else OUT_FULL
 
 
 def parser(doc: str | None) -> argparse.ArgumentParser:

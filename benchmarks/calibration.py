@@ -28,10 +28,10 @@ import time
 from pathlib import Path
 
 import numpy as np
-from benchkit import parser
+from benchkit import out_dir, parser
 
 ROOT = Path(__file__).resolve().parents[1]
-OUT = ROOT / "benchmarks" / "out"
+OUT = out_dir()  # benchmarks/out, or benchmarks/out/quick with --quick (benchkit)
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tests"))  # helpers (the rig builders the tests use)
 

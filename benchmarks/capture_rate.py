@@ -30,10 +30,10 @@ import tempfile
 import threading
 import time
 from pathlib import Path
-from benchkit import parser
+from benchkit import out_dir, parser
 
 ROOT = Path(__file__).resolve().parents[1]
-OUT = ROOT / "benchmarks" / "out"
+OUT = out_dir()  # benchmarks/out, or benchmarks/out/quick with --quick (benchkit)
 
 #: the paper (Matusik et al. / Pfister, SIGGRAPH 2004 course): 6 h 23 min for 109,776 images
 PAPER_S_PER_IMAGE = (6 * 3600 + 23 * 60) / 109_776

@@ -36,12 +36,12 @@ import sys
 import tempfile
 import time
 from pathlib import Path
-from benchkit import parser
+from benchkit import out_dir, parser
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 ROOT = Path(__file__).resolve().parents[1]
-OUT = ROOT / "benchmarks" / "out"
+OUT = out_dir()  # benchmarks/out, or benchmarks/out/quick with --quick (benchkit)
 DATA = ROOT / "tests" / "data" / "real"
 BASELINE = {"temple": {"psnr": 17.9, "ssim": 0.59}, "dino": {"psnr": 17.6, "ssim": 0.67}}
 

@@ -43,10 +43,10 @@ import time
 from pathlib import Path
 
 import numpy as np
-from benchkit import parser, print_result, pyplot, report_head, save_figure
+from benchkit import out_dir, parser, print_result, pyplot, report_head, save_figure
 
 ROOT = Path(__file__).resolve().parents[1]
-OUT = ROOT / "benchmarks" / "out"
+OUT = out_dir()  # benchmarks/out, or benchmarks/out/quick with --quick (benchkit)
 sys.path.insert(0, str(ROOT))
 
 from opacityhull.reconstruct import natural as nt  # noqa: E402

@@ -39,12 +39,12 @@ from typing import cast
 
 import numpy as np
 from numba import njit, prange
-from benchkit import parser, print_result, pyplot, report_head, save_figure
+from benchkit import out_dir, parser, print_result, pyplot, report_head, save_figure
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 ROOT = Path(__file__).resolve().parents[1]
-OUT = ROOT / "benchmarks" / "out"
+OUT = out_dir()  # benchmarks/out, or benchmarks/out/quick with --quick (benchkit)
 DATA = ROOT / "tests" / "data" / "real"
 #: subsamples per side of a band pixel, and the band's half-width around the outline (px)
 SS = 4

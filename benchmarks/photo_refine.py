@@ -36,12 +36,12 @@ import time
 from pathlib import Path
 
 import numpy as np
-from benchkit import parser
+from benchkit import out_dir, parser
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = Path("/work/shared/data/real")
 OPH = str(ROOT / ".venv" / "bin" / "opacityhull")
-OUT = ROOT / "benchmarks" / "out"
+OUT = out_dir()  # benchmarks/out, or benchmarks/out/quick with --quick (benchkit)
 
 
 def run(cmd, **kw):

@@ -31,10 +31,10 @@ import time
 from pathlib import Path
 
 import numpy as np
-from benchkit import parser, pyplot, report_head, save_figure
+from benchkit import out_dir, parser, pyplot, report_head, save_figure
 
 ROOT = Path(__file__).resolve().parents[1]
-OUT = ROOT / "benchmarks" / "out"
+OUT = out_dir()  # benchmarks/out, or benchmarks/out/quick with --quick (benchkit)
 sys.path.insert(0, str(ROOT / "tests" / "reconstruct"))
 sys.path.insert(0, str(ROOT / "tests"))  # helpers, imported by rcsynth
 

@@ -30,9 +30,9 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from benchkit import parser, print_result, pyplot, save_figure  # noqa: E402
+from benchkit import out_dir, parser, print_result, pyplot, save_figure  # noqa: E402
 
-OUT = Path(__file__).resolve().parent / "out"
+OUT = out_dir()  # benchmarks/out, or benchmarks/out/quick with --quick (benchkit)
 
 
 def _bytes_per_view(root: Path) -> float:

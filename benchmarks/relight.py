@@ -28,10 +28,10 @@ from pathlib import Path
 from typing import Callable, TypeVar
 
 import numpy as np
-from benchkit import parser, print_result, pyplot, report_head, save_figure
+from benchkit import out_dir, parser, print_result, pyplot, report_head, save_figure
 
 ROOT = Path(__file__).resolve().parents[1]
-OUT = ROOT / "benchmarks" / "out"
+OUT = out_dir()  # benchmarks/out, or benchmarks/out/quick with --quick (benchkit)
 sys.path.insert(0, str(ROOT))
 from opacityhull.data import PROBES_DIR as PROBES  # noqa: E402  (shipped with the package)
 

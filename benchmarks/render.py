@@ -26,11 +26,11 @@ import time
 from pathlib import Path
 
 import numpy as np
-from benchkit import parser
+from benchkit import out_dir, parser
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-OUT = Path(__file__).resolve().parent / "out"
+OUT = out_dir()  # benchmarks/out, or benchmarks/out/quick with --quick (benchkit)
 
 
 def measure_bandwidth(n_bytes: int = 400_000_000, repeats: int = 5) -> float:

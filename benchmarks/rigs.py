@@ -34,7 +34,6 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-OUT = ROOT / "benchmarks" / "out"
 sys.path.insert(0, str(ROOT))
 
 from opacityhull.rigs.emulators.base import EmulatedDevice, EmulatorServer, Reply  # noqa: E402
@@ -43,7 +42,9 @@ from opacityhull.rigs.emulators.grbl import GrblEmulator  # noqa: E402
 from opacityhull.rigs.lights import EnttecDmx  # noqa: E402
 from opacityhull.rigs.motion import GrblAxis, GrblController  # noqa: E402
 from opacityhull.rigs.transport import SerialTransport  # noqa: E402
-from benchkit import parser  # noqa: E402
+from benchkit import out_dir, parser  # noqa: E402
+
+OUT = out_dir()  # benchmarks/out, or benchmarks/out/quick with --quick (benchkit)
 
 BAUD = 115200
 WIRE_STATUS_S = (1 + 41) * 10 / BAUD  # '?' out, '<Idle|MPos:0.000,0.000,0.000|FS:0,0>\r\n' back

@@ -49,13 +49,13 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
-from benchkit import parser
+from benchkit import out_dir, parser
 
 if TYPE_CHECKING:
     from opacityhull.model import Storage
 
 ROOT = Path(__file__).resolve().parents[1]
-OUT = ROOT / "benchmarks" / "out"
+OUT = out_dir()  # benchmarks/out, or benchmarks/out/quick with --quick (benchkit)
 CLI = Path(sys.executable).with_name("opacityhull")
 
 

@@ -48,10 +48,10 @@ from functools import partial
 from pathlib import Path
 
 import numpy as np
-from benchkit import parser
+from benchkit import out_dir, parser
 
 ROOT = Path(__file__).resolve().parents[1]
-OUT = ROOT / "benchmarks" / "out"
+OUT = out_dir()  # benchmarks/out, or benchmarks/out/quick with --quick (benchkit)
 
 #: What seconds are: CPU time of this process (all Mitsuba threads; steadier on a machine
 #: shared with other jobs) by default, or wall time (--clock wall).

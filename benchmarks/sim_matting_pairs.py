@@ -21,12 +21,11 @@ import json
 import sys
 import time
 from dataclasses import replace
-from pathlib import Path
 
 import numpy as np
-from benchkit import parser, print_result
+from benchkit import out_dir, parser, print_result
 
-OUT = Path(__file__).resolve().parent / "out"
+OUT = out_dir()  # benchmarks/out, or benchmarks/out/quick with --quick (benchkit)
 SCENES = ("diffuse", "sphere", "glass", "glossy", "fuzzy")
 
 

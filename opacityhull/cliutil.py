@@ -154,6 +154,14 @@ def console():
     return Console(stderr=True, emoji=False)
 
 
+def out_console():
+    """A rich console on stdout: for the commands whose job is to print (``sim scenes``,
+    ``sim explain``, ``session info``), so ``| less`` and ``> file`` get their text."""
+    from rich.console import Console
+
+    return Console(stderr=False)
+
+
 def to_jsonable(obj: Any):
     """Recursively convert numpy scalars/arrays and paths for ``json.dumps``."""
     if isinstance(obj, dict):
@@ -171,14 +179,17 @@ def to_jsonable(obj: Any):
     return obj
 
 
-def emit(summary: dict, as_json: bool, human: Callable[[dict], None] | None = None) -> None:
-    """Print ``summary`` as one JSON line on stdout (``as_json``), else call ``human``."""
+def emit(summary: dict, as_json: bool, human: Callable[[dict], None] | None = None, *, primary: bool = False) -> None:
+    """Print ``summary`` as one JSON line on stdout (``as_json``), else call ``human``.
+    ``primary``: ``human`` prints the command's result to stdout (:func:`out_console`),
+    so no hint that the text went to stderr."""
     if as_json:
         sys.stdout.write(json.dumps(to_jsonable(summary), sort_keys=False) + "\n")
         sys.stdout.flush()
     elif human is not None:
         human(summary)
-        _stdout_hint()
+        if not primary:
+            _stdout_hint()
     else:
         from rich.pretty import pprint
 

@@ -17,18 +17,50 @@ row, u = 0. Exactly at a pole u is undefined and set to 0 (every column is that 
 The render stage's backgrounds (``render/background.py``), the relighting's
 ``EnvironmentMap`` (``relight/envmap.py``) and the simulator's ground truth
 (``sim/groundtruth.py``) all convert through these two functions.
+
+A map given by name (``builtin:NAME``, a probe shipped in :mod:`opacityhull.data`) is
+resolved here too, for every command that takes one (``render --background``,
+``relight --envmap``, ``view --envmap``): :func:`resolve_envmap_path` and its yaw,
+:func:`default_yaw_deg`.
 """
 
 from __future__ import annotations
 
 import math
+from pathlib import Path
 from typing import Literal
 
 import numpy as np
 
 from .errors import InputError, ShapeError
 
-__all__ = ["direction_to_uv", "uv_to_direction"]
+__all__ = ["direction_to_uv", "uv_to_direction", "resolve_envmap_path", "default_yaw_deg", "is_builtin_probe"]
+
+
+def is_builtin_probe(spec) -> bool:
+    """Whether ``spec`` names a shipped probe (``builtin:NAME``)."""
+    return isinstance(spec, str) and spec.strip().startswith("builtin:")
+
+
+def resolve_envmap_path(spec) -> Path:
+    """A path, or ``builtin:NAME`` for a probe shipped with the package
+    (:func:`opacityhull.data.probe_path`: ennis, grace, pisa, uffizi, wells; an unknown
+    name is an :class:`InputError` listing them)."""
+    if is_builtin_probe(spec):
+        from .data import probe_path
+
+        return probe_path(spec.strip())
+    return Path(spec)
+
+
+def default_yaw_deg(spec) -> float:
+    """The yaw that brings ``spec`` to the project convention when the user gives none:
+    180° for the shipped ICT-convention probes (``builtin:NAME``), else 0."""
+    if is_builtin_probe(spec):
+        from .data import PROBE_YAW_DEG
+
+        return PROBE_YAW_DEG
+    return 0.0
 
 
 def direction_to_uv(directions, *, invalid: Literal["raise", "zenith"] = "raise") -> tuple[np.ndarray, np.ndarray]:

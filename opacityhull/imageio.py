@@ -9,6 +9,16 @@
 
 All writes are atomic: a temporary file in the target folder, fsync, rename — a
 crash leaves either the old file or the new one, never a torn one.
+
+Alpha convention (one for every EXR the project writes): colour with coverage is stored
+**premultiplied** by alpha in an RGBA file, as OpenEXR, Nuke and compositors assume
+(over a background ``B`` the pixel is ``RGB + (1 - A) B``). OpenEXR has no standard
+flag for it, so :func:`write_exr` states it in the string header attribute
+``opacityhull:alpha = "premultiplied"`` (:data:`ALPHA_ATTRIBUTE`) of every file with an
+``A`` channel. In memory, renders and the model's ``load_view_rgba`` are straight
+(un-premultiplied); :func:`straight_from_premul` is the one conversion, with one
+cut-off, :data:`ALPHA_CUTOFF`. PNGs stay straight (8/16-bit PNG has no premultiplied
+form).
 """
 
 from __future__ import annotations
@@ -48,6 +58,11 @@ __all__ = [
     "read_exr_layers",
     "read_exr_header",
     "REC709_CHROMATICITIES",
+    "ALPHA_ATTRIBUTE",
+    "ALPHA_PREMULTIPLIED",
+    "ALPHA_CUTOFF",
+    "straight_from_premul",
+    "premul_from_straight",
 ]
 
 HALF_MAX = 65504.0
@@ -57,6 +72,46 @@ HALF_MAX = 65504.0
 REC709_CHROMATICITIES = (0.64, 0.33, 0.30, 0.60, 0.15, 0.06, 0.3127, 0.3290)
 
 _CHANNEL_SETS = {1: "Y", 2: "YA", 3: "RGB", 4: "RGBA"}
+
+#: EXR header attribute (string) stating how colour relates to the ``A`` channel.
+ALPHA_ATTRIBUTE = "opacityhull:alpha"
+#: Its value: colour is premultiplied by alpha (the only convention the project writes).
+ALPHA_PREMULTIPLIED = "premultiplied"
+#: Below this alpha a pixel has no straight colour (:func:`straight_from_premul` gives
+#: 0). 2⁻¹² because (a) dividing by alpha must not amplify quantisation: half floats keep
+#: their full 11-bit relative precision down to 2⁻¹⁴ (their smallest normal), and 2⁻¹² keeps
+#: two binades of margin above the subnormals, where a stored alpha has few bits; and
+#: (b) nothing visible is lost: such a pixel adds at most 2⁻¹² of its colour to any
+#: composite, 1/16 of an 8-bit code. It was already the renderer's cut-off (its kernels
+#: and the viewer's shader use it); the relighter had the same, the model reader 1e-6 and
+#: the matte's straight colour 1e-3 (that one is the build's matte noise floor, an option,
+#: ``BuildConfig.alpha_eps``, passed as ``alpha_floor``).
+ALPHA_CUTOFF = 2.0**-12
+
+
+def straight_from_premul(rgba_premul, *, alpha_floor: float = ALPHA_CUTOFF) -> np.ndarray:
+    """Premultiplied (H, W, 4) RGBA → straight: alpha clipped to [0, 1], colour divided
+    by it where alpha >= ``alpha_floor`` (default :data:`ALPHA_CUTOFF`) and 0 elsewhere
+    (NaN/Inf colour becomes 0). Returns a new (H, W, 4) float32 array."""
+    out = np.array(rgba_premul, dtype=np.float32, copy=True)
+    if out.ndim != 3 or out.shape[2] != 4:
+        raise ShapeError(f"premultiplied RGBA has shape {out.shape}, expected (H, W, 4)")
+    a = np.clip(np.nan_to_num(out[..., 3], nan=0.0), 0.0, 1.0)
+    ok = a >= float(alpha_floor)
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+        rgb = np.where(ok[..., None], out[..., :3] / np.where(ok, a, 1.0)[..., None], 0.0)
+    out[..., :3] = np.nan_to_num(rgb, nan=0.0, posinf=0.0, neginf=0.0)
+    out[..., 3] = a
+    return out
+
+
+def premul_from_straight(rgba) -> np.ndarray:
+    """Straight (H, W, 4) RGBA → premultiplied (colour times alpha), a new float32 array."""
+    out = np.array(rgba, dtype=np.float32, copy=True)
+    if out.ndim != 3 or out.shape[2] != 4:
+        raise ShapeError(f"RGBA has shape {out.shape}, expected (H, W, 4)")
+    out[..., :3] *= out[..., 3:4]
+    return out
 
 
 _LIBRARY_LOCK = __import__("threading").Lock()
@@ -301,6 +356,9 @@ def write_exr(
         Extra header attributes, typed by :func:`exr_attribute` (str → string,
         int → int, float → float, 3 numbers → v3f, ``chromaticities`` → its 8 floats).
 
+    An image with an ``A`` channel must hold colour premultiplied by it (the module's
+    convention); the file says so in ``opacityhull:alpha = "premultiplied"``.
+
     Returns
     -------
     What a half write clamped (:func:`to_half`), or None.
@@ -316,6 +374,8 @@ def write_exr(
     else:
         data = a.astype(np.float32)
     chans = {n: np.ascontiguousarray(data[:, :, i]) for i, n in enumerate(names)}
+    if "A" in names and len(names) > 1:
+        header = {ALPHA_ATTRIBUTE: ALPHA_PREMULTIPLIED, **(header or {})}
     _write_exr_channels(path, chans, header)
     return clamped
 

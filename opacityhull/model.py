@@ -4,7 +4,10 @@
 Layout of a model folder::
 
     model.toml              [model] format, units, software version, created;
-                            [provenance] session, rig source, build options;
+                            [provenance] session, rig source, build options
+                            ([provenance.build_config] a table, the options that
+                            were None listed in build_config_none; before: a JSON
+                            string, still read: OpacityHullModel.build_config);
                             [rig] rig geometry table (riggeometry schema);
                             [[views]] id, camera, table_deg, image (in views order);
                             [reflectance] present, lights = [{key, light_id, array_deg}],
@@ -117,7 +120,6 @@ READABLE_FORMATS = ("opacityhull-model/1", MODEL_FORMAT)
 
 #: Below this alpha a premultiplied view texel has no recoverable straight colour (0 is
 #: returned): ``premul / alpha`` would only amplify rounding.
-STRAIGHT_ALPHA_EPS = 1e-6
 
 
 #: Pixel type of ``views/`` and ``reflectance/``: 16-bit half or 32-bit float EXR.
@@ -406,6 +408,29 @@ class OpacityHullModel:
         return list(self.meta.get("storage", {}).get("clamped", []))
 
     @property
+    def build_config(self) -> dict:
+        """The build options the model was made with (``BuildConfig.to_dict()``), None
+        values included; {} when not recorded. Reads the TOML table (and its
+        ``build_config_none`` list) and the JSON string older models stored."""
+        import json
+
+        from .tomlio import join_nones
+
+        prov = self.meta.get("provenance", {})
+        raw = prov.get("build_config")
+        if not raw:
+            return {}
+        if isinstance(raw, dict):
+            return join_nones(raw, prov.get("build_config_none", ()))
+        try:
+            d = json.loads(raw)
+        except (TypeError, ValueError) as e:
+            raise FormatError(f"{self.root / 'model.toml'}: provenance.build_config is not JSON ({e})") from None
+        if not isinstance(d, dict):
+            raise FormatError(f"{self.root / 'model.toml'}: provenance.build_config is not a table")
+        return d
+
+    @property
     def views_premultiplied(self) -> bool:
         """Whether ``views/*.exr`` store premultiplied colour (format 2 on)."""
         return self.format != "opacityhull-model/1"
@@ -415,15 +440,14 @@ class OpacityHullModel:
 
     def load_view_rgba(self, i: int) -> np.ndarray:
         """(H, W, 4) float32 RGBA of view ``i``, straight alpha. From a premultiplied
-        (format 2) file the colour is divided by alpha where alpha >
-        :data:`STRAIGHT_ALPHA_EPS` and is 0 elsewhere."""
-        from .imageio import read_exr
+        (format 2) file through :func:`opacityhull.imageio.straight_from_premul` (colour 0
+        where alpha < its cut-off, 2⁻¹²; built models' colour is 0 there already, below the
+        build's matte floor ``alpha_eps``)."""
+        from .imageio import read_exr, straight_from_premul
 
         a = read_exr(self.view_path(i), channels="RGBA")
         if self.views_premultiplied:
-            al = a[..., 3:4]
-            ok = al > STRAIGHT_ALPHA_EPS
-            a[..., :3] = np.where(ok, a[..., :3] / np.where(ok, al, 1.0), 0.0)
+            return straight_from_premul(a)
         return a
 
     def load_views_premul(self, indices: Sequence[int] | None = None) -> list[np.ndarray]:
@@ -593,7 +617,7 @@ def write_model(
     ``model.toml`` is written last, so a folder without it is an unfinished build.
     """
     from .imageio import REC709_CHROMATICITIES, atomic_path, write_exr, write_exr_layers
-    from .session import toml_dumps
+    from .tomlio import toml_dumps
 
     root = Path(root)
     if storage not in STORAGE_TYPES:
@@ -650,7 +674,7 @@ def write_model(
             "n_views": len(views),
             "n_surfels": len(surfels),
         },
-        "provenance": provenance or {},
+        "provenance": _provenance_table(provenance),
         "views": [{"id": v.id, "camera": v.camera_index, "table_deg": v.table_deg} for v in views],
     }
     if rig is not None:
@@ -737,6 +761,22 @@ def write_model(
     with atomic_path(root / "model.toml") as tmp:
         tmp.write_text(toml_dumps(meta))
     return root
+
+
+def _provenance_table(provenance: dict | None) -> dict:
+    """``provenance`` as ``model.toml`` stores it: a ``build_config`` dict becomes a TOML
+    table, the dotted keys of its None values listed in ``build_config_none`` (TOML has
+    no null, and a None option is not its default: ``pca_block`` None is one PCA per view)."""
+    from .tomlio import split_nones
+
+    p = dict(provenance or {})
+    bc = p.get("build_config")
+    if isinstance(bc, dict):
+        p["build_config"], nones = split_nones(bc)
+        nones = sorted(set(p.get("build_config_none", [])) | set(nones))
+        if nones:
+            p["build_config_none"] = nones
+    return p
 
 
 def copy_model(

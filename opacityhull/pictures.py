@@ -190,6 +190,76 @@ def _colorbar_strip(bar: ColorBar, width: int, gap: int, background: int) -> np.
     return strip
 
 
+#: Colour of the warnings a sheet carries (:func:`contact_sheet` ``notes``), sRGB 8-bit.
+WARNING_RGB = (255, 200, 40)
+
+
+def _ascii(text: str) -> str:
+    """``text`` for OpenCV's ASCII-only font: dashes, quotes and comparison signs spelled
+    in ASCII, anything else left as "?"."""
+    table = {"—": "-", "–": "-", "’": "'", "‘": "'", "“": '"', "”": '"', "≤": "<=", "≥": ">=", "×": "x", "°": " deg"}
+    return "".join(table.get(c, c) for c in text).encode("ascii", "replace").decode("ascii")
+
+
+def _wrap(text: str, scale: float, width: int) -> list[str]:
+    """``text`` broken into lines at most ``width`` px wide at ``scale`` (word wrap)."""
+    lines: list[str] = []
+    for word in text.split():
+        if lines and _text_size(f"{lines[-1]} {word}", scale)[0] <= width:
+            lines[-1] = f"{lines[-1]} {word}"
+        else:
+            lines.append(word)
+    return lines or [""]
+
+
+def _notes_strip(notes: Sequence[str], width: int, gap: int, background: int) -> np.ndarray:
+    """The sheet's warnings, word-wrapped, in :data:`WARNING_RGB` on the sheet's
+    background: what the terminal said about the picture, printed on it."""
+    import cv2
+
+    scale = 0.42
+    _, th, base = _text_size("Xg", scale)
+    # OpenCV's Hershey font is ASCII only: a dash or ≤ would print as "?"
+    ascii_ = [_ascii(n) for n in notes]
+    lines = [ln for n in ascii_ for ln in _wrap(f"warning: {n}", scale, max(1, width - 2 * gap - 8))]
+    line_h = th + base + 4
+    strip = np.full((gap + 4 + line_h * len(lines) + 2, width, 3), background, np.uint8)
+    for i, ln in enumerate(lines):
+        y = gap + 4 + th + i * line_h
+        cv2.putText(strip, ln, (gap + 4, y), _FONT, scale, WARNING_RGB, 1, cv2.LINE_AA)
+    return strip
+
+
+def _legend_strip(legend: Sequence[tuple[tuple[int, int, int], str]], width: int, gap: int, background: int):
+    """One row of (colour swatch, meaning) pairs: what the colours drawn on the tiles
+    mean; wraps onto more rows when the sheet is narrow."""
+    import cv2
+
+    scale = 0.42
+    _, th, base = _text_size("Xg", scale)
+    sw, pad = 14, 12
+    items = [(tuple(int(c) for c in colour), str(text)) for colour, text in legend]
+    rows: list[list[tuple[tuple[int, ...], str]]] = [[]]
+    used = gap + 4
+    for colour, text in items:
+        w = sw + 6 + _text_size(text, scale)[0] + pad
+        if rows[-1] and used + w > width - gap:
+            rows.append([])
+            used = gap + 4
+        rows[-1].append((colour, text))
+        used += w
+    line_h = max(sw, th + base) + 6
+    strip = np.full((gap + 4 + line_h * len(rows), width, 3), background, np.uint8)
+    for r, row in enumerate(rows):
+        x, y0 = gap + 4, gap + 4 + r * line_h
+        for colour, text in row:
+            ym = y0 + th // 2
+            strip[ym : ym + 3, x : x + sw] = colour  # a line sample, as drawn on the tiles
+            cv2.putText(strip, text, (x + sw + 6, y0 + th + 1), _FONT, scale, (255, 255, 255), 1, cv2.LINE_AA)
+            x += sw + 6 + _text_size(text, scale)[0] + pad
+    return strip
+
+
 def contact_sheet(
     tiles: Sequence[np.ndarray],
     *,
@@ -197,6 +267,8 @@ def contact_sheet(
     labels: Sequence[str] | None = None,
     headers: Sequence[str] | None = None,
     colorbar: ColorBar | None = None,
+    legend: Sequence[tuple[tuple[int, int, int], str]] | None = None,
+    notes: Sequence[str] | None = None,
     gap: int = 2,
     min_width: int = 0,
     max_width: int | None = None,
@@ -217,6 +289,12 @@ def contact_sheet(
         One caption per column, centred above it in a strip at the top.
     colorbar : ColorBar, optional
         A colour bar with its range and caption in a strip at the bottom.
+    legend : sequence of ((r, g, b), text), optional
+        What each colour drawn on the tiles means (outlines, marks), in a strip at the
+        bottom: a picture says what it shows.
+    notes : sequence of str, optional
+        Warnings about what the sheet shows (the ones the command prints), word-wrapped
+        in a strip at the top in :data:`WARNING_RGB`, so the picture carries them too.
     gap : int
         Pixels between cells, and around the grid.
     min_width, max_width : int
@@ -255,11 +333,15 @@ def contact_sheet(
         y, x = gap + r * (h + gap), gap + c * (w + gap)
         grid[y : y + t.shape[0], x : x + t.shape[1]] = t
     parts = []
+    if notes:
+        parts.append(_notes_strip([str(n) for n in notes], width, gap, background))
     if headers:
         parts.append(_header_strip(list(headers), cols, w, gap, width, background))
     parts.append(grid)
     if colorbar is not None:
         parts.append(_colorbar_strip(colorbar, width, gap, background))
+    if legend:
+        parts.append(_legend_strip(legend, width, gap, background))
     return np.concatenate(parts, axis=0) if len(parts) > 1 else grid
 
 

@@ -37,7 +37,7 @@ import os
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Iterator
+from typing import TYPE_CHECKING, Iterator
 
 import numpy as np
 
@@ -47,7 +47,7 @@ if TYPE_CHECKING:
 from . import __version__
 from .errors import FormatError, InputError
 from .riggeometry import RigGeometry, view_id
-from .tomlio import read_toml
+from .tomlio import read_toml, toml_dumps  # toml_dumps: re-exported for rigs/config.py
 
 log = logging.getLogger(__name__)
 
@@ -231,70 +231,6 @@ def _check_record_types(rec: "ShotRecord", rid, where: str) -> None:
 
 
 # --------------------------------------------------------------------------- TOML
-
-
-def _toml_value(v: Any) -> str:
-    if isinstance(v, bool):
-        return "true" if v else "false"
-    if isinstance(v, (int, np.integer)):
-        return str(int(v))
-    if isinstance(v, (float, np.floating)):
-        f = float(v)
-        if f != f:
-            return "nan"
-        if f in (float("inf"), float("-inf")):
-            return "inf" if f > 0 else "-inf"
-        return repr(f)
-    if isinstance(v, str):
-        return json.dumps(v)
-    if isinstance(v, (list, tuple, np.ndarray)):
-        return "[" + ", ".join(_toml_value(x) for x in v) + "]"
-    if isinstance(v, dict):
-        return "{" + ", ".join(f"{json.dumps(str(k))} = {_toml_value(x)}" for k, x in v.items()) + "}"
-    if v is None:
-        raise InputError("TOML cannot store None; leave the key out")
-    return json.dumps(str(v))
-
-
-def toml_dumps(data: dict) -> str:
-    """Minimal TOML writer for nested tables, arrays of tables and plain values.
-
-    (The standard library reads TOML but cannot write it; this covers what sessions,
-    models and rig copies need.)
-    """
-    lines: list[str] = []
-
-    def emit(table: dict, prefix: str):
-        scalars = {k: v for k, v in table.items() if v is not None and not _is_table(v) and not _is_table_array(v)}
-        for k, v in scalars.items():
-            lines.append(f"{_key(k)} = {_toml_value(v)}")
-        for k, v in table.items():
-            name = f"{prefix}.{_key(k)}" if prefix else _key(k)
-            if _is_table(v):
-                lines.append("")
-                lines.append(f"[{name}]")
-                emit(v, name)
-            elif _is_table_array(v):
-                for item in v:
-                    lines.append("")
-                    lines.append(f"[[{name}]]")
-                    emit(item, name)
-
-    emit(data, "")
-    return "\n".join(lines).lstrip("\n") + "\n"
-
-
-def _key(k: str) -> str:
-    k = str(k)
-    return k if k.replace("_", "").replace("-", "").isalnum() else json.dumps(k)
-
-
-def _is_table(v) -> bool:
-    return isinstance(v, dict)
-
-
-def _is_table_array(v) -> bool:
-    return isinstance(v, (list, tuple)) and len(v) > 0 and all(isinstance(x, dict) for x in v)
 
 
 # --------------------------------------------------------------------------- reader

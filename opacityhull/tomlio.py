@@ -7,21 +7,92 @@ chooses: :class:`~opacityhull.errors.FormatError` for files the pipeline wrote
 (corrupt data, exit 4), :class:`~opacityhull.errors.ConfigError` for files a person
 wrote (bad input, exit 2). :class:`TomlContext` checks values key by key, with messages
 ``"<file>: <key>: expected ..., got ..."``.
+
+Writing goes through :func:`toml_dumps` (``tomli_w``, after turning NumPy values into
+Python ones and leaving out None, which TOML cannot hold); a table whose None values
+matter (``model.toml``'s ``build_config``) records them beside it with
+:func:`split_nones` / :func:`join_nones`.
 """
 
 from __future__ import annotations
 
+import datetime
 import logging
 import math
 import tomllib
 from pathlib import Path
 from typing import Any, Mapping
 
-from .errors import FormatError
+import numpy as np
+
+from .errors import FormatError, InputError
 
 log = logging.getLogger(__name__)
 
-__all__ = ["read_toml", "TomlContext"]
+__all__ = ["read_toml", "TomlContext", "toml_dumps", "split_nones", "join_nones"]
+
+
+def _plain(v: Any, where: str) -> Any:
+    """``v`` as the Python values ``tomli_w`` writes: NumPy scalars and arrays become
+    numbers and lists, tuples lists, dict keys strings; None is left out of tables (TOML
+    has no null) and refused inside arrays; anything else is written as its ``str``."""
+    if isinstance(v, dict):
+        return {str(k): _plain(x, f"{where}.{k}" if where else str(k)) for k, x in v.items() if x is not None}
+    if isinstance(v, (list, tuple, np.ndarray)):
+        items = v.tolist() if isinstance(v, np.ndarray) else v
+        if any(x is None for x in items):
+            raise InputError(f"TOML cannot store None (in the array {where or 'at the top'}); leave the key out")
+        return [_plain(x, where) for x in items]
+    if isinstance(v, (bool, np.bool_)):
+        return bool(v)
+    if isinstance(v, (int, np.integer)):
+        return int(v)
+    if isinstance(v, (float, np.floating)):
+        return float(v)
+    if isinstance(v, (str, datetime.date, datetime.time)):
+        return v
+    return str(v)
+
+
+def toml_dumps(data: Mapping[str, Any]) -> str:
+    """``data`` as TOML text, written by ``tomli_w``: nested tables, arrays of tables
+    (lists whose items are all tables), NumPy values, NaN and ±inf; None values are left
+    out (:func:`split_nones` keeps them where they matter). ``tomllib.loads`` gives the
+    values back."""
+    import tomli_w
+
+    return tomli_w.dumps(_plain(dict(data), ""))
+
+
+def split_nones(table: Mapping[str, Any], prefix: str = "") -> tuple[dict[str, Any], list[str]]:
+    """``table`` without its None values (nested tables too), and the dotted keys that
+    were None: TOML has no null, so a config whose None differs from a left-out key's
+    default stores this list beside the table. :func:`join_nones` is the inverse."""
+    out: dict[str, Any] = {}
+    nones: list[str] = []
+    for k, v in table.items():
+        key = f"{prefix}{k}"
+        if v is None:
+            nones.append(key)
+        elif isinstance(v, Mapping):
+            out[k], sub = split_nones(v, key + ".")
+            nones += sub
+        else:
+            out[k] = v
+    return out, nones
+
+
+def join_nones(table: Mapping[str, Any], nones) -> dict[str, Any]:
+    """The inverse of :func:`split_nones`: ``table`` (copied) with each dotted key of
+    ``nones`` set to None."""
+    out = {k: (join_nones(v, ()) if isinstance(v, Mapping) else v) for k, v in table.items()}
+    for key in nones or ():
+        *path, last = str(key).split(".")
+        d = out
+        for p in path:
+            d = d.setdefault(p, {})
+        d[last] = None
+    return out
 
 
 def read_toml(path, *, error: type[Exception] = FormatError, what: str = "TOML file") -> dict[str, Any]:

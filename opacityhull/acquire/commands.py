@@ -14,7 +14,7 @@ from typing import Optional
 
 import typer
 
-from ..cliutil import JsonFlag, SessionDirArg, cli_errors, console, emit, progress
+from ..cliutil import JsonFlag, SessionDirArg, cli_errors, console, emit, out_console, progress
 from ..errors import CaptureInterrupted, ConfigError, OpacityHullError
 from ..tomlio import read_toml
 
@@ -317,7 +317,7 @@ def register(app, groups) -> None:
         rep = session_info(directory)
 
         def human(r):
-            c = console()
+            c = out_console()
             c.print(
                 f"session {r['session']}: plan {r['plan']}, rig {r['rig_source'] or '?'}, {r['images']} images, "
                 f"{human_bytes(r['bytes'])}, {r['views']} views",
@@ -330,7 +330,7 @@ def register(app, groups) -> None:
                     highlight=False,
                 )
 
-        emit(rep, json_out, human)
+        emit(rep, json_out, human, primary=True)
 
     @session.command("hdr")
     @cli_errors

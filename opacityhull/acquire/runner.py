@@ -52,7 +52,8 @@ from ..errors import (
     write_error,
 )
 from ..rigs.interfaces import GroundTruthSource, PhaseAware
-from ..session import Session, SessionWriter, sha256_file, toml_dumps
+from ..session import Session, SessionWriter, sha256_file
+from ..tomlio import toml_dumps
 from .exr import write_capture_exr
 from .patterns import Pattern, check_saved_patterns, plan_patterns, save_patterns
 from .plan import CapturePlan

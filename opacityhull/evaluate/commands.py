@@ -25,10 +25,6 @@ from ..render.config import Twins
 
 HOLDOUTS = ("blend", "geometry", "both")
 
-#: Fewer captured light directions than this and ``eval relight`` warns: the light
-#: basis is too coarse for an environment map (a judgement, not a measured threshold).
-FEW_LIGHTS = 8
-
 _LOO_VIEWS_HELP = "all (default) | every:N | camera:C | comma list of view ids or indices."
 _LOO_OUT_HELP = "Folder for loo.json and the contact sheets (default MODEL/eval/loo)."
 _TWINS_HELP = (
@@ -169,13 +165,7 @@ def register(app, groups) -> None:
         with progress("eval relight", enabled=not json_out) as cb:
             s = eval_relight(model, envmap=env, out=out, spp=spp, max_views=max_views, config=cfg, progress=cb)
 
-        n_lights = s.get("n_lights_captured")
-        if n_lights is not None and n_lights < FEW_LIGHTS:
-            s.setdefault("warnings", []).append(
-                f"only {n_lights} captured light direction(s): relighting sums one-light images, so an environment "
-                f"map is seen through {n_lights} cell(s) of the sphere — expect large errors (the tiny plan's 2 "
-                f"lights measured 58-82 %); capture with more lights (plan [phases.reflectance] lights/array_steps)"
-            )
+        # a capture with few lights: eval_relight put the warning in s['warnings'] and on the sheet
 
         def human(s):
             c = console()

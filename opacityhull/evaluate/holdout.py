@@ -36,8 +36,6 @@ def build_config_of(model: OpacityHullModel) -> tuple[BuildConfig, dict]:
     """The :class:`BuildConfig` a model was built with (from ``model.toml``'s
     provenance) pinned to the resolution the build chose, and its ``report.json`` hull
     section (empty when absent)."""
-    prov = model.meta.get("provenance", {})
-    raw = prov.get("build_config")
     report = {}
     rp = model.root / "report.json"
     if rp.is_file():
@@ -45,12 +43,7 @@ def build_config_of(model: OpacityHullModel) -> tuple[BuildConfig, dict]:
             report = json.loads(rp.read_text()).get("hull", {})
         except (OSError, ValueError) as e:
             raise FormatError(f"{rp}: unreadable build report ({e})") from None
-    cfg_d = {}
-    if raw:
-        try:
-            cfg_d = json.loads(raw)
-        except ValueError as e:
-            raise FormatError(f"{model.root / 'model.toml'}: provenance.build_config is not JSON ({e})") from None
+    cfg_d = model.build_config  # a TOML table, or the JSON string of older models
     names = {f.name for f in fields(BuildConfig)}
     kw = {k: v for k, v in cfg_d.items() if k in names and k != "matting"}
     for k in ("bounds_m",):

@@ -203,6 +203,21 @@ def _pick(n: int, k: int | None) -> list[int]:
     return sorted({int(round(x)) for x in np.linspace(0, n - 1, k)})
 
 
+#: Fewer captured light directions than this and ``eval relight`` warns (terminal, JSON,
+#: sheet): the light basis is too coarse for an environment map (a judgement, not a
+#: measured threshold).
+FEW_LIGHTS = 8
+
+
+def few_lights_warning(n_lights: int) -> str:
+    """What relighting from ``n_lights`` captured directions can show, and what to do."""
+    return (
+        f"only {n_lights} captured light direction(s): relighting sums one-light images, so an environment "
+        f"map is seen through {n_lights} cell(s) of the sphere — expect large errors (the tiny plan's 2 "
+        f"lights measured 58-82 %); capture with more lights (plan [phases.reflectance] lights/array_steps)"
+    )
+
+
 def eval_relight(
     model_path,
     *,
@@ -311,6 +326,9 @@ def eval_relight(
         "truth_s": t_truth,
         "total_s": time.perf_counter() - t0,
     }
+    n_lights = len(R.lights)
+    if n_lights < FEW_LIGHTS:
+        summary["warnings"] = [few_lights_warning(n_lights)]  # printed by the command and on the sheet
     if write_images:
         tiles, labels = [], []
         ref_img = rows[len(rows) // 2]
@@ -331,6 +349,7 @@ def eval_relight(
                 labels=labels[: 3 * 24],
                 headers=["truth", "relit", "|relit - truth| x4"],
                 min_width=160,
+                notes=summary.get("warnings"),
             ),
         )
         summary["sheet"] = str(out / "eval_relight.png")

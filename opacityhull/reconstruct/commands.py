@@ -39,14 +39,28 @@ def _human(summary: dict) -> None:
         t.add_row(k, f"{v:.2f}")
     c.print(t)
     if summary["metrics"]:
-        m = Table(title="metrics")
+        checks = summary["metrics"].get("ground_truth_checks") or {}
+        m = Table(title="metrics" + (" (against the ground truth: bounds in reconstruct/metrics.py)" if checks else ""))
         m.add_column("metric")
         m.add_column("value", justify="right")
+        if checks:
+            m.add_column("bound")
+            m.add_column("", justify="center")
         for k, v in summary["metrics"].items():
             if isinstance(v, (dict, list)):
                 continue
-            m.add_row(k, f"{v:.4g}" if isinstance(v, float) else str(v))
+            row = [k, f"{v:.4g}" if isinstance(v, float) else str(v)]
+            if checks:
+                ch = checks.get(k)
+                verdict = "" if ch is None or ch["ok"] is None else ("[green]✓[/]" if ch["ok"] else "[red]✗[/]")
+                row += [escape(ch["bound"]) if ch else "", verdict]
+            m.add_row(*row)
         c.print(m)
+        failed = [k for k, ch in checks.items() if ch["ok"] is False]
+        for k in failed:
+            c.print(
+                f"[red]✗[/] {k} = {checks[k]['value']:.4g}, bound {escape(checks[k]['bound'])}: {escape(checks[k]['why'])}"
+            )
     c.print(f"cameras: {summary['camera_source']}; backdrops: {summary['backdrop_source']}")
     reused = {k: v for k, v in (summary.get("steps") or {}).items() if v != "ran"}
     if reused:

@@ -226,5 +226,5 @@ def _view_rgba(
         prem = Cimg * alpha[..., None]  # external images: colour seen through the mask
     else:
         prem = Cimg
-    F = straight_from_premul(np.nan_to_num(prem, nan=0.0, posinf=0.0, neginf=0.0), alpha, eps=alpha_eps)
+    F = straight_from_premul(np.dstack([prem, alpha]), alpha_floor=alpha_eps)[..., :3]  # imageio's one conversion
     return np.concatenate([np.maximum(F, 0.0), alpha[..., None]], axis=-1).astype(np.float32)

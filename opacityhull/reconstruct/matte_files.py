@@ -6,7 +6,7 @@ Reads K object shots and the K backdrop shots (same view, object absent) as imag
 
 - ``alpha.png`` — 16-bit, linear alpha;
 - ``foreground_premul.png`` (16-bit, sRGB-encoded) and ``foreground_premul.exr`` (float
-  linear): the premultiplied foreground ``alpha F``;
+  linear RGBA, the alpha in its A channel): the premultiplied foreground ``alpha F``;
 - ``composite.png`` — ``alpha F + (1 - alpha) over`` when a new background is given;
 - ``matte.json`` — statistics, the drift and the registration per shot; written last, so
   a folder without it is an unfinished run.
@@ -143,7 +143,7 @@ def matte_files(
     }
     write_png(files["alpha"], r.alpha, bits=16, linear=True)
     write_png(files["foreground_premul_png"], np.clip(r.fg_premul, 0.0, 1.0), bits=16)
-    write_exr(files["foreground_premul_exr"], r.fg_premul)
+    write_exr(files["foreground_premul_exr"], np.concatenate([r.fg_premul, r.alpha[..., None]], axis=-1))
     if comp is not None:
         files["composite"] = out / "composite.png"
         write_png(files["composite"], np.clip(comp, 0.0, 1.0))

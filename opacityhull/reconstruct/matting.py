@@ -56,6 +56,7 @@ import numpy as np
 from numba import njit, prange
 
 from ..errors import InputError, ShapeError
+from ..imageio import straight_from_premul  # the one conversion (re-exported for build)
 
 log = logging.getLogger(__name__)
 
@@ -64,6 +65,7 @@ DriftMode = Literal["none", "gain", "affine", "field"]
 _DRIFT_MODES = ("none", "gain", "affine", "field")
 
 __all__ = [
+    "straight_from_premul",
     "MattingOptions",
     "MatteResult",
     "FLAG_SATURATED",
@@ -75,7 +77,6 @@ __all__ = [
     "solve_matte_reference",
     "fill_from_neighbours",
     "fill_from_neighbours_reference",
-    "straight_from_premul",
     "backdrop_from_displays",
     "DriftMode",
     "DriftOptions",
@@ -781,15 +782,6 @@ def _fill_clean(v: np.ndarray, w: np.ndarray) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------- helpers
-
-
-def straight_from_premul(premul, alpha, *, eps: float = 1e-3) -> np.ndarray:
-    """Straight colour ``F = F' / alpha`` where ``alpha > eps``, else 0. (H, W, 3) float32."""
-    a = np.asarray(alpha, dtype=np.float32)[..., None]
-    p = np.asarray(premul, dtype=np.float32)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        F = np.where(a > eps, p / np.maximum(a, eps), 0.0)
-    return np.nan_to_num(F, nan=0.0, posinf=0.0, neginf=0.0).astype(np.float32)
 
 
 def backdrop_from_displays(

@@ -19,7 +19,7 @@ import numpy as np
 
 from ..pictures import contact_sheet, encoded_to_u8, to_srgb8, write_sheet
 
-__all__ = ["matte_contact_sheet", "hull_overlays", "reprojection_histogram", "surfel_mask"]
+__all__ = ["matte_contact_sheet", "hull_overlays", "HULL_OVERLAY_LEGEND", "reprojection_histogram", "surfel_mask"]
 
 
 def _resize(img: np.ndarray, h: int) -> np.ndarray:
@@ -69,6 +69,13 @@ def surfel_mask(positions, radii, camera) -> np.ndarray:
     return m
 
 
+#: The outlines of ``hull_overlay.png`` and what they mean (sRGB 8-bit colour, text).
+HULL_OVERLAY_LEGEND = (
+    ((0, 255, 0), "silhouette the hull was carved from (matte, dilated)"),
+    ((255, 0, 0), "hull surfels splatted into the view"),
+)
+
+
 def hull_overlays(
     images: Sequence[np.ndarray],
     silhouettes: Sequence[np.ndarray],
@@ -79,7 +86,8 @@ def hull_overlays(
     thumb_h: int = 240,
 ) -> Path:
     """Colour image (sRGB, normalised to its 99th percentile) with the silhouette outline
-    in green and the splatted-surfel outline in red, one tile per given view."""
+    in green and the splatted-surfel outline in red, one tile per given view; a legend
+    under the tiles says which is which (:data:`HULL_OVERLAY_LEGEND`)."""
     import cv2
 
     tiles, labels = [], []
@@ -88,14 +96,15 @@ def hull_overlays(
         scale = float(np.percentile(rgb, 99))
         scale = scale if scale > 0 else 1.0
         base = np.ascontiguousarray(to_srgb8(rgb / scale))
-        for mask, colour in ((sil, (0, 255, 0)), (sm, (255, 0, 0))):
+        for mask, colour in ((sil, HULL_OVERLAY_LEGEND[0][0]), (sm, HULL_OVERLAY_LEGEND[1][0])):
             cs, _ = cv2.findContours(np.asarray(mask, dtype=np.uint8), cv2.RETR_LIST, cv2.CHAIN_APPROX_NONE)
             cv2.drawContours(base, cs, -1, colour, 1)
         tiles.append(_resize(base, thumb_h))
         labels.append(str(name))
     if not tiles:
         tiles, labels = [np.zeros((thumb_h, thumb_h, 3), np.uint8)], ["no views"]
-    return write_sheet(out_path, contact_sheet(tiles, columns=min(4, len(tiles)), labels=labels, background=40))
+    sheet = contact_sheet(tiles, columns=min(4, len(tiles)), labels=labels, background=40, legend=HULL_OVERLAY_LEGEND)
+    return write_sheet(out_path, sheet)
 
 
 def reprojection_histogram(out_path, *, residuals_px=None, rms_per_camera: dict | None = None) -> Path | None:

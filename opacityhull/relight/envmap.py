@@ -31,6 +31,7 @@ from typing import Literal
 import numpy as np
 
 from ..envmap import direction_to_uv as _direction_to_uv
+from ..envmap import default_yaw_deg, resolve_envmap_path
 from ..errors import FormatError, InputError, ShapeError
 
 log = logging.getLogger(__name__)
@@ -376,26 +377,6 @@ def downsample_latlong(radiance: np.ndarray, factor: int, *, dtype: type[np.floa
 
 
 # --------------------------------------------------------------------------- reading
-
-
-def resolve_envmap_path(spec) -> Path:
-    """A path, or ``builtin:NAME`` for a probe shipped with the package
-    (:func:`opacityhull.data.probe_path`: ennis, grace, pisa, uffizi, wells)."""
-    if isinstance(spec, str) and spec.startswith("builtin:"):
-        from ..data import probe_path
-
-        return probe_path(spec)
-    return Path(spec)
-
-
-def default_yaw_deg(spec) -> float:
-    """The yaw that brings ``spec`` to the project convention when the user gives none:
-    180° for the shipped ICT-convention probes (``builtin:NAME``), else 0."""
-    if isinstance(spec, str) and spec.startswith("builtin:"):
-        from ..data import PROBE_YAW_DEG
-
-        return PROBE_YAW_DEG
-    return 0.0
 
 
 def load_envmap(

@@ -19,7 +19,7 @@ import numpy as np
 
 from ..camera import Camera
 from ..errors import InputError
-from ..imageio import atomic_path, write_exr, write_png
+from ..imageio import atomic_path, straight_from_premul, write_exr, write_png
 from ..pictures import auto_exposure, contact_sheet, to_srgb8, write_animation, write_sheet
 from .envmap import EnvironmentMap, default_yaw_deg, load_envmap
 from .relit import Relighter, RelightConfig
@@ -190,7 +190,7 @@ def relight_model(
         for i, rgba in enumerate(relit):
             vid = model.views[i].id
             write_exr(out / "views" / f"{vid}.exr", rgba)
-            straight = _straight(rgba)
+            straight = straight_from_premul(rgba)
             over = composite_over(straight, resolve_background(bg, model.views[i].camera))
             write_png(out / "views" / f"{vid}.png", _display(over, exposure))
             tiles.append(_display(over, exposure))
@@ -216,7 +216,7 @@ def relight_model(
             cam = view_camera(model, *view)
             res = render_image(surfels, cams, pv, cam, config=rc)
             img = res.over(bg)
-            write_exr(out / f"view_{cam.name}.exr", res.rgba)
+            write_exr(out / f"view_{cam.name}.exr", res.premul)  # premultiplied, as every EXR
             write_png(out / f"view_{cam.name}.png", _display(img, exposure))
             summary["view"] = {
                 "camera": cam.name,
@@ -233,7 +233,7 @@ def relight_model(
             for k, cam in enumerate(orbit_cameras(model, orbit)):
                 res = render_image(surfels, cams, pv, cam, config=rc)
                 img = res.over(bg)
-                write_exr(out / "orbit" / f"frame_{k:03d}.exr", res.rgba)
+                write_exr(out / "orbit" / f"frame_{k:03d}.exr", res.premul)
                 frames.append(_display(img, exposure))
                 write_png(out / "orbit" / f"frame_{k:03d}.png", frames[-1])
                 done += 1
@@ -265,14 +265,6 @@ def relight_model(
 
         tmp.write_text(json.dumps(to_jsonable(summary), indent=2))
     return summary
-
-
-def _straight(rgba_premul: np.ndarray) -> np.ndarray:
-    out = np.asarray(rgba_premul, np.float32).copy()
-    a = np.clip(out[..., 3:4], 0, 1)
-    ok = a > 1.0 / 4096
-    out[..., :3] = np.where(ok, out[..., :3] / np.where(ok, a, 1), 0)
-    return out
 
 
 def demo_step(

@@ -154,11 +154,20 @@ def composite_over(rgba_straight, background_rgb) -> np.ndarray:
     return (a[..., :3] * alpha + np.asarray(background_rgb, np.float32) * (1.0 - alpha)).astype(np.float32)
 
 
-def load_background(spec: str, *, yaw_deg: float = 0.0, kind: str = "auto"):
+def load_background(spec: str, *, yaw_deg: float | None = None, kind: str = "auto"):
     """Parse a CLI background: a colour (``0.2,0.3,0.4``, ``0.5``, ``#rrggbb``,
-    ``black``/``white``/``grey``) or an image path. ``kind='auto'`` treats a ``.hdr`` or
-    a 2:1 EXR as an environment map and anything else as a backdrop image."""
+    ``black``/``white``/``grey``), an image path, or ``builtin:NAME`` (a shipped probe,
+    as ``relight --envmap`` takes it: :func:`opacityhull.envmap.resolve_envmap_path`).
+    ``kind='auto'`` treats a ``.hdr`` or a 2:1 EXR as an environment map and anything
+    else as a backdrop image. ``yaw_deg`` None: the map's default
+    (:func:`opacityhull.envmap.default_yaw_deg`: 180° for the shipped ICT probes, else 0)."""
+    from ..envmap import default_yaw_deg, is_builtin_probe, resolve_envmap_path
     from ..imageio import read_image
+
+    if yaw_deg is None:
+        yaw_deg = default_yaw_deg(spec)
+    if is_builtin_probe(spec):
+        return EnvMap(read_image(resolve_envmap_path(spec)), yaw_deg=yaw_deg)
 
     names = {"black": (0.0, 0.0, 0.0), "white": (1.0, 1.0, 1.0), "grey": (0.18, 0.18, 0.18), "gray": (0.18, 0.18, 0.18)}
     s = spec.strip()

@@ -93,9 +93,10 @@ _ORBIT_HELP = (
 _BACKGROUND_HELP = (
     "Composite over a colour (0.2,0.3,0.4 | 0.5 | "
     "#rrggbb | black | white | grey), an image, or an environment map "
-    "(.hdr, or a 2:1 .exr). Without it, images keep their alpha."
+    "(.hdr, or a 2:1 .exr; builtin:NAME for a shipped probe: ennis, grace, pisa, uffizi, wells). "
+    "Without it, images keep their alpha."
 )
-_ENV_YAW_HELP = "Rotate the environment map about +Y (ICT probes: 180)."
+_ENV_YAW_HELP = "Rotate the environment map about +Y. Default: 180 for builtin: probes, else 0."
 _WIDTH_HELP = "Output width in pixels (default: the views')."
 _HEIGHT_HELP = "Output height in pixels (default: keeps the aspect)."
 _EXCLUDE_HELP = "View id or index not to blend (repeatable)."
@@ -187,7 +188,7 @@ def register(app, groups) -> None:
     @app.command("render")
     @cli_errors
     @option_group(_RENDER_OPTIONS, into="render_options", before="background")
-    @option_group(env_yaw_options(0.0, _ENV_YAW_HELP), into="env_yaw_deg", before="width", build=pick_env_yaw)
+    @option_group(env_yaw_options(None, _ENV_YAW_HELP), into="env_yaw_deg", before="width", build=pick_env_yaw)
     @option_group(scheduler_options(_SCHEDULER_HELP), into="executor", before="json_out")
     def render_cmd(
         model: ModelDirArg,
@@ -208,7 +209,7 @@ def register(app, groups) -> None:
         json_out: Annotated[bool, typer.Option("--json", help=_JSON_HELP)] = False,
         *,
         render_options: dict,
-        env_yaw_deg: float,
+        env_yaw_deg: float | None,
         executor: dict,
     ):
         """Render a model from a captured view, a look-at camera, or an orbit (ULR-blended EWA surfel splatting)."""
@@ -272,7 +273,8 @@ def register(app, groups) -> None:
             c = console()
             c.print(
                 f"rendered {s['frames']} frame(s) {s['width']}x{s['height']}, {s['ms_per_frame']:.0f} ms/frame "
-                f"({s['surfels']} surfels, k={s['k']})"
+                f"({s['surfels']} surfels, k={s['k']}); warm-up {s['ms_warmup']:.0f} ms and model load "
+                f"{s['ms_load']:.0f} ms apart"
             )
             if s.get("budget") is not None:
                 c.print(f"  budget {s['budget']} splats: drew {max(s['splats_per_frame'])} at most per frame")

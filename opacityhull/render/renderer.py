@@ -36,6 +36,7 @@ import numpy as np
 
 from ..camera import Camera
 from ..errors import InputError
+from ..imageio import ALPHA_CUTOFF, straight_from_premul
 from ..model import OpacityHullModel, Surfels
 from . import kernels as K
 from .background import composite_over, resolve_background
@@ -44,7 +45,7 @@ from .views import PreparedViews, pack_camera, prepare_views, scan_order
 
 __all__ = ["RenderConfig", "RenderResult", "UlrWeights", "render_image", "render_model", "ulr_weights", "ALPHA_MIN"]
 
-ALPHA_MIN = 1.0 / 4096
+ALPHA_MIN = ALPHA_CUTOFF  # the project's one straight-colour cut-off (imageio)
 """Below this alpha a pixel's straight colour is reported as 0 (premultiplied colour / α
 is meaningless there)."""
 
@@ -653,16 +654,6 @@ def _shading_depth(
         dr, _, _ = D.close_gbuffer(dr, wsum.copy(), cov, winner)
     use = np.isfinite(dr) & np.isfinite(hull_depth) & (dr >= hull_depth)
     return np.where(use, dr, hull_depth).astype(np.float32)
-
-
-def straight_from_premul(premul: np.ndarray) -> np.ndarray:
-    """Premultiplied (H, W, 4) → straight RGBA, α clipped to [0, 1], colour 0 where α < ALPHA_MIN."""
-    out = np.asarray(premul, dtype=np.float32).copy()
-    a = np.clip(out[..., 3], 0.0, 1.0)
-    ok = a >= ALPHA_MIN
-    out[..., :3] = np.where(ok[..., None], out[..., :3] / np.where(ok, a, 1.0)[..., None], 0.0)
-    out[..., 3] = a
-    return out
 
 
 def coverage_full(config: RenderConfig) -> float:

@@ -75,13 +75,15 @@ def choose_cameras(
 
 
 def write_frame(path: Path, result: RenderResult, background) -> Path:
-    """EXR: straight RGBA float (or composited RGB when a background is given). PNG:
-    sRGB-encoded RGBA with straight alpha (or composited RGB)."""
+    """EXR: premultiplied RGBA float, the file saying so (:mod:`opacityhull.imageio`'s
+    convention), or composited RGB when a background is given. PNG: sRGB-encoded RGBA
+    with straight alpha (or composited RGB)."""
+    exr = path.suffix.lower() == ".exr"
     if background is None:
-        img = result.rgba
+        img = result.premul if exr else result.rgba
     else:
         img = result.over(background)
-    if path.suffix.lower() == ".exr":
+    if exr:
         write_exr(path, img)
     else:
         write_png(path, img)
@@ -217,6 +219,7 @@ class _FrameState:
         self.view_cameras = [v.camera for v in self.model.views]
         self.lod = LodCuts(self.surfels)
         self.ms_load = 1e3 * (time.perf_counter() - t0)
+        self.ms_warmup: float | None = None  # set by the first frame rendered here (_warm_up)
         # threads of one worker share this state; building the LOD tree twice is only waste,
         # but the cut reads the tree while the first builder replaces it
         self.lock = threading.Lock()
@@ -272,6 +275,7 @@ def _render_chunk(
 
     ms, splats, taus, gif = [], [], [], []
     ms_tree = 0.0
+    ms_warmup = _warm_up(st, cams[0], config=config, exclude=exclude) if cams else 0.0
     for i, (cam, path) in enumerate(zip(cams, paths)):
         t = time.perf_counter()
         with st.lock:
@@ -289,7 +293,28 @@ def _render_chunk(
             gif.append(to_srgb8(res.over(anim_background)))
         if progress:
             progress(i + 1, len(cams))
-    return {"ms": ms, "splats": splats, "taus": taus, "gif": gif, "ms_lod_tree": ms_tree}
+    return {"ms": ms, "splats": splats, "taus": taus, "gif": gif, "ms_lod_tree": ms_tree, "ms_warmup": ms_warmup}
+
+
+#: Size of the warm-up render (px): enough to run every kernel, too small to cost a frame.
+WARMUP_SIZE = (16, 12)
+
+
+def _warm_up(st: _FrameState, camera: Camera, *, config: RenderConfig, exclude: Sequence[int]) -> float:
+    """Render ``camera`` shrunk to :data:`WARMUP_SIZE` once per opened state, so the
+    frames' timings leave out what only the first render pays (numba compiling or
+    loading its kernels, the surfels' area estimate); returns its ms (0 when this
+    state was already warm). The frames' pixels do not depend on it."""
+    from .cameras import resize_camera
+
+    with st.lock:
+        if st.ms_warmup is not None:
+            return 0.0
+        t = time.perf_counter()
+        tiny = resize_camera(camera, *WARMUP_SIZE)
+        render_image(st.surfels, st.view_cameras, st.pv, tiny, config=config, exclude_views=list(exclude))
+        st.ms_warmup = 1e3 * (time.perf_counter() - t)
+        return st.ms_warmup
 
 
 def render_frames(task: tuple) -> dict:
@@ -307,8 +332,9 @@ def render_frames(task: tuple) -> dict:
 
     Returns
     -------
-    dict with ``ms`` (per frame), ``splats``, ``taus``, ``gif`` (uint8 H x W x 3 frames),
-    ``ms_load`` (0 when the model was already open here) and ``ms_lod_tree``.
+    dict with ``ms`` (per frame, warm), ``splats``, ``taus``, ``gif`` (uint8 H x W x 3
+    frames), ``ms_load`` (0 when the model was already open here), ``ms_warmup`` (the
+    first render in this worker, :func:`_warm_up`; 0 when warm) and ``ms_lod_tree``.
     """
     model_path, cams, config, exclude, budget, paths, background, anim_background = task
     st, loaded = _worker_state(model_path)
@@ -338,7 +364,7 @@ def run_render(
     config: RenderConfig = RenderConfig(),
     background: str | None = None,
     background_kind: str = "auto",
-    env_yaw_deg: float = 0.0,
+    env_yaw_deg: float | None = None,
     exclude: Sequence[str] = (),
     fps: float = 12.0,
     budget: int | None = None,
@@ -422,8 +448,9 @@ def run_render(
         "height": cams[0].height,
         "k": config.k,
         "surfels": n_surfels,
-        "ms_per_frame": float(np.mean(ms)),
+        "ms_per_frame": float(np.mean(ms)),  # warm: the warm-up render is ms_warmup
         "ms_first_frame": ms[0],
+        "ms_warmup": max(p["ms_warmup"] for p in parts),
         "ms_load": t_load_ms,
         "background": None if background is None else ("envmap" if isinstance(bg, EnvMap) else str(background)),
         "budget": budget,

@@ -32,6 +32,7 @@ Integers are big-endian. Pattern ids are u16 in ``0..0xFFFE``; ``0xFFFF`` means 
 
 from __future__ import annotations
 
+import binascii
 import logging
 import struct
 import zlib
@@ -180,24 +181,10 @@ RETRYABLE_NAKS = frozenset({NAK_BAD_FRAME, NAK_BUSY})
 # --------------------------------------------------------------------------- checksums
 
 
-def _crc16_table() -> list[int]:
-    table = []
-    for b in range(256):
-        c = b << 8
-        for _ in range(8):
-            c = ((c << 1) ^ 0x1021) if c & 0x8000 else (c << 1)
-        table.append(c & 0xFFFF)
-    return table
-
-
-_CRC16_TABLE = _crc16_table()
-
-
 def crc16_ccitt(data: bytes, crc: int = 0xFFFF) -> int:
-    """CRC-16/CCITT-FALSE of ``data`` (check value 0x29B1 for ``b"123456789"``)."""
-    for b in data:
-        crc = ((crc << 8) & 0xFFFF) ^ _CRC16_TABLE[((crc >> 8) ^ b) & 0xFF]
-    return crc
+    """CRC-16/CCITT-FALSE of ``data`` (check value 0x29B1 for ``b"123456789"``):
+    ``binascii.crc_hqx`` is this CRC (poly 0x1021, MSB first) from the given start value."""
+    return binascii.crc_hqx(data, crc)
 
 
 def image_crc32(data: bytes) -> int:

@@ -9,7 +9,7 @@ from typing import Annotated, Optional
 import typer
 from rich.markup import escape
 
-from ..cliutil import cli_errors, console, emit
+from ..cliutil import cli_errors, console, emit, out_console
 
 __all__ = ["register", "make_pattern", "PATTERNS"]
 
@@ -240,7 +240,7 @@ def register(app, groups) -> None:
             summary["undeclared"] = {"integrator": und.integrator, "max_depth": und.max_depth, "spp": und.spp}
 
         def human(s):
-            c = console()
+            c = out_console()
             c.print(
                 f"[bold]{escape(str(s['scene']))}[/] — phase [bold]{s['phase']}[/]: {s['integrator']} "
                 f"(max_depth {s['max_depth']}), {s['spp']} spp ({s['sampler']}), "
@@ -270,7 +270,7 @@ def register(app, groups) -> None:
             for r in s["reasons"]:
                 c.print(f"  • {r}", highlight=False, markup=False)
 
-        emit(summary, json_out, human)
+        emit(summary, json_out, human, primary=True)
 
     @groups["sim"].command("scenes")
     @cli_errors
@@ -292,6 +292,6 @@ def register(app, groups) -> None:
 
         def human(s: dict) -> None:
             for i in s["scenes"]:
-                console().print(f"[bold]{escape(i['name'])}[/]: {escape(i['description'])}", highlight=False)
+                out_console().print(f"[bold]{escape(i['name'])}[/]: {escape(i['description'])}", highlight=False)
 
-        emit({"scenes": items}, json_out, human)
+        emit({"scenes": items}, json_out, human, primary=True)

@@ -354,7 +354,7 @@ def write_ground_truth(
     }
     with atomic_path(gt / "lights.json") as tmp:
         tmp.write_text(json.dumps(lights, indent=2) + "\n")
-    from ..session import toml_dumps
+    from ..tomlio import toml_dumps
 
     with atomic_path(gt / "scene.toml") as tmp:
         tmp.write_text(toml_dumps(scene.to_toml_dict()))

@@ -73,8 +73,9 @@ def test_eval_relight_warns_when_few_lights_were_captured(relight_model_dir, tmp
     import opacityhull.evaluate.relight as ev
     from badkit import flat
 
-    def fake(model, **kw):
-        return {"per_view": [], "psnr_mean": 10.0, "rel_err_mean": 0.7, "sheet": "s.png", "n_lights_captured": 2}
+    def fake(model, **kw):  # the command prints the warnings eval_relight found (and drew on its sheet)
+        w = [ev.few_lights_warning(2)]
+        return {"per_view": [], "psnr_mean": 10.0, "rel_err_mean": 0.7, "sheet": "s.png", "warnings": w}
 
     monkeypatch.setattr(ev, "eval_relight", fake)
     r = invoke(["eval", "relight", relight_model_dir, "--envmap", "builtin:grace", "--out", tmp_path / "e"])

@@ -241,7 +241,7 @@ def test_format_1_model_still_opens_with_straight_views(tmp_path):
     import tomllib
 
     from opacityhull.imageio import write_exr
-    from opacityhull.session import toml_dumps
+    from opacityhull.tomlio import toml_dumps
 
     root, _, views, rgba, _ = _small_model(tmp_path)
     meta = tomllib.loads((root / "model.toml").read_text())
@@ -268,7 +268,7 @@ def test_model_missing_light_named(tmp_path):
     )
     import tomllib
 
-    from opacityhull.session import toml_dumps
+    from opacityhull.tomlio import toml_dumps
 
     meta = tomllib.loads((tmp_path / "m" / "model.toml").read_text())
     meta["reflectance"]["lights"].append({"key": light_key(1, 15.0), "light_id": 1, "array_deg": 15.0})

@@ -87,3 +87,99 @@ def test_callers_use_it(tmp_path):
         load_rig_config(tmp_path / "rig.toml")
     with pytest.raises(ConfigError, match="plan.toml: not a text file"):
         load_plan(tmp_path / "plan.toml")
+
+
+# --------------------------------------------------------------------------- writing (#33)
+
+import math  # noqa: E402
+import tomllib  # noqa: E402
+
+import numpy as np  # noqa: E402
+from hypothesis import given, settings, strategies as st  # noqa: E402
+
+from opacityhull.errors import InputError  # noqa: E402
+from opacityhull.tomlio import join_nones, split_nones, toml_dumps  # noqa: E402
+
+_keys = st.text(alphabet=st.characters(codec="utf-8", exclude_categories=("Cs", "Cc")), min_size=1, max_size=6)
+_scalars = st.one_of(
+    st.booleans(),
+    st.integers(-(2**63), 2**63 - 1),
+    st.floats(allow_nan=False),
+    st.text(alphabet=st.characters(codec="utf-8", exclude_categories=("Cs",)), max_size=12),
+)
+_values = st.recursive(
+    _scalars,
+    lambda inner: st.one_of(st.lists(inner, max_size=4), st.dictionaries(_keys, inner, max_size=4)),
+    max_leaves=12,
+)
+
+
+@settings(max_examples=150, deadline=None)
+@given(data=st.dictionaries(_keys, _values, max_size=6))
+def test_toml_dumps_is_tomli_w_and_reads_back(data):
+    """tomli-w writes TOML (#33): what ``toml_dumps`` writes, ``tomllib`` reads back equal."""
+    import tomli_w
+
+    text = toml_dumps(data)
+    assert text == tomli_w.dumps(data)
+    assert tomllib.loads(text) == data
+
+
+def test_toml_dumps_takes_numpy_values_leaves_out_none_and_keeps_nan():
+    d = {
+        "a": np.float32(0.5),
+        "b": np.int64(3),
+        "c": np.array([1.0, 2.0]),
+        "t": {"x": None, "y": (1, 2), "z": np.bool_(True)},
+        "rows": [{"id": "v0", "deg": np.float64(30.0)}, {"id": "v1", "deg": 60.0}],
+        "n": float("nan"),
+        "i": -math.inf,
+        "p": None,
+    }
+    got = tomllib.loads(toml_dumps(d))
+    assert got["a"] == 0.5 and got["b"] == 3 and got["c"] == [1.0, 2.0] and "p" not in got
+    assert got["t"] == {"y": [1, 2], "z": True}
+    assert got["rows"] == [{"id": "v0", "deg": 30.0}, {"id": "v1", "deg": 60.0}]
+    assert math.isnan(got["n"]) and got["i"] == -math.inf
+    with pytest.raises(InputError, match=r"None .*t\.y"):
+        toml_dumps({"t": {"y": [1, None]}})
+
+
+def test_split_and_join_nones_round_trip():
+    d = {"a": 1, "b": None, "m": {"c": None, "d": 2.0}, "e": [1, 2]}
+    table, nones = split_nones(d)
+    assert table == {"a": 1, "m": {"d": 2.0}, "e": [1, 2]} and sorted(nones) == ["b", "m.c"]
+    assert join_nones(table, nones) == d
+
+
+def test_model_toml_stores_build_config_as_a_table_and_reads_old_json(tmp_path):
+    """model.toml's build_config was a JSON string inside TOML (#33): now a table, the
+    None options listed beside it; models with the JSON string still read."""
+    import json
+    from dataclasses import replace
+
+    from opacityhull.model import OpacityHullModel
+    from opacityhull.reconstruct.build import BuildConfig, _jsonable
+    from opacityhull.reconstruct.holdout import build_config_of
+    from opacityhull.render.synthetic import make_sphere_model
+    from opacityhull.model import write_model
+
+    cfg = replace(BuildConfig(), pca_block=None, hull_res=64, refine=True)  # None here is not the default (8)
+    m = make_sphere_model(200, width=16, height=12, table_step_deg=90.0)
+    want = _jsonable(cfg.to_dict())
+    root = write_model(
+        tmp_path / "m", views=m.views, surfels=m.surfels, view_rgba=m.view_rgba,
+        provenance={"session": "s", "build_config": want},
+    )  # fmt: skip
+    meta = tomllib.loads((root / "model.toml").read_text())
+    assert isinstance(meta["provenance"]["build_config"], dict)
+    assert "pca_block" in meta["provenance"]["build_config_none"]
+    model = OpacityHullModel.open(root)
+    assert model.build_config == want
+    got = build_config_of(model)[0]
+    assert got.pca_block is None and got.hull_res == 64 and got.refine
+    # an older model: the same options as a JSON string
+    meta["provenance"] = {"session": "s", "build_config": json.dumps(want, sort_keys=True)}
+    (root / "model.toml").write_text(toml_dumps(meta))
+    old = OpacityHullModel.open(root)
+    assert old.build_config == want and build_config_of(old)[0].pca_block is None

@@ -211,7 +211,7 @@ def test_float_storage_keeps_every_value_and_warns_nothing(tmp_path, recwarn):
 def test_a_model_without_a_storage_table_is_float_and_a_bad_one_is_named(relit_pair, tmp_path):
     import shutil
 
-    from opacityhull.session import toml_dumps
+    from opacityhull.tomlio import toml_dumps
 
     root = tmp_path / "old"
     shutil.copytree(relit_pair["float"].root, root)

@@ -276,3 +276,39 @@ def test_reflectance_is_normalised_by_the_dmx_level(sphere_build, tmp_path):
             assert s_full > 1.0
             assert float(a[k].sum()) / s_full == pytest.approx(1.0, abs=0.01)  # unscaled: 0.502
             assert np.abs(a[k] - b[k]).mean() < 0.003
+
+
+def test_ground_truth_metrics_carry_bounds_and_verdicts(sphere_build, capsys):
+    """``build --ground-truth`` printed hull_iou 0.2266 or a focal error of 5.1 % with no
+    bound (#33): every metric with a bound gets it, its verdict and why, in report.json
+    and in the terminal table."""
+    from opacityhull.reconstruct.commands import _human
+    from opacityhull.reconstruct.metrics import GROUND_TRUTH_BOUNDS
+
+    info, r, root = sphere_build
+    rep = json.loads((root / "model" / "report.json").read_text())
+    checks = rep["metrics"]["ground_truth_checks"]
+    assert {"alpha_mae", "hull_iou", "hull_object_in_hull", "hull_iou_vs_true_alpha_hull"} <= set(checks)
+    for name, ch in checks.items():
+        assert ch["value"] == pytest.approx(rep["metrics"][name]) and ch["why"] == GROUND_TRUTH_BOUNDS[name].why
+    assert checks["alpha_mae"]["bound"] == "<= 0.03" and checks["alpha_mae"]["ok"] is True
+    # hull IoU against what perfect mattes carve from the same views
+    ref = rep["metrics"]["true_alpha_hull_iou"]
+    assert checks["hull_iou"]["limit"] == pytest.approx(0.9 * ref) and checks["hull_iou"]["ok"] is True
+    assert checks["true_alpha_hull_iou"]["ok"] is None  # information, no verdict
+    _human(r.summary())
+    err = capsys.readouterr().err
+    assert "✓" in err and "<= 0.03" in err and "true_alpha_hull_iou" in err
+
+
+def test_ground_truth_verdicts_fail_out_of_bounds():
+    from opacityhull.reconstruct.metrics import ground_truth_checks
+
+    c = ground_truth_checks(
+        {"pose_max_focal_pct": 5.1, "pose_max_position_mm": 50.1, "hull_iou": 0.2266, "alpha_mae": float("nan")}
+    )
+    assert c["pose_max_focal_pct"]["ok"] is False and c["pose_max_focal_pct"]["bound"] == "<= 3"
+    assert c["pose_max_position_mm"]["ok"] is None  # the gauge is in it: see the gauge-aligned error
+    assert c["hull_iou"]["ok"] is None and "not measured" in c["hull_iou"]["bound"]
+    assert c["alpha_mae"]["ok"] is False  # NaN is no pass
+    assert ground_truth_checks({"hull_iou": 0.3, "true_alpha_hull_iou": 0.4})["hull_iou"]["ok"] is False

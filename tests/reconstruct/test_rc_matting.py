@@ -66,7 +66,8 @@ def test_noise_free_exact_and_premultiplied():
     np.testing.assert_allclose(r.alpha, a, atol=1e-5)
     np.testing.assert_allclose(r.fg_premul, a[..., None] * F, atol=1e-5)
     assert not r.unknown.any()
-    np.testing.assert_allclose(straight_from_premul(r.fg_premul, r.alpha)[a > 0.05], F[a > 0.05], atol=1e-3)
+    straight = straight_from_premul(np.dstack([r.fg_premul, r.alpha]))[..., :3]
+    np.testing.assert_allclose(straight[a > 0.05], F[a > 0.05], atol=1e-3)
 
 
 def test_noise_estimate_and_predicted_std():

@@ -96,7 +96,8 @@ def test_eval_relight_refuses_a_model_of_a_real_rig(sphere_model, tmp_path, prob
     import shutil
     import tomllib
 
-    from opacityhull.session import SESSION_FORMAT, toml_dumps
+    from opacityhull.session import SESSION_FORMAT
+    from opacityhull.tomlio import toml_dumps
 
     m = tmp_path / "m"
     shutil.copytree(sphere_model, m)

@@ -242,7 +242,7 @@ def test_near_light_correction_rescales_by_the_distance_to_each_light(tmp_path, 
     import shutil
     import tomllib
 
-    from opacityhull.session import toml_dumps
+    from opacityhull.tomlio import toml_dumps
 
     assert Relighter(model).near_light is False  # the analytic sphere says its lights are directional
     root = tmp_path / "m"

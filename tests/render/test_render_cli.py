@@ -35,7 +35,7 @@ def test_render_captured_view_png_and_exr(sphere_dir, tmp_path):
     img = read_exr(tmp_path / "v.exr")
     assert img.shape == (48, 64, 4)
     ref = render_model(OpacityHullModel.open(root), m.cameras[4])
-    np.testing.assert_allclose(img, ref.rgba, atol=1e-6)  # the CLI renders what the API renders
+    np.testing.assert_allclose(img, ref.premul, atol=1e-6)  # the CLI renders what the API renders (premultiplied)
     s = run_json("render", root, "--out", tmp_path / "v.png", "--view", "1,15", "--width", "128")
     png = read_png(tmp_path / "v.png")
     assert png.shape == (96, 128, 4) and png[..., 3].max() > 0.99 and png[0, 0, 3] == 0
@@ -125,3 +125,47 @@ def test_eval_loo_json_and_contact_sheet(sphere_dir, tmp_path):
     assert saved["psnr_mean"] == pytest.approx(s["psnr_mean"])
     res = run("eval", "loo", root, "--views", "c9_t000.000")
     assert res.exit_code == 2 and "c9_t000.000" in res.flat
+
+
+def test_render_background_takes_builtin_probes_as_relight_does(sphere_dir, tmp_path):
+    """``render --background builtin:grace`` was refused though ``relight`` takes it (#33):
+    one resolver (``opacityhull.envmap``), with the shipped probes' default yaw of 180°."""
+    from opacityhull.data import probe_path
+
+    root, _ = sphere_dir
+    a = run_json("render", root, "--out", tmp_path / "a.exr", "--view", "0,0", "--background", "builtin:grace")
+    b = run_json(
+        "render", root, "--out", tmp_path / "b.exr", "--view", "0,0", "--background", probe_path("grace"),
+        "--env-yaw-deg", "180",
+    )  # fmt: skip
+    assert a["background"] == b["background"] == "envmap"
+    np.testing.assert_array_equal(read_exr(tmp_path / "a.exr"), read_exr(tmp_path / "b.exr"))
+    run_json("render", root, "--out", tmp_path / "c.exr", "--view", "0,0", "--background", probe_path("grace"))
+    assert not np.allclose(read_exr(tmp_path / "a.exr"), read_exr(tmp_path / "c.exr"))  # a path's yaw stays 0
+    r = run("render", root, "--out", tmp_path / "d.exr", "--background", "builtin:nowhere")
+    assert r.exit_code == 2 and "nowhere" in r.flat and "grace" in r.flat
+
+
+def test_frame_timings_leave_the_warm_up_out(sphere_dir, tmp_path):
+    """``render --view`` reported 15 s "per frame", numba's compile included (#33): one
+    small warm-up render per opened model is timed apart (``ms_warmup``), the frames'
+    ``ms_per_frame`` are warm, and the pixels do not change."""
+    from opacityhull.render.runner import _FrameState, _render_chunk, choose_cameras
+
+    root, _ = sphere_dir
+    s = run_json("render", root, "--out", tmp_path / "w.exr", "--view", "0,0")
+    assert s["ms_warmup"] > 0 and s["ms_per_frame"] > 0 and "warm-up" not in s  # reported apart, not mixed in
+    model = OpacityHullModel.open(root)
+    st = _FrameState(root, model)
+    cams = choose_cameras(model, orbit=2)
+    from opacityhull.render.renderer import RenderConfig
+
+    a = _render_chunk(st, cams, config=RenderConfig(), exclude=[], budget=None,
+                      paths=[str(tmp_path / f"f{i}.exr") for i in range(2)], background=None, anim_background=None)  # fmt: skip
+    b = _render_chunk(st, cams, config=RenderConfig(), exclude=[], budget=None,
+                      paths=[str(tmp_path / f"g{i}.exr") for i in range(2)], background=None, anim_background=None)  # fmt: skip
+    assert a["ms_warmup"] > 0 and b["ms_warmup"] == 0.0  # once per opened model
+    for i in range(2):
+        np.testing.assert_array_equal(read_exr(tmp_path / f"f{i}.exr"), read_exr(tmp_path / f"g{i}.exr"))
+    ref = render_model(model, cams[0])
+    np.testing.assert_array_equal(read_exr(tmp_path / "f0.exr"), ref.premul)

@@ -13,7 +13,7 @@ from opacityhull.rigs.backdrops import DISPLAY_SERIAL
 from opacityhull.rigs.config import RigConfig, load_rig_config, parse_emulator_url, parse_rig_config
 from opacityhull.rigs.lights import DMX_SERIAL
 from opacityhull.rigs.motion import GRBL_SERIAL
-from opacityhull.session import toml_dumps
+from opacityhull.tomlio import toml_dumps
 
 EXAMPLE = Path(__file__).resolve().parents[2] / "examples" / "rig-emulated.toml"
 

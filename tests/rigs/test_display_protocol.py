@@ -18,6 +18,26 @@ def test_crc16_check_value_and_independent_reference():
         assert dp.crc16_ccitt(data) == binascii.crc_hqx(data, 0xFFFF)
 
 
+def _crc16_old_table(data: bytes, crc: int = 0xFFFF) -> int:
+    """The table-driven CRC the module carried before ``binascii.crc_hqx`` (#33)."""
+    table = []
+    for b in range(256):
+        c = b << 8
+        for _ in range(8):
+            c = ((c << 1) ^ 0x1021) if c & 0x8000 else (c << 1)
+        table.append(c & 0xFFFF)
+    for b in data:
+        crc = ((crc << 8) & 0xFFFF) ^ table[((crc >> 8) ^ b) & 0xFF]
+    return crc
+
+
+@settings(max_examples=60, deadline=None)
+@given(data=st.binary(max_size=600), start=st.sampled_from([0xFFFF, 0x0000, 0x1D0F]))
+def test_crc16_is_the_library_crc_and_keeps_the_old_tables_values(data, start):
+    assert not hasattr(dp, "_CRC16_TABLE")  # the hand-written table is gone: binascii does it
+    assert dp.crc16_ccitt(data, start) == _crc16_old_table(data, start)
+
+
 def test_documented_example_bytes():
     # docs/display-protocol.md lists these; a change here is a protocol change
     assert dp.encode_frame(1, *dp.identify()).hex(" ").upper() == "7E 01 01 3E 1F 7E"

@@ -86,3 +86,14 @@ def test_scenes_lists_the_builtins():
     assert r.exit_code == 0
     names = {s["name"] for s in _json(r)["scenes"]}
     assert {"builtin:diffuse", "builtin:glossy", "builtin:fuzzy", "builtin:glass", "builtin:charuco"} <= names
+
+
+def test_scenes_and_explain_print_their_text_on_stdout():
+    """``sim scenes | less`` showed nothing: the list went to stderr (#33)."""
+    r = CliRunner().invoke(app, ["sim", "scenes"])
+    assert r.exit_code == 0, r.output
+    assert "builtin:diffuse" in r.stdout and "builtin:diffuse" not in r.stderr
+    assert "stdout is for --json" not in r.stderr
+    r = CliRunner().invoke(app, ["sim", "explain", "--scene", "builtin:diffuse", "--phase", "matting"])
+    assert r.exit_code == 0, r.output
+    assert "expected cost" in r.stdout and "expected cost" not in r.stderr

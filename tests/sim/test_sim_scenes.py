@@ -186,3 +186,22 @@ def _nearest_resize_reference(img, width, height):
 def test_nearest_resize_matches_the_loop_reference(h, w, H, W, seed):
     img = np.random.default_rng(seed).integers(0, 256, (h, w, 3), dtype=np.uint8)
     assert np.array_equal(nearest_resize(img, W, H), _nearest_resize_reference(img, W, H))
+
+
+def test_opencv_nearest_exact_is_not_the_panels_rule_at_ties():
+    """Why ``nearest_resize`` stays NumPy (#33 asked for OpenCV's ``INTER_NEAREST_EXACT``):
+    OpenCV computes ``(j + 0.5) * src / dst`` in 16-bit fixed point with the scale
+    truncated, so where the exact value is a whole number and ``src / dst`` is not
+    dyadic it lands one texel low. The panel (``rigs.display_protocol.nearest_resize``)
+    and the simulator floor the exact value; a 4-texel row shown on 6 pixels differs."""
+    import cv2
+
+    row = np.arange(4, dtype=np.uint8).reshape(1, 4, 1)
+    ours = nearest_resize(row, 6, 1)[0, :, 0]
+    assert ours.tolist() == [0, 1, 1, 2, 3, 3] == _nearest_resize_reference(row, 6, 1)[0, :, 0].tolist()
+    assert cv2.resize(row, (6, 1), interpolation=cv2.INTER_NEAREST_EXACT)[0].tolist() == [0, 1, 1, 2, 2, 3]
+    # equal wherever no exact tie occurs, e.g. every whole-number upscale
+    img = np.random.default_rng(0).integers(0, 256, (9, 7, 3), dtype=np.uint8)
+    for k in (2, 3, 5):
+        cv = cv2.resize(img, (7 * k, 9 * k), interpolation=cv2.INTER_NEAREST_EXACT)
+        assert np.array_equal(nearest_resize(img, 7 * k, 9 * k), cv)

@@ -25,7 +25,7 @@ log = logging.getLogger(__name__)
 
 def _ground_truth_metrics(session, views, vids, alphas, occ, grid, cams, config, pin, dilations) -> dict:
     from ...imageio import read_exr
-    from ..metrics import alpha_mae, hull_iou, read_mesh_ply, voxelize_mesh
+    from ..metrics import alpha_mae, ground_truth_checks, hull_iou, read_mesh_ply, voxelize_mesh
 
     gt = session.groundtruth_dir
     m: dict = {}
@@ -95,7 +95,7 @@ def _ground_truth_metrics(session, views, vids, alphas, occ, grid, cams, config,
             m["pose_errors"] = pe
         except InputError as e:
             m["pose_errors_error"] = str(e)
-    return m
+    return m | {"ground_truth_checks": ground_truth_checks(m)}  # bounds and verdicts: metrics.py
 
 
 def run(ctx) -> None:

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import logging
 from dataclasses import dataclass
 from pathlib import Path
@@ -104,7 +103,7 @@ def run(ctx) -> None:
         "camera_source": cams.source,
         "backdrop_source": backdrop_source,
         "reflectance_units": "radiance at full DMX level (one-light images scaled by 255/level)",
-        "build_config": json.dumps(_jsonable(config.to_dict()), sort_keys=True),
+        "build_config": _jsonable(config.to_dict()),  # a TOML table (model.py: build_config_none)
     }
     write_in = {
         "geometry": ctx.geometry.key,
