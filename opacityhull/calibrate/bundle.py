@@ -381,7 +381,7 @@ def bundle_adjust(
     sol = least_squares(
         lambda x: prob.evaluate(x, jac=False)[0],
         prob.x0,
-        jac=lambda x: _jac(prob, x),
+        jac=lambda x: _jac(prob, x),  # pyright: ignore[reportArgumentType]  (a callable is documented)
         method="trf",
         x_scale="jac",
         tr_solver=TR_SOLVER,

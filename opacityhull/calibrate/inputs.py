@@ -241,12 +241,19 @@ def read_sync_csv(path: Path, n_cameras: int, *, max_skew_s: float = 0.005) -> d
 
 
 def _gray(frame: np.ndarray) -> np.ndarray:
+    """8-bit grey of a decoded frame (16-bit or float images scaled by their maximum)."""
     import cv2
 
-    if frame.ndim == 2:
-        return frame if frame.dtype == np.uint8 else cv2.normalize(frame, None, 0, 255, cv2.NORM_MINMAX, cv2.CV_8U)
-    g = cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY if frame.shape[2] == 3 else cv2.COLOR_BGRA2GRAY)
-    return g if g.dtype == np.uint8 else cv2.normalize(g, None, 0, 255, cv2.NORM_MINMAX, cv2.CV_8U)
+    g = (
+        frame
+        if frame.ndim == 2
+        else cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY if frame.shape[2] == 3 else cv2.COLOR_BGRA2GRAY)
+    )
+    if g.dtype == np.uint8:
+        return g
+    g = np.asarray(g, dtype=np.float64)
+    top = float(np.nanmax(g)) if g.size else 0.0
+    return np.clip(np.nan_to_num(g / top if top > 0 else g) * 255.0 + 0.5, 0, 255).astype(np.uint8)
 
 
 def _frames(cam: CameraInput, *, step: int):

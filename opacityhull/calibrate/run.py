@@ -84,14 +84,21 @@ def calibrate_detected(
     ):
         found_any = any(r.reason.startswith("only") or "collinear" in r.reason for d in detected for r in d.rejected)
         if not found_any:
-            other = {"normal": "polarity=inverted", "inverted": "polarity=normal", "auto": "another dictionary"}[
-                charuco.polarity
-            ]
-            layout = "" if charuco.squares_y % 2 else " or layout=legacy / layout=new"
+            tried = {
+                "auto": "both print polarities (normal, inverted) were tried",
+                "normal": "only the normal print was tried: try polarity=inverted (white markers on black)",
+                "inverted": "only the inverted print was tried: try polarity=normal",
+            }[charuco.polarity]
+            if charuco.squares_y % 2:
+                lay = "the legacy and new layouts are the same for an odd row count"
+            elif charuco.layout == "auto":
+                lay = "both layouts (new, legacy) were tried"
+            else:
+                lay = f"only layout={charuco.layout} was tried: try layout={'new' if charuco.layout == 'legacy' else 'legacy'}"
             raise InputError(
                 f"--board: no ChArUco corners of a {charuco.squares_x}x{charuco.squares_y} {charuco.dictionary} board "
-                f"in any of {sum(d.frames_read for d in detected)} frame(s); check squares, dictionary and "
-                f"marker_m, or try {other}{layout}"
+                f"in any of {sum(d.frames_read for d in detected)} frame(s); {tried}; {lay}; check squares "
+                "(columns x rows), dictionary and marker_m"
             )
     left_out: dict[int, str] = {}
     notes: list[str] = []
