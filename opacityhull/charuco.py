@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import functools
 import math
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field, replace
 from typing import Literal, Sequence
 
@@ -33,6 +34,7 @@ __all__ = [
     "BoardDetection",
     "detect_board",
     "laplacian_sharpness",
+    "single_threaded_solvers",
     "Polarity",
     "Layout",
 ]
@@ -347,3 +349,25 @@ def laplacian_sharpness(gray, points=None, *, margin_px: float = 10.0) -> float:
         if x1 - x0 >= 3 and y1 - y0 >= 3:
             g = g[y0:y1, x0:x1]
     return float(cv2.Laplacian(g, cv2.CV_64F).var())
+
+
+@contextmanager
+def single_threaded_solvers():
+    """OpenCV's and the BLAS thread pools at one thread inside the block, so that a
+    calibration repeats bit for bit. Measured on the tiny plan's session: with OpenCV's
+    default threads, one ``calibrate_session`` in four gave another rig (K differing in
+    the 12th digit: ``cv2.calibrateCamera`` sums its normal equations across threads in
+    the order they finish); with one thread, 8 of 8 identical. BLAS is held at one thread
+    too, or the refinement's products would depend on the machine's core count. The
+    detection stays parallel (its results were identical in 8 of 8 runs: OpenCV merges
+    the per-thread marker candidates in a fixed order)."""
+    import cv2
+    from threadpoolctl import threadpool_limits
+
+    prev = cv2.getNumThreads()
+    cv2.setNumThreads(1)
+    try:
+        with threadpool_limits(limits=1):
+            yield
+    finally:
+        cv2.setNumThreads(prev)

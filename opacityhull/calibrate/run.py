@@ -9,7 +9,7 @@ from typing import Sequence
 
 import numpy as np
 
-from ..charuco import CharucoSpec
+from ..charuco import CharucoSpec, single_threaded_solvers
 from ..errors import InputError
 from .bundle import DIST_MODELS, BundleResult, CameraInit, Obs, bundle_adjust, chain_cameras, init_camera
 from .inputs import CameraInput, DetectedCamera, Rejection, camera_inputs, detect_frames, read_sync_csv, screen_frames
@@ -70,7 +70,15 @@ def _param_count(free: Sequence[str]) -> int:
 def calibrate_detected(
     detected: list[DetectedCamera], *, charuco: CharucoSpec, options: CalibrateOptions, cameras: list[CameraInput]
 ) -> CalibrateRun:
-    """Screen, initialise and bundle-adjust detections (the part after decoding)."""
+    """Screen, initialise and bundle-adjust detections (the part after decoding), with
+    OpenCV and BLAS at one thread so that the result repeats bit for bit."""
+    with single_threaded_solvers():
+        return _calibrate_detected(detected, charuco=charuco, options=options, cameras=cameras)
+
+
+def _calibrate_detected(
+    detected: list[DetectedCamera], *, charuco: CharucoSpec, options: CalibrateOptions, cameras: list[CameraInput]
+) -> CalibrateRun:
     for d in detected:
         screen_frames(
             d,

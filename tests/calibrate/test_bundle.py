@@ -110,24 +110,35 @@ def _run(detected, **kw):
     )
 
 
-@settings(max_examples=6, deadline=None, suppress_health_check=[HealthCheck.too_slow])
-@given(seed=st.integers(0, 2**31 - 1), n_cams=st.integers(2, 3), noise=st.floats(0.05, 0.3))
-def test_bundle_recovers_known_poses(seed, n_cams, noise):
-    """Relative camera poses within bounds that scale with the corner noise (at 0.3 px:
-    0.2° and 3 mm measured worst; bounds are 2-3× that), focal lengths within 1 %."""
+def _errors_in_sigma(seed: int, n_cams: int, noise: float) -> list[float]:
+    """Each camera's focal, rotation and position error divided by the σ the bundle
+    adjustment reports for it."""
     rng = np.random.default_rng(seed)
     Ks, cfw, boards = _scene(rng, n_cams, 12)
     run = _run(_detected(rng, Ks, cfw, boards, noise_px=noise), refine_intrinsics=True)
     res = run.result
     assert sorted(res.cameras) == list(range(n_cams))
+    z = []
     for c, f in res.cameras.items():
-        assert abs(f.K[0, 0] / Ks[c][0, 0] - 1) < 0.01
+        assert f.rms_px < 1.5 * noise
+        z.append(abs(f.K[0, 0] - Ks[c][0, 0]) / f.std["fx"])
+        if c == 0:
+            continue
         # world = camera 0's frame: compare cam_c_from_cam_0
         true_rel = cfw[c] @ invert_rigid(cfw[0])
-        assert rotation_angle_deg(f.cam_from_world[:3, :3] @ true_rel[:3, :3].T) < 2.0 * noise + 0.05
-        assert np.linalg.norm(f.cam_from_world[:3, 3] - true_rel[:3, 3]) < 0.03 * noise + 0.002
-        assert f.rms_px < 2.0 * noise
-        assert f.std["fx"] > 0
+        z.append(rotation_angle_deg(f.cam_from_world[:3, :3] @ true_rel[:3, :3].T) / f.std["rotation_deg"])
+        z.append(float(np.linalg.norm(f.cam_from_world[:3, 3] - true_rel[:3, 3])) / f.std["translation_m"])
+    return z
+
+
+@settings(max_examples=8, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(seed=st.integers(0, 2**31 - 1), n_cams=st.integers(2, 3), noise=st.floats(0.05, 0.5))
+def test_bundle_recovers_known_poses(seed, n_cams, noise):
+    """Known poses and focal lengths recovered within 4σ of the bundle adjustment's own
+    standard deviations (the rotation and position σ are the norms over three components,
+    so an error is about 1σ typically; measured over 40 seeds: the largest error was
+    2.6 σ, the median 1.4 σ)."""
+    assert max(_errors_in_sigma(seed, n_cams, noise)) < 4.0
 
 
 def test_camera_that_never_sees_the_board_is_named_and_left_out():
