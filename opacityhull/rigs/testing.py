@@ -444,3 +444,76 @@ class LabRig:
         d.mkdir(exist_ok=True)
         (d / "views.json").write_text(json.dumps([list(v) for v in views]))
         return d
+
+
+# --------------------------------------------------------------------------- a virtual display server
+
+
+def read_xwd(path) -> np.ndarray:
+    """The screen an Xvfb ``-fbdir`` file holds (XWD format, 24/32-bit TrueColor) as
+    uint8 (rows, cols, 3) RGB: a screenshot of the virtual display, read at any moment."""
+    import struct
+
+    b = Path(path).read_bytes()
+    hs = struct.unpack(">25I", b[:100])
+    header_size, width, height, byte_order = hs[0], hs[4], hs[5], hs[7]
+    bpp, bpl, ncolors = hs[11], hs[12], hs[19]
+    masks = hs[14:17]
+    if bpp != 32 or masks != (0xFF0000, 0xFF00, 0xFF):
+        raise ValueError(f"{path}: XWD with {bpp} bits per pixel and masks {masks} (expected 32, RGB888)")
+    off = header_size + 12 * ncolors
+    rows = np.frombuffer(b, np.uint8, count=height * bpl, offset=off).reshape(height, bpl)
+    px = rows[:, : 4 * width].reshape(height, width, 4)
+    return px[..., 2::-1].copy() if byte_order == 0 else px[..., 1:].copy()
+
+
+@contextmanager
+def xvfb(screens: Sequence[tuple[int, int]] = ((320, 240),), *, timeout_s: float = 10.0) -> Iterator[tuple[str, Path]]:
+    """A private Xvfb server with one X screen per ``(width, height)``, each a monitor.
+
+    Yields ``(display, fbdir)``: the display name (``":N"``, a free number Xvfb chose)
+    and the folder where Xvfb keeps each screen's framebuffer as ``Xvfb_screenK``
+    (:func:`read_xwd` reads it). Raises :class:`FileNotFoundError` when Xvfb is not
+    installed (``apt-get install xvfb``).
+    """
+    import os
+    import shutil
+    import subprocess
+    import tempfile
+
+    exe = shutil.which("Xvfb")
+    if exe is None:
+        raise FileNotFoundError("Xvfb is not installed (apt-get install xvfb; `make system-deps` does it)")
+    fbdir = Path(tempfile.mkdtemp(prefix="ohxvfb-"))
+    rfd, wfd = os.pipe()
+    args = [exe, "-displayfd", str(wfd), "-nolisten", "tcp", "-fbdir", str(fbdir), "-noreset"]
+    for i, (w, h) in enumerate(screens):
+        args += ["-screen", str(i), f"{int(w)}x{int(h)}x24"]
+    proc = subprocess.Popen(args, pass_fds=(wfd,), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    os.close(wfd)
+    try:
+        number = b""
+        deadline = time.monotonic() + timeout_s
+        while not number.endswith(b"\n"):
+            import select
+
+            r, _, _ = select.select([rfd], [], [], max(0.0, deadline - time.monotonic()))
+            chunk = os.read(rfd, 16) if r else b""
+            if not chunk:
+                err = (
+                    proc.stderr.read().decode(errors="replace")[-400:]
+                    if proc.poll() is not None and proc.stderr
+                    else ""
+                )
+                raise RuntimeError(f"Xvfb did not start within {timeout_s} s: {err}")
+            number += chunk
+        yield f":{int(number)}", fbdir
+    finally:
+        os.close(rfd)
+        proc.terminate()
+        try:
+            proc.wait(timeout=5)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+        shutil.rmtree(fbdir, ignore_errors=True)
