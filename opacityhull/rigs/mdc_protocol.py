@@ -215,6 +215,17 @@ class FrameParser:
     def reset(self) -> None:
         self._buf.clear()
 
+    def _complete_frame_after(self, start: int) -> int | None:
+        buf = self._buf
+        j = buf.find(HEADER, start + 1)
+        while j >= 0:
+            if len(buf) - j >= 5 and len(buf) - j >= 5 + buf[j + 3]:
+                end = j + 5 + buf[j + 3]
+                if checksum(buf[j + 1 : end - 1]) == buf[end - 1]:
+                    return j
+            j = buf.find(HEADER, j + 1)
+        return None
+
     def feed(self, data: bytes) -> list[Command | Reply | BadFrame]:
         self._buf += data
         out: list[Command | Reply | BadFrame] = []
@@ -228,11 +239,16 @@ class FrameParser:
             if start > 0:
                 out.append(BadFrame("noise", bytes(buf[:start])))
                 del buf[:start]
-            if len(buf) < 4:
-                break
+            if len(buf) < 4 or len(buf) < 5 + buf[3]:
+                # A header in noise can claim a length that is not there yet; a complete,
+                # valid frame further on wins over waiting for it.
+                later = self._complete_frame_after(0)
+                if later is None:
+                    break
+                out.append(BadFrame("noise", bytes(buf[:later])))
+                del buf[:later]
+                continue
             n = buf[3]
-            if len(buf) < 5 + n:
-                break
             raw = bytes(buf[: 5 + n])
             if checksum(raw[1:-1]) != raw[-1]:
                 out.append(BadFrame("checksum", raw))
