@@ -164,7 +164,7 @@ class BadFrame:
     data: bytes
 
 
-def checksum(body: bytes) -> int:
+def checksum(body: bytes | bytearray) -> int:
     """Sum of ``body`` (every byte after the 0xAA header) modulo 256."""
     return sum(body) & 0xFF
 

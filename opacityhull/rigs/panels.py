@@ -28,10 +28,15 @@ from .transport import Transport, driver_name, reopen
 
 log = logging.getLogger(__name__)
 
-__all__ = ["MDC_SERIAL", "MdcPanel", "PanelNak", "PanelSettings", "PanelState"]
+__all__ = ["MDC_SERIAL", "DisplayDrift", "MdcPanel", "PanelNak", "PanelSettings", "PanelState"]
 
 #: 9600 8N1 as the MDC document specifies; 1 s per reply, 2 resends, 2 re-opens.
 MDC_SERIAL = SerialSettings(baudrate=9600, timeout_s=1.0, retries=2, reconnect_attempts=2, reconnect_delay_s=0.2)
+
+
+class DisplayDrift(DeviceError):
+    """A backdrop panel may change its own radiance during matting (auto-brightness,
+    dynamic contrast) and the capture was not told to allow it."""
 
 
 class PanelNak(ProtocolError):

@@ -43,7 +43,17 @@ from .transport import Transport
 
 log = logging.getLogger(__name__)
 
-__all__ = ["ExpectedExchangeTransport", "expected_exchange", "LabRig", "SynthCamera", "LAB_GEOMETRY", "LAB_RIG_CONFIG"]
+__all__ = [
+    "ExpectedExchangeTransport",
+    "expected_exchange",
+    "LabRig",
+    "SynthCamera",
+    "LAB_GEOMETRY",
+    "LAB_RIG_CONFIG",
+    "lab_video_rig_config",
+    "read_xwd",
+    "xvfb",
+]
 
 Pair = tuple[bytes | None, bytes | None]
 D = TypeVar("D")
@@ -277,6 +287,40 @@ LAB_RIG_CONFIG: dict[str, Any] = {
 }
 
 
+def lab_video_rig_config(
+    monitors: dict[str, str] | None = None, *, x_display: str | None = None, response_ms: float = 5.0
+) -> dict[str, Any]:
+    """:data:`LAB_RIG_CONFIG` with video-output backdrops (``bottom`` on ``screen@1``,
+    ``back`` on ``screen@0``: the two X screens of :func:`xvfb`) and an emulated Samsung
+    MDC control port per panel (MDC ids 1 and 2, the emulator's dynamic-contrast command)."""
+    import copy
+
+    from .emulators.mdc import EMU_DYNAMIC_CONTRAST_CMD
+
+    cfg = copy.deepcopy(LAB_RIG_CONFIG)
+    bd: dict[str, Any] = {
+        "driver": "video",
+        "response_ms": response_ms,
+        "monitors": monitors or {"bottom": "screen@1", "back": "screen@0"},
+    }
+    if x_display is not None:
+        bd["x_display"] = x_display
+    cfg["devices"]["backdrops"] = bd
+    cfg["devices"]["panels"] = {
+        name: {
+            "url": f"emulator:mdc#{name}",
+            "id": i + 1,
+            "timeout_s": 1.0,
+            "input": "hdmi1",
+            "brightness": 100,
+            "contrast": 100,
+            "dynamic_contrast_cmd": EMU_DYNAMIC_CONTRAST_CMD,
+        }
+        for i, name in enumerate(("bottom", "back"))
+    }
+    return cfg
+
+
 class SynthCamera:
     """Image from the lab rig's state: the bottom display as its emulator shows it, a lit
     disk when the object is on the table, a checkerboard when the board is.
@@ -303,7 +347,7 @@ class SynthCamera:
         """Linear radiance (H, W, 3) float32 of what the camera sees now."""
         rig = self.rig
         h, w = self.height, self.width
-        back = rig.display_emulator.displayed(0, w, h).astype(np.float32) / 255.0  # nearest-scaled, black if blank
+        back = rig.bottom_display(w, h).astype(np.float32) / 255.0  # nearest-scaled, black if blank
         L = back.copy()
         yy, xx = np.mgrid[0:h, 0:w]
         light = sum(rig.dmx_levels().values()) / 255.0
@@ -358,8 +402,11 @@ class LabRig:
         by = self.emulators.by_device
         self.grbl: Any = by["turntable"]
         self.enttec: Any = by["light_array"]
-        self.display_emulator: Any = by["backdrops"]
-        self.display_server = self.emulators.servers["emulator:display"]
+        # an OHDC-2 controller's emulator, or None: video-output backdrops (the picture is
+        # what the DisplayOutput last drew) with MDC panels (``panel_emulators``)
+        self.display_emulator: Any = by.get("backdrops")
+        self.display_server = self.emulators.servers.get("emulator:display")
+        self.panel_emulators: dict[str, Any] = {p.display: by[p.name] for p in cfg.panels if p.name in by}
         self.grbl_server = self.emulators.servers["emulator:grbl"]
         self.geometry = cfg.geometry
         self.cameras = [SynthCamera(self, i) for i in range(len(self.geometry.cameras))]
@@ -382,6 +429,18 @@ class LabRig:
     # state as the emulators hold it (what a physical camera would see)
     def table_deg(self) -> float:
         return self.grbl.position_deg("X")
+
+    def bottom_display(self, width: int, height: int) -> np.ndarray:
+        """What the bottom display emits, nearest-scaled to ``width x height`` (uint8)."""
+        from .display_protocol import nearest_resize
+
+        if self.display_emulator is not None:
+            return self.display_emulator.displayed(0, width, height)
+        bd: Any = self.hw.backdrops
+        img = bd.current("bottom") if bd is not None else None
+        if img is None:
+            return np.zeros((height, width, 3), np.uint8)
+        return nearest_resize(img, width, height)
 
     def dmx_levels(self) -> dict[int, int]:
         return {lid: self.enttec.level(ch) for lid, ch in self.channels.items()}

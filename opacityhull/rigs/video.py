@@ -262,7 +262,8 @@ class DisplayOutput(OpenClose):
     x_display : str, optional
         X display (default ``$DISPLAY`` when opened).
     panels : mapping display name -> :class:`~opacityhull.rigs.panels.MdcPanel`, optional
-        The panels' RS-232 control, locked by :meth:`lock_panels`.
+        The panels' RS-232 control, locked by :meth:`lock_panels` (each is a port of its
+        own: the rig opens and closes it).
     vsync : bool
         Swap at the vertical blank (real panels); a virtual server has none.
 
@@ -344,16 +345,9 @@ class DisplayOutput(OpenClose):
         except BaseException:
             self.close()
             raise
-        for p in self.panels.values():
-            p.open()
         return self
 
     def close(self) -> None:
-        for p in self.panels.values():
-            try:
-                p.close()
-            except Exception as e:
-                log.warning("%s: close failed: %s", p.name, e)
         wins, self._windows = self._windows, {}
         for w in wins.values():
             w.close()
