@@ -202,7 +202,7 @@ class _Walk:
         return np.asarray(self.rig.cameras[cam].capture(self.opts.exposure_s if exposure_s is None else exposure_s))
 
 
-def _display_setter(bd) -> Callable[[str, np.ndarray], None]:
+def _display_setter(bd) -> Callable[[str, np.ndarray], object]:
     show_image = getattr(bd, "show_image", None)
     if callable(show_image):
         return lambda name, img: show_image(name, img)
