@@ -34,12 +34,15 @@ system-deps:
 	  command -v chromium >/dev/null 2>&1 || need="$$need chromium"; \
 	  command -v chromedriver >/dev/null 2>&1 || need="$$need chromium-driver"; \
 	  command -v node >/dev/null 2>&1 || need="$$need nodejs"; \
+	  command -v Xvfb >/dev/null 2>&1 || need="$$need xvfb"; \
+	  ldconfig -p 2>/dev/null | grep -q 'libGL.so.1' || need="$$need libgl1"; \
+	  ls /usr/lib/*/dri/swrast_dri.so >/dev/null 2>&1 || need="$$need libgl1-mesa-dri"; \
 	  if [ -n "$$need" ]; then \
 	    echo "== installing system packages:$$need"; \
 	    DEBIAN_FRONTEND=noninteractive apt-get install -y -q $$need >/dev/null 2>&1 || \
 	    { DEBIAN_FRONTEND=noninteractive apt-get update -q >/dev/null 2>&1 && \
 	      DEBIAN_FRONTEND=noninteractive apt-get install -y -q $$need >/dev/null 2>&1; } || \
-	    echo "!! could not install$$need — without libllvm19 Mitsuba falls back to scalar_rgb (slower, same results); without chromium the browser-viewer tests skip; without nodejs make test skips pyright"; \
+	    echo "!! could not install$$need — without libllvm19 Mitsuba falls back to scalar_rgb (slower, same results); without chromium the browser-viewer tests skip; without nodejs make test skips pyright; without xvfb the video-output tests skip"; \
 	  fi; \
 	else \
 	  ldconfig -p 2>/dev/null | grep -q 'libLLVM.so.19\|libLLVM-19' || \
@@ -48,6 +51,8 @@ system-deps:
 	    echo "!! chromium / chromium-driver not found and not root: the browser-viewer tests will skip (apt-get install chromium chromium-driver)"; \
 	  command -v node >/dev/null 2>&1 || \
 	    echo "!! node.js not found and not root: make test will skip pyright (apt-get install nodejs)"; \
+	  command -v Xvfb >/dev/null 2>&1 || \
+	    echo "!! Xvfb not found and not root: the video-output tests will skip (apt-get install xvfb libgl1-mesa-dri)"; \
 	fi
 
 $(STAMP): pyproject.toml | system-deps

@@ -199,6 +199,11 @@ def register(app, groups) -> None:
             "--assume-ready",
             help="Hardware rigs without a terminal: take every manual step (board, object) as done.",
         ),
+        allow_display_drift: bool = typer.Option(
+            False,
+            "--allow-display-drift",
+            help="Start matting even when a backdrop panel's auto-brightness or dynamic contrast is on.",
+        ),
         json_out: JsonFlag = False,
     ):
         """Capture a session: run a plan on a rig, resumably (exit 5 = stopped early, resumable; 130 = Ctrl-C)."""
@@ -246,6 +251,7 @@ def register(app, groups) -> None:
                             resume=resume,
                             progress=cb,
                             rig_source=rig,
+                            allow_display_drift=allow_display_drift,
                             log=lambda m: console().print(f"[cyan]{escape(m)}", highlight=False),
                         )
                 finally:

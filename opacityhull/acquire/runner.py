@@ -358,6 +358,12 @@ class _PatternSlots:
         from ..rigs import display_protocol as dp
 
         image = self.patterns[pattern_id].images[display]
+        show_image = getattr(self.bd, "show_image", None)
+        if callable(show_image):  # a video output shows images as they are: no store, no slots
+            own = device_pattern_id(pattern_id, index)
+            show_image(display, image, pattern_id=own)
+            self.showing[display] = own
+            return own
         for attempt in range(2):
             if not self._synced:
                 self._sync()
@@ -377,6 +383,39 @@ class _PatternSlots:
             self.showing[display] = slot
             return slot
         raise AssertionError("unreachable")  # pragma: no cover
+
+
+def _lock_backdrop_panels(rig, *, allow: bool, log: Callable[[str], None]) -> None:
+    """Before the first backdrop shot: lock the panels' radiance settings over their
+    control ports (video-output backdrops with MDC panels) and refuse to go on while one
+    may still change its own radiance, unless ``allow``."""
+    from ..rigs.panels import DisplayDrift
+
+    bd = rig.backdrops
+    lock = getattr(bd, "lock_panels", None)
+    if bd is None or not callable(lock):
+        return
+    problems: list[str] = []
+    try:
+        lock()
+    except DeviceError as e:  # a NAKed (locked) setting: what remains is named below
+        problems.append(str(e))
+    try:
+        for display, what in bd.drift().items():
+            problems.append(f"display {display}: {', '.join(what)}")
+    except DeviceError as e:
+        problems.append(str(e))
+    if not problems:
+        return
+    text = "; ".join(problems)
+    if allow:
+        log(f"backdrop panels may drift (--allow-display-drift): {text}")
+        return
+    raise DisplayDrift(
+        f"matting needs backdrops of constant radiance, but {text} — switch auto-brightness and dynamic contrast "
+        "off in the panel's menu (or unlock them for MDC control), or pass --allow-display-drift to capture anyway "
+        "(the matting stage then has to correct the drift)"
+    )
 
 
 def _image_digest(image: np.ndarray) -> bytes:
@@ -619,6 +658,7 @@ def run_capture(
     fsync: bool = True,
     log: Callable[[str], None] | None = None,
     queue_images: int = 4,
+    allow_display_drift: bool = False,
 ) -> CaptureResult:
     """Capture ``plan`` on ``rig`` into the session folder ``out_dir``.
 
@@ -648,6 +688,10 @@ def run_capture(
         the next exposure (one writer thread, in capture order; memory is bounded by
         ``queue_images + 1`` images). 0 writes each image before the next exposure.
         Whatever is queued is written before the rig is made safe, however the run ends.
+    allow_display_drift : bool
+        Start matting even when a backdrop panel may change its own radiance (its
+        auto-brightness or dynamic contrast is on and could not be locked); otherwise
+        :class:`~opacityhull.rigs.panels.DisplayDrift` is raised before the first matting shot.
 
     Returns
     -------
@@ -725,6 +769,7 @@ def run_capture(
                 log=log,
                 t_start=t_start,
                 queue_images=queue_images,
+                allow_display_drift=allow_display_drift,
             )
         finally:
             lock.release()
@@ -774,6 +819,7 @@ def _capture(
     log,
     t_start,
     queue_images: int = 4,
+    allow_display_drift: bool = False,
 ) -> CaptureResult:
     geometry = rig.geometry
     n_planned = sum(planned.values())
@@ -864,6 +910,7 @@ def _capture(
                         )
                     return e
 
+                drift_checked = False
                 try:
                     if any(pend for _, pend in todo) and patterns:
                         drv.slots = _pattern_slots(rig, patterns, displays, log)
@@ -873,6 +920,9 @@ def _capture(
                         drv.enter_stage(st)
                         phase_aware = isinstance(rig, PhaseAware)
                         for shot, idxs in pend:
+                            if not drift_checked and shot.pattern is not None:
+                                _lock_backdrop_panels(rig, allow=allow_display_drift, log=log)
+                                drift_checked = True
                             t0 = time.monotonic()
                             if phase_aware:  # the simulator spends samples by phase
                                 rig.note_phase(shot.phase)

@@ -7,7 +7,7 @@ devices are checked against the geometry: a DMX channel per light, a controller
 output per display, the cameras in the same names and order as ``geometry.cameras``.
 
 URLs: a device path, ``socket://HOST:PORT``, ``loop://`` or ``emulator:KIND[#tag]``
-(``KIND`` = ``grbl`` | ``enttec`` | ``display``, resolved by
+(``KIND`` = ``grbl`` | ``enttec`` | ``display`` | ``mdc``, resolved by
 :func:`opacityhull.rigs.emulators.launch.start_emulators`). Identical URL strings name
 the same port: the turntable and the light-array rotation on one URL are two axes of
 one GRBL controller.
@@ -24,12 +24,13 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Mapping
 
-from ..errors import ConfigError
+from ..errors import ConfigError, InputError
 from ..riggeometry import RigGeometry
 from ..tomlio import TomlContext, read_toml
 from .backdrops import DISPLAY_SERIAL
 from .lights import DMX_SERIAL
 from .motion import GRBL_SERIAL
+from .panels import MDC_SERIAL, PanelSettings
 from .transport import SerialSettings, check_url
 
 log = logging.getLogger(__name__)
@@ -39,6 +40,7 @@ __all__ = [
     "AxisConfig",
     "LightArrayConfig",
     "BackdropsConfig",
+    "PanelConfig",
     "CameraConfig",
     "RigConfig",
     "load_rig_config",
@@ -50,7 +52,8 @@ __all__ = [
     "emulated_axis",
 ]
 
-EMULATOR_KINDS = ("grbl", "enttec", "display")
+EMULATOR_KINDS = ("grbl", "enttec", "display", "mdc")
+BACKDROP_DRIVERS = ("ohdc2", "video")
 CAMERA_DRIVERS = ("opencv", "directory", "sim")
 GRBL_AXES = ("X", "Y", "Z", "A", "B", "C")
 
@@ -83,7 +86,21 @@ _AXIS_KEYS = {
     "baudrate",
 }
 _LIGHT_KEYS = {"url", "timeout_s", "baudrate", "rotation", "channels"}
-_BACKDROP_KEYS = {"url", "timeout_s", "baudrate", "outputs", "retries", "chunk_bytes", "slots"}
+_BACKDROP_KEYS = {"url", "timeout_s", "baudrate", "outputs", "retries", "chunk_bytes", "slots", "driver"}
+_VIDEO_KEYS = {"driver", "monitors", "response_ms", "x_display"}
+_PANEL_KEYS = {
+    "url",
+    "id",
+    "timeout_s",
+    "baudrate",
+    "retries",
+    "input",
+    "brightness",
+    "contrast",
+    "backlight",
+    "picture_mode",
+    "dynamic_contrast_cmd",
+}
 _CAMERA_COMMON = {"name", "driver", "device"}
 _CAMERA_OPTIONS = {
     "opencv": {"fourcc", "timeout_s", "linearize", "white_level", "backend", "exposure_control", "discard_frames"},
@@ -190,16 +207,37 @@ class LightArrayConfig(PortConfig):
 
 @dataclass(frozen=True, kw_only=True)
 class BackdropsConfig(PortConfig):
-    """The plasma-display controller and the display name → output map."""
+    """The backdrops: an OHDC-2 display controller (``driver = "ohdc2"``: the display
+    name → output map) or monitors of this computer (``driver = "video"``: display name →
+    monitor name, the panels' response time; ``url`` is then ``video:X_DISPLAY``)."""
 
-    outputs: tuple[tuple[str, int], ...]
+    outputs: tuple[tuple[str, int], ...] = ()
     serial: SerialSettings = DISPLAY_SERIAL
     chunk_bytes: int = 512
     key: str = "devices.backdrops"
+    driver: str = "ohdc2"
+    monitors: tuple[tuple[str, str], ...] = ()
+    response_ms: float = 0.0
+    x_display: str | None = None
 
     @property
     def output_map(self) -> dict[str, int]:
         return dict(self.outputs)
+
+    @property
+    def monitor_map(self) -> dict[str, str]:
+        return dict(self.monitors)
+
+
+@dataclass(frozen=True, kw_only=True)
+class PanelConfig(PortConfig):
+    """``[devices.panels.DISPLAY]``: the RS-232 (Samsung MDC) control port of a display
+    shown through a video output."""
+
+    display: str
+    display_id: int
+    settings: PanelSettings
+    serial: SerialSettings = MDC_SERIAL
 
 
 @dataclass(frozen=True)
@@ -228,6 +266,7 @@ class RigConfig:
     light_array: LightArrayConfig | None = None
     backdrops: BackdropsConfig | None = None
     cameras: tuple[CameraConfig, ...] = ()
+    panels: tuple[PanelConfig, ...] = ()
     raw: dict = field(default_factory=dict, compare=False, repr=False)
     source: str = "<rig config>"
 
@@ -245,8 +284,10 @@ class RigConfig:
             out[self.light_array.name] = self.light_array.url
             if self.light_array.rotation is not None:
                 out[self.light_array.rotation.name] = self.light_array.rotation.url
-        if self.backdrops is not None:
+        if self.backdrops is not None and self.backdrops.driver != "video":
             out[self.backdrops.name] = self.backdrops.url
+        for p in self.panels:
+            out[p.name] = p.url
         return out
 
     def grbl_ports(self) -> dict[str, list[AxisConfig]]:
@@ -281,11 +322,15 @@ class RigConfig:
                 la_cfg, url=sub(la_cfg.url), rotation=None if rot is None else replace(rot, url=sub(rot.url))
             )
         bd = self.backdrops if self.backdrops is None else replace(self.backdrops, url=sub(self.backdrops.url))
+        for t in (dev.get("panels") or {}).values():
+            if isinstance(t, dict) and "url" in t:
+                t["url"] = sub(t["url"])
         return replace(
             self,
             turntable=replace(self.turntable, url=sub(self.turntable.url)),
             light_array=la_cfg,
             backdrops=bd,
+            panels=tuple(replace(p, url=sub(p.url)) for p in self.panels),
             raw=raw,
         )
 
@@ -419,7 +464,7 @@ def parse_rig_config(data: Mapping[str, Any], *, source: str = "<rig config>", b
     if "devices" not in data:
         raise ctx.err("devices", "missing [devices] table")
     dev = ctx.table("devices", data["devices"])
-    ctx.keys("devices", dev, {"turntable", "light_array", "backdrops", "cameras"})
+    ctx.keys("devices", dev, {"turntable", "light_array", "backdrops", "cameras", "panels"})
 
     # ---- turntable
     if "turntable" not in dev:
@@ -476,9 +521,49 @@ def parse_rig_config(data: Mapping[str, Any], *, source: str = "<rig config>", b
     # ---- backdrops
     backdrops = None
     display_names = [d.name for d in geometry.displays]
+    key = "devices.backdrops"
+    bd: Mapping = {}
+    driver = "ohdc2"
     if "backdrops" in dev:
-        key = "devices.backdrops"
         bd = ctx.table(key, dev["backdrops"])
+        driver = ctx.str_(key, bd, "driver", "ohdc2")
+        if driver not in BACKDROP_DRIVERS:
+            raise ctx.err(f"{key}.driver", f"expected one of {list(BACKDROP_DRIVERS)}, got {driver!r}")
+    if "backdrops" in dev and driver == "video":
+        ctx.keys(key, bd, _VIDEO_KEYS)
+        if "monitors" not in bd:
+            raise ctx.err(key, "missing [devices.backdrops.monitors] (display name = monitor name, see `rig monitors`)")
+        mon_key = f"{key}.monitors"
+        mons = ctx.table(mon_key, bd["monitors"])
+        for k, v in mons.items():
+            if k not in display_names:
+                raise ctx.err(f"{mon_key}.{k}", f"no display named {k!r} in geometry.displays (names: {display_names})")
+            if not isinstance(v, str) or not v:
+                raise ctx.err(f"{mon_key}.{k}", f"expected a monitor name such as 'HDMI-1', got {v!r}")
+        for i, n in enumerate(display_names):
+            if n not in mons:
+                raise ctx.err(mon_key, f"no monitor for display {n!r} (geometry.displays[{i}]); add '{n} = \"HDMI-1\"'")
+        if len(set(mons.values())) != len(mons):
+            raise ctx.err(mon_key, f"two displays on one monitor: {dict(mons)}")
+        xd = bd.get("x_display")
+        if xd is not None and not isinstance(xd, str):
+            raise ctx.err(f"{key}.x_display", f"expected an X display name such as ':0', got {xd!r}")
+        response_ms = ctx.num(key, bd, "response_ms", 10.0, nonneg=True)
+        if response_ms > 10_000:
+            raise ctx.err(
+                f"{key}.response_ms", f"expected the panel's response time in ms (< 10000), got {response_ms}"
+            )
+        backdrops = BackdropsConfig(
+            name="backdrops",
+            url=f"video:{xd or ''}",
+            serial=DISPLAY_SERIAL,
+            key=key,
+            driver="video",
+            monitors=tuple((n, str(mons[n])) for n in display_names),
+            response_ms=response_ms,
+            x_display=xd,
+        )
+    elif "backdrops" in dev:
         ctx.keys(key, bd, _BACKDROP_KEYS)
         url = ctx.url(key, bd, "display")
         # the controller's pattern store: only `capture --dry-run` reads it (it prices the
@@ -512,6 +597,59 @@ def parse_rig_config(data: Mapping[str, Any], *, source: str = "<rig config>", b
             "devices",
             f"geometry.displays has {len(display_names)} display(s) but there is no [devices.backdrops] to drive them",
         )
+
+    # ---- the panels' control ports (video-output backdrops)
+    panels: list[PanelConfig] = []
+    if "panels" in dev:
+        if backdrops is None or backdrops.driver != "video":
+            raise ctx.err(
+                "devices.panels",
+                'panel control ports go with video-output backdrops ([devices.backdrops] driver = "video"); an '
+                "OHDC-2 controller drives its panels itself",
+            )
+        ptab = ctx.table("devices.panels", dev["panels"])
+        for disp, t in ptab.items():
+            pkey = f"devices.panels.{disp}"
+            if disp not in display_names:
+                raise ctx.err(pkey, f"no display named {disp!r} in geometry.displays (names: {display_names})")
+            t = ctx.table(pkey, t)
+            ctx.keys(pkey, t, _PANEL_KEYS)
+            purl = ctx.url(pkey, t, "mdc")
+            if "id" not in t:
+                raise ctx.err(pkey, "missing key 'id' (the panel's MDC display id, set in its menu)")
+            from .mdc_protocol import check_display_id
+
+            try:
+                pid = check_display_id(t["id"], where=f"{ctx.source}: {pkey}.id")
+            except InputError as e:
+                raise ConfigError(str(e)) from None
+            pm = t.get("picture_mode")
+            if pm is not None:
+                if not (isinstance(pm, list) and len(pm) == 2):
+                    raise ctx.err(f"{pkey}.picture_mode", f"expected [command, value] bytes, got {pm!r}")
+                pm = (pm[0], pm[1])
+            try:
+                settings = PanelSettings(
+                    input=ctx.str_(pkey, t, "input", "hdmi1"),
+                    brightness=t.get("brightness", 100),
+                    contrast=t.get("contrast", 100),
+                    backlight=t.get("backlight"),
+                    picture_mode=pm,
+                    dynamic_contrast_cmd=t.get("dynamic_contrast_cmd"),
+                )
+            except ConfigError as e:
+                raise ctx.err(pkey, str(e)) from None
+            panels.append(
+                PanelConfig(
+                    name=f"panels.{disp}",
+                    url=purl,
+                    key=pkey,
+                    display=disp,
+                    display_id=pid,
+                    settings=settings,
+                    serial=_serial(ctx, pkey, t, MDC_SERIAL, retries=True),
+                )
+            )
 
     # ---- cameras
     cameras: list[CameraConfig] = []
@@ -591,7 +729,7 @@ def parse_rig_config(data: Mapping[str, Any], *, source: str = "<rig config>", b
 
     # ---- ports shared between devices
     kinds: dict[str, tuple[str, str]] = {}  # url -> (kind, key)
-    entries: list[tuple[str, str, str, AxisConfig | LightArrayConfig | BackdropsConfig]] = [
+    entries: list[tuple[str, str, str, AxisConfig | LightArrayConfig | BackdropsConfig | PanelConfig]] = [
         (turntable.url, "grbl", turntable.key, turntable)
     ]
     if light_array is not None:
@@ -599,8 +737,10 @@ def parse_rig_config(data: Mapping[str, Any], *, source: str = "<rig config>", b
         if light_array.rotation is not None:
             r = light_array.rotation
             entries.append((r.url, "grbl", r.key, r))
-    if backdrops is not None:
+    if backdrops is not None and backdrops.driver != "video":
         entries.append((backdrops.url, "display", backdrops.key, backdrops))
+    for pc in panels:
+        entries.append((pc.url, "mdc", pc.key, pc))
     axes_on: dict[str, AxisConfig] = {}
     for url, kind, key, obj in entries:
         if url in kinds and kinds[url][0] != kind:
@@ -635,6 +775,7 @@ def parse_rig_config(data: Mapping[str, Any], *, source: str = "<rig config>", b
         light_array=light_array,
         backdrops=backdrops,
         cameras=tuple(cameras),
+        panels=tuple(panels),
         raw=raw,
         source=source,
     )

@@ -29,6 +29,8 @@ from .backdrops import DisplayController
 from .interfaces import Backdrops, CameraDevice, DeviceInfo, LightArray, Port, RotaryAxis, Turntable
 from .lights import DmxLightArray, EnttecDmx
 from .motion import GrblAxis, GrblController, GrblInterrupted
+from .panels import MdcPanel
+from .video import DisplayOutput
 from .transport import DeviceGone, OpenClose, SerialSettings, reopen
 
 if TYPE_CHECKING:  # cameras.py imports the image codecs: only when a camera is built
@@ -302,6 +304,8 @@ class HardwareRig(OpenClose):
         devices += [d for d in (self.light_array, self.backdrops) if d is not None]
         for dev in devices:
             out.append(_safe_check(dev))
+        for panel in getattr(self.backdrops, "panels", {}).values():
+            out.append(_safe_check(panel))
         for i, cam in enumerate(self.cameras):
             cfg = self.config.cameras[i] if i < len(self.config.cameras) else None
             out.append(_camera_check(cam, cfg))
@@ -427,17 +431,17 @@ class _Devices:
 
     turntable: GrblAxis
     light_array: DmxLightArray | None
-    backdrops: DisplayController | None
+    backdrops: DisplayController | DisplayOutput | None
     ports: list[Port]
     #: (device, the port it talks through), in check order
-    checks: list[tuple[GrblAxis | DmxLightArray | DisplayController, Port]]
+    checks: list[tuple[GrblAxis | DmxLightArray | DisplayController | DisplayOutput | MdcPanel, Port]]
 
 
 def _build_devices(config: RigConfig, *, timeout_s: float | None = None) -> _Devices:
     """Driver objects (no I/O) for the serial devices of ``config``."""
     controllers: dict[str, GrblController] = {}
     ports: list[Port] = []
-    checks: list[tuple[GrblAxis | DmxLightArray | DisplayController, Port]] = []
+    checks: list[tuple[GrblAxis | DmxLightArray | DisplayController | DisplayOutput | MdcPanel, Port]] = []
 
     def serial(s: SerialSettings, **quick: int) -> SerialSettings:
         """The device's settings; with ``timeout_s`` (a check), that timeout and ``quick``."""
@@ -478,8 +482,33 @@ def _build_devices(config: RigConfig, *, timeout_s: float | None = None) -> _Dev
         rotation = axis(la.rotation) if la.rotation is not None else None
         light_array = DmxLightArray(dmx, channels=la.channel_map, rotation=rotation, name=la.name)
         checks.append((light_array, dmx))
-    backdrops = None
-    if config.backdrops is not None:
+    backdrops: DisplayController | DisplayOutput | None = None
+    panels: dict[str, MdcPanel] = {}
+    for pc in config.panels:
+        _check_runnable_url(pc.url, pc.key, config.source)
+        panels[pc.display] = MdcPanel.from_url(
+            pc.url,
+            display_id=pc.display_id,
+            name=pc.name,
+            serial=serial(pc.serial, retries=0, reconnect_attempts=0),
+            settings=pc.settings,
+        )
+    if config.backdrops is not None and config.backdrops.driver == "video":
+        bd = config.backdrops
+        backdrops = DisplayOutput(
+            monitors=bd.monitor_map,
+            response_s=bd.response_ms / 1000.0,
+            name=bd.name,
+            x_display=bd.x_display,
+            panels=panels,
+        )
+        if timeout_s is None:  # a check resolves the monitors and opens no window
+            ports.append(backdrops)
+        checks.append((backdrops, backdrops))
+        for p in panels.values():
+            ports.append(p)
+            checks.append((p, p))
+    elif config.backdrops is not None:
         bd = config.backdrops
         _check_runnable_url(bd.url, bd.key, config.source)
         backdrops = DisplayController.from_url(

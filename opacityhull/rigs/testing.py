@@ -43,7 +43,17 @@ from .transport import Transport
 
 log = logging.getLogger(__name__)
 
-__all__ = ["ExpectedExchangeTransport", "expected_exchange", "LabRig", "SynthCamera", "LAB_GEOMETRY", "LAB_RIG_CONFIG"]
+__all__ = [
+    "ExpectedExchangeTransport",
+    "expected_exchange",
+    "LabRig",
+    "SynthCamera",
+    "LAB_GEOMETRY",
+    "LAB_RIG_CONFIG",
+    "lab_video_rig_config",
+    "read_xwd",
+    "xvfb",
+]
 
 Pair = tuple[bytes | None, bytes | None]
 D = TypeVar("D")
@@ -277,6 +287,40 @@ LAB_RIG_CONFIG: dict[str, Any] = {
 }
 
 
+def lab_video_rig_config(
+    monitors: dict[str, str] | None = None, *, x_display: str | None = None, response_ms: float = 5.0
+) -> dict[str, Any]:
+    """:data:`LAB_RIG_CONFIG` with video-output backdrops (``bottom`` on ``screen@1``,
+    ``back`` on ``screen@0``: the two X screens of :func:`xvfb`) and an emulated Samsung
+    MDC control port per panel (MDC ids 1 and 2, the emulator's dynamic-contrast command)."""
+    import copy
+
+    from .emulators.mdc import EMU_DYNAMIC_CONTRAST_CMD
+
+    cfg = copy.deepcopy(LAB_RIG_CONFIG)
+    bd: dict[str, Any] = {
+        "driver": "video",
+        "response_ms": response_ms,
+        "monitors": monitors or {"bottom": "screen@1", "back": "screen@0"},
+    }
+    if x_display is not None:
+        bd["x_display"] = x_display
+    cfg["devices"]["backdrops"] = bd
+    cfg["devices"]["panels"] = {
+        name: {
+            "url": f"emulator:mdc#{name}",
+            "id": i + 1,
+            "timeout_s": 1.0,
+            "input": "hdmi1",
+            "brightness": 100,
+            "contrast": 100,
+            "dynamic_contrast_cmd": EMU_DYNAMIC_CONTRAST_CMD,
+        }
+        for i, name in enumerate(("bottom", "back"))
+    }
+    return cfg
+
+
 class SynthCamera:
     """Image from the lab rig's state: the bottom display as its emulator shows it, a lit
     disk when the object is on the table, a checkerboard when the board is.
@@ -303,7 +347,7 @@ class SynthCamera:
         """Linear radiance (H, W, 3) float32 of what the camera sees now."""
         rig = self.rig
         h, w = self.height, self.width
-        back = rig.display_emulator.displayed(0, w, h).astype(np.float32) / 255.0  # nearest-scaled, black if blank
+        back = rig.bottom_display(w, h).astype(np.float32) / 255.0  # nearest-scaled, black if blank
         L = back.copy()
         yy, xx = np.mgrid[0:h, 0:w]
         light = sum(rig.dmx_levels().values()) / 255.0
@@ -358,8 +402,11 @@ class LabRig:
         by = self.emulators.by_device
         self.grbl: Any = by["turntable"]
         self.enttec: Any = by["light_array"]
-        self.display_emulator: Any = by["backdrops"]
-        self.display_server = self.emulators.servers["emulator:display"]
+        # an OHDC-2 controller's emulator, or None: video-output backdrops (the picture is
+        # what the DisplayOutput last drew) with MDC panels (``panel_emulators``)
+        self.display_emulator: Any = by.get("backdrops")
+        self.display_server = self.emulators.servers.get("emulator:display")
+        self.panel_emulators: dict[str, Any] = {p.display: by[p.name] for p in cfg.panels if p.name in by}
         self.grbl_server = self.emulators.servers["emulator:grbl"]
         self.geometry = cfg.geometry
         self.cameras = [SynthCamera(self, i) for i in range(len(self.geometry.cameras))]
@@ -382,6 +429,18 @@ class LabRig:
     # state as the emulators hold it (what a physical camera would see)
     def table_deg(self) -> float:
         return self.grbl.position_deg("X")
+
+    def bottom_display(self, width: int, height: int) -> np.ndarray:
+        """What the bottom display emits, nearest-scaled to ``width x height`` (uint8)."""
+        from .display_protocol import nearest_resize
+
+        if self.display_emulator is not None:
+            return self.display_emulator.displayed(0, width, height)
+        bd: Any = self.hw.backdrops
+        img = bd.current("bottom") if bd is not None else None
+        if img is None:
+            return np.zeros((height, width, 3), np.uint8)
+        return nearest_resize(img, width, height)
 
     def dmx_levels(self) -> dict[int, int]:
         return {lid: self.enttec.level(ch) for lid, ch in self.channels.items()}
@@ -444,3 +503,76 @@ class LabRig:
         d.mkdir(exist_ok=True)
         (d / "views.json").write_text(json.dumps([list(v) for v in views]))
         return d
+
+
+# --------------------------------------------------------------------------- a virtual display server
+
+
+def read_xwd(path) -> np.ndarray:
+    """The screen an Xvfb ``-fbdir`` file holds (XWD format, 24/32-bit TrueColor) as
+    uint8 (rows, cols, 3) RGB: a screenshot of the virtual display, read at any moment."""
+    import struct
+
+    b = Path(path).read_bytes()
+    hs = struct.unpack(">25I", b[:100])
+    header_size, width, height, byte_order = hs[0], hs[4], hs[5], hs[7]
+    bpp, bpl, ncolors = hs[11], hs[12], hs[19]
+    masks = hs[14:17]
+    if bpp != 32 or masks != (0xFF0000, 0xFF00, 0xFF):
+        raise ValueError(f"{path}: XWD with {bpp} bits per pixel and masks {masks} (expected 32, RGB888)")
+    off = header_size + 12 * ncolors
+    rows = np.frombuffer(b, np.uint8, count=height * bpl, offset=off).reshape(height, bpl)
+    px = rows[:, : 4 * width].reshape(height, width, 4)
+    return px[..., 2::-1].copy() if byte_order == 0 else px[..., 1:].copy()
+
+
+@contextmanager
+def xvfb(screens: Sequence[tuple[int, int]] = ((320, 240),), *, timeout_s: float = 10.0) -> Iterator[tuple[str, Path]]:
+    """A private Xvfb server with one X screen per ``(width, height)``, each a monitor.
+
+    Yields ``(display, fbdir)``: the display name (``":N"``, a free number Xvfb chose)
+    and the folder where Xvfb keeps each screen's framebuffer as ``Xvfb_screenK``
+    (:func:`read_xwd` reads it). Raises :class:`FileNotFoundError` when Xvfb is not
+    installed (``apt-get install xvfb``).
+    """
+    import os
+    import shutil
+    import subprocess
+    import tempfile
+
+    exe = shutil.which("Xvfb")
+    if exe is None:
+        raise FileNotFoundError("Xvfb is not installed (apt-get install xvfb; `make system-deps` does it)")
+    fbdir = Path(tempfile.mkdtemp(prefix="ohxvfb-"))
+    rfd, wfd = os.pipe()
+    args = [exe, "-displayfd", str(wfd), "-nolisten", "tcp", "-fbdir", str(fbdir), "-noreset"]
+    for i, (w, h) in enumerate(screens):
+        args += ["-screen", str(i), f"{int(w)}x{int(h)}x24"]
+    proc = subprocess.Popen(args, pass_fds=(wfd,), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    os.close(wfd)
+    try:
+        number = b""
+        deadline = time.monotonic() + timeout_s
+        while not number.endswith(b"\n"):
+            import select
+
+            r, _, _ = select.select([rfd], [], [], max(0.0, deadline - time.monotonic()))
+            chunk = os.read(rfd, 16) if r else b""
+            if not chunk:
+                err = (
+                    proc.stderr.read().decode(errors="replace")[-400:]
+                    if proc.poll() is not None and proc.stderr
+                    else ""
+                )
+                raise RuntimeError(f"Xvfb did not start within {timeout_s} s: {err}")
+            number += chunk
+        yield f":{int(number)}", fbdir
+    finally:
+        os.close(rfd)
+        proc.terminate()
+        try:
+            proc.wait(timeout=5)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+        shutil.rmtree(fbdir, ignore_errors=True)

@@ -47,6 +47,7 @@ if TYPE_CHECKING:
     from ..rigs.emulators.display import DisplayEmulator
     from ..rigs.emulators.enttec import EnttecEmulator
     from ..rigs.emulators.grbl import GrblEmulator
+    from ..rigs.video import DisplayOutput
 
 __all__ = [
     "SimRig",
@@ -454,7 +455,12 @@ class SimRig:
             for lid, ch in cfg.light_array.channel_map.items():
                 levels[int(lid)] = int(universe[ch - 1]) if ch - 1 < len(universe) else 0
         displays: dict[str, np.ndarray | None] = {}
-        if cfg.backdrops is not None:
+        if cfg.backdrops is not None and cfg.backdrops.driver == "video":
+            # monitors of a video output: the texture is what the DisplayOutput last drew
+            out_dev = cast("DisplayOutput", self._require().backdrops)
+            for name in cfg.backdrops.monitor_map:
+                displays[name] = out_dev.current(name)
+        elif cfg.backdrops is not None:
             dev = cast("DisplayEmulator", by[cfg.backdrops.name])
             for name, out in cfg.backdrops.output_map.items():
                 pid = dev.shown(out) if dev.powered(out) else None

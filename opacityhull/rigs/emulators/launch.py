@@ -2,7 +2,8 @@
 
 :func:`start_emulators` starts one in-process emulator per distinct emulator URL —
 a GRBL controller whose axes are the config's axes on that URL, an Enttec DMX USB
-Pro, a display controller with as many outputs as the config uses — each behind an
+Pro, a display controller with as many outputs as the config uses, a Samsung MDC panel
+per ``emulator:mdc#tag`` control port — each behind an
 :class:`~opacityhull.rigs.emulators.base.EmulatorServer` (a pty by default, or TCP),
 and returns an :class:`EmulatorSet`: a copy of the config with the real URLs, and the
 emulator objects (so the simulator, or a test, can read their state).
@@ -89,6 +90,11 @@ def _make(kind: str, url: str, config: RigConfig, time_scale: float) -> Emulated
         bd = config.backdrops
         n = max(bd.output_map.values()) + 1 if bd is not None and bd.url == url else 2
         return DisplayEmulator(outputs=max(n, 2), time_scale=time_scale)
+    if kind == "mdc":
+        from .mdc import MdcEmulator
+
+        panel = next(p for p in config.panels if p.url == url)
+        return MdcEmulator(display_id=panel.display_id, time_scale=time_scale)
     raise ConfigError(f"{config.source}: unknown emulator kind {kind!r} in {url!r}")
 
 
