@@ -108,7 +108,7 @@ def write_bundle(
     out,
     *,
     k: int = 4,
-    background=(0.0, 0.0, 0.0),
+    background=(0.18, 0.18, 0.18),
     first_chunk: int | None = None,
     envmap: str | None = None,
     env_yaw_deg: float | None = None,
@@ -129,7 +129,8 @@ def write_bundle(
     model_dir : model folder (read through :class:`OpacityHullModel`).
     out : bundle folder; built as a sibling temporary folder and renamed into place.
     k : initial ULR k of the page (1..8; the page lets the user change it).
-    background : initial background colour (linear RGB in [0, 1]).
+    background : initial background colour (linear RGB in [0, 1]); default a neutral
+        grey (18 %), against which both the lit and the unlit side of a model show.
     envmap : optional environment map (an equirectangular ``.hdr``/``.exr`` path or
         ``builtin:NAME``) the page can show behind the model (``envmap.bin``).
     env_yaw_deg : its rotation about +Y (default: 180° for ``builtin:`` probes, else 0).

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from helpers import copy_without, load_viewer, viewer_error
 
-from opacityhull.imageio import srgb_decode
+from opacityhull.imageio import srgb_decode, srgb_encode
 from opacityhull.model import OpacityHullModel
 from opacityhull.view.bundle import VIEWER_FORMAT, read_bundle, write_bundle
 from opacityhull.view.server import BundleServer
@@ -174,6 +174,13 @@ def test_browser_matches_cpu_renderer(browser, view_model, bundle):
         decoded = decoded_surfels(out, n_views=len(m.views))
         pv = prepare_model_views(model)
         cams = [v.camera for v in model.views]
+        # the bundle's background (18 % grey by default) around the model, 8-bit sRGB exactly;
+        # the comparisons below are premultiplied, i.e. over black
+        browser.execute_script("return window.opacityhull.setCamera(2)")
+        corner = srgb_decode(canvas_rgb(browser)[:2, :2].astype(np.float32) / 255.0)
+        bg8 = srgb_decode(np.round(srgb_encode(np.asarray(man["background"], np.float32)) * 255) / 255)
+        assert man["background"] == [0.18, 0.18, 0.18] and np.abs(corner - bg8).max() < 1e-6
+        browser.execute_script("return window.opacityhull.setBackground([0, 0, 0])")
         for vi in (2, 13):
             browser.execute_script(f"return window.opacityhull.setCamera({vi})")
             gpu = srgb_decode(canvas_rgb(browser).astype(np.float32) / 255.0)
@@ -272,9 +279,7 @@ def test_browser_environment_map_background(browser, view_model, tmp_path):
     with BundleServer(out) as srv:
         r = load_viewer(browser, srv.url)
         assert r["ok"], r["error"]
-        browser.execute_script(
-            "window.opacityhull.viewer.setView(7); return window.opacityhull.setBackground('envmap')"
-        )
+        browser.execute_script("window.opacityhull.setCamera(7); return window.opacityhull.setBackground('envmap')")
         gpu = srgb_decode(canvas_rgb(browser).astype(np.float32) / 255.0)
         cpu = render_model(model, m.views[7].camera, config=RenderConfig(threads=1))
         ref = np.clip(cpu.over(env), 0, 1)

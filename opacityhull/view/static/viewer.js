@@ -9,6 +9,24 @@
 const KMAX = 8;
 const $ = (id) => document.getElementById(id);
 
+// the largest canvas of aspect `aspect` (width / height) inside availW x availH CSS pixels,
+// its backing store at the device pixel ratio (aspect kept to the pixel)
+function fitCanvas(aspect, availW, availH, dpr) {
+  const w = Math.max(1, Math.min(availW, availH * aspect));
+  const width = Math.max(1, Math.round(w * dpr)), height = Math.max(1, Math.round(width / aspect));
+  return { width, height, cssWidth: width / dpr, cssHeight: height / dpr };
+}
+const barHeight = () => { const b = $("bar"); return b ? b.getBoundingClientRect().height : 0; };
+
+// `?` (or the ? button) shows and hides the controls; Escape hides them
+function toggleHelp(show) { const h = $("help"); if (h) h.hidden = show === undefined ? !h.hidden : !show; }
+document.addEventListener("keydown", (e) => {
+  if (e.target && (e.target.tagName === "INPUT" || e.target.tagName === "SELECT") && e.key !== "?" && e.key !== "Escape") return;
+  if (e.key === "?") { toggleHelp(); e.preventDefault(); } else if (e.key === "Escape") toggleHelp(false);
+});
+window.addEventListener("DOMContentLoaded", () => { const b = $("helpbutton"); if (b) b.onclick = () => toggleHelp(); });
+if (document.readyState !== "loading") { const b = $("helpbutton"); if (b) b.onclick = () => toggleHelp(); }
+
 function showError(msg) {
   const e = $("error");
   e.textContent = msg;
@@ -453,7 +471,9 @@ class Viewer {
     this.fb = null;
     const b = manifest.bounds;
     this.orbitState = { target: b.centre, az: 0, el: 20, dist: 4 * b.radius };
-    this.cam = null;
+    this.cam = null;  // the camera drawn (baseCam scaled to the canvas when fitting the window)
+    this.baseCam = null;
+    this.fit = true;
     this.lastFrameMs = null;
   }
 
@@ -675,10 +695,26 @@ class Viewer {
   }
 
   setCamera(cam) {  // {fx, fy, cx, cy, width, height, world_from_cam: 16 row-major}
-    this.cam = cam;
-    this.canvas.width = cam.width;
-    this.canvas.height = cam.height;
+    this.baseCam = cam;
+    if (!this.fit) {  // exactly the camera's image (the API's captured cameras, tests)
+      this.cam = cam;
+      this.canvas.width = cam.width;
+      this.canvas.height = cam.height;
+      this.canvas.style.width = ""; this.canvas.style.height = "";
+      return;
+    }
+    // fill the window below the control bar with the camera's aspect, at the device pixel
+    // ratio: the same camera with its intrinsics scaled (pixel centres: OpenCV, (0, 0) = top-left centre)
+    const fit = fitCanvas(cam.width / cam.height, window.innerWidth, window.innerHeight - barHeight(), window.devicePixelRatio || 1);
+    const sx = fit.width / cam.width, sy = fit.height / cam.height;
+    this.cam = { ...cam, fx: cam.fx * sx, fy: cam.fy * sy, cx: (cam.cx + 0.5) * sx - 0.5, cy: (cam.cy + 0.5) * sy - 0.5,
+      width: fit.width, height: fit.height };
+    this.canvas.width = fit.width;
+    this.canvas.height = fit.height;
+    this.canvas.style.width = `${fit.cssWidth}px`; this.canvas.style.height = `${fit.cssHeight}px`;
   }
+
+  setFit(on) { this.fit = !!on; if (this.baseCam) this.setCamera(this.baseCam); }
 
   setView(i) {
     const v = this.man.views.layers[i];
@@ -695,7 +731,7 @@ class Viewer {
     const a = o.az * Math.PI / 180, e = o.el * Math.PI / 180;
     const eye = [o.target[0] + o.dist * Math.cos(e) * Math.sin(a), o.target[1] + o.dist * Math.sin(e),
       o.target[2] + o.dist * Math.cos(e) * Math.cos(a)];
-    const base = this.cam || this._defaultIntrinsics();
+    const base = this.baseCam || this._defaultIntrinsics();
     this.setCamera({ ...base, world_from_cam: lookAt(eye, o.target) });
   }
 
@@ -854,7 +890,8 @@ async function main() {
     const o = document.createElement("option"); o.value = "envmap"; o.textContent = `environment map (${man.envmap.source})`;
     $("bg").appendChild(o);
     const yaw = $("yaw"); yaw.value = man.envmap.yaw_deg; $("yawlabel").style.display = "";
-    yaw.oninput = () => { viewer.envYawDeg = +yaw.value; dirty = true; };
+    $("yawval").textContent = `${yaw.value}°`;
+    yaw.oninput = () => { viewer.envYawDeg = +yaw.value; $("yawval").textContent = `${yaw.value}°`; dirty = true; };
   }
   let dirty = true;
   const frame = () => { if (dirty) { dirty = false; viewer.draw(); $("fps").textContent = `${viewer.lastFrameMs.toFixed(1)} ms/frame`; } requestAnimationFrame(frame); };
@@ -918,7 +955,7 @@ async function main() {
     $("lightlabel").style.display = "";
     const yaw = $("yaw");
     yaw.min = 0; yaw.max = 360; yaw.step = 360 / RL.yaw_steps;
-    $("yawlabel").style.display = "";
+    $("yawlabel").style.display = ""; $("yawval").textContent = `${yaw.value}°`;
     yaw.oninput = () => { viewer.envYawDeg = +yaw.value; $("yawval").textContent = `${yaw.value}°`; dirty = true; };
     ls.onchange = () => {
       if (ls.value === "") viewer.lighting = null;
@@ -936,7 +973,7 @@ async function main() {
   }
   progress.textContent = `${man.n_surfels} surfels, ${man.n_views} views${RL ? `, relightable (PCA rank ${RL.rank}, ${RL.n_lights} lights)` : ""}`;
   // controls
-  sel.onchange = () => { viewer.setView(+sel.value); dirty = true; };
+  sel.onchange = () => { viewer.fit = true; viewer.setView(+sel.value); dirty = true; };
   const kIn = $("k"); kIn.value = viewer.k; $("kval").textContent = viewer.k;
   kIn.oninput = () => { viewer.k = +kIn.value; $("kval").textContent = kIn.value; dirty = true; };
   bud.onchange = () => { viewer.budget = bud.value === "" ? null : +bud.value; dirty = true; };
@@ -945,6 +982,16 @@ async function main() {
     if (v === "envmap") viewer.bgMode = "envmap"; else { viewer.bgMode = "colour"; viewer.bg = v.split(",").map(Number); }
     dirty = true;
   };
+  const bgKey = man.background.join(",");
+  if (Array.from($("bg").options).some((o) => o.value === bgKey)) $("bg").value = bgKey;
+  for (const b of document.querySelectorAll("#bgbuttons button")) {  // one click: grey, black, white
+    b.onclick = () => { $("bg").value = b.dataset.rgb; $("bg").onchange(); };
+  }
+  // refit when the window or the control bar (it wraps as controls appear) changes size
+  const refit = () => { if (viewer.fit && viewer.baseCam) { viewer.setCamera(viewer.baseCam); dirty = true; } };
+  window.addEventListener("resize", refit);
+  if (window.ResizeObserver) new ResizeObserver(refit).observe($("bar"));
+  refit();
   const cv = $("canvas");
   let drag = null;
   cv.onpointerdown = (e) => { drag = [e.clientX, e.clientY]; cv.setPointerCapture(e.pointerId); };
@@ -959,8 +1006,10 @@ let resolveReady, rejectReady;
 window.opacityhull = {
   error: null, lastFrameMs: null, firstFrameMs: null, viewer: null,
   ready: new Promise((res, rej) => { resolveReady = res; rejectReady = rej; }),
-  setCamera(i) { this.viewer.setView(i); return this.viewer.draw(); },
-  setCameraMatrix(cam) { this.viewer.setCamera(cam); return this.viewer.draw(); },
+  setCamera(i) { this.viewer.fit = false; this.viewer.setView(i); return this.viewer.draw(); },
+  setCameraMatrix(cam) { this.viewer.fit = false; this.viewer.setCamera(cam); return this.viewer.draw(); },
+  // fill the window (true, the page's default) or draw at the camera's own size (false)
+  setFit(on) { this.viewer.setFit(on); return this.viewer.draw(); },
   setK(k) { this.viewer.k = Math.max(1, Math.min(KMAX, k | 0)); return this.viewer.draw(); },
   setBudget(n) { this.viewer.budget = n === null || n === undefined ? null : Math.max(1, n | 0); return this.viewer.draw(); },
   setBackground(rgb) {  // [r, g, b] (linear) or "envmap"
