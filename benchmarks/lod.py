@@ -14,7 +14,8 @@ the full model's render (the CPU renderer, default per-pixel shading) of:
 
 Also: bytes per inner node and per leaf record, bytes per surfel of the whole geometry
 (records + codebooks + dictionary + octree position code, raw and deflated), the node
-statistics' build time. Writes ``benchmarks/out/lod.md``, ``lod.json`` and ``lod.png``
+statistics' build time; the viewer bundle's bytes per surfel and, in headless Chromium
+(when installed; ``--no-browser`` skips it), the first-picture time. Writes ``benchmarks/out/lod.md``, ``lod.json`` and ``lod.png``
 (``--quick``: 20 k surfels, one view, ``lod_quick.*``, untracked). Timings are wall
 times on a shared machine.
 """
@@ -168,6 +169,47 @@ def measure(n_surfels: int, views: tuple, width: int, height: int) -> dict:
     }
 
 
+def browser_row(n_surfels: int) -> dict:
+    """The viewer bundle (format 3: packed statistical nodes) of the analytic sphere: bytes
+    per surfel, and in headless Chromium the first-picture and loaded times (median of
+    three loads, ``benchmarks/viewer.py``'s ``browser_timings``), canvas fitted to the
+    default 800×600 window."""
+    import shutil
+    import tempfile
+
+    from opacityhull.render.synthetic import write_sphere_model
+    from opacityhull.view.browser import close_browser, find_chromium, open_browser
+    from opacityhull.view.bundle import write_bundle
+    from viewer import browser_timings
+
+    tmp = Path(tempfile.mkdtemp(prefix="opacityhull-bench-lod-"))
+    try:
+        root, _ = write_sphere_model(tmp / "m", n_surfels=n_surfels, width=128, height=96, table_step_deg=30.0)
+        t = time.perf_counter()
+        s = write_bundle(root, tmp / "b")
+        row = {
+            "surfels": n_surfels,
+            "bundle_bytes_per_surfel": s["bytes_per_surfel"],
+            "bundle_bytes": s["bytes"],
+            "bundle_write_s": time.perf_counter() - t,
+        }
+        b, _, why = find_chromium()
+        if b is None:
+            row["browser"] = f"skipped: {why}"
+            return row
+        drv = open_browser()
+        try:
+            row.update(browser_timings(tmp / "b", drv))
+            row["canvas"] = drv.execute_script(
+                "const c = document.getElementById('canvas'); return [c.width, c.height]"
+            )
+        finally:
+            close_browser(drv)
+        return row
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
 def report(res: dict, stem: str) -> Path:
     g = res["geometry"]
     lines = report_head(
@@ -192,6 +234,18 @@ def report(res: dict, stem: str) -> Path:
         "| view | budget | splats | isotropic dB | statistical dB | packed dB | Δ (stat − iso) |",
         "|---|---|---|---|---|---|---|",
     ]
+    br = res.get("browser")
+    if br:
+        lines = (
+            lines[:-3]
+            + [
+                f"| viewer bundle (format 3) per surfel | {br['bundle_bytes_per_surfel']:.1f} (format 2: 70) |",
+                f"| first picture / loaded (Chromium, SwiftShader, canvas {br.get('canvas')}) | "
+                f"{br.get('first_frame_ms', float('nan')):.0f} / {br.get('loaded_ms', float('nan')):.0f} ms "
+                "(format 2 at 128×96: 1315 / 1964 ms) |",
+            ]
+            + lines[-3:]
+        )
     for r in res["rows"]:
         fr = "N" if r["budget_fraction"] == 1 else f"N/{round(1 / r['budget_fraction'])}"
         lines.append(
@@ -223,11 +277,15 @@ def main(argv=None) -> int:
     ap = parser(__doc__)
     ap.add_argument("--quick", action="store_true", help="20 k surfels, one view (untracked lod_quick.*)")
     ap.add_argument("--json", action="store_true", help="print the results as one JSON object on stdout")
+    ap.add_argument("--no-browser", action="store_true", help="skip the viewer bundle's browser timings")
     args = ap.parse_args(argv)
     if args.quick:
         res = measure(20_000, (4,), 64, 48)
     else:
         res = measure(50_000, (4, 13, 20), 128, 96)
+    if not args.no_browser:
+        res["browser"] = browser_row(res["surfels"])
+        print(res["browser"], file=sys.stderr)
     OUT.mkdir(parents=True, exist_ok=True)
     path = report(res, "lod_quick" if args.quick else "lod")
     print_result(res, path, as_json=args.json)
