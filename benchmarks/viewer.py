@@ -165,7 +165,7 @@ def relit_rows(
             bg = EnvMap(np.asarray(env.radiance))
             pv = prepare_views(cams, [R.relight_view(i, envmap=env) for i in range(len(cams))])
             t = time.perf_counter()
-            drv.execute_script(f"window.opacityhull.viewer.setView({vi}); window.opacityhull.setRelight({n}, {yaw})")
+            drv.execute_script(f"window.opacityhull.setCamera({vi}); window.opacityhull.setRelight({n}, {yaw})")
             relight_ms = 1e3 * (time.perf_counter() - t)
             frame_ms = drv.execute_script("return window.opacityhull.viewer.draw()")
             gpu = srgb_decode(canvas_rgb(drv).astype(np.float32) / 255.0)

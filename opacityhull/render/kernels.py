@@ -59,6 +59,9 @@ M_FLOOR = 1e-6
 """px² added to the resampling covariance so that an edge-on splat with no
 prefilter (``filter=0``) still has an invertible conic."""
 
+NO_COV = np.zeros((0, 6), np.float64)
+"""The empty ``cov6`` of :func:`splat_setup`: isotropic discs."""
+
 # splat record columns
 S_X, S_Y, S_Z, S_A, S_B, S_C, S_W, S_DZX, S_DZY, S_ZDEV, S_ZEPS = range(11)
 S_BX0, S_BX1, S_BY0, S_BY1 = range(11, 15)
@@ -554,6 +557,7 @@ def splat_setup(
     cutoff,
     eps_z,
     cull_backfaces,
+    cov6,
     out_splat,
     valid,
     i0,
@@ -575,6 +579,11 @@ def splat_setup(
     same-surface fragments of minified splats (measured: interior coverage 0.5).
     ``areas`` (m² of surface per surfel) is copied for the coverage channel.
 
+    Anisotropic splats (statistical nodes, :mod:`opacityhull.render.spg`): with ``cov6``
+    (N, 6) — a radius tensor ``R²`` (xx, xy, xz, yy, yz, zz, m², object frame; a disc is
+    ``r² (I − n nᵀ)``) — the kernel is ``σ² P R² Pᵀ + H`` instead (``radii`` then only
+    gate validity); the empty :data:`NO_COV` keeps the isotropic disc.
+
     Processes surfels ``i0:i1``: writes ``valid[i]`` (False when behind the camera,
     facing away, degenerate, or without a pixel centre inside its cutoff ellipse) and the
     geometry columns of ``out_splat`` (N, SPLAT_FIELDS) float32, including the inclusive
@@ -590,6 +599,7 @@ def splat_setup(
     ccx = -(cam[0] * cam[9] + cam[3] * cam[10] + cam[6] * cam[11])
     ccy = -(cam[1] * cam[9] + cam[4] * cam[10] + cam[7] * cam[11])
     ccz = -(cam[2] * cam[9] + cam[5] * cam[10] + cam[8] * cam[11])
+    aniso = cov6.shape[0] > 0
     for i in range(i0, i1):
         valid[i] = False
         px = np.float64(positions[i, 0])
@@ -637,10 +647,35 @@ def splat_setup(
         j11 = b1 * b1 + b2 * b2 - pn1 * pn1
         detjj = j00 * j11 - j01 * j01
         detj = math.sqrt(detjj) if detjj > 0.0 else 0.0
-        s2 = (sigma_radius * r) ** 2
-        m00 = s2 * j00 + filter_var + M_FLOOR
-        m01 = s2 * j01
-        m11 = s2 * j11 + filter_var + M_FLOOR
+        if aniso:
+            # P R² Pᵀ with R² rotated into the camera frame (P = [[a0, 0, a2], [0, b1, b2]])
+            s2 = sigma_radius * sigma_radius
+            c00, c01, c02 = cov6[i, 0], cov6[i, 1], cov6[i, 2]
+            c11, c12, c22 = cov6[i, 3], cov6[i, 4], cov6[i, 5]
+            # rows of P·R (R = cam rotation): p0 = a0·R[0] + a2·R[2], p1 = b1·R[1] + b2·R[2]
+            p00 = a0 * cam[0] + a2 * cam[6]
+            p01 = a0 * cam[1] + a2 * cam[7]
+            p02 = a0 * cam[2] + a2 * cam[8]
+            p10 = b1 * cam[3] + b2 * cam[6]
+            p11 = b1 * cam[4] + b2 * cam[7]
+            p12 = b1 * cam[5] + b2 * cam[8]
+            q00 = c00 * p00 + c01 * p01 + c02 * p02
+            q01 = c01 * p00 + c11 * p01 + c12 * p02
+            q02 = c02 * p00 + c12 * p01 + c22 * p02
+            q10 = c00 * p10 + c01 * p11 + c02 * p12
+            q11 = c01 * p10 + c11 * p11 + c12 * p12
+            q12 = c02 * p10 + c12 * p11 + c22 * p12
+            g00 = p00 * q00 + p01 * q01 + p02 * q02
+            g01 = p10 * q00 + p11 * q01 + p12 * q02
+            g11 = p10 * q10 + p11 * q11 + p12 * q12
+        else:
+            s2 = (sigma_radius * r) ** 2
+            g00 = j00
+            g01 = j01
+            g11 = j11
+        m00 = s2 * g00 + filter_var + M_FLOOR
+        m01 = s2 * g01
+        m11 = s2 * g11 + filter_var + M_FLOOR
         detm = m00 * m11 - m01 * m01
         if not (detm > 0.0 and math.isfinite(detm)):
             continue

@@ -292,6 +292,7 @@ def render_image(
     config: RenderConfig = RenderConfig(),
     exclude_views: Sequence[int] = (),
     progress: Callable[[int, int], None] | None = None,
+    splat_cov: np.ndarray | None = None,
 ) -> RenderResult:
     """Render the opacity hull from ``camera``.
 
@@ -307,6 +308,9 @@ def render_image(
     exclude_views : views not used for blending (leave-one-out); they still count for
         nothing else, since visibility and geometry come from the model.
     progress : callable(done, total) over the 3 stages.
+    splat_cov : (N, 6) or None: anisotropic radius tensors (xx, xy, xz, yy, yz, zz, m²;
+        a surfel's disc is ``r²(I − n nᵀ)``) instead of the discs — the statistical nodes
+        of a level-of-detail cut (:func:`opacityhull.render.spg.radius_tensors`).
 
     Returns
     -------
@@ -330,7 +334,8 @@ def render_image(
     splat = scratch.get("splat", (N, K.SPLAT_FIELDS), np.float32)
     areas = surfel_areas(surfels)
     valid = scratch.get("valid", (N,), np.bool_)
-    _setup_splats(surfels, surfels.positions, areas, cam_row, W, H, config, threads, splat, valid)
+    cov6 = None if splat_cov is None else np.ascontiguousarray(splat_cov, np.float64).reshape(N, 6)
+    _setup_splats(surfels, surfels.positions, areas, cam_row, W, H, config, threads, splat, valid, cov6)
     t_setup = _stage_end(progress, 1)
 
     if config.shading == "pixel":
@@ -590,9 +595,12 @@ def _opaque_interior(premul, interior, pv: PreparedViews, config, shade):
     return out
 
 
-def _setup_splats(surfels, positions, areas, cam_row, W, H, config: RenderConfig, threads, splat, valid) -> None:
+def _setup_splats(
+    surfels, positions, areas, cam_row, W, H, config: RenderConfig, threads, splat, valid, cov6=None
+) -> None:
     """Splat records of ``surfels`` centred at ``positions`` (the hull's, or the shading
-    depth's displaced ones) for the frame ``cam_row`` (W×H), in parallel."""
+    depth's displaced ones) for the frame ``cam_row`` (W×H), in parallel; ``cov6``:
+    anisotropic radius tensors (:func:`render_image`)."""
     K.parallel_for(
         K.splat_setup,
         len(surfels),
@@ -609,6 +617,7 @@ def _setup_splats(surfels, positions, areas, cam_row, W, H, config: RenderConfig
             float(config.cutoff_sigma),
             float(config.epsilon_z),
             bool(config.backface_cull),
+            K.NO_COV if cov6 is None else cov6,
             splat,
             valid,
         ),

@@ -15,7 +15,7 @@ import numpy as np
 from ..camera import Camera
 from ..errors import InputError
 from ..imageio import write_exr, write_png
-from ..model import OpacityHullModel, Surfels
+from ..model import OpacityHullModel
 from .background import EnvMap, fit_image, load_background
 from .cameras import captured_view_camera, look_at_camera, mean_fov_y_deg, orbit_cameras, resize_camera, scene_target
 from .renderer import RenderConfig, RenderResult, model_surfels, prepare_model_views, render_image
@@ -130,6 +130,8 @@ class LodCuts:
     def __init__(self, surfels):
         self.surfels = surfels
         self.tree = None  # the PointTree, nodes in Morton order (not sequential)
+        self.stats = None  # its statistical nodes (spg.NodeStats, same order)
+        self.last_cov = None  # radius tensors of the last cut (None: the model's own discs)
         self.ms_build = 0.0
 
     def _build(self):
@@ -164,6 +166,9 @@ class LodCuts:
             is_leaf=tree.is_leaf[perm],
             leaf_index=tree.leaf_index[perm],
         )
+        from .spg import node_statistics
+
+        self.stats = node_statistics(self.tree)
         self.ms_build = 1e3 * (time.perf_counter() - t)
 
     def cut(self, camera: Camera, budget: int | None):
@@ -172,11 +177,15 @@ class LodCuts:
         With no budget, or a budget ≥ the surfel count, the model's own surfels are
         returned unchanged (τ = 0), so the image is exactly the full render; otherwise
         the finest view-dependent cut with at most ``budget`` nodes, in Morton order,
-        each node carrying the area of its subtree (the renderer's edge coverage).
+        each node carrying the area of its subtree (the renderer's edge coverage) and
+        drawn as the anisotropic splat of its statistics (:mod:`.spg`; the tensors are
+        left in ``last_cov`` for ``render_image``'s ``splat_cov``).
         """
         from .lod import select_cut
+        from .spg import statistical_cut
 
         budget = check_budget(budget)
+        self.last_cov = None
         if budget is None or budget >= len(self.surfels):
             return self.surfels, 0.0
         if self.tree is None:
@@ -184,9 +193,9 @@ class LodCuts:
         tree = self.tree
         assert tree is not None  # _build sets it
         tau, mask = select_cut(tree, camera.centre_world, budget)
-        idx = np.flatnonzero(mask)
-        s = Surfels(tree.positions[idx], tree.normals[idx], tree.radii[idx], tree.visibility[idx], tree.n_views)
-        _seed_surfel_areas(s, tree.areas[idx])
+        assert self.stats is not None  # _build sets it
+        s, areas, self.last_cov = statistical_cut(tree, self.stats, mask)
+        _seed_surfel_areas(s, areas)
         return s, float(tau)
 
 
@@ -281,12 +290,15 @@ def _render_chunk(
         with st.lock:
             had_tree = st.lod.tree is not None
             drawn, tau = st.lod.cut(cam, budget)
+            cov = st.lod.last_cov
             if st.lod.tree is not None and not had_tree:
                 ms_tree = st.lod.ms_build
                 t += ms_tree / 1e3  # the tree is built once per model, not per frame
         splats.append(len(drawn))
         taus.append(tau)
-        res = render_image(drawn, st.view_cameras, st.pv, cam, config=config, exclude_views=list(exclude))
+        res = render_image(
+            drawn, st.view_cameras, st.pv, cam, config=config, exclude_views=list(exclude), splat_cov=cov
+        )
         ms.append(1e3 * (time.perf_counter() - t))
         write_frame(Path(path), res, background)
         if anim_background is not None:

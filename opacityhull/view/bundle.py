@@ -16,16 +16,17 @@ full budget (τ = 0) exactly the leaves are drawn, i.e. the model itself. Chunks
 size, and since the order is coarse first, the first chunk already is a complete coarse
 cut: the page draws it at once and refines as chunks arrive.
 
-Format 2 — positions from the octree code (Botsch, Wiratanaya & Kobbelt 2002):
+Format 3 — statistical nodes (Kalaiah & Varshney 2003, :mod:`opacityhull.render.spg`)
+and positions from the octree code (Botsch, Wiratanaya & Kobbelt 2002):
 
-* ``surfels_NNN.bin``: float chunks — inner nodes and the few leaves with r_max above the
-  leaves' ``LEAF_QUANTILE`` (``leaves.r_max_max``), in r_max order; per chunk ``count``
-  float32×3 positions, then ``count`` attribute records (:func:`record_bytes`: normal,
-  radius, area, r_min, r_max, visibility words).
-* ``positions.oct``: deflated breadth-first byte codes of the other leaves' cells;
+* ``codebooks.bin``, ``visibility.bin``: the k-means codebooks of the spreads and the
+  dictionary of visibility patterns.
+* ``nodes_NNN.bin``: the inner nodes as 17-byte PCA records in r_max order (chunks
+  doubling in size); the page draws each as one anisotropic EWA splat.
+* ``positions.oct``: deflated breadth-first byte codes of the leaves' cells;
   ``counts.oct``: deflated uint8 points per leaf cell (absent when all are 1);
   ``offsets.oct``: deflated uint8 bin per point of the offset along its normal.
-* ``leaves.bin``: those leaves' attribute records, in the code's decoded order; they are
+* ``leaves.bin``: the leaves' 8-byte records, in the code's decoded order; they are
   records ``n_float …`` of the page's buffers.
 
 :func:`read_bundle` reads it back (the reference for the page's decoder).
@@ -51,9 +52,9 @@ from .octree_code import decode_positions, encode_offsets, encode_positions, med
 
 log = logging.getLogger(__name__)
 
-__all__ = ["VIEWER_FORMAT", "MAX_VIEWS", "write_bundle", "record_bytes", "read_bundle", "decoded_surfels"]
+__all__ = ["VIEWER_FORMAT", "MAX_VIEWS", "write_bundle", "record_bytes", "read_bundle", "decoded_surfels", "bundle_cut"]
 
-VIEWER_FORMAT = "opacityhull-viewer/2"
+VIEWER_FORMAT = "opacityhull-viewer/3"
 MAX_VIEWS = 256
 """Visibility bits per surfel the shader reads (two uvec4 attributes)."""
 
@@ -109,7 +110,7 @@ def write_bundle(
     out,
     *,
     k: int = 4,
-    background=(0.0, 0.0, 0.0),
+    background=(0.18, 0.18, 0.18),
     first_chunk: int | None = None,
     envmap: str | None = None,
     env_yaw_deg: float | None = None,
@@ -130,7 +131,8 @@ def write_bundle(
     model_dir : model folder (read through :class:`OpacityHullModel`).
     out : bundle folder; built as a sibling temporary folder and renamed into place.
     k : initial ULR k of the page (1..8; the page lets the user change it).
-    background : initial background colour (linear RGB in [0, 1]).
+    background : initial background colour (linear RGB in [0, 1]); default a neutral
+        grey (18 %), against which both the lit and the unlit side of a model show.
     envmap : optional environment map (an equirectangular ``.hdr``/``.exr`` path or
         ``builtin:NAME``) the page can show behind the model (``envmap.bin``).
     env_yaw_deg : its rotation about +Y (default: 180° for ``builtin:`` probes, else 0).
@@ -305,6 +307,7 @@ def _write(tmp, model, k, bg, first_chunk, progress, position_cell_m, offset_bit
     from ..imageio import srgb_encode
     from ..render.config import RenderConfig
     from ..render.renderer import ALPHA_MIN, coverage_full, surfel_areas
+    from ..render.spg import LEAF_DTYPE, NODE_DTYPE, NODE_SCALE, node_statistics, pack_nodes, unpack_nodes
     from .lod import build_point_tree
 
     s, V, cfg = model.surfels, len(model.views), RenderConfig()
@@ -322,107 +325,95 @@ def _write(tmp, model, k, bg, first_chunk, progress, position_cell_m, offset_bit
     areas = surfel_areas(s)
     tree = build_point_tree(s, areas)
     M = len(tree)
-    # visibility: packed bytes (LSB first) → little-endian uint32 words, view v = word v//32, bit v%32
-    vis8 = np.zeros((M, 4 * words), np.uint8)
-    vis8[:, : tree.visibility.shape[1]] = tree.visibility
-    recs = np.zeros(M, dtype=_attr_dtype(words))
-    recs["nrm"] = tree.normals
-    recs["radius"] = tree.radii
-    recs["area"] = tree.areas
-    recs["r_min"] = tree.r_min
-    recs["r_max"] = tree.r_max
-    recs["vis"] = vis8.view("<u4")
-    assert recs.itemsize == rec
+    stats = node_statistics(tree)
+    pk = pack_nodes(tree, stats)
+    n_inner, n_coded = len(pk.inner), len(pk.leaf_ids)
+    # codebooks (log σ, float32) and the visibility dictionary (uint32 words per pattern)
+    cb = pk.codebook_p.centres.astype("<f4").tobytes() + pk.codebook_n.centres.astype("<f4").tobytes()
+    (tmp / "codebooks.bin").write_bytes(cb)
+    vis8 = np.zeros((len(pk.vis_dict), 4 * words), np.uint8)
+    vis8[:, : pk.vis_dict.shape[1]] = pk.vis_dict
+    (tmp / "visibility.bin").write_bytes(vis8.tobytes())
+    # what the page will decode: the error codes' values (the LOD table and the leaf threshold)
+    dec_tree, _ = unpack_nodes(pk)
     # splats drawn by a uniform threshold t (the page interpolates t for a budget)
-    pos_err = np.unique(tree.r_min[tree.r_min > 0])
+    pos_err = np.unique(dec_tree.r_min[dec_tree.r_min > 0])
     ts = np.r_[0.0, np.geomspace(pos_err[0], pos_err[-1] * 1.01, 64)] if pos_err.size else np.zeros(1)
-    counts = [int(np.count_nonzero((tree.r_min <= t) & (t < tree.r_max))) for t in ts]
-    # Leaves with r_max ≤ t_leaf get octree-coded positions and come last, in the code's
-    # decoded order. Everything else (inner nodes, and the few leaves whose parent is much
-    # coarser) keeps float positions, sorted by r_max: any prefix of that stream is a
-    # complete cut for t ≥ max(its r_max_last, t_leaf).
-    leaf = tree.is_leaf
-    finite_rmax = tree.r_max[leaf & np.isfinite(tree.r_max)]
-    t_leaf = float(np.quantile(finite_rmax, LEAF_QUANTILE)) if finite_rmax.size else 0.0
-    coded = leaf & (tree.r_max <= t_leaf)
-    float_idx = np.flatnonzero(~coded)  # already in r_max order (the tree is sorted)
-    coded_idx = np.flatnonzero(coded)
-    n_float, n_coded = len(float_idx), len(coded_idx)
-    sizes = _chunk_sizes(n_float, first_chunk or max(4096, M // 256))
-    n_pos_steps = 1 if n_coded else 0
-    total_steps = V + len(sizes) + n_pos_steps
+    counts = [int(np.count_nonzero((dec_tree.r_min <= t) & (t < dec_tree.r_max))) for t in ts]
+    # Inner nodes are packed records in r_max order (the tree is sorted): any prefix is a
+    # complete cut for t ≥ max(its r_max_last, the leaves' largest r_max). The leaves come
+    # last, positions from the octree code, records in the code's decoded order.
+    sizes = _chunk_sizes(n_inner, first_chunk or max(4096, M // 256)) if n_inner else []
+    total_steps = V + len(sizes) + 1
     chunks, done, first = [], 0, 0
-    P32 = tree.positions.astype("<f4")
     for ci, n in enumerate(sizes):
-        name = f"surfels_{ci:03d}.bin"
-        sel = float_idx[first : first + n]
-        data = P32[sel].tobytes() + recs[sel].tobytes()
+        name = f"nodes_{ci:03d}.bin"
+        data = pk.inner[first : first + n].tobytes()
         (tmp / name).write_bytes(data)
-        chunks.append(
-            {
-                "file": name,
-                "first": first,
-                "count": n,
-                "bytes": len(data),
-                "r_max_last": min(float(tree.r_max[sel[-1]]), 3e38),
-            }
-        )  # JSON has no Infinity
+        last = float(dec_tree.r_max[pk.inner_ids[first + n - 1]])
+        chunks.append({"file": name, "first": first, "count": n, "bytes": len(data), "r_max_last": min(last, 3e38)})
         first += n
         done += 1
         if progress:
             progress(done, total_steps)
-    leaves_meta, pos_meta = None, None
-    if n_coded:
-        P = tree.positions[coded_idx].astype(np.float64)
-        cell = position_cell_m if position_cell_m is not None else median_spacing(P)
-        oc = None
-        for _ in range(8):  # a cell holds at most 255 points (one count byte): refine until it does
-            try:
-                oc = encode_positions(P, cell_m=cell)
-                break
-            except InputError:
-                cell *= 0.5
-        assert oc is not None
-        head, codes_z, counts_z = pack(oc)
-        (tmp / "positions.oct").write_bytes(codes_z)
-        if counts_z:
-            (tmp / "counts.oct").write_bytes(counts_z)
-        sel = coded_idx[oc.order]
-        h = oc.size / 2**oc.depth
-        off_z = b""
-        if offset_bits:
-            q = encode_offsets(tree.positions[sel], decode_positions(oc), recs["nrm"][sel], h, offset_bits)
-            off_z = zlib.compress(q.tobytes(), 9)
-            (tmp / "offsets.oct").write_bytes(off_z)
-        data = recs[sel].tobytes()
-        (tmp / "leaves.bin").write_bytes(data)
-        leaves_meta = {
-            "file": "leaves.bin",
-            "first": n_float,
-            "count": n_coded,
-            "bytes": len(data),
-            "r_max_max": t_leaf,
-        }
-        pos_bits = 8.0 * (len(codes_z) + len(counts_z)) / n_coded
-        pos_meta = {
-            **head,
-            "cell_m": float(h),
-            "codes_file": "positions.oct",
-            "codes_bytes": len(codes_z),
-            "counts_file": "counts.oct" if counts_z else None,
-            "counts_bytes": len(counts_z),
-            "bits_per_point": pos_bits,
-            "offset_bits": offset_bits,
-            "offsets_file": "offsets.oct" if off_z else None,
-            "offsets_bytes": len(off_z),
-            "offset_bits_per_point": 8.0 * len(off_z) / n_coded,
-            "encoding": "Botsch et al. 2002 breadth-first octree byte codes (bit c = child octant "
-            "x + 2y + 4z), deflate (zlib); counts: uint8 points per leaf cell, deflate; "
-            "offsets: uint8 bin of λ in [-√3/2, √3/2] cell edges along the normal, deflate",
-        }
-        done += 1
-        if progress:
-            progress(done, total_steps)
+    P = tree.positions[pk.leaf_ids].astype(np.float64)
+    cell = position_cell_m if position_cell_m is not None else median_spacing(P)
+    oc = None
+    for _ in range(8):  # a cell holds at most 255 points (one count byte): refine until it does
+        try:
+            oc = encode_positions(P, cell_m=cell)
+            break
+        except InputError:
+            cell *= 0.5
+    assert oc is not None
+    head, codes_z, counts_z = pack(oc)
+    (tmp / "positions.oct").write_bytes(codes_z)
+    if counts_z:
+        (tmp / "counts.oct").write_bytes(counts_z)
+    h = oc.size / 2**oc.depth
+    leaf_nrm = dec_tree.normals[pk.leaf_ids][oc.order]  # the decoded normals the page offsets along
+    off_z = b""
+    if offset_bits:
+        q = encode_offsets(P[oc.order], decode_positions(oc), leaf_nrm, h, offset_bits)
+        off_z = zlib.compress(q.tobytes(), 9)
+        (tmp / "offsets.oct").write_bytes(off_z)
+    data = pk.leaves[oc.order].tobytes()
+    (tmp / "leaves.bin").write_bytes(data)
+    leaf_rmax = dec_tree.r_max[pk.leaf_ids]
+    t_leaf = float(leaf_rmax[np.isfinite(leaf_rmax)].max()) if np.isfinite(leaf_rmax).any() else 3e38
+    leaves_meta = {"file": "leaves.bin", "first": n_inner, "count": n_coded, "bytes": len(data), "r_max_max": t_leaf}
+    pos_meta = {
+        **head,
+        "cell_m": float(h),
+        "codes_file": "positions.oct",
+        "codes_bytes": len(codes_z),
+        "counts_file": "counts.oct" if counts_z else None,
+        "counts_bytes": len(counts_z),
+        "bits_per_point": 8.0 * (len(codes_z) + len(counts_z)) / n_coded,
+        "offset_bits": offset_bits,
+        "offsets_file": "offsets.oct" if off_z else None,
+        "offsets_bytes": len(off_z),
+        "offset_bits_per_point": 8.0 * len(off_z) / n_coded,
+        "encoding": "Botsch et al. 2002 breadth-first octree byte codes (bit c = child octant "
+        "x + 2y + 4z), deflate (zlib); counts: uint8 points per leaf cell, deflate; "
+        "offsets: uint8 bin of λ in [-√3/2, √3/2] cell edges along the normal, deflate",
+    }
+    spg_meta = {
+        **pk.header,
+        "node_scale": NODE_SCALE,
+        "codebooks": {
+            "file": "codebooks.bin",
+            "bytes": len(cb),
+            "sigma_p": len(pk.codebook_p.centres),
+            "sigma_n": len(pk.codebook_n.centres),
+        },
+        "visibility": {"file": "visibility.bin", "bytes": int(vis8.nbytes), "patterns": len(pk.vis_dict)},
+        "node_record_bytes": NODE_DTYPE.itemsize,
+        "leaf_record_bytes": LEAF_DTYPE.itemsize,
+    }
+    done += 1
+    if progress:
+        progress(done, total_steps)
     # views: one texture-array layer per view, padded to the largest view
     Wp = max(v.camera.width for v in model.views)
     Hp = max(v.camera.height for v in model.views)
@@ -469,11 +460,12 @@ def _write(tmp, model, k, bg, first_chunk, progress, position_cell_m, offset_bit
         "model": str(model.root),
         "n_surfels": int(tree.is_leaf.sum()),
         "n_nodes": M,
-        "n_float": n_float,
+        "n_float": n_inner,
         "lod": {"t": [float(t) for t in ts], "splats": counts},
         "n_views": V,
         "vis_words": words,
         "record_bytes": rec,
+        "spg": spg_meta,
         "chunks": chunks,
         "leaves": leaves_meta,
         "positions": pos_meta,
@@ -508,11 +500,8 @@ def _write(tmp, model, k, bg, first_chunk, progress, position_cell_m, offset_bit
     for name in STATIC_FILES:
         shutil.copyfile(_static_dir() / name, tmp / name)
     total = sum(p.stat().st_size for p in tmp.iterdir())
-    model_bytes = sum(c["bytes"] for c in chunks)
-    if pos_meta is not None and leaves_meta is not None:
-        model_bytes += (
-            leaves_meta["bytes"] + pos_meta["codes_bytes"] + pos_meta["counts_bytes"] + pos_meta["offsets_bytes"]
-        )
+    model_bytes = sum(c["bytes"] for c in chunks) + len(cb) + int(vis8.nbytes)
+    model_bytes += leaves_meta["bytes"] + pos_meta["codes_bytes"] + pos_meta["counts_bytes"] + pos_meta["offsets_bytes"]
     n_leaves = int(tree.is_leaf.sum())
     return {
         "surfels": n_leaves,
@@ -521,22 +510,29 @@ def _write(tmp, model, k, bg, first_chunk, progress, position_cell_m, offset_bit
         "chunks": len(chunks),
         "bytes": total,
         "bytes_per_surfel": model_bytes / n_leaves,
-        "bytes_per_node": rec,
+        "bytes_per_node": NODE_DTYPE.itemsize,
+        "bytes_per_leaf": LEAF_DTYPE.itemsize,
         "bytes_per_view": Wp * Hp * 4,
         "octree_coded_surfels": n_coded,
-        "float_nodes": n_float,
-        "position_bits_per_coded_surfel": pos_meta["bits_per_point"] if pos_meta else None,
-        "position_offset_bits_per_coded_surfel": pos_meta["offset_bits_per_point"] if pos_meta else None,
-        "position_cell_m": pos_meta["cell_m"] if pos_meta else None,
+        "float_nodes": n_inner,
+        "visibility_patterns": len(pk.vis_dict),
+        "position_bits_per_coded_surfel": pos_meta["bits_per_point"],
+        "position_offset_bits_per_coded_surfel": pos_meta["offset_bits_per_point"],
+        "position_cell_m": pos_meta["cell_m"],
     }
 
 
 def read_bundle(bundle_dir) -> tuple[dict, np.ndarray, np.ndarray]:
-    """(manifest, positions (M, 3) float64, attribute records (M,)) of a bundle, in the page's
-    load order: the float chunks, then the octree-coded leaves (positions decoded by
-    :func:`opacityhull.view.octree_code.decode_positions`, the reference for the page's decoder).
+    """(manifest, positions (M, 3) float64, node records (M,)) of a bundle, in the page's
+    load order: the packed inner nodes of the chunks, then the octree-coded leaves
+    (positions decoded by :func:`opacityhull.view.octree_code.decode_positions`). The
+    records are what the page uploads to the GPU (:func:`_attr_dtype`: normal, radius,
+    area, r_min, r_max, visibility words) plus ``cov``, the radius tensor of an inner node
+    (xx xy xz yy yz zz, m²; zero for the leaves, drawn as discs) — the reference for the
+    page's decoder (``decodeNodes`` / ``decodeLeaves`` in ``viewer.js``).
     """
     from ..errors import FormatError
+    from ..render.spg import LEAF_DTYPE, NODE_DTYPE, Codebook, PackedNodes, radius_tensors, unpack_nodes
     from .octree_code import apply_offsets, unpack
 
     root = Path(bundle_dir)
@@ -546,32 +542,59 @@ def read_bundle(bundle_dir) -> tuple[dict, np.ndarray, np.ndarray]:
         raise FormatError(f"{root}/manifest.json: not a viewer bundle ({e})") from e
     if man.get("format") != VIEWER_FORMAT:
         raise FormatError(f"{root}/manifest.json: format {man.get('format')!r}, expected {VIEWER_FORMAT!r}")
-    dt = _attr_dtype(int(man["vis_words"]))
-    pos, att = [], []
+    words = int(man["vis_words"])
+    S = man["spg"]
+    raw = (root / S["codebooks"]["file"]).read_bytes()
+    kp, kn = int(S["codebooks"]["sigma_p"]), int(S["codebooks"]["sigma_n"])
+    if len(raw) != 4 * (3 * kp + 2 * kn):
+        raise FormatError(f"{root}/{S['codebooks']['file']}: {len(raw)} bytes, expected {4 * (3 * kp + 2 * kn)}")
+    cp = np.frombuffer(raw[: 12 * kp], "<f4").reshape(kp, 3)
+    cn = np.frombuffer(raw[12 * kp :], "<f4").reshape(kn, 2)
+    vis = np.frombuffer((root / S["visibility"]["file"]).read_bytes(), np.uint8).reshape(-1, 4 * words)
+    inner = []
     for c in man["chunks"]:
-        raw = (root / c["file"]).read_bytes()
-        n = int(c["count"])
-        if len(raw) != n * (12 + dt.itemsize):
-            raise FormatError(f"{root}/{c['file']}: {len(raw)} bytes, expected {n * (12 + dt.itemsize)}")
-        pos.append(np.frombuffer(raw[: 12 * n], "<f4").reshape(n, 3).astype(np.float64))
-        att.append(np.frombuffer(raw[12 * n :], dt))
-    if man.get("leaves"):
-        L, H = man["leaves"], man["positions"]
-        codes = (root / H["codes_file"]).read_bytes()
-        counts = (root / H["counts_file"]).read_bytes() if H.get("counts_file") else b""
-        P = decode_positions(unpack(H, codes, counts, what=f"{root}/{H['codes_file']}"))
-        A = np.frombuffer((root / L["file"]).read_bytes(), dt)
-        if len(P) != L["count"] or len(A) != L["count"]:
-            raise FormatError(f"{root}: {len(P)} decoded positions and {len(A)} leaf records, expected {L['count']}")
-        if H.get("offsets_file"):
-            try:
-                q = np.frombuffer(zlib.decompress((root / H["offsets_file"]).read_bytes()), np.uint8)
-            except zlib.error as e:
-                raise FormatError(f"{root}/{H['offsets_file']}: not a deflate stream ({e})") from e
-            P = apply_offsets(P, A["nrm"], q, H["cell_m"], int(H["offset_bits"]))
-        pos.append(P)
-        att.append(A)
-    return man, np.concatenate(pos), np.concatenate(att)
+        b = (root / c["file"]).read_bytes()
+        if len(b) != int(c["count"]) * NODE_DTYPE.itemsize:
+            raise FormatError(f"{root}/{c['file']}: {len(b)} bytes, expected {int(c['count']) * NODE_DTYPE.itemsize}")
+        inner.append(np.frombuffer(b, NODE_DTYPE))
+    inner_rec = np.concatenate(inner) if inner else np.zeros(0, NODE_DTYPE)
+    L, H = man["leaves"], man["positions"]
+    codes = (root / H["codes_file"]).read_bytes()
+    counts = (root / H["counts_file"]).read_bytes() if H.get("counts_file") else b""
+    P = decode_positions(unpack(H, codes, counts, what=f"{root}/{H['codes_file']}"))
+    leaf_rec = np.frombuffer((root / L["file"]).read_bytes(), LEAF_DTYPE)
+    if len(P) != L["count"] or len(leaf_rec) != L["count"]:
+        raise FormatError(f"{root}: {len(P)} decoded positions and {len(leaf_rec)} leaf records, expected {L['count']}")
+    ni, nl = len(inner_rec), len(leaf_rec)
+    pk = PackedNodes(
+        header=S,
+        inner=inner_rec,
+        leaves=leaf_rec,
+        inner_ids=np.arange(ni),
+        leaf_ids=ni + np.arange(nl),
+        codebook_p=Codebook(cp),
+        codebook_n=Codebook(cn),
+        vis_dict=vis,
+    )
+    tree, _ = unpack_nodes(pk)
+    if H.get("offsets_file"):
+        try:
+            q = np.frombuffer(zlib.decompress((root / H["offsets_file"]).read_bytes()), np.uint8)
+        except zlib.error as e:
+            raise FormatError(f"{root}/{H['offsets_file']}: not a deflate stream ({e})") from e
+        P = apply_offsets(P, tree.normals[ni:], q, H["cell_m"], int(H["offset_bits"]))
+    tree, stats = unpack_nodes(pk, leaf_positions=P)
+    dt = np.dtype(_attr_dtype(words).descr + [("cov", "<f4", 6)])
+    rec = np.zeros(ni + nl, dt)
+    rec["nrm"] = tree.normals
+    rec["radius"] = tree.radii
+    rec["area"] = tree.areas
+    rec["r_min"] = tree.r_min
+    rec["r_max"] = tree.r_max
+    rec["vis"] = np.ascontiguousarray(tree.visibility).view("<u4")
+    if ni:
+        rec["cov"][:ni] = radius_tensors(stats.covariance()[:ni], stats.normal[:ni], scale=float(S["node_scale"]))
+    return man, tree.positions.astype(np.float64), rec
 
 
 def decoded_surfels(bundle_dir, *, n_views: int):
@@ -583,5 +606,31 @@ def decoded_surfels(bundle_dir, *, n_views: int):
 
     _, pos, rec = read_bundle(bundle_dir)
     lf = rec["r_min"] == 0
-    vis = rec["vis"][lf].view(np.uint8).reshape(int(lf.sum()), -1)[:, : (n_views + 7) // 8]
+    vis = np.ascontiguousarray(rec["vis"][lf]).view(np.uint8).reshape(int(lf.sum()), -1)[:, : (n_views + 7) // 8]
     return Surfels(positions=pos[lf], normals=rec["nrm"][lf], radii=rec["radius"][lf], visibility=vis, n_views=n_views)
+
+
+def bundle_cut(bundle_dir, tau: float, eye, *, n_views: int):
+    """The cut the page draws at threshold ``tau`` from ``eye``: (surfels, areas, radius
+    tensors) for :func:`~opacityhull.render.renderer.render_image` (``splat_cov``; a
+    leaf's tensor is its disc), read through :func:`read_bundle`."""
+    from ..model import Surfels
+
+    _, pos, rec = read_bundle(bundle_dir)
+    d = np.sqrt(((pos.astype(np.float32) - np.asarray(eye, np.float32)) ** 2).sum(1))
+    t = np.float32(tau) * d
+    m = (rec["r_min"] <= t) & (t < rec["r_max"])
+    r = rec[m]
+    vis = np.ascontiguousarray(r["vis"]).view(np.uint8).reshape(len(r), -1)[:, : (n_views + 7) // 8]
+    s = Surfels(positions=pos[m], normals=r["nrm"], radii=r["radius"], visibility=vis, n_views=n_views)
+    cov = r["cov"].astype(np.float64)
+    leaf = r["r_min"] == 0
+    n = r["nrm"].astype(np.float64)
+    disc = (r["radius"].astype(np.float64) ** 2)[:, None] * (
+        np.array([1, 0, 0, 1, 0, 1])[None]
+        - np.stack(
+            [n[:, 0] ** 2, n[:, 0] * n[:, 1], n[:, 0] * n[:, 2], n[:, 1] ** 2, n[:, 1] * n[:, 2], n[:, 2] ** 2], 1
+        )
+    )
+    cov[leaf] = disc[leaf]
+    return s, r["area"].astype(np.float32), cov

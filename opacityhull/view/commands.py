@@ -43,7 +43,9 @@ _OUT_HELP = (
     "Write the static web bundle here. Alone (without --port) it only writes the bundle, for any static web host."
 )
 _PORT_HELP = "Serve on 127.0.0.1:PORT (0: any free port; default 8765 when --out is not given)."
-_BACKGROUND_HELP = "Initial background: black | white | grey | R,G,B."
+_BACKGROUND_HELP = (
+    "Initial background: grey (18 %, the default) | black | white | R,G,B; the page switches in one click."
+)
 _ENVMAP_HELP = (
     "Environment map the page can show behind the "
     "model: an equirectangular .hdr/.exr, or builtin:NAME (ennis grace pisa "
@@ -79,7 +81,7 @@ def register(app, groups) -> None:
         out: Annotated[Optional[Path], typer.Option("--out", help=_OUT_HELP)] = None,
         port: Annotated[Optional[int], typer.Option("--port", help=_PORT_HELP)] = None,
         k: Annotated[int, typer.Option("--k", help="Initial ULR k of the page (1-8; the page has a slider).")] = 4,
-        background: Annotated[str, typer.Option("--background", help=_BACKGROUND_HELP)] = "black",
+        background: Annotated[str, typer.Option("--background", help=_BACKGROUND_HELP)] = "grey",
         envmap: Annotated[Optional[str], typer.Option("--envmap", help=_ENVMAP_HELP)] = None,
         env_yaw_deg: Annotated[Optional[float], typer.Option("--env-yaw-deg", help=_ENV_YAW_HELP)] = None,
         position_cell_m: Annotated[Optional[float], typer.Option("--position-cell-m", help=_CELL_HELP)] = None,

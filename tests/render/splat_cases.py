@@ -53,6 +53,7 @@ def setup_fast(surfels, cam, cfg, areas):
         cfg.cutoff_sigma,
         cfg.epsilon_z,
         cfg.backface_cull,
+        K.NO_COV,
         rec,
         valid,
         0,

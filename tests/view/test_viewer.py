@@ -13,13 +13,17 @@ import numpy as np
 import pytest
 from helpers import copy_without, load_viewer, viewer_error
 
-from opacityhull.imageio import srgb_decode
+from opacityhull.imageio import srgb_decode, srgb_encode
 from opacityhull.model import OpacityHullModel
 from opacityhull.view.bundle import VIEWER_FORMAT, read_bundle, write_bundle
 from opacityhull.view.server import BundleServer
 
 
 def test_bundle_layout_reads_back(view_model, bundle):
+    from scipy.spatial import KDTree  # (cKDTree is untyped: no stub for the C module)
+
+    from opacityhull.render.spg import LEAF_DTYPE, NODE_DTYPE
+
     root, m = view_model
     out, summary = bundle
     man, pos, rec = read_bundle(out)
@@ -27,46 +31,36 @@ def test_bundle_layout_reads_back(view_model, bundle):
     assert len(man["chunks"]) > 2 and man["chunks"][0]["count"] == 500
     assert [c["first"] for c in man["chunks"]] == list(np.cumsum([0] + [c["count"] for c in man["chunks"]])[:-1])
     assert len(rec) == len(pos) == man["n_nodes"] > len(m.surfels)
-    nf = man["n_float"]
-    assert np.all(np.diff(rec["r_max"][:nf]) <= 0)  # sequential point tree: coarse first
-    # octree-coded leaves come last, each with r_max below the float stream's leaf threshold
-    L = man["leaves"]
-    assert L["first"] == nf and L["count"] == man["n_nodes"] - nf > 0.99 * len(m.surfels)
+    nf = man["n_float"]  # the packed inner nodes come first, coarse first; every leaf is octree-coded
+    assert np.all(np.diff(rec["r_max"][:nf]) <= 0) and np.all(rec["r_min"][:nf] > 0)
+    L, H, S = man["leaves"], man["positions"], man["spg"]
+    assert L["first"] == nf and L["count"] == man["n_nodes"] - nf == len(m.surfels)
     assert np.all(rec["r_min"][nf:] == 0) and np.all(rec["r_max"][nf:] <= L["r_max_max"])
-    assert np.all(rec["r_max"][:nf][rec["r_min"][:nf] == 0] > L["r_max_max"])
-    # the leaves (r_min = 0) are the model's surfels, with their visibility bits; the coded
-    # ones sit at their octree cell's centre, within half a cell diagonal of the surfel
+    # a chunk prefix is a complete cut above its r_max_last: each node's parent (the node
+    # whose r_min is the node's r_max) is earlier in the stream
+    assert all(c["r_max_last"] >= rec["r_max"][c["first"] + c["count"] - 1] for c in man["chunks"])
+    # match leaves to surfels by their normals (on the sphere a normal is its surfel: 3° apart,
+    # quantised to < 0.06° by the 12-bit octahedral code)
     leaf = rec["r_min"] == 0
-    assert leaf.sum() == len(m.surfels)
-    from scipy.spatial import KDTree  # (cKDTree is untyped: no stub for the C module)
-
-    d, _ = KDTree(m.surfels.positions).query(pos[leaf], 1)
-    h = man["positions"]["cell_m"]
-    assert d[: leaf[:nf].sum()].max() < 1e-6 and d.max() <= np.sqrt(3) * h
-    # match coded leaves to surfels by the exact attributes (radius, normal), then check the cell
-    key = {
-        (round(float(r), 9),) + tuple(np.round(n, 6)): i
-        for i, (r, n) in enumerate(zip(m.surfels.radii.tolist(), m.surfels.normals.tolist()))
-    }
-    idx = np.array(
-        [
-            key[(round(float(r), 9),) + tuple(np.round(n, 6))]
-            for r, n in zip(rec["radius"][leaf].tolist(), rec["nrm"][leaf].tolist())
-        ]
-    )
+    ang_d, idx = KDTree(m.surfels.normals).query(rec["nrm"][leaf], 1)
     np.testing.assert_array_equal(np.sort(idx), np.arange(len(m.surfels)))
-    exact = m.surfels.positions[idx[int(leaf[:nf].sum()) :]].astype(np.float64)
-    # a coded leaf is its cell's centre moved along its normal by the quantised offset:
-    # off by at most half an offset bin along the normal, half a cell diagonal across
-    H = man["positions"]
-    step = np.sqrt(3) / 2 ** H["offset_bits"]
-    err = pos[nf:] - exact
-    along = np.abs(np.sum(err * rec["nrm"][nf:], axis=1))
-    assert H["offset_bits"] == 3 and along.max() <= step / 2 * h * (1 + 1e-4) + 1e-9
-    assert np.linalg.norm(err, axis=1).max() <= np.sqrt(3) * h
+    assert np.degrees(ang_d.max()) < 0.06
+    # positions: within half a cell diagonal (octree cell + normal offset)
+    h = H["cell_m"]
+    assert np.linalg.norm(pos[leaf] - m.surfels.positions[idx], axis=1).max() <= np.sqrt(3) * h
+    # radii within a log step, visibility exact (lossless dictionary)
+    np.testing.assert_allclose(rec["radius"][leaf], m.surfels.radii[idx], rtol=1e-5)
     vis = np.unpackbits(rec["vis"][leaf].view(np.uint8).reshape(leaf.sum(), -1), axis=1, bitorder="little")
     np.testing.assert_array_equal(vis[:, : len(m.views)].astype(bool), m.surfels.visible_bool()[idx])
     assert not vis[:, len(m.views) :].any()
+    # inner nodes: anisotropic radius tensors (symmetric, positive semi-definite, flat along the normal)
+    cov = rec["cov"][:nf].astype(np.float64)
+    R = cov[:, [0, 1, 2, 1, 3, 4, 2, 4, 5]].reshape(-1, 3, 3)
+    ev = np.linalg.eigvalsh(R)  # ascending; float32 storage: relative to each node's largest
+    assert np.all(ev[:, 0] > -1e-5 * ev[:, 2]) and np.all(ev[:, 1] > 0)
+    n = rec["nrm"][:nf].astype(np.float64)
+    assert np.all(np.abs(np.einsum("mi,mij,mj->m", n, R, n)) < 1e-5 * ev[:, 2])
+    assert not rec["cov"][nf:].any()
     # the budget table: t = 0 draws exactly the leaves, larger t fewer splats
     assert man["lod"]["t"][0] == 0 and man["lod"]["splats"][0] == len(m.surfels)
     assert np.all(np.diff(man["lod"]["splats"]) <= 0) and man["lod"]["splats"][-1] == 1
@@ -81,17 +75,18 @@ def test_bundle_layout_reads_back(view_model, bundle):
         assert np.abs(pre - rgba[..., :3] * rgba[..., 3:4]).max() < 0.01
         np.testing.assert_allclose(V["layers"][v]["world_from_cam"], m.views[v].camera.world_from_cam.ravel())
     model_bytes = (
-        sum(c["bytes"] for c in man["chunks"]) + L["bytes"] + H["codes_bytes"] + H["counts_bytes"] + H["offsets_bytes"]
-    )
-    assert summary["bytes_per_surfel"] == pytest.approx(model_bytes / man["n_surfels"])
-    assert (
-        model_bytes
-        == nf * (12 + man["record_bytes"])
-        + L["count"] * man["record_bytes"]
+        sum(c["bytes"] for c in man["chunks"])
+        + S["codebooks"]["bytes"]
+        + S["visibility"]["bytes"]
+        + L["bytes"]
         + H["codes_bytes"]
         + H["counts_bytes"]
         + H["offsets_bytes"]
     )
+    assert summary["bytes_per_surfel"] == pytest.approx(model_bytes / man["n_surfels"])
+    assert sum(c["bytes"] for c in man["chunks"]) == nf * NODE_DTYPE.itemsize == nf * 17
+    assert L["bytes"] == L["count"] * LEAF_DTYPE.itemsize == L["count"] * 8
+    assert summary["bytes_per_surfel"] < 35  # the 44-byte records and float positions of format 2: 70
 
 
 def test_bundle_refuses_to_replace_other_folders(view_model, tmp_path):
@@ -174,6 +169,13 @@ def test_browser_matches_cpu_renderer(browser, view_model, bundle):
         decoded = decoded_surfels(out, n_views=len(m.views))
         pv = prepare_model_views(model)
         cams = [v.camera for v in model.views]
+        # the bundle's background (18 % grey by default) around the model, 8-bit sRGB exactly;
+        # the comparisons below are premultiplied, i.e. over black
+        browser.execute_script("return window.opacityhull.setCamera(2)")
+        corner = srgb_decode(canvas_rgb(browser)[:2, :2].astype(np.float32) / 255.0)
+        bg8 = srgb_decode(np.round(srgb_encode(np.asarray(man["background"], np.float32)) * 255) / 255)
+        assert man["background"] == [0.18, 0.18, 0.18] and np.abs(corner - bg8).max() < 1e-6
+        browser.execute_script("return window.opacityhull.setBackground([0, 0, 0])")
         for vi in (2, 13):
             browser.execute_script(f"return window.opacityhull.setCamera({vi})")
             gpu = srgb_decode(canvas_rgb(browser).astype(np.float32) / 255.0)
@@ -214,8 +216,8 @@ def test_browser_matches_cpu_renderer(browser, view_model, bundle):
 
 def test_browser_missing_chunk_shows_error(browser, bundle, tmp_path):
     out, _ = bundle
-    text = viewer_error(browser, copy_without(out, tmp_path / "broken", "surfels_002.bin"))
-    assert "surfels_002.bin" in text and "HTTP 404" in text and "incomplete" in text
+    text = viewer_error(browser, copy_without(out, tmp_path / "broken", "nodes_002.bin"))
+    assert "nodes_002.bin" in text and "HTTP 404" in text and "incomplete" in text
 
 
 def test_browser_corrupt_octree_code_shows_error(browser, bundle, tmp_path):
@@ -244,7 +246,7 @@ def test_browser_truncated_chunk_and_not_a_bundle(browser, bundle, tmp_path):
     out, _ = bundle
     broken = tmp_path / "trunc"
     shutil.copytree(out, broken)
-    p = broken / "surfels_001.bin"
+    p = broken / "nodes_001.bin"
     p.write_bytes(p.read_bytes()[:-48])
     assert "truncated" in viewer_error(browser, broken)
     empty = tmp_path / "empty"
@@ -272,9 +274,7 @@ def test_browser_environment_map_background(browser, view_model, tmp_path):
     with BundleServer(out) as srv:
         r = load_viewer(browser, srv.url)
         assert r["ok"], r["error"]
-        browser.execute_script(
-            "window.opacityhull.viewer.setView(7); return window.opacityhull.setBackground('envmap')"
-        )
+        browser.execute_script("window.opacityhull.setCamera(7); return window.opacityhull.setBackground('envmap')")
         gpu = srgb_decode(canvas_rgb(browser).astype(np.float32) / 255.0)
         cpu = render_model(model, m.views[7].camera, config=RenderConfig(threads=1))
         ref = np.clip(cpu.over(env), 0, 1)
@@ -313,3 +313,40 @@ def test_cli_serves_until_terminated(view_model):
         if p.poll() is None:
             p.kill()
             p.wait()
+
+
+def test_browser_draws_statistical_nodes_as_the_cpu_renderer(browser, view_model, bundle):
+    """At a budget of N/16 the page draws the packed inner nodes as anisotropic EWA splats
+    from their radius tensors: against the CPU renderer of the same cut (read_bundle's
+    decoder, ``render_image(splat_cov=)``, per-surfel shading) the pictures agree."""
+    from opacityhull.render.config import RenderConfig
+    from opacityhull.render.renderer import prepare_model_views, render_image
+    from opacityhull.render.runner import _seed_surfel_areas
+    from opacityhull.view.browser import canvas_rgb
+    from opacityhull.view.bundle import bundle_cut
+
+    root, m = view_model
+    out, _ = bundle
+    model = OpacityHullModel.open(root)
+    pv = prepare_model_views(model)
+    cams = [v.camera for v in model.views]
+    with BundleServer(out) as srv:
+        r = load_viewer(browser, srv.url)
+        assert r["ok"], r["error"]
+        browser.execute_script("return window.opacityhull.setBackground([0, 0, 0])")
+        for vi in (2, 13):
+            browser.execute_script(f"window.opacityhull.setCamera({vi}); return window.opacityhull.setBudget(250)")
+            gpu = srgb_decode(canvas_rgb(browser).astype(np.float32) / 255.0)
+            tau = browser.execute_script("return window.opacityhull.viewer.lastTau")
+            s, areas, cov = bundle_cut(out, tau, cams[vi].centre_world, n_views=len(m.views))
+            assert (cov.any(axis=1) & (areas > 0)).sum() > 0 and len(s) < 400  # a coarse cut of inner nodes
+            _seed_surfel_areas(s, areas)
+            cpu = render_image(
+                s, cams, pv, cams[vi], config=RenderConfig(k=4, threads=1, shading="surfel"), splat_cov=cov
+            )
+            pre = cpu.rgba[..., :3] * cpu.rgba[..., 3:4]
+            mask = (cpu.rgba[..., 3] > 0.01) | (gpu.max(axis=2) > 0.01)
+            psnr = 10 * np.log10(1.0 / np.mean((gpu - pre)[mask] ** 2))
+            print(f"view {vi}: {len(s)} statistical splats, browser vs CPU {psnr:.1f} dB")
+            assert psnr >= 35.0
+        browser.execute_script("return window.opacityhull.setBudget(null)")

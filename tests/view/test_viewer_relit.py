@@ -187,7 +187,7 @@ def test_browser_relit_matches_cpu_relighter(browser, relit_model, relit_bundle,
             bg = EnvMap(np.asarray(env.radiance))
             pv = prepare_views(cams, [R.relight_view(i, envmap=env) for i in range(len(cams))])
             browser.execute_script(
-                f"window.opacityhull.viewer.setView({vi}); return window.opacityhull.setRelight('grace', {yaw})"
+                f"window.opacityhull.setCamera({vi}); return window.opacityhull.setRelight('grace', {yaw})"
             )
             gpu = srgb_decode(canvas_rgb(browser).astype(np.float32) / 255.0)
             same = render_image(dec, cams, pv, cams[vi], config=RenderConfig(k=4, threads=1, shading="surfel"))

@@ -9,6 +9,24 @@
 const KMAX = 8;
 const $ = (id) => document.getElementById(id);
 
+// the largest canvas of aspect `aspect` (width / height) inside availW x availH CSS pixels,
+// its backing store at the device pixel ratio (aspect kept to the pixel)
+function fitCanvas(aspect, availW, availH, dpr) {
+  const w = Math.max(1, Math.min(availW, availH * aspect));
+  const width = Math.max(1, Math.round(w * dpr)), height = Math.max(1, Math.round(width / aspect));
+  return { width, height, cssWidth: width / dpr, cssHeight: height / dpr };
+}
+const barHeight = () => { const b = $("bar"); return b ? b.getBoundingClientRect().height : 0; };
+
+// `?` (or the ? button) shows and hides the controls; Escape hides them
+function toggleHelp(show) { const h = $("help"); if (h) h.hidden = show === undefined ? !h.hidden : !show; }
+document.addEventListener("keydown", (e) => {
+  if (e.target && (e.target.tagName === "INPUT" || e.target.tagName === "SELECT") && e.key !== "?" && e.key !== "Escape") return;
+  if (e.key === "?") { toggleHelp(); e.preventDefault(); } else if (e.key === "Escape") toggleHelp(false);
+});
+window.addEventListener("DOMContentLoaded", () => { const b = $("helpbutton"); if (b) b.onclick = () => toggleHelp(); });
+if (document.readyState !== "loading") { const b = $("helpbutton"); if (b) b.onclick = () => toggleHelp(); }
+
 function showError(msg) {
   const e = $("error");
   e.textContent = msg;
@@ -61,6 +79,109 @@ async function fetchInflate(url, expected, what, onChunk) {
     throw new Error(`${what} (${url}) has ${n} bytes, expected ${expected}: the file is truncated or from another bundle; write the bundle again.`);
   }
 }
+
+// Statistical point geometry records (format 3; opacityhull/render/spg.py, reference
+// opacityhull/view/bundle.read_bundle): inner nodes are 17-byte PCA records, leaves 8-byte
+// records; both expand to the GPU layout (normal, radius, area, r_min, r_max, visibility
+// words) and inner nodes to a radius tensor R² = 4 s (I - m mᵀ) C (I - m mᵀ) as well.
+function tangentBasis(z) {  // Duff et al. 2017, as spg.tangent_basis
+  const s = z[2] >= 0 ? 1 : -1, a = -1 / (s + z[2]), b = z[0] * z[1] * a;
+  return [[1 + s * z[0] * z[0] * a, s * b, -s * z[0]], [b, s + z[1] * z[1] * a, -z[1]]];
+}
+function octDecode(u, v, bits) {  // as spg.oct_decode
+  const q = 2 ** bits - 1;
+  let x = u / q * 2 - 1, y = v / q * 2 - 1;
+  const z = 1 - Math.abs(x) - Math.abs(y), t = Math.max(-z, 0);
+  x -= x >= 0 ? t : -t; y -= y >= 0 ? t : -t;
+  const l = Math.hypot(x, y, z);
+  return [x / l, y / l, z / l];
+}
+function angleAxis(code, z) {  // as spg._angle_axis
+  const [bx, by] = tangentBasis(z), p = code / 256 * Math.PI, c = Math.cos(p), s = Math.sin(p);
+  return [c * bx[0] + s * by[0], c * bx[1] + s * by[1], c * bx[2] + s * by[2]];
+}
+const cross3 = (a, b) => [a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]];
+function logValue(k, lo, hi, levels) {  // as spg._log_values
+  if (k === 0) return 0;
+  if (k === levels + 2) return Infinity;
+  return lo * Math.max(hi / lo, 1 + 1e-12) ** ((k - 1) / levels);
+}
+class SpgTables {
+  constructor(man, cbBuf, visBuf) {
+    const S = man.spg, kp = S.codebooks.sigma_p, kn = S.codebooks.sigma_n;
+    if (cbBuf.byteLength !== 4 * (3 * kp + 2 * kn)) throw new Error(`${S.codebooks.file}: ${cbBuf.byteLength} bytes, expected ${4 * (3 * kp + 2 * kn)}; write the bundle again.`);
+    this.S = S; this.words = man.vis_words;
+    this.cp = new Float32Array(cbBuf, 0, 3 * kp); this.cn = new Float32Array(cbBuf, 12 * kp, 2 * kn);
+    this.vis = new Uint32Array(visBuf);
+    this.nPatterns = this.vis.length / man.vis_words;
+  }
+  _vis(rec, ri, idx, what) {
+    if (idx >= this.nPatterns) throw new Error(`${what}: visibility index ${idx} beyond the ${this.nPatterns} patterns; write the bundle again.`);
+    const w = this.words, o = ri + 7;  // words after nrm(3) radius area r_min r_max
+    for (let j = 0; j < w; j++) rec.u[o + j] = this.vis[idx * w + j];
+  }
+  // n inner records (17 bytes) -> {pos: Float32Array 3n, rec: {f, u} views of n GPU records, cov: Float32Array 6n}
+  decodeNodes(buf, n, recBytes, what) {
+    const S = this.S, b = new Uint8Array(buf), dv = new DataView(buf);
+    if (b.length !== 17 * n) throw new Error(`${what}: ${b.length} bytes, expected ${17 * n}; write the bundle again.`);
+    const pos = new Float32Array(3 * n), cov = new Float32Array(6 * n), ab = new ArrayBuffer(n * recBytes);
+    const rec = { f: new Float32Array(ab), u: new Uint32Array(ab) }, stride = recBytes / 4;
+    const [elo, ehi] = S.error_range, L = S.error_levels, sc = S.node_scale;
+    for (let i = 0; i < n; i++) {
+      const o = 17 * i, ri = stride * i;
+      const q = dv.getUint32(o, true);
+      const shifts = [0, 11, 22];
+      for (let a = 0; a < 3; a++) {
+        const ax = S.mean_axes[a], bits = S.mean_bits[a], m = 2 ** bits - 1;
+        pos[3 * i + ax] = S.box_min[ax] + ((q >>> shifts[a]) & m) / m * S.box_size[ax];
+      }
+      const zp = octDecode(b[o + 4], b[o + 5], 8), xp = angleAxis(b[o + 6], zp), yp = cross3(zp, xp);
+      const zn = octDecode(b[o + 7], b[o + 8], 8);
+      const packed = b[o + 10] | (b[o + 11] << 8) | (b[o + 12] << 16);
+      const ip = packed & 4095;
+      if (ip >= this.cp.length / 3 || (packed >>> 12) >= this.cn.length / 2) throw new Error(`${what}: codebook index beyond the codebooks; write the bundle again.`);
+      const sg = [Math.exp(this.cp[3 * ip]), Math.exp(this.cp[3 * ip + 1]), Math.exp(this.cp[3 * ip + 2])];
+      // C = Σ σ_k² f_k f_kᵀ, projected onto the plane of the mean normal m: P C P, P = I - m mᵀ
+      const F = [xp, yp, zp], C = [0, 0, 0, 0, 0, 0, 0, 0, 0];
+      for (let k = 0; k < 3; k++) for (let r = 0; r < 3; r++) for (let c = 0; c < 3; c++) C[3 * r + c] += sg[k] * sg[k] * F[k][r] * F[k][c];
+      const m = zn, Pm = [1 - m[0] * m[0], -m[0] * m[1], -m[0] * m[2], -m[1] * m[0], 1 - m[1] * m[1], -m[1] * m[2], -m[2] * m[0], -m[2] * m[1], 1 - m[2] * m[2]];
+      const T = [0, 0, 0, 0, 0, 0, 0, 0, 0], R = [0, 0, 0, 0, 0, 0, 0, 0, 0];
+      for (let r = 0; r < 3; r++) for (let c = 0; c < 3; c++) { let x = 0; for (let k = 0; k < 3; k++) x += Pm[3 * r + k] * C[3 * k + c]; T[3 * r + c] = x; }
+      for (let r = 0; r < 3; r++) for (let c = 0; c < 3; c++) { let x = 0; for (let k = 0; k < 3; k++) x += T[3 * r + k] * Pm[3 * k + c]; R[3 * r + c] = x; }
+      const g = 4 * sc;
+      cov.set([g * R[0], g * R[1], g * R[2], g * R[4], g * R[5], g * R[8]], 6 * i);
+      // coverage area: the ellipse's, π (2σ₁)(2σ₂) of the projected covariance (det in the tangent basis)
+      const [t1, t2] = tangentBasis(m);
+      const q11 = quad(R, t1, t1), q12 = quad(R, t1, t2), q22 = quad(R, t2, t2);
+      const area = 4 * Math.PI * Math.sqrt(Math.max(q11 * q22 - q12 * q12, 0));
+      rec.f.set(m, ri);
+      rec.f[ri + 3] = Math.sqrt(S.kappa * area / Math.PI);
+      rec.f[ri + 4] = area;
+      rec.f[ri + 5] = logValue(b[o + 13], elo, ehi, L);
+      rec.f[ri + 6] = logValue(b[o + 14], elo, ehi, L);
+      this._vis(rec, ri, dv.getUint16(o + 15, true), what);
+    }
+    return { pos, rec, cov };
+  }
+  // n leaf records (8 bytes) -> GPU records (positions come from the octree code)
+  decodeLeaves(buf, n, recBytes, what) {
+    const S = this.S, b = new Uint8Array(buf), dv = new DataView(buf);
+    if (b.length !== 8 * n) throw new Error(`${what}: ${b.length} bytes, expected ${8 * n}; write the bundle again.`);
+    const ab = new ArrayBuffer(n * recBytes), rec = { f: new Float32Array(ab), u: new Uint32Array(ab) }, stride = recBytes / 4;
+    const [elo, ehi] = S.error_range, L = S.error_levels;
+    for (let i = 0; i < n; i++) {
+      const o = 8 * i, ri = stride * i, w = b[o] | (b[o + 1] << 8) | (b[o + 2] << 16);
+      rec.f.set(octDecode(w & 4095, w >>> 12, 12), ri);
+      rec.f[ri + 3] = logValue(b[o + 3], S.radius_range[0], S.radius_range[1], 254);
+      rec.f[ri + 4] = logValue(b[o + 4], S.area_range[0], S.area_range[1], 254);
+      rec.f[ri + 5] = 0;
+      rec.f[ri + 6] = logValue(b[o + 5], elo, ehi, L);
+      this._vis(rec, ri, dv.getUint16(o + 6, true), what);
+    }
+    return rec;
+  }
+}
+function quad(R, a, b) { let x = 0; for (let r = 0; r < 3; r++) for (let c = 0; c < 3; c++) x += a[r] * R[3 * r + c] * b[c]; return x; }
 
 // Octree position code (Botsch, Wiratanaya & Kobbelt 2002), decoded breadth-first as bytes
 // arrive: level l needs one byte code per occupied cell of level l-1; bit c of a code marks
@@ -141,6 +262,7 @@ precision highp float; precision highp int; precision highp sampler2D; precision
 #define KMAX ${KMAX}
 ${shade ? "#define SHADE 1" : ""}
 in vec3 a_pos; in vec3 a_nrm; in float a_radius; in float a_area; in float a_rmin; in float a_rmax;
+in vec3 a_cov0; in vec3 a_cov1;  // radius tensor xx xy xz, yy yz zz (statistical nodes; zero: a disc)
 in uvec4 a_vis0;
 ${words > 4 ? "in uvec4 a_vis1;" : ""}
 uniform mat3 u_R; uniform vec3 u_t; uniform vec4 u_K; uniform vec2 u_size; uniform vec3 u_C;
@@ -207,6 +329,13 @@ void main() {
   // |J| = |(p_a x p_b) . n| (Cauchy-Binet): the CPU's sqrt(j00 j11 - j01^2) cancels badly in float32 near edge-on
   float detj = abs(-a2 * b1 * n.x - a0 * b2 * n.y + a0 * b1 * n.z);
   float s2 = (u_sigma * r) * (u_sigma * r);
+  if (a_cov0.x + a_cov1.x > 0.0) {  // anisotropic: P R² Pᵀ with R² in the camera frame (as kernels.splat_setup)
+    mat3 Rw = mat3(a_cov0.x, a_cov0.y, a_cov0.z, a_cov0.y, a_cov1.x, a_cov1.y, a_cov0.z, a_cov1.y, a_cov1.z);
+    mat3 Rc = u_R * Rw * transpose(u_R);
+    vec3 p0 = vec3(a0, 0.0, a2), p1 = vec3(0.0, b1, b2);
+    j00 = dot(p0, Rc * p0); j01 = dot(p1, Rc * p0); j11 = dot(p1, Rc * p1);
+    s2 = u_sigma * u_sigma;
+  }
   float m00 = s2 * j00 + u_filter + u_mfloor, m01 = s2 * j01, m11 = s2 * j11 + u_filter + u_mfloor;
   float detm = m00 * m11 - m01 * m01;
   if (!(detm > 0.0)) { reject(); return; }
@@ -439,6 +568,10 @@ class Viewer {
     this.vbo = gl.createBuffer();
     gl.bindBuffer(gl.ARRAY_BUFFER, this.vbo);
     gl.bufferData(gl.ARRAY_BUFFER, manifest.n_nodes * manifest.record_bytes, gl.STATIC_DRAW);
+    this.covVbo = gl.createBuffer();  // radius tensors (6 floats per node; zero for the leaves)
+    gl.bindBuffer(gl.ARRAY_BUFFER, this.covVbo);
+    gl.bufferData(gl.ARRAY_BUFFER, manifest.n_nodes * 24, gl.STATIC_DRAW);
+    this.tables = null;
     this.vaos = [this.depthProg, this.shadeProg].map((pr) => this._vao(pr.p));
     this.loaded = 0;
     this.rLast = Infinity;  // r_max of the last node loaded: coarser cuts are complete
@@ -453,7 +586,9 @@ class Viewer {
     this.fb = null;
     const b = manifest.bounds;
     this.orbitState = { target: b.centre, az: 0, el: 20, dist: 4 * b.radius };
-    this.cam = null;
+    this.cam = null;  // the camera drawn (baseCam scaled to the canvas when fitting the window)
+    this.baseCam = null;
+    this.fit = true;
     this.lastFrameMs = null;
   }
 
@@ -469,6 +604,9 @@ class Viewer {
     u("a_vis0", 28); if (this.words > 4) u("a_vis1", 44);
     gl.bindBuffer(gl.ARRAY_BUFFER, this.posVbo);
     f("a_pos", 3, 0);
+    gl.bindBuffer(gl.ARRAY_BUFFER, this.covVbo);
+    const c = (name, off) => { const l = gl.getAttribLocation(prog, name); if (l >= 0) { gl.enableVertexAttribArray(l); gl.vertexAttribPointer(l, 3, gl.FLOAT, false, 24, off); } };
+    c("a_cov0", 0); c("a_cov1", 12);
     gl.bindBuffer(gl.ARRAY_BUFFER, this.vbo);
     gl.bindVertexArray(null);
     return vao;
@@ -630,26 +768,29 @@ class Viewer {
     this.relitKey = key;
   }
 
-  // a float chunk: count positions (float32 x 3), then count attribute records
+  // a chunk of packed inner nodes (17 bytes each), decoded to positions, GPU records and tensors
   uploadChunk(c, buf) {
-    const gl = this.gl, n = c.count;
+    const gl = this.gl;
+    const d = this.tables.decodeNodes(buf, c.count, this.man.record_bytes, `node chunk ${c.file}`);
     gl.bindBuffer(gl.ARRAY_BUFFER, this.posVbo);
-    gl.bufferSubData(gl.ARRAY_BUFFER, c.first * 12, new Uint8Array(buf, 0, 12 * n));
+    gl.bufferSubData(gl.ARRAY_BUFFER, c.first * 12, d.pos);
     gl.bindBuffer(gl.ARRAY_BUFFER, this.vbo);
-    gl.bufferSubData(gl.ARRAY_BUFFER, c.first * this.man.record_bytes, new Uint8Array(buf, 12 * n));
+    gl.bufferSubData(gl.ARRAY_BUFFER, c.first * this.man.record_bytes, d.rec.f);
+    gl.bindBuffer(gl.ARRAY_BUFFER, this.covVbo);
+    gl.bufferSubData(gl.ARRAY_BUFFER, c.first * 24, d.cov);
     this.loaded = Math.max(this.loaded, c.first + c.count);
     // leaves still to come have r_max <= leaves.r_max_max: cuts above it are complete
     const pending = this.man.leaves ? this.man.leaves.r_max_max : 0;
     this.rLast = this.loaded >= this.man.n_nodes ? 0 : Math.max(this.loaded >= this.man.n_float ? 0 : c.r_max_last, pending);
   }
 
-  // the octree-coded leaves: decoded positions (Float32Array, 3 per leaf) and their records
-  uploadLeaves(P, buf) {
+  // the octree-coded leaves: decoded positions (Float32Array, 3 per leaf) and their decoded records
+  uploadLeaves(P, rec) {
     const gl = this.gl, L = this.man.leaves;
     gl.bindBuffer(gl.ARRAY_BUFFER, this.posVbo);
     gl.bufferSubData(gl.ARRAY_BUFFER, L.first * 12, P);
     gl.bindBuffer(gl.ARRAY_BUFFER, this.vbo);
-    gl.bufferSubData(gl.ARRAY_BUFFER, L.first * this.man.record_bytes, new Uint8Array(buf));
+    gl.bufferSubData(gl.ARRAY_BUFFER, L.first * this.man.record_bytes, rec.f);
     this.leafPositions = P;
     this.loaded = this.man.n_nodes;
     this.rLast = 0;
@@ -675,10 +816,26 @@ class Viewer {
   }
 
   setCamera(cam) {  // {fx, fy, cx, cy, width, height, world_from_cam: 16 row-major}
-    this.cam = cam;
-    this.canvas.width = cam.width;
-    this.canvas.height = cam.height;
+    this.baseCam = cam;
+    if (!this.fit) {  // exactly the camera's image (the API's captured cameras, tests)
+      this.cam = cam;
+      this.canvas.width = cam.width;
+      this.canvas.height = cam.height;
+      this.canvas.style.width = ""; this.canvas.style.height = "";
+      return;
+    }
+    // fill the window below the control bar with the camera's aspect, at the device pixel
+    // ratio: the same camera with its intrinsics scaled (pixel centres: OpenCV, (0, 0) = top-left centre)
+    const fit = fitCanvas(cam.width / cam.height, window.innerWidth, window.innerHeight - barHeight(), window.devicePixelRatio || 1);
+    const sx = fit.width / cam.width, sy = fit.height / cam.height;
+    this.cam = { ...cam, fx: cam.fx * sx, fy: cam.fy * sy, cx: (cam.cx + 0.5) * sx - 0.5, cy: (cam.cy + 0.5) * sy - 0.5,
+      width: fit.width, height: fit.height };
+    this.canvas.width = fit.width;
+    this.canvas.height = fit.height;
+    this.canvas.style.width = `${fit.cssWidth}px`; this.canvas.style.height = `${fit.cssHeight}px`;
   }
+
+  setFit(on) { this.fit = !!on; if (this.baseCam) this.setCamera(this.baseCam); }
 
   setView(i) {
     const v = this.man.views.layers[i];
@@ -695,7 +852,7 @@ class Viewer {
     const a = o.az * Math.PI / 180, e = o.el * Math.PI / 180;
     const eye = [o.target[0] + o.dist * Math.cos(e) * Math.sin(a), o.target[1] + o.dist * Math.sin(e),
       o.target[2] + o.dist * Math.cos(e) * Math.cos(a)];
-    const base = this.cam || this._defaultIntrinsics();
+    const base = this.baseCam || this._defaultIntrinsics();
     this.setCamera({ ...base, world_from_cam: lookAt(eye, o.target) });
   }
 
@@ -739,6 +896,7 @@ class Viewer {
     const zscale = 1 / (2 * (dist + 4 * b.radius) + 1e-9);
     const density = 1.0;
     const tau = this.tau(dist);
+    this.lastTau = tau;  // (the CPU reference draws the same cut: bundle.bundle_cut)
     const relit = this.lighting !== null && this.relitReady;
     if (relit) this.relightViews();
     gl.bindFramebuffer(gl.FRAMEBUFFER, this.fb);
@@ -816,7 +974,7 @@ async function main() {
       `Write one with "opacityhull view MODEL --out DIR".`);
   }
   api.timings = { manifest: performance.now() };
-  if (man.format !== "opacityhull-viewer/2") throw new Error(`manifest.json: format ${JSON.stringify(man.format)}, expected "opacityhull-viewer/2" (write the bundle again with this version)`);
+  if (man.format !== "opacityhull-viewer/3") throw new Error(`manifest.json: format ${JSON.stringify(man.format)}, expected "opacityhull-viewer/3" (write the bundle again with this version)`);
   const viewer = new Viewer($("canvas"), man);
   api.timings.gl_setup = performance.now();
   api.viewer = viewer;
@@ -827,7 +985,8 @@ async function main() {
   const L = man.leaves, H = man.positions;
   const RL = man.relight;
   const relightBytes = RL ? RL.basis.bytes + RL.coeffs.bytes + RL.envmaps.reduce((a, e) => a + e.weights.bytes + (e.image.file === (man.envmap && man.envmap.file) ? 0 : e.image.bytes), 0) : 0;
-  const total = man.views.bytes + man.chunks.reduce((a, c) => a + c.bytes, 0) + (L ? L.bytes + H.codes_bytes + H.counts_bytes + H.offsets_bytes : 0) + relightBytes;
+  const S = man.spg;
+  const total = man.views.bytes + S.codebooks.bytes + S.visibility.bytes + man.chunks.reduce((a, c) => a + c.bytes, 0) + (L ? L.bytes + H.codes_bytes + H.counts_bytes + H.offsets_bytes : 0) + relightBytes;
   let got = 0;
   const report = () => { progress.textContent = `loading ${(100 * got / total).toFixed(0)} % — ${viewer.loaded} / ${man.n_nodes} nodes`; };
   report();
@@ -838,6 +997,9 @@ async function main() {
     o.textContent = f === 1 ? `all ${man.n_surfels}` : `${o.value} (1/${Math.round(1 / f)})`;
     bud.appendChild(o);
   }
+  const tablesP = Promise.all([fetchBytes(S.codebooks.file, S.codebooks.bytes, "the spread codebooks"),
+    fetchBytes(S.visibility.file, S.visibility.bytes, "the visibility dictionary")]);
+  tablesP.catch(() => {});
   const viewsP = fetchBytes(man.views.file, man.views.bytes, "the views' texture array");
   const c0 = man.chunks[0];
   const chunk0P = fetchBytes(c0.file, c0.bytes, `surfel chunk 1 of ${man.chunks.length}`);
@@ -854,11 +1016,15 @@ async function main() {
     const o = document.createElement("option"); o.value = "envmap"; o.textContent = `environment map (${man.envmap.source})`;
     $("bg").appendChild(o);
     const yaw = $("yaw"); yaw.value = man.envmap.yaw_deg; $("yawlabel").style.display = "";
-    yaw.oninput = () => { viewer.envYawDeg = +yaw.value; dirty = true; };
+    $("yawval").textContent = `${yaw.value}°`;
+    yaw.oninput = () => { viewer.envYawDeg = +yaw.value; $("yawval").textContent = `${yaw.value}°`; dirty = true; };
   }
   let dirty = true;
   const frame = () => { if (dirty) { dirty = false; viewer.draw(); $("fps").textContent = `${viewer.lastFrameMs.toFixed(1)} ms/frame`; } requestAnimationFrame(frame); };
   api.redraw = () => { dirty = true; };
+  const [cbBuf, visBuf] = await tablesP;
+  viewer.tables = new SpgTables(man, cbBuf, visBuf);
+  got += S.codebooks.bytes + S.visibility.bytes;
   for (const [ci, c] of man.chunks.entries()) {
     viewer.uploadChunk(c, ci === 0 ? await chunk0P : await fetchBytes(c.file, c.bytes, `surfel chunk ${ci + 1} of ${man.chunks.length}`));
     got += c.bytes; report();
@@ -886,16 +1052,16 @@ async function main() {
       return out;
     };
     const counts = H.counts_file ? await inflateAll(H.counts_file, H.counts_bytes, `the octree cell counts (${H.counts_file})`) : null;
-    const leafBuf = await leavesP;
+    const leafRec = viewer.tables.decodeLeaves(await leavesP, L.count, man.record_bytes, `the leaf records (${L.file})`);
     let off = null;
     if (H.offsets_file) {
       const q = await inflateAll(H.offsets_file, H.offsets_bytes, `the octree normal offsets (${H.offsets_file})`);
-      off = { q, nrm: new Float32Array(leafBuf), stride: man.record_bytes / 4, bits: H.offset_bits };
+      off = { q, nrm: leafRec.f, stride: man.record_bytes / 4, bits: H.offset_bits };
     }
     const P = dec.finish(counts, off);
     api.octree = { levels: dec.levels, decode_ms: performance.now() - t0 };
     got += H.codes_bytes + H.counts_bytes + H.offsets_bytes; report();
-    viewer.uploadLeaves(P, leafBuf);
+    viewer.uploadLeaves(P, leafRec);
     got += L.bytes; report();
     api.timings.leaves = performance.now();
     dirty = true;
@@ -918,7 +1084,7 @@ async function main() {
     $("lightlabel").style.display = "";
     const yaw = $("yaw");
     yaw.min = 0; yaw.max = 360; yaw.step = 360 / RL.yaw_steps;
-    $("yawlabel").style.display = "";
+    $("yawlabel").style.display = ""; $("yawval").textContent = `${yaw.value}°`;
     yaw.oninput = () => { viewer.envYawDeg = +yaw.value; $("yawval").textContent = `${yaw.value}°`; dirty = true; };
     ls.onchange = () => {
       if (ls.value === "") viewer.lighting = null;
@@ -936,7 +1102,7 @@ async function main() {
   }
   progress.textContent = `${man.n_surfels} surfels, ${man.n_views} views${RL ? `, relightable (PCA rank ${RL.rank}, ${RL.n_lights} lights)` : ""}`;
   // controls
-  sel.onchange = () => { viewer.setView(+sel.value); dirty = true; };
+  sel.onchange = () => { viewer.fit = true; viewer.setView(+sel.value); dirty = true; };
   const kIn = $("k"); kIn.value = viewer.k; $("kval").textContent = viewer.k;
   kIn.oninput = () => { viewer.k = +kIn.value; $("kval").textContent = kIn.value; dirty = true; };
   bud.onchange = () => { viewer.budget = bud.value === "" ? null : +bud.value; dirty = true; };
@@ -945,6 +1111,16 @@ async function main() {
     if (v === "envmap") viewer.bgMode = "envmap"; else { viewer.bgMode = "colour"; viewer.bg = v.split(",").map(Number); }
     dirty = true;
   };
+  const bgKey = man.background.join(",");
+  if (Array.from($("bg").options).some((o) => o.value === bgKey)) $("bg").value = bgKey;
+  for (const b of document.querySelectorAll("#bgbuttons button")) {  // one click: grey, black, white
+    b.onclick = () => { $("bg").value = b.dataset.rgb; $("bg").onchange(); };
+  }
+  // refit when the window or the control bar (it wraps as controls appear) changes size
+  const refit = () => { if (viewer.fit && viewer.baseCam) { viewer.setCamera(viewer.baseCam); dirty = true; } };
+  window.addEventListener("resize", refit);
+  if (window.ResizeObserver) new ResizeObserver(refit).observe($("bar"));
+  refit();
   const cv = $("canvas");
   let drag = null;
   cv.onpointerdown = (e) => { drag = [e.clientX, e.clientY]; cv.setPointerCapture(e.pointerId); };
@@ -959,8 +1135,10 @@ let resolveReady, rejectReady;
 window.opacityhull = {
   error: null, lastFrameMs: null, firstFrameMs: null, viewer: null,
   ready: new Promise((res, rej) => { resolveReady = res; rejectReady = rej; }),
-  setCamera(i) { this.viewer.setView(i); return this.viewer.draw(); },
-  setCameraMatrix(cam) { this.viewer.setCamera(cam); return this.viewer.draw(); },
+  setCamera(i) { this.viewer.fit = false; this.viewer.setView(i); return this.viewer.draw(); },
+  setCameraMatrix(cam) { this.viewer.fit = false; this.viewer.setCamera(cam); return this.viewer.draw(); },
+  // fill the window (true, the page's default) or draw at the camera's own size (false)
+  setFit(on) { this.viewer.setFit(on); return this.viewer.draw(); },
   setK(k) { this.viewer.k = Math.max(1, Math.min(KMAX, k | 0)); return this.viewer.draw(); },
   setBudget(n) { this.viewer.budget = n === null || n === undefined ? null : Math.max(1, n | 0); return this.viewer.draw(); },
   setBackground(rgb) {  // [r, g, b] (linear) or "envmap"
