@@ -136,6 +136,7 @@ LAYERS: dict[str, int] = {
     "sim": 2,
     "acquire": 3,
     "optimize": 4,
+    "calibrate": 4,
     "reconstruct": 5,
     "render": 6,
     "relight": 7,
