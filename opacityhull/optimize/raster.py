@@ -531,9 +531,10 @@ def _forward(tile_off, ent, recs, width, height, tile, n_tx, cut2, amin, tmin, b
 
 @njit(cache=True, parallel=True, error_model="numpy")
 def _backward(tile_off, ent, ent_slot, recs, width, height, tile, n_tx, cut2, amin, t_final, last, bg, dimg, dalpha):
-    """Per entry: dL/d(mu0, mu1, A, B, C, opacity, r, g, b), into its own slot."""
+    """Per entry: dL/d(mu0, mu1, A, B, C, opacity, r, g, b), into its own slot (float32:
+    a tile's partial sum is accumulated in float64 and rounded once)."""
     n_tiles = tile_off.shape[0] - 1
-    slots = np.zeros((ent.shape[0], 9))
+    slots = np.empty((ent.shape[0], 9), np.float32)
     T = t_final.copy()
     Bacc = np.empty((height, width, 3))
     rowlast = np.empty((_TILE_GROUPS, tile), np.int64)  # last entry composited per row of the tile
@@ -554,6 +555,10 @@ def _backward(tile_off, ent, ent_slot, recs, width, height, tile, n_tx, cut2, am
                         Bacc[y, x, c] = bg[c]
                 rowlast[g, y - ya] = rl
                 kend = max(kend, rl)
+            for k in range(max(kend + 1, tile_off[t]), tile_off[t + 1]):
+                e = ent_slot[k]
+                for c in range(9):
+                    slots[e, c] = 0.0
             for k in range(kend, tile_off[t] - 1, -1):
                 j = ent[k]
                 m0 = recs[j, R_M0]
