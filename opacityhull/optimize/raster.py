@@ -44,6 +44,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numba import njit, prange
 
+from ..camera import Camera
 from ..errors import InputError, ShapeError
 
 __all__ = [
@@ -92,6 +93,25 @@ class RasterCamera:
             raise InputError(f"RasterCamera size {self.width}x{self.height}: expected both >= 1")
         object.__setattr__(self, "K", K)
         object.__setattr__(self, "cam_from_world", M)
+
+    @classmethod
+    def from_camera(cls, camera: Camera, *, ignore_distortion: bool = False) -> RasterCamera:
+        """The rasterizer's pinhole for a project :class:`~opacityhull.camera.Camera`.
+
+        The rasterizer projects without lens distortion; a camera with non-zero distortion
+        is refused (``InputError`` naming it and the coefficients) unless
+        ``ignore_distortion`` (then the pinhole part is used as it is)."""
+        if not ignore_distortion and np.any(np.asarray(camera.dist) != 0):
+            raise InputError(
+                f"camera {camera.name!r} has lens distortion {np.asarray(camera.dist).tolist()}: "
+                "the rasterizer needs undistorted views (or ignore_distortion=True)"
+            )
+        return cls(
+            K=np.asarray(camera.K, np.float64),
+            cam_from_world=np.asarray(camera.cam_from_world, np.float64)[:3, :],
+            width=int(camera.width),
+            height=int(camera.height),
+        )
 
 
 @dataclass(frozen=True, kw_only=True)
