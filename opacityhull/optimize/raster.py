@@ -838,6 +838,11 @@ def rasterize(params: SplatParams, cam: RasterCamera, *, config: RasterConfig = 
     W, H, tile = int(cam.width), int(cam.height), int(config.tile_px)
     if params.n >= 2**31:
         raise InputError(f"rasterize: {params.n} surfels, at most 2**31 - 1")
+    for name in ("means", "quats", "log_scales", "opacity_logits", "colors"):
+        bad = int(np.count_nonzero(np.isnan(getattr(params, name))))
+        if bad:
+            # a diverged optimizer: name it here rather than return a NaN image
+            raise InputError(f"rasterize: SplatParams.{name} has {bad} NaN values")
     clock = [time.perf_counter()]
 
     def lap() -> float:

@@ -428,3 +428,13 @@ def test_from_camera_projects_like_camera_project():
     with pytest.raises(InputError, match="c1"):
         RasterCamera.from_camera(distorted)
     assert RasterCamera.from_camera(distorted, ignore_distortion=True).width == W
+
+
+@pytest.mark.parametrize("field", FIELDS)
+def test_nan_parameters_are_refused_naming_the_field(field):
+    cam = look_at_camera((0.0, 0.0, 3.0))
+    p = random_scene(1, 3, cam)
+    arr = getattr(p, field).copy()
+    arr.reshape(-1)[1] = np.nan
+    with pytest.raises(InputError, match=f"{field} has 1 NaN"):
+        rasterize(SplatParams(**{**{k: getattr(p, k) for k in FIELDS}, field: arr}), cam)
