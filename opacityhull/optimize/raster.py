@@ -257,7 +257,7 @@ R_M0, R_M1, R_A, R_B, R_C, R_O, R_R, R_G, R_BL, R_Z, R_HY, R_P1, R_P2, R_P3 = ra
 _REC = 16
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, inline="always", error_model="numpy")
 def _frame(quat, log_scale):
     """Normalised quaternion (w, x, y, z), its norm, the two unit tangent axes (world) and
     the two standard deviations."""
@@ -273,7 +273,7 @@ def _frame(quat, log_scale):
     return w, x, y, z, nq, a0, a1, a2, b0, b1, b2, math.exp(float(log_scale[0])), math.exp(float(log_scale[1]))
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, inline="always", error_model="numpy")
 def _project(mean, quat, log_scale, K, M, lowpass):
     """Camera-frame centre, projected centre and screen covariance (a, b, c) of one surfel,
     with the intermediate values the backward pass reuses."""
