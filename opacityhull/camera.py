@@ -27,9 +27,10 @@ from __future__ import annotations
 
 import math
 import os
+from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Sequence
+from typing import Iterator, Sequence
 
 import numpy as np
 
@@ -552,6 +553,49 @@ def _checked_qwxyz_to_rotmat(q, t=(0.0, 0.0, 0.0), *, where: str, tol: float = 1
     return _qwxyz_to_rotmat(q / n)
 
 
+def colmap_reconstruction(
+    cameras: Sequence[Camera],
+    names: Sequence[str] | None = None,
+    *,
+    share_intrinsics: Sequence[int] | None = None,
+    points3d=None,
+):
+    """The views as a ``pycolmap.Reconstruction`` (COLMAP's own model, written as text
+    or binary by its ``write_text`` / ``write_binary``): one COLMAP camera per
+    ``share_intrinsics`` group (default one per image), each in a trivial rig, one image
+    per camera in a trivial frame with its ``cam_from_world`` pose, and ``points3d``
+    ((M, 3), optional) as points without tracks (grey, error -1: not measured)."""
+    import pycolmap
+
+    names = list(names) if names is not None else [c.name for c in cameras]
+    if len(names) != len(cameras):
+        raise InputError(f"{len(names)} names for {len(cameras)} cameras")
+    groups = list(share_intrinsics) if share_intrinsics is not None else list(range(len(cameras)))
+    rec = pycolmap.Reconstruction()
+    written: dict[int, int] = {}
+    for cam, g in zip(cameras, groups):
+        if g in written:
+            continue
+        model, params = _colmap_model_and_params(cam)
+        cid = len(written) + 1
+        written[g] = cid
+        rec.add_camera_with_trivial_rig(
+            pycolmap.Camera(model=model, width=int(cam.width), height=int(cam.height), params=params, camera_id=cid)
+        )
+    for i, (cam, g, name) in enumerate(zip(cameras, groups, names), start=1):
+        if any(c.isspace() for c in name):
+            raise InputError(f"COLMAP image names cannot contain spaces: {name!r}")
+        T = cam.cam_from_world
+        w, x, y, z = _rotmat_to_qwxyz(T[:3, :3])
+        pose = pycolmap.Rigid3d(pycolmap.Rotation3d(np.array([x, y, z, w])), np.asarray(T[:3, 3], np.float64))
+        rec.add_image_with_trivial_frame(pycolmap.Image(name=str(name), camera_id=written[g], image_id=i), pose)
+    if points3d is not None:
+        grey = np.array([128, 128, 128], np.uint8)
+        for p in np.asarray(points3d, dtype=np.float64).reshape(-1, 3):
+            rec.add_point3D(p, pycolmap.Track(), grey)
+    return rec
+
+
 def write_colmap_text(
     directory,
     cameras: Sequence[Camera],
@@ -560,7 +604,8 @@ def write_colmap_text(
     share_intrinsics: Sequence[int] | None = None,
     points3d=None,
 ) -> None:
-    """Write a COLMAP text model (``cameras.txt``, ``images.txt``, ``points3D.txt``).
+    """Write a COLMAP text model (``cameras.txt``, ``images.txt``, ``points3D.txt``: the
+    layout COLMAP 3 and 4 both read), written by pycolmap (:func:`colmap_reconstruction`).
 
     Parameters
     ----------
@@ -578,107 +623,162 @@ def write_colmap_text(
     points3d : (M, 3) array, optional
         Sparse points written to ``points3D.txt`` (no tracks).
     """
+    import shutil
+    import tempfile
+
+    rec = colmap_reconstruction(cameras, names, share_intrinsics=share_intrinsics, points3d=points3d)
     d = Path(directory)
     d.mkdir(parents=True, exist_ok=True)
-    for b in ("cameras.bin", "images.bin", "points3D.bin"):
+    for b in ("cameras.bin", "images.bin", "points3D.bin", "rigs.bin", "frames.bin"):
         (d / b).unlink(missing_ok=True)
-    names = list(names) if names is not None else [c.name for c in cameras]
-    if len(names) != len(cameras):
-        raise InputError(f"{len(names)} names for {len(cameras)} cameras")
-    groups = list(share_intrinsics) if share_intrinsics is not None else list(range(len(cameras)))
-    cam_lines = ["# Camera list with one line of data per camera:", "#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]"]
-    written: dict[int, int] = {}
-    for cam, g in zip(cameras, groups):
-        if g in written:
-            continue
-        model, params = _colmap_model_and_params(cam)
-        cid = len(written) + 1
-        written[g] = cid
-        cam_lines.append(f"{cid} {model} {cam.width} {cam.height} " + " ".join(f"{p:.17g}" for p in params))
-    img_lines = [
-        "# Image list with two lines of data per image:",
-        "#   IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME",
-        "#   POINTS2D[] as (X, Y, POINT3D_ID)",
-    ]
-    for i, (cam, g, name) in enumerate(zip(cameras, groups, names), start=1):
-        if " " in name:
-            raise InputError(f"COLMAP image names cannot contain spaces: {name!r}")
-        T = cam.cam_from_world
-        q = _rotmat_to_qwxyz(T[:3, :3])
-        t = T[:3, 3]
-        img_lines.append(f"{i} " + " ".join(f"{v:.17g}" for v in (*q, *t)) + f" {written[g]} {name}")
-        img_lines.append("")
-    pts_lines = ["# 3D point list with one line of data per point:", "#   POINT3D_ID, X, Y, Z, R, G, B, ERROR, TRACK[]"]
-    if points3d is not None:
-        for j, p in enumerate(np.asarray(points3d, dtype=np.float64), start=1):
-            pts_lines.append(f"{j} {p[0]:.9g} {p[1]:.9g} {p[2]:.9g} 128 128 128 0")
-    _atomic_write_text(d / "cameras.txt", "\n".join(cam_lines) + "\n")
-    _atomic_write_text(d / "images.txt", "\n".join(img_lines) + "\n")
-    _atomic_write_text(d / "points3D.txt", "\n".join(pts_lines) + "\n")
+    # written beside, then each file renamed into place: a crash leaves whole files
+    tmp = Path(tempfile.mkdtemp(prefix=".colmap-", dir=d))
+    try:
+        rec.write_text(str(tmp))
+        for extra in ("rigs.txt", "frames.txt"):
+            # COLMAP 4's trivial rigs and frames repeat the poses; without them the model
+            # is COLMAP 3's layout (which COLMAP 4 reads too) and images.txt is the pose
+            (tmp / extra).unlink(missing_ok=True)
+            (d / extra).unlink(missing_ok=True)
+        for f in sorted(tmp.iterdir()):
+            with open(f, "rb") as fh:
+                os.fsync(fh.fileno())
+            os.replace(f, d / f.name)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
 
 
 def read_colmap_text(directory) -> list[tuple[str, Camera]]:
-    """Read ``cameras.txt`` and ``images.txt`` into ``[(image_name, Camera), ...]``.
+    """Read a COLMAP text model (``cameras.txt`` and ``images.txt``; ``points3D.txt`` may
+    be absent) through ``pycolmap.Reconstruction.read_text`` into
+    ``[(image_name, Camera), ...]`` (sorted by image id).
 
     Supports the SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV and
     FULL_OPENCV camera models (FULL_OPENCV only with k4 = k5 = k6 = 0). Errors name
-    the file and line.
+    the file and line (and the image).
     """
     d = Path(directory)
     cams_path, imgs_path = d / "cameras.txt", d / "images.txt"
     for p in (cams_path, imgs_path):
         if not p.is_file():
             raise FormatError(f"COLMAP text model: {p} not found (expected cameras.txt and images.txt in {d})")
-    intr: dict[int, tuple[np.ndarray, np.ndarray, int, int]] = {}
-    for lineno, line in enumerate(cams_path.read_text().splitlines(), start=1):
-        line = line.strip()
-        if not line or line.startswith("#"):
-            continue
-        parts = line.split()
+    import pycolmap
+
+    rec = pycolmap.Reconstruction()
+    with _colmap_text_folder(d) as src:
         try:
-            cid, model, w, h = int(parts[0]), parts[1], int(parts[2]), int(parts[3])
-            p = [float(x) for x in parts[4:]]
-        except (ValueError, IndexError) as e:
-            raise FormatError(f"{cams_path}:{lineno}: cannot parse camera line ({e})") from None
-        try:
-            K, dist = colmap_intrinsics(model, p)
-        except _ColmapModelError as e:
-            raise FormatError(f"{cams_path}:{lineno}: {e}") from None
-        intr[cid] = (K, dist, w, h)
-    out: list[tuple[str, Camera]] = []
-    lines = imgs_path.read_text().splitlines()
-    i = 0
+            rec.read_text(str(src))
+        except Exception as e:  # pycolmap raises ValueError/IndexError with its C++ message
+            raise FormatError(_colmap_text_error(d, e)) from None
+    return _views_of(rec, d, text=True)
+
+
+@contextmanager
+def _colmap_text_folder(d: Path) -> Iterator[Path]:
+    """``d``, or when it has no ``points3D.txt`` (pycolmap needs one; camera-only models
+    such as a session's ``cameras/`` may lack it) a temporary folder linking its two
+    files beside an empty one."""
+    import shutil
+    import tempfile
+
+    if (d / "points3D.txt").is_file():
+        yield d
+        return
+    tmp = Path(tempfile.mkdtemp(prefix="opacityhull-colmap-"))
+    try:
+        for n in ("cameras.txt", "images.txt", "rigs.txt", "frames.txt"):
+            if (d / n).is_file():
+                (tmp / n).symlink_to((d / n).resolve())
+        (tmp / "points3D.txt").write_text("")
+        yield tmp
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+def _data_lines(path: Path) -> Iterator[tuple[int, list[str]]]:
+    """(line number, words) of the data lines of a COLMAP text file: comments and
+    blank lines skipped; in ``images.txt`` only the pose lines (every other data line
+    is a POINTS2D line, possibly empty)."""
+    images = path.name == "images.txt"
     expect_points = False
-    for lineno, line in enumerate(lines, start=1):
+    for n, line in enumerate(path.read_text(errors="replace").splitlines(), start=1):
         s = line.strip()
         if s.startswith("#"):
             continue
-        if expect_points:
+        if images and expect_points:
             expect_points = False
             continue
         if not s:
             continue
-        parts = s.split()
+        expect_points = images
+        yield n, s.split()
+
+
+def _line_of(path: Path, first_word: int) -> int | None:
+    """The line of ``path`` whose data line starts with id ``first_word``."""
+    for n, words in _data_lines(path):
+        if words[0] == str(first_word):
+            return n
+    return None
+
+
+def _colmap_text_error(d: Path, e: Exception) -> str:
+    """What pycolmap could not read in the text model at ``d``, with file and line:
+    pycolmap's messages name neither."""
+    for path, what in ((d / "cameras.txt", "camera"), (d / "images.txt", "image")):
+        for n, words in _data_lines(path):
+            try:
+                ids = [int(words[0])] + ([int(words[2]), int(words[3])] if what == "camera" else [int(words[8])])
+                nums = [float(v) for v in (words[4:] if what == "camera" else words[1:8])]
+            except (ValueError, IndexError):
+                return f"{path}:{n}: cannot parse the {what} line {' '.join(words)[:80]!r}"
+            del ids
+            if what == "camera" and words[1] not in COLMAP_MODELS_SUPPORTED:
+                return f"{path}:{n}: camera model {words[1]} not supported ({str(e).strip()[:120]})"
+            if not all(math.isfinite(v) for v in nums):
+                name = " ".join(words[9:]) if what == "image" else words[1]
+                return f"{path}:{n}: {what} {name!r}: pose is not finite ({' '.join(words[:8])})"
+    cams = {w[0] for _, w in _data_lines(d / "cameras.txt")}
+    for n, words in _data_lines(d / "images.txt"):
+        if len(words) > 8 and words[8] not in cams:
+            name = " ".join(words[9:])
+            return f"{d / 'images.txt'}:{n}: image {name!r} refers to camera {words[8]}, not in cameras.txt"
+    return f"{d}: cannot read the COLMAP text model ({str(e).strip()})"
+
+
+def _views_of(rec, d: Path, *, text: bool) -> list[tuple[str, Camera]]:
+    """``[(image_name, Camera)]`` of a read ``pycolmap.Reconstruction`` (registered images,
+    by image id), its camera models mapped by :func:`colmap_intrinsics` and its poses
+    checked (:func:`_checked_qwxyz_to_rotmat`); errors name ``cameras.txt``/``.bin`` and
+    ``images.txt``/``.bin`` with the line (text) or the id (binary)."""
+    cams_file, imgs_file = (d / "cameras.txt", d / "images.txt") if text else (d / "cameras.bin", d / "images.bin")
+    intr: dict[int, tuple[np.ndarray, np.ndarray, int, int]] = {}
+    for cid, c in rec.cameras.items():
         try:
-            qw, qx, qy, qz, tx, ty, tz = (float(v) for v in parts[1:8])
-            cid = int(parts[8])
-            name = " ".join(parts[9:])
-        except (ValueError, IndexError) as e:
-            raise FormatError(f"{imgs_path}:{lineno}: cannot parse image line ({e})") from None
-        if cid not in intr:
-            raise FormatError(f"{imgs_path}:{lineno}: image {name!r} refers to camera {cid}, not in cameras.txt")
-        T = np.eye(4)
-        T[:3, :3] = _checked_qwxyz_to_rotmat(
-            [qw, qx, qy, qz], (tx, ty, tz), where=f"{imgs_path}:{lineno}: image {name!r}"
+            K, dist = colmap_intrinsics(c.model.name, np.asarray(c.params))
+        except _ColmapModelError as e:
+            where = f"{cams_file}:{_line_of(cams_file, cid)}" if text else f"{cams_file}: camera {cid}"
+            raise FormatError(f"{where}: {e}") from None
+        intr[cid] = (K, dist, int(c.width), int(c.height))
+    out: list[tuple[str, Camera]] = []
+    for iid in sorted(rec.images):
+        img = rec.images[iid]
+        if not img.has_pose:
+            continue
+        cfw = img.cam_from_world()
+        x, y, z, w = (float(v) for v in np.asarray(cfw.rotation.quat))
+        t = [float(v) for v in np.asarray(cfw.translation)]
+        where = (
+            f"{imgs_file}:{_line_of(imgs_file, iid)}: image {img.name!r}"
+            if text
+            else f"{imgs_file}: image {img.name!r} (id {iid})"
         )
-        T[:3, 3] = (tx, ty, tz)
-        Tinv = np.eye(4)
-        Tinv[:3, :3] = T[:3, :3].T
-        Tinv[:3, 3] = -T[:3, :3].T @ T[:3, 3]
-        K, dist, w, h = intr[cid]
-        out.append((name, Camera(K=K, dist=dist, width=w, height=h, world_from_cam=Tinv, name=name)))
-        expect_points = True
-        i += 1
+        R = _checked_qwxyz_to_rotmat([w, x, y, z], t, where=where)
+        T = np.eye(4)
+        T[:3, :3] = R.T
+        T[:3, 3] = -R.T @ np.asarray(t)
+        K, dist, wd, ht = intr[img.camera_id]
+        out.append((img.name, Camera(K=K, dist=dist, width=wd, height=ht, world_from_cam=T, name=img.name)))
     return out
 
 
@@ -716,28 +816,7 @@ def read_colmap_binary(directory) -> list[tuple[str, Camera]]:
             f"{d}: cannot read the binary COLMAP model ({str(e).strip()}); expected cameras.bin, "
             "images.bin and points3D.bin (COLMAP 4 also rigs.bin, frames.bin)"
         ) from None
-    intr: dict[int, tuple[np.ndarray, np.ndarray, int, int]] = {}
-    for cid, c in rec.cameras.items():
-        try:
-            K, dist = colmap_intrinsics(c.model.name, np.asarray(c.params))
-        except _ColmapModelError as e:
-            raise FormatError(f"{d / 'cameras.bin'}: camera {cid}: {e}") from None
-        intr[cid] = (K, dist, int(c.width), int(c.height))
-    out: list[tuple[str, Camera]] = []
-    for iid in sorted(rec.images):
-        img = rec.images[iid]
-        if not img.has_pose:
-            continue
-        cfw = img.cam_from_world()
-        x, y, z, w = (float(v) for v in np.asarray(cfw.rotation.quat))
-        t = [float(v) for v in np.asarray(cfw.translation)]
-        R = _checked_qwxyz_to_rotmat([w, x, y, z], t, where=f"{d / 'images.bin'}: image {img.name!r} (id {iid})")
-        T = np.eye(4)
-        T[:3, :3] = R.T
-        T[:3, 3] = -R.T @ np.asarray(t)
-        K, dist, wd, ht = intr[img.camera_id]
-        out.append((img.name, Camera(K=K, dist=dist, width=wd, height=ht, world_from_cam=T, name=img.name)))
-    return out
+    return _views_of(rec, d, text=False)
 
 
 def read_colmap_model(directory) -> list[tuple[str, Camera]]:

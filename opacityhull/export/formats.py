@@ -137,7 +137,7 @@ def export_colmap_model(model: OpacityHullModel, out: Path, *, max_points: int =
     """
     import pycolmap
 
-    from ..camera import write_colmap_text
+    from ..camera import colmap_reconstruction
     from ..imageio import srgb_encode
     from .samples import iter_view_samples, mean_colours
 
@@ -152,8 +152,7 @@ def export_colmap_model(model: OpacityHullModel, out: Path, *, max_points: int =
         # black dropped the matte, so the export could not be imported and built again
         _write_png_u8(out / "images" / f"{v.id}.png", rgba)
     sparse = out / "sparse" / "0"
-    write_colmap_text(sparse, cams, names, share_intrinsics=[v.camera_index for v in model.views])
-    rec = pycolmap.Reconstruction(str(sparse))
+    rec = colmap_reconstruction(cams, names, share_intrinsics=[v.camera_index for v in model.views])
     by_name = {rec.image(i).name: i for i in rec.images.keys()}
     n = len(s)
     pick = (
@@ -183,8 +182,7 @@ def export_colmap_model(model: OpacityHullModel, out: Path, *, max_points: int =
             tr.add_element(iid, j)
         rec.add_point3D(s.positions[pick[li]].astype(np.float64), tr, c8[li])
         n_pts += 1
-    for f in sparse.iterdir():
-        f.unlink()
+    sparse.mkdir(parents=True, exist_ok=True)
     rec.write_text(str(sparse))
     rec.write_binary(str(sparse))
     return {

@@ -280,3 +280,33 @@ def test_coincident_views_tolerances_and_chains():
         coincident_views(ring, centre_tol_rel=0.0)
     with pytest.raises(InputError, match="angle_tol_deg"):
         coincident_views(ring, angle_tol_deg=float("nan"))
+
+
+@pytest.mark.parametrize("dist", [(0, 0, 0, 0, 0), (-0.2, 0.05, 0.001, 0.002, 0.01)])
+def test_colmap_text_and_binary_go_through_pycolmap(tmp_path, dist):
+    """pycolmap reads and writes COLMAP models (#33): ``write_colmap_text`` writes what
+    ``pycolmap.Reconstruction.write_text`` writes, and text (COLMAP 3 or 4 layout, with
+    or without points3D.txt) and binary read back to the same cameras."""
+    from opacityhull.camera import colmap_reconstruction, read_colmap_model
+
+    cams = [
+        make_cam(dist=dist, eye=(0.5 * math.sin(a), 0.3 + 0.1 * a, 0.5 * math.cos(a)), name=f"v{i}.png")
+        for i, a in enumerate([0.0, 1.3, 2.1, 4.0])
+    ]
+    kw = dict(share_intrinsics=[0, 0, 1, 1], points3d=np.array([[0.0, 0.01, 0.02], [0.1, 0.2, 0.3]]))
+    rec = colmap_reconstruction(cams, **kw)
+    write_colmap_text(tmp_path / "ours", cams, **kw)
+    for d in ("lib", "bin"):
+        (tmp_path / d).mkdir()
+    rec.write_text(str(tmp_path / "lib"))  # COLMAP 4: also rigs.txt and frames.txt
+    for n in ("cameras.txt", "images.txt", "points3D.txt"):
+        assert (tmp_path / "ours" / n).read_text() == (tmp_path / "lib" / n).read_text(), n
+    (tmp_path / "ours" / "points3D.txt").unlink()  # a camera-only model (a session's cameras/)
+    rec.write_binary(str(tmp_path / "bin"))
+    for d in ("ours", "lib", "bin"):
+        back = dict(read_colmap_model(tmp_path / d))
+        assert list(back) == [c.name for c in cams]
+        for c in cams:
+            np.testing.assert_allclose(back[c.name].K, c.K, atol=1e-9)
+            np.testing.assert_allclose(back[c.name].dist, c.dist, atol=1e-12)
+            np.testing.assert_allclose(back[c.name].world_from_cam, c.world_from_cam, atol=1e-9)
