@@ -1,7 +1,7 @@
 """The plain baseline of issue 11, re-measured: voxel carving of the thresholded masks,
 marching cubes, per-pixel ULR at the back-projected depth, the hull rebuilt without the
 held-out view(s). It shares nothing with the pipeline but the camera reader and the
-metrics (``eval loo``'s :func:`~opacityhull.render.evaluate.loo_metrics`), so it says
+metrics (``eval loo``'s :func:`~opacityhull.evaluate.loo.loo_metrics`), so it says
 what the protocol is worth on its own.
 
     .venv/bin/python benchmarks/baseline.py [--sets temple,dino] [--views every:2] [--res 300] [--json]
@@ -207,7 +207,7 @@ def render_ulr(i, held, cams, images, depths, *, k: int, tol_m: float) -> np.nda
 
 def run_set(name: str, views: str, res: int, k: int) -> list[dict]:
     from opacityhull.camera import coincident_views
-    from opacityhull.render.evaluate import loo_metrics
+    from opacityhull.evaluate.loo import loo_metrics
 
     cams, images, masks = load_set(name)
     V = len(cams)

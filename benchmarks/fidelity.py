@@ -107,7 +107,7 @@ def configurations():
 def run_set(name: str, tmp: Path, views: str, configs) -> list[dict]:
     from opacityhull.acquire.importers import import_colmap
     from opacityhull.reconstruct.build import BuildConfig, build_model
-    from opacityhull.reconstruct.holdout import run_loo_holdouts
+    from opacityhull.evaluate.holdout import run_loo_holdouts
     from opacityhull.render.config import RenderConfig
 
     src = DATA / f"{name}SR"
@@ -155,7 +155,7 @@ def run_set(name: str, tmp: Path, views: str, configs) -> list[dict]:
 
 def run_model(name: str, model_dir: Path, views: str, configs, tmp: Path) -> list[dict]:
     from opacityhull.render.config import RenderConfig
-    from opacityhull.render.runner import run_loo
+    from opacityhull.evaluate.runner import run_loo
 
     rows, seen = [], set()
     for label, _, render_kw, *_ in configs:

@@ -49,7 +49,7 @@ ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "benchmarks" / "out"
 sys.path.insert(0, str(ROOT))
 
-from opacityhull.relight import natural as nt  # noqa: E402
+from opacityhull.reconstruct import natural as nt  # noqa: E402
 from opacityhull.relight import natural_synthetic as ns  # noqa: E402
 
 
@@ -421,7 +421,7 @@ def bench_sim(out: Path, *, scenes, Ns, n_test, n_bar, scale, camera=2, table_de
     plt = pyplot()
 
     from opacityhull.imageio import atomic_path
-    from opacityhull.relight import natural_eval as ne
+    from opacityhull.evaluate import natural as ne
     from opacityhull.riggeometry import RigGeometry
     from opacityhull.sim.groundtruth import render_ground_truth
     from opacityhull.sim.simrig import open_sim_rig

@@ -17,7 +17,7 @@ mattes)); pixels it adds take the nearest drawn pixel's colour.
 
 Both holdouts, twins together (``eval loo``'s default): the *blend* holdout renders over
 the model's geometry, which the held-out view's silhouette carved; the *geometry*
-holdout over the geometry rebuilt without it (:func:`opacityhull.reconstruct.holdout.geometry_without`),
+holdout over the geometry rebuilt without it (:func:`opacityhull.evaluate.holdout.geometry_without`),
 and its march leaves the held-out views' silhouettes out too.
 
 The march kernel is checked against a NumPy evaluation of the same rule on a sample of
@@ -200,8 +200,8 @@ def measure(name: str, views: str, work: Path) -> list[dict]:
     from opacityhull.acquire.importers import import_colmap
     from opacityhull.model import BUILD_DIR, FILLED_HOLES, OpacityHullModel, read_hole_masks
     from opacityhull.reconstruct.build import BuildConfig, build_model
-    from opacityhull.reconstruct.holdout import geometry_without
-    from opacityhull.render.evaluate import _photograph, held_out_groups, loo_metrics, model_surfels, select_views
+    from opacityhull.evaluate.holdout import geometry_without
+    from opacityhull.evaluate.loo import _photograph, held_out_groups, loo_metrics, model_surfels, select_views
     from opacityhull.render.renderer import RenderConfig, prepare_model_views, render_image
 
     src = DATA / f"{name}SR"

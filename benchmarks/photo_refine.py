@@ -132,7 +132,7 @@ def write_copy(model, surfels, dst):
 
 def photo_holdout_loo(m, cams, rgba, config, views):
     """Refinement re-run without each held-out view; render + score in-process."""
-    from opacityhull.render.evaluate import loo_metrics
+    from opacityhull.evaluate.loo import loo_metrics
     from opacityhull.render.renderer import RenderConfig, prepare_model_views, render_image, spatially_sorted
 
     pv = prepare_model_views(m)

@@ -12,7 +12,7 @@ machine is shared and wall time includes other people's work), plus wall time wi
 threads; the shading modes alternate frame by frame, so their ratio is measured under the
 same load. Accuracy runs leave-one-out on each ``--model`` (built models; repeatable) when
 given, else on an analytic sphere, and adds coverage IoU, interior alpha and spill (see
-:func:`opacityhull.render.evaluate.loo_metrics`). Writes ``benchmarks/out/render.md``, ``render_throughput.png``,
+:func:`opacityhull.evaluate.loo.loo_metrics`). Writes ``benchmarks/out/render.md``, ``render_throughput.png``,
 ``render_accuracy.png`` and ``render.json``.
 """
 
@@ -139,7 +139,7 @@ def throughput(sizes, ks, *, reps: int, shadings=("surfel", "pixel")) -> tuple[l
 
 def accuracy(model_dir: str | None, quick: bool, shadings=("surfel", "pixel")) -> tuple[list[dict], str]:
     from opacityhull.model import OpacityHullModel, Surfels
-    from opacityhull.render.evaluate import leave_one_out, select_views
+    from opacityhull.evaluate.loo import leave_one_out, select_views
     from opacityhull.render.renderer import RenderConfig, model_surfels, prepare_model_views
     from opacityhull.render.synthetic import write_sphere_model
 

@@ -432,7 +432,7 @@ def storage_comparison(tmp: Path, *, quick: bool) -> dict:
     from opacityhull.relight.relit import Relighter
     from opacityhull.relight.synthetic import SphereScene, sphere_groundtruth
     from opacityhull.relight.synthetic import write_sphere_model as write_relight_sphere
-    from opacityhull.render.evaluate import leave_one_out
+    from opacityhull.evaluate.loo import leave_one_out
     from opacityhull.render.renderer import RenderConfig
     from opacityhull.render.synthetic import write_sphere_model as write_render_sphere
     from opacityhull.data import PROBES_DIR

@@ -40,6 +40,7 @@ COMMAND_MODULES = (
     "opacityhull.reconstruct.commands",
     "opacityhull.render.commands",
     "opacityhull.relight.commands",
+    "opacityhull.evaluate.commands",
     "opacityhull.export.commands",
     "opacityhull.view.commands",
     "opacityhull.demo",

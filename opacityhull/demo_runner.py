@@ -157,7 +157,7 @@ def glass_step(
 
     from .acquire.plan import parse_plan
     from .reconstruct.build import BuildConfig, build_model
-    from .relight.evaluate import eval_relight
+    from .evaluate.relight import eval_relight
     from .relight.runner import builtin_envmap, relight_model
 
     out = Path(out_dir)
@@ -217,6 +217,7 @@ def run_demo(
     from .acquire.plan import load_plan
     from .imageio import atomic_path
     from .reconstruct.build import BuildConfig, build_model
+    from .evaluate.runner import demo_loo, demo_relight_eval
     from .relight.runner import demo_step as relight_step
     from .render.runner import run_demo_step as render_step
 
@@ -274,6 +275,7 @@ def run_demo(
     t = time.monotonic()
     with progress("orbit") as cb:
         r = render_step(model, out / "render", frames=orbit_frames, progress=cb)
+    r.update(demo_loo(model, out / "render"))
     seconds["render"] = time.monotonic() - t
     summary["render"] = r
 
@@ -282,6 +284,7 @@ def run_demo(
     t = time.monotonic()
     with progress("relight") as cb:
         rl = relight_step(model, out / "relight", probe=probe, orbit=orbit_frames, progress=cb)
+    rl["eval"] = demo_relight_eval(model, out / "relight" / "eval", probe=probe)
     seconds["relight"] = time.monotonic() - t
     summary["relight"] = rl
 

@@ -7,8 +7,17 @@ from typing import Annotated, List, Literal, Optional, get_args
 
 import typer
 
-from ..cliutil import JsonFlag, option_group, scheduler_options
-from ..cliutil import check_choice, cli_errors, console, emit, step_progress, writing_to
+from ..cliutil import (
+    JsonFlag,
+    check_choice,
+    cli_errors,
+    console,
+    emit,
+    option_group,
+    scheduler_options,
+    step_progress,
+    writing_to,
+)
 from ..errors import ConfigError
 
 __all__ = ["register"]

@@ -40,7 +40,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Literal, overload, cast
+from typing import Literal, cast, overload
 
 import numpy as np
 from numba import njit, prange

@@ -5,9 +5,9 @@ showed the natural phase's images while the others were black), the photographs
 ``B`` (radiance, :meth:`Session.load_radiance`) of the pixels inside the matte
 (α > ``alpha_min``, default 0.5, enclosed holes filled: :func:`natural_mask`) and the shown images ``L`` (display radiance: the uploaded 8-bit
 pattern as linear drive × the display's ``max_radiance``, what the sim emits and a
-linearised real display shows) go through :func:`opacityhull.relight.natural.estimate_natural`
+linearised real display shows) go through :func:`opacityhull.reconstruct.natural.estimate_natural`
 (K box kernels per pixel, NNLS weights). Each result is written as
-``MODEL/natural/<view_id>/<display>.npz`` (:func:`~opacityhull.relight.natural.save_field`,
+``MODEL/natural/<view_id>/<display>.npz`` (:func:`~opacityhull.reconstruct.natural.save_field`,
 with ``pixel_index`` / ``image_hw`` locating the matte pixels in the view).
 
 The capture runner records the phase as ``envmatte`` (the plan's ``[phases.natural]``
@@ -102,9 +102,9 @@ def estimate_view_natural(
 ):
     """One view and display: the field of the pixels where ``mask`` (H, W) is True.
 
-    Returns a :class:`~opacityhull.relight.natural.NaturalField` with ``pixel_index``.
+    Returns a :class:`~opacityhull.reconstruct.natural.NaturalField` with ``pixel_index``.
     """
-    from ..relight.natural import NaturalConfig, estimate_natural
+    from .natural import NaturalConfig, estimate_natural
 
     spec = session.geometry.display(display)
     mask = np.asarray(mask, bool)
@@ -187,7 +187,7 @@ def estimate_session_natural(
     InputError
         The session has no natural phase, a view has none of its shots, or N < K.
     """
-    from ..relight.natural import field_path, save_field
+    from .natural import field_path, save_field
 
     t0 = time.perf_counter()
     views = list(views)

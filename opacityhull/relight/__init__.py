@@ -10,7 +10,9 @@ Modules (imported lazily by the CLI; import them directly)::
     relit      Relighter (relit premultiplied RGBA per captured view), relight_stack
                (numba kernel) and its reference, near-light correction,
                compress_reflectance (per-view PCA)
-    runner     relight_model (``opacityhull relight``), demo_step
-    evaluate   eval_relight (``opacityhull eval relight``) against the simulator
+    runner     relight_model (``opacityhull relight``), demo_step (``eval relight`` is
+               opacityhull.evaluate.relight)
+    natural_views  the display-domain part of each view under an environment map, from
+               the natural-illumination fields (estimated in reconstruct/natural.py)
     synthetic  an analytic Lambertian-sphere model with exact ground truth
 """

@@ -1,5 +1,5 @@
 """CLI commands of `opacityhull.relight` (registered by :mod:`opacityhull.cli`):
-``opacityhull relight`` and ``opacityhull eval relight``."""
+``opacityhull relight`` (``eval relight`` is :mod:`opacityhull.evaluate.commands`)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,6 @@ from pathlib import Path
 from typing import Annotated, Optional
 
 import typer
-from rich.markup import escape
 
 from ..cliutil import JsonSummaryFlag, env_yaw_options, option_group, pick_env_yaw
 from ..cliutil import check_choice, check_model_dir, check_orbit_fps, cli_errors, console, emit, progress, writing_to
@@ -91,14 +90,6 @@ _VIEW_HELP = "Also render camera CAM at table angle DEG: 'CAM,DEG'."
 _ORBIT_HELP = "Also render an orbit of N frames (PNGs + GIF)."
 _FPS_HELP = "Frame rate of the orbit GIF (> 0; GIF stores 1/100 s delays)."
 _EXPOSURE_HELP = "PNG exposure multiplier (default: automatic, key 0.18)."
-_EVAL_MODEL_HELP = "Model folder built from a simulated session (with reflectance data)."
-_EVAL_OUT_HELP = (
-    "Folder for the contact sheet and per-view EXRs (default "
-    "./MODELNAME_eval_relight in the current folder: an evaluation never "
-    "writes into the model)."
-)
-_MAX_VIEWS_HELP = "Evaluate at most this many views (spread evenly)."
-_EVAL_JSON_HELP = 'Print {"psnr_mean", "rel_err_mean", "per_view", ...} on stdout.'
 
 
 _KERNEL_HELP = (
@@ -132,13 +123,8 @@ def _shared_options(*, envmap_required: bool, map_before: str, config_before: st
     return decorate
 
 
-#: Fewer captured light directions than this and ``eval relight`` warns: the light
-#: basis is too coarse for an environment map (a judgement, not a measured threshold).
-FEW_LIGHTS = 8
-
-
 def register(app, groups) -> None:
-    """Add ``relight`` to the root app and ``relight`` to the ``eval`` group."""
+    """Add ``relight`` to the root app."""
 
     @app.command("relight")
     @cli_errors
@@ -211,56 +197,5 @@ def register(app, groups) -> None:
             if "orbit" in s:
                 c.print(f"orbit: {s['orbit']['gif']} ({s['orbit']['frames']} frames, {s['orbit']['render_s']:.1f} s)")
             c.print(f"summary: {s['out']}/relight.json")
-
-        emit(s, json_out, human)
-
-    @groups["eval"].command("relight")
-    @cli_errors
-    @_shared_options(envmap_required=True, map_before="out", config_before="json_out")
-    def eval_relight_cmd(
-        model: Annotated[Path, typer.Argument(help=_EVAL_MODEL_HELP)],
-        out: Annotated[Optional[Path], typer.Option("--out", help=_EVAL_OUT_HELP)] = None,
-        spp: Annotated[int, typer.Option("--spp", help="Samples per pixel of Mitsuba's ground-truth render.")] = 64,
-        max_views: Annotated[Optional[int], typer.Option("--max-views", help=_MAX_VIEWS_HELP)] = None,
-        json_out: Annotated[bool, typer.Option("--json", help=_EVAL_JSON_HELP)] = False,
-        *,
-        map_options: dict,
-        config_options: dict,
-    ):
-        """Relit captured views of a simulated model against Mitsuba's direct render of the same object under the
-        same environment map from the same cameras: PSNR and relative error inside the mask, and a contact sheet
-        (truth | relit | error)."""
-        from .evaluate import eval_relight
-
-        check_model_dir(model)
-        if spp < 1:
-            raise InputError(f"--spp {spp}: expected at least 1 sample per pixel")
-        if max_views is not None and max_views < 1:
-            raise InputError(f"--max-views {max_views}: expected at least 1")
-        if out is None:
-            # not inside MODEL: a model is an input here (it may be shared or read-only)
-            out = Path(f"{model.resolve().name}_eval_relight")
-        cfg = _config(**config_options)
-        env = _load_map(map_options)
-        with progress("eval relight", enabled=not json_out) as cb:
-            s = eval_relight(model, envmap=env, out=out, spp=spp, max_views=max_views, config=cfg, progress=cb)
-
-        n_lights = s.get("n_lights_captured")
-        if n_lights is not None and n_lights < FEW_LIGHTS:
-            s.setdefault("warnings", []).append(
-                f"only {n_lights} captured light direction(s): relighting sums one-light images, so an environment "
-                f"map is seen through {n_lights} cell(s) of the sphere — expect large errors (the tiny plan's 2 "
-                f"lights measured 58-82 %); capture with more lights (plan [phases.reflectance] lights/array_steps)"
-            )
-
-        def human(s):
-            c = console()
-            c.print(
-                f"relighting vs Mitsuba over {len(s['per_view'])} views: PSNR {s['psnr_mean']:.2f} dB, "
-                f"relative error {100 * s['rel_err_mean']:.2f} %"
-            )
-            c.print(f"contact sheet (truth | relit | error): {s['sheet']}")
-            for w in s.get("warnings", []):
-                c.print(f"[yellow]warning:[/] {escape(w)}", highlight=False)
 
         emit(s, json_out, human)

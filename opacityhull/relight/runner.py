@@ -158,7 +158,7 @@ def relight_model(
     if env is not None and model.meta.get("natural", {}).get("present"):
         # the display-domain field (refraction, high resolution) adds to the light-array
         # field (everything else): the environment seen through the displays' solid angles
-        from .natural import relight_model_views_natural
+        from .natural_views import relight_model_views_natural
 
         t_nat = time.perf_counter()
         for i, part in enumerate(relight_model_views_natural(model, env)):
@@ -281,14 +281,13 @@ def demo_step(
     *,
     probe: str = "grace",
     orbit: int = 24,
-    eval_views: int | None = 6,
     progress: Callable[[int, int], None] | None = None,
 ) -> dict:
     """The relighting step of ``opacityhull demo``: relight the captured model under a
     shipped probe (``builtin:<probe>``, ICT yaw applied), render an orbit of ``orbit``
-    frames over the probe, and — for a simulated model — compare ``eval_views`` relit
-    views with Mitsuba's render. Returns ``{"gif", "sheet", "views_sheet", "eval"...}``
-    with the paths to show the user."""
+    frames over the probe. Returns ``{"gif", "sheet", "views_sheet", ...}`` with the
+    paths to show the user (the comparison with Mitsuba is
+    :func:`opacityhull.evaluate.runner.demo_relight_eval`)."""
     out = Path(out_dir)
     s = relight_model(model_dir, out=out, envmap=builtin_envmap(probe), orbit=orbit, progress=progress)
     res = {
@@ -300,12 +299,4 @@ def demo_step(
         "relit_views_per_s": s["relit_views_per_s"],
         "orbit_s": s["orbit"]["total_s"],
     }
-    if eval_views:
-        from .evaluate import eval_relight
-
-        try:
-            e = eval_relight(model_dir, envmap=builtin_envmap(probe), out=out / "eval", max_views=eval_views, spp=32)
-            res["eval"] = {"rel_err_mean": e["rel_err_mean"], "psnr_mean": e["psnr_mean"], "sheet": e["sheet"]}
-        except InputError as err:  # not a simulated model: nothing to compare with
-            res["eval"] = {"skipped": str(err)}
     return res

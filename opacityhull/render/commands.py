@@ -1,5 +1,5 @@
 """CLI commands of `opacityhull.render` (registered by :mod:`opacityhull.cli`):
-``opacityhull render`` and ``opacityhull eval loo``."""
+``opacityhull render`` (``eval loo`` is :mod:`opacityhull.evaluate.commands`)."""
 
 from __future__ import annotations
 
@@ -17,11 +17,10 @@ from ..cliutil import (
     console,
     emit,
     progress,
-    step_progress,
     writing_to,
 )
 from ..errors import InputError
-from .config import RenderConfig, Shading, Twins
+from .config import RenderConfig, Shading
 
 _D = RenderConfig()
 
@@ -59,7 +58,6 @@ _RENDER_OPTIONS = {
 MAX_RENDER_PIXELS = 8192 * 8192
 
 BACKGROUND_KINDS = ("auto", "image", "envmap")
-HOLDOUTS = ("blend", "geometry", "both")
 
 _OUT_HELP = "Output image: X.png or X.exr (orbits write X_000.png ... and X.gif)."
 _VIEW_HELP = (
@@ -90,30 +88,9 @@ _BUDGET_HELP = (
 )
 _JSON_HELP = "Print a JSON summary (frames, paths, ms per frame) on stdout."
 
-_LOO_VIEWS_HELP = "all (default) | every:N | camera:C | comma list of view ids or indices."
-_LOO_OUT_HELP = (
-    "Folder for loo.json and loo_sheet.png (default "
-    "./MODELNAME_loo in the current folder: an evaluation never writes into "
-    "the model)."
-)
-_TWINS_HELP = (
-    "together: hold out a view's coincident twins (the same viewpoint photographed again) with it | "
-    "keep: leave them in the model (a plain leave-one-out script's protocol; the twin's score is no novel view)."
-)
-_HOLDOUT_HELP = (
-    "blend: leave the view out of the ULR blend only | geometry: also rebuild "
-    "hull, surfels and visibility without it (honest, slower) | both."
-)
-_LOO_JSON_HELP = "Print {views, psnr_mean, ssim_mean, alpha_mae, per_view} on stdout."
-
-
 _SCHEDULER_HELP = (
     "Where per-view work runs: serial | threads | processes | tcp://HOST:PORT (a dask scheduler; "
     "see docs/distributed.md)."
-)
-_LOO_SCHEDULER = scheduler_options(
-    _SCHEDULER_HELP + " With --holdout geometry|both the geometry rebuilds (the costly part) run there; "
-    "the renders run here."
 )
 
 
@@ -176,7 +153,7 @@ def check_render_args(
 
 
 def register(app, groups) -> None:
-    """Add ``render`` to the root app and ``loo`` to the ``eval`` group."""
+    """Add ``render`` to the root app."""
 
     @app.command("render")
     @cli_errors
@@ -272,87 +249,5 @@ def register(app, groups) -> None:
             c.print(f"  {s['paths'][0]}" + (f" ... {s['paths'][-1]}" if len(s["paths"]) > 1 else ""))
             if "gif" in s:
                 c.print(f"  animation: {s['gif']}")
-
-        emit(summary, json_out, human)
-
-    @groups["eval"].command("loo")
-    @cli_errors
-    @option_group(_RENDER_OPTIONS, into="render_options", before="out")
-    @option_group(_LOO_SCHEDULER, into="executor", before="json_out")
-    def loo_cmd(
-        model: Annotated[Path, typer.Argument(help="Model folder.")],
-        views: Annotated[Optional[str], typer.Option("--views", help=_LOO_VIEWS_HELP)] = None,
-        out: Annotated[Optional[Path], typer.Option("--out", help=_LOO_OUT_HELP)] = None,
-        holdout: Annotated[str, typer.Option("--holdout", help=_HOLDOUT_HELP)] = "blend",
-        twins: Annotated[str, typer.Option("--twins", help=_TWINS_HELP)] = "together",
-        json_out: Annotated[bool, typer.Option("--json", help=_LOO_JSON_HELP)] = False,
-        *,
-        render_options: dict,
-        executor: dict,
-    ):
-        """Leave-one-out: render each chosen captured view without blending it, compare with its photograph
-        (PSNR, SSIM, alpha MAE inside the union of the masks), and write a contact sheet photo | render | error."""
-        from .evaluate import select_views  # noqa: F401  (fail fast on import errors)
-        from .runner import run_loo
-
-        open_model_arg(model)
-        if out is None:
-            # not MODEL/pictures: a model is an input here (it may be shared or read-only)
-            out = Path(f"{model.resolve().name}_loo")
-        cfg = _config(**render_options)
-        check_choice("--holdout", holdout, HOLDOUTS)
-        twins_mode = check_choice("--twins", twins, get_args(Twins))
-        from ..executor import open_executor, parse_scheduler
-
-        if parse_scheduler(executor["scheduler"]).kind != "serial" and holdout == "blend":
-            raise InputError(
-                f"--scheduler {executor['scheduler']}: with --holdout blend there is no per-view rebuild to "
-                "distribute (the renders run in this process); use --holdout geometry|both, or "
-                "--scheduler serial"
-            )
-        with open_executor(**executor) as ex, step_progress("leave-one-out") as (on_step, cb):
-            if holdout == "blend":
-                on_step("blend holdout")
-                summary = run_loo(model, views=views, config=cfg, twins=twins_mode, out=out, progress=cb)
-            else:
-                # the CLI composes stages: the geometry holdout rebuilds the hull (reconstruct)
-                from ..reconstruct.holdout import run_loo_holdouts
-
-                summary = run_loo_holdouts(
-                    model,
-                    views=views,
-                    config=cfg,
-                    holdout=holdout,
-                    twins=twins_mode,
-                    out=out,
-                    progress=cb,
-                    executor=ex,
-                    on_step=on_step,
-                )
-            summary["scheduler"] = ex.scheduler
-
-        def human(s):
-            c = console()
-            for kind, h in (s.get("holdouts") or {s.get("holdout", "blend"): s}).items():
-                c.print(
-                    f"leave-one-out ({kind} holdout) over {len(s['views'])} views: PSNR {h['psnr_mean']:.2f} dB "
-                    f"(interior {h['psnr_interior_mean']:.2f}, band {h['psnr_band_mean']:.2f}), "
-                    f"SSIM {h['ssim_mean']:.4f}, alpha MAE {h['alpha_mae']:.4f}, coverage IoU "
-                    f"{h['coverage_iou_mean']:.4f}, interior alpha deficit {h['interior_alpha_deficit_mean']:.4f} "
-                    f"({h['ms_per_view']:.0f} ms/view)",
-                    markup=False,
-                )
-                if any(p.get("shadow_holes_px") for p in s.get("per_view", ())):
-                    c.print(
-                        f"  against the masks with the shadow holes the build filled: PSNR "
-                        f"{h['psnr_holes_filled_mean']:.2f} dB, coverage IoU {h['coverage_iou_holes_filled_mean']:.4f}",
-                        markup=False,
-                    )
-            for g in s.get("coincident_views") or ():
-                how = "held out together" if s.get("twins") == "together" else "kept in (--twins keep)"
-                c.print(f"  coincident views {' = '.join(g)}: {how}", markup=False)
-            if "sheet" in s:
-                c.print(f"  contact sheet: {s['sheet']}")
-            c.print(f"  details: {s['json']}")
 
         emit(summary, json_out, human)

@@ -18,7 +18,6 @@ from ..imageio import write_exr, write_png
 from ..model import OpacityHullModel, Surfels
 from .background import EnvMap, fit_image, load_background
 from .cameras import captured_view_camera, look_at_camera, mean_fov_y_deg, orbit_cameras, resize_camera, scene_target
-from .config import Twins
 from .renderer import RenderConfig, RenderResult, model_surfels, prepare_model_views, render_image
 
 __all__ = [
@@ -27,7 +26,6 @@ __all__ = [
     "LodCuts",
     "render_frames",
     "run_render",
-    "run_loo",
     "run_demo_step",
     "write_frame",
 ]
@@ -439,56 +437,21 @@ def run_render(
     return summary
 
 
-def run_loo(
-    model_path,
-    *,
-    views=None,
-    config: RenderConfig = RenderConfig(),
-    twins: Twins = "together",
-    out=None,
-    progress: Callable[[int, int], None] | None = None,
-) -> dict:
-    """Leave-one-out evaluation of a model folder; writes ``loo.json`` and
-    ``loo_sheet.png`` to ``out`` (default ``MODEL/pictures``). ``twins``: see
-    :func:`~opacityhull.render.evaluate.leave_one_out`."""
-    import json
-
-    from ..cliutil import to_jsonable
-    from ..imageio import atomic_path
-    from .evaluate import leave_one_out, select_views
-
-    model = OpacityHullModel.open(model_path)
-    idx = select_views(model, views)
-    out = Path(out) if out is not None else Path(model_path) / "pictures"
-    summary = leave_one_out(
-        model, views=idx, config=config, twins=twins, sheet_path=out / "loo_sheet.png", progress=progress
-    )
-    with atomic_path(out / "loo.json") as tmp:
-        tmp.write_text(json.dumps(to_jsonable(summary), indent=1))
-    summary["json"] = str(out / "loo.json")
-    return summary
-
-
 def run_demo_step(
     model_path,
     out,
     *,
     frames: int = 24,
-    loo_views: str | None = "every:2",
     background: str = "grey",
     progress: Callable[[int, int], None] | None = None,
 ) -> dict:
     """The renderer's part of ``opacityhull demo``: an orbit of the model (PNG frames +
-    GIF) and a leave-one-out evaluation (JSON + contact sheet) under ``out``. Returns a
-    summary with the paths, ready for the demo's report."""
+    GIF) under ``out``. Returns a summary with the paths, ready for the demo's report
+    (the demo's leave-one-out score is :func:`opacityhull.evaluate.runner.demo_loo`)."""
     out = Path(out)
     orbit = run_render(model_path, out / "orbit" / "orbit.png", orbit=frames, background=background, progress=progress)
-    loo = run_loo(model_path, views=loo_views, out=out)
     return {
         "orbit_gif": orbit.get("gif"),
         "orbit_frames": orbit["paths"],
         "ms_per_frame": orbit["ms_per_frame"],
-        "loo": {k: loo[k] for k in ("psnr_mean", "ssim_mean", "alpha_mae", "ms_per_view")},
-        "loo_sheet": loo.get("sheet"),
-        "loo_json": loo["json"],
     }

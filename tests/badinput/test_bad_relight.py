@@ -3,6 +3,8 @@ written."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -40,8 +42,10 @@ def test_bad_relight_input(case, relight_model_dir, tmp_path):
     run_case(case, inputs={"M": relight_model_dir}, tmp_path=tmp_path)
 
 
-def test_eval_relight_default_out_is_outside_the_model_and_old_yaw_flag_works(relight_model_dir, tmp_path, monkeypatch):
-    import opacityhull.relight.evaluate as ev
+def test_eval_relight_default_out_is_model_eval_relight_and_old_yaw_flag_works(
+    relight_model_dir, tmp_path, monkeypatch
+):
+    import opacityhull.evaluate.relight as ev
 
     got = {}
 
@@ -57,7 +61,7 @@ def test_eval_relight_default_out_is_outside_the_model_and_old_yaw_flag_works(re
 
     # the command loads the map turned by the old flag's yaw and hands the runner the map itself
     np.testing.assert_array_equal(got["envmap"].radiance, load_envmap("builtin:grace", yaw_deg=33.0).radiance)
-    assert str(got["out"]) == f"{relight_model_dir.name}_eval_relight"  # in the current folder, not the model's
+    assert Path(got["out"]) == Path(relight_model_dir) / "eval" / "relight"  # beside the model's own pictures
     r = invoke(["eval", "relight", relight_model_dir, "--envmap", "builtin:grace", "--env-yaw-deg", "12", "--json"])
     assert r.exit_code == 0
     np.testing.assert_array_equal(got["envmap"].radiance, load_envmap("builtin:grace", yaw_deg=12.0).radiance)
@@ -66,7 +70,7 @@ def test_eval_relight_default_out_is_outside_the_model_and_old_yaw_flag_works(re
 def test_eval_relight_warns_when_few_lights_were_captured(relight_model_dir, tmp_path, monkeypatch):
     import json
 
-    import opacityhull.relight.evaluate as ev
+    import opacityhull.evaluate.relight as ev
     from badkit import flat
 
     def fake(model, **kw):

@@ -66,7 +66,9 @@ def test_old_flag_names_still_work_and_are_hidden(model_dir, tmp_path):
     assert "--yaw-deg " not in h.stdout and "--exclude " not in h.stdout
 
 
-def test_eval_loo_writes_outside_the_model_by_default(model_dir, tmp_path, monkeypatch):
+def test_eval_loo_writes_under_the_model_by_default_and_names_the_holdout_on_the_sheet(
+    model_dir, tmp_path, monkeypatch
+):
     import shutil
 
     from badkit import tree_digest
@@ -79,5 +81,15 @@ def test_eval_loo_writes_outside_the_model_by_default(model_dir, tmp_path, monke
     monkeypatch.chdir(work)
     r = invoke(["eval", "loo", m, "--views", "0", "--json"])
     assert r.exit_code == 0, r.output
-    assert (work / "mymodel_loo" / "loo.json").is_file()
-    assert tree_digest(m) == before  # nothing written into the model
+    assert (m / "eval" / "loo" / "loo.json").is_file() and not any(work.iterdir())
+    after = {k: v for k, v in tree_digest(m).items() if not k.startswith("eval/")}
+    assert after == before  # nothing of the model itself touched
+    # the sheet's render column names the holdout mode
+    import numpy as np
+
+    from opacityhull.evaluate.loo import contact_sheet
+
+    rgba = np.zeros((8, 8, 4), np.float32)
+    plain = contact_sheet([("v", rgba, rgba, "")], tmp_path / "a.png")
+    named = contact_sheet([("v", rgba, rgba, "")], tmp_path / "b.png", holdout="geometry")
+    assert plain.read_bytes() != named.read_bytes()

@@ -2,7 +2,7 @@
 capture (``[phases.natural]`` through the real display driver and the emulators,
 Mitsuba rendering), build (simulator's true cameras), estimation
 (``reconstruct/natural_field.py``), relighting, and the paper's three tests against
-Mitsuba (``relight/natural_eval.py``):
+Mitsuba (``evaluate/natural.py``):
 
 (a) held-out natural images never used in the estimate, per pixel;
 (b) the moving white bar (1/8 of the back display's width, 16 positions);
@@ -67,8 +67,8 @@ def glass():
 
 
 def _view(glass, i=0):
-    from opacityhull.relight import natural as nt
-    from opacityhull.relight import natural_eval as ne
+    from opacityhull.reconstruct import natural as nt
+    from opacityhull.evaluate import natural as ne
 
     sess, model, out, rep = glass
     rig = ne.sim_rig_for_session(sess)
@@ -80,8 +80,8 @@ def _view(glass, i=0):
 
 
 def _psnr_of(rig, v, f, mask, pat):
-    from opacityhull.relight import natural as nt
-    from opacityhull.relight import natural_eval as ne
+    from opacityhull.reconstruct import natural as nt
+    from opacityhull.evaluate import natural as ne
 
     back = rig.geometry.display("back")
     tru = ne.render_display_image(rig, v.camera_index, v.table_deg, "back", pat, seed=3)
@@ -97,7 +97,7 @@ def test_fields_written_and_reported(glass):
 
 
 def test_a_held_out_natural_images(glass):
-    from opacityhull.relight import natural_eval as ne
+    from opacityhull.evaluate import natural as ne
 
     rig, v, f, mask = _view(glass)
     psnr = [_psnr_of(rig, v, f, mask, p) for p in ne.held_out_images(rig.geometry.display("back"), 4)]
@@ -106,7 +106,7 @@ def test_a_held_out_natural_images(glass):
 
 
 def test_b_moving_white_bar(glass):
-    from opacityhull.relight import natural_eval as ne
+    from opacityhull.evaluate import natural as ne
 
     rig, v, f, mask = _view(glass)
     psnr = [_psnr_of(rig, v, f, mask, p) for p in ne.bar_patterns(rig.geometry.display("back"), 16)]
@@ -117,8 +117,8 @@ def test_b_moving_white_bar(glass):
 def test_c_new_viewpoint_under_an_envmap(glass):
     from opacityhull.render import prepare_views, render_image
     from opacityhull.render.renderer import model_surfels
-    from opacityhull.relight import natural as nt
-    from opacityhull.relight import natural_eval as ne
+    from opacityhull.reconstruct import natural as nt
+    from opacityhull.evaluate import natural as ne
     from opacityhull.relight.envmap import default_yaw_deg, load_envmap
     from opacityhull.riggeometry import RigGeometry
 

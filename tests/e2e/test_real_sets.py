@@ -127,7 +127,7 @@ def test_shadow_holes_are_filled_in_the_views_and_the_evaluation_keeps_the_mask(
 
 
 def test_real_loo_both_holdouts(real_model):
-    from opacityhull.reconstruct.holdout import run_loo_holdouts
+    from opacityhull.evaluate.holdout import run_loo_holdouts
 
     name, tmp, _ = real_model
     s = run_loo_holdouts(tmp / "model", views="every:4", holdout="both", out=tmp / "loo")
@@ -166,7 +166,7 @@ def test_geometry_holdout_of_a_refined_build(tmp_path):
     from opacityhull.acquire.importers import import_colmap
     from opacityhull.model import OpacityHullModel
     from opacityhull.reconstruct.build import BuildConfig, build_model
-    from opacityhull.reconstruct.holdout import build_config_of, geometry_without
+    from opacityhull.evaluate.holdout import build_config_of, geometry_without
 
     src = DATA / "templeSR"
     import_colmap(src / "sparse", src / "images", tmp_path / "s", masks_dir=src / "masks")

@@ -74,7 +74,7 @@ def test_build_through_a_scheduler_equals_the_serial_build_bit_for_bit(
 
 
 def test_geometry_holdout_through_the_cluster_equals_serial(cluster, serial_model, tmp_path):
-    from opacityhull.reconstruct.holdout import run_loo_holdouts
+    from opacityhull.evaluate.holdout import run_loo_holdouts
 
     a = run_loo_holdouts(serial_model, views="every:3", holdout="geometry", out=tmp_path / "serial")
     with open_executor(cluster) as ex:

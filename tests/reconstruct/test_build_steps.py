@@ -15,7 +15,7 @@ import pytest
 import rcsynth
 from opacityhull.errors import FormatError
 from opacityhull.model import OpacityHullModel
-from opacityhull.reconstruct import build as build_mod
+from opacityhull.reconstruct.steps import write as build_mod  # the write step calls write_model
 from opacityhull.reconstruct.build import BuildConfig, build_model
 
 CFG = BuildConfig(hull_res=32, pictures=False)

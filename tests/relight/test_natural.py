@@ -1,4 +1,4 @@
-"""Reflectance fields from natural illumination (opacityhull.relight.natural).
+"""Reflectance fields from natural illumination (opacityhull.reconstruct.natural).
 
 Ground truth is synthetic transport (opacityhull.relight.natural_synthetic): rows made
 of quad-tree-aligned boxes (exactly representable) and smooth lobes (diffuse, glossy,
@@ -22,7 +22,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from opacityhull.errors import FormatError, InputError, ShapeError
-from opacityhull.relight import natural as nt
+from opacityhull.reconstruct import natural as nt
 from opacityhull.relight import natural_synthetic as ns
 
 H = W = 32

@@ -53,7 +53,7 @@ def glass_model():
 
 def test_eval_relight_adds_the_display_part_to_relit_and_truth(glass_model, tmp_path):
     from opacityhull.relight.envmap import default_yaw_deg, load_envmap
-    from opacityhull.relight.evaluate import eval_relight
+    from opacityhull.evaluate.relight import eval_relight
 
     env = load_envmap("builtin:uffizi", yaw_deg=default_yaw_deg("builtin:uffizi"))
     s = eval_relight(glass_model, envmap=env, out=tmp_path / "e", spp=16, write_images=False)
@@ -74,10 +74,10 @@ def test_relit_part_and_truth_use_one_mapping(glass_model):
     same way: the field matches its own truth far better than the truth of the map
     turned upside down."""
     from opacityhull.model import OpacityHullModel
-    from opacityhull.relight import natural_eval as ne
+    from opacityhull.evaluate import natural as ne
     from opacityhull.relight.envmap import EnvironmentMap, default_yaw_deg, load_envmap
-    from opacityhull.relight.evaluate import find_scene
-    from opacityhull.relight.natural import natural_centre_m
+    from opacityhull.evaluate.relight import find_scene
+    from opacityhull.relight.natural_views import natural_centre_m
 
     model = OpacityHullModel.open(glass_model)
     _, (spec, sess) = find_scene(model)

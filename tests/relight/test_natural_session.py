@@ -1,5 +1,5 @@
 """The natural-illumination build step (reconstruct/natural_field.py) and environment-map
-relighting of its fields (relight/natural.py), without Mitsuba.
+relighting of its fields (reconstruct/natural.py, relight/natural_views.py), without Mitsuba.
 
 A stand-in session holds the display patterns of a plan's natural phase and photographs
 made by synthetic transport (``natural_synthetic``): the true transport is known, so
@@ -18,7 +18,7 @@ from opacityhull.acquire.patterns import plan_patterns
 from opacityhull.acquire.plan import parse_plan
 from opacityhull.errors import InputError
 from opacityhull.reconstruct.natural_field import estimate_session_natural
-from opacityhull.relight import natural as nt
+from opacityhull.reconstruct import natural as nt
 from opacityhull.relight import natural_synthetic as ns
 from opacityhull.relight.envmap import EnvironmentMap
 from opacityhull.riggeometry import RigGeometry, back_display, bottom_display
@@ -241,7 +241,7 @@ def test_envmap_display_layers_reconstruct_the_display_image():
     """The layers the eval truth renders sum (as emitted radiance x to_env) to the image
     relight feeds the field, to 1/2 of 255^-2 of the peak; one 8-bit layer loses the dim
     part of a map with a bright lamp in the display's solid angle."""
-    from opacityhull.relight.natural_eval import envmap_display_layers
+    from opacityhull.evaluate.natural import envmap_display_layers
 
     geo = RigGeometry.from_dict(GEO)
     back = geo.display("back")

@@ -114,7 +114,7 @@ def test_eval_relight_refuses_a_model_of_a_real_rig(sphere_model, tmp_path, prob
 
 
 def test_metrics_and_scene_lookup():
-    from opacityhull.relight.evaluate import _scene_of, relight_metrics
+    from opacityhull.evaluate.relight import _scene_of, relight_metrics
 
     a = np.ones((4, 5, 3), np.float32)
     m = np.zeros((4, 5), bool)

@@ -335,7 +335,7 @@ def test_real_temple_pixel_shading_beats_surfel_shading(temple_model):
     dilation put hull points 1–2 px outside the neighbouring views' masks, and many
     surfels have no visible view (29 % at hull-res 384)."""
     from opacityhull.model import OpacityHullModel
-    from opacityhull.render.evaluate import leave_one_out
+    from opacityhull.evaluate.loo import leave_one_out
     from opacityhull.render.renderer import prepare_model_views
 
     m = OpacityHullModel.open(temple_model)

@@ -9,7 +9,7 @@ import pytest
 
 from opacityhull.errors import InputError
 from opacityhull.model import OpacityHullModel
-from opacityhull.render.evaluate import leave_one_out, loo_metrics, select_views
+from opacityhull.evaluate.loo import leave_one_out, loo_metrics, select_views
 from opacityhull.render.renderer import RenderConfig, prepare_model_views
 from opacityhull.render.synthetic import write_sphere_model
 

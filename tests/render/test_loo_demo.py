@@ -38,7 +38,7 @@ import pytest
 
 import simcache
 from opacityhull.model import OpacityHullModel
-from opacityhull.render.evaluate import leave_one_out
+from opacityhull.evaluate.loo import leave_one_out
 from opacityhull.render.renderer import RenderConfig, prepare_model_views
 
 pytestmark = pytest.mark.slow

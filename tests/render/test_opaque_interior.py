@@ -10,7 +10,7 @@ from scipy import ndimage
 
 from opacityhull.camera import look_at_world_from_cam
 from opacityhull.errors import InputError
-from opacityhull.render.evaluate import region_masks
+from opacityhull.evaluate.loo import region_masks
 from opacityhull.render.renderer import RenderConfig, dilated_matte_views, hull_interior, render_image
 from opacityhull.render.synthetic import make_sphere_model
 from opacityhull.render.views import prepare_views

@@ -28,7 +28,7 @@ from opacityhull.render.cameras import (
     resize_camera,
     scene_target,
 )
-from opacityhull.render.evaluate import _display, loo_metrics
+from opacityhull.evaluate.loo import _display, loo_metrics
 from opacityhull.render.renderer import RenderConfig, render_image, spatially_sorted
 from opacityhull.render.synthetic import make_sphere_model
 from opacityhull.render.views import prepare_views

@@ -31,10 +31,10 @@ from __future__ import annotations
 
 from ...se3 import rodrigues as _rodrigues  # noqa: F401  (benchmarks/calibration.py imports it)
 from ...se3 import rotation_angle_deg
+from .axis import estimate_turntable_axis
 from .calibrate import calibrate_observations, calibrate_session
 from .config import CalibrationConfig, CalibrationError, ProgressCallback
 from .detect import CharucoObservation, detect_charuco, screen_observation, tonemap_for_detection
-from .axis import estimate_turntable_axis
 from .evaluate import pose_errors, render_charuco_view
 from .result import CalibrationResult, view_cameras
 

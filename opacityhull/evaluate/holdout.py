@@ -24,8 +24,8 @@ import numpy as np
 from ..errors import FormatError, InputError
 from ..model import OpacityHullModel, Surfels
 from ..render.config import Twins
-from .build import BuildConfig, build_geometry, default_dilate_base_px
-from .matting import MattingOptions
+from ..reconstruct.build import BuildConfig, build_geometry, default_dilate_base_px
+from ..reconstruct.matting import MattingOptions
 
 __all__ = ["build_config_of", "geometry_without", "rebuild_without", "run_loo_holdouts"]
 
@@ -193,7 +193,7 @@ def run_loo_holdouts(
     on_step: Callable[[str], None] | None = None,
 ) -> dict:
     """``eval loo`` with ``--holdout blend|geometry|both``: the render stage's
-    leave-one-out (:func:`opacityhull.render.evaluate.leave_one_out`) with the geometry
+    leave-one-out (:func:`opacityhull.evaluate.loo.leave_one_out`) with the geometry
     rebuilt here. ``both`` reports both; the top-level figures are the geometry
     holdout's (the honest one). ``twins``: a view's coincident twins are held out with
     it (``"together"``) or stay in the model (``"keep"``), see :func:`leave_one_out`.
@@ -207,7 +207,8 @@ def run_loo_holdouts(
     ``progress(done, total)`` counts that holdout's views."""
     from ..cliutil import to_jsonable
     from ..imageio import atomic_path
-    from ..render.evaluate import held_out_groups, leave_one_out, select_views
+    from .loo import held_out_groups, leave_one_out, select_views
+    from .runner import default_out
     from ..render.renderer import RenderConfig, prepare_model_views
 
     if holdout not in ("blend", "geometry", "both"):
@@ -215,7 +216,7 @@ def run_loo_holdouts(
     model = OpacityHullModel.open(model_path)
     idx = select_views(model, views)
     config = config or RenderConfig()
-    out = Path(out) if out is not None else Path(model_path) / "pictures"
+    out = Path(out) if out is not None else default_out(model_path, "loo")
     pv = prepare_model_views(model)
     results = {}
     kinds: list[Literal["blend", "geometry"]] = (

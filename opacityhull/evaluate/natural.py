@@ -5,18 +5,18 @@ table angle a):
 
 * (a) **held-out natural images** — images the estimate never saw (other seeds),
   shown on one display: the simulator's render of the view vs
-  :func:`~opacityhull.relight.natural.relight_natural`, per pixel;
+  :func:`~opacityhull.reconstruct.natural.relight_natural`, per pixel;
 * (b) **the moving white bar** — 1/8 of the display's width on black, swept across
   it in ``n_positions`` steps: the error per position;
 * (c) **an environment map** — the relit view
-  (:func:`~opacityhull.relight.natural.relight_view_natural`) vs Mitsuba's render of the
+  (:func:`~opacityhull.reconstruct.natural.relight_view_natural`) vs Mitsuba's render of the
   object under the same map *restricted to the displays' solid angles* (seen from the
   object centre) with the panels removed: that is the light a display-domain field can
   reproduce, so the difference measures the estimate and the distant-light mapping
   (parallax over the object's size), not the missing rest of the sphere.
 
 Metrics over a mask (default: the field's pixels): PSNR with the truth's peak in the
-mask (``relight.metrics.relight_metrics``), relative L2 error.
+mask (``evaluate.metrics.relight_metrics``), relative L2 error.
 """
 
 from __future__ import annotations
@@ -83,7 +83,7 @@ def held_out_images(display, n: int, *, seed: int = 987_654) -> list[np.ndarray]
 def bar_patterns(display, n_positions: int = 16, *, bar_fraction: float = 0.125) -> list[np.ndarray]:
     """The moving white bar: uint8 patterns, a vertical white bar ``bar_fraction`` of the
     display's width on black at ``n_positions`` evenly spaced positions."""
-    from .natural_synthetic import white_bar
+    from ..relight.natural_synthetic import white_bar
 
     w, h = display.resolution
     return [
@@ -95,8 +95,8 @@ def bar_patterns(display, n_positions: int = 16, *, bar_fraction: float = 0.125)
 def masked_envmap(envmap, geometry, table_deg: float, *, centre_m, displays: Sequence[str] | None = None):
     """``envmap`` with every direction that misses the displays (from ``centre_m``,
     object frame at ``table_deg``) set to 0: what a display-domain field can reproduce."""
-    from .envmap import EnvironmentMap
-    from .natural import display_hit_mask
+    from ..relight.envmap import EnvironmentMap
+    from ..reconstruct.natural import display_hit_mask
 
     dirs = envmap.directions()
     hit = np.zeros(dirs.shape[:2], bool)
@@ -120,7 +120,7 @@ def envmap_display_layers(
 ) -> list[tuple[np.ndarray, float]]:
     """What a display shows to stand in for ``envmap`` over its solid angle, as 8-bit
     layers: ``[(pattern uint8 (rows, cols, 3), to_env), ...]`` whose emitted radiance,
-    each times its ``to_env``, sums to :func:`~opacityhull.relight.natural.envmap_display_image`
+    each times its ``to_env``, sums to :func:`~opacityhull.reconstruct.natural.envmap_display_image`
     to within 1/2 of the last layer's step (255^-layers of the peak).
 
     One 8-bit image scaled to its peak loses everything below 1/255 of a bright probe's
@@ -128,7 +128,7 @@ def envmap_display_layers(
     truth would then score quantisation. Light transport is linear, so the truth renders
     each layer and sums (the first layer floors, the residual goes to the next, scaled
     by 255; the last rounds). An all-black solid angle gives no layer."""
-    from .natural import envmap_display_image
+    from ..reconstruct.natural import envmap_display_image
 
     if layers < 1:
         raise InputError(f"layers must be >= 1, got {layers}")
@@ -165,7 +165,7 @@ def render_envmap_on_displays(
     ``table_deg`` with each display in ``displays`` showing ``envmap`` over its solid
     angle (:func:`envmap_display_layers`) and the others black: the display-lit half of
     the truth of a relit view, which the display-domain field reproduces (relight adds
-    :func:`~opacityhull.relight.natural.relight_view_natural` with the same mapping).
+    :func:`~opacityhull.reconstruct.natural.relight_view_natural` with the same mapping).
 
     Each display (and each 8-bit layer) is rendered alone and the results summed (light
     transport is linear): that is also how the field was captured, one illumination
@@ -188,7 +188,7 @@ def render_envmap_on_displays(
 def natural_part_of_view(model, index: int, envmap, *, centre_m, supersample: int = 3) -> np.ndarray | None:
     """The display-domain part of captured view ``index`` under ``envmap`` (premultiplied
     float32 (H, W, 3)), exactly as ``relight`` adds it; None without fields."""
-    from .natural import load_view_fields, relight_view_natural
+    from ..reconstruct.natural import load_view_fields, relight_view_natural
 
     v = model.views[index]
     fields = load_view_fields(model.root, v.id)

@@ -37,8 +37,8 @@ import numpy as np
 from ..errors import InputError
 from ..imageio import srgb_encode
 from ..model import BUILD_DIR, FILLED_HOLES, OpacityHullModel, Surfels, read_hole_masks
-from .config import Twins
-from .renderer import RenderConfig, model_surfels, prepare_model_views, render_image
+from ..render.config import Twins
+from ..render.renderer import RenderConfig, model_surfels, prepare_model_views, render_image
 
 __all__ = [
     "loo_metrics",
@@ -238,11 +238,14 @@ def contact_sheet(
     error_scale: float = 4.0,
     background=(0.5, 0.5, 0.5),
     max_width: int = 1800,
+    holdout: str | None = None,
 ) -> Path:
     """Write a PNG with one row per view: photograph | rendering | error, colour over a
     grey backdrop; the error panel is mean |Δ| of the displayed colour plus |Δα| in the
     inferno colour map, saturating at ``1 / error_scale`` (the colour bar says so).
-    ``rows`` are (label, photo, render, note); rows wider than ``max_width`` px shrink."""
+    ``rows`` are (label, photo, render, note); rows wider than ``max_width`` px shrink.
+    ``holdout`` names what was held out in the rendering column's header (``"blend"`` →
+    "render, blend holdout"), so the sheet says which protocol it shows."""
     from ..pictures import ColorBar, contact_sheet as sheet, encoded_to_u8, heat, write_sheet
 
     tiles, labels = [], []
@@ -258,7 +261,7 @@ def contact_sheet(
         tiles,
         columns=3,
         labels=labels,
-        headers=["photo", "render", f"error x{error_scale:g}"],
+        headers=["photo", "render" if holdout is None else f"render, {holdout} holdout", f"error x{error_scale:g}"],
         colorbar=ColorBar(cmap="inferno", vmin=0.0, vmax=1.0 / error_scale, label="mean |d sRGB| + |d alpha|"),
         min_width=128,
         max_width=max(1, max_width // 3),
@@ -335,7 +338,7 @@ def leave_one_out(
     renders surfels whose hull and visibility were rebuilt without it
     (``geometry_without(held)`` returns them for the tuple of held-out views, visibility
     over all V views with their bits clear: the reconstruct stage provides it, see
-    :func:`opacityhull.reconstruct.holdout.geometry_without`). ``twins``
+    :func:`opacityhull.evaluate.holdout.geometry_without`). ``twins``
     (:func:`held_out_groups`): with ``"together"`` (default) a view's coincident twins
     are held out with it, from the blend and from the rebuilt geometry, and
     ``per_view[...]["held_out_with"]`` names them; ``"keep"`` leaves them in. The
@@ -467,5 +470,5 @@ def leave_one_out(
     if build_ms:
         summary["rebuild_ms_per_view"] = float(np.mean(build_ms))
     if sheet_path is not None and rows:
-        summary["sheet"] = str(contact_sheet(rows, sheet_path))
+        summary["sheet"] = str(contact_sheet(rows, sheet_path, holdout=holdout))
     return summary

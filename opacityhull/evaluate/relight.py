@@ -11,8 +11,8 @@ light-array part plus the display-domain part — and its truth adds, to that re
 Mitsuba's render of each field's display showing the environment map over the
 display's solid angle as the object centre sees it (as two 8-bit layers rendered and
 summed, so a bright probe's dim part is not lost to quantisation:
-:func:`~opacityhull.relight.natural_eval.render_envmap_on_displays`), the same mapping
-relight uses (:func:`~opacityhull.relight.natural.envmap_display_image`). The analytic sphere of
+:func:`~opacityhull.evaluate.natural.render_envmap_on_displays`), the same mapping
+relight uses (:func:`~opacityhull.reconstruct.natural.envmap_display_image`). The analytic sphere of
 :mod:`.synthetic` (provenance ``scene = "analytic:lambertian-sphere"``) is evaluated
 against its exact quadrature instead, so the command can be exercised without Mitsuba.
 
@@ -36,9 +36,9 @@ import numpy as np
 from ..errors import FormatError, InputError
 from ..imageio import write_exr
 from ..pictures import auto_exposure, contact_sheet, to_srgb8, write_sheet
-from .envmap import EnvironmentMap
+from ..relight.envmap import EnvironmentMap
 from .metrics import relight_metrics
-from .relit import Relighter, RelightConfig
+from ..relight.relit import Relighter, RelightConfig
 
 __all__ = ["relight_metrics", "find_scene", "eval_relight", "MASK_ALPHA"]
 
@@ -99,7 +99,7 @@ def _truth_renderer(model, kind, ref, *, spp: int) -> Callable:
     """callable(view index, envmap) → ((H, W, 3) premultiplied truth radiance, (H, W)
     true coverage alpha)."""
     if kind == "analytic":
-        from .synthetic import SphereScene, sphere_groundtruth
+        from ..relight.synthetic import SphereScene, sphere_groundtruth
 
         sph = ref.get("sphere", {})
         scene = SphereScene(
@@ -110,7 +110,7 @@ def _truth_renderer(model, kind, ref, *, spp: int) -> Callable:
         )
 
         def analytic_truth(i, env):
-            from .synthetic import sphere_hits
+            from ..relight.synthetic import sphere_hits
 
             _, h = sphere_hits(model.views[i].camera, scene, ss=2)
             return sphere_groundtruth(model.views[i].camera, scene, env, upper_only=True), h.mean(axis=2)
@@ -165,12 +165,12 @@ def _natural_eval(model, kind, ref) -> dict | None:
     nat = model.meta.get("natural", {}) or {}
     if kind != "sim" or not nat.get("present"):
         return None
-    from .natural import natural_centre_m
-    from .natural_eval import natural_part_of_view, render_envmap_on_displays
+    from ..relight.natural_views import natural_centre_m
+    from .natural import natural_part_of_view, render_envmap_on_displays
 
     spec, sess = ref
     if sess is not None:
-        from .natural_eval import sim_rig_for_session
+        from .natural import sim_rig_for_session
 
         rig = sim_rig_for_session(sess)
     else:

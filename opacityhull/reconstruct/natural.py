@@ -98,7 +98,6 @@ __all__ = [
     "estimate_natural",
     "estimate_natural_reference",
     "relight_natural",
-    "natural_centre_m",
     "relight_natural_reference",
     "save_field",
     "field_path",
@@ -109,7 +108,6 @@ __all__ = [
     "envmap_display_image",
     "relight_view_natural",
     "load_view_fields",
-    "relight_model_views_natural",
     "display_hit_mask",
     "FORMAT",
 ]
@@ -1207,46 +1205,6 @@ def load_view_fields(model_root, view_id: str) -> dict:
     if not d.is_dir():
         return {}
     return {p.stem: load_field(p) for p in sorted(d.glob("*.npz"))}
-
-
-def natural_centre_m(model) -> np.ndarray:
-    """The point the display directions are taken from (object frame, metres): the
-    surfels' centroid, or the rig's aim point for a model whose surfels are missing or
-    empty (a corrupt or partial model; its views can still be relit)."""
-    try:
-        from ..render.renderer import model_surfels
-
-        pos = np.asarray(model_surfels(model).positions, np.float64)
-    except (OSError, KeyError, ValueError) as e:  # FormatError/InputError are ValueErrors
-        log.warning("%s: no surfels (%s); display directions from the rig's aim point", model.root, e)
-        pos = np.zeros((0, 3))
-    if pos.size and np.all(np.isfinite(pos)):
-        return pos.mean(axis=0)
-    g = model.geometry
-    return np.asarray(g.target_m if g is not None else (0.0, 0.0, 0.0), np.float64)
-
-
-def relight_model_views_natural(model, envmap, *, centre_m=None, supersample: int = 3) -> list:
-    """Display-domain parts of every captured view of ``model`` under ``envmap``:
-    a list (one per view, model order) of float32 (H, W, 3) premultiplied radiance, or
-    None for a view without natural fields. Add them to the light-array relit views
-    (``rgba[..., :3] += part``) before ULR blending (:func:`~opacityhull.render.render_image`).
-
-    ``centre_m`` (object frame): default the surfels' centroid (the point the display
-    directions are taken from)."""
-    if centre_m is None:
-        centre_m = natural_centre_m(model)
-    g = model.geometry
-    out = []
-    for v in model.views:
-        fields = load_view_fields(model.root, v.id)
-        if not fields:
-            out.append(None)
-            continue
-        if g is None:
-            raise FormatError(f"{model.root / 'model.toml'}: no [rig] table, the displays' geometry is unknown")
-        out.append(relight_view_natural(fields, envmap, g, v.table_deg, centre_m=centre_m, supersample=supersample))
-    return out
 
 
 def display_hit_mask(display, table_deg: float, directions, *, centre_m=(0.0, 0.0, 0.0)) -> np.ndarray:

@@ -1,7 +1,7 @@
 """Image metrics of relighting: relit against true radiance inside a mask.
 
 A leaf module so that the evaluation (:mod:`.evaluate`) and the natural-illumination
-evaluation (:mod:`.natural_eval`) share it without importing each other.
+evaluation (:mod:`.natural`) share it without importing each other.
 """
 
 from __future__ import annotations

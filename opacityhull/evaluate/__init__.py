@@ -1,0 +1,1 @@
+"""Evaluation: held-out views and ground truth, above the stages it judges."""
