@@ -8,6 +8,7 @@ import sys
 from dataclasses import replace
 
 import numpy as np
+import pytest
 import rcsynth
 import simcache
 from hypothesis import HealthCheck, given, settings
@@ -26,6 +27,7 @@ def _build(session, out):
     assert p.returncode == 0, p.stderr[-2000:]
 
 
+@pytest.mark.slow
 def test_two_builds_of_one_session_are_byte_identical(tmp_path):
     """Two builds in separate processes (OpenCV and BLAS thread pools fresh each time):
     calibration YAMLs and surfels.ply byte-identical (before the fix, one calibration in
