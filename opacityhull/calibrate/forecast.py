@@ -144,7 +144,7 @@ def plan_forecast(plan, geometry) -> list[FocalForecast]:
     out: list[FocalForecast] = []
     cams = geometry.nominal_cameras()
     for st in schedule(plan, geometry):
-        if st.scene != "board" or st.charuco is None:
+        if st.scene != "board" or not isinstance(st.charuco, CharucoSpec):
             continue
         by: dict[int, list[float]] = {}
         for sh in st.shots:
