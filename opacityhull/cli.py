@@ -38,6 +38,7 @@ COMMAND_MODULES = (
     "opacityhull.sim.commands",
     "opacityhull.acquire.commands",
     "opacityhull.reconstruct.commands",
+    "opacityhull.calibrate.commands",
     "opacityhull.render.commands",
     "opacityhull.relight.commands",
     "opacityhull.evaluate.commands",

@@ -94,6 +94,14 @@ def rig_static(spec: str):
     return RigGeometry.from_dict(d["geometry"], where=f"{path}: geometry"), d.get("devices", {})
 
 
+def _calibration_forecast(plan, geometry) -> list[str]:
+    """What the plan's calibration views can determine (``calibrate.forecast``): a warning
+    per camera whose focal length (and so its distance) the views leave uncertain by > 1 %."""
+    from ..calibrate.forecast import forecast_warnings, plan_forecast
+
+    return forecast_warnings(plan_forecast(plan, geometry))
+
+
 def _print_estimate(summary: dict) -> None:
     from rich.table import Table
 
@@ -121,6 +129,8 @@ def _print_estimate(summary: dict) -> None:
         f"{est['operator_steps']} manual step(s) {human_seconds(b['operator'])}",
         highlight=False,
     )
+    for w in summary.get("warnings", []):
+        c.print(f"[yellow]warning:[/] {w}", highlight=False, markup=True, soft_wrap=True)
 
 
 @contextmanager
@@ -221,6 +231,7 @@ def register(app, groups) -> None:
                 "rig": rig,
                 "planned_per_phase": expected_counts(stages),
                 "estimate": est.to_dict(),
+                "warnings": _calibration_forecast(the_plan, geometry),
             }
             emit(summary, json_out, _print_estimate)
             return

@@ -15,7 +15,7 @@ from typing import TYPE_CHECKING, Mapping, Sequence
 import numpy as np
 
 from ...camera import Camera, rig_from_object
-from ...charuco import CharucoSpec
+from ...charuco import CharucoSpec, single_threaded_solvers
 from ...errors import FormatError, InputError
 from ...riggeometry import RigGeometry, view_id
 from ...se3 import invert_rigid, mean_pose, rigid, rodrigues
@@ -44,6 +44,24 @@ def _still_calibrated(cams: list[int], uncalibrated: Mapping[int, str]) -> list[
 
 
 def calibrate_observations(
+    observations: Sequence[CharucoObservation],
+    *,
+    image_sizes: Mapping[int, tuple[int, int]] | Sequence[tuple[int, int]],
+    charuco: CharucoSpec,
+    nominal: Sequence[Camera] | None = None,
+    config: CalibrationConfig = CalibrationConfig(),
+    dropped: Mapping[str, str] | None = None,
+) -> CalibrationResult:
+    """Calibrate the rig from ChArUco detections, bit-reproducibly (OpenCV and BLAS at one
+    thread: :func:`opacityhull.charuco.single_threaded_solvers`); see
+    :func:`_calibrate_observations` for the parameters."""
+    with single_threaded_solvers():
+        return _calibrate_observations(
+            observations, image_sizes=image_sizes, charuco=charuco, nominal=nominal, config=config, dropped=dropped
+        )
+
+
+def _calibrate_observations(
     observations: Sequence[CharucoObservation],
     *,
     image_sizes: Mapping[int, tuple[int, int]] | Sequence[tuple[int, int]],

@@ -1,22 +1,22 @@
 """Step 1 of the calibration: ChArUco corners in linear images, and which views can be used.
 
 Linear float images are tone-mapped to 8 bit (luminance / high percentile, sRGB
-encoding) and searched with OpenCV 5's ``CharucoDetector.detectBoard`` →
-``board.matchImagePoints``. Views with too few corners, or whose corners are (nearly)
+encoding) and searched by the project's one detector, :func:`opacityhull.charuco.detect_board`
+(OpenCV 5's ``CharucoDetector.detectBoard`` → ``board.matchImagePoints``, both print
+polarities and layouts the board spec allows, sub-pixel corners). Views with too few corners, or whose corners are (nearly)
 collinear on the board or in the image, are dropped with the reason recorded (collinear
 corners make ``cv2.calibrateCamera`` assert).
 """
 
 from __future__ import annotations
 
-import functools
 import math
 from dataclasses import dataclass
 from typing import Sequence
 
 import numpy as np
 
-from ...charuco import CharucoSpec
+from ...charuco import CharucoSpec, detect_board
 from ...errors import ShapeError
 from ...riggeometry import view_id
 from .config import CalibrationConfig
@@ -110,14 +110,6 @@ def tonemap_for_detection(image, *, percentile: float = 99.5) -> np.ndarray:
     return np.round(srgb_encode(v) * 255.0).astype(np.uint8)
 
 
-@functools.lru_cache(maxsize=8)
-def _detector(spec: CharucoSpec):
-    import cv2
-
-    board = spec.board()
-    return board, cv2.aruco.CharucoDetector(board)
-
-
 def detect_charuco(
     image,
     *,
@@ -150,8 +142,6 @@ def detect_charuco(
     CharucoObservation
         Corner positions in the original image's pixels; possibly zero corners.
     """
-    import cv2
-
     a = np.asarray(image)
     if a.dtype == np.uint8:
         gray = (
@@ -159,30 +149,8 @@ def detect_charuco(
         )
     else:
         gray = tonemap_for_detection(a, percentile=percentile)
-    gray = np.ascontiguousarray(gray)
-    board, det = _detector(charuco)
-    n_total = (charuco.squares_x - 1) * (charuco.squares_y - 1)
-    best = (None, None, 1)
-    for f in upscale:
-        f = int(f)
-        if f < 1 or (f > 1 and max(gray.shape) * f > max_upscaled_px):
-            continue
-        g = gray if f == 1 else cv2.resize(gray, None, fx=f, fy=f, interpolation=cv2.INTER_CUBIC)
-        corners, ids, _, _ = det.detectBoard(g)
-        n = 0 if ids is None or corners is None else len(ids)
-        if n > (0 if best[1] is None else len(best[1])):
-            best = (corners, ids, f)
-        if n >= n_total:
-            break
-    corners, ids, f = best
-    if ids is None or corners is None or len(ids) == 0:
-        return CharucoObservation(camera, table_deg, np.zeros(0, np.int32), np.zeros((0, 2)), np.zeros((0, 3)))
-    # OpenCV's stub types detectedCorners as a sequence of arrays; the C++ takes the one
-    # (N, 1, 2) array detectBoard returns for ChArUco corners.
-    obj, img = board.matchImagePoints(corners, ids)  # pyright: ignore[reportCallIssue, reportArgumentType]
-    # cv2.resize maps pixel centres as x_up = (x + 0.5) f − 0.5.
-    img = (np.asarray(img, dtype=np.float64).reshape(-1, 2) + 0.5) / f - 0.5
-    return CharucoObservation(camera, table_deg, ids.ravel(), img, np.asarray(obj).reshape(-1, 3))
+    det = detect_board(gray, charuco=charuco, upscale=upscale, max_upscaled_px=max_upscaled_px)
+    return CharucoObservation(camera, table_deg, det.ids, det.image_points, det.object_points)
 
 
 def _minor_std(points2: np.ndarray) -> float:

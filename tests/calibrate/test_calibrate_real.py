@@ -1,0 +1,206 @@
+"""``opacityhull calibrate`` on real photographs made by others (vendored in
+tests/data/real/calibration/, see the SOURCE.txt files), against the other tools' own
+estimates.
+
+Thresholds from measured spread:
+
+- OpenCV photographs: the four photographs constrain the focal length to ±15.8 px (3.5 %,
+  σ from the Jacobian; OpenCV's ``stdDeviationsIntrinsics`` says the same), and changing
+  only the sub-pixel corner refinement window (none, 3, 5, 7, 11 px) moves fx over
+  445.8–469.4 px. OpenCV's ``calibrateCamera`` on our corners gives our estimate to 1e-5
+  px, so the gap to OpenCV's published 452.5 is the corner detector of 2021 vs today's,
+  not the solver. Asserted: every intrinsic within 1σ of the reference and within 1.1 %
+  (measured fx +1.06 %, fy +0.99 %, cx −0.15 %, cy −0.77 %), RMS ≤ 0.25 px (0.188).
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from helpers import invoke_cli
+
+DATA = Path(__file__).resolve().parents[1] / "data" / "real" / "calibration"
+OPENCV = DATA / "opencv"
+CALISCOPE = DATA / "caliscope"
+BOARD = "squares=5x7,square_m=0.04,marker_m=0.02,dictionary=DICT_6X6_250"
+REF = {"fx": 452.51072219637672, "fy": 456.76707935146891, "cx": 317.70297317353277, "cy": 277.75155919135995}
+
+
+@pytest.fixture(scope="module")
+def opencv_run(tmp_path_factory):
+    out = tmp_path_factory.mktemp("ocv") / "calib"
+    imgs = sorted(OPENCV.glob("img_0*.jpg"))
+    r = invoke_cli(["calibrate", *imgs, "--board", BOARD, "--out", out, "--json"])
+    assert r.exit_code == 0, r.stderr
+    return json.loads(r.stdout), out
+
+
+def test_opencv_photos_match_opencvs_own_calibration(opencv_run):
+    s, _ = opencv_run
+    (cam,) = s["cameras"]
+    assert cam["rms_px"] <= 0.25
+    for k, ref in REF.items():
+        assert abs(cam[k] - ref) <= cam["std"][k], (k, cam[k], ref, cam["std"][k])
+        assert abs(cam[k] / ref - 1) <= 0.011, (k, cam[k], ref)
+    assert s["rejected"] == [] and s["left_out"] == []
+
+
+def test_opencv_std_matches_opencvs_jacobian(opencv_run):
+    """The per-parameter σ against OpenCV's own ``stdDeviationsIntrinsics`` on the same corners."""
+    import cv2
+
+    from opacityhull.calibrate.inputs import camera_inputs, detect_frames, parse_board
+
+    s, _ = opencv_run
+    spec = parse_board(BOARD)
+    (cam_in,) = camera_inputs(sorted(OPENCV.glob("img_0*.jpg")))
+    dc = detect_frames(cam_in, charuco=spec)
+    objs = [o.detection.object_points.astype(np.float32) for o in dc.observations]
+    imgs = [o.detection.image_points.astype(np.float32) for o in dc.observations]
+    out = cv2.calibrateCameraExtended(objs, imgs, (640, 480), np.eye(3), np.zeros(5))
+    K, sd = out[1], np.asarray(out[5]).ravel()
+    cam = s["cameras"][0]
+    np.testing.assert_allclose([cam["fx"], cam["fy"], cam["cx"], cam["cy"]], K[[0, 1, 0, 1], [0, 1, 2, 2]], rtol=1e-6)
+    np.testing.assert_allclose([cam["std"][k] for k in ("fx", "fy", "cx", "cy")], sd[:4], rtol=0.01)
+
+
+def test_opencv_outputs_read_back(opencv_run):
+    import cv2
+    import pycolmap
+
+    s, out = opencv_run
+    cam = s["cameras"][0]
+    fs = cv2.FileStorage(str(out / "cam0.yaml"), cv2.FILE_STORAGE_READ)
+    K = fs.getNode("camera_matrix").mat()
+    dist = fs.getNode("distortion_coefficients").mat().ravel()
+    fs.release()
+    np.testing.assert_allclose(K[[0, 1, 0, 1], [0, 1, 2, 2]], [cam["fx"], cam["fy"], cam["cx"], cam["cy"]], rtol=1e-12)
+    np.testing.assert_allclose(dist, cam["dist"], rtol=1e-12)
+    rec = pycolmap.Reconstruction(str(out / "colmap"))
+    (c,) = rec.cameras.values()
+    # COLMAP's pixel convention puts the top-left pixel's centre at (0.5, 0.5)
+    np.testing.assert_allclose(c.params[:4], [cam["fx"], cam["fy"], cam["cx"] + 0.5, cam["cy"] + 0.5], rtol=1e-9)
+    for png in ("reprojection_histogram.png", "per_frame_rms.png"):
+        assert (out / png).stat().st_size > 5000
+    assert json.loads((out / "rejected.json").read_text()) == []
+
+
+def test_caliscope_inverted_board_four_cameras(tmp_path):
+    """The vendored frames of caliscope's four webcams (inverted print, found by trying both
+    polarities): camera centres against caliscope's after a similarity alignment."""
+    import tomllib
+
+    r = invoke_cli(
+        ["calibrate", *(CALISCOPE / f"cam_{i}" for i in range(4)), "--board", CALISCOPE / "charuco.toml", "--json"]
+    )
+    assert r.exit_code == 0, r.stderr
+    s = json.loads(r.stdout)
+    ref = tomllib.loads((CALISCOPE / "camera_array.toml").read_text())["cameras"]
+    cams = {c["index"]: c for c in s["cameras"]}
+    assert sorted(cams) == [0, 1, 2, 3]
+    for c in cams.values():
+        assert c["intrinsic_rms_px"] <= 0.6
+    C_ref = []
+    C_our = []
+    for i in range(4):
+        R = np.array(ref[str(i)]["rotation"])
+        C_ref.append(-R.T @ np.array(ref[str(i)]["translation"]))
+        C_our.append(np.array(cams[i]["centre_m"]))
+    C_ref, C_our = np.array(C_ref), np.array(C_our)
+    err = _similarity_residuals(C_our, C_ref)
+    assert err.max() <= 0.02, err
+    del tmp_path
+
+
+def _similarity_residuals(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+    """Distances after the least-squares similarity (Umeyama) src → dst."""
+    ms, md = src.mean(0), dst.mean(0)
+    A = (dst - md).T @ (src - ms) / len(src)
+    U, S, Vt = np.linalg.svd(A)
+    E = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
+    R = U @ E @ Vt
+    s = np.trace(np.diag(S) @ E) / np.mean(np.sum((src - ms) ** 2, axis=1))
+    return np.linalg.norm((s * (R @ (src - ms).T)).T + md - dst, axis=1)
+
+
+# ---- bad input
+
+
+def test_board_matching_no_print_names_polarity(tmp_path):
+    imgs = sorted(OPENCV.glob("img_0*.jpg"))
+    r = invoke_cli(["calibrate", *imgs, "--board", "squares=5x7,square_m=0.04,marker_m=0.02,dictionary=DICT_4X4_50"])
+    assert r.exit_code == 2
+    assert "both print polarities" in r.stderr and "DICT_4X4_50" in r.stderr
+
+
+def test_inverted_board_with_normal_polarity_says_try_inverted():
+    board = "squares=4x5,square_m=0.054,marker_m=0.0405,dictionary=DICT_4X4_1000,polarity=normal"
+    r = invoke_cli(["calibrate", CALISCOPE / "cam_0", "--board", board])
+    assert r.exit_code == 2
+    assert "try polarity=inverted" in r.stderr
+
+
+def test_undecodable_video_exit_4(tmp_path):
+    bad = tmp_path / "cam.mp4"
+    bad.write_bytes(b"\x00\x00\x00\x18ftypmp42" + bytes(range(256)) * 8)
+    r = invoke_cli(["calibrate", bad, "--board", BOARD])
+    assert r.exit_code == 4, r.output
+    assert "cam.mp4" in r.stderr
+
+
+def test_images_of_different_sizes_exit_2(tmp_path):
+    import cv2
+
+    imgs = sorted(OPENCV.glob("img_0*.jpg"))
+    for p in imgs[:3]:
+        shutil.copy(p, tmp_path / p.name)
+    g = cv2.imread(str(imgs[3]))
+    assert g is not None
+    cv2.imwrite(str(tmp_path / "img_03.jpg"), cv2.resize(g, (320, 240)))
+    r = invoke_cli(["calibrate", *sorted(tmp_path.glob("*.jpg")), "--board", BOARD])
+    assert r.exit_code == 2
+    assert "img_03.jpg" in r.stderr and "320x240" in r.stderr
+
+
+def test_fewer_frames_than_parameters_exit_2():
+    imgs = sorted(OPENCV.glob("img_0*.jpg"))[:2]
+    r = invoke_cli(["calibrate", *imgs, "--board", BOARD])
+    assert r.exit_code == 2
+    assert "fewer frames than the parameters need" in r.stderr
+
+
+def test_bad_board_flag_exit_2():
+    r = invoke_cli(["calibrate", OPENCV / "img_00.jpg", "--board", "squares=5by7,square_m=0.04"])
+    assert r.exit_code == 2 and "--board" in r.stderr
+
+
+def test_video_frames_rejection_report(tmp_path):
+    """A video made of the OpenCV photographs with a repeated frame, a blurred one and a
+    blank one: the kept frames calibrate, the others are listed with their reason. The
+    blur (Gaussian σ 0.8 px) keeps all 24 corners detectable but leaves 10 % of the
+    Laplacian variance (the four photographs lie within 0.6–1.0 × their median: 4814–8006)."""
+    import cv2
+
+    imgs = [np.asarray(cv2.imread(str(p))) for p in sorted(OPENCV.glob("img_0*.jpg"))]
+    assert all(i.ndim == 3 for i in imgs)
+    blank = np.full_like(imgs[0], 128)
+    frames = [imgs[0], imgs[0], imgs[1], cv2.GaussianBlur(imgs[1], (0, 0), 0.8), imgs[2], blank, imgs[3]]
+    path = tmp_path / "board.avi"
+    vw = cv2.VideoWriter(str(path), cv2.VideoWriter.fourcc(*"MJPG"), 5.0, (640, 480))
+    for f in frames:
+        vw.write(f)
+    vw.release()
+    r = invoke_cli(["calibrate", path, "--board", BOARD, "--json"])
+    assert r.exit_code == 0, r.stderr
+    s = json.loads(r.stdout)
+    why = {int(x["frame"].rsplit("#", 1)[1]): x["reason"] for x in s["rejected"]}
+    assert why[1].startswith("duplicate of")
+    assert why[3].startswith("blurred")
+    assert why[5].startswith("no ChArUco corners")
+    assert sorted(set(range(7)) - set(why)) == [0, 2, 4, 6]
+    assert s["cameras"][0]["frames"] == 4
