@@ -129,7 +129,8 @@ def test_no_import_cycles():
 #: packages of a lower rank (the same rank: none of the others). ``core`` is every
 #: top-level module (camera, model, session, ...) and ``opacityhull.data``; ``demo`` is
 #: ``demo.py`` / ``demo_runner.py``. ``optimize`` (#29's fitting library) sits below
-#: ``reconstruct``, whose build step runs it.
+#: ``reconstruct``, whose build step runs it; ``calibrate`` (a user's own cameras, #31)
+#: beside it.
 LAYERS: dict[str, int] = {
     "core": 0,
     "rigs": 1,

@@ -1,6 +1,8 @@
 """CLI commands of `opacityhull.acquire` (registered by :mod:`opacityhull.cli`).
 
-``capture``, ``session verify|info|hdr``, ``import colmap|nerfstudio``.
+``capture``, ``session verify|info|hdr``, ``import colmap|nerfstudio``, ``rig bringup`` (the
+walk of :mod:`opacityhull.rigs.bringup` with a plan's board and exposures, and the simulated
+cameras that only this module may build).
 """
 
 from __future__ import annotations
@@ -10,12 +12,13 @@ import os
 import sys
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Optional
+from typing import Annotated, List, Optional
 
 import typer
 
 from ..cliutil import JsonFlag, SessionDirArg, cli_errors, console, emit, out_console, progress
 from ..errors import CaptureInterrupted, ConfigError, OpacityHullError
+from ..rigs.commands import FAULT_HELP
 from ..tomlio import read_toml
 
 __all__ = ["register", "resolve_rig", "rig_static"]
@@ -97,6 +100,14 @@ def rig_static(spec: str):
     return RigGeometry.from_dict(d["geometry"], where=f"{path}: geometry"), d.get("devices", {})
 
 
+def _calibration_forecast(plan, geometry) -> list[str]:
+    """What the plan's calibration views can determine (``acquire.calibration_forecast``): a warning
+    per camera whose focal length (and so its distance) the views leave uncertain by > 1 %."""
+    from .calibration_forecast import forecast_warnings, plan_forecast
+
+    return forecast_warnings(plan_forecast(plan, geometry))
+
+
 def _print_estimate(summary: dict) -> None:
     from rich.table import Table
 
@@ -124,6 +135,8 @@ def _print_estimate(summary: dict) -> None:
         f"{est['operator_steps']} manual step(s) {human_seconds(b['operator'])}",
         highlight=False,
     )
+    for w in summary.get("warnings", []):
+        c.print(f"[yellow]warning:[/] {w}", highlight=False, markup=True, soft_wrap=True)
 
 
 @contextmanager
@@ -224,6 +237,7 @@ def register(app, groups) -> None:
                 "rig": rig,
                 "planned_per_phase": expected_counts(stages),
                 "estimate": est.to_dict(),
+                "warnings": _calibration_forecast(the_plan, geometry),
             }
             emit(summary, json_out, _print_estimate)
             return
@@ -413,3 +427,70 @@ def register(app, groups) -> None:
             json_out,
             lambda r: "",
         )
+
+    _register_bringup(groups["rig"])
+
+
+def _register_bringup(rig) -> None:
+    """``opacityhull rig bringup``: here, not in rigs/commands.py, because it reads a capture
+    plan and builds simulated cameras (rigs/ imports neither acquire/ nor sim/)."""
+
+    @rig.command("bringup")
+    @cli_errors
+    def bringup(
+        config: Annotated[Path, typer.Option("--config", help="Rig TOML (emulator: URLs are started here).")],
+        plan: Annotated[
+            str, typer.Option("--plan", help="Plan whose calibration board and exposures the walk uses.")
+        ] = "builtin:demo",
+        state: Annotated[
+            Path | None, typer.Option("--state", help="Progress file (default: RIG.bringup.json beside the TOML).")
+        ] = None,
+        restart: Annotated[bool, typer.Option("--restart", help="Forget earlier passed steps.")] = False,
+        scene: Annotated[
+            str, typer.Option("--scene", help='Scene the simulated cameras see (driver = "sim" cameras).')
+        ] = "builtin:diffuse",
+        spp: Annotated[int, typer.Option("--spp", min=1, help="Samples per pixel of simulated cameras.")] = 4,
+        fault: Annotated[List[str], typer.Option("--fault", help=FAULT_HELP)] = [],
+        json_out: Annotated[bool, typer.Option("--json", help='Print {"ok", "steps": [...]}.')] = False,
+    ):
+        """Walk the rig device by device: every device answers, the turntable turns 90 deg and back and a camera
+        sees the board turn, each lamp lights, each display shows white and black (with its contrast), the exposure
+        bracket is unclipped. Resumable: passed steps are skipped the next time. Exit 3 names the failed steps."""
+        from ..errors import DeviceError
+        from ..rigs.commands import parse_faults
+        from ..rigs.config import load_rig_config
+        from .bringup import bringup_rig, bringup_summary
+        from .plan import load_plan
+
+        the_plan = load_plan(plan)
+        cfg = load_rig_config(config)
+        faults = parse_faults(fault)
+        state_path = state if state is not None else config.with_name(config.stem + ".bringup.json")
+
+        def simulated(c):
+            from ..sim.simrig import bringup_sim_rig
+
+            return bringup_sim_rig(c, scene=scene, spp=spp)
+
+        def emit_step(r):
+            typer.echo(r.line(), err=True)
+
+        results = bringup_rig(
+            cfg,
+            plan=the_plan,
+            state_path=state_path,
+            restart=restart,
+            faults=faults,
+            simulated=simulated,
+            emit=emit_step,
+        )
+        summary = bringup_summary(results, config=config, state_path=state_path)
+
+        def human(s):
+            n_ok = sum(1 for r in s["steps"] if r["verdict"] == "pass")
+            typer.echo(f"bring-up: {n_ok} of {len(s['steps'])} steps pass (progress in {s['state']})", err=True)
+
+        emit(summary, json_out, human)
+        if not summary["ok"]:
+            bad = [r for r in results if r.verdict == "fail"]
+            raise DeviceError("bring-up failed: " + "; ".join(f"{r.step}: {r.what_to_check}" for r in bad))

@@ -993,7 +993,7 @@ def _capture(
                         sink.close()
                     finally:
                         collect(report=False)
-            if drv.slots is not None:
+            if drv.slots is not None and not callable(getattr(rig.backdrops, "show_image", None)):
                 log(f"backdrop patterns: {drv.slots.uploads} uploaded, {drv.slots.evictions} deleted to make room")
             result.complete = result.images == n_planned
             if result.complete and isinstance(rig, GroundTruthSource) and (taken or not (out / "groundtruth").is_dir()):
@@ -1191,6 +1191,9 @@ def _pattern_slots(rig, patterns: dict[int, Pattern], displays: list[str], log) 
     if bd is None:
         raise ConfigError("the plan shows backdrop patterns but the rig has no backdrops device")
     slots = _PatternSlots(bd, patterns, displays, log)
+    if callable(getattr(bd, "show_image", None)):
+        log(f"{len(patterns)} pattern(s) on {len(displays)} display(s), drawn as shown (video output)")
+        return slots
     log(
         f"{len(patterns)} pattern(s) on {len(displays)} display(s), uploaded as shown "
         f"(controller capacity: {slots.capacity if slots.capacity is not None else 'not reported'} slots)"

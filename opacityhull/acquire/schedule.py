@@ -304,6 +304,8 @@ class MotionRates:
     display_chunk_bytes: int = 512
     #: patterns the display controller stores (its IDENTIFY ``slots=``; 64 on the OHDC-2)
     display_slots: int = 64
+    #: False for video-output backdrops: patterns are drawn, nothing is uploaded
+    display_uploads: bool = True
 
     @classmethod
     def from_devices(cls, devices: Mapping | None) -> "MotionRates":
@@ -319,6 +321,8 @@ class MotionRates:
                     if _pos(table.get(key)):
                         kw[f"{axis}_{field_}"] = float(table[key])
         bd = d.get("backdrops") or {}
+        if isinstance(bd, Mapping) and bd.get("driver") == "video":
+            kw["display_uploads"] = False
         if isinstance(bd, Mapping) and _pos(bd.get("baudrate")):
             kw["serial_bytes_s"] = float(bd["baudrate"]) / 10.0
         if isinstance(bd, Mapping) and isinstance(bd.get("chunk_bytes"), int) and _pos(bd.get("chunk_bytes")):
@@ -449,7 +453,7 @@ def estimate(
             est.bytes[p] = est.bytes.get(p, 0) + n * image_bytes(cam.width, cam.height, half=plan.half_float)
             est.seconds[p] = est.seconds.get(p, 0.0) + t
     est.operator_s = est.operator_steps * tm.operator_s
-    if upload_patterns and geometry.displays:
+    if upload_patterns and rates.display_uploads and geometry.displays:
         est.uploads, est.upload_bytes = _pattern_uploads(plan, geometry, stages, rates)
         est.upload_s = est.upload_bytes / rates.serial_bytes_s
     return est

@@ -31,17 +31,24 @@ import math
 from dataclasses import asdict, dataclass, field
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, Callable, Iterator, Literal, Sequence
+from typing import Any, Callable, Iterator, Literal, Protocol, Sequence
 
 import numpy as np
 
-from ..charuco import CharucoSpec
+from ..charuco import CharucoSpec, detect_board, tonemap_for_detection
 from ..errors import ConfigError, DeviceError, InputError
 from .interfaces import DeviceInfo
 
 log = logging.getLogger(__name__)
 
-__all__ = ["StepResult", "BringupOptions", "run_bringup", "open_for_bringup", "board_rotation_deg"]
+__all__ = [
+    "StepResult",
+    "BringupOptions",
+    "run_bringup",
+    "open_for_bringup",
+    "board_rotation_deg",
+    "SimulatedRig",
+]
 
 Verdict = Literal["pass", "fail", "skip"]
 
@@ -74,6 +81,8 @@ class StepResult:
 def _fmt(v: Any) -> str:
     if isinstance(v, float):
         return f"{v:.4g}"
+    if isinstance(v, dict):
+        return "{" + ", ".join(f"{k}: {_fmt(x)}" for k, x in v.items()) + "}"
     return str(v)
 
 
@@ -144,9 +153,9 @@ def _board_pose(image: np.ndarray, spec: CharucoSpec, K: np.ndarray) -> tuple[np
     """camera_from_board rotation from the detected corners (None below 6 corners)."""
     import cv2
 
-    from ..reconstruct.calibration.detect import detect_charuco
-
-    obs = detect_charuco(image, charuco=spec)
+    a = np.asarray(image)
+    gray = a if a.dtype == np.uint8 and a.ndim == 2 else tonemap_for_detection(a)
+    obs = detect_board(gray, charuco=spec, upscale=(1, 2, 3))
     n = len(obs)
     if n < 6:
         return None, n
@@ -516,16 +525,33 @@ def _walk(w: _Walk, failed_ports: dict[str, str]) -> None:
         w.step(f"exposure:{cname}", cname, exp_checks, [], exposure)
 
 
+class SimulatedRig(Protocol):
+    """What :func:`open_for_bringup` needs of a simulated rig (``opacityhull.sim.simrig.SimRig``,
+    injected by the caller: rigs/ knows nothing of the simulator): its ``cameras``, and
+    ``attach`` / ``detach`` of the drivers and emulators opened here."""
+
+    @property
+    def cameras(self) -> Sequence[Any]: ...
+
+    def attach(self, hardware: Any, emulators: Any) -> Any: ...
+
+    def detach(self) -> None: ...
+
+
 @contextmanager
 def open_for_bringup(
-    config, *, faults: dict[str, list[str]] | None = None, scene: str = "builtin:diffuse", spp: int = 4
+    config,
+    *,
+    faults: dict[str, list[str]] | None = None,
+    simulated: Callable[[Any], SimulatedRig] | None = None,
 ) -> Iterator[tuple[Any, dict[str, str]]]:
     """The rig of ``config`` with every port opened on its own (a port that does not open
     is reported, not raised): yields ``(rig, failed_ports)``.
 
     ``emulator:`` URLs are served here (with ``faults``, the specs of ``rig emulate
-    --fault``); ``driver = "sim"`` cameras render ``scene`` with Mitsuba at ``spp``
-    samples per pixel through the simulated rig, which reads the emulators' state.
+    --fault``). ``driver = "sim"`` cameras come from ``simulated(config)`` (the CLI gives
+    ``opacityhull.sim.simrig.bringup_sim_rig``), a simulated rig that renders through the
+    drivers opened here, reading the emulators' state.
     """
     from .config import RigConfig
     from .emulators.launch import start_emulators
@@ -535,25 +561,23 @@ def open_for_bringup(
     sim = bool(cfg.cameras) and all(c.driver == "sim" for c in cfg.cameras)
     if faults and not cfg.emulated():
         raise ConfigError(f"--fault: {cfg.source} has no emulator: devices to inject faults into")
+    if sim and simulated is None:
+        raise ConfigError(f'{cfg.source}: simulated cameras (driver = "sim") need the simulator (simulated=...)')
     emus = start_emulators(cfg, faults=faults) if cfg.emulated() else None
     try:
         runtime = emus.config if emus is not None else cfg
+        sim_rig: SimulatedRig | None = None
         if sim:
             if emus is None:
                 raise ConfigError(
                     f'{cfg.source}: simulated cameras (driver = "sim") need emulated devices (emulator:KIND URLs)'
                 )
-            from ..sim.scenes import load_scene
-            from ..sim.simrig import SimRig
-
-            simrig = SimRig(
-                load_scene(scene), cfg.to_dict(), source=f"sim:{scene}@{cfg.source}", overrides={"spp": spp}
-            )
-            hw = build_rig(runtime, cameras=simrig.cameras, interactive=False, assume_ready=True)
-            # the simulated rig over emulators started here (with the faults asked for)
-            # and ports opened one by one: SimRig.open() would refuse a dead device
-            simrig.emulators, simrig._hw = emus, hw
-            rig: Any = simrig
+            assert simulated is not None
+            sim_rig = simulated(cfg)
+            hw = build_rig(runtime, cameras=list(sim_rig.cameras), interactive=False, assume_ready=True)
+            # ports opened one by one below: SimRig.open() would refuse a dead device
+            sim_rig.attach(hw, emus)
+            rig: Any = sim_rig
         else:
             hw = build_rig(runtime)
             rig = hw
@@ -566,8 +590,8 @@ def open_for_bringup(
         try:
             yield rig, failed
         finally:
-            if sim:
-                rig._hw = None
+            if sim_rig is not None:
+                sim_rig.detach()
             hw.close()
     finally:
         if emus is not None:

@@ -46,6 +46,7 @@ from .sensor import SensorModel
 if TYPE_CHECKING:
     from ..rigs.emulators.display import DisplayEmulator
     from ..rigs.emulators.enttec import EnttecEmulator
+    from ..rigs.config import RigConfig
     from ..rigs.emulators.grbl import GrblEmulator
     from ..rigs.video import DisplayOutput
 
@@ -53,6 +54,7 @@ __all__ = [
     "SimRig",
     "SimCamera",
     "open_sim_rig",
+    "bringup_sim_rig",
     "sim_rig_config",
     "parse_sim_spec",
     "DEFAULT_RIG_TOML",
@@ -339,6 +341,21 @@ class SimRig:
         self.emulators, self._hw = emu, hw
         return self
 
+    def attach(self, hardware, emulators) -> "SimRig":
+        """Use ``hardware`` (a :class:`~opacityhull.rigs.rig.HardwareRig` built with this
+        rig's :attr:`cameras`, its ports opened by the caller) over ``emulators`` started
+        by the caller, instead of :meth:`open`: ``opacityhull rig bringup`` opens each port
+        on its own and injects faults, where :meth:`open` would refuse a dead device.
+        :meth:`detach` hands them back unclosed."""
+        if self._hw is not None:
+            raise DeviceError(f"simulated rig {self.source}: already open")
+        self.emulators, self._hw = emulators, hardware
+        return self
+
+    def detach(self) -> None:
+        """Forget the drivers and emulators given to :meth:`attach` (their owner closes them)."""
+        self.emulators, self._hw = None, None
+
     def close(self) -> None:
         """Close the drivers and stop the emulators (the ptys disappear)."""
         hw, emu = self._hw, self.emulators
@@ -588,3 +605,10 @@ def open_sim_rig(
     if open:
         rig.open()
     return rig
+
+
+def bringup_sim_rig(config: "RigConfig", *, scene: str = "builtin:diffuse", spp: int = 4) -> SimRig:
+    """The simulated rig of ``config`` (whose cameras are ``driver = "sim"``) rendering
+    ``scene`` at ``spp`` samples per pixel, not opened: ``opacityhull rig bringup`` builds
+    the drivers on its own emulators and attaches them (:meth:`SimRig.attach`)."""
+    return SimRig(load_scene(scene), config.to_dict(), source=f"sim:{scene}@{config.source}", overrides={"spp": spp})

@@ -23,7 +23,7 @@ from opacityhull.acquire.plan import load_plan
 from opacityhull.rigs.bringup import BringupOptions, board_rotation_deg, open_for_bringup, run_bringup
 from opacityhull.rigs.config import parse_rig_config
 from opacityhull.session import toml_dumps
-from opacityhull.sim.simrig import DEFAULT_RIG_TOML
+from opacityhull.sim.simrig import DEFAULT_RIG_TOML, bringup_sim_rig
 
 ROOT = Path(__file__).resolve().parents[2]
 CLI = [sys.executable, "-m", "opacityhull.cli"]
@@ -123,7 +123,7 @@ def test_an_injected_fault_fails_the_right_step(rig_toml, tmp_path, fault, faile
     plan = load_plan("builtin:demo")
     assert plan.calibration is not None
     opts = BringupOptions(charuco=plan.calibration.charuco, lamp_exposure_s=2.0)
-    with open_for_bringup(cfg, faults={dev: [spec]}) as (rig, failed_ports):
+    with open_for_bringup(cfg, faults={dev: [spec]}, simulated=bringup_sim_rig) as (rig, failed_ports):
         results = {r.step: r for r in run_bringup(rig, options=opts, failed_ports=failed_ports)}
     bad = [k for k, r in results.items() if r.verdict == "fail"]
     assert failed in bad, {k: r.verdict for k, r in results.items()}
@@ -139,3 +139,14 @@ def test_cli_fault_exits_3_naming_the_step(rig_toml, tmp_path):
     r = run(rig_toml, tmp_path / "s.json", "--fault", "turntable:silent", "--restart")
     assert r.returncode == 3
     assert "bring-up failed: answers:turntable: turntable:" in " ".join(r.stderr.split())
+
+
+def test_simulated_cameras_need_the_injected_simulator(rig_toml):
+    # rigs/ cannot build simulated cameras itself (it imports nothing above rigs/): the
+    # caller passes the simulator in, and without it the walk refuses before any port opens
+    from opacityhull.errors import ConfigError
+
+    cfg = parse_rig_config(tomllib.loads(rig_toml.read_text()), source=str(rig_toml))
+    with pytest.raises(ConfigError, match="simulated cameras"):
+        with open_for_bringup(cfg):
+            pass

@@ -57,6 +57,7 @@ def test_documented_ack_layout_parses():
     assert mdc.encode_reply(1, 0x11, b"\x01") == ack
     (r,) = mdc.FrameParser().feed(ack)
     assert r == mdc.Reply(display_id=1, ack=True, rcmd=0x11, data=b"\x01")
+    assert mdc.encode_reply(1, 0x25, b"\x01", ack=False) == h("AA FF 01 03 4E 25 01 77")
     (n,) = mdc.FrameParser().feed(framed("AA FF 01 03 4E 25 01"))
     assert n == mdc.Reply(display_id=1, ack=False, rcmd=0x25, data=b"\x01")
 

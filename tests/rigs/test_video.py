@@ -87,3 +87,19 @@ def test_no_display_server_says_what_to_do(monkeypatch):
         DisplayOutput(monitors={"back": "HDMI-1"}).open()
     with pytest.raises(NoDisplayServer, match="cannot connect to the display server"):
         video.list_monitors(":987")
+
+
+def test_rig_monitors_cli(server):
+    import json
+    import os
+    import subprocess
+    import sys
+
+    display, _ = server
+    cli = [sys.executable, "-m", "opacityhull.cli", "rig", "monitors", "--json"]
+    r = subprocess.run([*cli, "--display", display], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert [m["name"] for m in json.loads(r.stdout)["monitors"]] == ["screen@0", "screen@1"]
+    env = {k: v for k, v in os.environ.items() if k != "DISPLAY"}
+    r = subprocess.run(cli, capture_output=True, text=True, timeout=120, env=env)
+    assert r.returncode == 3 and "DISPLAY is not set" in " ".join(r.stderr.split()) and "Traceback" not in r.stderr

@@ -13,7 +13,7 @@ import pytest
 
 from opacityhull.errors import ConfigError, DeviceError
 from opacityhull.rigs.config import parse_rig_config
-from opacityhull.rigs.testing import LabRig, lab_video_rig_config, read_xwd, xvfb
+from opacityhull.rigs.testing import LAB_RIG_CONFIG, LabRig, lab_video_rig_config, read_xwd, xvfb
 
 needs_x = pytest.mark.skipif(
     shutil.which("Xvfb") is None or importlib.util.find_spec("pyglet") is None,
@@ -128,3 +128,17 @@ def test_matting_refuses_a_panel_that_keeps_dynamic_contrast_on(server, tmp_path
         res = run_capture(rig, tiny_plan(), tmp_path / "s", resume=True, allow_display_drift=True, log=logged.append)
         assert res.complete
         assert any("display back: dynamic contrast on" in m for m in logged)
+
+
+def test_dry_run_prices_no_pattern_upload_for_video_backdrops():
+    from opacityhull.acquire.schedule import MotionRates, estimate, schedule
+    from tests.acquire.rigkit import tiny_plan
+
+    cfg = lab_video_rig_config()
+    rates = MotionRates.from_devices(cfg["devices"])
+    geometry = parse_rig_config(cfg, source="rig.toml").geometry
+    est = estimate(tiny_plan(), geometry, rates, schedule(tiny_plan(), geometry))
+    assert not rates.display_uploads and est.uploads == 0 and est.upload_s == 0.0
+    ohdc = MotionRates.from_devices(LAB_RIG_CONFIG["devices"])
+    est2 = estimate(tiny_plan(), geometry, ohdc, schedule(tiny_plan(), geometry))
+    assert est2.uploads > 0

@@ -16,7 +16,7 @@ from typing import Sequence
 
 import numpy as np
 
-from ...charuco import CharucoSpec, detect_board
+from ...charuco import CharucoSpec, detect_board, tonemap_for_detection
 from ...errors import ShapeError
 from ...riggeometry import view_id
 from .config import CalibrationConfig
@@ -69,45 +69,6 @@ class CharucoObservation:
 
     def __len__(self) -> int:
         return int(self.ids.shape[0])
-
-
-def tonemap_for_detection(image, *, percentile: float = 99.5) -> np.ndarray:
-    """Linear float image → 8-bit sRGB-encoded luminance for the marker detector.
-
-    Parameters
-    ----------
-    image : (H, W) or (H, W, C) array
-        Linear values (C = 1..4; the first three channels are Rec.709 RGB, a fourth
-        channel (alpha) is ignored). NaN counts as black, +Inf as white.
-    percentile : float
-        Luminance percentile mapped to white (robust against specular highlights).
-
-    Returns
-    -------
-    (H, W) uint8 array.
-    """
-    from ...imageio import srgb_encode
-
-    a = np.asarray(image, dtype=np.float32)
-    if a.ndim == 3:
-        if a.shape[2] >= 3:
-            lum = 0.2126 * a[..., 0] + 0.7152 * a[..., 1] + 0.0722 * a[..., 2]
-        elif a.shape[2] in (1, 2):
-            lum = a[..., 0]
-        else:
-            raise ShapeError(f"image has shape {a.shape}, expected (H, W) or (H, W, 1..4)")
-    elif a.ndim == 2:
-        lum = a
-    else:
-        raise ShapeError(f"image has shape {a.shape}, expected (H, W) or (H, W, 1..4)")
-    finite = np.isfinite(lum)
-    scale = float(np.percentile(lum[finite], percentile)) if finite.any() else 0.0
-    if not scale > 0:
-        scale = float(lum[finite].max()) if finite.any() else 0.0
-    if not scale > 0:  # nothing positive and finite: only +Inf shows
-        return np.where(np.isposinf(lum), 255, 0).astype(np.uint8)
-    v = np.where(finite, lum / scale, np.where(np.isposinf(lum), 1.0, 0.0))
-    return np.round(srgb_encode(v) * 255.0).astype(np.uint8)
 
 
 def detect_charuco(

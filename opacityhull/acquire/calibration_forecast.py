@@ -139,12 +139,12 @@ def forecast_warnings(forecasts: Sequence[FocalForecast], *, goal_pct: float = 1
 
 def plan_forecast(plan, geometry) -> list[FocalForecast]:
     """:func:`forecast_focal_sigma` for a capture plan's calibration phase on a rig geometry."""
-    from ..acquire.schedule import schedule
+    from .schedule import schedule
 
     out: list[FocalForecast] = []
     cams = geometry.nominal_cameras()
     for st in schedule(plan, geometry):
-        if st.scene != "board" or st.charuco is None:
+        if st.scene != "board" or not isinstance(st.charuco, CharucoSpec):
             continue
         by: dict[int, list[float]] = {}
         for sh in st.shots:
