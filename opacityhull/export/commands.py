@@ -14,7 +14,7 @@ def register(app, groups) -> None:
     @cli_errors
     def export_cmd(
         model: ModelDirArg,
-        fmt: str = typer.Option(..., "--format", help="nerfstudio | colmap | ply | opencv."),
+        fmt: str = typer.Option(..., "--format", help="nerfstudio | colmap | ply | opencv | mesh."),
         out: Path = typer.Option(..., "--out", help="Output folder (created; must be empty unless --overwrite)."),
         overwrite: bool = typer.Option(False, "--overwrite", help="Replace a non-empty --out."),
         sh_degree: int = typer.Option(
@@ -24,9 +24,12 @@ def register(app, groups) -> None:
         nerfstudio_alpha: str = typer.Option(
             "rgba", "--nerfstudio-alpha", help="nerfstudio: 'rgba' PNGs, or 'mask' (RGB + single-channel mask_path)."
         ),
+        mesh_method: str = typer.Option(
+            "marching-cubes", "--mesh-method", help="mesh: 'marching-cubes' (watertight) or 'umbrella' (PMR)."
+        ),
         json_out: JsonSummaryFlag = False,
     ):
-        """Export a model for other tools: nerfstudio, COLMAP (sparse/0 text+binary), PLY (points + 3DGS splats), OpenCV YAML."""
+        """Export a model for other tools: nerfstudio, COLMAP (sparse/0 text+binary), PLY (points + 3DGS splats), OpenCV YAML, mesh (PLY + OBJ with vertex colours)."""
         from .formats import FORMATS, export_model
 
         check_model_dir(model)
@@ -38,6 +41,7 @@ def register(app, groups) -> None:
             "ply": {"sh_degree": sh_degree},
             "colmap": {"max_points": max_points},
             "nerfstudio": {"alpha": nerfstudio_alpha},
+            "mesh": {"method": mesh_method},
         }.get(fmt, {})
         summary = export_model(model, fmt, out, overwrite=overwrite, **opts)
 

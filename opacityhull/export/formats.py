@@ -8,6 +8,7 @@
   (the 3DGS layout: ``f_dc_*``, ``f_rest_*``, ``opacity`` logit, ``scale_*`` log, ``rot_*``).
 * ``opencv`` — one FileStorage YAML per physical camera (``world_from_cam`` =
   ``rig_from_cam``) and one per view under ``views/``.
+* ``mesh`` — ``mesh.ply`` and ``mesh.obj`` with vertex colours (:mod:`.mesh`).
 
 Camera conventions are converted in :mod:`opacityhull.camera` only; this module decides
 the layout. Each file is written atomically, and a format's folder is first built next to
@@ -41,7 +42,7 @@ __all__ = [
 ]
 
 ExportFormat = Literal["nerfstudio", "colmap", "ply", "opencv"]
-FORMATS: tuple[str, ...] = ("nerfstudio", "colmap", "ply", "opencv")
+FORMATS: tuple[str, ...] = ("nerfstudio", "colmap", "ply", "opencv", "mesh")
 
 
 def _views(model: OpacityHullModel) -> list[np.ndarray]:
@@ -298,6 +299,12 @@ def export_opencv(model: OpacityHullModel, out: Path) -> dict:
     return {"cameras": len(done), "views": len(model.views)}
 
 
+def _export_mesh(model: OpacityHullModel, out: Path, *, method: str = "marching-cubes") -> dict:
+    from .mesh import export_mesh
+
+    return export_mesh(model, out, method=method)
+
+
 # --------------------------------------------------------------------------- driver
 
 
@@ -319,6 +326,7 @@ def export_model(model_dir, fmt: str, out, *, overwrite: bool = False, **options
         "colmap": export_colmap_model,
         "ply": export_ply,
         "opencv": export_opencv,
+        "mesh": _export_mesh,
     }[fmt]
     with replacing_dir(out, command="export") as tmp:
         summary = fn(model, tmp, **options)
