@@ -77,6 +77,14 @@ def register(app, groups) -> None:
         refine_intrinsics: Annotated[
             bool, typer.Option("--refine-intrinsics", help="Free the intrinsics in the multi-camera bundle adjustment.")
         ] = False,
+        intrinsics: Annotated[
+            Optional[List[Path]],
+            typer.Option(
+                "--intrinsics",
+                help="OpenCV YAML (camera_matrix, distortion_coefficients) of a camera, in input order, "
+                "to hold its intrinsics as given (e.g. from `calibrate` on its own video); repeat per camera.",
+            ),
+        ] = None,
         as_json: JsonFlag = False,
     ):
         """Calibrate cameras from ChArUco photographs or videos: intrinsics, distortion,
@@ -89,7 +97,16 @@ def register(app, groups) -> None:
         spec = parse_board(board)
         if out is not None and out.exists() and not out.is_dir():
             raise InputError(f"--out {out}: is an existing file, expected a folder")
+        held = []
+        for i, p in enumerate(intrinsics or []):
+            from ..camera import read_opencv_yaml
+
+            if not p.is_file():
+                raise InputError(f"--intrinsics {p}: no such file")
+            cam = read_opencv_yaml(p)
+            held.append((i, cam.K, cam.dist, (cam.width, cam.height), str(p)))
         opts = CalibrateOptions(
+            intrinsics=tuple(held),
             dist_model=dist,
             min_corners=min_corners,
             blur_ratio=blur_ratio,
