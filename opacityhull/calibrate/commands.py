@@ -33,7 +33,7 @@ def _human(s: dict) -> None:
 
     c = console()
     t = Table(title=f"calibration: {s['frames_used']} frames, RMS {s['rms_px']:.3f} px")
-    for col in ("camera", "fx ± σ", "fy ± σ", "cx ± σ", "cy ± σ", "RMS px", "frames"):
+    for col in ("camera", "fx ± σ", "fy ± σ", "cx ± σ", "cy ± σ", "RMS px", "alone px", "frames"):
         t.add_column(col, justify="right")
     for cam in s["cameras"]:
         sd = cam["std"]
@@ -41,7 +41,16 @@ def _human(s: dict) -> None:
         def pm(k):
             return f"{cam[k]:.2f} ± {sd.get(k, sd.get('f', 0.0)) if k in ('fx', 'fy') else sd.get(k, 0.0):.2f}"
 
-        t.add_row(str(cam["index"]), pm("fx"), pm("fy"), pm("cx"), pm("cy"), f"{cam['rms_px']:.3f}", str(cam["frames"]))
+        t.add_row(
+            str(cam["index"]),
+            pm("fx"),
+            pm("fy"),
+            pm("cx"),
+            pm("cy"),
+            f"{cam['rms_px']:.3f}",
+            f"{cam['intrinsic_rms_px']:.3f}",
+            str(cam["frames"]),
+        )
     c.print(t)
     for lo in s["left_out"]:
         c.print(f"[yellow]left out:[/] {escape(lo['reason'])}")
