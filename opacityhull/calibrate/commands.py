@@ -33,7 +33,7 @@ def _human(s: dict) -> None:
 
     c = console()
     t = Table(title=f"calibration: {s['frames_used']} frames, RMS {s['rms_px']:.3f} px")
-    for col in ("camera", "fx ± σ", "fy ± σ", "cx ± σ", "cy ± σ", "RMS px", "frames"):
+    for col in ("camera", "fx ± σ", "fy ± σ", "cx ± σ", "cy ± σ", "RMS px", "alone px", "frames"):
         t.add_column(col, justify="right")
     for cam in s["cameras"]:
         sd = cam["std"]
@@ -41,7 +41,16 @@ def _human(s: dict) -> None:
         def pm(k):
             return f"{cam[k]:.2f} ± {sd.get(k, sd.get('f', 0.0)) if k in ('fx', 'fy') else sd.get(k, 0.0):.2f}"
 
-        t.add_row(str(cam["index"]), pm("fx"), pm("fy"), pm("cx"), pm("cy"), f"{cam['rms_px']:.3f}", str(cam["frames"]))
+        t.add_row(
+            str(cam["index"]),
+            pm("fx"),
+            pm("fy"),
+            pm("cx"),
+            pm("cy"),
+            f"{cam['rms_px']:.3f}",
+            f"{cam['intrinsic_rms_px']:.3f}",
+            str(cam["frames"]),
+        )
     c.print(t)
     for lo in s["left_out"]:
         c.print(f"[yellow]left out:[/] {escape(lo['reason'])}")
@@ -77,6 +86,14 @@ def register(app, groups) -> None:
         refine_intrinsics: Annotated[
             bool, typer.Option("--refine-intrinsics", help="Free the intrinsics in the multi-camera bundle adjustment.")
         ] = False,
+        intrinsics: Annotated[
+            Optional[List[Path]],
+            typer.Option(
+                "--intrinsics",
+                help="OpenCV YAML (camera_matrix, distortion_coefficients) of a camera, in input order, "
+                "to hold its intrinsics as given (e.g. from `calibrate` on its own video); repeat per camera.",
+            ),
+        ] = None,
         as_json: JsonFlag = False,
     ):
         """Calibrate cameras from ChArUco photographs or videos: intrinsics, distortion,
@@ -89,7 +106,16 @@ def register(app, groups) -> None:
         spec = parse_board(board)
         if out is not None and out.exists() and not out.is_dir():
             raise InputError(f"--out {out}: is an existing file, expected a folder")
+        held = []
+        for i, p in enumerate(intrinsics or []):
+            from ..camera import read_opencv_yaml
+
+            if not p.is_file():
+                raise InputError(f"--intrinsics {p}: no such file")
+            cam = read_opencv_yaml(p)
+            held.append((i, cam.K, cam.dist, (cam.width, cam.height), str(p)))
         opts = CalibrateOptions(
+            intrinsics=tuple(held),
             dist_model=dist,
             min_corners=min_corners,
             blur_ratio=blur_ratio,

@@ -33,6 +33,8 @@ class CalibrateOptions:
     min_plane_spread_deg: float = 3.0
     refine_intrinsics: bool = False
     max_skew_s: float = 0.005
+    #: (camera index, K (3, 3), dist (5,), (width, height), source) held as given (``--intrinsics``)
+    intrinsics: tuple[tuple[int, np.ndarray, np.ndarray, tuple[int, int], str], ...] = ()
 
     def __post_init__(self):
         if self.dist_model not in DIST_MODELS:
@@ -63,8 +65,20 @@ class CalibrateRun:
         return out
 
 
-def _param_count(free: Sequence[str]) -> int:
-    return len(free)
+def _given_intrinsics(obs: Sequence[Obs], *, index: int, size: tuple[int, int], K, dist) -> CameraInit:
+    """A camera whose intrinsics are given: every frame's board pose by PnP through them."""
+    import cv2
+
+    from ..se3 import rigid, rodrigues
+
+    K = np.asarray(K, dtype=np.float64)
+    dist = np.asarray(dist, dtype=np.float64).ravel()[:5]
+    poses = {}
+    for o in obs:
+        ok, rv, tv = cv2.solvePnP(o.object_points, o.image_points, K, dist)
+        if ok:
+            poses[o.instant] = rigid(rodrigues(np.ravel(rv)), np.ravel(tv))
+    return CameraInit(index=index, size=size, K=K, dist=dist, free=(), cam_from_board=poses)
 
 
 def calibrate_detected(
@@ -141,9 +155,27 @@ def _calibrate_detected(
             left_out[c] = why
             continue
         assert d.size is not None
-        inits[c] = init_camera(
-            obs, index=c, size=d.size, dist_model=options.dist_model, min_plane_spread_deg=options.min_plane_spread_deg
-        )
+        given = {i: (K, dist) for i, K, dist, _, _ in options.intrinsics}
+        for i, _, _, wh, src in options.intrinsics:
+            if i >= len(detected):
+                raise InputError(
+                    f"--intrinsics {src}: given for camera {i}, but the inputs make {len(detected)} camera(s)"
+                )
+            if i == c and d.size is not None and tuple(wh) != tuple(d.size):
+                raise InputError(
+                    f"--intrinsics {src}: is for {wh[0]}x{wh[1]} images, camera {c}'s are {d.size[0]}x{d.size[1]}"
+                )
+        if c in given:
+            inits[c] = _given_intrinsics(obs, index=c, size=d.size, K=given[c][0], dist=given[c][1])
+            notes.append(f"camera {c}: intrinsics held as given (--intrinsics)")
+        else:
+            inits[c] = init_camera(
+                obs,
+                index=c,
+                size=d.size,
+                dist_model=options.dist_model,
+                min_plane_spread_deg=options.min_plane_spread_deg,
+            )
         notes += inits[c].notes
     if not inits:
         raise InputError("no camera has enough frames: " + " | ".join(left_out.values()))
