@@ -9,11 +9,11 @@ built with the defaults unless ``--model temple=DIR`` names a built model), ever
 view held out; ``--model demo=DIR`` (e.g. ``out/demo/model``) every 8th. A held-out
 view's coincident twins are held out with it. The held-out views are in nothing the fit
 sees: the hull, surfels and visibility are rebuilt without them
-(:func:`opacityhull.reconstruct.holdout.geometry_without`, what ``eval loo --holdout
+(:func:`opacityhull.evaluate.holdout.geometry_without`, what ``eval loo --holdout
 geometry`` runs), the start colour and the fit use the other views only.
 
 Appearance modes, scored on the held-out views with ``eval loo``'s metric
-(:func:`opacityhull.render.evaluate.loo_metrics`: PSNR over the union of the masks,
+(:func:`opacityhull.evaluate.loo.loo_metrics`: PSNR over the union of the masks,
 colour over black, sRGB; the photograph's own mask where the build filled shadow
 holes):
 
@@ -80,7 +80,7 @@ def work_model(model_dir: Path, surfels, tmp: Path, name: str) -> Path:
 def score(model, test: list[int], render) -> dict:
     """Mean ``loo_metrics`` over the test views of ``render(i) -> straight RGBA``."""
     from opacityhull.model import BUILD_DIR, FILLED_HOLES, read_hole_masks
-    from opacityhull.render.evaluate import _photograph, loo_metrics
+    from opacityhull.evaluate.loo import _photograph, loo_metrics
 
     filled = read_hole_masks(Path(model.root) / BUILD_DIR / FILLED_HOLES)
     ms, rows = [], []
@@ -119,8 +119,8 @@ def run_set(name: str, model_dir: Path, tmp: Path, cfg, *, observe_every: int, m
     from opacityhull.optimize.data import load_fit_data
     from opacityhull.optimize.fit import fit_params, render_params
     from opacityhull.optimize.surfelparams import start_params, thin_start
-    from opacityhull.reconstruct.holdout import geometry_without
-    from opacityhull.render.evaluate import held_out_groups
+    from opacityhull.evaluate.holdout import geometry_without
+    from opacityhull.evaluate.loo import held_out_groups
     from opacityhull.render.renderer import RenderConfig, prepare_model_views, render_image
 
     model = OpacityHullModel.open(model_dir)

@@ -46,7 +46,7 @@ class FitData:
 
 def display_target(rgba_straight: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(H, W, 4) straight linear RGBA → (display colour over black (H, W, 3), α (H, W)),
-    the same image :func:`opacityhull.render.evaluate.loo_metrics` scores."""
+    the same image :func:`opacityhull.evaluate.loo.loo_metrics` scores."""
     a = np.clip(np.nan_to_num(rgba_straight[..., 3]), 0.0, 1.0).astype(np.float32)
     rgb = np.nan_to_num(rgba_straight[..., :3]) * a[..., None]
     return srgb_encode(np.clip(rgb, 0.0, 1.0)), a

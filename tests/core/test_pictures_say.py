@@ -44,7 +44,7 @@ def test_hull_overlay_has_a_legend(tmp_path):
 def test_eval_relight_sheet_carries_the_few_lights_warning(tmp_path):
     from opacityhull.imageio import read_png
     from opacityhull.relight.envmap import default_yaw_deg, load_envmap
-    from opacityhull.relight.evaluate import eval_relight
+    from opacityhull.evaluate.relight import eval_relight
     from opacityhull.relight.synthetic import write_sphere_model
 
     root = write_sphere_model(

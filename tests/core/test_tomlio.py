@@ -160,7 +160,7 @@ def test_model_toml_stores_build_config_as_a_table_and_reads_old_json(tmp_path):
 
     from opacityhull.model import OpacityHullModel
     from opacityhull.reconstruct.build import BuildConfig, _jsonable
-    from opacityhull.reconstruct.holdout import build_config_of
+    from opacityhull.evaluate.holdout import build_config_of
     from opacityhull.render.synthetic import make_sphere_model
     from opacityhull.model import write_model
 

@@ -14,7 +14,7 @@ from opacityhull.optimize.config import FitConfig
 from opacityhull.optimize.data import load_fit_data
 from opacityhull.optimize.fit import OPTIMIZED_DIR, SPLATS_PLY, CheckpointError, fit_model, render_fitted, render_params
 from opacityhull.optimize.surfelparams import start_params
-from opacityhull.render.evaluate import loo_metrics
+from opacityhull.evaluate.loo import loo_metrics
 from opacityhull.render.synthetic import make_sphere_model
 
 TEST_VIEWS = (3, 8)
