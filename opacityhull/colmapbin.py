@@ -25,7 +25,7 @@ from pathlib import Path
 
 from .errors import FormatError
 
-__all__ = ["COLMAP_MODEL_PARAMS", "check_colmap_binary"]
+__all__ = ["COLMAP_MODEL_PARAMS", "check_colmap_binary", "check_colmap_text"]
 
 #: Parameters per COLMAP camera model id (``colmap/sensor/models.h``).
 COLMAP_MODEL_PARAMS = {
@@ -163,3 +163,22 @@ def check_colmap_binary(directory) -> None:
         p = d / name
         if p.is_file():
             check(p)
+
+
+def check_colmap_text(directory) -> None:
+    """``cameras.txt``, ``images.txt`` and ``points3D.txt`` are UTF-8 text (COLMAP writes
+    ASCII): a damaged byte was a UnicodeDecodeError traceback. Names the file, line and byte."""
+    d = Path(directory)
+    for name in ("cameras.txt", "images.txt", "points3D.txt"):
+        p = d / name
+        if not p.is_file():
+            continue
+        data = p.read_bytes()
+        try:
+            data.decode("utf-8")
+        except UnicodeDecodeError as e:
+            line = data[: e.start].count(b"\n") + 1
+            raise FormatError(
+                f"{p}:{line}: not UTF-8 text (byte {e.start}: {data[e.start : e.start + 1]!r}); "
+                "a damaged file, or not a COLMAP text model"
+            ) from None

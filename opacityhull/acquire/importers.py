@@ -444,10 +444,12 @@ def import_colmap(
     check_output(out, {"--model": model_dir, "--images": images_dir, "--masks": masks_dir}, replaces=True)
     _check_out(out)
     kind = colmap_model_kind(model_dir)
-    if kind == "binary":
-        from ..colmapbin import check_colmap_binary
+    from ..colmapbin import check_colmap_binary, check_colmap_text
 
+    if kind == "binary":
         check_colmap_binary(model_dir)  # pycolmap reads past the end of a truncated file
+    else:
+        check_colmap_text(model_dir)
     entries = read_colmap_model(model_dir)
     if not entries:
         raise FormatError(f"--model {model_dir}: the {kind} model lists no registered images")

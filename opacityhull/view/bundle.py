@@ -537,15 +537,26 @@ def read_bundle(bundle_dir) -> tuple[dict, np.ndarray, np.ndarray]:
     :func:`opacityhull.view.octree_code.decode_positions`, the reference for the page's decoder).
     """
     from ..errors import FormatError
-    from .octree_code import apply_offsets, unpack
 
     root = Path(bundle_dir)
     try:
         man = json.loads((root / "manifest.json").read_text())
     except (OSError, ValueError) as e:
         raise FormatError(f"{root}/manifest.json: not a viewer bundle ({e})") from e
-    if man.get("format") != VIEWER_FORMAT:
-        raise FormatError(f"{root}/manifest.json: format {man.get('format')!r}, expected {VIEWER_FORMAT!r}")
+    if not isinstance(man, dict) or man.get("format") != VIEWER_FORMAT:
+        got = man.get("format") if isinstance(man, dict) else type(man).__name__
+        raise FormatError(f"{root}/manifest.json: format {got!r}, expected {VIEWER_FORMAT!r}")
+    try:
+        return _read_bundle_chunks(root, man)
+    except (KeyError, TypeError, ValueError, IndexError, OverflowError) as e:
+        # a damaged manifest (a key missing, a count of the wrong type) or chunk
+        raise FormatError(f"{root}: damaged viewer bundle ({type(e).__name__}: {e})") from None
+
+
+def _read_bundle_chunks(root: Path, man: dict) -> tuple[dict, np.ndarray, np.ndarray]:
+    from ..errors import FormatError
+    from .octree_code import apply_offsets, unpack
+
     dt = _attr_dtype(int(man["vis_words"]))
     pos, att = [], []
     for c in man["chunks"]:
@@ -560,7 +571,10 @@ def read_bundle(bundle_dir) -> tuple[dict, np.ndarray, np.ndarray]:
         codes = (root / H["codes_file"]).read_bytes()
         counts = (root / H["counts_file"]).read_bytes() if H.get("counts_file") else b""
         P = decode_positions(unpack(H, codes, counts, what=f"{root}/{H['codes_file']}"))
-        A = np.frombuffer((root / L["file"]).read_bytes(), dt)
+        raw = (root / L["file"]).read_bytes()
+        if len(raw) != int(L["count"]) * dt.itemsize:
+            raise FormatError(f"{root}/{L['file']}: {len(raw)} bytes, expected {int(L['count']) * dt.itemsize}")
+        A = np.frombuffer(raw, dt)
         if len(P) != L["count"] or len(A) != L["count"]:
             raise FormatError(f"{root}: {len(P)} decoded positions and {len(A)} leaf records, expected {L['count']}")
         if H.get("offsets_file"):
