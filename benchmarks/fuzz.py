@@ -128,15 +128,9 @@ def _read_session(root: Path):
 
 
 def _read_colmap(d: Path):
-    from opacityhull.camera import colmap_model_kind, read_colmap_model
-    from opacityhull.colmapbin import check_colmap_binary, check_colmap_text
+    from opacityhull.colmapbin import read_colmap_checked
 
-    # as `import colmap` reads a model: the format checks, then the reader
-    if colmap_model_kind(d) == "binary":
-        check_colmap_binary(d)
-    else:
-        check_colmap_text(d)
-    return read_colmap_model(d)
+    return read_colmap_checked(d)  # as `import colmap` reads a model
 
 
 def _import_ns(transforms: Path):
@@ -175,7 +169,6 @@ def formats(seeds: dict[str, Path]) -> dict[str, tuple[Path, Path, Callable, boo
         "manifest.jsonl": (s, Path("manifest.jsonl"), _read_session, True, True),
         "rig TOML": (w / "rig", Path("rig.toml"), lambda d: load_rig_config(d / "rig.toml"), True, False),
         "plan TOML": (w / "plan", Path("plan.toml"), lambda d: load_plan(d / "plan.toml"), True, False),
-        "COLMAP cameras.txt": (seeds["ns"], Path("x"), None, True, False),  # replaced below
         "COLMAP cameras.bin": (seeds["colmap"], Path("cameras.bin"), _read_colmap, False, False),
         "COLMAP images.bin": (seeds["colmap"], Path("images.bin"), _read_colmap, False, False),
         "COLMAP points3D.bin": (seeds["colmap"], Path("points3D.bin"), _read_colmap, False, False),
@@ -251,7 +244,8 @@ def run(per_format: int, cli_samples: int) -> dict:
     logging.disable(logging.WARNING)  # the readers' notes are not findings
     warnings.simplefilter("ignore", RuntimeWarning)  # numpy's overflow notes on 1e308 poses
     # a reader that allocates what a mutated count says is a finding (MemoryError), not an OOM kill
-    resource.setrlimit(resource.RLIMIT_AS, (4 << 30, resource.getrlimit(resource.RLIMIT_AS)[1]))
+    limit = resource.getrlimit(resource.RLIMIT_AS)
+    resource.setrlimit(resource.RLIMIT_AS, (min(4 << 30, limit[1]) if limit[1] > 0 else 4 << 30, limit[1]))
     work = Path(tempfile.mkdtemp(prefix="opacityhull-fuzz-"))
     try:
         seeds = make_seeds(work)
@@ -273,6 +267,7 @@ def run(per_format: int, cli_samples: int) -> dict:
     finally:
         shutil.rmtree(work, ignore_errors=True)
         logging.disable(logging.NOTSET)
+        resource.setrlimit(resource.RLIMIT_AS, limit)  # the caller (a test session) gets its own back
     total = sum(c["ok"] + c["named"] + c["unnamed"] + c["crash"] for c in counts.values())
     kinds = Counter((f["format"], f["error"].split(":")[0]) for f in findings)
     return {
@@ -292,7 +287,7 @@ def _fuzz_one(name, folder, rel, fn, text, json_like, original, per_format, work
     from hypothesis import strategies as st
 
     @settings(
-        max_examples=per_format, database=None, deadline=None, derandomize=True, suppress_health_check=list(HealthCheck)
+        max_examples=per_format, database=None, deadline=None, derandomize=True, suppress_health_check=HealthCheck.all()
     )
     @given(st.sampled_from(KINDS), st.data())
     def one(kind, data):

@@ -216,7 +216,7 @@ def _sweep(
             raise ConfigError(f"{where}.{steps_key}: expected an integer, got {v!r}")
         if not 0 < v <= MAX_SWEEP_STEPS:
             # a mistyped count (1e11) built the angle list until memory ran out
-            raise ConfigError(f"{where}.{steps_key}: must be in [1, {MAX_SWEEP_STEPS}], got {v}")
+            raise ConfigError(f"{where}.{steps_key}: must be > 0 and at most {MAX_SWEEP_STEPS}, got {v}")
         angles = [start + i * 360.0 / v for i in range(v)]
     out = tuple(round(a % 360.0, 6) for a in angles)
     if len(set(out)) != len(out):

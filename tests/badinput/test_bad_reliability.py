@@ -600,3 +600,22 @@ def test_vanish_at_start_does_not_hand_its_pty_to_another_device(tmp_path):
     finally:
         proc.terminate()
         proc.wait(timeout=20)
+
+
+def test_rig_check_after_a_safe_stop_is_not_busy(tmp_path):
+    """After a capture's own safe stop (a completed feed hold, Hold:0), `rig check` called
+    the board "busy (state Hold) — another program may be driving it"."""
+    from opacityhull.rigs.config import load_rig_config
+    from opacityhull.rigs.emulators.launch import start_emulators
+
+    with start_emulators(load_rig_config(EXAMPLE), kind="pty") as emus:
+        g = emus.by_device["turntable"]
+        with g.lock:  # the state rig.safe()'s feed hold leaves once decelerated (tests/rigs drive it for real)
+            g._state, g._sub = "Hold", 0
+        emus.config.write(tmp_path / "rt.toml")
+        r = invoke(["rig", "check", "--config", tmp_path / "rt.toml", "--timeout", "0.5", "--json"])
+    text = flat(r.stderr)
+    assert r.exit_code == 0, r.output
+    assert "busy" not in text and "another program" not in text
+    by = {d["name"]: d for d in json.loads(r.stdout)["devices"]}
+    assert by["turntable"]["ok"] and "Hold:0" in by["turntable"]["detail"] and "safe stop" in by["turntable"]["detail"]
