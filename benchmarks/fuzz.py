@@ -287,7 +287,11 @@ def _fuzz_one(name, folder, rel, fn, text, json_like, original, per_format, work
     from hypothesis import strategies as st
 
     @settings(
-        max_examples=per_format, database=None, deadline=None, derandomize=True, suppress_health_check=HealthCheck.all()
+        max_examples=per_format,
+        database=None,
+        deadline=None,
+        derandomize=True,
+        suppress_health_check=list(HealthCheck),  # pyright: ignore[reportArgumentType]
     )
     @given(st.sampled_from(KINDS), st.data())
     def one(kind, data):
