@@ -4,13 +4,16 @@ build round-trips on the tiny plan (it wrote RGB over black and could not be imp
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from helpers import invoke_cli
+
+pytestmark = pytest.mark.slow
 
 
 def test_export_colmap_import_build_round_trip(sim_cache, tmp_path):
     from opacityhull.model import OpacityHullModel
 
-    model_dir, _ = sim_cache.built("diffuse", "builtin:tiny", 1.0, cameras="auto", reflectance=True)
+    model_dir = sim_cache.built("diffuse", "builtin:tiny", 1.0, cameras="auto", reflectance=True)
     ex, sess, again = tmp_path / "colmap", tmp_path / "session", tmp_path / "model"
     r = invoke_cli(["export", model_dir, "--format", "colmap", "--out", ex])
     assert r.exit_code == 0, r.output
