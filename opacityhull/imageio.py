@@ -126,9 +126,12 @@ def _capture_file():
     """The process's capture file for :func:`library_output` (reopened after a fork)."""
     import tempfile
 
+    import atexit
+
     f = _CAPTURE.get(os.getpid())
     if f is None:
         f = _CAPTURE[os.getpid()] = tempfile.TemporaryFile()
+        atexit.register(f.close)
     return f
 
 
