@@ -25,7 +25,7 @@ from pathlib import Path
 
 from .errors import FormatError
 
-__all__ = ["COLMAP_MODEL_PARAMS", "check_colmap_binary"]
+__all__ = ["COLMAP_MODEL_PARAMS", "check_colmap_binary", "check_colmap_text", "read_colmap_checked"]
 
 #: Parameters per COLMAP camera model id (``colmap/sensor/models.h``).
 COLMAP_MODEL_PARAMS = {
@@ -163,3 +163,45 @@ def check_colmap_binary(directory) -> None:
         p = d / name
         if p.is_file():
             check(p)
+
+
+def check_colmap_text(directory) -> None:
+    """``cameras.txt``, ``images.txt`` and ``points3D.txt`` are UTF-8 text (COLMAP writes
+    ASCII): a damaged byte was a UnicodeDecodeError traceback. Names the file, line and byte."""
+    d = Path(directory)
+    for name in ("cameras.txt", "images.txt", "points3D.txt"):
+        p = d / name
+        if not p.is_file():
+            continue
+        data = p.read_bytes()
+        try:
+            data.decode("utf-8")
+        except UnicodeDecodeError as e:
+            line = data[: e.start].count(b"\n") + 1
+            raise FormatError(
+                f"{p}:{line}: not UTF-8 text (byte {e.start}: {data[e.start : e.start + 1]!r}); "
+                "a damaged file, or not a COLMAP text model"
+            ) from None
+
+
+def read_colmap_checked(directory):
+    """A COLMAP model as ``import colmap`` reads it: the format checks above, then
+    :func:`opacityhull.camera.read_colmap_model`; a camera the reader refuses without
+    naming the file (``focal lengths must be > 0``) is a :class:`FormatError` naming the
+    model's cameras file."""
+    from .camera import colmap_model_kind, read_colmap_model
+    from .errors import InputError
+
+    d = Path(directory)
+    kind = colmap_model_kind(d)
+    if kind == "binary":
+        check_colmap_binary(d)
+    else:
+        check_colmap_text(d)
+    try:
+        return read_colmap_model(d)
+    except InputError as e:
+        msg = str(e)
+        if str(d) in msg:
+            raise
+        raise FormatError(f"{d / ('cameras.bin' if kind == 'binary' else 'cameras.txt')}: {msg}") from None

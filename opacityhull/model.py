@@ -279,7 +279,10 @@ def read_surfels_ply(path) -> Surfels:
     n_views = None
     for c in ply.comments:
         if c.startswith("n_views "):
-            n_views = int(c.split()[1])
+            try:
+                n_views = int(c.split()[1])
+            except (ValueError, IndexError):
+                raise FormatError(f"{path}: header comment {c!r}: expected 'n_views N'") from None
     names = v.dtype.names
     for k in ("x", "y", "z", "nx", "ny", "nz", "radius"):
         if k not in names:
@@ -295,7 +298,10 @@ def read_surfels_ply(path) -> Surfels:
         depth = np.asarray(v["depth"], np.float32)
         if not (np.isfinite(depth).all() and (depth >= 0).all()):
             raise FormatError(f"{path}: vertex property 'depth' must be finite and >= 0 (metres inside the hull)")
-    return Surfels(pos, nrm, v["radius"], vis, n_views, depth)
+    try:
+        return Surfels(pos, nrm, v["radius"], vis, n_views, depth)
+    except InputError as e:  # a damaged header (a property's type or count): name the file (#35 fuzzing)
+        raise FormatError(f"{path}: {e}") from None
 
 
 # --------------------------------------------------------------------------- views

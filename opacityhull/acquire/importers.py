@@ -69,7 +69,7 @@ from typing import Callable, Iterator
 import numpy as np
 
 from .. import __version__
-from ..camera import Camera, camera_from_nerfstudio, colmap_model_kind, read_colmap_model, write_colmap_text
+from ..camera import Camera, camera_from_nerfstudio, colmap_model_kind, write_colmap_text
 from ..errors import FormatError, InputError, OpacityHullError
 from ..imageio import fsync_dir, read_exr, read_png
 from ..riggeometry import view_id
@@ -444,11 +444,10 @@ def import_colmap(
     check_output(out, {"--model": model_dir, "--images": images_dir, "--masks": masks_dir}, replaces=True)
     _check_out(out)
     kind = colmap_model_kind(model_dir)
-    if kind == "binary":
-        from ..colmapbin import check_colmap_binary
+    from ..colmapbin import read_colmap_checked
 
-        check_colmap_binary(model_dir)  # pycolmap reads past the end of a truncated file
-    entries = read_colmap_model(model_dir)
+    # sizes checked before pycolmap reads past the end of a truncated file
+    entries = read_colmap_checked(model_dir)
     if not entries:
         raise FormatError(f"--model {model_dir}: the {kind} model lists no registered images")
     views = []

@@ -182,6 +182,10 @@ def _angle_list(where: str, v: Any) -> tuple[float, ...]:
     return tuple(out)
 
 
+#: Most positions of a sweep (0.01° apart): more is a typo, and would be built in memory.
+MAX_SWEEP_STEPS = 36000
+
+
 def _sweep(
     where: str, d: Mapping, *, steps_key: str, step_key: str, list_key: str | None, default_steps: int
 ) -> tuple[float, ...]:
@@ -194,8 +198,11 @@ def _sweep(
         return _angle_list(f"{where}.{list_key}", d[list_key])
     if step_key in d:
         step = _number(f"{where}.{step_key}", d[step_key])
-        if step <= 0 or step > 360:
-            raise ConfigError(f"{where}.{step_key}: must be in (0, 360] degrees, got {step}")
+        if not step >= 360.0 / MAX_SWEEP_STEPS or step > 360:
+            raise ConfigError(
+                f"{where}.{step_key}: must be in [{360.0 / MAX_SWEEP_STEPS:g}, 360] degrees "
+                f"(at most {MAX_SWEEP_STEPS} steps), got {step}"
+            )
         # whole sweep without repeating 0 = 360: 360/step angles when it divides, else ceil
         n = (
             int(round(360.0 / step))
@@ -207,8 +214,9 @@ def _sweep(
         v = d.get(steps_key, default_steps)
         if isinstance(v, bool) or not isinstance(v, int):
             raise ConfigError(f"{where}.{steps_key}: expected an integer, got {v!r}")
-        if v <= 0:
-            raise ConfigError(f"{where}.{steps_key}: must be > 0, got {v}")
+        if not 0 < v <= MAX_SWEEP_STEPS:
+            # a mistyped count (1e11) built the angle list until memory ran out
+            raise ConfigError(f"{where}.{steps_key}: must be > 0 and at most {MAX_SWEEP_STEPS}, got {v}")
         angles = [start + i * 360.0 / v for i in range(v)]
     out = tuple(round(a % 360.0, 6) for a in angles)
     if len(set(out)) != len(out):

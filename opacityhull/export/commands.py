@@ -16,7 +16,11 @@ def register(app, groups) -> None:
         model: ModelDirArg,
         fmt: str = typer.Option(..., "--format", help="nerfstudio | colmap | ply | opencv | mesh."),
         out: Path = typer.Option(..., "--out", help="Output folder (created; must be empty unless --overwrite)."),
-        overwrite: bool = typer.Option(False, "--overwrite", help="Replace a non-empty --out."),
+        overwrite: bool = typer.Option(
+            False,
+            "--overwrite",
+            help="Replace an earlier export in --out (only a folder holding nothing but what export wrote there).",
+        ),
         sh_degree: int = typer.Option(
             3, "--sh-degree", help="ply: SH degree (1-3) of splats.ply's view-dependent colour."
         ),

@@ -104,9 +104,10 @@ class GrblInterrupted(DeviceError):
     """A move was interrupted without an alarm: feed hold, safety door, sleep, check mode
     or an unexpected controller reset."""
 
-    def __init__(self, message: str, *, state: str):
+    def __init__(self, message: str, *, state: str, substate: int | None = None):
         super().__init__(message)
         self.state = state
+        self.substate = substate
 
 
 def move_duration_s(distance_deg: float, rate_deg_s: float, accel_deg_s2: float) -> float:
@@ -261,6 +262,13 @@ class GrblController(OverTransport):
                 st = self.status()
                 if st.state == "Alarm" and unlock:
                     self.unlock()
+                elif st.state == "Hold" and st.substate == 0:
+                    raise GrblInterrupted(
+                        f"{self.name}: controller on {self.url} is in a completed feed hold (Hold:0: stopped, "
+                        "as a capture's safe stop leaves it); resume it with ~ or open with reset=True",
+                        state=st.state,
+                        substate=0,
+                    )
                 elif st.state in ("Run", "Jog", "Home", "Hold", "Door", "Sleep", "Check"):
                     raise GrblInterrupted(
                         f"{self.name}: controller on {self.url} is busy (state {st.state}) — another program may "

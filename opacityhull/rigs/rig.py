@@ -608,17 +608,29 @@ def check_rig_config(config_or_path, *, timeout_s: float = 1.0) -> list[DeviceIn
             f"--config {config.source} --write-config RUNTIME.toml` can serve; check RUNTIME.toml instead"
         )
     d = _build_devices(config, timeout_s=timeout_s)
+    from .motion import GrblInterrupted
+
     port_failed: dict[int, DeviceInfo | None] = {}
     for p in d.ports:
         try:
             p.open()
             port_failed[id(p)] = None
+        except GrblInterrupted as e:
+            if e.state == "Hold" and e.substate == 0:
+                # what rig.safe() leaves after a capture stops: not "busy — another program"
+                port_failed[id(p)] = DeviceInfo(
+                    p.name, True, f"Hold:0 on {p.url}: stopped by a feed hold, as a capture's safe stop leaves it"
+                )
+            else:
+                port_failed[id(p)] = DeviceInfo(p.name, False, str(e))
         except (DeviceError, OSError) as e:
             port_failed[id(p)] = DeviceInfo(p.name, False, str(e))
     try:
         for dev, port in d.checks:
             failed = port_failed.get(id(port))
-            if failed is not None:
+            if failed is not None and failed.ok:
+                out.append(DeviceInfo(dev.name, True, failed.detail, state={"state": "Hold", "substate": 0}))
+            elif failed is not None:
                 out.append(DeviceInfo(dev.name, False, failed.detail))
             else:
                 out.append(_safe_check(dev))

@@ -532,16 +532,27 @@ def read_bundle(bundle_dir) -> tuple[dict, np.ndarray, np.ndarray]:
     page's decoder (``decodeNodes`` / ``decodeLeaves`` in ``viewer.js``).
     """
     from ..errors import FormatError
-    from ..render.spg import LEAF_DTYPE, NODE_DTYPE, Codebook, PackedNodes, radius_tensors, unpack_nodes
-    from .octree_code import apply_offsets, unpack
 
     root = Path(bundle_dir)
     try:
         man = json.loads((root / "manifest.json").read_text())
     except (OSError, ValueError) as e:
         raise FormatError(f"{root}/manifest.json: not a viewer bundle ({e})") from e
-    if man.get("format") != VIEWER_FORMAT:
-        raise FormatError(f"{root}/manifest.json: format {man.get('format')!r}, expected {VIEWER_FORMAT!r}")
+    if not isinstance(man, dict) or man.get("format") != VIEWER_FORMAT:
+        got = man.get("format") if isinstance(man, dict) else type(man).__name__
+        raise FormatError(f"{root}/manifest.json: format {got!r}, expected {VIEWER_FORMAT!r}")
+    try:
+        return _read_bundle_chunks(root, man)
+    except (KeyError, TypeError, ValueError, IndexError, OverflowError) as e:
+        # a damaged manifest (a key missing, a count of the wrong type) or chunk
+        raise FormatError(f"{root}: damaged viewer bundle ({type(e).__name__}: {e})") from None
+
+
+def _read_bundle_chunks(root: Path, man: dict) -> tuple[dict, np.ndarray, np.ndarray]:
+    from ..errors import FormatError
+    from ..render.spg import LEAF_DTYPE, NODE_DTYPE, Codebook, PackedNodes, radius_tensors, unpack_nodes
+    from .octree_code import apply_offsets, unpack
+
     words = int(man["vis_words"])
     S = man["spg"]
     raw = (root / S["codebooks"]["file"]).read_bytes()

@@ -7,7 +7,7 @@ from typing import Annotated, Optional
 
 import typer
 
-from ..cliutil import ModelDirArg, check_model_dir, cli_errors, console, emit, progress
+from ..cliutil import ModelDirArg, check_model_dir, cli_errors, console, emit, progress, writing_to
 
 
 def _parse_bg(text: str):
@@ -107,7 +107,8 @@ def register(app, groups) -> None:
         serve = port is not None or out is None
         target = out if out is not None else Path(tempfile.mkdtemp(prefix="opacityhull-view-")) / "bundle"
         try:
-            with progress("writing viewer bundle", enabled=not json_out) as cb:
+            # a full disk met by a write that names no file said "cannot write None"
+            with progress("writing viewer bundle", enabled=not json_out) as cb, writing_to(target):
                 summary = write_bundle(
                     model,
                     target,

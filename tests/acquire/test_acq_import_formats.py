@@ -387,10 +387,10 @@ def test_import_colmap_bad_masks(runner, tmp_path, case):
 
 
 def test_import_colmap_image_size_mismatch(tmp_path):
-    cams, names = _colmap_set(tmp_path, masks=False)
+    cams, names = _colmap_set(tmp_path, masks=True)
     _write_png(tmp_path / "images" / names[1], np.zeros((H, W - 4, 3), np.uint8))
     with pytest.raises(InputError, match=rf"img_1.png: image is {W - 4}x{H}.*is {W}x{H}"):
-        import_colmap(tmp_path / "model", tmp_path / "images", tmp_path / "S")
+        import_colmap(tmp_path / "model", tmp_path / "images", tmp_path / "S", masks_dir=tmp_path / "masks")
     assert not (tmp_path / "S").exists()
 
 

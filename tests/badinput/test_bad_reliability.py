@@ -472,3 +472,150 @@ def test_colmap_binary_size_check_accepts_pycolmaps_files(model_dir, tmp_path):
 
     with pytest.raises(FormatError, match=r"8 unexpected byte\(s\) after the last record"):
         check_colmap_binary(sparse)
+
+
+def test_colmap_export_import_build_round_trip_analytic(model_dir, tmp_path):
+    """#33's round trip on the analytic model (fast; tests/e2e does it on the tiny plan)."""
+    ex = tmp_path / "c"
+    assert invoke(["export", model_dir, "--format", "colmap", "--out", ex]).exit_code == 0
+    r = invoke(["import", "colmap", "--model", ex / "sparse" / "0", "--images", ex / "images", "--out", tmp_path / "s"])
+    assert r.exit_code == 0 and "(12 masks)" in flat(r.stderr), r.output
+    r = invoke(["build", tmp_path / "s", "--out", tmp_path / "m", "--no-pictures", "--json"])
+    assert r.exit_code == 0, r.output
+    assert json.loads(r.stdout)["surfels"] > 0
+
+
+# ------------------------------------------------------------- build resume (item 5)
+
+
+@pytest.mark.parametrize("name", ["cameras.pkl", "geometry.pkl"])
+@pytest.mark.parametrize("content", ["text", "wrong-type"])
+def test_resume_reruns_a_step_whose_cache_is_not_its_product(session_dir, tmp_path, name, content):
+    """Item 5: a cache file overwritten with text or with a valid pickle of the wrong
+    type was a ValueError traceback; the step must rerun (exit 0). Needs the build's
+    cache verification (HOUSE's branch, build.py): skipped until that is merged."""
+    import pickle
+
+    m = tmp_path / "m"
+    r = invoke(["build", session_dir, "--out", m, "--no-pictures"])
+    assert r.exit_code == 0, r.output
+    p = m / "build" / name
+    if content == "text":
+        p.write_text("(lp0\nI1\na.")  # pickle protocol 0 text: loads as a list
+    else:
+        p.write_bytes(pickle.dumps({"not": "the product"}))
+    before = tree_digest(session_dir)
+    r = invoke(["build", session_dir, "--out", m, "--no-pictures", "--resume", "--json"])
+    if r.exit_code != 0 and isinstance(r.exception, ValueError):
+        pytest.skip("build --resume does not verify its cache yet: HOUSE's branch (build.py, #35 'resume verifies')")
+    assert r.exit_code == 0, r.output
+    step = {"cameras.pkl": "cameras", "geometry.pkl": "geometry"}[name]
+    assert json.loads(r.stdout)["steps"][step] == "ran"
+    assert tree_digest(session_dir) == before
+
+
+# ---------------------------------------------------------- SIGTERM, read-only disk
+
+
+def test_sigterm_build_says_how_to_resume(session_dir, tmp_path):
+    """A SIGTERM'd build exited 143 without a word; it says `build --resume` continues."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    before = tree_digest(session_dir)
+    p = subprocess.Popen(
+        [sys.executable, "-m", "opacityhull.cli", "build", str(session_dir), "--out", str(tmp_path / "m")],
+        stderr=subprocess.PIPE,
+        stdout=subprocess.DEVNULL,
+        text=True,
+    )
+    assert p.stderr is not None
+    seen = []
+    for line in p.stderr:  # on a pipe, build prints one line per finished step
+        seen.append(line)
+        if "build:" in line and "done in" in line:
+            break
+    time.sleep(0)  # the first step has finished: the build is working
+    p.send_signal(signal.SIGTERM)
+    rest = p.stderr.read()
+    code = p.wait(timeout=120)
+    if code == 0:
+        pytest.skip("the build finished before the signal arrived")
+    text = flat("".join(seen) + rest)
+    assert code == 143, text
+    assert "terminated by SIGTERM" in text and "`build --resume` continues" in text, text
+    assert "Traceback" not in text
+    assert tree_digest(session_dir) == before
+
+
+def test_capture_onto_a_read_only_disk(tmp_path):
+    """Item 13: exit 5 "not enough free disk space"; the README says exit 2, read-only."""
+    import subprocess
+
+    mnt = tmp_path / "ro"
+    mnt.mkdir()
+    r = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=8m,ro", "tmpfs", str(mnt)], capture_output=True)
+    if r.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here ({r.stderr.decode().strip()}); this test needs root")
+    try:
+        res = invoke(["capture", "--rig", "sim:builtin:diffuse", "--plan", "builtin:tiny", "--out", mnt / "s"])
+        text = flat(res.stderr)
+        assert res.exit_code == 2, res.output
+        assert "read-only" in text and "free space" not in text and str(mnt / "s") in text, text
+    finally:
+        subprocess.run(["umount", "-l", str(mnt)], capture_output=True)
+
+
+# ------------------------------------------------------------------ rigs (item 12)
+
+EXAMPLE = Path(__file__).resolve().parents[2] / "examples" / "rig-emulated.toml"
+
+
+def _emulate(tmp_path: Path, *faults: str):
+    import subprocess
+    import sys
+
+    argv = [sys.executable, "-m", "opacityhull.cli", "rig", "emulate", "--config", str(EXAMPLE)]
+    argv += ["--write-config", str(tmp_path / "rt.toml"), "--json"]
+    for f in faults:
+        argv += ["--fault", f]
+    proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    assert proc.stdout is not None
+    return proc, json.loads(proc.stdout.readline())
+
+
+def test_vanish_at_start_does_not_hand_its_pty_to_another_device(tmp_path):
+    """`--fault light_array:vanish:0`: the freed pty number went to the next emulator, so
+    `rig check` talked to the wrong device (exit 2) instead of exit 3 naming light_array."""
+    proc, info = _emulate(tmp_path, "light_array:vanish:0")
+    try:
+        urls = info["devices"]
+        others = {u for n, u in urls.items() if not n.startswith("light_array")} | {urls["light_array.rotation"]}
+        assert urls["light_array"] not in others  # distinct pty per emulator
+        r = invoke(["rig", "check", "--config", tmp_path / "rt.toml", "--timeout", "0.3"])
+        assert r.exit_code == 3, r.output
+        assert re.search(r"rig check failed: light_array: .*cannot open", flat(r.stderr)), r.stderr
+    finally:
+        proc.terminate()
+        proc.wait(timeout=20)
+
+
+def test_rig_check_after_a_safe_stop_is_not_busy(tmp_path):
+    """After a capture's own safe stop (a completed feed hold, Hold:0), `rig check` called
+    the board "busy (state Hold) — another program may be driving it"."""
+    from opacityhull.rigs.config import load_rig_config
+    from opacityhull.rigs.emulators.launch import start_emulators
+
+    with start_emulators(load_rig_config(EXAMPLE), kind="pty") as emus:
+        g = emus.by_device["turntable"]
+        with g.lock:  # the state rig.safe()'s feed hold leaves once decelerated (tests/rigs drive it for real)
+            g._state, g._sub = "Hold", 0
+        emus.config.write(tmp_path / "rt.toml")
+        r = invoke(["rig", "check", "--config", tmp_path / "rt.toml", "--timeout", "0.5", "--json"])
+    text = flat(r.stderr)
+    assert r.exit_code == 0, r.output
+    assert "busy" not in text and "another program" not in text
+    by = {d["name"]: d for d in json.loads(r.stdout)["devices"]}
+    assert by["turntable"]["ok"] and "Hold:0" in by["turntable"]["detail"] and "safe stop" in by["turntable"]["detail"]

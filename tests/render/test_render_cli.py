@@ -95,7 +95,7 @@ def test_render_look_at_over_environment_map(sphere_dir, tmp_path):
         (["--view", "zero"], 2, "--view"),
         (["--view", "9,0"], 2, "no captured camera 9"),
         (["--look-at", "1,2,3"], 2, "--look-at"),
-        (["--k", "0"], 2, "RenderConfig.k"),
+        (["--k", "0"], 2, "--k = 0"),  # the flag, not the field (#35)
         (["--background", "nonsense.png"], 2, "neither a colour"),
     ],
 )

@@ -96,7 +96,7 @@ def test_bundle_refuses_to_replace_other_folders(view_model, tmp_path):
     keep = tmp_path / "keep"
     keep.mkdir()
     (keep / "notes.txt").write_text("mine")
-    with pytest.raises(InputError, match="not an earlier viewer bundle"):
+    with pytest.raises(InputError, match="replaces only an earlier `view` output.*notes.txt"):
         write_bundle(root, keep)
     assert (keep / "notes.txt").read_text() == "mine"
     with pytest.raises(FormatError, match="model.toml"):
@@ -117,7 +117,8 @@ def test_cli_out_alone_writes_bundle_and_bad_model_exits_4(view_model, tmp_path)
     assert r.returncode == 0, r.stderr
     s = json.loads(r.stdout)
     assert s["surfels"] == 4000 and (tmp_path / "b" / "index.html").is_file() and "url" not in s
-    r = subprocess.run(exe + [str(tmp_path), "--out", str(tmp_path / "c")], capture_output=True, text=True)
+    (tmp_path / "empty").mkdir()  # a folder, but not a model (an --out inside it is refused first, #35)
+    r = subprocess.run(exe + [str(tmp_path / "empty"), "--out", str(tmp_path / "c")], capture_output=True, text=True)
     err = " ".join(r.stderr.split())  # rich wraps long lines
     assert r.returncode == 4 and "is not a model" in err and "model.toml not found" in err and "Traceback" not in err
 

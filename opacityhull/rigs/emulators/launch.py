@@ -156,8 +156,12 @@ def start_emulators(
             emu.handles[url] = dev
             for n in names:
                 emu.by_device[n] = dev
+        # faults once every port is open: `vanish:0` closed a pty master at once, and the
+        # next emulator got the freed pty number, so the written config sent the vanished
+        # device's URL to another device (rig check: exit 2 instead of 3)
+        for url in names_by_url:
             for spec in specs[url]:
-                apply_fault(spec, dev, srv)
+                apply_fault(spec, emu.handles[url], emu.servers[url])
     except BaseException:
         emu.stop()
         raise
