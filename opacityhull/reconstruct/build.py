@@ -47,6 +47,11 @@ Steps (each timed into ``report.json``):
     the hull carved from the *true* alphas against the object, and of our hull against
     that one), reprojection RMS, pose errors against ``groundtruth/calibration``.
 
+**Hold-out** (``BuildConfig.hold_out``, ``build --hold-out every:N | VIEW,...``): the
+``split`` step names test views; steps 3-6 run on the other views only, the test views'
+visibility bits stay clear (never blended), and their cameras and views are still
+written, listed in ``model.toml`` ``[split]`` for ``eval test``.
+
 An empty silhouette in any view makes the hull empty; the build stops with an error
 naming the views (exclude them with ``BuildConfig.exclude_views``) rather than writing
 an empty model.

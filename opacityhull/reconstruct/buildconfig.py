@@ -14,12 +14,7 @@ import numpy as np
 
 from ..camera import Camera
 from ..errors import ConfigError
-from ..model import (
-    REFLECTANCE_STORAGES,
-    STORAGE_TYPES,
-    ReflectanceStorage,
-    Storage,
-)
+from ..model import REFLECTANCE_STORAGES, STORAGE_TYPES, ReflectanceStorage, Storage
 from ..session import Session
 from .matting import MattingOptions
 

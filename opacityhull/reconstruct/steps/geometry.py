@@ -8,12 +8,7 @@ from typing import Callable
 
 import numpy as np
 
-from ...model import (
-    BRIGHT_EXTENSIONS,
-    BUILD_DIR,
-    OPEN_HOLES,
-    write_hole_masks,
-)
+from ...model import BRIGHT_EXTENSIONS, BUILD_DIR, OPEN_HOLES, write_hole_masks
 from ...riggeometry import view_id
 from ...session import Session
 from dataclasses import replace

@@ -10,11 +10,7 @@ import numpy as np
 from ...camera import read_opencv_yaml
 from ...errors import InputError
 from ..buildconfig import BuildReport
-from ..hull import (
-    carve_octree,
-    silhouette_from_alpha,
-    undistort_silhouette,
-)
+from ..hull import carve_octree, silhouette_from_alpha, undistort_silhouette
 from ..lazyviews import peak_rss_mb
 from ..lazyviews import _Subset
 from .base import Step

@@ -11,10 +11,7 @@ from typing import Sequence
 import numpy as np
 
 from ...errors import FormatError
-from ...model import (
-    ViewInfo,
-    write_model,
-)
+from ...model import ViewInfo, write_model
 from ..buildstore import _digest, _records_digest, cached
 from ..lazyviews import _LazyViews, _view_rgba
 from ..matte_step import _jsonable
