@@ -4,7 +4,7 @@ held-out view(s). It shares nothing with the pipeline but the camera reader and 
 metrics (``eval loo``'s :func:`~opacityhull.evaluate.loo.loo_metrics`), so it says
 what the protocol is worth on its own.
 
-    .venv/bin/python benchmarks/baseline.py [--sets temple,dino] [--views every:2] [--res 300] [--json]
+    .venv/bin/python benchmarks/baseline.py [--sets temple,dino] [--views every:2] [--split every:4] [--res 300] [--json]
 
 Each set (Middlebury templeSR / dinoSR, vendored in ``tests/data/real``) is scored twice:
 ``twins=keep`` holds each view out alone (the protocol the issue's baseline figures
@@ -27,6 +27,11 @@ The steps, each the plain textbook one:
   bilinear colour; a point no source view sees takes the nearest view by angle;
 * score: α = 1 where the mesh draws, against the photograph with its own mask, colour
   over black in sRGB, over the union of the masks.
+
+``--split every:N`` adds the train/test protocol of ``build --hold-out every:N`` / ``eval
+test`` (nerfstudio's): views 0, N, 2N, ... are the test views, one hull is carved from
+all the others, and every test view is rendered from it (no test view blended), scored
+over the mask union (#29: 17.0 dB temple, 16.0 dB dino at every:4).
 
 Writes ``benchmarks/out/baseline.md`` and ``baseline.json``; ``--json`` prints one object.
 """
@@ -55,6 +60,8 @@ BOXES = {
 }
 #: the issue's figures for the plain baseline (every 2nd view, twins kept)
 ISSUE = {"temple": 17.9, "dino": 17.6}
+#: #29's figures for it under the every:4 train/test split (mask union)
+ISSUE_SPLIT = {"temple": 17.0, "dino": 16.0}
 
 
 def load_set(name: str):
@@ -258,6 +265,42 @@ def run_set(name: str, views: str, res: int, k: int) -> list[dict]:
     return rows
 
 
+def run_split(name: str, split: str, res: int, k: int) -> dict:
+    """The train/test protocol: test views 0, N, 2N, ... (``split`` = ``every:N``), one
+    hull carved from the other views, each test view rendered from it and scored."""
+    from opacityhull.evaluate.loo import loo_metrics
+
+    cams, images, masks = load_set(name)
+    V = len(cams)
+    n = int(split.split(":")[1])
+    held = set(range(0, V, n))
+    keep = [j for j in range(V) if j not in held]
+    t0 = time.perf_counter()
+    occ, origin, voxel = carve(*BOXES[name], res, cams, masks, keep)
+    verts, faces = mesh(occ, origin, voxel)
+    depths = {j: raster_depth(cams[j], verts, faces) for j in range(V)}
+    per = []
+    for i in sorted(held):
+        render = render_ulr(i, held, cams, images, depths, k=k, tol_m=2.0 * voxel)
+        photo = np.concatenate([images[i], masks[i][..., None].astype(np.float32)], axis=2)
+        m = loo_metrics(photo, render)
+        per.append({"view": i, "psnr": m["psnr"], "ssim": m["ssim"], "coverage_iou": m["coverage_iou"]})
+        print(f"{name} split {split} test view {i:2d}: PSNR {m['psnr']:.2f} dB SSIM {m['ssim']:.3f}", file=sys.stderr)
+    return {
+        "set": name,
+        "twins": "split",
+        "views": f"split {split}",
+        "res": res,
+        "k": k,
+        "train_views": len(keep),
+        "psnr_mean": float(np.mean([p["psnr"] for p in per])),
+        "ssim_mean": float(np.mean([p["ssim"] for p in per])),
+        "coverage_iou_mean": float(np.mean([p["coverage_iou"] for p in per])),
+        "seconds_per_view": (time.perf_counter() - t0) / len(per),
+        "per_view": per,
+    }
+
+
 def write_table(rows, path: Path) -> None:
     lines = [
         "# The plain baseline, re-measured",
@@ -266,7 +309,9 @@ def write_table(rows, path: Path) -> None:
         "per-pixel ULR at the back-projected depth, hull rebuilt without the held-out view(s); PSNR/SSIM over the "
         "union of photo mask and rendered coverage, colour over black, sRGB (`eval loo`'s metrics). `keep`: each "
         "view held out alone (the issue's protocol: 17.9 dB temple, 17.6 dB dino); `together`: with its coincident "
-        "twins (the temple's c0 and c10), as `eval loo` does by default.",
+        "twins (the temple's c0 and c10), as `eval loo` does by default; `split`: the train/test protocol of "
+        "`build --hold-out every:N` / `eval test` (one hull from the training views, #29's figures 17.0 / 16.0 dB "
+        "at every:4).",
         "",
         "| set | twins | views | res | PSNR dB | SSIM | coverage IoU | issue's figure | s per view |",
         "|---|---|---|---:|---:|---:|---:|---:|---:|",
@@ -274,7 +319,8 @@ def write_table(rows, path: Path) -> None:
     for r in rows:
         lines.append(
             f"| {r['set']} | {r['twins']} | {r['views']} | {r['res']} | {r['psnr_mean']:.2f} | {r['ssim_mean']:.3f} | "
-            f"{r['coverage_iou_mean']:.3f} | {ISSUE[r['set']] if r['twins'] == 'keep' else '-'} | "
+            f"{r['coverage_iou_mean']:.3f} | "
+            f"{ISSUE[r['set']] if r['twins'] == 'keep' else ISSUE_SPLIT[r['set']] if r['twins'] == 'split' else '-'} | "
             f"{r['seconds_per_view']:.1f} |"
         )
     path.write_text("\n".join(lines) + "\n")
@@ -284,6 +330,7 @@ def main(argv=None) -> int:
     ap = parser(__doc__)
     ap.add_argument("--sets", default="temple,dino")
     ap.add_argument("--views", default="every:2")
+    ap.add_argument("--split", default=None, help="every:N: also the train/test split (test views 0, N, 2N, ...)")
     ap.add_argument("--res", type=int, default=300)
     ap.add_argument("-k", type=int, default=4)
     ap.add_argument("--json", action="store_true")
@@ -291,6 +338,8 @@ def main(argv=None) -> int:
     rows = []
     for name in a.sets.split(","):
         rows += run_set(name, a.views, a.res, a.k)
+        if a.split:
+            rows.append(run_split(name, a.split, a.res, a.k))
     OUT.mkdir(parents=True, exist_ok=True)
     (OUT / "baseline.json").write_text(json.dumps(rows, indent=1))
     write_table(rows, OUT / "baseline.md")

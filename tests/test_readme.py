@@ -42,6 +42,7 @@ FAST = (
     "opacityhull capture --rig examples/rig-emulated.toml --plan builtin:paper --dry-run",
     "opacityhull import colmap --model tests/data/real/",
     "F=tests/data/real/matting-flowers; opacityhull matte",
+    "opacityhull calibrate tests/data/real/calibration/",
 )
 
 #: Command prefixes not run, each with its reason.
@@ -51,13 +52,8 @@ SKIP = {
     "opacityhull view out/m --port": "serves until Ctrl-C; `view out/m --out out/web` below writes the same bundle",
     "opacityhull import colmap --model sparse/0": "placeholder for the reader's own COLMAP model (the dino import runs)",
     "opacityhull import nerfstudio --transforms data/transforms.json": "placeholder for the reader's own transforms.json",
-    # lines other #33 work adds to the README; their inputs or commands are not on this branch yet
-    "opacityhull calibrate": "added with the calibrate command (#33); not on this branch",
-    "opacityhull eval test": "added with `eval test` (#33); not on this branch",
 }
-SKIP_CONTAINS = {
-    "--hold-out": "added with --hold-out (#33); not on this branch",
-}
+SKIP_CONTAINS: dict[str, str] = {}
 
 
 @dataclass(frozen=True)

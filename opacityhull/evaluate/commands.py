@@ -1,5 +1,5 @@
 """CLI commands of `opacityhull.evaluate` (registered by :mod:`opacityhull.cli`):
-``opacityhull eval loo`` and ``opacityhull eval relight``.
+``opacityhull eval loo``, ``opacityhull eval test`` and ``opacityhull eval relight``.
 
 Every evaluation writes under the model, ``MODEL/eval/<kind>/``, unless ``--out`` names
 another folder (:func:`.runner.default_out`).
@@ -41,6 +41,10 @@ _LOO_SCHEDULER = scheduler_options(
     "the renders run here."
 )
 
+_TEST_BG_HELP = "white | black: the background photograph and rendering are composited over for the whole-image metric."
+_TEST_OUT_HELP = "Folder for test.json and test_sheet.png (default MODEL/eval/test)."
+_TEST_JSON_HELP = 'Print {"psnr_mean", "ssim_mean", "psnr_mask_mean", "ssim_mask_mean", "per_view", ...} on stdout.'
+
 _EVAL_MODEL_HELP = "Model folder built from a simulated session (with reflectance data)."
 _EVAL_OUT_HELP = "Folder for the contact sheet and per-view EXRs (default MODEL/eval/relight)."
 _MAX_VIEWS_HELP = "Evaluate at most this many views (spread evenly)."
@@ -48,7 +52,7 @@ _EVAL_JSON_HELP = 'Print {"psnr_mean", "rel_err_mean", "per_view", ...} on stdou
 
 
 def register(app, groups) -> None:
-    """Add ``loo`` and ``relight`` to the ``eval`` group."""
+    """Add ``loo``, ``test`` and ``relight`` to the ``eval`` group."""
 
     @groups["eval"].command("loo")
     @cli_errors
@@ -131,6 +135,48 @@ def register(app, groups) -> None:
             c.print(f"  details: {s['json']}")
 
         emit(summary, json_out, human)
+
+    @groups["eval"].command("test")
+    @cli_errors
+    @option_group(_RENDER_OPTIONS, into="render_options", before="out")
+    def test_cmd(
+        model: Annotated[Path, typer.Argument(help="Model folder built with --hold-out.")],
+        background: Annotated[str, typer.Option("--background", help=_TEST_BG_HELP)] = "white",
+        out: Annotated[Optional[Path], typer.Option("--out", help=_TEST_OUT_HELP)] = None,
+        json_out: Annotated[bool, typer.Option("--json", help=_TEST_JSON_HELP)] = False,
+        *,
+        render_options: dict,
+    ):
+        """Render every test view of a model built with `build --hold-out` (views it never saw) and compare with
+        its photograph: PSNR and SSIM over the whole image on --background (the NeRF papers' protocol) and over the
+        union of the masks (eval loo's metric), per view, and a contact sheet."""
+        from .heldout import BACKGROUNDS, eval_test
+
+        open_model_arg(model)
+        bg = check_choice("--background", background, BACKGROUNDS)
+        cfg = _render_config(**render_options)
+        with progress("eval test", enabled=not json_out) as cb:
+            s = eval_test(model, background=bg, config=cfg, out=out, progress=cb)
+
+        def human(s):
+            c = console()
+            c.print(
+                f"test views ({s['hold_out']}, {len(s['views'])} held out, {s['train_views']} built from): "
+                f"PSNR {s['psnr_mean']:.2f} dB, SSIM {s['ssim_mean']:.4f} on {s['background']}; mask union "
+                f"PSNR {s['psnr_mask_mean']:.2f} dB, SSIM {s['ssim_mask_mean']:.4f}",
+                markup=False,
+            )
+            for p in s["per_view"]:
+                c.print(
+                    f"  {p['view']}: {p['psnr']:.2f} dB / {p['ssim']:.4f}; mask {p['psnr_mask']:.2f} dB / "
+                    f"{p['ssim_mask']:.4f}",
+                    markup=False,
+                )
+            if "sheet" in s:
+                c.print(f"  contact sheet: {s['sheet']}")
+            c.print(f"  details: {s['json']}")
+
+        emit(s, json_out, human)
 
     @groups["eval"].command("relight")
     @cli_errors

@@ -71,7 +71,8 @@ def geometry_without(
 
     The surfels' visibility covers all V views in the model's bit order, the held-out
     views' bits clear. ``config`` defaults to the build's own (:func:`build_config_of`); a
-    tolerant carve keeps its tolerance unless that would exceed V − 2.
+    tolerant carve keeps its tolerance unless that would exceed V − 2. The test views of a
+    model built with ``--hold-out`` are left out of every rebuild as well.
     """
     cfg, report = build_config_of(model) if config is None else (config, {})
     cams = [v.camera for v in model.views]
@@ -92,11 +93,14 @@ def geometry_without(
     doubted = read_hole_masks(Path(model.root) / BUILD_DIR / BRIGHT_EXTENSIONS)
     extensions = [doubted.get(v.id) for v in model.views]
 
+    # a model built with --hold-out: its test views stay out of every rebuild too
+    test_views = {model.view_index(str(v)) for v in (model.meta.get("split") or {}).get("held_out", [])}
+
     def rebuild(i: int | Sequence[int]) -> Surfels:
         held = {int(i)} if isinstance(i, (int, np.integer)) else {int(j) for j in i}
         if not held or not all(0 <= j < V for j in held):
             raise InputError(f"geometry_without: views {sorted(held)} are not indices of the model's {V} views")
-        keep = [j for j in range(V) if j not in held]
+        keep = [j for j in range(V) if j not in held and j not in test_views]
         c = cfg
         if c.carve_tolerance is not None and c.carve_tolerance > max(0, len(keep) - 2):
             c = replace(c, carve_tolerance=max(0, len(keep) - 2))

@@ -47,6 +47,11 @@ Steps (each timed into ``report.json``):
     the hull carved from the *true* alphas against the object, and of our hull against
     that one), reprojection RMS, pose errors against ``groundtruth/calibration``.
 
+**Hold-out** (``BuildConfig.hold_out``, ``build --hold-out every:N | VIEW,...``): the
+``split`` step names test views; steps 3-6 run on the other views only, the test views'
+visibility bits stay clear (never blended), and their cameras and views are still
+written, listed in ``model.toml`` ``[split]`` for ``eval test``.
+
 An empty silhouette in any view makes the hull empty; the build stops with an error
 naming the views (exclude them with ``BuildConfig.exclude_views``) rather than writing
 an empty model.
@@ -122,7 +127,7 @@ from .lazyviews import (
     peak_rss_mb,
 )
 from .matte_step import load_matting_pairs, matte_for_build, store_matte
-from .steps import cameras, geometry, holes, matting, metrics, natural, pictures, reflectance, write
+from .steps import cameras, geometry, holes, matting, metrics, natural, pictures, reflectance, split, write
 from .steps.base import BuildContext, Step, check_steps
 from .steps.cameras import resolve_cameras, step_cameras, view_list
 from .steps.geometry import step_geometry
@@ -193,6 +198,12 @@ def _verify(ctx: BuildContext) -> None:
     ctx.timer.seconds["verify"] = time.perf_counter() - t
     if ctx.ground_truth and ctx.session.groundtruth_dir is None:
         raise InputError(f"--ground-truth: {ctx.session.root} has no groundtruth/ folder (only simulated sessions do)")
+    if ctx.config.hold_out is not None:  # bad input is refused before anything is written
+        from ..riggeometry import view_id
+        from .steps.split import resolve_hold_out
+
+        views = view_list(ctx.session, exclude=ctx.config.exclude_views)
+        resolve_hold_out(ctx.config.hold_out, [view_id(c, a) for c, a in views])
     if not ctx.config.verify_checksums:
         ctx.notes.append("manifest checksums were not verified (verify_checksums=False): sizes and ids only")
 
@@ -200,8 +211,9 @@ def _verify(ctx: BuildContext) -> None:
 #: The build, in order. Adding a step: a module in ``steps/`` with ``run(ctx)`` and a
 #: ``STEP = Step(...)`` naming what it reads and makes, and one line here (ARCHITECTURE.md).
 STEPS: tuple[Step, ...] = (
-    Step(name="verify", run=_verify, inputs=("session", "config"), params=("verify_checksums",)),
+    Step(name="verify", run=_verify, inputs=("session", "config"), params=("verify_checksums", "hold_out")),
     cameras.STEP,
+    split.STEP,
     cameras.MEMORY,
     matting.STEP,
     holes.STEP,

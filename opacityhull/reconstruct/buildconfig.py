@@ -14,12 +14,7 @@ import numpy as np
 
 from ..camera import Camera
 from ..errors import ConfigError
-from ..model import (
-    REFLECTANCE_STORAGES,
-    STORAGE_TYPES,
-    ReflectanceStorage,
-    Storage,
-)
+from ..model import REFLECTANCE_STORAGES, STORAGE_TYPES, ReflectanceStorage, Storage
 from ..session import Session
 from .matting import MattingOptions
 
@@ -121,6 +116,11 @@ class BuildConfig:
     backdrops : "auto" (object-absent captures, else the display geometry),
         "object-absent" (required) or "geometry" (always predicted; for comparisons).
     exclude_views : view ids left out of the model.
+    hold_out : test views kept out of every step that shapes the model (hull, surfels,
+        visibility, refinement, blending: their visibility bits stay clear) while their
+        cameras and photographs stay on record (``model.toml`` ``[split]``): "every:N"
+        (views 0, N, 2N, ...) or a comma list of view ids / indices (``build --hold-out``;
+        :func:`.steps.split.resolve_hold_out`). None: every view trains.
     drop_uncalibrated_cameras : with a calibration phase, a camera that cannot be
         calibrated (fewer than three usable board views) is left out with its views and a
         note in the report; False makes it an error.
@@ -172,6 +172,7 @@ class BuildConfig:
     cameras: str = "auto"
     backdrops: str = "auto"
     exclude_views: tuple[str, ...] = ()
+    hold_out: str | None = None
     drop_uncalibrated_cameras: bool = True
     root_cell: int = 32
     alpha_eps: float = 1e-3

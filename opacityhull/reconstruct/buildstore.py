@@ -14,9 +14,7 @@ import numpy as np
 
 from ..camera import Camera
 from ..errors import FormatError
-from ..model import (
-    BUILD_DIR,
-)
+from ..model import BUILD_DIR
 from ..session import Session
 from .matte_step import _jsonable
 

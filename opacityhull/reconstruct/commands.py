@@ -212,6 +212,10 @@ _BACKDROPS_HELP = (
     "Matting backdrops: auto (object-absent captures, else predicted from "
     "the display geometry) | object-absent | geometry."
 )
+_HOLD_OUT_HELP = (
+    "Test views kept out of every step (hull, surfels, visibility, refinement, blending) but kept on record in "
+    "the model, for `eval test`: every:N (views 0, N, 2N, ...) or a comma list of view ids or indices."
+)
 _EXCLUDE_HELP = "Leave a view out (repeatable), e.g. c0_t030.000."
 _BOUNDS_HELP = "Hull box x0,y0,z0,x1,y1,z1 in metres (object frame); default: from the silhouettes."
 _OVERSAMPLE_HELP = "Surfel rays per voxel column per axis (default: BuildConfig.surfel_oversample)."
@@ -292,6 +296,7 @@ def register(app, groups) -> None:
         cameras: Annotated[str, typer.Option("--cameras", help=_CAMERAS_HELP)] = "auto",
         backdrops: Annotated[str, typer.Option("--backdrops", help=_BACKDROPS_HELP)] = "auto",
         exclude_view: Annotated[Optional[List[str]], typer.Option("--exclude-view", help=_EXCLUDE_HELP)] = None,
+        hold_out: Annotated[Optional[str], typer.Option("--hold-out", help=_HOLD_OUT_HELP)] = None,
         bounds: Annotated[Optional[str], typer.Option("--bounds", help=_BOUNDS_HELP)] = None,
         oversample: Annotated[Optional[int], typer.Option("--oversample", help=_OVERSAMPLE_HELP)] = None,
         max_alpha_std: Annotated[Optional[float], typer.Option("--max-alpha-std", help=_BUILD_ALPHA_STD_HELP)] = None,
@@ -419,6 +424,7 @@ def register(app, groups) -> None:
             alpha_threshold=d.alpha_threshold if alpha_threshold is None else alpha_threshold,
             surfel_oversample=d.surfel_oversample if oversample is None else oversample,
             exclude_views=tuple(exclude_view or ()),
+            hold_out=hold_out,
             bounds_m=_parse_bounds(bounds),
             matting=matting,
             reflectance=not no_reflectance,

@@ -13,9 +13,7 @@ import numpy as np
 
 from ..camera import Camera
 from ..errors import ConfigError, InputError
-from ..model import (
-    Surfels,
-)
+from ..model import Surfels
 from .buildconfig import (
     SHADING_TEXTURE_STD,
     BuildConfig,

@@ -12,18 +12,11 @@ from typing import Iterator, Sequence, cast
 import numpy as np
 
 from ..errors import InputError
-from ..model import (
-    FILLED_HOLES,
-    write_hole_masks,
-)
+from ..model import FILLED_HOLES, write_hole_masks
 from ..session import Session
 from .buildconfig import BuildConfig, _is_rig_session, default_carve_tolerance
 from .buildstore import _StepStore
-from .hull import (
-    backdrop_holes,
-    bright_extensions,
-    enclosed_holes,
-)
+from .hull import backdrop_holes, bright_extensions, enclosed_holes
 from .lazyviews import Mattes, PackedMasks
 from .matte_step import _rgb
 

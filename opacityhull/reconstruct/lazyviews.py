@@ -59,6 +59,25 @@ class _LazyViews(Sequence):
         return (self.fn(i) for i in range(self.n))
 
 
+class _Subset(Sequence):
+    """``[seq[j] for j in idx]`` read on access (the training views of a lazy per-view
+    sequence, one at a time)."""
+
+    def __init__(self, seq: Sequence, idx: Sequence[int]):
+        self.seq, self.idx = seq, [int(j) for j in idx]
+
+    def __len__(self) -> int:
+        return len(self.idx)
+
+    def __getitem__(self, i):
+        if isinstance(i, slice):
+            raise TypeError("_Subset does not slice")
+        return self.seq[self.idx[i]]
+
+    def __iter__(self) -> Iterator:
+        return (self[i] for i in range(len(self)))
+
+
 class PackedMasks(Sequence):
     """Per-view (H, W) bool masks held bit-packed (:func:`numpy.packbits` along rows, 1 bit
     a pixel): ``masks[i]`` unpacks view ``i`` alone. The build keeps its silhouettes this

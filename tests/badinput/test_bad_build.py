@@ -72,6 +72,13 @@ CASES = [
     _bad_white_level("white-level-zero", "0", "0"),
     _bad_flag("bounds-not-numbers", ("--bounds", "a,b"), r"--bounds 'a,b': expected six numbers"),
     _bad_flag("refine-unknown", ("--refine", "deep"), r"--refine 'deep': expected shading, surfels or none"),
+    # the train/test split (#29): a selection of no view, of every view, or out of range
+    _bad_flag("hold-out-every-view", ("--hold-out", "every:1"), r"--hold-out 'every:1': holds out all 6 views"),
+    _bad_flag("hold-out-every-0", ("--hold-out", "every:0"), r"--hold-out 'every:0': every:N needs a whole number"),
+    _bad_flag("hold-out-all-listed", ("--hold-out", "0,1,2,3,4,5"), r"holds out all 6 views"),
+    _bad_flag("hold-out-no-view", ("--hold-out", ","), r"--hold-out ',': names no view"),
+    _bad_flag("hold-out-unknown-id", ("--hold-out", "c9_t000.000"), r"no view 'c9_t000.000' in the session"),
+    _bad_flag("hold-out-out-of-range", ("--hold-out", "2,99"), r"view index 99 is out of range \[0, 6\)"),
 ]
 
 

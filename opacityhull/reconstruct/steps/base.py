@@ -57,6 +57,7 @@ class BuildContext:
     # products, in step order
     cameras: Any = None  # steps.cameras.CameraProduct
     plan: Any = None  # lazyviews.MemoryPlan
+    split: Any = None  # steps.split.Split
     mattes: Any = None  # lazyviews.Mattes
     holes: Any = None  # steps.holes.HolesProduct
     geometry: Any = None  # steps.geometry.GeometryProduct

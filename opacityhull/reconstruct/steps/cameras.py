@@ -12,9 +12,7 @@ import numpy as np
 
 from ...camera import Camera, read_colmap_text, read_opencv_yaml
 from ...errors import FormatError, InputError
-from ...model import (
-    BUILD_DIR,
-)
+from ...model import BUILD_DIR
 from ...riggeometry import RigGeometry, view_id
 from ...session import Session
 from ..buildconfig import BuildConfig

@@ -8,14 +8,14 @@ from typing import Callable
 
 import numpy as np
 
-from ...model import (
-    BRIGHT_EXTENSIONS,
-    BUILD_DIR,
-    OPEN_HOLES,
-    write_hole_masks,
-)
+from ...model import BRIGHT_EXTENSIONS, BUILD_DIR, OPEN_HOLES, write_hole_masks
 from ...riggeometry import view_id
 from ...session import Session
+from dataclasses import replace
+from typing import Sequence
+
+from ...model import Surfels
+from ..lazyviews import _Subset
 from ..buildconfig import BuildConfig, _is_rig_session, default_carve_tolerance
 from ..buildstore import _NOT_GEOMETRY, _digest, _records_digest, _StepStore, cached
 from ..geometry import Geometry, build_geometry
@@ -44,11 +44,15 @@ def step_geometry(
     photo_slots: int | None = None,
     open_holes: "PackedMasks | None" = None,
     extensions: "PackedMasks | None" = None,
+    train: Sequence[int] | None = None,
 ) -> tuple[Geometry, str]:
     """Steps 3-6 (silhouettes, hull, surfels, visibility, refine): :func:`build_geometry`
     over the mattes, stored as ``build/geometry.pkl``. ``open_holes`` and ``extensions``: the
     see-through holes and the bright extensions per view if already judged
-    (:func:`fill_shadow_holes`), else judged here."""
+    (:func:`fill_shadow_holes`), else judged here. ``train``: the views the geometry is
+    built from (``build --hold-out``; None: all); the other views' visibility bits stay
+    clear and the returned geometry's per-view lists (silhouettes, pinhole cameras,
+    dilations) cover the training views only."""
     vids = [view_id(c, a) for c, a in views]
     rig_session = _is_rig_session(session)
     # imported sessions have no [rig] table; a corrupt one is a FormatError, not "no rig"
@@ -56,7 +60,10 @@ def step_geometry(
     fallback = _rig_volume(geo) if rig_session else None
     rms_per_view = [cams.rms_px.get(c, 0.0) for c, _ in views]
     params = {k: v for k, v in config.to_dict().items() if k not in _NOT_GEOMETRY}
+    keep = list(range(len(views))) if train is None else [int(i) for i in train]
+    subset = len(keep) < len(views)
     inputs = {
+        **({"train": keep} if subset else {}),
         "mattes": mattes.content,
         "cameras": cameras_key,
         "rig_session": rig_session,
@@ -108,6 +115,29 @@ def step_geometry(
                 del rgb
             holes = new_holes if new_holes is not None else holes
             doubtful = new_ext if new_ext is not None else doubtful
+        if subset:
+            # the held-out views are not there for the geometry: no silhouette, no
+            # photo-consistency, no visibility (their bits are set below, clear)
+            return _expanded(
+                build_geometry(
+                    _Subset(mattes.alphas, keep),
+                    [cams.views[j] for j in keep],
+                    [rms_per_view[j] for j in keep],
+                    [vids[j] for j in keep],
+                    config=config,
+                    rig_session=rig_session,
+                    fallback_box=fallback,
+                    step=step,
+                    progress=progress,
+                    images=None if images is None else (lambda q, f=images: f(keep[q])),
+                    open_holes=None if holes is None else _Subset(holes, keep),
+                    doubtful_extensions=None if doubtful is None else _Subset(doubtful, keep),
+                    carve_batch=carve_batch,
+                    photo_slots=photo_slots,
+                ),
+                keep,
+                len(views),
+            )
         g = build_geometry(
             mattes.alphas,
             cams.views,
@@ -145,6 +175,17 @@ def step_geometry(
     return got.value, got.key
 
 
+def _expanded(g: Geometry, keep: Sequence[int], n_views: int) -> Geometry:
+    """``g`` built from the views ``keep`` with its surfels' visibility over all
+    ``n_views`` views in model order (the others' bits clear)."""
+    s = g.surfels
+    vis = np.zeros((len(s), n_views), bool)
+    vis[:, list(keep)] = s.visible_bool()
+    out = Surfels.from_bool(s.positions, s.normals, s.radii, vis)
+    out.depth_m = s.depth_m
+    return replace(g, surfels=out)
+
+
 @dataclass(frozen=True, kw_only=True)
 class GeometryProduct:
     """The geometry step's product: :class:`..geometry.Geometry`, its key, what goes into
@@ -154,10 +195,14 @@ class GeometryProduct:
     key: str
     hull_info: dict
     dilations: dict
+    #: the views it was built from (indices in model order; ``Geometry``'s per-view lists
+    #: follow them)
+    train: tuple
 
 
 def run(ctx) -> None:
     views = ctx.cameras.views
+    train = ctx.split.train
     g, key = step_geometry(
         ctx.session,
         views,
@@ -173,19 +218,22 @@ def run(ctx) -> None:
         photo_slots=ctx.plan.photo_slots,
         open_holes=ctx.holes.open_holes,
         extensions=ctx.holes.extensions,
+        train=train if len(train) < len(views) else None,
     )
     ctx.notes.extend(g.notes)
     hull_info = dict(g.info)
-    dilations = {c: g.dilations[i] for i, (c, _) in enumerate(views)}
+    dilations = {views[j][0]: g.dilations[i] for i, j in enumerate(train)}
     hull_info["dilate_px_per_camera"] = {str(k): v for k, v in sorted(dilations.items())}
     hull_info["shadow_holes_filled"] = ctx.holes.shadow_filled
-    ctx.geometry = GeometryProduct(geometry=g, key=key, hull_info=hull_info, dilations=dilations)
+    if ctx.split.held_out:
+        hull_info["held_out"] = [ctx.cameras.vids[i] for i in ctx.split.held_out]
+    ctx.geometry = GeometryProduct(geometry=g, key=key, hull_info=hull_info, dilations=dilations, train=tuple(train))
 
 
 STEP = Step(
     name="geometry",
     run=run,
-    inputs=("session", "cameras", "plan", "mattes", "holes", "config", "store"),
+    inputs=("session", "cameras", "plan", "split", "mattes", "holes", "config", "store"),
     product="geometry",
     params=("all BuildConfig fields but those in buildstore._NOT_GEOMETRY",),
 )

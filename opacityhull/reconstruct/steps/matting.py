@@ -7,9 +7,7 @@ from dataclasses import asdict, replace
 
 import numpy as np
 
-from ...model import (
-    BUILD_DIR,
-)
+from ...model import BUILD_DIR
 from ...riggeometry import view_id
 from ...session import Session
 from ..buildconfig import BuildConfig

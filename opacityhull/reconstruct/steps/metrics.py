@@ -10,12 +10,9 @@ import numpy as np
 from ...camera import read_opencv_yaml
 from ...errors import InputError
 from ..buildconfig import BuildReport
-from ..hull import (
-    carve_octree,
-    silhouette_from_alpha,
-    undistort_silhouette,
-)
+from ..hull import carve_octree, silhouette_from_alpha, undistort_silhouette
 from ..lazyviews import peak_rss_mb
+from ..lazyviews import _Subset
 from .base import Step
 from .matting import _drift_summary
 from .write import _storage_metrics
@@ -136,9 +133,11 @@ def run(ctx) -> None:
             metrics.update(
                 _ground_truth_metrics(
                     session,
-                    ctx.cameras.views,
-                    ctx.cameras.vids,
-                    mattes.alphas,
+                    [ctx.cameras.views[j] for j in ctx.geometry.train],
+                    [ctx.cameras.vids[j] for j in ctx.geometry.train],
+                    mattes.alphas
+                    if len(ctx.geometry.train) == len(ctx.cameras.views)
+                    else _Subset(mattes.alphas, ctx.geometry.train),
                     g.occ,
                     g.grid,
                     cams,

@@ -9,6 +9,7 @@ import numpy as np
 
 from ..buildstore import cached
 from ..matte_step import _rgb
+from ..lazyviews import _Subset
 from .base import Step
 
 log = logging.getLogger(__name__)
@@ -50,7 +51,10 @@ def run(ctx) -> None:
     with ctx.timer.step("pictures"):
         if ctx.config.pictures:
             g = ctx.geometry.geometry
-            views, vids = ctx.cameras.views, ctx.cameras.vids
+            # the geometry's per-view lists follow the training views (all without --hold-out)
+            t = list(ctx.geometry.train)
+            views, vids = [ctx.cameras.views[j] for j in t], [ctx.cameras.vids[j] for j in t]
+            alphas = ctx.mattes.alphas if len(t) == len(ctx.cameras.views) else _Subset(ctx.mattes.alphas, t)
 
             def draw() -> list:
                 return _pictures(
@@ -58,12 +62,12 @@ def run(ctx) -> None:
                     ctx.session,
                     views,
                     vids,
-                    ctx.mattes.alphas,
+                    alphas,
                     g.sils,
                     g.pin,
                     g.surfels,
                     ctx.cameras.cams,
-                    ctx.holes.colour_shots,
+                    [ctx.holes.colour_shots[j] for j in t],
                 )
 
             pictures = cached(

@@ -7,10 +7,7 @@ import logging
 import numpy as np
 
 from ...errors import FormatError
-from ...model import (
-    LightSample,
-    light_key,
-)
+from ...model import LightSample, light_key
 from ...session import Session
 from ..buildconfig import BuildConfig
 from ..buildstore import _digest, _records_digest

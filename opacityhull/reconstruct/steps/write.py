@@ -10,10 +10,7 @@ from typing import Sequence
 import numpy as np
 
 from ...errors import FormatError
-from ...model import (
-    ViewInfo,
-    write_model,
-)
+from ...model import ViewInfo, write_model
 from ..buildstore import _digest, _records_digest, cached
 from ..lazyviews import _LazyViews, _view_rgba
 from ..matte_step import _jsonable
@@ -94,6 +91,7 @@ def run(ctx) -> None:
     g, colour_shots = ctx.geometry.geometry, ctx.holes.colour_shots
     reflectance, refl_digest = ctx.reflectance
     natural, natural_key = ctx.natural
+    split = ctx.split
     alphas = mattes.alphas
     view_infos = [ViewInfo(i, vids[i], c, float(a), cams.views[i]) for i, (c, a) in enumerate(views)]
     backdrop_source = ", ".join(sorted(mattes.sources))
@@ -120,6 +118,7 @@ def run(ctx) -> None:
         ),
         "reflectance": refl_digest,
         "provenance": _digest(provenance),
+        **({"held_out": list(split.held_out)} if split.held_out else {}),
     }
 
     def view_rgba(i: int) -> np.ndarray:
@@ -143,7 +142,8 @@ def run(ctx) -> None:
         (out / "model.toml").unlink(missing_ok=True)
         extra = None
         if natural is not None:
-            extra = {
+            extra = {} if extra is None else extra
+            extra |= {
                 "natural": {
                     "present": True,
                     "format": "opacityhull.natural/1",
@@ -155,6 +155,14 @@ def run(ctx) -> None:
                         for n, d in natural["displays"].items()
                     },
                 }
+            }
+        if split.held_out:
+            # test views: on record (camera, photograph), kept out of the geometry and blending
+            extra = {} if extra is None else extra
+            extra["split"] = {
+                "hold_out": str(split.spec),
+                "held_out": [vids[i] for i in split.held_out],
+                "train": len(split.train),
             }
         if cams.rig:
             from ...camera import write_opencv_yaml
@@ -190,7 +198,7 @@ def run(ctx) -> None:
 STEP = Step(
     name="write",
     run=run,
-    inputs=("session", "cameras", "mattes", "holes", "geometry", "reflectance", "natural", "config", "store"),
+    inputs=("session", "cameras", "split", "mattes", "holes", "geometry", "reflectance", "natural", "config", "store"),
     product="model",
     params=("storage", "reflectance_storage", "pca_rank", "pca_error", "pca_block", "alpha_eps"),
 )

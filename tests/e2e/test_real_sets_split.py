@@ -1,0 +1,74 @@
+"""The train/test protocol (#29) on real photographs made by others: the Middlebury
+templeSR and dinoSR rings (tests/data/real) through ``import colmap`` → ``build
+--hold-out every:4`` (views 0, 4, 8, 12 never seen: 12 views to build from) → ``eval
+test`` on white and black.
+
+Measured with the defaults (2 cores shared by 8 jobs; deterministic: fixed data, no
+sampling), mask-union PSNR / SSIM per test view:
+
+* temple 24.51 / 16.58 / 14.96 / 17.24 dB (mean 18.32, SSIM 0.640); whole image on
+  white 18.78 dB (SSIM 0.884), on black 24.26 dB. Its view 0 has a coincident twin (view
+  10) among the training views, as in a plain script's split: hence 24.5 dB.
+* dino 24.76 / 10.94 / 19.33 / 13.33 dB (mean 17.09, SSIM 0.691); on white 19.27 dB
+  (SSIM 0.875), on black 21.44 dB. View 4 sees the dino's underside, which no training
+  view's silhouette carves.
+
+The plain baseline under the same split (``benchmarks/baseline.py --split every:4``,
+hull of the 12 training views + per-pixel ULR) scores 17.72 dB temple / 15.50 dB dino
+(#29 quotes 17.0 / 16.0 for its own script): the pipeline is +0.6 / +1.6 dB above it.
+The per-view spread (11-25 dB) says another split would move the mean by a few dB, but
+this split is fixed and the computation deterministic: the thresholds sit 0.5 dB below
+the means (what single features of the pipeline moved, see test_real_sets.py), so losing
+one fails, and at the minimum view 0.5 dB below it.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+from pathlib import Path
+
+import pytest
+
+DATA = Path(__file__).resolve().parents[1] / "data" / "real"
+
+pytestmark = pytest.mark.slow
+
+MEASURED = {
+    "temple": {"psnr_mask": 18.32, "min_view_mask": 14.96, "psnr_white": 18.78, "ssim_white": 0.884},
+    "dino": {"psnr_mask": 17.09, "min_view_mask": 10.94, "psnr_white": 19.27, "ssim_white": 0.875},
+}
+MARGIN_DB, MARGIN_SSIM = 0.5, 0.015
+
+
+@pytest.fixture(scope="module", params=["temple", "dino"])
+def split_model(request, tmp_path_factory):
+    from opacityhull.acquire.importers import import_colmap
+    from opacityhull.reconstruct.build import BuildConfig, build_model
+
+    name = request.param
+    src = DATA / f"{name}SR"
+    tmp = tmp_path_factory.mktemp(f"{name}_split")
+    import_colmap(src / "sparse", src / "images", tmp / "session", masks_dir=src / "masks")
+    build_model(tmp / "session", tmp / "model", config=replace(BuildConfig(pictures=False), hold_out="every:4"))
+    return name, tmp / "model"
+
+
+def test_eval_test_on_the_real_rings(split_model):
+    from opacityhull.evaluate.heldout import eval_test
+    from opacityhull.model import OpacityHullModel
+
+    name, model = split_model
+    m = OpacityHullModel.open(model)
+    assert m.meta["split"]["held_out"] == [m.views[i].id for i in (0, 4, 8, 12)]
+    white = eval_test(model)
+    black = eval_test(model, background="black", out=model / "eval" / "test_black")
+    ref = MEASURED[name]
+    assert white["psnr_mask_mean"] >= ref["psnr_mask"] - MARGIN_DB, white
+    assert min(p["psnr_mask"] for p in white["per_view"]) >= ref["min_view_mask"] - MARGIN_DB
+    assert white["psnr_mean"] >= ref["psnr_white"] - MARGIN_DB
+    assert white["ssim_mean"] >= ref["ssim_white"] - MARGIN_SSIM
+    # the mask-union metric does not depend on the background
+    assert black["psnr_mask_mean"] == pytest.approx(white["psnr_mask_mean"], abs=1e-9)
+    assert json.loads((model / "eval" / "test" / "test.json").read_text())["views"] == white["views"]
+    assert Path(white["sheet"]).is_file()
