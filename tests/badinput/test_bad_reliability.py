@@ -492,8 +492,8 @@ def test_colmap_export_import_build_round_trip_analytic(model_dir, tmp_path):
 @pytest.mark.parametrize("content", ["text", "wrong-type"])
 def test_resume_reruns_a_step_whose_cache_is_not_its_product(session_dir, tmp_path, name, content):
     """Item 5: a cache file overwritten with text or with a valid pickle of the wrong
-    type was a ValueError traceback; the step must rerun (exit 0). Needs the build's
-    cache verification (HOUSE's branch, build.py): skipped until that is merged."""
+    type was a ValueError traceback; the step must rerun (exit 0): the build's cache
+    verification (``buildstore.cached``)."""
     import pickle
 
     m = tmp_path / "m"
@@ -506,8 +506,6 @@ def test_resume_reruns_a_step_whose_cache_is_not_its_product(session_dir, tmp_pa
         p.write_bytes(pickle.dumps({"not": "the product"}))
     before = tree_digest(session_dir)
     r = invoke(["build", session_dir, "--out", m, "--no-pictures", "--resume", "--json"])
-    if r.exit_code != 0 and isinstance(r.exception, ValueError):
-        pytest.skip("build --resume does not verify its cache yet: HOUSE's branch (build.py, #35 'resume verifies')")
     assert r.exit_code == 0, r.output
     step = {"cameras.pkl": "cameras", "geometry.pkl": "geometry"}[name]
     assert json.loads(r.stdout)["steps"][step] == "ran"
