@@ -54,10 +54,10 @@ class FitConfig:
     iterations: int = 600
     time_budget_s: float | None = None
     seed: int = 0
-    lr_position: float = 1e-2
-    lr_position_final: float = 1e-4
-    lr_sh_dc: float = 2.5e-3
-    lr_sh_rest: float = 1.25e-4
+    lr_position: float = 3e-3
+    lr_position_final: float = 3e-4
+    lr_sh_dc: float = 1e-2
+    lr_sh_rest: float = 5e-4
     lr_opacity: float = 5e-2
     lr_scale: float = 1e-2
     lr_rotation: float = 1e-3
