@@ -171,6 +171,11 @@ def run_set(name: str, model_dir: Path, tmp: Path, cfg, *, observe_every: int, m
     res["sh"] = curve[-1]
     res["curve"] = curve
     res["densify"] = rep.densify
+    sheet_modes = {"photograph": None, "sh": lambda i: render_params(params, cams[i])}
+    if "hull" in modes:
+        sheet_modes["hull"] = lambda i: render_image(surf, cams, pv, cams[i], config=rc, exclude_views=held).rgba
+    res["sheet_views"] = test[:2]
+    res["_sheet"] = {k: [f(i) if f else wm.load_view_rgba(i) for i in test[:2]] for k, f in sheet_modes.items()}
     if "ulr" in modes:
         us = ulr_surfels(params, cams, held)
         res["ulr"] = {
@@ -201,6 +206,22 @@ def table(rows: list[dict]) -> str:
                 f"{GOALS.get(r['set'], float('nan')):.1f} |"
             )
     return "\n".join(out)
+
+
+def write_sheets(rows: list[dict], path: Path) -> None:
+    """Photograph | hull | sh of the first two held-out views of every set."""
+    from opacityhull.pictures import contact_sheet, write_sheet
+    from opacityhull.render.evaluate import _display
+
+    tiles, labels, headers = [], [], []
+    for r in rows:
+        sheet = r.pop("_sheet")
+        headers = list(sheet)
+        for j, v in enumerate(r["sheet_views"]):
+            for k in sheet:
+                tiles.append((np.clip(_display(sheet[k][j]), 0, 1) * 255).round().astype(np.uint8))
+                labels.append(f"{r['set']} view {v} {k}")
+    write_sheet(path, contact_sheet(tiles, columns=len(headers), labels=labels, headers=headers, max_width=1800))
 
 
 def plot(rows: list[dict], path: Path) -> None:
@@ -293,6 +314,7 @@ def main(argv=None) -> int:
             + ", ".join(f"step {p['iteration']} {p['psnr']:.2f} dB ({p['seconds']:.0f} s)" for p in r["curve"])
         )
     md.append("")
+    write_sheets(rows, OUT / f"{stem}_views.png")
     path = OUT / f"{stem}.md"
     path.write_text("\n".join(md))
     (OUT / f"{stem}.json").write_text(json.dumps({"config": asdict(cfg), "rows": rows}, indent=1, default=float))

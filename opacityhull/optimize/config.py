@@ -43,9 +43,9 @@ class FitConfig:
     prune_opacity : surfels with opacity below this are removed at each densification.
     prune_scale_fraction : surfels larger than this fraction of the extent are removed.
     max_surfels : densification stops adding past this count.
-    start_surface : ``"hull"`` starts the means on the hull's surfels; ``"refined"`` at
-        their photo-consistent depth (``Surfels.depth_m``, where the renderer shades;
-        the hull where a model has none).
+    start_surface : ``"hull"`` starts the means on the hull's surfels; ``"refined"`` (the
+        default) at their photo-consistent depth (``Surfels.depth_m``, where the renderer
+        shades; the hull where a model has none): templeSR's start +0.44 dB held out.
     max_start_surfels : the start keeps a seeded subset of at most this many hull
         surfels, their radii grown to cover the same area (None: all).
     train_scale : the training views are fitted at this fraction of their resolution
@@ -76,7 +76,7 @@ class FitConfig:
     prune_opacity: float = 0.005
     prune_scale_fraction: float = 0.1
     max_surfels: int = 1_000_000
-    start_surface: Literal["hull", "refined"] = "hull"
+    start_surface: Literal["hull", "refined"] = "refined"
     max_start_surfels: int | None = 150_000
     train_scale: float = 1.0
     checkpoint_every: int = 200
