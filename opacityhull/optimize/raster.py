@@ -19,13 +19,16 @@ transmittance before each fragment from the final one, and chains the gradients 
 the compositing, the 2-D Gaussian, the conic, the projection (``J`` and the world-to-camera
 rotation ``W``), the covariance from quaternion and scales, and the colour.
 
-Layout of the work (numba, ``prange`` wherever the work splits): a per-surfel set-up in
-input order; one sort of the visible surfels by (float32 view depth, index); their records
-gathered into (centre tile, depth) order, so that a tile's entries read memory forwards;
+Layout of the work (numba, ``prange`` wherever the work splits): per surfel, only the view
+depth and the tile of the projected centre; one sort of the surfels in front of the near
+plane by (float32 view depth, index), and a counting sort of that order by centre tile;
+the records (covariance, conic, tile rectangle) computed straight into that (centre tile,
+depth) order, so that a tile's entries read memory forwards;
 one key per (surfel, tile) = tile << 32 | depth rank, sorted, gives every tile's list in
 depth order; then ``prange`` over tiles dealt round-robin to 64 groups (a balanced static
-split) for the per-pixel passes. A tile's pixels are touched only by each splat's own
-cutoff ellipse, row by row, not the whole tile. The backward pass writes each (tile,
+split) for the per-pixel passes. A splat visits only the pixels of its cutoff ellipse's
+bounding box inside the tile (an exact per-row span of the ellipse measured ~10 % slower:
+its square root per row cost more than the pixels it saves). The backward pass writes each (tile,
 surfel) entry's partial gradient into its own slot, slots laid out surfel by surfel, and
 the per-surfel pass sums them in a fixed order: no races, and the same bytes whatever the
 thread count, the tile size or the surfels' memory order. Input in random memory order
@@ -42,6 +45,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from numba import njit, prange
 
+from ..camera import Camera
 from ..errors import InputError, ShapeError
 
 __all__ = [
@@ -90,6 +94,25 @@ class RasterCamera:
             raise InputError(f"RasterCamera size {self.width}x{self.height}: expected both >= 1")
         object.__setattr__(self, "K", K)
         object.__setattr__(self, "cam_from_world", M)
+
+    @classmethod
+    def from_camera(cls, camera: Camera, *, ignore_distortion: bool = False) -> RasterCamera:
+        """The rasterizer's pinhole for a project :class:`~opacityhull.camera.Camera`.
+
+        The rasterizer projects without lens distortion; a camera with non-zero distortion
+        is refused (``InputError`` naming it and the coefficients) unless
+        ``ignore_distortion`` (then the pinhole part is used as it is)."""
+        if not ignore_distortion and np.any(np.asarray(camera.dist) != 0):
+            raise InputError(
+                f"camera {camera.name!r} has lens distortion {np.asarray(camera.dist).tolist()}: "
+                "the rasterizer needs undistorted views (or ignore_distortion=True)"
+            )
+        return cls(
+            K=np.asarray(camera.K, np.float64),
+            cam_from_world=np.asarray(camera.cam_from_world, np.float64)[:3, :],
+            width=int(camera.width),
+            height=int(camera.height),
+        )
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -195,7 +218,7 @@ class RasterOutput:
     visible : (N,) bool, surfels that passed culling (in front of ``near_m``, ellipse on a
         pixel centre).
     ctx : state for :func:`rasterize_backward`.
-    timings_s : wall seconds per stage (``setup``, ``sort``, ``bin``, ``composite``).
+    timings_s : wall seconds per stage (``sort``, ``setup``, ``bin``, ``composite``).
     """
 
     image: np.ndarray
@@ -230,12 +253,12 @@ class SplatGrads:
 # A visible surfel's record (one row of 16 float64, two cache lines), in depth order so
 # that a tile's entries read memory forwards: projected centre (px), conic (A, B, C) of
 # q = A dx² + 2B dx dy + C dy², opacity, colour, view depth, half height of the cutoff
-# ellipse, and its row-span constants cut²/A, (AC - B²)/A², B/A.
-R_M0, R_M1, R_A, R_B, R_C, R_O, R_R, R_G, R_BL, R_Z, R_HY, R_P1, R_P2, R_P3 = range(14)
+# ellipse, and its half width.
+R_M0, R_M1, R_A, R_B, R_C, R_O, R_R, R_G, R_BL, R_Z, R_HY, R_HX = range(12)
 _REC = 16
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, inline="always", error_model="numpy")
 def _frame(quat, log_scale):
     """Normalised quaternion (w, x, y, z), its norm, the two unit tangent axes (world) and
     the two standard deviations."""
@@ -251,7 +274,7 @@ def _frame(quat, log_scale):
     return w, x, y, z, nq, a0, a1, a2, b0, b1, b2, math.exp(float(log_scale[0])), math.exp(float(log_scale[1]))
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, inline="always", error_model="numpy")
 def _project(mean, quat, log_scale, K, M, lowpass):
     """Camera-frame centre, projected centre and screen covariance (a, b, c) of one surfel,
     with the intermediate values the backward pass reuses."""
@@ -284,20 +307,47 @@ def _project(mean, quat, log_scale, K, M, lowpass):
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
-def _preprocess(means, quats, log_scales, logits, colors, K, M, width, height, lowpass, cutoff, near, tile):
+def _centres(means, K, M, width, height, near, tile):
+    """Per surfel: view depth, the tile of its (clamped) projected centre, and whether it
+    is in front of the near plane — all the two sorts need, before the covariance."""
     n = means.shape[0]
-    rec = np.zeros((n, _REC))
-    rect = np.zeros((n, 4), np.int64)
-    ctile = np.zeros(n, np.int64)
-    valid = np.zeros(n, np.bool_)
+    depth = np.empty(n)
+    ctile = np.empty(n, np.int64)
+    front = np.empty(n, np.bool_)
+    n_tx = (width + tile - 1) // tile
+    for i in prange(n):
+        m0, m1, m2 = float(means[i, 0]), float(means[i, 1]), float(means[i, 2])
+        t0 = M[0, 0] * m0 + M[0, 1] * m1 + M[0, 2] * m2 + M[0, 3]
+        t1 = M[1, 0] * m0 + M[1, 1] * m1 + M[1, 2] * m2 + M[1, 3]
+        t2 = M[2, 0] * m0 + M[2, 1] * m1 + M[2, 2] * m2 + M[2, 3]
+        depth[i] = t2
+        front[i] = t2 >= near
+        mx = (K[0, 0] * t0 + K[0, 1] * t1) / t2 + K[0, 2]
+        my = (K[1, 0] * t0 + K[1, 1] * t1) / t2 + K[1, 2]
+        if not (math.isfinite(mx) and math.isfinite(my)):
+            mx = 0.0
+            my = 0.0
+        ctile[i] = (int(min(max(my, 0.0), height - 1.0)) // tile) * n_tx + int(min(max(mx, 0.0), width - 1.0)) // tile
+    return depth, ctile, front
+
+
+@njit(cache=True, parallel=True, error_model="numpy")
+def _setup_records(
+    order, means, quats, log_scales, logits, colors, K, M, width, height, lowpass, cutoff, tile, visible
+):
+    """The records of the surfels in front of the near plane, in record order: screen
+    covariance, conic, tile rectangle. Surfels whose cutoff ellipse covers no pixel centre
+    get no tiles (and stay not ``visible``)."""
+    m = order.shape[0]
+    recs = np.empty((m, _REC))
+    rects = np.zeros((m, 4), np.int64)
+    ntile = np.zeros(m, np.int64)
     n_tx = (width + tile - 1) // tile
     n_ty = (height + tile - 1) // tile
-    cut2 = cutoff * cutoff
-    for i in prange(n):
+    for r in prange(m):
+        i = order[r]
         t0, t1, t2, mx, my, ca, cb, cc = _project(means[i], quats[i], log_scales[i], K, M, lowpass)
-        rec[i, R_Z] = t2
-        if not t2 >= near:
-            continue
+        recs[r, R_Z] = t2
         det = ca * cc - cb * cb
         if not (det > 0 and math.isfinite(det) and math.isfinite(mx) and math.isfinite(my)):
             continue
@@ -313,28 +363,24 @@ def _preprocess(means, quats, log_scales, logits, colors, K, M, width, height, l
         y1 = min(math.floor(min(max(my + hy, -1.0), height + 1.0)), height - 1)
         if x0 > x1 or y0 > y1:
             continue
-        rec[i, R_M0] = mx
-        rec[i, R_M1] = my
-        rec[i, R_A] = A
-        rec[i, R_B] = B
-        rec[i, R_C] = C
-        rec[i, R_O] = 1.0 / (1.0 + math.exp(-float(logits[i])))
-        rec[i, R_R] = colors[i, 0]
-        rec[i, R_G] = colors[i, 1]
-        rec[i, R_BL] = colors[i, 2]
-        rec[i, R_HY] = hy
-        rec[i, R_P1] = cut2 / A
-        rec[i, R_P2] = (A * C - B * B) / (A * A)
-        rec[i, R_P3] = B / A
-        rect[i, 0] = min(x0 // tile, n_tx - 1)
-        rect[i, 1] = min(y0 // tile, n_ty - 1)
-        rect[i, 2] = min(x1 // tile, n_tx - 1) + 1
-        rect[i, 3] = min(y1 // tile, n_ty - 1) + 1
-        cx = int(min(max(mx, 0.0), width - 1.0)) // tile
-        cy = int(min(max(my, 0.0), height - 1.0)) // tile
-        ctile[i] = cy * n_tx + cx
-        valid[i] = True
-    return rec, rect, ctile, valid
+        recs[r, R_M0] = mx
+        recs[r, R_M1] = my
+        recs[r, R_A] = A
+        recs[r, R_B] = B
+        recs[r, R_C] = C
+        recs[r, R_O] = 1.0 / (1.0 + math.exp(-float(logits[i])))
+        recs[r, R_R] = colors[i, 0]
+        recs[r, R_G] = colors[i, 1]
+        recs[r, R_BL] = colors[i, 2]
+        recs[r, R_HY] = hy
+        recs[r, R_HX] = hx
+        rects[r, 0] = min(x0 // tile, n_tx - 1)
+        rects[r, 1] = min(y0 // tile, n_ty - 1)
+        rects[r, 2] = min(x1 // tile, n_tx - 1) + 1
+        rects[r, 3] = min(y1 // tile, n_ty - 1) + 1
+        ntile[r] = (rects[r, 2] - rects[r, 0]) * (rects[r, 3] - rects[r, 1])
+        visible[i] = True
+    return recs, rects, ntile
 
 
 @njit(cache=True, error_model="numpy")
@@ -358,22 +404,6 @@ def _tile_major(order_d, ctile, n_tiles):
         rank_d[r] = j
         rec_of_rank[j] = r
     return order, rank_d, rec_of_rank
-
-
-@njit(cache=True, parallel=True, error_model="numpy")
-def _gather(rec, rect, order):
-    m = order.shape[0]
-    recs = np.empty((m, _REC))
-    rects = np.empty((m, 4), np.int64)
-    ntile = np.empty(m, np.int64)
-    for j in prange(m):
-        s = order[j]
-        for c in range(_REC):
-            recs[j, c] = rec[s, c]
-        for c in range(4):
-            rects[j, c] = rect[s, c]
-        ntile[j] = (rect[s, 2] - rect[s, 0]) * (rect[s, 3] - rect[s, 1])
-    return recs, rects, ntile
 
 
 @njit(cache=True, parallel=True, error_model="numpy")
@@ -418,18 +448,9 @@ def _decode_entries(keys, rec_of_rank, rects, rank_off, n_tx, n_tiles):
 
 
 @njit(cache=True, inline="always", error_model="numpy")
-def _row_span(p1, p2, p3, dy, m0, xa, xb):
-    """Pixel-centre columns [x0, x1] of one row of the cutoff ellipse inside the tile's
-    columns [xa, xb), widened by a hair: the exact ``q <= cut²`` test is made per pixel."""
-    r = math.sqrt(max(p1 - p2 * dy * dy, 0.0))
-    xc = m0 - p3 * dy
-    lo = min(max(xc - r - 1e-6, xa - 1.0), xb + 1.0)
-    hi = min(max(xc + r + 1e-6, xa - 1.0), xb + 1.0)
-    return max(xa, math.ceil(lo)), min(xb - 1, math.floor(hi))
-
-
-@njit(cache=True, inline="always", error_model="numpy")
 def _row_range(m1, hy, ya, yb):
+    """Pixel centres [lo, hi] within ``hy`` of ``m1`` inside [ya, yb), widened by a hair:
+    the exact ``q <= cut²`` test is made per pixel."""
     lo = max(ya, math.ceil(max(m1 - hy - 1e-6, ya - 1.0)))
     hi = min(yb - 1, math.floor(min(m1 + hy + 1e-6, yb + 1.0)))
     return lo, hi
@@ -443,6 +464,7 @@ def _forward(tile_off, ent, recs, width, height, tile, n_tx, cut2, amin, tmin, b
     T = np.ones((height, width))
     last = np.full((height, width), -1, np.int32)
     nfrag = np.zeros(_TILE_GROUPS, np.int64)
+    rowlive = np.empty((_TILE_GROUPS, tile), np.int64)  # live pixels per row of the tile
     for g in prange(_TILE_GROUPS):
         for t in range(g, n_tiles, _TILE_GROUPS):
             ty = t // n_tx
@@ -452,6 +474,8 @@ def _forward(tile_off, ent, recs, width, height, tile, n_tx, cut2, amin, tmin, b
             xb = min(xa + tile, width)
             yb = min(ya + tile, height)
             live = (xb - xa) * (yb - ya)
+            for y in range(ya, yb):
+                rowlive[g, y - ya] = xb - xa
             nf = 0
             for k in range(tile_off[t], tile_off[t + 1]):
                 j = ent[k]
@@ -465,13 +489,12 @@ def _forward(tile_off, ent, recs, width, height, tile, n_tx, cut2, amin, tmin, b
                 cg = recs[j, R_G]
                 cbl = recs[j, R_BL]
                 z = recs[j, R_Z]
-                p1 = recs[j, R_P1]
-                p2 = recs[j, R_P2]
-                p3 = recs[j, R_P3]
                 y0, y1 = _row_range(m1, recs[j, R_HY], ya, yb)
+                x0, x1 = _row_range(m0, recs[j, R_HX], xa, xb)
                 for y in range(y0, y1 + 1):
+                    if rowlive[g, y - ya] == 0:
+                        continue
                     dy = y - m1
-                    x0, x1 = _row_span(p1, p2, p3, dy, m0, xa, xb)
                     bq = B2 * dy
                     cq = C * dy * dy
                     for x in range(x0, x1 + 1):
@@ -496,6 +519,7 @@ def _forward(tile_off, ent, recs, width, height, tile, n_tx, cut2, amin, tmin, b
                         nf += 1
                         if Tn < tmin:
                             live -= 1
+                            rowlive[g, y - ya] -= 1
                 if live == 0:
                     break
             nfrag[g] += nf
@@ -513,11 +537,13 @@ def _forward(tile_off, ent, recs, width, height, tile, n_tx, cut2, amin, tmin, b
 
 @njit(cache=True, parallel=True, error_model="numpy")
 def _backward(tile_off, ent, ent_slot, recs, width, height, tile, n_tx, cut2, amin, t_final, last, bg, dimg, dalpha):
-    """Per entry: dL/d(mu0, mu1, A, B, C, opacity, r, g, b), into its own slot."""
+    """Per entry: dL/d(mu0, mu1, A, B, C, opacity, r, g, b), into its own slot (float32:
+    a tile's partial sum is accumulated in float64 and rounded once)."""
     n_tiles = tile_off.shape[0] - 1
-    slots = np.zeros((ent.shape[0], 9))
+    slots = np.empty((ent.shape[0], 9), np.float32)
     T = t_final.copy()
     Bacc = np.empty((height, width, 3))
+    rowlast = np.empty((_TILE_GROUPS, tile), np.int64)  # last entry composited per row of the tile
     for g in prange(_TILE_GROUPS):
         for t in range(g, n_tiles, _TILE_GROUPS):
             ty = t // n_tx
@@ -528,10 +554,17 @@ def _backward(tile_off, ent, ent_slot, recs, width, height, tile, n_tx, cut2, am
             yb = min(ya + tile, height)
             kend = -1
             for y in range(ya, yb):
+                rl = -1
                 for x in range(xa, xb):
-                    kend = max(kend, last[y, x])
+                    rl = max(rl, last[y, x])
                     for c in range(3):
                         Bacc[y, x, c] = bg[c]
+                rowlast[g, y - ya] = rl
+                kend = max(kend, rl)
+            for k in range(max(kend + 1, tile_off[t]), tile_off[t + 1]):
+                e = ent_slot[k]
+                for c in range(9):
+                    slots[e, c] = 0.0
             for k in range(kend, tile_off[t] - 1, -1):
                 j = ent[k]
                 m0 = recs[j, R_M0]
@@ -544,9 +577,6 @@ def _backward(tile_off, ent, ent_slot, recs, width, height, tile, n_tx, cut2, am
                 c0 = recs[j, R_R]
                 c1 = recs[j, R_G]
                 c2 = recs[j, R_BL]
-                p1 = recs[j, R_P1]
-                p2 = recs[j, R_P2]
-                p3 = recs[j, R_P3]
                 g_m0 = 0.0
                 g_m1 = 0.0
                 g_A = 0.0
@@ -557,9 +587,11 @@ def _backward(tile_off, ent, ent_slot, recs, width, height, tile, n_tx, cut2, am
                 g_c1 = 0.0
                 g_c2 = 0.0
                 y0, y1 = _row_range(m1, recs[j, R_HY], ya, yb)
+                x0, x1 = _row_range(m0, recs[j, R_HX], xa, xb)
                 for y in range(y0, y1 + 1):
+                    if k > rowlast[g, y - ya]:
+                        continue
                     dy = y - m1
-                    x0, x1 = _row_span(p1, p2, p3, dy, m0, xa, xb)
                     bq = B2 * dy
                     cq = C * dy * dy
                     for x in range(x0, x1 + 1):
@@ -574,8 +606,9 @@ def _backward(tile_off, ent, ent_slot, recs, width, height, tile, n_tx, cut2, am
                         a = min(ALPHA_MAX, a0)
                         if a < amin:
                             continue
+                        inv_om = 1.0 / (1.0 - a)
                         om = 1.0 - a
-                        Tb = T[y, x] / om
+                        Tb = T[y, x] * inv_om
                         w = a * Tb
                         d0 = dimg[y, x, 0]
                         d1 = dimg[y, x, 1]
@@ -587,7 +620,8 @@ def _backward(tile_off, ent, ent_slot, recs, width, height, tile, n_tx, cut2, am
                         b1 = Bacc[y, x, 1]
                         b2 = Bacc[y, x, 2]
                         dLa = (
-                            Tb * ((c0 - b0) * d0 + (c1 - b1) * d1 + (c2 - b2) * d2) + dalpha[y, x] * t_final[y, x] / om
+                            Tb * ((c0 - b0) * d0 + (c1 - b1) * d1 + (c2 - b2) * d2)
+                            + dalpha[y, x] * t_final[y, x] * inv_om
                         )
                         Bacc[y, x, 0] = a * c0 + om * b0
                         Bacc[y, x, 1] = a * c1 + om * b1
@@ -625,6 +659,8 @@ def _backward_params(slots, rank_off, order, recs, means, quats, log_scales, K, 
     g_col = np.zeros((n, 3), np.float32)
     g_mu_abs = np.zeros(n, np.float32)
     for j in prange(order.shape[0]):
+        if rank_off[j + 1] == rank_off[j]:
+            continue  # culled off-frame: no tiles, no record
         gm0 = 0.0
         gm1 = 0.0
         gA = 0.0
@@ -738,11 +774,12 @@ def _backward_params(slots, rank_off, order, recs, means, quats, log_scales, K, 
 # ------------------------------------------------------------------------- drivers
 
 
-def _depth_order(rec: np.ndarray, valid: np.ndarray) -> np.ndarray:
-    """Indices of the visible surfels by (float32 view depth, index): a unique key (depth
-    ≥ near_m > 0, so the float bits sort as the numbers), so any sort gives the same order."""
-    idx = np.flatnonzero(valid)
-    key = (rec[idx, R_Z].astype(np.float32).view(np.uint32).astype(np.uint64) << np.uint64(32)) | idx.astype(np.uint64)
+def _depth_order(depth: np.ndarray, front: np.ndarray) -> np.ndarray:
+    """Indices of the surfels in front of the near plane by (float32 view depth, index): a
+    unique key (depth ≥ near_m > 0, so the float bits sort as the numbers), so any sort
+    gives the same order."""
+    idx = np.flatnonzero(front)
+    key = (depth[idx].astype(np.float32).view(np.uint32).astype(np.uint64) << np.uint64(32)) | idx.astype(np.uint64)
     key.sort()
     return (key & np.uint64(0xFFFFFFFF)).astype(np.int64)
 
@@ -784,6 +821,11 @@ def rasterize(params: SplatParams, cam: RasterCamera, *, config: RasterConfig = 
     W, H, tile = int(cam.width), int(cam.height), int(config.tile_px)
     if params.n >= 2**31:
         raise InputError(f"rasterize: {params.n} surfels, at most 2**31 - 1")
+    for name in ("means", "quats", "log_scales", "opacity_logits", "colors"):
+        bad = int(np.count_nonzero(np.isnan(getattr(params, name))))
+        if bad:
+            # a diverged optimizer: name it here rather than return a NaN image
+            raise InputError(f"rasterize: SplatParams.{name} has {bad} NaN values")
     clock = [time.perf_counter()]
 
     def lap() -> float:
@@ -791,8 +833,17 @@ def rasterize(params: SplatParams, cam: RasterCamera, *, config: RasterConfig = 
         return clock[-1] - clock[-2]
 
     timings: dict[str, float] = {}
-    rec, rect, ctile, valid = _preprocess(
-        np.ascontiguousarray(params.means),
+    means = np.ascontiguousarray(params.means)
+    depth, ctile, front = _centres(means, cam.K, cam.cam_from_world, W, H, float(config.near_m), tile)
+    n_tx = (W + tile - 1) // tile
+    n_tiles = n_tx * ((H + tile - 1) // tile)
+    order_d = _depth_order(depth, front)
+    order, rank_d, rec_of_rank = _tile_major(order_d, ctile, n_tiles)
+    timings["sort"] = lap()
+    valid = np.zeros(params.n, np.bool_)
+    recs, rects, ntile = _setup_records(
+        order,
+        means,
         np.ascontiguousarray(params.quats),
         np.ascontiguousarray(params.log_scales),
         np.ascontiguousarray(params.opacity_logits),
@@ -803,16 +854,10 @@ def rasterize(params: SplatParams, cam: RasterCamera, *, config: RasterConfig = 
         H,
         float(config.lowpass_px2),
         float(config.cutoff_sigma),
-        float(config.near_m),
         tile,
+        valid,
     )
-    n_tx = (W + tile - 1) // tile
-    n_tiles = n_tx * ((H + tile - 1) // tile)
     timings["setup"] = lap()
-    order_d = _depth_order(rec, valid)
-    timings["sort"] = lap()
-    order, rank_d, rec_of_rank = _tile_major(order_d, ctile, n_tiles)
-    recs, rects, ntile = _gather(rec, rect, order)
     rank_off = np.zeros(len(order) + 1, np.int64)
     np.cumsum(ntile, out=rank_off[1:])
     if rank_off[-1] >= 2**31:

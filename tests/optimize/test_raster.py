@@ -378,3 +378,63 @@ def test_surfel_order_does_not_change_results(cam, seed):
     gb = rasterize_backward(b, q, cam, dL_dimage=wi, dL_dalpha=wa)
     for k in (*FIELDS, "means2d_abs"):
         np.testing.assert_array_equal(getattr(ga, k)[perm], getattr(gb, k), err_msg=k)
+
+
+def test_no_surfels_and_all_culled_give_the_background():
+    cam = look_at_camera((0.0, 0.0, 3.0))
+    empty = SplatParams(
+        means=np.zeros((0, 3), np.float32),
+        quats=np.zeros((0, 4), np.float32),
+        log_scales=np.zeros((0, 2), np.float32),
+        opacity_logits=np.zeros(0, np.float32),
+        colors=np.zeros((0, 3), np.float32),
+    )
+    culled = random_scene(2, 0, cam, ("behind", "outside"))
+    for p in (empty, culled):
+        out = rasterize(p, cam, config=RasterConfig(background=(0.25, 0.5, 1.0)))
+        assert out.n_fragments == 0 and not out.visible.any()
+        np.testing.assert_array_equal(out.image, np.broadcast_to(np.float32([0.25, 0.5, 1.0]), (H, W, 3)))
+        assert not out.alpha.any() and not out.depth.any()
+        g = rasterize_backward(
+            out,
+            p,
+            cam,
+            dL_dimage=np.ones((H, W, 3)),
+            dL_dalpha=np.ones((H, W)),
+            config=RasterConfig(background=(0.25, 0.5, 1.0)),
+        )
+        for k in (*FIELDS, "means2d_abs"):
+            assert getattr(g, k).shape == getattr(p, k if k != "means2d_abs" else "opacity_logits").shape
+            assert not getattr(g, k).any()
+
+
+def test_from_camera_projects_like_camera_project():
+    """RasterCamera.from_camera keeps the project's conventions: the rasterizer's screen
+    centres are Camera.project's pixels (OpenCV, pixel centres at integer coordinates)."""
+    from opacityhull.camera import Camera
+    from opacityhull.optimize.raster_reference import screen_covariance_reference
+
+    rc = look_at_camera((0.7, -0.4, 2.6), f=37.0, pp=(1.3, -0.8))
+    M = np.eye(4)
+    M[:3] = rc.cam_from_world
+    cam = Camera(K=rc.K, width=W, height=H, world_from_cam=np.linalg.inv(M), name="c0")
+    p = random_scene(9, 20, rc)
+    _, mu, _ = screen_covariance_reference(p, RasterCamera.from_camera(cam))
+    uv, _ = cam.project(np.asarray(p.means, np.float64))
+    np.testing.assert_allclose(mu, uv, atol=1e-9)
+    distorted = Camera(
+        K=rc.K, width=W, height=H, world_from_cam=np.linalg.inv(M), dist=np.array([0.1, 0, 0, 0, 0]), name="c1"
+    )
+    with pytest.raises(InputError, match="c1"):
+        RasterCamera.from_camera(distorted)
+    assert RasterCamera.from_camera(distorted, ignore_distortion=True).width == W
+
+
+@pytest.mark.parametrize("field", FIELDS)
+def test_nan_parameters_are_refused_naming_the_field(field):
+    cam = look_at_camera((0.0, 0.0, 3.0))
+    p = random_scene(1, 3, cam)
+    arr = getattr(p, field).copy()
+    arr.reshape(-1)[1] = np.nan
+    with pytest.raises(InputError, match=f"{field} has 1 NaN"):
+        rasterize(SplatParams(**{**{k: getattr(p, k) for k in FIELDS}, field: arr}), cam)
