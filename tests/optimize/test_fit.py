@@ -137,3 +137,11 @@ def test_a_thinned_start_densifies_and_stays_finite(sphere):
     rep = fit_model(root, train_views=_train(m), config=cfg)
     assert rep.n_surfels_start == 1000 and rep.n_surfels_end > 1000
     assert np.all(np.isfinite(rep.loss))
+
+
+def test_a_time_budget_stops_the_fit_and_still_writes(sphere):
+    root, m = sphere
+    cfg = FitConfig(iterations=100_000, time_budget_s=0.5, densify_from=10**6, checkpoint_every=0)
+    rep = fit_model(root, train_views=_train(m), config=cfg)
+    assert rep.stopped_by == "time_budget" and 0 < rep.iterations < 100_000
+    assert (root / OPTIMIZED_DIR / SPLATS_PLY).is_file()
