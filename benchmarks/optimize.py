@@ -211,7 +211,7 @@ def table(rows: list[dict]) -> str:
 def write_sheets(rows: list[dict], path: Path) -> None:
     """Photograph | hull | sh of the first two held-out views of every set."""
     from opacityhull.pictures import contact_sheet, write_sheet
-    from opacityhull.render.evaluate import _display
+    from opacityhull.evaluate.loo import _display
 
     tiles, labels, headers = [], [], []
     for r in rows:
