@@ -29,11 +29,11 @@ import zlib
 from pathlib import Path
 
 import numpy as np
-from benchkit import parser, print_result, pyplot, report_head, save_figure
+from benchkit import out_dir, parser, print_result, pyplot, report_head, save_figure
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-OUT = Path(__file__).resolve().parent / "out"
+OUT = out_dir()  # benchmarks/out, or benchmarks/out/quick with --quick (benchkit)
 FRACS = (1 / 64, 1 / 16, 1 / 4, 1.0)
 
 

@@ -21,11 +21,11 @@ import time
 from pathlib import Path
 
 import numpy as np
-from benchkit import parser, print_result, pyplot, report_head, save_figure
+from benchkit import out_dir, parser, print_result, pyplot, report_head, save_figure
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-OUT = Path(__file__).resolve().parent / "out"
+OUT = out_dir()  # benchmarks/out, or benchmarks/out/quick with --quick (benchkit)
 
 
 def measure_model(name: str, positions, normals) -> dict:

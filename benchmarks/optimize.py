@@ -40,11 +40,11 @@ from dataclasses import asdict, replace
 from pathlib import Path
 
 import numpy as np
-from benchkit import parser, print_result, pyplot, report_head, save_figure
+from benchkit import out_dir, parser, print_result, pyplot, report_head, save_figure
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT / "tests" / "data" / "real"
-OUT = ROOT / "benchmarks" / "out"
+OUT = out_dir()  # benchmarks/out, or benchmarks/out/quick with --quick (benchkit)
 EVERY = {"temple": 4, "dino": 4, "demo": 8}
 GOALS = {"temple": 20.0, "dino": 19.0, "demo": 30.0}
 

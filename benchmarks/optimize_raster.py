@@ -32,9 +32,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # this checkout's opacityhull
-from benchkit import parser, print_result, report_head  # noqa: E402
+from benchkit import out_dir, parser, print_result, report_head  # noqa: E402
 
-OUT = Path(__file__).resolve().parent / "out"
+OUT = out_dir()  # benchmarks/out, or benchmarks/out/quick with --quick (benchkit)
 
 # Floating-point operations per fragment, counted in the kernels' inner loops
 # (opacityhull/optimize/raster.py: _forward, _backward), exp counted as ~15 (a polynomial

@@ -24,10 +24,10 @@ import sys
 from pathlib import Path
 
 import numpy as np
-from benchkit import parser, print_result, report_head
+from benchkit import out_dir, parser, print_result, report_head
 
 ROOT = Path(__file__).resolve().parents[1]
-OUT = ROOT / "benchmarks" / "out"
+OUT = out_dir()  # benchmarks/out, or benchmarks/out/quick with --quick (benchkit)
 SIZES = [(36, 64), (360, 640), (1080, 1920)]
 
 

@@ -33,6 +33,9 @@ def test_every_benchmark_takes_its_out_folder_from_benchkit():
             for n in tree.body
             if isinstance(n, ast.Assign) and any(isinstance(t, ast.Name) and t.id == "OUT" for t in n.targets)
         ]
-        assert outs, f"{script.name}: no module-level OUT"
+        if not outs:
+            # a benchmark that only prints (fuzz.py, build_digest.py) writes no report
+            assert '"out"' not in script.read_text(), f"{script.name}: writes under out/ without OUT = out_dir()"
+            continue
         v = outs[0]
         assert isinstance(v, ast.Call) and isinstance(v.func, ast.Name) and v.func.id == "out_dir", script.name

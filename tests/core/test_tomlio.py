@@ -159,7 +159,8 @@ def test_model_toml_stores_build_config_as_a_table_and_reads_old_json(tmp_path):
     from dataclasses import replace
 
     from opacityhull.model import OpacityHullModel
-    from opacityhull.reconstruct.build import BuildConfig, _jsonable
+    from opacityhull.reconstruct.build import BuildConfig
+    from opacityhull.reconstruct.matte_step import _jsonable
     from opacityhull.evaluate.holdout import build_config_of
     from opacityhull.render.synthetic import make_sphere_model
     from opacityhull.model import write_model
