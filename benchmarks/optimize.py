@@ -109,7 +109,8 @@ def ulr_surfels(params: dict, cameras, held: list[int]):
     pos = params["means"][keep].astype(np.float64)
     nrm = normals_of(params["quats"][keep]).astype(np.float64)
     rad = np.exp(params["log_scales"][keep].astype(np.float64)).max(axis=1) / 0.5
-    vis = np.asarray(surfel_visibility(pos, nrm, rad, cameras), bool)
+    # the tolerance of the build's test (the largest radius) would be a pruned outlier's here
+    vis = np.asarray(surfel_visibility(pos, nrm, rad, cameras, depth_tol_m=float(np.percentile(rad, 99))), bool)
     vis[:, held] = False
     return Surfels.from_bool(pos, nrm, rad, vis)
 
@@ -145,10 +146,11 @@ def run_set(name: str, model_dir: Path, tmp: Path, cfg, *, observe_every: int, m
         )
         print(f"{name}: hull (today's model) {res['hull']['psnr']:.2f} dB", file=sys.stderr)
     t0 = time.perf_counter()
-    data = load_fit_data(work, train, train_scale=cfg.train_scale)
+    data = load_fit_data(work, train, train_scale=cfg.train_scale, start_surface=cfg.start_surface)
     res["load_s"] = round(time.perf_counter() - t0, 1)
     keep, grow = thin_start(len(surf), cfg.max_start_surfels, seed=cfg.seed)
-    p0 = start_params(surf.positions[keep], surf.normals[keep], surf.radii[keep] * grow, data.sh_dc[keep], sh_degree=0)
+    pos = surf.shading_positions() if cfg.start_surface == "refined" else surf.positions
+    p0 = start_params(pos[keep], surf.normals[keep], surf.radii[keep] * grow, data.sh_dc[keep], sh_degree=0)
     res["start"] = score(wm, test, lambda i: render_params(p0, cams[i]))
     print(f"{name}: start (hull surfels, blended colour) {res['start']['psnr']:.2f} dB", file=sys.stderr)
     curve = [{"iteration": 0, "seconds": 0.0, **res["start"]}]
@@ -169,6 +171,11 @@ def run_set(name: str, model_dir: Path, tmp: Path, cfg, *, observe_every: int, m
     res["sh"] = curve[-1]
     res["curve"] = curve
     res["densify"] = rep.densify
+    sheet_modes = {"photograph": None, "sh": lambda i: render_params(params, cams[i])}
+    if "hull" in modes:
+        sheet_modes["hull"] = lambda i: render_image(surf, cams, pv, cams[i], config=rc, exclude_views=held).rgba
+    res["sheet_views"] = test[:2]
+    res["_sheet"] = {k: [f(i) if f else wm.load_view_rgba(i) for i in test[:2]] for k, f in sheet_modes.items()}
     if "ulr" in modes:
         us = ulr_surfels(params, cams, held)
         res["ulr"] = {
@@ -199,6 +206,22 @@ def table(rows: list[dict]) -> str:
                 f"{GOALS.get(r['set'], float('nan')):.1f} |"
             )
     return "\n".join(out)
+
+
+def write_sheets(rows: list[dict], path: Path) -> None:
+    """Photograph | hull | sh of the first two held-out views of every set."""
+    from opacityhull.pictures import contact_sheet, write_sheet
+    from opacityhull.render.evaluate import _display
+
+    tiles, labels, headers = [], [], []
+    for r in rows:
+        sheet = r.pop("_sheet")
+        headers = list(sheet)
+        for j, v in enumerate(r["sheet_views"]):
+            for k in sheet:
+                tiles.append((np.clip(_display(sheet[k][j]), 0, 1) * 255).round().astype(np.uint8))
+                labels.append(f"{r['set']} view {v} {k}")
+    write_sheet(path, contact_sheet(tiles, columns=len(headers), labels=labels, headers=headers, max_width=1800))
 
 
 def plot(rows: list[dict], path: Path) -> None:
@@ -237,6 +260,7 @@ def main(argv=None) -> int:
     ap.add_argument("--train-scale", type=float, default=None)
     ap.add_argument("--modes", default="hull,ulr", help="besides sh: hull, ulr")
     ap.add_argument("--observe-every", type=int, default=None)
+    ap.add_argument("--set", action="append", default=[], help="KEY=VALUE: a FitConfig field (JSON value)")
     a = ap.parse_args(argv)
     mode = "fast"
     cfg = fit_preset(mode, checkpoint_every=0)
@@ -255,6 +279,9 @@ def main(argv=None) -> int:
         cfg = replace(cfg, iterations=a.iterations)
     if a.train_scale:
         cfg = replace(cfg, train_scale=a.train_scale)
+    for kv in a.set:
+        k, _, v = kv.partition("=")
+        cfg = replace(cfg, **{k: json.loads(v) if v[:1] in "0123456789-[{tfn" else v})
     every = a.observe_every or max(1, cfg.iterations // 4)
     models = dict(s.split("=", 1) for s in a.model)
     names = [s for s in a.sets.split(",") if s] + [n for n in models if n not in a.sets.split(",")]
@@ -287,6 +314,7 @@ def main(argv=None) -> int:
             + ", ".join(f"step {p['iteration']} {p['psnr']:.2f} dB ({p['seconds']:.0f} s)" for p in r["curve"])
         )
     md.append("")
+    write_sheets(rows, OUT / f"{stem}_views.png")
     path = OUT / f"{stem}.md"
     path.write_text("\n".join(md))
     (OUT / f"{stem}.json").write_text(json.dumps({"config": asdict(cfg), "rows": rows}, indent=1, default=float))

@@ -43,6 +43,9 @@ class FitConfig:
     prune_opacity : surfels with opacity below this are removed at each densification.
     prune_scale_fraction : surfels larger than this fraction of the extent are removed.
     max_surfels : densification stops adding past this count.
+    start_surface : ``"hull"`` starts the means on the hull's surfels; ``"refined"`` (the
+        default) at their photo-consistent depth (``Surfels.depth_m``, where the renderer
+        shades; the hull where a model has none): templeSR's start +0.44 dB held out.
     max_start_surfels : the start keeps a seeded subset of at most this many hull
         surfels, their radii grown to cover the same area (None: all).
     train_scale : the training views are fitted at this fraction of their resolution
@@ -54,10 +57,10 @@ class FitConfig:
     iterations: int = 600
     time_budget_s: float | None = None
     seed: int = 0
-    lr_position: float = 1e-2
-    lr_position_final: float = 1e-4
-    lr_sh_dc: float = 2.5e-3
-    lr_sh_rest: float = 1.25e-4
+    lr_position: float = 3e-3
+    lr_position_final: float = 3e-4
+    lr_sh_dc: float = 1e-2
+    lr_sh_rest: float = 5e-4
     lr_opacity: float = 5e-2
     lr_scale: float = 1e-2
     lr_rotation: float = 1e-3
@@ -73,6 +76,7 @@ class FitConfig:
     prune_opacity: float = 0.005
     prune_scale_fraction: float = 0.1
     max_surfels: int = 1_000_000
+    start_surface: Literal["hull", "refined"] = "refined"
     max_start_surfels: int | None = 150_000
     train_scale: float = 1.0
     checkpoint_every: int = 200
@@ -105,6 +109,8 @@ class FitConfig:
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
                 raise ConfigError(f"optimize {name} {v!r}: expected a finite number >= 0")
+        if self.start_surface not in ("hull", "refined"):
+            raise ConfigError(f"optimize start_surface {self.start_surface!r}: expected hull or refined")
         if int(self.checkpoint_every) < 0 or int(self.max_surfels) < 1:
             raise ConfigError("optimize checkpoint_every must be >= 0 and max_surfels >= 1")
 

@@ -85,12 +85,15 @@ def _undistorted(img: np.ndarray, cam: Camera) -> np.ndarray:
     return cv2.undistort(img, cam.K, cam.dist)
 
 
-def load_fit_data(model_dir: Path, train_views: Sequence[int], *, train_scale: float = 1.0) -> FitData:
+def load_fit_data(
+    model_dir: Path, train_views: Sequence[int], *, train_scale: float = 1.0, start_surface: str = "hull"
+) -> FitData:
     """Read the training views and the start surfels of the model at ``model_dir``.
 
     The start colour is the SH DC of :func:`opacityhull.export.sh.fit_sh` at degree 0
     over the training views only (the mean visible colour, cos²-weighted, in display
-    space); surfels no training view saw start mid-grey.
+    space), sampled on the hull or, with ``start_surface="refined"``, at the surfels'
+    photo-consistent depth; surfels no training view saw start mid-grey.
     """
     import cv2
 
@@ -121,7 +124,8 @@ def load_fit_data(model_dir: Path, train_views: Sequence[int], *, train_scale: f
             a = cv2.resize(a, (cam_t.width, cam_t.height), interpolation=cv2.INTER_AREA)
         views.append(TrainView(i, cam_t, np.ascontiguousarray(tgt, np.float32), np.ascontiguousarray(a, np.float32)))
     vis = surfels.visible_bool()[:, idx]
-    sub = Surfels.from_bool(surfels.positions, surfels.normals, surfels.radii, vis)
+    pos = surfels.shading_positions() if start_surface == "refined" else surfels.positions
+    sub = Surfels.from_bool(pos, surfels.normals, surfels.radii, vis)
     fit = fit_sh(sub, [model.views[i].camera for i in idx], straight, degree=0)
     sh_dc = fit.coeffs[:, 0, :].astype(np.float32)
     return FitData(views, surfels, sh_dc, model_fingerprint(model_dir))

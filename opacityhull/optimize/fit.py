@@ -240,8 +240,9 @@ def fit_params(
     rc = RasterConfig()
     surf = data.surfels
     keep, grow = thin_start(len(surf), config.max_start_surfels, seed=config.seed)
+    pos = surf.shading_positions() if config.start_surface == "refined" else surf.positions
     params = start_params(
-        surf.positions[keep], surf.normals[keep], surf.radii[keep] * grow, data.sh_dc[keep], sh_degree=config.sh_degree
+        pos[keep], surf.normals[keep], surf.radii[keep] * grow, data.sh_dc[keep], sh_degree=config.sh_degree
     )
     extent = scene_extent(surf.positions)
     adam = Adam(params)
@@ -389,7 +390,7 @@ def fit_model(
     model_dir = Path(model_dir)
     if config.mode == "none":
         return FitReport(config=asdict(config))
-    data = load_fit_data(model_dir, train_views, train_scale=config.train_scale)
+    data = load_fit_data(model_dir, train_views, train_scale=config.train_scale, start_surface=config.start_surface)
     ckpt = None if checkpoint_dir is None else Path(checkpoint_dir) / CHECKPOINT_NAME
     meta = _checkpoint_meta(data.fingerprint, train_views, config)
     if ckpt is not None and ckpt.is_file():

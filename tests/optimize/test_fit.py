@@ -18,9 +18,17 @@ from opacityhull.evaluate.loo import loo_metrics
 from opacityhull.render.synthetic import make_sphere_model
 
 TEST_VIEWS = (3, 8)
-# a short schedule (150 steps, ~19 epochs of 8 views) with densification twice
+# a short schedule (150 steps, ~19 epochs of 8 views) with densification twice; the
+# position rate is 3x the default's, as this hull is 10 % too large (2 px at 64x48)
 CFG = FitConfig(
-    iterations=150, densify_from=40, densify_until=120, densify_every=40, sh_degree_every=50, checkpoint_every=0
+    lr_position=1e-2,
+    lr_position_final=1e-4,
+    iterations=150,
+    densify_from=40,
+    densify_until=120,
+    densify_every=40,
+    sh_degree_every=50,
+    checkpoint_every=0,
 )
 
 
@@ -129,3 +137,11 @@ def test_a_thinned_start_densifies_and_stays_finite(sphere):
     rep = fit_model(root, train_views=_train(m), config=cfg)
     assert rep.n_surfels_start == 1000 and rep.n_surfels_end > 1000
     assert np.all(np.isfinite(rep.loss))
+
+
+def test_a_time_budget_stops_the_fit_and_still_writes(sphere):
+    root, m = sphere
+    cfg = FitConfig(iterations=100_000, time_budget_s=0.5, densify_from=10**6, checkpoint_every=0)
+    rep = fit_model(root, train_views=_train(m), config=cfg)
+    assert rep.stopped_by == "time_budget" and 0 < rep.iterations < 100_000
+    assert (root / OPTIMIZED_DIR / SPLATS_PLY).is_file()

@@ -228,6 +228,7 @@ def test_splat_ply_round_trip(tmp_path):
         {"time_budget_s": -1.0},
         {"sh_degree": 4},
         {"train_scale": 0.0},
+        {"start_surface": "middle"},
     ],
 )
 def test_config_bad_values_are_named_errors(kw):
