@@ -111,3 +111,38 @@ def test_optimize_none_removes_a_stale_fit(fitted, tmp_path):
     rep = build_model(session, m2, config=CFG, resume=True)
     assert rep.steps["write"] == "reused" and not (m2 / "optimized").exists()
     assert eval_test(m2, out=tmp_path / "e")["renderer"] == "ulr"
+
+
+class _Stop(Exception):
+    pass
+
+
+def test_an_interrupted_fit_resumes_from_its_checkpoint_to_the_same_splats(fitted, tmp_path):
+    _, session, model, _, _, first, _ = fitted
+    out = tmp_path / "m"
+
+    def stop_at_100(done, total=None, note=None):
+        # `note` comes only from the optimize step (its running PSNR): stop the fit at step
+        # 100, past its checkpoint at 75 (150 iterations: checkpoint_every min(200, 150 // 2))
+        if note is not None:
+            assert "PSNR" in note
+            if done == 100:
+                raise _Stop
+
+    with pytest.raises(_Stop):
+        build_model(session, out, config=FIT, progress=stop_at_100)
+    assert (out / "build" / "optimize" / "fit_checkpoint.npz").is_file() and not (out / "optimized").exists()
+    steps_seen: list[int] = []
+
+    def record(done, total=None, note=None):
+        if note is not None:
+            steps_seen.append(done)
+
+    rep = build_model(session, out, config=FIT, resume=True, progress=record)
+    assert rep.steps["write"] == "reused" and rep.steps["optimize"] == "ran"
+    assert steps_seen[0] == 76 and steps_seen[-1] == 150  # from the checkpoint, not from step 1
+    fit = json.loads((out / "optimized" / "fit.json").read_text())
+    assert fit["iterations"] == 150
+    # resumed from the checkpoint, it ends where the uninterrupted fit did
+    assert (out / "optimized" / "splats.ply").read_bytes() == (model / "optimized" / "splats.ply").read_bytes()
+    assert rep.optimize["loss"] == first.optimize["loss"]
