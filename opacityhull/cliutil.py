@@ -380,7 +380,8 @@ def progress(description: str, total: int | None = None, *, enabled: bool = True
 @contextmanager
 def step_progress(command: str) -> Iterator[tuple[Callable[[str], None], Callable[..., None]]]:
     """Progress of a command made of named steps, on stderr; yields ``(on_step, progress)``:
-    ``on_step(name)`` when a step starts, ``progress(done, total=None)`` within it.
+    ``on_step(name)`` when a step starts, ``progress(done, total=None, note=None)`` within it
+    (``note``: a running figure shown beside the step's name).
 
     On a terminal there is one live bar line, the current step's (its count and ETA are
     the step's). A pipe or a log gets no live bar (rich draws only its last frame there),
@@ -407,8 +408,12 @@ def step_progress(command: str) -> Iterator[tuple[Callable[[str], None], Callabl
             bar.remove_task(tasks[-1])
             tasks.append(bar.add_task(name, total=None))
 
-        def progress(done: int, total: int | None = None) -> None:
-            bar.update(tasks[-1], completed=done, total=total)
+        def progress(done: int, total: int | None = None, note: str | None = None) -> None:
+            # note: a figure of the step's own beside its count (the fit's running PSNR)
+            if note is None:
+                bar.update(tasks[-1], completed=done, total=total)
+            else:
+                bar.update(tasks[-1], completed=done, total=total, description=f"{step['name']}: {note}")
 
         yield on_step, progress
         finish_step()

@@ -42,6 +42,10 @@ _LOO_SCHEDULER = scheduler_options(
 )
 
 _TEST_BG_HELP = "white | black: the background photograph and rendering are composited over for the whole-image metric."
+_TEST_RENDERER_HELP = (
+    "auto | fitted | ulr: the fitted splats of `build --optimize` or the hull blended from the training views "
+    '(ULR); auto takes the fitted splats when the model has them. The summary\'s "renderer" says which.'
+)
 _TEST_OUT_HELP = "Folder for test.json and test_sheet.png (default MODEL/eval/test)."
 _TEST_JSON_HELP = 'Print {"psnr_mean", "ssim_mean", "psnr_mask_mean", "ssim_mask_mean", "per_view", ...} on stdout.'
 
@@ -142,6 +146,7 @@ def register(app, groups) -> None:
     def test_cmd(
         model: Annotated[Path, typer.Argument(help="Model folder built with --hold-out.")],
         background: Annotated[str, typer.Option("--background", help=_TEST_BG_HELP)] = "white",
+        renderer: Annotated[str, typer.Option("--renderer", help=_TEST_RENDERER_HELP)] = "auto",
         out: Annotated[Optional[Path], typer.Option("--out", help=_TEST_OUT_HELP)] = None,
         json_out: Annotated[bool, typer.Option("--json", help=_TEST_JSON_HELP)] = False,
         *,
@@ -150,18 +155,20 @@ def register(app, groups) -> None:
         """Render every test view of a model built with `build --hold-out` (views it never saw) and compare with
         its photograph: PSNR and SSIM over the whole image on --background (the NeRF papers' protocol) and over the
         union of the masks (eval loo's metric), per view, and a contact sheet."""
-        from .heldout import BACKGROUNDS, eval_test
+        from .heldout import BACKGROUNDS, RENDERERS, eval_test
 
         open_model_arg(model)
         bg = check_choice("--background", background, BACKGROUNDS)
+        rd = check_choice("--renderer", renderer, RENDERERS)
         cfg = _render_config(**render_options)
         with progress("eval test", enabled=not json_out) as cb:
-            s = eval_test(model, background=bg, config=cfg, out=out, progress=cb)
+            s = eval_test(model, background=bg, config=cfg, renderer=rd, out=out, progress=cb)
 
         def human(s):
             c = console()
             c.print(
-                f"test views ({s['hold_out']}, {len(s['views'])} held out, {s['train_views']} built from): "
+                f"test views ({s['hold_out']}, {len(s['views'])} held out, {s['train_views']} built from; "
+                f"{s['renderer']} renderer): "
                 f"PSNR {s['psnr_mean']:.2f} dB, SSIM {s['ssim_mean']:.4f} on {s['background']}; mask union "
                 f"PSNR {s['psnr_mask_mean']:.2f} dB, SSIM {s['ssim_mask_mean']:.4f}",
                 markup=False,

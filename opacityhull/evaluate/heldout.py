@@ -28,10 +28,36 @@ from ..model import BUILD_DIR, FILLED_HOLES, OpacityHullModel, read_hole_masks
 from ..render.renderer import RenderConfig, model_surfels, prepare_model_views, render_image
 from .loo import _photograph, contact_sheet, loo_metrics
 
-__all__ = ["Background", "BACKGROUNDS", "held_out_views", "image_metrics", "eval_test"]
+__all__ = [
+    "Background",
+    "BACKGROUNDS",
+    "Renderer",
+    "RENDERERS",
+    "fitted_state",
+    "held_out_views",
+    "image_metrics",
+    "eval_test",
+]
 
 Background = Literal["white", "black"]
 BACKGROUNDS: tuple[Background, ...] = ("white", "black")
+Renderer = Literal["auto", "fitted", "ulr"]
+RENDERERS: tuple[Renderer, ...] = ("auto", "fitted", "ulr")
+
+
+def _distorted(rgba: np.ndarray, cam) -> np.ndarray:
+    """A pinhole rendering (the fitted splats are rasterized without distortion) resampled
+    onto ``cam``'s distorted pixel grid, where the photograph lives."""
+    if not np.any(np.asarray(cam.dist) != 0):
+        return rgba
+    import cv2
+
+    H, W = rgba.shape[:2]
+    v, u = np.mgrid[0:H, 0:W].astype(np.float32)
+    pts = np.stack([u.ravel(), v.ravel()], axis=1)[:, None, :]
+    K = np.asarray(cam.K, np.float64)
+    und = cv2.undistortPoints(pts, K, np.asarray(cam.dist, np.float64), P=K).reshape(H, W, 2)
+    return cv2.remap(rgba, und[..., 0], und[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
 
 
 def held_out_views(model: OpacityHullModel) -> list[int]:
@@ -72,11 +98,32 @@ def image_metrics(photo_rgba: np.ndarray, render_rgba: np.ndarray, *, background
     return {"psnr": psnr, "ssim": ssim}
 
 
+def fitted_state(model_root: Path) -> str:
+    """Whether the model has fitted splats its renderers can use: ``"fitted"`` (the
+    ``optimize`` step's ``MODEL/optimized/splats.ply``, fitted from this very model:
+    ``fit.json``'s fingerprint matches ``model.toml`` + ``surfels.ply``), ``"stale"`` (fitted
+    from another build of the folder) or ``"none"``."""
+    import json
+
+    from ..optimize.data import model_fingerprint
+    from ..optimize.fit import OPTIMIZED_DIR, SPLATS_PLY
+
+    d = Path(model_root) / OPTIMIZED_DIR
+    if not (d / SPLATS_PLY).is_file() or not (d / "fit.json").is_file():
+        return "none"
+    try:
+        fp = json.loads((d / "fit.json").read_text()).get("model")
+    except (OSError, ValueError):
+        return "stale"
+    return "fitted" if fp == model_fingerprint(Path(model_root)) else "stale"
+
+
 def eval_test(
     model_path,
     *,
     background: Background = "white",
     config: RenderConfig = RenderConfig(),
+    renderer: Renderer = "auto",
     out=None,
     max_sheet_rows: int = 12,
     progress: Callable[[int, int], None] | None = None,
@@ -84,9 +131,15 @@ def eval_test(
     """Render every held-out view of a model built with ``--hold-out`` and score it
     (see the module docstring). Writes ``test.json`` and ``test_sheet.png`` (photo |
     render | error, each row labelled with the view and both PSNRs) to ``out`` (default
-    ``MODEL/eval/test``). Returns the summary: ``views``, ``background``,
+    ``MODEL/eval/test``). Returns the summary: ``views``, ``background``, ``renderer``,
     ``psnr_mean``/``ssim_mean`` (whole image), ``psnr_mask_mean``/``ssim_mask_mean``
-    (mask union) and ``per_view``."""
+    (mask union) and ``per_view``.
+
+    ``renderer``: ``"fitted"`` renders the splats of ``build --optimize``
+    (:func:`opacityhull.optimize.fit.render_params`), ``"ulr"`` the hull's surfels blended
+    from the training views (:func:`~opacityhull.render.renderer.render_image`); ``"auto"``
+    takes the fitted splats when the model has them (fitted from this build, see
+    :func:`fitted_state`), else ULR."""
     import json
 
     from ..cliutil import to_jsonable
@@ -95,8 +148,23 @@ def eval_test(
 
     if background not in BACKGROUNDS:
         raise InputError(f"--background {background!r}: expected one of {', '.join(BACKGROUNDS)}")
+    if renderer not in RENDERERS:
+        raise InputError(f"--renderer {renderer!r}: expected one of {', '.join(RENDERERS)}")
     model = OpacityHullModel.open(model_path)
     idx = held_out_views(model)
+    state = fitted_state(Path(model.root))
+    if renderer == "fitted" and state != "fitted":
+        why = "were fitted from an earlier build of this folder" if state == "stale" else "are missing"
+        raise InputError(
+            f"--renderer fitted: {model.root}'s fitted splats (optimized/splats.ply) {why}; "
+            "build with --optimize fast or full"
+        )
+    used = "fitted" if renderer == "fitted" or (renderer == "auto" and state == "fitted") else "ulr"
+    fitted_params = None
+    if used == "fitted":
+        from ..optimize.fit import load_fitted
+
+        fitted_params = load_fitted(Path(model.root))
     out = Path(out) if out is not None else default_out(model_path, "test")
     cams = [v.camera for v in model.views]
     surfels = model_surfels(model)
@@ -114,11 +182,17 @@ def eval_test(
     for j, i in enumerate(idx):
         t0 = time.perf_counter()
         # nothing to exclude: the held-out view's bits are clear, so it is never blended
-        res = render_image(surfels, cams, pv, cams[i], config=config)
+        if fitted_params is not None:
+            from ..optimize.fit import render_params
+
+            rgba, coverage = _distorted(render_params(fitted_params, cams[i]), cams[i]), None
+        else:
+            res = render_image(surfels, cams, pv, cams[i], config=config)
+            rgba, coverage = res.rgba, res.coverage
         ms = 1e3 * (time.perf_counter() - t0)
-        photo, _, _ = _photograph(model, i, filled, res.rgba)
-        whole = image_metrics(photo, res.rgba, background=background)
-        mask = loo_metrics(photo, res.rgba, coverage=res.coverage)
+        photo, _, _ = _photograph(model, i, filled, rgba)
+        whole = image_metrics(photo, rgba, background=background)
+        mask = loo_metrics(photo, rgba, coverage=coverage)
         per_view.append(
             {
                 "view": model.views[i].id,
@@ -134,7 +208,7 @@ def eval_test(
         )
         if j in pick:
             note = f"{background} {whole['psnr']:.1f} dB | mask {mask['psnr']:.1f} dB"
-            rows.append((model.views[i].id, photo, res.rgba, note))
+            rows.append((model.views[i].id, photo, rgba, note))
         if progress:
             progress(j + 1, len(idx))
 
@@ -148,6 +222,8 @@ def eval_test(
         "train_views": len(model.views) - len(idx),
         "hold_out": (model.meta.get("split") or {}).get("hold_out"),
         "background": background,
+        # which images were scored: the fitted splats (build --optimize) or the hull blended by ULR
+        "renderer": used,
         "psnr_mean": mean("psnr"),
         "ssim_mean": mean("ssim"),
         "psnr_mask_mean": mean("psnr_mask"),

@@ -40,6 +40,10 @@ Steps (each timed into ``report.json``):
    are scaled by ``255 / L``: the model holds radiance at full level.
 9. **write** — :func:`opacityhull.model.write_model`, rig cameras as OpenCV YAML in
    ``calibration/``, ``report.json``.
+9b. **optimize** (``BuildConfig.optimize``, ``build --optimize none|fast|full``; default
+   none) — the written surfels fitted to the training views (:mod:`.steps.optimize`,
+   :func:`opacityhull.optimize.fit.fit_model`) into ``MODEL/optimized/``; checkpoints in
+   ``MODEL/build/optimize/``; the loss curve and ms per iteration in ``report.json``.
 10. **pictures** — matte contact sheet, hull overlays, reprojection histogram.
 11. **metrics** (``ground_truth=True``, simulated sessions) — alpha MAE per view inside
     the dilated object region, hull IoU against the voxelised ``groundtruth/object.ply``
@@ -127,7 +131,7 @@ from .lazyviews import (
     peak_rss_mb,
 )
 from .matte_step import load_matting_pairs, matte_for_build, store_matte
-from .steps import cameras, geometry, holes, matting, metrics, natural, pictures, reflectance, split, write
+from .steps import cameras, geometry, holes, matting, metrics, natural, optimize, pictures, reflectance, split, write
 from .steps.base import BuildContext, Step, check_steps
 from .steps.cameras import resolve_cameras, step_cameras, view_list
 from .steps.geometry import step_geometry
@@ -221,6 +225,7 @@ STEPS: tuple[Step, ...] = (
     reflectance.STEP,
     natural.STEP,
     write.STEP,
+    optimize.STEP,
     pictures.STEP,
     metrics.STEP,
 )

@@ -37,6 +37,8 @@ _NOT_GEOMETRY = (
     "pca_rank",
     "pca_error",
     "pca_block",
+    "optimize",  # the fit runs on the written model, after the geometry
+    "optimize_iterations",
 )
 
 

@@ -64,6 +64,7 @@ class BuildContext:
     reflectance: Any = None  # (reflectance or None, digest)
     natural: Any = None  # (natural field summary or None, key)
     model: Any = None  # steps.write.WriteProduct
+    fit: Any = None  # steps.optimize: report.json's "optimize" (dict)
     pictures: Any = None  # list of picture paths
     metrics: Any = None  # dict
     report: Any = None  # BuildReport

@@ -184,6 +184,7 @@ def report(ctx, steps) -> None:
     )
     rep.pictures = list(ctx.pictures or [])
     rep.metrics = ctx.metrics
+    rep.optimize = dict(ctx.fit or {})
     timer = ctx.timer
     rep.seconds = {k: round(v, 4) for k, v in timer.seconds.items()}
     rep.seconds["total"] = round(sum(timer.seconds.values()), 4)

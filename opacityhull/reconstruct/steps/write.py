@@ -101,7 +101,11 @@ def run(ctx) -> None:
         "camera_source": cams.source,
         "backdrop_source": backdrop_source,
         "reflectance_units": "radiance at full DMX level (one-light images scaled by 255/level)",
-        "build_config": _jsonable(config.to_dict()),  # a TOML table (model.py: build_config_none)
+        # a TOML table (model.py: build_config_none); without the optimize step's options, which
+        # do not shape the written model (a resume with another --optimize reuses the write)
+        "build_config": _jsonable(
+            {k: v for k, v in config.to_dict().items() if k not in ("optimize", "optimize_iterations")}
+        ),
     }
     write_in = {
         "geometry": ctx.geometry.key,

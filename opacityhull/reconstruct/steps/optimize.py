@@ -1,0 +1,137 @@
+"""Build step ``optimize`` (``build --optimize none|fast|full``, issue 29): the written
+model's surfels fitted to the training views (every view not held out) by differentiable
+EWA splatting (:func:`opacityhull.optimize.fit.fit_model`), into ``MODEL/optimized/``
+(``splats.ply``, ``fit.json``). The fit checkpoints into ``MODEL/build/optimize/`` and
+resumes from there; a finished fit is reused by ``build --resume`` while the written
+model, the training views and the options are unchanged. ``report.json``'s ``optimize``
+gives the loss and training-PSNR curves and the time per iteration.
+
+``none`` (the default) fits nothing and removes an earlier build's ``optimized/``, which
+would no longer match the model."""
+
+from __future__ import annotations
+
+import inspect
+import json
+import logging
+import math
+import shutil
+from dataclasses import asdict
+
+from ...model import BUILD_DIR
+from ...optimize.config import fit_preset
+from ...optimize.fit import OPTIMIZED_DIR, SPLATS_PLY, CheckpointError, FitProgress, fit_model
+from ..buildstore import cached
+from .base import Step
+
+__all__ = ["STEP", "CHECKPOINT_DIR", "fit_config"]
+
+log = logging.getLogger(__name__)
+
+#: the fit's checkpoint folder, under ``MODEL/build/``
+CHECKPOINT_DIR = "optimize"
+
+
+def fit_config(config):
+    """The :class:`~opacityhull.optimize.config.FitConfig` of a
+    :class:`~..buildconfig.BuildConfig` (``optimize``, ``optimize_iterations``)."""
+    over = {} if config.optimize_iterations is None else {"iterations": int(config.optimize_iterations)}
+    if config.optimize == "none":
+        return fit_preset("none")
+    fc = fit_preset(config.optimize, **over)
+    if config.optimize_iterations is not None:
+        # a shortened schedule keeps its densification and SH growth inside the iterations
+        n = fc.iterations
+        fc = fit_preset(
+            config.optimize,
+            **over,
+            densify_from=min(fc.densify_from, n // 4),
+            densify_until=min(fc.densify_until, (3 * n) // 4),
+            densify_every=max(1, min(fc.densify_every, n // 4)),
+            sh_degree_every=min(fc.sh_degree_every, max(1, n // (fc.sh_degree + 1))),
+            checkpoint_every=min(fc.checkpoint_every, max(1, n // 2)) if fc.checkpoint_every else 0,
+        )
+    return fc
+
+
+def _summary(fit: dict) -> dict:
+    """``report.json``'s ``optimize`` from ``fit.json``."""
+    keep = ("iterations", "seconds", "ms_per_iteration", "train_psnr_last", "n_surfels_start", "n_surfels_end")
+    out = {k: fit[k] for k in keep if k in fit}
+    out |= {
+        "stopped_by": fit.get("stopped_by"),
+        "loss": list(fit.get("loss", [])),
+        "train_psnr": list(fit.get("psnr", [])),
+        "step_ms": list(fit.get("step_ms", [])),
+        "train_views": list(fit.get("train_views", [])),
+        "splats": SPLATS_PLY,
+    }
+    return out
+
+
+def _reporter(ctx, total: int):
+    """A :class:`FitProgress` callback feeding the build's ``progress(done, total)`` (with
+    the running PSNR as a ``note`` when the callback takes one: the CLI's bar shows it
+    beside its count and ETA)."""
+    try:
+        takes_note = "note" in inspect.signature(ctx.progress).parameters
+    except (TypeError, ValueError):
+        takes_note = False
+
+    def progress(p: FitProgress) -> None:
+        if takes_note:
+            psnr = f"{p.psnr:.2f} dB" if math.isfinite(p.psnr) else "-"
+            ctx.progress(p.iteration, total, note=f"train PSNR {psnr}, {p.n_surfels} surfels")
+        else:
+            ctx.progress(p.iteration, total)
+
+    return progress
+
+
+def run(ctx) -> None:
+    fc = fit_config(ctx.config)
+    out = ctx.out
+    if fc.mode == "none":
+        # an earlier build's fit belongs to a model that may no longer be this one
+        shutil.rmtree(out / OPTIMIZED_DIR, ignore_errors=True)
+        ctx.fit = {"mode": "none"}
+        return
+    train = list(ctx.split.train)
+
+    def fit() -> dict:
+        ckpt_dir = out / BUILD_DIR / CHECKPOINT_DIR
+        report = _reporter(ctx, fc.iterations)
+        try:
+            fit_model(out, train_views=train, config=fc, progress=report, checkpoint_dir=ckpt_dir)
+        except CheckpointError as e:
+            # a checkpoint of an earlier model or other options: the fit starts over
+            ctx.notes.append(f"optimize: {e}; its checkpoint was removed and the fit started over")
+            shutil.rmtree(ckpt_dir, ignore_errors=True)
+            fit_model(out, train_views=train, config=fc, progress=report, checkpoint_dir=ckpt_dir)
+        return json.loads((out / OPTIMIZED_DIR / "fit.json").read_text())
+
+    def reuse(_entry) -> dict:
+        return json.loads((out / OPTIMIZED_DIR / "fit.json").read_text())
+
+    with ctx.timer.step("optimize"):
+        got = cached(
+            ctx.store,
+            "optimize",
+            inputs={"write": ctx.model.key, "train": train},
+            params=asdict(fc),
+            run=fit,
+            outputs=[f"{OPTIMIZED_DIR}/{SPLATS_PLY}", f"{OPTIMIZED_DIR}/fit.json"],
+            on_reuse=reuse,
+        )
+    ctx.fit = {"mode": fc.mode, **_summary(got.value)}
+    s = ctx.fit
+    log.info("optimize %s: %s iterations, %.1f ms each", fc.mode, s.get("iterations"), s.get("ms_per_iteration", 0))
+
+
+STEP = Step(
+    name="optimize",
+    run=run,
+    inputs=("model", "split", "config", "store"),
+    product="fit",
+    params=("optimize", "optimize_iterations"),
+)
