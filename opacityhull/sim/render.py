@@ -821,9 +821,8 @@ class SimRenderer:
             loaded = self._get(cfg, parts, state, cam, mode=("displays", tuple(sorted(on))))
             img = self._run(loaded, view, state, cfg, seed, displays=on)
         else:
-            if p.light is None:
+            if p.light is None:  # point light and lamp sphere: one Mitsuba scene per radius
                 raise InputError("a light pass without a light (RenderPass.light is None)")
-            # point light and lamp sphere are different Mitsuba scenes (one per radius)
             loaded = self._get(cfg, parts, state, cam, mode=("light", self.geometry.light(p.light[0]).radius_m))
             img = self._run(loaded, view, state, cfg, seed, light=p.light)
         if win is not None:
@@ -1064,9 +1063,8 @@ class SimRenderer:
                     "bsdf": _black(),
                     "emitter": {"type": "area", "radiance": {"type": "rgb", "value": [1.0, 1.0, 1.0]}},
                 }
-                # a lamp seen directly (not through the object) would break the crop's
-                # "exactly 0 outside the window" and is out of every camera's field anyway;
-                # seen through glass (after a bounce) it stays visible
+                # seen directly it would break the crop's "exactly 0 outside the window"
+                # (and is out of every camera's field); through glass it stays visible
                 d["integrator"] = dict(d["integrator"], hide_emitters=True)
         sc = mi.load_dict(d, optimize=False)  # keep shapes separate: their params are rewritten
         self.loads += 1
