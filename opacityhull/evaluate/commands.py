@@ -222,7 +222,7 @@ def register(app, groups) -> None:
             c = console()
             c.print(
                 f"relighting vs Mitsuba over {len(s['per_view'])} views: relative error "
-                f"{100 * s['rel_err_mean']:.2f} %, PSNR {s['psnr_norm_mean']:.2f} dB normalised by the truth's "
+                f"{100 * s['rel_err_mean']:.2f} %, PSNR {s.get('psnr_norm_mean', float('nan')):.2f} dB normalised by the truth's "
                 f"mean ({s['psnr_mean']:.2f} dB against its peak)"
             )
             c.print(f"contact sheet (truth | relit | error): {s['sheet']}")
