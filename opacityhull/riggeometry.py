@@ -34,6 +34,7 @@ Schema (all lengths in metres, angles in degrees)::
     distance_m = 1.2
     intensity = 1.0                   # calibrated relative output (1 = nominal)
     colour = [1.0, 1.0, 1.0]
+    radius_m = 0.025                  # optional: the lamp's emitting sphere (simulator); > 0
 
     [[geometry.displays]]
     name = "bottom"
@@ -175,6 +176,9 @@ class LightSpec:
     position_m: np.ndarray  # rig frame, array angle 0
     intensity: float = 1.0
     colour: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    #: radius of the lamp's emitting sphere (a bulb behind a diffuser), metres; ``None``
+    #: is an ideal point light (a smooth glass is black under it: no path finds a point)
+    radius_m: float | None = None
 
     def position_rig(self, array_deg: float) -> np.ndarray:
         return rot_y(math.radians(array_deg)) @ self.position_m
@@ -287,7 +291,11 @@ class RigGeometry:
         ids = set()
         for i, L in enumerate(g.get("lights", [])):
             w = f"{where}.lights[{i}]"
-            _check_keys(w, L, {"id", "elevation_deg", "azimuth_deg", "distance_m", "position_m", "intensity", "colour"})
+            _check_keys(
+                w,
+                L,
+                {"id", "elevation_deg", "azimuth_deg", "distance_m", "position_m", "intensity", "colour", "radius_m"},
+            )
             lid = int(_num(w, L, "id", i))
             if lid in ids:
                 raise ConfigError(f"{w}.id: duplicate light id {lid}")
@@ -303,8 +311,20 @@ class RigGeometry:
                 raise ConfigError(f"{w}: light at the origin has no direction")
             cr, cg, cb = (float(x) for x in _vec(f"{w}.colour", L.get("colour", [1.0, 1.0, 1.0])))
             colour = (cr, cg, cb)
+            radius = None if "radius_m" not in L else _num(w, L, "radius_m", positive=True)
+            if radius is not None and radius >= 0.5 * float(np.linalg.norm(pos)):
+                raise ConfigError(
+                    f"{w}.radius_m: {radius} m is not a small lamp at {float(np.linalg.norm(pos)):.3g} m from the "
+                    "rig origin; expected < half its distance"
+                )
             lights.append(
-                LightSpec(id=lid, position_m=pos, intensity=_num(w, L, "intensity", 1.0, lo=0.0), colour=colour)
+                LightSpec(
+                    id=lid,
+                    position_m=pos,
+                    intensity=_num(w, L, "intensity", 1.0, lo=0.0),
+                    colour=colour,
+                    radius_m=radius,
+                )
             )
         displays = []
         dnames = set()

@@ -52,7 +52,7 @@ _TEST_JSON_HELP = 'Print {"psnr_mean", "ssim_mean", "psnr_mask_mean", "ssim_mask
 _EVAL_MODEL_HELP = "Model folder built from a simulated session (with reflectance data)."
 _EVAL_OUT_HELP = "Folder for the contact sheet and per-view EXRs (default MODEL/eval/relight)."
 _MAX_VIEWS_HELP = "Evaluate at most this many views (spread evenly)."
-_EVAL_JSON_HELP = 'Print {"psnr_mean", "rel_err_mean", "per_view", ...} on stdout.'
+_EVAL_JSON_HELP = 'Print {"rel_err_mean", "psnr_norm_mean", "psnr_mean", "per_view", ...} on stdout.'
 
 
 def register(app, groups) -> None:
@@ -223,8 +223,9 @@ def register(app, groups) -> None:
         def human(s):
             c = console()
             c.print(
-                f"relighting vs Mitsuba over {len(s['per_view'])} views: PSNR {s['psnr_mean']:.2f} dB, "
-                f"relative error {100 * s['rel_err_mean']:.2f} %"
+                f"relighting vs Mitsuba over {len(s['per_view'])} views: relative error "
+                f"{100 * s['rel_err_mean']:.2f} %, PSNR {s.get('psnr_norm_mean', float('nan')):.2f} dB normalised by the truth's "
+                f"mean ({s['psnr_mean']:.2f} dB against its peak)"
             )
             c.print(f"contact sheet (truth | relit | error): {s['sheet']}")
             for w in s.get("warnings", []):

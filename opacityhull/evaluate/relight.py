@@ -22,7 +22,13 @@ measures relighting, not the matte, and no background leaks in:
 
 * ``rel_err`` = ‖relit − truth‖₂ / ‖truth‖₂ (all channels),
 * ``psnr`` = 10 log₁₀(peak² / MSE) with ``peak`` the largest truth value in the mask
-  (HDR images have no fixed white; the object's own peak is the natural range).
+  (HDR images have no fixed white; the object's own peak is the natural range),
+* ``psnr_norm`` = 10 log₁₀(mean² / MSE), both images divided by the truth's mean: a dim
+  probe with one highlight no longer hides a relit image that is half wrong (the
+  relative error is the figure that matters; this is the PSNR that agrees with it).
+
+An all-zero environment map is refused (:class:`~opacityhull.errors.InputError`): every
+relative figure would divide by a zero truth.
 """
 
 from __future__ import annotations
@@ -36,7 +42,7 @@ import numpy as np
 from ..errors import FormatError, InputError
 from ..imageio import write_exr
 from ..pictures import auto_exposure, contact_sheet, to_srgb8, write_sheet
-from ..relight.envmap import EnvironmentMap
+from ..relight.envmap import EnvironmentMap, require_light
 from .metrics import relight_metrics
 from ..relight.relit import Relighter, RelightConfig
 
@@ -183,6 +189,11 @@ def _natural_eval(model, kind, ref) -> dict | None:
     def part(i, env):
         return natural_part_of_view(model, i, env, centre_m=centre)
 
+    def array_env(i, env):
+        from ..relight.natural_views import array_envmap
+
+        return array_envmap(model, env, model.views[i].table_deg, centre_m=centre)
+
     def truth(i, env):
         v = model.views[i]
         return render_envmap_on_displays(rig, v.camera_index, v.table_deg, env, displays, centre_m=centre, seed=11)
@@ -192,7 +203,8 @@ def _natural_eval(model, kind, ref) -> dict | None:
         "centre_m": [float(x) for x in centre],
         "truth": "mitsuba: each field's display showing the map over its solid angle (two 8-bit layers, summed)",
     }
-    return {"part": part, "truth": truth, "info": info}
+    info["split"] = "sphere split: the light array relights only the directions no field display covers"
+    return {"part": part, "truth": truth, "info": info, "array_env": array_env}
 
 
 def _pick(n: int, k: int | None) -> list[int]:
@@ -245,6 +257,7 @@ def eval_relight(
     if not isinstance(envmap, EnvironmentMap):
         raise InputError(f"eval relight: envmap {type(envmap).__name__}, expected an EnvironmentMap (load_envmap)")
     env = envmap
+    require_light(env, "eval relight")
     kind, ref = find_scene(model)
     truth_fn = _truth_renderer(model, kind, ref, spp=spp)
     R = Relighter(model, config=config)
@@ -255,7 +268,8 @@ def eval_relight(
     t_relight = t_truth = 0.0
     for n, i in enumerate(idx):
         ta = time.perf_counter()
-        rgba = R.relight_view(i, envmap=env)
+        env_array = natural["array_env"](i, env) if natural is not None else env
+        rgba = R.relight_view(i, envmap=env_array)
         part = natural["part"](i, env) if natural is not None else None
         if part is not None:
             rgba[..., :3] += part
@@ -302,8 +316,9 @@ def eval_relight(
         if kind == "analytic"
         else f"mitsuba render_under_envmap (scene {ref[0]}, spp {spp})",
         "envmap": env.stats(),
-        "psnr_mean": float(np.mean([p["psnr"] for p in good])),
         "rel_err_mean": float(np.mean([p["rel_err"] for p in good])),
+        "psnr_norm_mean": float(np.mean([p["psnr_norm"] for p in good])),
+        "psnr_mean": float(np.mean([p["psnr"] for p in good])),
         "rel_err_max": float(np.max([p["rel_err"] for p in good])),
         "per_view": per_view,
         "n_lights_captured": len(R.lights),
@@ -340,7 +355,7 @@ def eval_relight(
                 to_srgb8(rgba[..., :3], exposure=exposure),
                 to_srgb8(err, exposure=4 * exposure),
             ]
-            labels += [str(p["view"]), "", f"rel. err {100 * p['rel_err']:.1f}%"]
+            labels += [str(p["view"]), f"{p['psnr_norm']:.1f} dB (mean-norm.)", f"rel. err {100 * p['rel_err']:.1f}%"]
         write_sheet(
             out / "eval_relight.png",
             contact_sheet(

@@ -78,4 +78,9 @@ def demo_relight_eval(model_dir, out, *, probe: str = "grace", views: int | None
         e = eval_relight(model_dir, envmap=builtin_envmap(probe), out=out, max_views=views, spp=spp)
     except InputError as err:
         return {"skipped": str(err)}
-    return {"rel_err_mean": e["rel_err_mean"], "psnr_mean": e["psnr_mean"], "sheet": e["sheet"]}
+    return {
+        "rel_err_mean": e["rel_err_mean"],
+        "psnr_norm_mean": e["psnr_norm_mean"],
+        "psnr_mean": e["psnr_mean"],
+        "sheet": e["sheet"],
+    }

@@ -68,19 +68,21 @@ def _map_options(*, required: bool) -> dict:
 
 def _load_map(map_options: dict, *, flip_u: bool = False):
     """``--envmap`` read with the rest of :func:`_map_options` (``--probe-format`` checked here)."""
-    from .envmap import default_yaw_deg, load_envmap
+    from .envmap import default_yaw_deg, load_envmap, require_light
 
     envmap = map_options["envmap"]
     if not str(envmap).startswith("builtin:") and not Path(envmap).is_file():
         # a missing file is bad input naming the flag (it was "image X not found", exit 4)
         raise InputError(f"--envmap {envmap}: no such file (give an .exr/.hdr map or builtin:NAME)")
     yaw = pick_env_yaw(map_options["env_yaw_deg"], map_options["yaw_deg_alias"])
-    return load_envmap(
+    env = load_envmap(
         envmap,
         yaw_deg=default_yaw_deg(envmap) if yaw is None else yaw,
         probe_format=_probe_format(map_options["probe_format"]),
         flip_u=flip_u,
     )
+    require_light(env, f"--envmap {envmap}")
+    return env
 
 
 _MODEL_HELP = "Model folder written by `opacityhull build` (with reflectance data)."

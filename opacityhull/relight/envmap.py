@@ -38,6 +38,7 @@ log = logging.getLogger(__name__)
 
 __all__ = [
     "EnvironmentMap",
+    "require_light",
     "PROBE_FORMATS",
     "load_envmap",
     "validate_radiance",
@@ -459,3 +460,18 @@ def sun_envmap(height: int, width: int, direction, radiance_rgb, *, background=0
     c = min(int(u * width), width - 1)
     img[r, c] = np.asarray(radiance_rgb, np.float32)
     return EnvironmentMap(img, f"sun at {np.round(np.asarray(direction, float), 3).tolist()}")
+
+
+def require_light(env: EnvironmentMap, what: str) -> None:
+    """Refuse a map that sends no light (every texel zero): nothing to relight with, and
+    every relative figure would divide by a zero truth.
+
+    Raises
+    ------
+    InputError
+        Naming the map's source."""
+    if not np.any(env.radiance > 0):
+        raise InputError(
+            f"{what}: environment map {env.source} is all zero ({env.width}x{env.height} texels): "
+            "expected some radiance > 0"
+        )

@@ -13,7 +13,7 @@ import numpy as np
 from ..errors import FormatError
 from ..reconstruct.natural import load_view_fields, relight_view_natural
 
-__all__ = ["natural_centre_m", "relight_model_views_natural"]
+__all__ = ["natural_centre_m", "relight_model_views_natural", "field_displays", "array_envmap"]
 
 log = logging.getLogger(__name__)
 
@@ -56,3 +56,29 @@ def relight_model_views_natural(model, envmap, *, centre_m=None, supersample: in
             raise FormatError(f"{model.root / 'model.toml'}: no [rig] table, the displays' geometry is unknown")
         out.append(relight_view_natural(fields, envmap, g, v.table_deg, centre_m=centre_m, supersample=supersample))
     return out
+
+
+def field_displays(model) -> tuple:
+    """The rig's displays the model has natural-illumination fields for (``model.toml``
+    ``[natural] displays``; every display of the rig when the list is missing)."""
+    g = model.geometry
+    if g is None:
+        return ()
+    nat = model.meta.get("natural", {}) or {}
+    names = sorted(nat.get("displays", {}) or {}) or [d.name for d in g.displays]
+    return tuple(g.display(n) for n in names)
+
+
+def array_envmap(model, envmap, table_deg: float, *, centre_m, supersample: int = 2):
+    """The light array's share of ``envmap`` for a view at ``table_deg`` of a model with
+    display fields: the map times the split's ``array_weight``
+    (:func:`~opacityhull.relight.split.sphere_split`), so the directions the display
+    fields relight are not lit a second time by the one-light images. Without fields the
+    map itself."""
+    from .split import sphere_split, split_envmap
+
+    displays = field_displays(model)
+    if not displays:
+        return envmap
+    s = sphere_split(envmap.height, envmap.width, displays, table_deg, centre_m=centre_m, supersample=supersample)
+    return split_envmap(envmap, s)[0]

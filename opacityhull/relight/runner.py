@@ -151,8 +151,15 @@ def relight_model(
     # step 1: relight every captured view
     t1 = time.perf_counter()
     relit = []
+    # the sphere split: the display fields relight the directions the displays cover,
+    # the one-light images every other direction (each counted once)
+    from .natural_views import array_envmap, natural_centre_m
+
+    split = env is not None and bool(model.meta.get("natural", {}).get("present"))
+    centre = natural_centre_m(model) if split else None
     for i in range(n):
-        relit.append(R.relight_view(i, envmap=env, lights=light_list))
+        env_i = array_envmap(model, env, model.views[i].table_deg, centre_m=centre) if split else env
+        relit.append(R.relight_view(i, envmap=env_i, lights=light_list))
         if progress:
             progress(i + 1, total)
     if env is not None and model.meta.get("natural", {}).get("present"):

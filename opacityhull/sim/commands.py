@@ -215,6 +215,10 @@ def register(app, groups) -> None:
         from .scenes import load_scene
         from .variants import variant_report
 
+        from .render import lamp_radius
+
+        geom = default_geometry()
+        radius = lamp_radius(geom)
         if camera_size:
             try:
                 w, h = (int(v) for v in camera_size.lower().split("x"))
@@ -223,15 +227,16 @@ def register(app, groups) -> None:
             except ValueError:
                 raise InputError(f"--camera-size {camera_size!r}: expected WIDTHxHEIGHT, e.g. 400x300") from None
         else:
-            c0 = default_geometry().nominal_cameras()[0]
+            c0 = geom.nominal_cameras()[0]
             w, h = c0.width, c0.height
         sc = load_scene(scene)
-        cfg = select_effects(sc, phase, pixels=w * h)
+        cfg = select_effects(sc, phase, pixels=w * h, lamp_radius_m=radius)
         summary = {
             "scene": sc.source,
             "camera_size": [w, h],
+            "lamp_radius_m": radius,
             **cfg.to_json(),
-            "expected_cost": expected_cost(sc, phase),
+            "expected_cost": expected_cost(sc, phase, lamp_radius_m=radius),
             "variant": variant_report(),
         }
         if phase == "matting":

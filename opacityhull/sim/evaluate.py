@@ -21,7 +21,7 @@ reference's own Monte-Carlo noise is part of the measured error. Used by
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Callable, Sequence
 
 import numpy as np
@@ -30,10 +30,19 @@ from ..camera import Camera
 from ..charuco import CharucoSpec
 from ..riggeometry import CameraSpec, RigGeometry
 from .effects import EffectConfig, reference_effects, select_effects
-from .render import SimRenderer, SimState
+from .render import SimRenderer, SimState, lamp_radius
 from .scenes import SceneSpec, board_parts
 
-__all__ = ["PhaseError", "phase_error", "eval_camera", "triangulation_alpha", "coverage_mask", "rel_mae"]
+__all__ = [
+    "PhaseError",
+    "phase_error",
+    "eval_camera",
+    "triangulation_alpha",
+    "coverage_mask",
+    "rel_mae",
+    "lamp_change",
+    "point_geometry",
+]
 
 
 @dataclass(frozen=True)
@@ -183,6 +192,15 @@ def rel_mae(a: np.ndarray, ref: np.ndarray, mask: np.ndarray) -> float:
     return float(d.sum() / s)
 
 
+def rel_energy(a: np.ndarray, ref: np.ndarray, mask: np.ndarray) -> float:
+    """``|sum a - sum ref| / sum ref`` over ``mask`` (all channels): the error in the light
+    an image carries, for images of sub-pixel highlights whose per-pixel error is noise
+    (a glass under lamps with area); the absolute difference of the sums if the
+    reference is black there."""
+    sa, sr = float(a[mask].sum()), float(ref[mask].sum())
+    return abs(sa - sr) / sr if sr > 1e-9 else abs(sa - sr)
+
+
 _clock: Callable[[], float] = time.perf_counter
 
 
@@ -254,7 +272,9 @@ def _phase_error(
     if camera is None:
         camera = calibration_camera() if phase == "calibration" else eval_camera()
     # the selection a capture with this camera gets (matting samples depend on its size)
-    sel = selected or select_effects(scene, phase, pixels=camera.width * camera.height)
+    sel = selected or select_effects(
+        scene, phase, pixels=camera.width * camera.height, lamp_radius_m=lamp_radius(r.geometry)
+    )
     ref = reference_effects(scene, phase, spp=ref_spp)
     view = RigGeometry.view_camera(camera, table_deg)
     ids = [L.id for L in geometry.lights]
@@ -346,6 +366,8 @@ def _phase_error(
             return float(np.abs(triangulation_alpha(*out) - a_ref)[mask].mean()) if mask.any() else 0.0
         if phase == "calibration":
             return corner_error(out[0], out_ref[0], charuco)
+        if sel.error_metric == "rel_energy":
+            return rel_energy(out[0], out_ref[0], mask)
         return rel_mae(out[0], out_ref[0], mask)
 
     extra = []
@@ -357,3 +379,22 @@ def _phase_error(
     return PhaseError(
         scene.source, phase, sel.error_metric, error(out_sel), sel.error_bound, t_sel, t_ref, sel, ref, tuple(extra)
     )
+
+
+def point_geometry(g: RigGeometry) -> RigGeometry:
+    """``g`` with every lamp an ideal point light (``radius_m`` None): the old light model."""
+    return replace(g, lights=tuple(replace(L, radius_m=None) for L in g.lights))
+
+
+def lamp_change(p1: np.ndarray, p2: np.ndarray, a1: np.ndarray, a2: np.ndarray) -> dict:
+    """Independent renders under point lights (``p1``, ``p2``) and lamps (``a1``, ``a2``):
+    ``change`` = ‖a2 − p1‖ / ‖p1‖; ``noise_floor`` = what ``change`` is when the two
+    differ only by noise, √((‖p1 − p2‖² + ‖a1 − a2‖²) / 2) / ‖p1‖; ``excess`` = the part
+    of ``change`` beyond that, √max(0, change² − floor²) (the lamps' systematic effect)."""
+    n = float(np.linalg.norm(p1))
+    if n == 0:
+        nan = float("nan")
+        return {"change": nan, "noise_floor": nan, "excess": nan}
+    change = float(np.linalg.norm(a2 - p1)) / n
+    floor = float(np.sqrt((np.sum((p1 - p2) ** 2.0) + np.sum((a1 - a2) ** 2.0)) / 2.0)) / n
+    return {"change": change, "noise_floor": floor, "excess": float(np.sqrt(max(0.0, change**2 - floor**2)))}

@@ -339,7 +339,8 @@ def write_ground_truth(
     write_ply_mesh(gt / "object.ply", scene.triangle_mesh())
     lights = {
         "frame": "rig frame at light-array angle 0; rotate about +Y by the array angle",
-        "model": "point lights; a light of intensity 1 gives irradiance 1 at the rig origin; "
+        "model": "point lights, or spheres of radius radius_m and uniform radiance I/(pi r^2) (the same "
+        "intensity I in every direction); a light of intensity 1 gives irradiance 1 at the rig origin; "
         "DMX level L scales it by L/255",
         "lights": [
             {
@@ -347,6 +348,7 @@ def write_ground_truth(
                 "position_m": [float(v) for v in L.position_m],
                 "intensity": float(L.intensity),
                 "colour": [float(v) for v in L.colour],
+                "radius_m": L.radius_m,
                 "mitsuba_intensity_at_full_level": [float(v) for v in light_intensity(geometry, L.id, 255)],
             }
             for L in geometry.lights

@@ -13,8 +13,10 @@ exist — and changed between captures with ``mi.traverse`` + ``params.update()`
 ``position``/``intensity``, display bitmap ``data``): ~0.03 s per re-render against
 seconds per load (PITFALLS).
 
-Light model. Light-array lights are point lights at ``LightSpec.position_rig(array_deg)``
-(then moved into the object frame). A light of calibrated ``intensity = 1`` gives
+Light model. Light-array lights are at ``LightSpec.position_rig(array_deg)`` (then moved
+into the object frame): point lights, or, when the rig gives ``radius_m``, spheres of that
+radius (a bulb behind a diffuser) of uniform radiance ``I / (π r²)`` — the same intensity
+in every direction, so the same irradiance at the origin, and a glass shows the lamp. A light of calibrated ``intensity = 1`` gives
 irradiance 1 (on a surface facing it) at the rig origin, whatever its distance:
 Mitsuba intensity ``I = intensity * |p|^2 * (level / 255) * colour`` (W/sr), ``p`` its
 rig-frame position. DMX level ``L`` scales linearly (``L / 255``).
@@ -309,6 +311,15 @@ class RenderPass:
         }
 
 
+def lamp_radius(geometry: RigGeometry) -> float | None:
+    """The smallest lamp radius of the rig's light array (metres), or ``None`` when any
+    lamp is an ideal point light (effect selection then keeps the point-light rules)."""
+    radii = [L.radius_m for L in geometry.lights]
+    if not radii or any(r is None for r in radii):
+        return None
+    return float(min(r for r in radii if r is not None))
+
+
 def light_intensity(geometry: RigGeometry, light_id: int, level: int) -> np.ndarray:
     """Mitsuba radiant intensity (RGB, W/sr) of a light at DMX ``level``: irradiance
     ``intensity * level / 255 * colour`` at the rig origin."""
@@ -583,7 +594,16 @@ _PARAM_KEEP = [
     r"display_\d+\.emitter\.radiance\.data",
     r"light\.position",
     r"light\.intensity\.value",
+    r"light\.to_world",
+    r"light\.emitter\.radiance\.value",
 ]
+
+
+def _lamp_to_world(position, radius_m: float) -> np.ndarray:
+    """4x4 world_from_unit-sphere of a lamp of ``radius_m`` centred at ``position``."""
+    T = np.diag([radius_m, radius_m, radius_m, 1.0])
+    T[:3, 3] = np.asarray(position, np.float64)
+    return T
 
 
 def _traverse(mi, scene):
@@ -760,7 +780,14 @@ class SimRenderer:
 
     def _select(self, phase: str, *, declared: bool = True, camera: Camera | None = None) -> EffectConfig:
         pixels = None if camera is None else camera.width * camera.height
-        return select_effects(self.scene, phase, overrides=self.overrides or None, declared=declared, pixels=pixels)
+        return select_effects(
+            self.scene,
+            phase,
+            overrides=self.overrides or None,
+            declared=declared,
+            pixels=pixels,
+            lamp_radius_m=lamp_radius(self.geometry),
+        )
 
     def _render_pass(
         self, rig_camera: Camera, state: SimState, p: RenderPass, parts, seed: int, *, use_cache: bool = True
@@ -794,7 +821,9 @@ class SimRenderer:
             loaded = self._get(cfg, parts, state, cam, mode=("displays", tuple(sorted(on))))
             img = self._run(loaded, view, state, cfg, seed, displays=on)
         else:
-            loaded = self._get(cfg, parts, state, cam, mode=("light",))
+            if p.light is None:  # point light and lamp sphere: one Mitsuba scene per radius
+                raise InputError("a light pass without a light (RenderPass.light is None)")
+            loaded = self._get(cfg, parts, state, cam, mode=("light", self.geometry.light(p.light[0]).radius_m))
             img = self._run(loaded, view, state, cfg, seed, light=p.light)
         if win is not None:
             out[y0 : y0 + h, x0 : x0 + w] = img
@@ -1020,11 +1049,23 @@ class SimRenderer:
                 d[k] = entry
                 keys["displays"][disp.name] = k
         if mode[0] == "light":
-            d["light"] = {
-                "type": "point",
-                "position": [0.0, 1.0, 0.0],
-                "intensity": {"type": "rgb", "value": [1.0, 1.0, 1.0]},
-            }
+            radius = mode[1] if len(mode) > 1 else None
+            if radius is None:
+                d["light"] = {
+                    "type": "point",
+                    "position": [0.0, 1.0, 0.0],
+                    "intensity": {"type": "rgb", "value": [1.0, 1.0, 1.0]},
+                }
+            else:
+                d["light"] = {
+                    "type": "sphere",
+                    "to_world": mi.ScalarTransform4f(_lamp_to_world((0.0, 1.0, 0.0), radius)),
+                    "bsdf": _black(),
+                    "emitter": {"type": "area", "radiance": {"type": "rgb", "value": [1.0, 1.0, 1.0]}},
+                }
+                # seen directly it would break the crop's "exactly 0 outside the window"
+                # (and is out of every camera's field); through glass it stays visible
+                d["integrator"] = dict(d["integrator"], hide_emitters=True)
         sc = mi.load_dict(d, optimize=False)  # keep shapes separate: their params are rewritten
         self.loads += 1
         return _Loaded(sc, _traverse(mi, sc), keys)
@@ -1097,8 +1138,17 @@ class SimRenderer:
                 pos_rig = self.geometry.light(lid).position_rig(state.array_deg)
                 pos = tuple(float(v) for v in object_from_rig(state.table_deg)[:3, :3] @ pos_rig)
                 rgb = tuple(float(v) for v in light_intensity(self.geometry, lid, level))
-                loaded.assign("light.position", pos, lambda: mi.Point3f(*pos))
-                loaded.assign("light.intensity.value", rgb, lambda: mi.Color3f(*rgb))
+                radius = self.geometry.light(lid).radius_m
+                if radius is None:
+                    loaded.assign("light.position", pos, lambda: mi.Point3f(*pos))
+                    loaded.assign("light.intensity.value", rgb, lambda: mi.Color3f(*rgb))
+                else:
+                    T = _lamp_to_world(pos, radius)
+                    # radiance of a sphere whose intensity (W/sr) in every direction is the
+                    # point light's: I = L·πr², so irradiance at the origin is unchanged
+                    rad = tuple(v / (math.pi * radius * radius) for v in rgb)
+                    loaded.assign("light.to_world", T.tobytes(), lambda T=T: mi.AffineTransform4f(T))  # pyright: ignore[reportCallIssue, reportArgumentType]
+                    loaded.assign("light.emitter.radiance.value", rad, lambda: mi.Color3f(*rad))
             params.update()
             # the stubs type seed as mi.UInt32; Mitsuba converts a Python int
             img = mi.render(

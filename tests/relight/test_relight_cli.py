@@ -128,3 +128,36 @@ def test_metrics_and_scene_lookup():
     assert _scene_of("sim:builtin:glossy") == "builtin:glossy"
     assert _scene_of("sim:builtin:diffuse@/tmp/small/rig.toml") == "builtin:diffuse"
     assert _scene_of("sim:glossy?scale=0.5") == "builtin:glossy"
+
+
+def test_all_zero_envmap_is_refused_and_nothing_written(sphere_model, tmp_path):
+    write_exr(tmp_path / "black.exr", np.zeros((8, 16, 3), np.float32))
+    for cmd in (("relight",), ("eval", "relight")):
+        out = tmp_path / ("o_" + "_".join(cmd))
+        r = run(*cmd, sphere_model, "--envmap", tmp_path / "black.exr", "--out", out)
+        text = " ".join(r.output.split())
+        assert r.exit_code == 2 and "black.exr" in text and "all zero" in text, r.output
+        assert not out.exists()
+
+
+def test_mean_normalised_psnr():
+    """psnr_norm divides by the truth's mean: a uniform 10 % error scores
+    10 log10(1 / 0.01) = 20 dB whatever the brightness, and one bright highlight in the
+    truth leaves it unchanged where the peak PSNR rises."""
+    from opacityhull.evaluate.metrics import relight_metrics
+
+    rng = np.random.default_rng(3)
+    t = rng.uniform(0.5, 1.5, (16, 16, 3))
+    m = np.ones((16, 16), bool)
+    for scale in (1e-3, 1.0, 1e3):
+        r = relight_metrics(scale * t * 1.1, scale * t, m)
+        expect = 10 * np.log10(np.mean(t) ** 2 / np.mean((0.1 * t) ** 2))
+        assert r["psnr_norm"] == pytest.approx(expect, abs=1e-6)
+        assert r["rel_err"] == pytest.approx(0.1, rel=1e-9)
+    e = np.zeros_like(t)
+    e[2, 3] = 0.5  # one wrong pixel, then one bright highlight both images share
+    h = t.copy()
+    h[9, 9] = 200.0
+    a, b = relight_metrics(t + e, t, m), relight_metrics(h + e, h, m)
+    assert b["psnr"] > a["psnr"] + 40  # the peak PSNR is flattered by the highlight
+    assert abs(b["psnr_norm"] - a["psnr_norm"]) < abs(b["psnr"] - a["psnr"]) / 2
