@@ -40,9 +40,17 @@ def test_radius_is_optional_and_parsed():
     assert RigGeometry.from_dict(_light_dict(radius_m=0.03)).lights[0].radius_m == 0.03
 
 
-def test_builtin_rig_lamps_have_area(small_geometry):
-    assert lamp_radius(small_geometry) == pytest.approx(0.025)
-    assert lamp_radius(point_geometry(small_geometry)) is None
+def _with_area(g, radius_m=0.025):
+    """``g`` with every lamp a sphere of ``radius_m`` (the built-in rig's lamps are points)."""
+    from dataclasses import replace
+
+    return replace(g, lights=tuple(replace(L, radius_m=radius_m) for L in g.lights))
+
+
+def test_builtin_rig_lamps_are_points_unless_given_a_radius(small_geometry):
+    assert lamp_radius(small_geometry) is None
+    assert lamp_radius(_with_area(small_geometry)) == pytest.approx(0.025)
+    assert lamp_radius(point_geometry(_with_area(small_geometry))) is None
 
 
 def test_glass_selection_renders_the_lamps_and_says_why():
@@ -62,7 +70,7 @@ def test_glass_shows_the_lamp_only_with_area(small_geometry):
     cam = small_geometry.nominal_cameras()[1]
     st = SimState(table_deg=80.0, light_levels={1: 255})
     assert np.all(SimRenderer(glass, point_geometry(small_geometry)).render(cam, st, use_cache=False) == 0)
-    img = SimRenderer(glass, small_geometry).render(cam, st, seed=1, use_cache=False)
+    img = SimRenderer(glass, _with_area(small_geometry)).render(cam, st, seed=1, use_cache=False)
     assert np.isfinite(img).all() and img.max() > 0
 
 
@@ -73,7 +81,7 @@ def test_opaque_one_light_images_unchanged_within_noise(small_geometry, scene_na
     seeds; the systematic excess beyond noise is <= 0.06 (penumbrae), and the total
     light agrees within 0.1 %. Asserted: excess <= 0.1 and the mean within 1 %."""
     scene = load_scene(f"builtin:{scene_name}")
-    area, point = SimRenderer(scene, small_geometry), SimRenderer(scene, point_geometry(small_geometry))
+    area, point = SimRenderer(scene, _with_area(small_geometry)), SimRenderer(scene, point_geometry(small_geometry))
     cam = small_geometry.nominal_cameras()[1]
     st = SimState(table_deg=80.0, light_levels={1: 255})
     p1, p2 = (point.render(cam, st, seed=s, use_cache=False) for s in (1, 3))
