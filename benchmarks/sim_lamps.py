@@ -2,9 +2,10 @@
 image changes when the light array's point lights become spheres of the same intensity,
 measured against the Monte-Carlo noise of the render itself; and what a glass shows.
 
-    .venv/bin/python benchmarks/sim_lamps.py [--scale 0.5] [--views 2]
+    .venv/bin/python benchmarks/sim_lamps.py [--scale 0.5] [--radius-m 0.025] [--quick]
 
-Per scene and view (one light on, reflectance selection, crop on): ``change`` =
+The built-in rig's lamps are points; ``--radius-m`` gives them the radius measured
+(2.5 cm by default). Per scene and view (one light on, reflectance selection, crop on): ``change`` =
 ‖area − point‖ / ‖point‖ over the frame, ``noise`` = ‖area(seed a) − area(seed b)‖ /
 ‖point‖ / √2 (one render's noise), and ``change / noise``. Writes
 benchmarks/out/sim_lamps.json. Figures taken on a shared, loaded machine are CPU times
@@ -13,12 +14,12 @@ only in the "seconds" fields; the ratios do not depend on load.
 
 from __future__ import annotations
 
-import argparse
 import json
 import time
-from pathlib import Path
+from dataclasses import replace
 
 import numpy as np
+from benchkit import out_dir, parser
 
 from opacityhull.riggeometry import RigGeometry
 from opacityhull.sim.evaluate import lamp_change, point_geometry
@@ -26,9 +27,14 @@ from opacityhull.sim.render import SimRenderer, SimState
 from opacityhull.sim.scenes import load_scene
 from opacityhull.sim.simrig import sim_rig_config
 
+OUT = out_dir()  # benchmarks/out, or benchmarks/out/quick with --quick (benchkit)
 
-def compare(scene_name: str, *, scale: float = 0.5, views=((1, 80.0, 1), (3, 200.0, 2))) -> list[dict]:
+
+def compare(
+    scene_name: str, *, scale: float = 0.5, radius_m: float = 0.025, views=((1, 80.0, 1), (3, 200.0, 2))
+) -> list[dict]:
     g = RigGeometry.from_dict(sim_rig_config(None, scale=scale)["geometry"])
+    g = replace(g, lights=tuple(replace(L, radius_m=radius_m) for L in g.lights))
     scene = load_scene(f"builtin:{scene_name}")
     area = SimRenderer(scene, g)
     point = SimRenderer(scene, point_geometry(g))
@@ -71,16 +77,19 @@ def compare(scene_name: str, *, scale: float = 0.5, views=((1, 80.0, 1), (3, 200
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = parser(__doc__)
     ap.add_argument("--scale", type=float, default=0.5)
+    ap.add_argument("--radius-m", type=float, default=0.025)
     ap.add_argument("--scenes", default="diffuse,glossy,glass")
+    ap.add_argument("--quick", action="store_true", help="quarter scale, the diffuse scene only")
     args = ap.parse_args()
+    scale, scenes = (0.25, "diffuse") if args.quick else (args.scale, args.scenes)
     rows = []
-    for s in args.scenes.split(","):
-        rows += compare(s, scale=args.scale)
-    out = Path(__file__).parent / "out" / "sim_lamps.json"
+    for s in scenes.split(","):
+        rows += compare(s, scale=scale, radius_m=args.radius_m)
+    out = OUT / "sim_lamps.json"
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps({"scale": args.scale, "rows": rows}, indent=2) + "\n")
+    out.write_text(json.dumps({"scale": scale, "radius_m": args.radius_m, "rows": rows}, indent=2) + "\n")
     print(f"wrote {out}")
 
 
