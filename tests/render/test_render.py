@@ -4,11 +4,13 @@ environment maps (Mitsuba as the oracle of the convention), and camera helpers."
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
 import scipy.ndimage as ndi
 
+import opacityhull
 from opacityhull.camera import Camera, look_at_world_from_cam
 from opacityhull.errors import InputError, ShapeError
 from opacityhull.model import Surfels
@@ -33,6 +35,10 @@ from opacityhull.render.renderer import RenderConfig, render_image, spatially_so
 from opacityhull.render.synthetic import make_sphere_model
 from opacityhull.render.views import prepare_views
 from opacityhull.riggeometry import RigGeometry
+
+
+#: A shipped HDR probe (the same bytes as shared/data/probes/grace.hdr), so the tests need no ../shared.
+GRACE = Path(opacityhull.__file__).parent / "data" / "probes" / "grace.hdr"
 
 
 @pytest.fixture(scope="module")
@@ -323,14 +329,14 @@ def _envmap_vs_mitsuba(mi):
 
 def test_envmap_over_and_probe_file(sphere64, tmp_path):
     m, pv = sphere64
-    env = EnvMap.from_file("/work/shared/data/probes/grace.hdr", yaw_deg=180)
+    env = EnvMap.from_file(str(GRACE), yaw_deg=180)
     cam = m.cameras[0]
     r = render_image(m.surfels, m.cameras, pv, cam)
     out = r.over(env)
     bg = env.render(cam)
     np.testing.assert_allclose(out[0, 0], bg[0, 0], rtol=1e-6)  # a background corner
     assert np.all(np.isfinite(out)) and bg.max() > 1.0  # HDR values survive
-    assert isinstance(load_background("/work/shared/data/probes/grace.hdr"), EnvMap)
+    assert isinstance(load_background(str(GRACE)), EnvMap)
     assert load_background("0.1,0.2,0.3") == (0.1, 0.2, 0.3)
     assert load_background("white") == (1.0, 1.0, 1.0)
     with pytest.raises(InputError, match="neither a colour nor an existing image"):
