@@ -456,6 +456,17 @@ def _row_range(m1, hy, ya, yb):
     return lo, hi
 
 
+@njit(cache=True, inline="always", error_model="numpy")
+def _tile_box(t, n_tx, tile, width, height):
+    """Pixel box [xa, xb) x [ya, yb) of tile ``t`` (row-major, ``n_tx`` tiles a row),
+    clipped to the frame: the forward and backward passes walk the same tiles."""
+    ty = t // n_tx
+    tx = t - ty * n_tx
+    xa = tx * tile
+    ya = ty * tile
+    return xa, ya, min(xa + tile, width), min(ya + tile, height)
+
+
 @njit(cache=True, parallel=True, error_model="numpy")
 def _forward(tile_off, ent, recs, width, height, tile, n_tx, cut2, amin, tmin, bg):
     n_tiles = tile_off.shape[0] - 1
@@ -467,12 +478,7 @@ def _forward(tile_off, ent, recs, width, height, tile, n_tx, cut2, amin, tmin, b
     rowlive = np.empty((_TILE_GROUPS, tile), np.int64)  # live pixels per row of the tile
     for g in prange(_TILE_GROUPS):
         for t in range(g, n_tiles, _TILE_GROUPS):
-            ty = t // n_tx
-            tx = t - ty * n_tx
-            xa = tx * tile
-            ya = ty * tile
-            xb = min(xa + tile, width)
-            yb = min(ya + tile, height)
+            xa, ya, xb, yb = _tile_box(t, n_tx, tile, width, height)
             live = (xb - xa) * (yb - ya)
             for y in range(ya, yb):
                 rowlive[g, y - ya] = xb - xa
@@ -546,12 +552,7 @@ def _backward(tile_off, ent, ent_slot, recs, width, height, tile, n_tx, cut2, am
     rowlast = np.empty((_TILE_GROUPS, tile), np.int64)  # last entry composited per row of the tile
     for g in prange(_TILE_GROUPS):
         for t in range(g, n_tiles, _TILE_GROUPS):
-            ty = t // n_tx
-            tx = t - ty * n_tx
-            xa = tx * tile
-            ya = ty * tile
-            xb = min(xa + tile, width)
-            yb = min(ya + tile, height)
+            xa, ya, xb, yb = _tile_box(t, n_tx, tile, width, height)
             kend = -1
             for y in range(ya, yb):
                 rl = -1
