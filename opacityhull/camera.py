@@ -30,7 +30,7 @@ import os
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Iterator, Sequence
+from collections.abc import Iterator, Sequence
 
 import numpy as np
 
@@ -216,13 +216,13 @@ class Camera:
     def has_distortion(self) -> bool:
         return bool(np.any(self.dist != 0))
 
-    def with_pose(self, world_from_cam) -> "Camera":
+    def with_pose(self, world_from_cam) -> Camera:
         return replace(self, world_from_cam=np.asarray(world_from_cam, dtype=np.float64))
 
-    def with_name(self, name: str) -> "Camera":
+    def with_name(self, name: str) -> Camera:
         return replace(self, name=name)
 
-    def scaled(self, factor: float) -> "Camera":
+    def scaled(self, factor: float) -> Camera:
         """The same camera at ``factor`` times the resolution (pixel centres kept consistent)."""
         w = int(round(self.width * factor))
         h = int(round(self.height * factor))
@@ -379,7 +379,7 @@ COINCIDENT_ANGLE_DEG = 0.5
 
 
 def coincident_views(
-    cameras: Sequence["Camera"],
+    cameras: Sequence[Camera],
     *,
     centre_tol_rel: float = COINCIDENT_CENTRE_REL,
     angle_tol_deg: float = COINCIDENT_ANGLE_DEG,
@@ -429,7 +429,7 @@ def coincident_views(
     d = np.linalg.norm(c[:, None, :] - c[None, :, :], axis=2)
     # angle of R_a^T R_b: trace = 1 + 2 cos(theta)
     tr = np.einsum("aji,bji->ab", R, R)
-    for a, b in zip(*np.nonzero(np.triu((d <= tol_c) & ((tr - 1.0) / 2.0 >= cos_tol), k=1))):
+    for a, b in zip(*np.nonzero(np.triu((d <= tol_c) & ((tr - 1.0) / 2.0 >= cos_tol), k=1)), strict=True):
         ra, rb = root(int(a)), root(int(b))
         if ra != rb:
             parent[max(ra, rb)] = min(ra, rb)
@@ -516,7 +516,7 @@ def colmap_intrinsics(model: str, params) -> tuple[np.ndarray, np.ndarray]:
         )
     if not all(math.isfinite(x) for x in p):
         raise _ColmapModelError(f"camera parameters of {model} are not finite: {p}")
-    v = dict(zip(names, p))
+    v = dict(zip(names, p, strict=True))
     dist = np.zeros(5)
     fx = fy = v.get("f", 0.0)
     fx, fy = v.get("fx", fx), v.get("fy", fy)
@@ -573,7 +573,7 @@ def colmap_reconstruction(
     groups = list(share_intrinsics) if share_intrinsics is not None else list(range(len(cameras)))
     rec = pycolmap.Reconstruction()
     written: dict[int, int] = {}
-    for cam, g in zip(cameras, groups):
+    for cam, g in zip(cameras, groups, strict=True):
         if g in written:
             continue
         model, params = _colmap_model_and_params(cam)
@@ -582,7 +582,7 @@ def colmap_reconstruction(
         rec.add_camera_with_trivial_rig(
             pycolmap.Camera(model=model, width=int(cam.width), height=int(cam.height), params=params, camera_id=cid)
         )
-    for i, (cam, g, name) in enumerate(zip(cameras, groups, names), start=1):
+    for i, (cam, g, name) in enumerate(zip(cameras, groups, names, strict=True), start=1):
         if any(c.isspace() for c in name):
             raise InputError(f"COLMAP image names cannot contain spaces: {name!r}")
         T = cam.cam_from_world
@@ -668,7 +668,7 @@ def read_colmap_text(directory) -> list[tuple[str, Camera]]:
     with _colmap_text_folder(d) as src:
         try:
             rec.read_text(str(src))
-        except Exception as e:  # pycolmap raises ValueError/IndexError with its C++ message
+        except Exception as e:  # noqa: BLE001  pycolmap maps C++ errors to several types (ValueError, IndexError, ...): any is a bad file
             raise FormatError(_colmap_text_error(d, e)) from None
     return _views_of(rec, d, text=True)
 
@@ -811,7 +811,7 @@ def read_colmap_binary(directory) -> list[tuple[str, Camera]]:
         ) from None
     try:
         rec = pycolmap.Reconstruction(str(d))
-    except Exception as e:  # pycolmap raises ValueError/RuntimeError with its C++ message
+    except Exception as e:  # noqa: BLE001  pycolmap maps C++ errors to several types (ValueError, RuntimeError, ...): any is a bad model
         raise FormatError(
             f"{d}: cannot read the binary COLMAP model ({str(e).strip()}); expected cameras.bin, "
             "images.bin and points3D.bin (COLMAP 4 also rigs.bin, frames.bin)"

@@ -20,7 +20,8 @@ import functools
 import math
 from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field, replace
-from typing import Literal, Sequence
+from typing import Literal
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -116,7 +117,7 @@ class CharucoSpec:
             raise ConfigError(f"charuco.layout={self.layout!r}: expected auto, new or legacy")
 
     @classmethod
-    def from_dict(cls, d: dict, where: str = "charuco") -> "CharucoSpec":
+    def from_dict(cls, d: dict, where: str = "charuco") -> CharucoSpec:
         allowed = set(cls.__dataclass_fields__)
         unknown = sorted(set(d) - allowed)
         if unknown:

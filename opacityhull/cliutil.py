@@ -13,7 +13,8 @@ import sys
 import time
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Annotated, Any, Callable, Iterator, Mapping, Optional, Sequence, TypeVar, overload
+from typing import Annotated, Any, TypeVar, overload
+from collections.abc import Callable, Iterator, Mapping, Sequence
 
 import numpy as np
 import typer
@@ -66,9 +67,9 @@ def env_yaw_options(default: float | None, help: str) -> dict[str, tuple[Any, An
     """``--env-yaw-deg`` (``default``, ``help``) and its hidden old spelling ``--yaw-deg``,
     for :func:`option_group` with ``build=pick_env_yaw`` (``render``, ``relight``)."""
     return {
-        "env_yaw_deg": (Optional[float], typer.Option(default, "--env-yaw-deg", help=help)),
+        "env_yaw_deg": (float | None, typer.Option(default, "--env-yaw-deg", help=help)),
         "yaw_deg_alias": (
-            Optional[float],
+            float | None,
             typer.Option(None, "--yaw-deg", hidden=True, help="Old name of --env-yaw-deg."),
         ),
     }
@@ -334,7 +335,7 @@ def option_group(options: Mapping[str, tuple[Any, Any]], *, into: str, before: s
             return fn(*args, **kwargs)
 
         # typer builds the command from the signature and the annotations
-        setattr(wrapper, "__signature__", sig.replace(parameters=params))
+        setattr(wrapper, "__signature__", sig.replace(parameters=params))  # noqa: B010  pyright: functools wrapper type has no such attribute
         wrapper.__annotations__ = {p.name: p.annotation for p in params}
         return wrapper
 
@@ -356,7 +357,7 @@ def scheduler_options(help: str, *, workers: bool = False) -> dict[str, tuple[An
     }
     if workers:
         opts["workers"] = (
-            Optional[int],
+            int | None,
             typer.Option(None, "--workers", help="threads/processes: pool size (default: the cores)."),
         )
     return opts

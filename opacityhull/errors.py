@@ -92,7 +92,11 @@ def check_shape(name: str, array, expected: tuple, *, dtype=None) -> None:
     ``expected`` may contain ``None`` for "any size" in that axis.
     """
     shape = getattr(array, "shape", None)
-    ok = shape is not None and len(shape) == len(expected) and all(e is None or e == s for s, e in zip(shape, expected))
+    ok = (
+        shape is not None
+        and len(shape) == len(expected)
+        and all(e is None or e == s for s, e in zip(shape, expected, strict=True))
+    )
     if not ok:
         want = "(" + ", ".join("*" if e is None else str(e) for e in expected) + ")"
         raise ShapeError(f"{name} has shape {shape}, expected {want}")

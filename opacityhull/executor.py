@@ -45,7 +45,8 @@ import logging
 import os
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
-from typing import Any, Callable, Iterable, Sequence
+from typing import Any
+from collections.abc import Callable, Iterable, Sequence
 
 from .errors import DeviceError, InputError
 
@@ -108,7 +109,7 @@ def numba_max_threads() -> int:
     from numba.core import config as numba_config
 
     # set at import from the environment, so not a declared attribute of the module
-    return int(getattr(numba_config, "NUMBA_NUM_THREADS"))
+    return int(getattr(numba_config, "NUMBA_NUM_THREADS"))  # noqa: B009  set at runtime: pyright cannot see it
 
 
 def set_numba_threads(n: int | None) -> None:
@@ -120,7 +121,11 @@ def set_numba_threads(n: int | None) -> None:
         import numba
 
         numba.set_num_threads(max(1, min(int(n), numba_max_threads())))
-    except Exception as e:  # numba missing or its pool already fixed: only slower, never wrong
+    except (
+        ImportError,
+        ValueError,
+        RuntimeError,
+    ) as e:  # numba missing or its pool already fixed: only slower, never wrong
         log.debug("could not set numba threads to %s: %s", n, e)
 
 
@@ -191,7 +196,7 @@ class Executor:
     def close(self) -> None:
         """Release the workers (a no-op for serial); idempotent."""
 
-    def __enter__(self) -> "Executor":
+    def __enter__(self) -> Executor:
         return self
 
     def __exit__(self, *exc) -> bool:
@@ -325,7 +330,7 @@ class DaskExecutor(Executor):
         try:
             if NumbaThreads is not None:
                 self.client.register_plugin(NumbaThreads(numba_threads), name="opacityhull-numba-threads")
-        except Exception as e:  # an old worker without plugin support: slower, never wrong
+        except Exception as e:  # noqa: BLE001  a remote worker may fail in any way (old Dask, no plugin support): slower, never wrong
             log.warning("--scheduler %s: could not set up the workers (numba threads, malloc): %s", address, e)
 
     def _map(self, fn, items, *, progress=None):
@@ -447,7 +452,7 @@ def worker_info(_item: Any = None) -> dict:
         import numba
 
         nthreads = int(numba.get_num_threads())
-    except Exception:  # pragma: no cover
+    except ImportError:  # pragma: no cover
         nthreads = -1
     return {"pid": os.getpid(), "numba_threads": nthreads, "malloc_tuned": _malloc_tuned}
 

@@ -27,9 +27,9 @@ import logging
 import os
 import shutil
 import warnings
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from pathlib import Path
-from typing import Iterator
+from collections.abc import Iterator
 
 import numpy as np
 
@@ -153,10 +153,8 @@ def library_output() -> Iterator[list[str]]:
             # Python-level prints of the bindings (pybind's "Warning: ...") sit in
             # sys.stdout's buffer: flush them into the capture before restoring
             for stream in (py_out, py_err):
-                try:
+                with suppress(OSError, ValueError, AttributeError):
                     stream.flush()
-                except (OSError, ValueError, AttributeError):
-                    pass
             libc = _libc()
             if libc is not None:
                 libc.fflush(None)
@@ -185,7 +183,7 @@ def _capture_file():
 
     f = _CAPTURE.get(os.getpid())
     if f is None:
-        f = _CAPTURE[os.getpid()] = tempfile.TemporaryFile()
+        f = _CAPTURE[os.getpid()] = tempfile.TemporaryFile()  # noqa: SIM115  one per process, closed at exit
         atexit.register(f.close)
     return f
 
@@ -416,10 +414,9 @@ def _read_exr_channels(path: Path) -> dict[str, np.ndarray]:
         raise FormatError(f"image {path} not found")
     noise: list[str] = []
     try:
-        with library_output() as noise:
-            with OpenEXR.File(str(path), separate_channels=True) as f:
-                chans = {k: np.asarray(v.pixels) for k, v in f.channels().items()}
-    except Exception as e:  # OpenEXR raises bare exceptions on truncated files; re-raised, named
+        with library_output() as noise, OpenEXR.File(str(path), separate_channels=True) as f:
+            chans = {k: np.asarray(v.pixels) for k, v in f.channels().items()}
+    except Exception as e:  # noqa: BLE001  OpenEXR raises bare Exception on truncated files; re-raised, named
         raise FormatError(f"{path}: not a readable EXR file ({e}{_first_noise(noise)})") from None
     if noise or not chans or any(v.dtype == object or v.ndim != 2 for v in chans.values()):
         # the binding may warn and hand back partial pixel data instead of raising
@@ -435,9 +432,8 @@ def _write_exr_channels(path, chans: dict, header) -> None:
     hdr = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
     for k, v in (header or {}).items():
         hdr[k] = exr_attribute(k, v, path)
-    with atomic_path(path) as tmp:
-        with OpenEXR.File(hdr, chans) as f:
-            f.write(str(tmp))
+    with atomic_path(path) as tmp, OpenEXR.File(hdr, chans) as f:
+        f.write(str(tmp))
 
 
 def exr_attribute(name: str, value, path):
@@ -473,10 +469,9 @@ def read_exr_header(path) -> dict:
         raise FormatError(f"image {path} not found")
     noise: list[str] = []
     try:
-        with library_output() as noise:
-            with OpenEXR.File(str(path), header_only=True) as f:
-                return dict(f.header())
-    except Exception as e:
+        with library_output() as noise, OpenEXR.File(str(path), header_only=True) as f:
+            return dict(f.header())
+    except Exception as e:  # noqa: BLE001  OpenEXR raises bare Exception on damaged headers; re-raised, named
         raise FormatError(f"{path}: not a readable EXR file ({e}{_first_noise(noise)})") from None
 
 

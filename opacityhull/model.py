@@ -67,7 +67,8 @@ import logging
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Literal, Sequence, get_args
+from typing import Literal, get_args
+from collections.abc import Callable, Sequence
 
 import numpy as np
 
@@ -193,7 +194,7 @@ class Surfels:
         return self.positions.shape[0]
 
     @classmethod
-    def from_bool(cls, positions, normals, radii, visible_bool) -> "Surfels":
+    def from_bool(cls, positions, normals, radii, visible_bool) -> Surfels:
         vb = np.asarray(visible_bool, dtype=bool)
         check_shape("visible_bool", vb, (np.shape(positions)[0], None))
         return cls(positions, normals, radii, pack_visibility(vb), vb.shape[1])
@@ -208,7 +209,7 @@ class Surfels:
             raise InputError(f"view index {view} out of range [0, {self.n_views})")
         return (self.visibility[:, view // 8] >> (view % 8)) & 1 == 1
 
-    def subset(self, mask) -> "Surfels":
+    def subset(self, mask) -> Surfels:
         return Surfels(
             self.positions[mask],
             self.normals[mask],
@@ -268,7 +269,7 @@ def read_ply(path, *, what: str, elements: Sequence[str]):
     try:
         ply = PlyData.read(str(path))
         return ply, [ply[e].data for e in elements]
-    except Exception as e:
+    except Exception as e:  # noqa: BLE001  plyfile raises PlyParseError, KeyError, ValueError, numpy errors...: re-raised, named
         has = f"a {elements[0]} element" if len(elements) == 1 else f"{' and '.join(elements)} elements"
         raise FormatError(f"{path}: not a readable PLY with {has} ({e})") from None
 
@@ -337,7 +338,7 @@ class OpacityHullModel:
         self._surfels: Surfels | None = None
 
     @classmethod
-    def open(cls, root) -> "OpacityHullModel":
+    def open(cls, root) -> OpacityHullModel:
         root = Path(root)
         p = root / "model.toml"
         if not p.is_file():
@@ -864,9 +865,8 @@ def write_hole_masks(path: Path, holes: dict) -> None:
         arrays[f"{vid}.bits"] = np.packbits(m, axis=1)
         arrays[f"{vid}.shape"] = np.asarray(m.shape, np.int64)
     path.parent.mkdir(parents=True, exist_ok=True)
-    with atomic_path(path) as tmp:
-        with open(tmp, "wb") as f:
-            np.savez_compressed(f, **arrays)
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
+        np.savez_compressed(f, **arrays)
 
 
 def read_hole_masks(path: Path) -> dict:

@@ -18,7 +18,8 @@ import logging
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Sequence, cast
+from typing import Any, cast
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -320,7 +321,7 @@ def contact_sheet(
     if max_width is not None:
         ims = [_resize(t, max_width / t.shape[1]) if t.shape[1] > max_width else t for t in ims]
     if labels is not None:
-        ims = [label_tile(t, str(s)) if s else t for t, s in zip(ims, labels)]
+        ims = [label_tile(t, str(s)) if s else t for t, s in zip(ims, labels, strict=True)]
     n = len(ims)
     cols = max(1, min(int(columns), n) if columns else int(math.ceil(math.sqrt(n))))
     rows = int(math.ceil(n / cols))

@@ -45,7 +45,8 @@ import logging
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal, Sequence, get_args
+from typing import Literal, get_args
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -334,7 +335,7 @@ def compress_view(
         # a first pass for the singular values only (rank 1: no full basis held), then
         # the ranks from all blocks at once
         svs = [compress_reflectance(blk(*b), 1).singular_values for b in nonzero]
-        for b, r in zip(nonzero, allocate_ranks(svs, target=error)):
+        for b, r in zip(nonzero, allocate_ranks(svs, target=error), strict=True):
             ranks[b] = r
         del svs
     else:
@@ -480,7 +481,7 @@ def read_reflectance_pca(path, keys: Sequence[str], *, shape: tuple[int, int]) -
             basis_ch = {k: np.asarray(v.pixels) for k, v in f.channels(0).items()}
             coeff_ch = {k: np.asarray(v.pixels) for k, v in f.channels(1).items()} if n_parts > 1 else {}
             h1 = dict(f.header(1)) if n_parts > 1 else {}
-    except Exception as e:  # OpenEXR raises bare exceptions on truncated files
+    except Exception as e:  # noqa: BLE001  OpenEXR raises bare Exception on truncated files; re-raised, named
         raise FormatError(f"{path}: not a readable EXR file ({e})") from None
     if noise:  # the binding warned and returned partial pixel data
         raise FormatError(f"{path}: damaged EXR file: {noise[0].strip()}")

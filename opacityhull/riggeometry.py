@@ -51,7 +51,8 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Any, Mapping
+from typing import Any
+from collections.abc import Mapping
 
 import numpy as np
 
@@ -229,7 +230,7 @@ class RigGeometry:
 
     # ---- parsing
     @classmethod
-    def from_dict(cls, g: Mapping[str, Any], where: str = "geometry") -> "RigGeometry":
+    def from_dict(cls, g: Mapping[str, Any], where: str = "geometry") -> RigGeometry:
         if not isinstance(g, Mapping):
             raise ConfigError(f"{where}: expected a table")
         _check_keys(where, g, {"target_m", "cameras", "lights", "displays"})

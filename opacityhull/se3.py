@@ -10,7 +10,7 @@ in :mod:`opacityhull.camera`.
 from __future__ import annotations
 
 import math
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 from numpy.typing import ArrayLike
@@ -77,7 +77,7 @@ def mean_pose(Ts: Sequence[np.ndarray], weights: ArrayLike | None = None) -> np.
     w = np.ones(len(Ts)) if weights is None else np.asarray(weights, dtype=np.float64)
     R_sum = np.zeros((3, 3))
     t_sum = np.zeros(3)
-    for wi, T in zip(w, Ts):
+    for wi, T in zip(w, Ts, strict=True):
         R_sum += wi * T[:3, :3]
         t_sum += wi * T[:3, 3]
     return rigid(project_to_so3(R_sum), t_sum / w.sum())

@@ -37,7 +37,8 @@ import os
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Iterator
+from typing import TYPE_CHECKING
+from collections.abc import Iterator
 
 import numpy as np
 
@@ -178,7 +179,7 @@ class ShotRecord:
         return json.dumps(d, sort_keys=True, separators=(",", ":"))
 
     @classmethod
-    def from_dict(cls, d: dict, where: str = "manifest") -> "ShotRecord":
+    def from_dict(cls, d: dict, where: str = "manifest") -> ShotRecord:
         if not isinstance(d, dict):
             raise FormatError(f"{where}: record is a JSON {type(d).__name__}, expected an object")
         try:
@@ -222,7 +223,7 @@ _RECORD_TYPES = {
 }
 
 
-def _check_record_types(rec: "ShotRecord", rid, where: str) -> None:
+def _check_record_types(rec: ShotRecord, rid, where: str) -> None:
     for name, (ok, want) in _RECORD_TYPES.items():
         v = getattr(rec, name)
         if not ok(v):
@@ -276,11 +277,11 @@ class Session:
         return meta
 
     @classmethod
-    def open(cls, root) -> "Session":
+    def open(cls, root) -> Session:
         root = Path(root)
         meta = cls.open_meta(root)
         sess = cls(root, meta, list(read_manifest(root / "manifest.jsonl")))
-        sess.white_level  # checked now: a bad value must stop a build before its first step
+        _ = sess.white_level  # checked now: a bad value must stop a build before its first step
         return sess
 
     # ---- metadata
@@ -438,7 +439,7 @@ class Session:
 
         return read_png(self.root / "patterns" / display / f"p{int(pattern):03d}.png", linear=True)
 
-    def calibration_cameras(self) -> dict[int, "Camera"] | None:
+    def calibration_cameras(self) -> dict[int, Camera] | None:
         """Known calibration (``calibration/<camera name>.yaml``) per camera index, or None."""
         from .camera import read_opencv_yaml
 
@@ -452,7 +453,7 @@ class Session:
                 out[i] = read_opencv_yaml(p)
         return out or None
 
-    def view_cameras(self) -> dict[str, "Camera"] | None:
+    def view_cameras(self) -> dict[str, Camera] | None:
         """Cameras given per view in ``cameras/`` (COLMAP text, names = view ids), or None."""
         from .camera import read_colmap_text
 
@@ -495,7 +496,7 @@ def read_manifest(path, *, problems: list[str] | None = None) -> Iterator[ShotRe
     return iter(out)
 
 
-def check_manifest(session: "Session", *, hash_files: bool = True, progress=None) -> list[str]:
+def check_manifest(session: Session, *, hash_files: bool = True, progress=None) -> list[str]:
     """Problems of a session's manifest against its files, as messages (empty = OK).
 
     Checks what ``build`` would otherwise trust: every listed image exists with the
@@ -528,7 +529,7 @@ def check_manifest(session: "Session", *, hash_files: bool = True, progress=None
     return problems
 
 
-def require_manifest_ok(session: "Session", *, hash_files: bool = True, progress=None) -> None:
+def require_manifest_ok(session: Session, *, hash_files: bool = True, progress=None) -> None:
     """Raise :class:`FormatError` listing :func:`check_manifest`'s problems (first five)."""
     problems = check_manifest(session, hash_files=hash_files, progress=progress)
     if problems:
@@ -577,7 +578,7 @@ class SessionWriter:
         self._ids: set[str] = set()
 
     # ---- lifecycle
-    def create(self, meta: dict) -> "SessionWriter":
+    def create(self, meta: dict) -> SessionWriter:
         """Start a new session in an empty (or absent) folder; refuses a non-empty one."""
         from .imageio import atomic_path
 
@@ -594,13 +595,13 @@ class SessionWriter:
             tmp.write_text(toml_dumps(meta))
         return self._open_manifest()
 
-    def resume(self) -> "SessionWriter":
+    def resume(self) -> SessionWriter:
         """Open an existing session for appending; returns self."""
         if not (self.root / "session.toml").is_file():
             raise InputError(f"{self.root} holds no session.toml; nothing to resume")
         return self._open_manifest()
 
-    def _open_manifest(self) -> "SessionWriter":
+    def _open_manifest(self) -> SessionWriter:
         path = self.root / "manifest.jsonl"
         # A torn last line (crash or full disk mid-append) is not a record: cut it off so
         # that it neither glues onto the next record nor sits corrupt mid-file.
@@ -613,7 +614,7 @@ class SessionWriter:
                     f.flush()
                     os.fsync(f.fileno())
         self._ids = {r.id for r in read_manifest(path)}
-        self._manifest = open(path, "ab", buffering=0)
+        self._manifest = open(path, "ab", buffering=0)  # noqa: SIM115  open for the session, closed by close()
         return self
 
     def close(self) -> None:

@@ -11,7 +11,8 @@ import os
 import subprocess
 import sys
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
+from collections.abc import Callable
 
 
 def python_child(script: Path, *args: str, env: dict[str, str], preexec_fn: Callable[[], Any] | None = None):

@@ -143,7 +143,7 @@ def test_terminated_maps_to_128_plus_signal():
     for sig, code in ((signal.SIGTERM, 143), (signal.SIGHUP, 129)):
 
         @cli_errors
-        def cmd():
+        def cmd(sig=sig):
             raise Terminated(sig)
 
         with pytest.raises(typer.Exit) as ei:

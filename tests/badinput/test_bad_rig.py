@@ -127,10 +127,9 @@ def test_an_exchange_deadline_bounds_every_read_inside_it():
     with EmulatorServer(dev) as srv:
         t = SerialTransport(srv.url, name="babbler", timeout_s=60.0)
         with t:
-            with t.exchange(0.3, "reply to $I"):
-                with pytest.raises(DeviceTimeout) as ei:
-                    # lines keep arriving; none is accepted
-                    t.query(b"$I\n", timeout_s=60.0, accept=lambda line: line.startswith(b"ok"))
+            with t.exchange(0.3, "reply to $I"), pytest.raises(DeviceTimeout) as ei:
+                # lines keep arriving; none is accepted
+                t.query(b"$I\n", timeout_s=60.0, accept=lambda line: line.startswith(b"ok"))
             msg = str(ei.value)
             assert "overall deadline of reply to $I (0.3 s)" in msg and "garbled" in msg, msg
             assert t.bytes_read > 0

@@ -89,7 +89,7 @@ def test_serial_matte_is_the_true_alpha(session, serial_alphas):
 
     tasks, alphas = serial_alphas
     assert len(alphas) == 6
-    for t, a in zip(tasks, alphas):
+    for t, a in zip(tasks, alphas, strict=True):
         true = read_exr(session / "groundtruth" / "alpha" / f"{t.view}.exr")[..., 0]
         assert a.shape == true.shape == (36, 48)
         assert np.abs(a - true).mean() < 0.01
@@ -105,13 +105,13 @@ def test_schedulers_equal_serial_bit_for_bit(scheduler, executor, serial_alphas)
     assert executor.n_workers == 2
     got = executor.map(matte_view, tasks, progress=lambda d, n: seen.append((d, n)))
     assert len(got) == len(ref)
-    for a, b in zip(got, ref):
+    for a, b in zip(got, ref, strict=True):
         assert a.dtype == b.dtype and np.array_equal(a, b)
     assert seen[-1] == (len(tasks), len(tasks)) and len(seen) == len(tasks)
     # several views per task: the same results, in the same order
     seen.clear()
     got = executor.map(matte_view, tasks, chunksize=4, progress=lambda d, n: seen.append((d, n)))
-    assert len(got) == len(ref) and all(np.array_equal(a, b) for a, b in zip(got, ref))
+    assert len(got) == len(ref) and all(np.array_equal(a, b) for a, b in zip(got, ref, strict=True))
     assert seen == [(4, 6), (6, 6)]  # items done, counted per finished chunk
 
 
@@ -183,12 +183,16 @@ def test_worker_killed_mid_map_is_retried(scheduler, executor, tmp_path):
 
 
 def test_worker_that_always_dies_is_a_clean_error_processes():
-    with open_executor("processes", workers=1, retries=0) as ex:
-        with pytest.raises(WorkerLost, match=r"--scheduler processes: a worker process died.*always_die"):
-            ex.map(always_die, [0, 1, 2])
+    with (
+        open_executor("processes", workers=1, retries=0) as ex,
+        pytest.raises(WorkerLost, match=r"--scheduler processes: a worker process died.*always_die"),
+    ):
+        ex.map(always_die, [0, 1, 2])
 
 
 def test_worker_that_always_dies_is_a_clean_error_cluster(cluster):
-    with open_executor(cluster) as ex:
-        with pytest.raises(WorkerLost, match=rf"--scheduler {cluster}: workers died.*always_die"):
-            ex.map(always_die, [0])
+    with (
+        open_executor(cluster) as ex,
+        pytest.raises(WorkerLost, match=rf"--scheduler {cluster}: workers died.*always_die"),
+    ):
+        ex.map(always_die, [0])

@@ -33,7 +33,7 @@ GEOM = {
 
 def test_nominal_cameras_aim_at_target():
     g = RigGeometry.from_dict(GEOM)
-    for cam, spec in zip(g.nominal_cameras(), g.cameras):
+    for cam, spec in zip(g.nominal_cameras(), g.cameras, strict=True):
         uv, z = cam.project(np.array([g.target_m]))
         np.testing.assert_allclose(uv[0], [(cam.width - 1) / 2, (cam.height - 1) / 2], atol=1e-9)
         assert z[0] == pytest.approx(spec.distance_m)
@@ -143,7 +143,7 @@ def test_model_roundtrip(tmp_path):
     )
     m = OpacityHullModel.open(tmp_path / "m")
     assert [v.id for v in m.views] == [v.id for v in views]
-    for v, w in zip(m.views, views):
+    for v, w in zip(m.views, views, strict=True):
         np.testing.assert_allclose(v.camera.world_from_cam, w.camera.world_from_cam, atol=1e-9)
         np.testing.assert_allclose(v.camera.K, w.camera.K, atol=1e-9)
     # format 2 stores premultiplied colour: straight colour comes back to float rounding
@@ -257,7 +257,7 @@ def test_format_1_model_still_opens_with_straight_views(tmp_path):
     meta = tomllib.loads((root / "model.toml").read_text())
     meta["model"]["format"] = "opacityhull-model/1"
     (root / "model.toml").write_text(toml_dumps(meta))
-    for v, a in zip(views, rgba):
+    for v, a in zip(views, rgba, strict=True):
         write_exr(root / "views" / f"{v.id}.exr", a)  # straight, as format 1 wrote them
     m = OpacityHullModel.open(root)
     assert not m.views_premultiplied

@@ -29,7 +29,7 @@ def test_gain_per_camera_from_the_rig(caplog):
     geo = RigGeometry.from_dict(g)
     cams = [replace(c, gain=1.5 + i) for i, c in enumerate(geo.cameras)]
     d = dict(g)
-    d["cameras"] = [dict(cg, gain=c.gain) for cg, c in zip(g["cameras"], cams)]
+    d["cameras"] = [dict(cg, gain=c.gain) for cg, c in zip(g["cameras"], cams, strict=True)]
     s = _session(d)
     assert [s.gain(i) for i in range(len(cams))] == [1.5 + i for i in range(len(cams))]
     with caplog.at_level(logging.WARNING, logger="opacityhull.session"):
