@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import logging
 import time
-from typing import Callable, Mapping
+from collections.abc import Callable, Mapping
 
 import numpy as np
 
@@ -108,13 +108,13 @@ class DisplayController(OverTransport):
         name: str = "backdrops",
         serial: SerialSettings = DISPLAY_SERIAL,
         chunk_bytes: int = 512,
-    ) -> "DisplayController":
+    ) -> DisplayController:
         """A controller on a serial URL; ``serial.timeout_s`` bounds every reply and every write."""
         transport = SerialTransport.from_settings(url, serial, name=name)
         return cls(transport, outputs=outputs, name=name, serial=serial, chunk_bytes=chunk_bytes)
 
     # ---- lifecycle
-    def open(self) -> "DisplayController":
+    def open(self) -> DisplayController:
         self.transport.open()
         self._decoder.reset()
         return self

@@ -31,7 +31,8 @@ import math
 from dataclasses import asdict, dataclass, field
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, Callable, Iterator, Literal, Protocol, Sequence
+from typing import Any, Literal, Protocol
+from collections.abc import Callable, Iterator, Sequence
 
 import numpy as np
 
@@ -259,7 +260,7 @@ def run_bringup(
             failures = hw.make_safe()
             for label, err in failures:
                 log.warning("bring-up: making the rig safe: %s: %s", label, err)
-        except Exception as e:  # the walk's report matters more than the clean-up's
+        except Exception as e:  # noqa: BLE001  the walk's report matters more than the clean-up's
             log.warning("bring-up: making the rig safe failed: %s", e)
         if path is not None:
             from ..imageio import atomic_path

@@ -21,7 +21,7 @@ import subprocess
 import threading
 import time
 from pathlib import Path
-from typing import Callable, Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 
@@ -182,7 +182,7 @@ class OpenCVCamera(OpenClose):
             return f"video device {self.device} (/dev/video{self.device})"
         return f"{self.device}"
 
-    def open(self) -> "OpenCVCamera":
+    def open(self) -> OpenCVCamera:
         import cv2
 
         if self._cap is not None:
@@ -265,7 +265,7 @@ class OpenCVCamera(OpenClose):
         def work():
             try:
                 box["r"] = cap.read()
-            except Exception as e:  # cv2.error from the backend
+            except Exception as e:  # noqa: BLE001  cv2.error or a backend's own: re-raised in the caller's thread
                 box["e"] = e
 
         t = threading.Thread(target=work, name=f"read-{self.name}", daemon=True)
@@ -437,7 +437,7 @@ class DirectoryCamera:
         self.last_path: Path | None = None
         self.last_exposure_s: float | None = None
 
-    def open(self) -> "DirectoryCamera":
+    def open(self) -> DirectoryCamera:
         if not self.folder.is_dir():
             raise DeviceGone(
                 f"camera {self.name}: folder {self.folder} does not exist — create it and point the "

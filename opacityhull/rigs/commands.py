@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import logging
 from pathlib import Path
-from typing import Annotated, List
+from typing import Annotated
 
 import typer
 
@@ -51,7 +51,7 @@ def register(app, groups) -> None:
         write_config: Annotated[Path, typer.Option("--write-config", help=_WRITE_CONFIG_HELP)],
         tcp: Annotated[bool, typer.Option("--tcp", help=_TCP_HELP)] = False,
         time_scale: Annotated[float, typer.Option("--time-scale", min=0.0, help=_TIME_SCALE_HELP)] = 0.0,
-        fault: Annotated[List[str], typer.Option("--fault", help=FAULT_HELP)] = [],
+        fault: Annotated[list[str], typer.Option("--fault", help=FAULT_HELP)] = [],  # noqa: B006  typer hands the body a fresh list; the body only reads it
         json_out: Annotated[bool, typer.Option("--json", help="Print {config, devices} as one JSON line.")] = False,
     ):
         """Start an emulator for every `emulator:` device of a rig TOML and serve until Ctrl-C / SIGTERM.

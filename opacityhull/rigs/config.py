@@ -22,7 +22,8 @@ import copy
 import logging
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any
+from collections.abc import Mapping
 
 from ..errors import ConfigError, InputError
 from ..riggeometry import RigGeometry
@@ -301,7 +302,7 @@ class RigConfig:
         return any(parse_emulator_url(u) for u in self.device_urls().values())
 
     # ---- rewriting
-    def with_urls(self, mapping: Mapping[str, str]) -> "RigConfig":
+    def with_urls(self, mapping: Mapping[str, str]) -> RigConfig:
         """A copy with every URL in ``mapping`` replaced (e.g. ``emulator:grbl`` → ``/dev/pts/4``)."""
 
         def sub(u: str) -> str:

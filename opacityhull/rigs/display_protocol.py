@@ -37,7 +37,7 @@ import logging
 import struct
 import zlib
 from dataclasses import dataclass
-from typing import Iterator
+from collections.abc import Iterator
 
 import numpy as np
 
@@ -402,7 +402,7 @@ def encode_state(state: ControllerState) -> bytes:
     if len(state.power) != len(state.shown):
         raise InputError("state: power and shown must have one entry per output")
     out = bytearray((len(state.power),))
-    for p, s in zip(state.power, state.shown):
+    for p, s in zip(state.power, state.shown, strict=True):
         out += struct.pack(">BH", 1 if p else 0, NO_PATTERN if s is None else s)
     out += struct.pack(">H", len(state.stored))
     for pid in state.stored:

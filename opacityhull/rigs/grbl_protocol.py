@@ -26,7 +26,7 @@ import math
 import numbers
 import re
 from dataclasses import dataclass, field
-from typing import Mapping
+from collections.abc import Mapping
 
 from ..errors import InputError
 from .transport import ProtocolError
@@ -571,7 +571,7 @@ def parse_status(line: bytes | str) -> Status:
     mpos = wpos = wco = None
     feed = spindle = None
     fields: dict[str, str] = {}
-    for i, part in enumerate(parts[1:], start=1):
+    for part in parts[1:]:
         kind, sep, value = part.partition(":")
         if not sep or not kind:
             raise ProtocolError(f"field {part!r} of GRBL status {line!r} is not type:value")

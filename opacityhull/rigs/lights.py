@@ -15,7 +15,7 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from typing import Mapping
+from collections.abc import Mapping
 
 from ..errors import ConfigError, DeviceError, InputError
 from . import enttec_protocol as ep
@@ -93,13 +93,13 @@ class EnttecDmx(OverTransport):
         serial: SerialSettings = DMX_SERIAL,
         universe_size: int = 512,
         verify_on_open: bool = True,
-    ) -> "EnttecDmx":
+    ) -> EnttecDmx:
         """A widget on a serial URL; ``serial.timeout_s`` bounds every reply and every write."""
         transport = SerialTransport.from_settings(url, serial, name=name)
         return cls(transport, name=name, serial=serial, universe_size=universe_size, verify_on_open=verify_on_open)
 
     # ------------------------------------------------------------------ lifecycle
-    def open(self) -> "EnttecDmx":
+    def open(self) -> EnttecDmx:
         with self.lock:
             if self.is_open:
                 return self
@@ -331,7 +331,7 @@ class DmxLightArray:
     def rotation(self) -> RotaryAxis | None:
         return self._rotation
 
-    def open(self) -> "DmxLightArray":
+    def open(self) -> DmxLightArray:
         """Open the widget (the rotation's controller is opened by its owner, the rig)."""
         self.dmx.open()
         return self

@@ -194,7 +194,7 @@ class GrblController(OverTransport):
         serial: SerialSettings = GRBL_SERIAL,
         poll_s: float = 0.02,
         boot_timeout_s: float | None = None,
-    ) -> "GrblController":
+    ) -> GrblController:
         """A controller on a serial URL (``/dev/ttyUSB0``, ``socket://host:port``, a pty
         path); ``serial.timeout_s`` bounds every reply and every write."""
         transport = SerialTransport.from_settings(url, serial, name=name)
@@ -221,7 +221,7 @@ class GrblController(OverTransport):
         axes = self._axes.values()
         return min(5.0, max([a.max_rate_deg_s / (a.accel_deg_s2 or 10.0) for a in axes] or [0.5]))
 
-    def _register(self, axis: "GrblAxis") -> None:
+    def _register(self, axis: GrblAxis) -> None:
         if axis.axis in self._axes and self._axes[axis.axis] is not axis:
             raise ConfigError(
                 f"{self.name}: axis {axis.axis} on {self.url} is already used by "
@@ -229,7 +229,7 @@ class GrblController(OverTransport):
             )
         self._axes[axis.axis] = axis
 
-    def open(self, *, unlock: bool = False, reset: bool = False) -> "GrblController":
+    def open(self, *, unlock: bool = False, reset: bool = False) -> GrblController:
         """Open the port, make sure a GRBL answers, read ``$I`` and ``$$``, and write
         ``$100/$110/$120`` for the registered axes where they differ.
 
@@ -299,7 +299,7 @@ class GrblController(OverTransport):
         *,
         url: str | None = None,
         unlock: bool = False,
-    ) -> "GrblController":
+    ) -> GrblController:
         """Reopen the port after :class:`DeviceGone` and re-read state and settings.
 
         Tries ``max_attempts`` times (default :attr:`reconnect_attempts`), ``delay_s``
@@ -309,7 +309,7 @@ class GrblController(OverTransport):
         if max_attempts is not None and max_attempts < 1:
             raise InputError(f"{self.name}: max_attempts must be >= 1, got {max_attempts}")
 
-        def once(_attempt: int) -> "GrblController":
+        def once(_attempt: int) -> GrblController:
             self.close()
             if url is not None:
                 self.transport.url = url
@@ -937,12 +937,11 @@ class GrblAxis:
             self._check_limits(target, requested=a)
             legs = [target]
             b = self.backlash_deg
-            if b > 0 and not self._at(cur, target):
-                if target < cur or (target - cur < b and self._last_dir != 1):
-                    pre = target - b
-                    if self.soft_limits_deg is not None:
-                        pre = max(pre, self.soft_limits_deg[0])
-                    legs = [pre, target]
+            if b > 0 and not self._at(cur, target) and (target < cur or (target - cur < b and self._last_dir != 1)):
+                pre = target - b
+                if self.soft_limits_deg is not None:
+                    pre = max(pre, self.soft_limits_deg[0])
+                legs = [pre, target]
             reached = cur
             start = time.monotonic()
             for leg in legs:

@@ -170,12 +170,12 @@ class MdcPanel(OverTransport):
         name: str = "panel",
         serial: SerialSettings = MDC_SERIAL,
         settings: PanelSettings = PanelSettings(),
-    ) -> "MdcPanel":
+    ) -> MdcPanel:
         transport = SerialTransport.from_settings(url, serial, name=name)
         return cls(transport, display_id=display_id, name=name, serial=serial, settings=settings)
 
     # ---- lifecycle
-    def open(self) -> "MdcPanel":
+    def open(self) -> MdcPanel:
         self.transport.open()
         self._parser.reset()
         return self

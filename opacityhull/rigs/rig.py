@@ -21,7 +21,8 @@ import time
 import warnings
 from contextlib import contextmanager
 from dataclasses import dataclass, replace
-from typing import TYPE_CHECKING, Any, Callable, Iterator, Sequence
+from typing import TYPE_CHECKING, Any
+from collections.abc import Callable, Iterator, Sequence
 
 from ..errors import CaptureInterrupted, ConfigError, DeviceError, Terminated
 from .config import AxisConfig, CameraConfig, RigConfig, load_rig_config, parse_emulator_url
@@ -172,7 +173,7 @@ class HardwareRig(OpenClose):
 
         reopen(once, attempts=attempts, delay_s=self.reconnect_delay_s, gave_up=gave_up)
 
-    def open(self) -> "HardwareRig":
+    def open(self) -> HardwareRig:
         """Open every port (each retried up to ``reconnect_attempts`` times); on failure the ports
         already opened are closed again and the error names the device."""
         if self._open:
@@ -186,7 +187,7 @@ class HardwareRig(OpenClose):
             for p in reversed(opened):
                 try:
                     p.close()
-                except Exception as e:  # the error that stopped open() is the one to report
+                except Exception as e:  # noqa: BLE001  the error that stopped open() is the one to report
                     log.warning("%s: close after a failed open failed: %s", p.name, e)
             raise
         self._open = True
@@ -197,14 +198,14 @@ class HardwareRig(OpenClose):
         for p in reversed(self._ports):
             try:
                 p.close()
-            except Exception as e:  # a dead port must not keep the others open
+            except Exception as e:  # noqa: BLE001  a dead port must not keep the others open
                 log.warning("%s: close failed: %s", p.name, e)
         for c in self.cameras:
             close = getattr(c, "close", None)  # optional: CameraDevice has no close()
             if close is not None:
                 try:
                     close()
-                except Exception as e:
+                except Exception as e:  # noqa: BLE001  a dead camera must not keep the others open
                     log.warning("%s: close failed: %s", c.name, e)
         self._open = False
 
@@ -225,7 +226,7 @@ class HardwareRig(OpenClose):
             for p in ports:
                 try:
                     p.close()
-                except Exception as e:  # it is being re-opened: the open below reports what matters
+                except Exception as e:  # noqa: BLE001  it is being re-opened: the open below reports what matters
                     log.debug("%s: close before reconnect failed: %s", p.name, e)
                 self._open_port(p, n)
         finally:
@@ -267,7 +268,7 @@ class HardwareRig(OpenClose):
         return failures
 
     @contextmanager
-    def safe(self) -> Iterator["HardwareRig"]:
+    def safe(self) -> Iterator[HardwareRig]:
         """``with rig.safe():`` — on any exit (normal, exception, Ctrl-C) the axes get a feed
         hold, the lights go off and the backdrops go blank.
 
@@ -391,7 +392,7 @@ def _safe_check(dev) -> DeviceInfo:
     name = getattr(dev, "name", type(dev).__name__)
     try:
         info = dev.check()
-    except Exception as e:  # check() should not raise, but a driver bug must not hide the others
+    except Exception as e:  # noqa: BLE001  check() should not raise, but a driver bug must not hide the others
         return DeviceInfo(name, False, f"{type(e).__name__}: {e}")
     return info
 
@@ -402,7 +403,7 @@ def _camera_check(cam, cfg: CameraConfig | None) -> DeviceInfo:
         return _safe_check(cam)
     try:
         info = cam.info()
-    except Exception as e:
+    except Exception as e:  # noqa: BLE001  reported as a failed check, like _safe_check
         return DeviceInfo(name, False, f"{type(e).__name__}: {e}")
     return DeviceInfo(
         name,
@@ -638,7 +639,7 @@ def check_rig_config(config_or_path, *, timeout_s: float = 1.0) -> list[DeviceIn
         for p in d.ports:
             try:
                 p.close()
-            except Exception as e:  # the report is what matters here; a close failure must not hide it
+            except Exception as e:  # noqa: BLE001  the report is what matters here; a close failure must not hide it
                 log.debug("%s: close failed: %s", p.name, e)
     for c in config.cameras:
         if c.driver == "sim":

@@ -31,7 +31,8 @@ import math
 import time
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Any, Callable, Iterator, Sequence, TypeVar
+from typing import Any, TypeVar
+from collections.abc import Callable, Iterator, Sequence
 
 import numpy as np
 
@@ -328,7 +329,7 @@ class SynthCamera:
     ``value = gain * exposure_s * L`` clipped to [0, 1] (white level 1), float32 (H, W, 3).
     """
 
-    def __init__(self, rig: "LabRig", index: int):
+    def __init__(self, rig: LabRig, index: int):
         self.rig = rig
         self.index = index
         spec = rig.geometry.cameras[index]
@@ -456,7 +457,7 @@ class LabRig:
         while self.dmx_levels() != want and time.monotonic() < deadline:
             time.sleep(0.001)
 
-    def open(self) -> "LabRig":
+    def open(self) -> LabRig:
         self.hw.open()
         return self
 
@@ -466,7 +467,7 @@ class LabRig:
         finally:
             self.emulators.stop()
 
-    def __enter__(self) -> "LabRig":
+    def __enter__(self) -> LabRig:
         return self.open()
 
     def __exit__(self, *exc: object) -> bool:

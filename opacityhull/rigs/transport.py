@@ -30,8 +30,10 @@ import math
 import select
 import socket
 import time
+from contextlib import suppress
 from dataclasses import dataclass
-from typing import Any, Callable, Self, TypeVar
+from typing import Any, Self, TypeVar
+from collections.abc import Callable
 
 from ..errors import ConfigError, DeviceError
 
@@ -215,7 +217,7 @@ class OpenClose:
 class OverTransport(OpenClose):
     """A driver talking over ``self.transport``: its URL and open state are the transport's."""
 
-    transport: "Transport"
+    transport: Transport
 
     @property
     def url(self) -> str:
@@ -304,7 +306,7 @@ class Transport(OpenClose):
         raise NotImplementedError
 
     # ---- lifecycle
-    def open(self) -> "Transport":
+    def open(self) -> Transport:
         if self.is_open:
             return self
         self._open_raw()
@@ -335,7 +337,7 @@ class Transport(OpenClose):
         self.bytes_written += len(data)
 
     # ---- exchanges: one overall deadline
-    def exchange(self, timeout_s: float, what: str = "exchange") -> "_Exchange":
+    def exchange(self, timeout_s: float, what: str = "exchange") -> _Exchange:
         """``with transport.exchange(T, "reply to $I"):`` — every read inside ends by
         ``T`` seconds from now, whatever its own timeout and however many lines arrive,
         so no stream of bytes (a babbling device, a wrong baud rate) can hold a command
@@ -523,7 +525,7 @@ class SerialTransport(Transport):
     _fd: int | None = None
 
     @classmethod
-    def from_settings(cls, url: str, serial: SerialSettings, *, name: str) -> "SerialTransport":
+    def from_settings(cls, url: str, serial: SerialSettings, *, name: str) -> SerialTransport:
         """The port at ``url`` at ``serial.baudrate``, with ``serial.timeout_s`` for every read and write."""
         return cls(
             url, name=name, baudrate=serial.baudrate, timeout_s=serial.timeout_s, write_timeout_s=serial.timeout_s
@@ -549,7 +551,10 @@ class SerialTransport(Transport):
             ) from None
         try:
             self._fd = port.fileno()
-        except Exception:  # loop:// and rfc2217:// have no descriptor: poll instead
+        except (
+            AttributeError,
+            OSError,
+        ):  # loop:// and rfc2217:// have no descriptor (io.UnsupportedOperation): poll instead
             self._fd = None
         self._port = port
 
@@ -563,16 +568,14 @@ class SerialTransport(Transport):
             if sock is not None:
                 # pyserial's socket close() sleeps 0.3 s "for quick reconnects"; a rig with
                 # three TCP devices would pay it on every close and reconnect attempt.
-                try:
+                with suppress(OSError):  # the peer may already be gone; close() below still frees the socket
                     sock.shutdown(socket.SHUT_RDWR)
-                except OSError:
-                    pass  # the peer may already be gone; close() below still frees the socket
                 sock.close()
                 port._socket = None
                 port.is_open = False
             else:
                 port.close()
-        except Exception as e:  # closing a dead port must never mask the real error
+        except Exception as e:  # noqa: BLE001  closing a dead port must never mask the real error
             log.debug("%s: error while closing %s: %s", self.name, self.url, e)
 
     def _write_raw(self, data: bytes) -> None:
@@ -619,7 +622,7 @@ class _Exchange:
         self.what = what
         self._saved: tuple[float | None, str, tuple[int, float]] = (None, "", (0, 0.0))
 
-    def __enter__(self) -> "_Exchange":
+    def __enter__(self) -> _Exchange:
         t = self.t
         self._saved = (t._deadline, t._deadline_what, t._deadline_mark)
         d = time.monotonic() + self.timeout_s

@@ -28,7 +28,8 @@ import os
 import re
 import time
 from dataclasses import dataclass
-from typing import Any, Mapping
+from typing import Any
+from collections.abc import Mapping
 
 import numpy as np
 
@@ -132,13 +133,13 @@ def _x_display(base: str, screen: int):
         try:
             import importlib
 
-            Display: Any = getattr(importlib.import_module("pyglet.display"), "Display")
-        except Exception as e:  # pyglet found no libGL / libX11
+            Display: Any = importlib.import_module("pyglet.display").Display
+        except Exception as e:  # noqa: BLE001  pyglet found no libGL / libX11 (ImportError, OSError or its own)
             raise NoDisplayServer(f"video output: pyglet cannot load its X11/OpenGL libraries ({e}); {_HINT}") from None
         try:
             # the screen suffix makes XRandR enumerate that screen's outputs
             d = Display(name=key, x_screen=screen)
-        except Exception as e:
+        except Exception as e:  # noqa: BLE001  pyglet's NoSuchDisplayException and X errors: named below
             raise NoDisplayServer(
                 f"video output: cannot connect to the display server {key!r} ({type(e).__name__}: {e}); {_HINT}"
             ) from None
@@ -235,7 +236,7 @@ class _Window:
     def close(self) -> None:
         try:
             self.window.close()
-        except Exception as e:  # closing must not mask the error being handled
+        except Exception as e:  # noqa: BLE001  closing must not mask the error being handled
             log.debug("closing window on %s: %s", self.monitor.name, e)
 
 
@@ -332,7 +333,7 @@ class DisplayOutput(OpenClose):
             raise ConfigError(f"{self.name}: two displays on one monitor: {self.monitors}")
         return out
 
-    def open(self) -> "DisplayOutput":
+    def open(self) -> DisplayOutput:
         if self._windows:
             return self
         resolved = self.resolve()
@@ -366,7 +367,7 @@ class DisplayOutput(OpenClose):
         requested = time.monotonic()
         try:
             w.draw(image)
-        except Exception as e:  # an X error, a lost server
+        except Exception as e:  # noqa: BLE001  an X error, a lost server: re-raised as DeviceError
             raise DeviceError(
                 f"{self.name}: drawing on monitor {w.monitor.name} failed ({type(e).__name__}: {e}) — is the "
                 f"display server {self.url[4:]} still running?"

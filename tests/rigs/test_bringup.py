@@ -147,6 +147,5 @@ def test_simulated_cameras_need_the_injected_simulator(rig_toml):
     from opacityhull.errors import ConfigError
 
     cfg = parse_rig_config(tomllib.loads(rig_toml.read_text()), source=str(rig_toml))
-    with pytest.raises(ConfigError, match="simulated cameras"):
-        with open_for_bringup(cfg):
-            pass
+    with pytest.raises(ConfigError, match="simulated cameras"), open_for_bringup(cfg):
+        pass

@@ -58,7 +58,7 @@ def test_example_rig_displays_cover_the_object():
     so the check holds at every table angle."""
     g = load_rig_config(EXAMPLE).geometry
     lo, hi = np.array([-0.1, 0.0, -0.1]), np.array([0.1, 0.18, 0.1])
-    axes = [np.linspace(a, b, 17) for a, b in zip(lo, hi)]
+    axes = [np.linspace(a, b, 17) for a, b in zip(lo, hi, strict=True)]
     P = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
     bottom, back = g.display("bottom"), g.display("back")
     assert bottom.rotates_with_table and not back.rotates_with_table

@@ -164,12 +164,14 @@ def test_silent_controller_times_out_naming_device(emu):
     c = DisplayController.from_url(
         srv.url, outputs=OUTPUTS, serial=replace(DISPLAY_SERIAL, timeout_s=0.1, retries=2), name="backdrops"
     )
-    with c:
-        with pytest.raises(
+    with (
+        c,
+        pytest.raises(
             DeviceTimeout,
             match=r"backdrops: no valid reply to POWER back on after 3 attempt\(s\) on .*no reply within 0.1 s",
-        ) as ei:
-            c.show("back", 1)
+        ) as ei,
+    ):
+        c.show("back", 1)
     assert srv.url in str(ei.value) and "powered" in str(ei.value)
     assert sum(1 for k, _ in e.history if k == "POWER") == 3
     info = c.check()
@@ -195,9 +197,11 @@ def test_unplug_mid_upload_then_replug(tmp_path):
     c = _small_chunk_controller(srv, retries=1, reconnect_attempts=2)
     img = pattern(7)
     try:
-        with pytest.raises(DeviceGone, match=r"backdrops: .*(did not come back|cannot open|lost the connection)"):
-            with c:
-                c.upload("bottom", 4, img)
+        with (
+            pytest.raises(DeviceGone, match=r"backdrops: .*(did not come back|cannot open|lost the connection)"),
+            c,
+        ):
+            c.upload("bottom", 4, img)
         assert e.stored_ids() == []  # the partial upload was never committed
         c.blank()  # never raises on a dead port
         assert c.last_error and "backdrops" in c.last_error

@@ -123,9 +123,8 @@ def test_grbl_silent_port_is_a_timeout_naming_the_device():
     def make(t):
         return GrblController(t, serial=replace(GRBL_SERIAL, timeout_s=0.1), boot_timeout_s=0.5)
 
-    with expected_exchange(make, script, name="grbl") as c:
-        with pytest.raises(DeviceTimeout) as ei:
-            c.open()
+    with expected_exchange(make, script, name="grbl") as c, pytest.raises(DeviceTimeout) as ei:
+        c.open()
     msg = str(ei.value)
     assert "grbl" in msg and "silent" in msg and not c.is_open
 
@@ -273,25 +272,31 @@ def test_display_refusal_is_raised_with_its_reason():
 
 
 def test_a_write_that_differs_names_the_pair_and_both_byte_strings():
-    with pytest.raises(AssertionError) as ei:
-        with expected_exchange(grbl_with_turntable, [(None, BANNER), (b"$I\n", b"ok\r\n")], name="grbl") as tt:
-            tt.controller.open()
+    with (
+        pytest.raises(AssertionError) as ei,
+        expected_exchange(grbl_with_turntable, [(None, BANNER), (b"$I\n", b"ok\r\n")], name="grbl") as tt,
+    ):
+        tt.controller.open()
     msg = str(ei.value)
     assert "pair #1" in msg and "b'?'" in msg and "b'$I\\n'" in msg
 
 
 def test_an_unused_pair_is_reported_at_exit():
-    with pytest.raises(AssertionError, match=r"pair #1 of 2 was never used: \(b'!', b''\)"):
-        with expected_exchange(grbl_with_turntable, [(None, BANNER), (b"!", b"")], name="grbl"):
-            pass
+    with (
+        pytest.raises(AssertionError, match=r"pair #1 of 2 was never used: \(b'!', b''\)"),
+        expected_exchange(grbl_with_turntable, [(None, BANNER), (b"!", b"")], name="grbl"),
+    ):
+        pass
 
 
 def test_a_mismatch_the_driver_swallows_is_still_raised():
     """``stop()`` never raises (``Rig.safe`` relies on it): the mismatch surfaces at exit."""
-    with pytest.raises(AssertionError, match="differs from pair #6"):
-        with expected_exchange(grbl_with_turntable, GRBL_OPEN + [(b"~", b"")], name="grbl") as tt:
-            tt.controller.open()
-            tt.stop()  # sends '!', not the scripted '~'
+    with (
+        pytest.raises(AssertionError, match="differs from pair #6"),
+        expected_exchange(grbl_with_turntable, GRBL_OPEN + [(b"~", b"")], name="grbl") as tt,
+    ):
+        tt.controller.open()
+        tt.stop()  # sends '!', not the scripted '~'
 
 
 def test_write_after_the_script_ended_is_a_mismatch():
@@ -366,9 +371,8 @@ def test_rig_safe_exit_sends_feed_hold_lights_off_and_blank_exactly():
         config, turntable=tt, light_array=arr, backdrops=disp, ports=[tt.controller, arr.dmx, disp, tt.controller]
     )
     assert [p.name for p in rig.ports] == ["grbl", "dmx", "backdrops"]  # each port once
-    with rig:
-        with rig.safe():
-            pass
+    with rig, rig.safe():
+        pass
     assert rig.safe_errors == []
     for t in (grbl_t, dmx_t, disp_t):
         t.verify()

@@ -133,7 +133,7 @@ def test_move_follows_a_trapezoid_in_scaled_time():
     assert T == pytest.approx(1.5)
     talk(emu, b"G90 G0 X30\n")
     samples = []
-    for k in range(1, 15):
+    for _k in range(1, 15):
         clock.t += T / 15
         samples.append((emu.state, emu.position_deg("X")))
     assert all(s == "Run" for s, _ in samples)

@@ -100,9 +100,8 @@ def test_bad_checksum_is_reported_and_skipped():
 def test_display_id_out_of_range_is_named(bad):
     with pytest.raises(InputError, match=r"MDC display id must be an integer 0\.\.253"):
         mdc.check_display_id(bad, where="devices.panels.back.id")
-    with expected_exchange(lambda t: t, []) as t:
-        with pytest.raises(InputError, match="display id"):
-            MdcPanel(t, display_id=bad)
+    with expected_exchange(lambda t: t, []) as t, pytest.raises(InputError, match="display id"):
+        MdcPanel(t, display_id=bad)
 
 
 def test_settings_are_checked():

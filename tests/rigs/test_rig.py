@@ -106,16 +106,15 @@ def test_open_rig_drives_every_device(cfg, emus, wait_for):
 def test_safe_on_exception(emus, exc, wait_for):
     g, dmx, disp = emus.by_device["turntable"], emus.by_device["light_array"], emus.by_device["backdrops"]
     with open_rig(emus.config) as rig:
-        with pytest.raises(exc):
-            with rig.safe():
-                rig.light_array.set_levels({0: 255, 2: 255})
-                rig.backdrops.upload("bottom", 4, PATTERN)
-                rig.backdrops.show("bottom", 4)
-                rig.backdrops.show("back", 4)
-                assert disp.is_lit()
-                wait_for(lambda: any(dmx.levels()), 5, "lights on")
-                rig.turntable.move_to(15.0)
-                raise exc("stop here")
+        with pytest.raises(exc), rig.safe():
+            rig.light_array.set_levels({0: 255, 2: 255})
+            rig.backdrops.upload("bottom", 4, PATTERN)
+            rig.backdrops.show("bottom", 4)
+            rig.backdrops.show("back", 4)
+            assert disp.is_lit()
+            wait_for(lambda: any(dmx.levels()), 5, "lights on")
+            rig.turntable.move_to(15.0)
+            raise exc("stop here")
         assert rig.safe_errors == []
     wait_for(lambda: not any(dmx.levels()), 5, "lights off")
     assert disp.shown(0) is None and disp.shown(1) is None and not disp.is_lit()
@@ -127,17 +126,21 @@ def test_safe_attempts_every_step_when_one_device_is_gone(emus, wait_for):
     g, dmx = emus.by_device["turntable"], emus.by_device["light_array"]
     with open_rig(emus.config) as rig:
         rig.backdrops.reconnect_attempts = 0
-        with pytest.raises(DeviceError, match=r"could not make the rig safe \(backdrops: blank: .*backdrops") as ei:
-            with rig.safe():
-                rig.light_array.set_levels({1: 255})
-                emus.servers["emulator:display"].vanish()  # display controller unplugged
+        with (
+            pytest.raises(DeviceError, match=r"could not make the rig safe \(backdrops: blank: .*backdrops") as ei,
+            rig.safe(),
+        ):
+            rig.light_array.set_levels({1: 255})
+            emus.servers["emulator:display"].vanish()  # display controller unplugged
         assert "light_array" not in str(ei.value) and "turntable" not in str(ei.value)
         # the body raised: the original error wins, the clean-up failure is a warning
-        with pytest.warns(RuntimeWarning, match="clean-up incomplete: backdrops: blank"):
-            with pytest.raises(ZeroDivisionError):
-                with rig.safe():
-                    rig.light_array.set_levels({2: 255})
-                    1 / 0
+        with (
+            pytest.warns(RuntimeWarning, match="clean-up incomplete: backdrops: blank"),
+            pytest.raises(ZeroDivisionError),
+            rig.safe(),
+        ):
+            rig.light_array.set_levels({2: 255})
+            raise ZeroDivisionError
     wait_for(lambda: dmx.dmx_packets >= 4 and not any(dmx.levels()), 5, "lights off")  # they still went off
     wait_for(lambda: b"".join(g.realtime).count(b"!") >= 2, 5, "a feed hold per safe() exit")
 

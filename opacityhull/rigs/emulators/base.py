@@ -21,7 +21,7 @@ import threading
 import time
 import tty
 from dataclasses import dataclass, field
-from typing import Iterable
+from collections.abc import Iterable
 
 log = logging.getLogger(__name__)
 
@@ -227,7 +227,7 @@ class EmulatorServer:
         self._join()
         self._close_all()
 
-    def __enter__(self) -> "EmulatorServer":
+    def __enter__(self) -> EmulatorServer:
         self.start()
         return self
 

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import logging
 import struct
-from typing import Callable, Iterable
+from collections.abc import Callable, Iterable
 
 import numpy as np
 
@@ -119,7 +119,7 @@ class DisplayEmulator(EmulatedDevice):
     def is_lit(self) -> bool:
         """True if any powered output shows a pattern."""
         with self.lock:
-            return any(p and s is not None for p, s in zip(self._power, self._shown))
+            return any(p and s is not None for p, s in zip(self._power, self._shown, strict=True))
 
     def _out(self, output: int) -> int:
         if not 0 <= output < self.outputs:

@@ -204,7 +204,7 @@ class GrblEmulator(EmulatedDevice):
         self._banner_at_power_up = banner
         self._defaults = dict(_DEFAULTS)
         self._defaults[22] = 1 if homing else 0
-        for i, a in enumerate(self.axes):
+        for a in self.axes:
             k = AXES.index(a)
             for base, v in _AXIS_DEFAULTS.items():
                 self._defaults[base + k] = v
@@ -753,7 +753,7 @@ class GrblEmulator(EmulatedDevice):
         # modal updates (GRBL applies them in this order; the line is atomic: validate first)
         units_inch = self._inches if "units" not in groups else groups["units"] == 20
         absolute = self._absolute if "distance" not in groups else groups["distance"] == 90
-        motion = self._motion_mode if "motion" not in groups else groups["motion"]
+        motion = groups.get("motion", self._motion_mode)
         nonmodal = groups.get("nonmodal")
         scale = 25.4 if units_inch else 1.0
         if jog:

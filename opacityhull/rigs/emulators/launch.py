@@ -59,10 +59,10 @@ class EmulatorSet:
         for srv in self.servers.values():
             try:
                 srv.stop()
-            except Exception as e:  # stop the others all the same
+            except Exception as e:  # noqa: BLE001  stop the others all the same
                 log.warning("emulator %s: stop failed: %s", srv.url, e)
 
-    def __enter__(self) -> "EmulatorSet":
+    def __enter__(self) -> EmulatorSet:
         return self
 
     def __exit__(self, *exc):

@@ -18,7 +18,7 @@ every emulator, plus:
 from __future__ import annotations
 
 import logging
-from typing import Iterable
+from collections.abc import Iterable
 
 from .. import mdc_protocol as mdc
 from .base import EmulatedDevice, Reply
