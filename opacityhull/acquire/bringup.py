@@ -10,7 +10,8 @@ sim/) passes in as ``simulated``.
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
+from collections.abc import Callable
 
 from ..rigs.bringup import BringupOptions, SimulatedRig, StepResult, open_for_bringup, run_bringup
 from .plan import CapturePlan

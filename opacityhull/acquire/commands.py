@@ -12,7 +12,7 @@ import os
 import sys
 from contextlib import contextmanager
 from pathlib import Path
-from typing import Annotated, List, Optional
+from typing import Annotated
 
 import typer
 
@@ -196,9 +196,7 @@ def register(app, groups) -> None:
             ..., "--rig", help="Rig TOML path, or sim:SCENE (or sim:SCENE@RIG.toml) for the simulated rig."
         ),
         plan: str = typer.Option(..., "--plan", help="Plan TOML path or builtin:tiny|demo|paper."),
-        out: Optional[Path] = typer.Option(
-            None, "--out", help="Session folder (new/empty, or existing with --resume)."
-        ),
+        out: Path | None = typer.Option(None, "--out", help="Session folder (new/empty, or existing with --resume)."),
         resume: bool = typer.Option(
             False,
             "--resume",
@@ -356,7 +354,7 @@ def register(app, groups) -> None:
     @cli_errors
     def hdr(
         directory: SessionDirArg,
-        phase: Optional[list[str]] = typer.Option(None, "--phase", help="Only this phase (repeatable)."),
+        phase: list[str] | None = typer.Option(None, "--phase", help="Only this phase (repeatable)."),
         method: str = typer.Option("auto", "--method", help="auto | linear | debevec."),
         saturation: float = typer.Option(0.98, "--saturation", help="Clipped above this fraction of white."),
         force: bool = typer.Option(False, "--force", help="Merge again even if up to date."),
@@ -391,7 +389,7 @@ def register(app, groups) -> None:
             "wins, as in COLMAP) or text (cameras.txt, images.txt).",
         ),
         images: Path = typer.Option(..., "--images", help="Folder of the images (PNG/JPG/EXR)."),
-        masks: Optional[Path] = typer.Option(
+        masks: Path | None = typer.Option(
             None, "--masks", help="Folder of masks named like the images (default: the images' own alpha, if any)."
         ),
         out: Path = _IMPORT_OUT,
@@ -450,7 +448,7 @@ def _register_bringup(rig) -> None:
             str, typer.Option("--scene", help='Scene the simulated cameras see (driver = "sim" cameras).')
         ] = "builtin:diffuse",
         spp: Annotated[int, typer.Option("--spp", min=1, help="Samples per pixel of simulated cameras.")] = 4,
-        fault: Annotated[List[str], typer.Option("--fault", help=FAULT_HELP)] = [],
+        fault: Annotated[list[str], typer.Option("--fault", help=FAULT_HELP)] = [],  # noqa: B006  typer hands the body a fresh list; the body only reads it
         json_out: Annotated[bool, typer.Option("--json", help='Print {"ok", "steps": [...]}.')] = False,
     ):
         """Walk the rig device by device: every device answers, the turntable turns 90 deg and back and a camera

@@ -60,6 +60,5 @@ def write_capture_exr(path, image, *, half: bool = False, compression: str = "rl
         a, _ = to_half(a, path=path)
     chans = {n: np.ascontiguousarray(a[:, :, i]) for i, n in enumerate(names)}
     hdr = {"compression": _compression(compression), "type": OpenEXR.scanlineimage}
-    with atomic_path(path) as tmp:
-        with OpenEXR.File(hdr, chans) as f:
-            f.write(str(tmp))
+    with atomic_path(path) as tmp, OpenEXR.File(hdr, chans) as f:
+        f.write(str(tmp))

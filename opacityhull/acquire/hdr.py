@@ -21,7 +21,7 @@ bracket ids) at ``images/<shot>_hdr.exr``; :meth:`Session.load_radiance` prefers
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Callable, Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 

@@ -64,7 +64,7 @@ import shutil
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Iterator
+from collections.abc import Callable, Iterator
 
 import numpy as np
 
@@ -126,7 +126,7 @@ def closest_point_to_axes(centres: np.ndarray, directions: np.ndarray) -> np.nda
     D = D / n[:, None]
     A = np.zeros((3, 3))
     b = np.zeros(3)
-    for c, d in zip(C, D):
+    for c, d in zip(C, D, strict=True):
         P = np.eye(3) - np.outer(d, d)
         A += P
         b += P @ c

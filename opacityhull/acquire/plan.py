@@ -64,7 +64,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Mapping, cast
+from typing import TYPE_CHECKING, Any, cast
+from collections.abc import Mapping
 
 from ..charuco import CharucoSpec
 from ..errors import ConfigError

@@ -35,7 +35,8 @@ import time
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any
+from collections.abc import Callable, Sequence
 
 import numpy as np
 
@@ -205,7 +206,7 @@ class _SessionLock:
         import fcntl
 
         try:
-            f = open(self.path, "a+")
+            f = open(self.path, "a+")  # noqa: SIM115  held (with its flock) until release()
         except OSError as e:  # a read-only or full disk: say so, naming the lock
             err = write_error(e, self.path)
             if err is None:
@@ -443,7 +444,7 @@ def _controller_slots(backdrops) -> int | None:
 class _RigDriver:
     """Issues device commands only when the state changes; forgets the state after an error."""
 
-    def __init__(self, rig, log: Callable[[str], None] | None, slots: "_PatternSlots | None" = None):
+    def __init__(self, rig, log: Callable[[str], None] | None, slots: _PatternSlots | None = None):
         self.rig = rig
         self.log = log or (lambda msg: None)
         self.table: float | None = None
@@ -606,7 +607,7 @@ class _ImageQueue:
                 if self.error is None:
                     try:
                         self.done.append((job, self._write(job)))
-                    except BaseException as e:  # handed to the capture thread, never lost
+                    except BaseException as e:  # noqa: BLE001  handed to the capture thread, which re-raises it
                         self.error, self.failed = e, job
             finally:
                 job = None  # drop the image before waiting for the next one (bounded memory)
@@ -1137,7 +1138,7 @@ def _session_meta(rig, cam_info, plan, geometry, stages, patterns, rig_source) -
     desc = {}
     try:
         desc = rig.describe() or {}
-    except Exception:  # describing is best effort; the geometry is what matters
+    except Exception:  # noqa: BLE001  a driver's describe() is best effort; the geometry is what matters
         desc = {}
     cams = []
     for i, info in sorted(cam_info.items()):

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Mapping, Sequence
+from collections.abc import Mapping, Sequence
 
 from ..errors import ConfigError
 from ..riggeometry import RigGeometry
@@ -308,7 +308,7 @@ class MotionRates:
     display_uploads: bool = True
 
     @classmethod
-    def from_devices(cls, devices: Mapping | None) -> "MotionRates":
+    def from_devices(cls, devices: Mapping | None) -> MotionRates:
         """From the ``[devices]`` table of a rig TOML; missing values keep the defaults."""
         d = dict(devices or {})
         kw = {}

@@ -61,7 +61,7 @@ def test_noisy_merge_beats_any_single_exposure():
     imgs = [_expose(L, t, noise=0.01, rng=rng) for t in TIMES]
     out, _ = merge_linear(imgs, TIMES)
     err_merge = np.sqrt(np.mean((out - L) ** 2))
-    singles = [np.sqrt(np.mean((im / t - L) ** 2)) for im, t in zip(imgs, TIMES) if (3.0 * t) < 0.98]
+    singles = [np.sqrt(np.mean((im / t - L) ** 2)) for im, t in zip(imgs, TIMES, strict=True) if (3.0 * t) < 0.98]
     assert err_merge < min(singles)
 
 

@@ -342,7 +342,7 @@ def _colmap_set(tmp_path, *, masks=True):
     cams = _cams()
     names = [f"img_{i}.png" for i in range(4)]
     write_colmap_text(tmp_path / "model", cams, names=names)
-    for i, (cam, n) in enumerate(zip(cams, names)):
+    for i, (cam, n) in enumerate(zip(cams, names, strict=True)):
         _write_png(tmp_path / "images" / n, _rgb8(i))
         if masks:
             (tmp_path / "masks").mkdir(exist_ok=True)
@@ -444,7 +444,10 @@ def test_import_colmap_binary_wins_over_text(tmp_path):
         np.array([-0.05, 0.01, 0.001, -0.002, 0]),
     ]
     cams, names = _colmap_set(tmp_path)
-    cams = [Camera(K=c.K, width=W, height=H, world_from_cam=c.world_from_cam, dist=d) for c, d in zip(cams, dists)]
+    cams = [
+        Camera(K=c.K, width=W, height=H, world_from_cam=c.world_from_cam, dist=d)
+        for c, d in zip(cams, dists, strict=True)
+    ]
     write_colmap_text(tmp_path / "true_txt", cams, names=names)
     # make the models SIMPLE_PINHOLE / SIMPLE_RADIAL / RADIAL / OPENCV, as COLMAP writes them
     lines = (tmp_path / "true_txt" / "cameras.txt").read_text().splitlines()
@@ -472,7 +475,7 @@ def test_import_colmap_binary_wins_over_text(tmp_path):
     assert rep["model_format"] == "binary" and rep["images"] == 4
     rec = pycolmap.Reconstruction(str(model))
     vc = Session.open(out).view_cameras()
-    for iid, img in rec.images.items():
+    for img in rec.images.values():
         cam = vc[f"c{names.index(img.name)}_t000.000"]
         for X in _points():
             want = np.asarray(img.project_point(X)).reshape(2) - 0.5  # pycolmap: top-left pixel centre 0.5

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import copy
 import math
+from itertools import pairwise
 
 import pytest
 from hypothesis import given, settings
@@ -114,11 +115,11 @@ def test_schedule_order_and_stages():
     # within a phase: table outermost, then array, then light/pattern, then camera
     refl = [s for s in obj if s.phase == "reflectance"]
     tables = [s.table_deg for s in refl]
-    changes = sum(1 for a, b in zip(tables, tables[1:]) if a != b)
+    changes = sum(1 for a, b in pairwise(tables) if a != b)
     assert changes == len(plan.table_deg) - 1
     first_view = [s for s in refl if s.table_deg == refl[0].table_deg]
     arrays = [s.lights_deg for s in first_view]
-    assert sum(1 for a, b in zip(arrays, arrays[1:]) if a != b) == len(plan.reflectance.array_deg) - 1
+    assert sum(1 for a, b in pairwise(arrays) if a != b) == len(plan.reflectance.array_deg) - 1
     cams = [s.camera for s in first_view[:3]]
     assert cams == [0, 1, 2]
     # consecutive sweeps alternate direction: no full return move between phases
@@ -128,7 +129,7 @@ def test_schedule_order_and_stages():
             phases.append((s.phase, []))
         if not phases[-1][1] or phases[-1][1][-1] != s.table_deg:
             phases[-1][1].append(s.table_deg)
-    for (p1, a1), (p2, a2) in zip(phases, phases[1:]):
+    for (p1, a1), (p2, a2) in pairwise(phases):
         assert a1[-1] == a2[0], (p1, p2, a1, a2)
     # lightfield: lights rotate with the object
     assert all(s.lights_deg == s.table_deg for s in obj if s.phase == "lightfield")
@@ -183,7 +184,7 @@ def test_table_steps_even_and_distinct(steps, start):
     p = _plan(lambda d: d["table"].update({"steps": steps, "start_deg": start}))
     a = sorted(p.table_deg)
     assert len(a) == steps
-    gaps = [(b - c) for c, b in zip(a, a[1:])] + [a[0] + 360 - a[-1]]
+    gaps = [(b - c) for c, b in pairwise(a)] + [a[0] + 360 - a[-1]]
     assert all(math.isclose(g, 360 / steps, abs_tol=1e-5) for g in gaps)
 
 

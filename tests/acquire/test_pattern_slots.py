@@ -64,7 +64,7 @@ def _expected_bytes(img) -> bytes:
 def _check_shown(watch: Watch, sess: Session, patterns, start: int = 0) -> None:
     recs = [r for r in sess.records if r.kind == "raw"][start : start + len(watch.seen)]
     assert len(recs) == len(watch.seen)
-    for rec, shot in zip(recs, watch.seen):
+    for rec, shot in zip(recs, watch.seen, strict=True):
         for i, name in enumerate(("bottom", "back")):
             sid, got = shot[name]
             img = patterns[rec.pattern].images[name]
