@@ -25,7 +25,8 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass, field
-from typing import Literal, Mapping, Sequence
+from typing import Literal
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 
@@ -149,14 +150,14 @@ def init_camera(
     sel = list(range(len(obs)))
     K, dist, rv, tv, pv = fit(sel)
     lim = max(max_view_rms_px, 3.0 * float(np.median(pv)))
-    bad = [i for i, e in zip(sel, pv) if e > lim]
+    bad = [i for i, e in zip(sel, pv, strict=True) if e > lim]
     dropped = {}
     if bad and len(obs) - len(bad) >= 3:
         for i in bad:
             dropped[obs[i].where] = f"reprojection RMS {pv[sel.index(i)]:.2f} px > {lim:.2f} px: misdetection"
         sel = [i for i in sel if i not in bad]
         K, dist, rv, tv, pv = fit(sel)
-    poses = {obs[i].instant: rigid(rodrigues(r), np.asarray(t).ravel()) for i, r, t in zip(sel, rv, tv)}
+    poses = {obs[i].instant: rigid(rodrigues(r), np.asarray(t).ravel()) for i, r, t in zip(sel, rv, tv, strict=True)}
     return CameraInit(
         index=index,
         size=size,
@@ -286,7 +287,7 @@ class _Problem:
         ini = self.inits[c]
         K = ini.K.copy()
         dist = ini.dist.copy()
-        p = dict(zip(ini.free, x[self.intr_off[c] : self.intr_off[c] + len(ini.free)]))
+        p = dict(zip(ini.free, x[self.intr_off[c] : self.intr_off[c] + len(ini.free)], strict=True))
         if "f" in p:
             K[0, 0] = K[1, 1] = p["f"]
         for nm, (r, col) in (("fx", (0, 0)), ("fy", (1, 1)), ("cx", (0, 2)), ("cy", (1, 2))):
@@ -347,7 +348,7 @@ class _Problem:
         return r, Jm
 
 
-def _jac(prob: "_Problem", x: np.ndarray):
+def _jac(prob: _Problem, x: np.ndarray):
     J = prob.evaluate(x, jac=True)[1]
     assert J is not None
     return J.toarray() if TR_SOLVER == "exact" else J

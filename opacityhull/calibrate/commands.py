@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
-from typing import Annotated, List, Optional
+from typing import Annotated
 
 import typer
 
@@ -38,7 +38,7 @@ def _human(s: dict) -> None:
     for cam in s["cameras"]:
         sd = cam["std"]
 
-        def pm(k):
+        def pm(k, cam=cam, sd=sd):
             return f"{cam[k]:.2f} ± {sd.get(k, sd.get('f', 0.0)) if k in ('fx', 'fy') else sd.get(k, 0.0):.2f}"
 
         t.add_row(
@@ -67,10 +67,10 @@ def register(app, groups) -> None:
     @app.command("calibrate")
     @cli_errors
     def calibrate(
-        inputs: Annotated[List[Path], typer.Argument(help=_INPUTS_HELP)],
+        inputs: Annotated[list[Path], typer.Argument(help=_INPUTS_HELP)],
         board: Annotated[str, typer.Option("--board", help=_BOARD_HELP)],
-        out: Annotated[Optional[Path], typer.Option("--out", help="Folder for YAML, COLMAP, plots, report.")] = None,
-        sync: Annotated[Optional[Path], typer.Option("--sync", help=_SYNC_HELP)] = None,
+        out: Annotated[Path | None, typer.Option("--out", help="Folder for YAML, COLMAP, plots, report.")] = None,
+        sync: Annotated[Path | None, typer.Option("--sync", help=_SYNC_HELP)] = None,
         dist: Annotated[str, typer.Option("--dist", help="Distortion model: none|k1|k1k2|k1k2p|k1k2pk3.")] = "k1k2pk3",
         every: Annotated[int, typer.Option("--every", help="Use every Nth video frame.")] = 1,
         min_corners: Annotated[int, typer.Option("--min-corners", help="Frames with fewer corners are dropped.")] = 6,
@@ -87,7 +87,7 @@ def register(app, groups) -> None:
             bool, typer.Option("--refine-intrinsics", help="Free the intrinsics in the multi-camera bundle adjustment.")
         ] = False,
         intrinsics: Annotated[
-            Optional[List[Path]],
+            list[Path] | None,
             typer.Option(
                 "--intrinsics",
                 help="OpenCV YAML (camera_matrix, distortion_coefficients) of a camera, in input order, "

@@ -25,7 +25,7 @@ import math
 import re
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -280,7 +280,7 @@ def _frames(cam: CameraInput, *, step: int):
         finally:
             cap.release()
         return
-    for p, key in zip(cam.images, cam.instants):
+    for p, key in zip(cam.images, cam.instants, strict=True):
         img = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
         if img is None:
             raise FormatError(f"{p}: cannot be decoded as an image")

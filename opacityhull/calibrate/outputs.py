@@ -77,7 +77,7 @@ def _plots(run: CalibrateRun, out: Path) -> list[Path]:
     plt.close(fig)
     fig, ax = plt.subplots(figsize=(max(6, 0.08 * len(res.per_frame_rms_px)), 4))
     for c in sorted(res.cameras):
-        ys = [v for o, v in zip(res.observations, res.per_frame_rms_px.values()) if o.camera == c]
+        ys = [res.per_frame_rms_px[o.where] for o in res.observations if o.camera == c]
         ax.plot(range(len(ys)), ys, "o-", ms=3, label=f"camera {c}")
     ax.set_xlabel("frame (in input order, kept frames only)")
     ax.set_ylabel("RMS reprojection error (px)")
@@ -111,7 +111,7 @@ def write_outputs(run: CalibrateRun, out: Path) -> dict[str, str]:
     out.mkdir(parents=True, exist_ok=True)
     written: dict[str, str] = {}
     cams = _cameras(run)
-    for cam, (c, f) in zip(cams, sorted(run.result.cameras.items())):
+    for cam, (c, f) in zip(cams, sorted(run.result.cameras.items()), strict=True):
         p = out / f"cam{c}.yaml"
         write_opencv_yaml(
             p,

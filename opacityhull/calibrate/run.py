@@ -5,7 +5,7 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -225,7 +225,7 @@ def _calibrate_detected(
                 }
                 cams_fit[c] = replace(f, free=inits[c].free, std=std, intrinsic_rms_px=alone[c].cameras[c].rms_px)
             result = replace(result, cameras=cams_fit)
-    for c, why in left_out.items():
+    for why in left_out.values():
         log.warning(why)
     return CalibrateRun(
         charuco=charuco,

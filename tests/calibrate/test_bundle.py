@@ -75,7 +75,7 @@ def _detected(rng, Ks, cfw, boards, *, noise_px: float, sees=None) -> list[Detec
     P = _board_points()
     ids = np.arange(len(P), dtype=np.int32)
     out = []
-    for c, (K, T) in enumerate(zip(Ks, cfw)):
+    for c, (K, T) in enumerate(zip(Ks, cfw, strict=True)):
         dc = DetectedCamera(camera=CameraInput(index=c, source=f"synthetic cam{c}"), size=(W, H))
         for t, B in boards.items():
             if sees is not None and not sees(c, t):
