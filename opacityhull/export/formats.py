@@ -148,13 +148,13 @@ def export_colmap_model(model: OpacityHullModel, out: Path, *, max_points: int =
     cams = [v.camera for v in model.views]
     names = [f"{v.id}.png" for v in model.views]
     images = _views(model)
-    for v, rgba in zip(model.views, images):
+    for v, rgba in zip(model.views, images, strict=True):
         # RGBA (straight colour, alpha = the matte) as the nerfstudio export: RGB over
         # black dropped the matte, so the export could not be imported and built again
         _write_png_u8(out / "images" / f"{v.id}.png", rgba)
     sparse = out / "sparse" / "0"
     rec = colmap_reconstruction(cams, names, share_intrinsics=[v.camera_index for v in model.views])
-    by_name = {rec.image(i).name: i for i in rec.images.keys()}
+    by_name = {rec.image(i).name: i for i in rec.images}
     n = len(s)
     pick = (
         np.unique(np.linspace(0, n - 1, min(n, max_points)).round().astype(np.int64))

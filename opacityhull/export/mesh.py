@@ -68,7 +68,10 @@ def write_mesh_obj(path: Path, vertices, normals, rgb8, faces) -> None:
 
     rgb = rgb8.astype(np.float64) / 255.0
     lines = ["# opacityhull umbrella mesh: vertex colours sRGB in [0, 1] after the position"]
-    lines += [f"v {p[0]:.7g} {p[1]:.7g} {p[2]:.7g} {c[0]:.4f} {c[1]:.4f} {c[2]:.4f}" for p, c in zip(vertices, rgb)]
+    lines += [
+        f"v {p[0]:.7g} {p[1]:.7g} {p[2]:.7g} {c[0]:.4f} {c[1]:.4f} {c[2]:.4f}"
+        for p, c in zip(vertices, rgb, strict=True)
+    ]
     lines += [f"vn {n[0]:.6f} {n[1]:.6f} {n[2]:.6f}" for n in normals]
     lines += [f"f {a}//{a} {b}//{b} {c}//{c}" for a, b, c in faces + 1]
     with atomic_path(path) as tmp:

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
-from typing import Iterator, Sequence
+from collections.abc import Iterator, Sequence
 
 import numpy as np
 
@@ -76,7 +76,7 @@ def iter_view_samples(
     """
     idx_all = np.arange(len(surfels)) if subset is None else np.asarray(subset, np.int64)
     pos = surfels.positions[idx_all].astype(np.float64)
-    for v, (cam, img) in enumerate(zip(cameras, images)):
+    for v, (cam, img) in enumerate(zip(cameras, images, strict=True)):
         seen = ((surfels.visibility[idx_all, v // 8] >> (v % 8)) & 1).astype(bool)
         if not seen.any():
             continue

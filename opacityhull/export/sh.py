@@ -9,7 +9,7 @@ per-surfel ridge-regularised least squares over the views that saw the surfel.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 

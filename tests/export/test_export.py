@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+from itertools import pairwise
 
 import cv2
 import numpy as np
@@ -37,7 +38,7 @@ def test_nerfstudio_layout_and_conventions(diffuse_model, tmp_path, alpha):
     assert meta["camera_model"] == "OPENCV"
     assert meta["ply_file_path"] == "sparse_pc.ply" and (out / "sparse_pc.ply").is_file()
     assert len(meta["frames"]) == len(m.views) == s["images"]
-    for fr, v in zip(meta["frames"], m.views):
+    for fr, v in zip(meta["frames"], m.views, strict=True):
         cam = v.camera
         img = cv2.imread(str(out / fr["file_path"]), cv2.IMREAD_UNCHANGED)
         assert img.dtype == np.uint8
@@ -81,7 +82,7 @@ def test_colmap_text_and_binary_read_by_pycolmap(diffuse_model, tmp_path):
         assert rec.num_reg_images() == len(m.views)
         assert rec.num_cameras() == 3  # one per physical camera
         assert rec.num_points3D() == s["points3D"] > 300
-        for iid, img in rec.images.items():
+        for img in rec.images.values():
             assert (out / "images" / img.name).is_file()
         n_checked = 0
         for pid, pt in rec.points3D.items():
@@ -168,7 +169,7 @@ def test_splats_ply_3dgs_layout(glossy_model, tmp_path):
     assert np.median(op[seen]) > 0.98 and np.all(op[~seen] < 1e-3)  # unseen surfels are made transparent
     # the fit error is reported per degree and does not grow with the degree
     rms = [s["sh_rms"][str(d)] for d in range(4)]
-    assert all(b <= a + 1e-9 for a, b in zip(rms, rms[1:])) and rms[3] < 0.03
+    assert all(b <= a + 1e-9 for a, b in pairwise(rms)) and rms[3] < 0.03
     # reassemble 3DGS's (N, 16, 3) and evaluate it from the captured views (colour = Σ c Y + 0.5)
     dc = np.stack([v[f"f_dc_{c}"] for c in range(3)], 1)[:, None, :]
     rest = np.stack([v[f"f_rest_{i}"] for i in range(45)], 1).reshape(-1, 3, 15).transpose(0, 2, 1)
@@ -204,7 +205,7 @@ def test_opencv_yaml_read_by_filestorage(diffuse_model, tmp_path):
     root, m = diffuse_model
     export_model(root, "opencv", tmp_path / "cv")
     nominal = RigGeometry.from_dict(m.rig).nominal_cameras()
-    for c, cam in enumerate(nominal):
+    for cam in nominal:
         fs = cv2.FileStorage(str(tmp_path / "cv" / f"{cam.name}.yaml"), cv2.FILE_STORAGE_READ)
         assert fs.isOpened()
         np.testing.assert_allclose(fs.getNode("camera_matrix").mat(), cam.K)
