@@ -59,7 +59,7 @@ def open_browser():
         opts.add_argument(f)
     opts.add_argument(f"--user-data-dir={profile}")
     drv = webdriver.Chrome(service=Service(d), options=opts)
-    setattr(drv, "_opacityhull_profile", profile)  # removed by close_browser
+    setattr(drv, "_opacityhull_profile", profile)  # noqa: B010  removed by close_browser; WebDriver declares no such attribute
     return drv
 
 

@@ -40,7 +40,7 @@ import shutil
 import zlib
 from importlib import resources
 from pathlib import Path
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 

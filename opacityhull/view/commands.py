@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated, Optional
+from typing import Annotated
 
 import typer
 
@@ -78,18 +78,18 @@ def register(app, groups) -> None:
     @cli_errors
     def view_cmd(
         model: ModelDirArg,
-        out: Annotated[Optional[Path], typer.Option("--out", help=_OUT_HELP)] = None,
-        port: Annotated[Optional[int], typer.Option("--port", help=_PORT_HELP)] = None,
+        out: Annotated[Path | None, typer.Option("--out", help=_OUT_HELP)] = None,
+        port: Annotated[int | None, typer.Option("--port", help=_PORT_HELP)] = None,
         k: Annotated[int, typer.Option("--k", help="Initial ULR k of the page (1-8; the page has a slider).")] = 4,
         background: Annotated[str, typer.Option("--background", help=_BACKGROUND_HELP)] = "grey",
-        envmap: Annotated[Optional[str], typer.Option("--envmap", help=_ENVMAP_HELP)] = None,
-        env_yaw_deg: Annotated[Optional[float], typer.Option("--env-yaw-deg", help=_ENV_YAW_HELP)] = None,
-        position_cell_m: Annotated[Optional[float], typer.Option("--position-cell-m", help=_CELL_HELP)] = None,
+        envmap: Annotated[str | None, typer.Option("--envmap", help=_ENVMAP_HELP)] = None,
+        env_yaw_deg: Annotated[float | None, typer.Option("--env-yaw-deg", help=_ENV_YAW_HELP)] = None,
+        position_cell_m: Annotated[float | None, typer.Option("--position-cell-m", help=_CELL_HELP)] = None,
         offset_bits: Annotated[int, typer.Option("--offset-bits", help=_OFFSET_BITS_HELP)] = 3,
         relight: Annotated[bool, typer.Option("--relight/--no-relight", help=_RELIGHT_HELP)] = True,
-        probes: Annotated[Optional[str], typer.Option("--probes", help=_PROBES_HELP)] = None,
+        probes: Annotated[str | None, typer.Option("--probes", help=_PROBES_HELP)] = None,
         relight_error: Annotated[float, typer.Option("--relight-error", help=_RELIGHT_ERROR_HELP)] = 0.01,
-        relight_rank: Annotated[Optional[int], typer.Option("--relight-rank", help=_RELIGHT_RANK_HELP)] = None,
+        relight_rank: Annotated[int | None, typer.Option("--relight-rank", help=_RELIGHT_RANK_HELP)] = None,
         yaw_steps: Annotated[int, typer.Option("--yaw-steps", help=_YAW_STEPS_HELP)] = 72,
         json_out: Annotated[bool, typer.Option("--json", help=_JSON_HELP)] = False,
     ):

@@ -28,7 +28,7 @@ import json
 import logging
 import math
 from pathlib import Path
-from typing import Callable, Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 

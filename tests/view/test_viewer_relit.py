@@ -67,17 +67,17 @@ def test_bundled_relighting_matches_exact_relighting(relit_model, relit_bundle):
         env = load_envmap("builtin:grace", yaw_deg=yaw)
         exact = [R.relight_view(i, envmap=env) for i in range(len(model.views))]
         page = relit_views_from_bundle(out, 0, yaw, [e.shape[:2] for e in exact])
-        num = sum(float(np.sum((p - e[..., :3]) ** 2)) for p, e in zip(page, exact))
+        num = sum(float(np.sum((p - e[..., :3]) ** 2)) for p, e in zip(page, exact, strict=True))
         den = sum(float(np.sum(e[..., :3] ** 2)) for e in exact)
         rel = np.sqrt(num / den)
         print(f"yaw {yaw:g}: bundled relighting vs exact, relative RMS {100 * rel:.2f} % (rank {r})")
         assert rel < 2 * tgt  # PCA truncation (≤ target on the judged yaws) plus byte quantisation
         # outside the matte the relit colour is exactly 0, as in relight_view
-        for p, e in zip(page, exact):
+        for p, e in zip(page, exact, strict=True):
             assert not p[e[..., 3] == 0].any()
     # yaw 0 and 360 are the same table row
     a, b = (relit_views_from_bundle(out, 1, y, [e.shape[:2] for e in exact]) for y in (0.0, 360.0))
-    for x, y in zip(a, b):
+    for x, y in zip(a, b, strict=True):
         np.testing.assert_array_equal(x, y)
     # file sizes are what the manifest says: the bytes reported per view
     assert (out / "basis.bin").stat().st_size == rl["basis"]["bytes"]
