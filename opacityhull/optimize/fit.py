@@ -18,7 +18,7 @@ import math
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Callable, Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 
@@ -194,9 +194,8 @@ def _save_checkpoint(path: Path, meta: dict, it: int, params, adam: Adam, stats:
     arrays["grad_count"] = stats.count
     rep = {"loss": report.loss, "psnr": report.psnr, "step_ms": report.step_ms, "densify": report.densify}
     arrays["meta"] = np.frombuffer(json.dumps({**meta, "iteration": it, "report": rep}).encode(), np.uint8)
-    with atomic_path(path) as tmp:
-        with open(tmp, "wb") as f:
-            np.savez(f, **arrays)
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
+        np.savez(f, **arrays)
 
 
 def _load_checkpoint(path: Path, meta: dict):
