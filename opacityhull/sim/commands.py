@@ -4,7 +4,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated, Optional
+from typing import Annotated
 
 import typer
 from rich.markup import escape
@@ -86,16 +86,16 @@ def register(app, groups) -> None:
         scene: _SceneOpt,
         camera: Annotated[str, typer.Option("--camera", help="Camera name or index in the rig.")] = "0",
         table_deg: Annotated[float, typer.Option("--table-deg", help="Turntable angle (degrees).")] = 0.0,
-        light: Annotated[Optional[list[int]], typer.Option("--light", help=_LIGHT_HELP)] = None,
+        light: Annotated[list[int] | None, typer.Option("--light", help=_LIGHT_HELP)] = None,
         lights_off: Annotated[bool, typer.Option("--lights-off", help="Switch every light off.")] = False,
         array_deg: Annotated[float, typer.Option("--array-deg", help="Light-array rotation (degrees).")] = 0.0,
-        pattern: Annotated[Optional[str], typer.Option("--pattern", help=_PATTERN_HELP)] = None,
+        pattern: Annotated[str | None, typer.Option("--pattern", help=_PATTERN_HELP)] = None,
         board: Annotated[bool, typer.Option("--board", help=_BOARD_HELP)] = False,
-        rig: Annotated[Optional[Path], typer.Option("--rig", help=_RIG_HELP)] = None,
+        rig: Annotated[Path | None, typer.Option("--rig", help=_RIG_HELP)] = None,
         scale: Annotated[float, typer.Option("--scale", min=0.01, help="Multiply the camera resolution.")] = 1.0,
-        spp: Annotated[Optional[int], typer.Option("--spp", min=1, help=_SPP_HELP)] = None,
+        spp: Annotated[int | None, typer.Option("--spp", min=1, help=_SPP_HELP)] = None,
         seed: Annotated[int, typer.Option("--seed", help="Render seed.")] = 0,
-        out: Annotated[Optional[Path], typer.Option("--out", help=_OUT_HELP)] = None,
+        out: Annotated[Path | None, typer.Option("--out", help=_OUT_HELP)] = None,
         json_out: Annotated[bool, typer.Option("--json", help="Print a one-line JSON summary.")] = False,
     ):
         """Render one camera of the simulated rig in a given state (no emulators involved).

@@ -41,7 +41,8 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, replace
-from typing import Any, Mapping
+from typing import Any
+from collections.abc import Mapping
 
 from ..errors import ConfigError
 from .scenes import SceneSpec
@@ -297,7 +298,7 @@ def select_effects(
         shapes = ("object", "displays")
         reasons.append(
             f"{phase}: light-array "
-            + ("lamps (spheres of radius {:g} m)".format(lamp_radius_m) if lamp_radius_m else "point lights")
+            + (f"lamps (spheres of radius {lamp_radius_m:g} m)" if lamp_radius_m else "point lights")
             + " only; displays are black panels (kept as geometry: they shadow)"
         )
     reasons.append("emitters that are off are left out of the scene entirely")
@@ -322,10 +323,7 @@ def select_effects(
     # (errors against path tracing at depth 16, 1024 spp; see _TABLE)
     kind = scene_kind(scene, phase)
     group = "calibration" if phase == "calibration" else ("backdrop" if phase in ("matting", "envmatte") else "lights")
-    if phase == "matting" and kind == "fibres":
-        row = _FIBRES_MATTING
-    else:
-        row = _TABLE[(kind, group)]
+    row = _FIBRES_MATTING if phase == "matting" and kind == "fibres" else _TABLE[kind, group]
     integrator, depth, spp, bound, why = row
     if area and group == "lights" and kind == "transmissive" and scene.delta_only:
         integrator, depth, spp, bound, why = _LAMPS_ON_GLASS

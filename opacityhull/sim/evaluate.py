@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field, replace
-from typing import Callable, Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 
@@ -138,7 +138,7 @@ def detect_corners(img: np.ndarray, charuco: CharucoSpec) -> dict[int, np.ndarra
     corners, ids, _, _ = det.detectBoard(g8)
     if ids is None:
         return {}
-    return {int(i): c.reshape(2) for i, c in zip(ids.ravel(), corners)}
+    return {int(i): c.reshape(2) for i, c in zip(ids.ravel(), corners, strict=True)}
 
 
 def corner_error(img: np.ndarray, ref: np.ndarray, charuco: CharucoSpec) -> float:

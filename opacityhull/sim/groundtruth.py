@@ -21,7 +21,7 @@ from __future__ import annotations
 import json
 import tomllib
 from pathlib import Path
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -361,7 +361,7 @@ def write_ground_truth(
     with atomic_path(gt / "scene.toml") as tmp:
         tmp.write_text(toml_dumps(scene.to_toml_dict()))
     # per-view images
-    for i, ((c, a), vc) in enumerate(zip(uniq, vcams)):
+    for i, (_, vc) in enumerate(zip(uniq, vcams, strict=True)):
         res = render_ground_truth(scene, vc, spp=spp, renderer=r, seed=i)
         vid = vc.name
         write_exr(gt / "alpha" / f"{vid}.exr", res["alpha"])

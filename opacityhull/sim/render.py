@@ -76,7 +76,8 @@ import threading
 from collections import OrderedDict
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import Any
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 
@@ -1177,7 +1178,7 @@ def shape_index_names(mi, scene) -> dict[int, str]:
         ids = np.array(dr.reinterpret_array(mi.UInt32, ptr_type(shapes))).astype(np.int64).ravel().tolist()
     else:
         ids = list(range(1, len(shapes) + 1))
-    return {int(i): s.id() for i, s in zip(ids, shapes)}
+    return {int(i): s.id() for i, s in zip(ids, shapes, strict=True)}
 
 
 def _signature(v):

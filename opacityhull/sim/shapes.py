@@ -56,7 +56,7 @@ class TriMesh:
     normals: np.ndarray
     uv: np.ndarray
 
-    def transformed(self, T: np.ndarray) -> "TriMesh":
+    def transformed(self, T: np.ndarray) -> TriMesh:
         """The mesh moved by the 4×4 rigid (or uniformly scaled) transform ``T``."""
         T = np.asarray(T, dtype=np.float64)
         V = self.vertices @ T[:3, :3].T + T[:3, 3]
@@ -443,7 +443,7 @@ def read_ply_mesh(path) -> TriMesh:
         ply = PlyData.read(str(path))
         v = ply["vertex"].data
         f = ply["face"].data
-    except Exception as e:
+    except Exception as e:  # noqa: BLE001  plyfile raises PlyParseError, KeyError, ValueError, numpy errors...: re-raised, named
         raise FormatError(f"{path}: not a readable triangle PLY ({e})") from None
     V = np.stack([v["x"], v["y"], v["z"]], axis=1).astype(np.float64)
     key = "vertex_indices" if "vertex_indices" in f.dtype.names else f.dtype.names[0]
@@ -474,6 +474,5 @@ def write_curves_txt(path, fibres: Fibres) -> None:
         for p in fib:
             lines.append(f"{p[0]:.7g} {p[1]:.7g} {p[2]:.7g} {fibres.radius_m:.7g}")
         lines.append("")
-    with atomic_path(path) as tmp:
-        with open(tmp, "w") as f:
-            f.write("\n".join(lines))
+    with atomic_path(path) as tmp, open(tmp, "w") as f:
+        f.write("\n".join(lines))

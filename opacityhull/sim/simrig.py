@@ -29,7 +29,8 @@ import threading
 import tomllib
 from contextlib import contextmanager
 from pathlib import Path
-from typing import TYPE_CHECKING, Iterator, Sequence, cast
+from typing import TYPE_CHECKING, cast
+from collections.abc import Iterator, Sequence
 from urllib.parse import parse_qsl
 
 import numpy as np
@@ -212,7 +213,7 @@ class SimCamera:
     sensor model if the rig has one).
     """
 
-    def __init__(self, index: int, spec: CameraSpec, rig: "SimRig"):
+    def __init__(self, index: int, spec: CameraSpec, rig: SimRig):
         self.index = int(index)
         self.name = spec.name
         self.spec = spec
@@ -325,7 +326,7 @@ class SimRig:
     def is_open(self) -> bool:
         return self._hw is not None
 
-    def open(self) -> "SimRig":
+    def open(self) -> SimRig:
         """Start the emulators and open the drivers on them (idempotent)."""
         if self._hw is not None:
             return self
@@ -341,7 +342,7 @@ class SimRig:
         self.emulators, self._hw = emu, hw
         return self
 
-    def attach(self, hardware, emulators) -> "SimRig":
+    def attach(self, hardware, emulators) -> SimRig:
         """Use ``hardware`` (a :class:`~opacityhull.rigs.rig.HardwareRig` built with this
         rig's :attr:`cameras`, its ports opened by the caller) over ``emulators`` started
         by the caller, instead of :meth:`open`: ``opacityhull rig bringup`` opens each port
@@ -368,7 +369,7 @@ class SimRig:
                 emu.stop()
             self.emulators = None
 
-    def __enter__(self) -> "SimRig":
+    def __enter__(self) -> SimRig:
         return self.open()
 
     def __exit__(self, *exc):
@@ -399,7 +400,7 @@ class SimRig:
         return self._require()
 
     @contextmanager
-    def safe(self) -> Iterator["SimRig"]:
+    def safe(self) -> Iterator[SimRig]:
         with self._require().safe():
             yield self
 
@@ -607,7 +608,7 @@ def open_sim_rig(
     return rig
 
 
-def bringup_sim_rig(config: "RigConfig", *, scene: str = "builtin:diffuse", spp: int = 4) -> SimRig:
+def bringup_sim_rig(config: RigConfig, *, scene: str = "builtin:diffuse", spp: int = 4) -> SimRig:
     """The simulated rig of ``config`` (whose cameras are ``driver = "sim"``) rendering
     ``scene`` at ``spp`` samples per pixel, not opened: ``opacityhull rig bringup`` builds
     the drivers on its own emulators and attaches them (:meth:`SimRig.attach`)."""

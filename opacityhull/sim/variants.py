@@ -78,7 +78,7 @@ def _cache_key() -> str:
         from importlib.metadata import version
 
         mv, dv = version("mitsuba"), version("drjit")
-    except Exception:  # pragma: no cover - metadata missing in odd installs
+    except ImportError:  # pragma: no cover - metadata missing in odd installs (PackageNotFoundError)
         mv = dv = "?"
     # "v2": the probe order gained cuda_ad_rgb; older files (LLVM only) are re-probed once
     return "|".join(["v2", mv, dv, sys.executable, os.environ.get("DRJIT_LIBLLVM_PATH", "")])

@@ -176,7 +176,7 @@ def test_cli_explain_matting_follows_the_camera_size(scenes):
         assert r.exit_code == 0, r.output
         got[size] = json.loads(r.stdout.strip().splitlines()[-1])
     assert got[""]["camera_size"] == [200, 150]  # the built-in rig's cameras
-    for size, d in got.items():
+    for d in got.values():
         w, h = d["camera_size"]
         assert d["spp"] == select_effects(scenes["sphere"], "matting", pixels=w * h).spp
     assert got["400x300"]["spp"] < got["64x48"]["spp"]

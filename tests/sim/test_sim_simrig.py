@@ -238,7 +238,7 @@ def test_ground_truth_folder(rig, tmp_path):
         assert np.all(np.isnan(depth[alpha[..., 0] == 0])) and np.all(depth[alpha[..., 0] > 0.5] > 0.5)
         n = read_exr(gt / "normals" / f"{view_id(c, a)}.exr")
         assert n.shape[2] == 3
-    for i, cam in enumerate(rig.true_cameras):
+    for cam in rig.true_cameras:
         y = read_opencv_yaml(gt / "calibration" / f"{cam.name}.yaml")
         assert np.allclose(y.world_from_cam, cam.world_from_cam) and np.allclose(y.K, cam.K)
     mesh = read_ply_mesh(gt / "object.ply")
