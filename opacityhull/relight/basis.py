@@ -65,7 +65,8 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Literal, Sequence
+from typing import Literal
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -184,7 +185,7 @@ class LightSet:
     def spacing_rad(self) -> float:
         return angular_spacing(self.directions_rig)
 
-    def subset(self, index) -> "LightSet":
+    def subset(self, index) -> LightSet:
         idx = np.arange(len(self))[index]
         return LightSet(
             tuple(self.keys[i] for i in idx),
@@ -245,7 +246,7 @@ def partition_weights(
     *,
     kind: str = "vmf",
     sigma_rad: float | None = None,
-    triangulation: "Triangulation | None" = None,
+    triangulation: Triangulation | None = None,
 ) -> np.ndarray:
     """Partition-of-unity weights K_k(ω) of ``query_dirs`` (N, 3) over the K
     ``light_dirs`` → (N, K) float64, rows summing to 1.
@@ -485,7 +486,7 @@ def _linear_weights_slow(tri: Triangulation, w: np.ndarray) -> np.ndarray:
     corner coordinates (solved with numpy.linalg.solve) are all ≥ 0 in front of the
     origin. Oracle for :meth:`Triangulation.weights`."""
     best = None
-    for f, face in enumerate(tri.faces):
+    for face in tri.faces:
         A = tri.vertices[face].T
         x = np.linalg.solve(A, w)
         if np.all(x >= -1e-9) and x.sum() > 0:
@@ -503,7 +504,7 @@ def _linear_weights_slow(tri: Triangulation, w: np.ndarray) -> np.ndarray:
     real = face < tri.n_lights
     if x[real].sum() > 1e-12:
         out_w = np.where(real, x, 0) / x[real].sum()
-        for v, xw in zip(face, out_w):
+        for v, xw in zip(face, out_w, strict=True):
             if v < tri.n_lights:
                 out[v] += xw
     else:

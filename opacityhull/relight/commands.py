@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import Annotated, Optional
+from typing import Annotated
 
 import typer
 
@@ -20,7 +20,7 @@ from .relit import RelightConfig
 _K, _R = KernelConfig(), RelightConfig()
 
 
-def _config(kernel: str, kernel_width: float, lower_hemisphere: str, near_light: bool, pca_rank: Optional[int]):
+def _config(kernel: str, kernel_width: float, lower_hemisphere: str, near_light: bool, pca_rank: int | None):
     from typing import Any, cast
 
     # the flags arrive as plain strings; KernelConfig.__post_init__ checks them (ConfigError naming the value)
@@ -58,7 +58,7 @@ def _map_options(*, required: bool) -> dict:
     """``--envmap`` (``required``, else None: no map) and how both commands read it: its
     rotation (``--env-yaw-deg``, None: the map's default; and its old spelling) and its
     layout (``--probe-format``). See :func:`_load_map`."""
-    kind, default = (str, ...) if required else (Optional[str], None)
+    kind, default = (str, ...) if required else (str | None, None)
     return {
         "envmap": (kind, typer.Option(default, "--envmap", help=_ENVMAP_HELP)),
         **env_yaw_options(None, _YAW_HELP),
@@ -113,7 +113,7 @@ _CONFIG_OPTIONS = {
     "kernel_width": (float, typer.Option(_K.width, "--kernel-width", help=_KERNEL_WIDTH_HELP)),
     "lower_hemisphere": (str, typer.Option(_K.lower_hemisphere, "--lower-hemisphere", help=_LOWER_HELP)),
     "near_light": (bool, typer.Option(_R.near_light, "--near-light/--no-near-light", help=_NEAR_HELP)),
-    "pca_rank": (Optional[int], typer.Option(_R.pca_rank, "--pca-rank", help=_PCA_RANK_HELP)),
+    "pca_rank": (int | None, typer.Option(_R.pca_rank, "--pca-rank", help=_PCA_RANK_HELP)),
 }
 
 
@@ -139,11 +139,11 @@ def register(app, groups) -> None:
         model: Annotated[Path, typer.Argument(help=_MODEL_HELP)],
         out: Annotated[Path, typer.Option("--out", help=_OUT_HELP)],
         flip_u: Annotated[bool, typer.Option("--flip-u", help=_FLIP_U_HELP)] = False,
-        lights: Annotated[Optional[str], typer.Option("--lights", help=_LIGHTS_HELP)] = None,
-        view: Annotated[Optional[str], typer.Option("--view", help=_VIEW_HELP)] = None,
-        orbit: Annotated[Optional[int], typer.Option("--orbit", help=_ORBIT_HELP)] = None,
+        lights: Annotated[str | None, typer.Option("--lights", help=_LIGHTS_HELP)] = None,
+        view: Annotated[str | None, typer.Option("--view", help=_VIEW_HELP)] = None,
+        orbit: Annotated[int | None, typer.Option("--orbit", help=_ORBIT_HELP)] = None,
         fps: Annotated[float, typer.Option("--fps", help=_FPS_HELP)] = 12.0,
-        exposure: Annotated[Optional[float], typer.Option("--exposure", help=_EXPOSURE_HELP)] = None,
+        exposure: Annotated[float | None, typer.Option("--exposure", help=_EXPOSURE_HELP)] = None,
         no_views: Annotated[bool, typer.Option("--no-views", help="Do not write the relit captured views.")] = False,
         json_out: JsonSummaryFlag = False,
         *,
@@ -169,21 +169,20 @@ def register(app, groups) -> None:
         if map_options["envmap"] is not None:
             env = _load_map(map_options, flip_u=flip_u)
         light_arrays = parse_lights(lights) if lights else None
-        with progress("relight", enabled=not json_out) as cb:
-            with writing_to(out):
-                s = relight_model(
-                    model,
-                    out=out,
-                    envmap=env,
-                    lights=light_arrays,
-                    view=v,
-                    orbit=orbit,
-                    fps=fps,
-                    config=cfg,
-                    exposure=exposure,
-                    write_views=not no_views,
-                    progress=cb,
-                )
+        with progress("relight", enabled=not json_out) as cb, writing_to(out):
+            s = relight_model(
+                model,
+                out=out,
+                envmap=env,
+                lights=light_arrays,
+                view=v,
+                orbit=orbit,
+                fps=fps,
+                config=cfg,
+                exposure=exposure,
+                write_views=not no_views,
+                progress=cb,
+            )
 
         def human(s):
             c = console()

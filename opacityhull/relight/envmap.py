@@ -168,14 +168,14 @@ class EnvironmentMap:
             w = w * _upper_fraction(self.height)
         return np.einsum("h,hwc->c", w, self.radiance.astype(np.float64))
 
-    def rotated(self, yaw_deg: float) -> "EnvironmentMap":
+    def rotated(self, yaw_deg: float) -> EnvironmentMap:
         """The map turned by ``yaw_deg`` about +Y (+Z towards +X): the radiance that came
         from d now comes from R_y(yaw) d."""
         if yaw_deg % 360.0 == 0.0:
             return self
         return EnvironmentMap(rotate_latlong_yaw(self.radiance, yaw_deg), f"{self.source} yaw {yaw_deg:g}")
 
-    def scaled(self, factor: float) -> "EnvironmentMap":
+    def scaled(self, factor: float) -> EnvironmentMap:
         return EnvironmentMap(self.radiance * np.float32(factor), f"{factor:g} x {self.source}")
 
     def stats(self) -> dict:

@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Callable, Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 
@@ -325,11 +325,14 @@ class Relighter:
         self.pca_stats: dict[int, dict] = {}
         geom = model.geometry
         self._light_pos_rig = np.array(
-            [geom.light(int(i)).position_rig(float(a)) for i, a in zip(self.lights.light_ids, self.lights.array_deg)]
+            [
+                geom.light(int(i)).position_rig(float(a))
+                for i, a in zip(self.lights.light_ids, self.lights.array_deg, strict=True)
+            ]
         )
 
     @classmethod
-    def open(cls, path, *, config: RelightConfig = RelightConfig()) -> "Relighter":
+    def open(cls, path, *, config: RelightConfig = RelightConfig()) -> Relighter:
         from ..model import OpacityHullModel
 
         return cls(OpacityHullModel.open(path), config=config)

@@ -13,7 +13,7 @@ import math
 import time
 from dataclasses import asdict
 from pathlib import Path
-from typing import Callable, Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 
@@ -140,7 +140,7 @@ def relight_model(
             "envmap": env.stats() if env is not None else None,
             "lights": None
             if light_list is None
-            else [{"direction": d.tolist(), "irradiance_rgb": e.tolist()} for d, e in zip(*light_list)],
+            else [{"direction": d.tolist(), "irradiance_rgb": e.tolist()} for d, e in zip(*light_list, strict=True)],
         },
         "n_lights_captured": len(R.lights),
         "light_spacing_deg": math.degrees(R.lights.spacing_rad()),
