@@ -112,7 +112,7 @@ class EnvMap:
         object.__setattr__(self, "image", np.ascontiguousarray(a[:, :, :3]))
 
     @classmethod
-    def from_file(cls, path, *, yaw_deg: float = 0.0) -> "EnvMap":
+    def from_file(cls, path, *, yaw_deg: float = 0.0) -> EnvMap:
         from ..imageio import read_image
 
         return cls(read_image(path), yaw_deg=yaw_deg)

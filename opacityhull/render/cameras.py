@@ -4,7 +4,7 @@ and the parsers of the CLI's ``--view``, ``--look-at`` and ``--orbit`` options."
 from __future__ import annotations
 
 import math
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 

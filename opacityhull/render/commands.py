@@ -4,7 +4,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated, List, Optional, get_args
+from typing import Annotated, get_args
 
 import typer
 
@@ -193,19 +193,19 @@ def register(app, groups) -> None:
     def render_cmd(
         model: ModelDirArg,
         out: Annotated[Path, typer.Option("--out", help=_OUT_HELP)],
-        view: Annotated[Optional[str], typer.Option("--view", help=_VIEW_HELP)] = None,
-        look_at: Annotated[Optional[str], typer.Option("--look-at", help=_LOOK_AT_HELP)] = None,
-        orbit: Annotated[Optional[int], typer.Option("--orbit", help=_ORBIT_HELP)] = None,
-        background: Annotated[Optional[str], typer.Option("--background", help=_BACKGROUND_HELP)] = None,
+        view: Annotated[str | None, typer.Option("--view", help=_VIEW_HELP)] = None,
+        look_at: Annotated[str | None, typer.Option("--look-at", help=_LOOK_AT_HELP)] = None,
+        orbit: Annotated[int | None, typer.Option("--orbit", help=_ORBIT_HELP)] = None,
+        background: Annotated[str | None, typer.Option("--background", help=_BACKGROUND_HELP)] = None,
         background_kind: Annotated[str, typer.Option("--background-kind", help="auto | image | envmap.")] = "auto",
-        width: Annotated[Optional[int], typer.Option("--width", help=_WIDTH_HELP)] = None,
-        height: Annotated[Optional[int], typer.Option("--height", help=_HEIGHT_HELP)] = None,
-        exclude: Annotated[List[str], typer.Option("--exclude-view", help=_EXCLUDE_HELP)] = [],
+        width: Annotated[int | None, typer.Option("--width", help=_WIDTH_HELP)] = None,
+        height: Annotated[int | None, typer.Option("--height", help=_HEIGHT_HELP)] = None,
+        exclude: Annotated[list[str], typer.Option("--exclude-view", help=_EXCLUDE_HELP)] = [],  # noqa: B006  typer hands the body a fresh list; the body only reads it
         exclude_alias: Annotated[
-            List[str], typer.Option("--exclude", hidden=True, help="Old name of --exclude-view.")
-        ] = [],
+            list[str], typer.Option("--exclude", hidden=True, help="Old name of --exclude-view.")
+        ] = [],  # noqa: B006  typer hands the body a fresh list; the body only reads it
         fps: Annotated[float, typer.Option("--fps", help="Frame rate of the orbit animation (> 0).")] = 12.0,
-        budget: Annotated[Optional[int], typer.Option("--budget", help=_BUDGET_HELP)] = None,
+        budget: Annotated[int | None, typer.Option("--budget", help=_BUDGET_HELP)] = None,
         json_out: Annotated[bool, typer.Option("--json", help=_JSON_HELP)] = False,
         *,
         render_options: dict,

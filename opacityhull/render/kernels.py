@@ -939,10 +939,7 @@ def resolve(accum, coverage_full, edge_coverage, alpha_min, out_rgba, out_depth,
                 out_depth[y, x] = np.inf
                 out_cov[y, x] = zero
                 continue
-            if edge_coverage:
-                c = min(max(accum[y, x, 6] * inv_full, zero), one)
-            else:
-                c = one
+            c = min(max(accum[y, x, 6] * inv_full, zero), one) if edge_coverage else one
             out_cov[y, x] = c
             inv = one / ws
             out_depth[y, x] = accum[y, x, 5] * inv

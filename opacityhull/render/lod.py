@@ -109,7 +109,7 @@ def build_point_tree(surfels: Surfels, areas: np.ndarray | None = None, *, depth
     cur = np.arange(N)  # node ids of the current frontier, in Morton order
     cur_code = code[order]
     cur_pos, cur_nrm, cur_rad, cur_area, cur_vis, cur_err = pos[0], nrm[0], rad[0], area[0], vis[0], err[0]
-    for level in range(depth):
+    for _level in range(depth):
         pcode = cur_code >> np.uint64(3)
         starts = np.flatnonzero(np.r_[True, pcode[1:] != pcode[:-1]])
         counts = np.diff(np.r_[starts, len(pcode)])

@@ -10,7 +10,7 @@ against these on small scenes.
 from __future__ import annotations
 
 import math
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -105,7 +105,7 @@ def ulr_weights_ref(
         cands.sort()
         chosen = cands[:k]
         w = _ulr_row([c[0] for c in chosen], k)
-        for (s, _, v), wi in zip(chosen, w):
+        for (_, _, v), wi in zip(chosen, w, strict=True):
             W[i, v] = wi
     return W
 
@@ -129,7 +129,7 @@ def shade_ref(
     """(N, 4) premultiplied RGBA: Σ_v w_v · bilinear(view v, project_v(p))."""
     P = np.asarray(positions, dtype=np.float64)
     out = np.zeros((P.shape[0], 4))
-    for v, (cam, img) in enumerate(zip(view_cameras, view_rgba_premul)):
+    for v, (cam, img) in enumerate(zip(view_cameras, view_rgba_premul, strict=True)):
         rows = np.flatnonzero(weights_dense[:, v] > 0)
         if rows.size == 0:
             continue
@@ -187,10 +187,7 @@ def splat_setup_ref(
         if not Z > 1e-9:
             continue
         nn = np.linalg.norm(Nn[i])
-        if nn > 1e-12 and np.isfinite(nn):
-            n = T[:3, :3] @ (Nn[i] / nn)
-        else:
-            n = -pc / np.linalg.norm(pc)
+        n = T[:3, :3] @ (Nn[i] / nn) if nn > 1e-12 and np.isfinite(nn) else -pc / np.linalg.norm(pc)
         ndp = float(n @ pc)
         if cull_backfaces and ndp >= 0:
             continue

@@ -30,7 +30,7 @@ import math
 import time
 import weakref
 from dataclasses import dataclass, field
-from typing import Callable, Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 

@@ -8,7 +8,7 @@ import logging
 import shutil
 import time
 from pathlib import Path
-from typing import Callable, Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 
@@ -79,10 +79,7 @@ def write_frame(path: Path, result: RenderResult, background) -> Path:
     convention), or composited RGB when a background is given. PNG: sRGB-encoded RGBA
     with straight alpha (or composited RGB)."""
     exr = path.suffix.lower() == ".exr"
-    if background is None:
-        img = result.premul if exr else result.rgba
-    else:
-        img = result.over(background)
+    img = (result.premul if exr else result.rgba) if background is None else result.over(background)
     if exr:
         write_exr(path, img)
     else:
@@ -285,7 +282,7 @@ def _render_chunk(
     ms, splats, taus, gif = [], [], [], []
     ms_tree = 0.0
     ms_warmup = _warm_up(st, cams[0], config=config, exclude=exclude) if cams else 0.0
-    for i, (cam, path) in enumerate(zip(cams, paths)):
+    for i, (cam, path) in enumerate(zip(cams, paths, strict=True)):
         t = time.perf_counter()
         with st.lock:
             had_tree = st.lod.tree is not None

@@ -499,7 +499,7 @@ def pack_nodes(
     if len(inner_ids):
         mu = stats.mean[inner_ids]
         q = 0
-        for sh, a, b in zip((0, 11, 22), axes, bits):
+        for sh, a, b in zip((0, 11, 22), axes, bits, strict=True):
             s = (1 << b) - 1
             c = np.clip(np.round((mu[:, a] - lo[a]) / ext[a] * s), 0, s).astype(np.uint32)
             q = q | (c << np.uint32(sh))
@@ -590,7 +590,7 @@ def unpack_nodes(packed: PackedNodes, *, leaf_positions: np.ndarray | None = Non
     rec = packed.inner
     if ni:
         q = rec["mean"].astype(np.uint32)
-        for sh, a, b in zip((0, 11, 22), h["mean_axes"], h["mean_bits"]):
+        for sh, a, b in zip((0, 11, 22), h["mean_axes"], h["mean_bits"], strict=True):
             s = (1 << b) - 1
             pos[ii, a] = lo[a] + ((q >> np.uint32(sh)) & np.uint32(s)) / s * ext[a]
         z = oct_decode(rec["fp"][:, 0], rec["fp"][:, 1], 8)

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -100,7 +100,7 @@ def prepare_views(
         if len(imgs) != V:
             raise InputError(f"{len(imgs)} view images for {V} view cameras")
         texels = np.empty((int(npx.sum()), 4), np.float32)
-        for v, (c, img) in enumerate(zip(cams, imgs)):
+        for v, (c, img) in enumerate(zip(cams, imgs, strict=True)):
             a = np.asarray(img)
             if a.shape != (c.height, c.width, 4):
                 raise ShapeError(

@@ -35,7 +35,7 @@ def _scene(seed, n_views, size, nan_texels=False):
     rng = np.random.default_rng(seed)
     W, H = size
     cams = []
-    for v in range(n_views):
+    for _v in range(n_views):
         az = rng.uniform(0, 2 * math.pi)
         el = rng.uniform(-0.6, 0.9)
         d = rng.uniform(0.4, 0.7)

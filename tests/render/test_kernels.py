@@ -339,5 +339,5 @@ def test_band_threads_are_bit_for_bit_the_serial_frame():
     for frame in (K.splat_frame, D.geometry_frame):
         serial = frame(*args, threads=1)
         for got in (frame(*args, threads=3), frame(*args, threads=3, scratch=K.Scratch())):
-            for x, y in zip(serial, got):
+            for x, y in zip(serial, got, strict=True):
                 np.testing.assert_array_equal(x, y)

@@ -65,14 +65,14 @@ def test_budget_draws_at_most_n_splats_and_keeps_psnr(sphere_dir, tmp_path):
         b = n // frac
         s = run_render(root, tmp_path / f"q{frac}.exr", orbit=2, budget=b)
         assert s["budget"] == b
-        for i, (k, cam) in enumerate(zip(s["splats_per_frame"], cams)):
+        for k, cam in zip(s["splats_per_frame"], cams, strict=True):
             assert 0.8 * b <= k <= b
             # the same cut as the LOD module's own selection for this camera
             _, mask = select_cut(tree, cam.centre_world, b)
             assert k == int(mask.sum())
         imgs = [read_exr(tmp_path / f"q{frac}_{i:03d}.exr") for i in range(2)]
         assert all(np.all(np.isfinite(x)) for x in imgs)
-        psnr[frac] = min(_psnr_premul(x, f) for x, f in zip(imgs, full))
+        psnr[frac] = min(_psnr_premul(x, f) for x, f in zip(imgs, full, strict=True))
     print("budget PSNR vs full (dB):", psnr)
     assert psnr[4] >= 27.0 and psnr[16] >= 24.0
 

@@ -49,7 +49,7 @@ def serial_orbit(tiny_model, tmp_path_factory):
 def assert_same_orbit(a: dict, b: dict):
     assert a["frames"] == b["frames"] == FRAMES
     assert [os.path.basename(p) for p in a["paths"]] == [os.path.basename(p) for p in b["paths"]]
-    for pa, pb in zip(a["paths"], b["paths"]):
+    for pa, pb in zip(a["paths"], b["paths"], strict=True):
         fa, fb = read_exr(pa), read_exr(pb)
         assert fa.shape == (24, 32, 3) and float(fa.max()) > 0.05  # a composited, non-empty frame
         np.testing.assert_array_equal(fa, fb)

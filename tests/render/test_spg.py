@@ -50,7 +50,7 @@ def _reference(tree):
         w = w_all[lv]
         mu = (w[:, None] * P[lv]).sum(0) / w.sum()
         C = np.zeros((3, 3))
-        for i, wi in zip(lv, w):
+        for i, wi in zip(lv, w, strict=True):
             d = P[i] - mu
             C += wi * (np.outer(d, d) + a_disc[i] / (4 * np.pi) * (np.eye(3) - np.outer(N[i], N[i])))
         C /= w.sum()
