@@ -85,7 +85,7 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
-from typing import Callable
+from collections.abc import Callable
 
 from ..errors import InputError
 from ..model import BUILD_DIR

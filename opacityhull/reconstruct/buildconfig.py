@@ -8,7 +8,8 @@ import math
 import time
 from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field
-from typing import Literal, Sequence
+from typing import Literal
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -350,7 +351,7 @@ RIG_DILATE_BASE_PX = 0.5
 """``BuildConfig.dilate_base_px`` of rig sessions (see :func:`default_dilate_base_px`)."""
 
 
-def default_dilate_base_px(config: "BuildConfig", *, rig_session: bool) -> float:
+def default_dilate_base_px(config: BuildConfig, *, rig_session: bool) -> float:
     """``config.dilate_base_px``, or when None the default: :data:`RIG_DILATE_BASE_PX` for
     rig sessions, 0 for imported masks.
 
@@ -367,7 +368,7 @@ def default_dilate_base_px(config: "BuildConfig", *, rig_session: bool) -> float
     return RIG_DILATE_BASE_PX if rig_session else 0.0
 
 
-def default_carve_tolerance(config: "BuildConfig", *, rig_session: bool, n_views: int) -> int:
+def default_carve_tolerance(config: BuildConfig, *, rig_session: bool, n_views: int) -> int:
     """``config.carve_tolerance``, or when None the default: 0 for rig sessions
     (triangulation mattes) and for imported sets under 8 views; 1 from 8 views, 2 from 16.
 
@@ -414,7 +415,7 @@ def pixel_footprint_m(cameras: Sequence[Camera], centre) -> float:
     return float(np.median(fp))
 
 
-def choose_resolution(lo, hi, cameras: Sequence[Camera], *, config: "BuildConfig") -> Resolution:
+def choose_resolution(lo, hi, cameras: Sequence[Camera], *, config: BuildConfig) -> Resolution:
     """Hull resolution and surfel oversampling from the photographs' pixel footprint.
 
     By default (``config.hull_res is None``) a voxel is the pixel footprint divided by

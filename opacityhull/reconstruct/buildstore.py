@@ -8,7 +8,8 @@ import logging
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Generic, Sequence, TypeVar, cast
+from typing import Any, Generic, TypeVar, cast
+from collections.abc import Callable, Sequence
 
 import numpy as np
 
@@ -225,9 +226,8 @@ class _StepStore:
 
         # streamed: a hull grid and silhouettes of hundreds of views are not copied into
         # one bytes object first
-        with atomic_path(self.model_dir / rel) as tmp:
-            with open(tmp, "wb") as f:
-                pickle.dump(obj, f, protocol=pickle.HIGHEST_PROTOCOL)
+        with atomic_path(self.model_dir / rel) as tmp, open(tmp, "wb") as f:
+            pickle.dump(obj, f, protocol=pickle.HIGHEST_PROTOCOL)
         return rel
 
     def load(self, rel: str):

@@ -5,7 +5,8 @@ from __future__ import annotations
 from contextlib import contextmanager
 from dataclasses import replace
 from pathlib import Path
-from typing import Annotated, Iterator, List, Literal, Optional, get_args
+from typing import Annotated, Literal, get_args
+from collections.abc import Iterator
 
 import typer
 
@@ -307,34 +308,34 @@ def register(app, groups) -> None:
     def build(
         session: Annotated[Path, typer.Argument(help="Session folder (from `capture` or `import colmap`).")],
         out: Annotated[Path, typer.Option("--out", help=_OUT_HELP)],
-        hull_res: Annotated[Optional[int], typer.Option("--hull-res", help=_HULL_RES_HELP)] = None,
+        hull_res: Annotated[int | None, typer.Option("--hull-res", help=_HULL_RES_HELP)] = None,
         matting_drift: Annotated[str, typer.Option("--matting-drift", help=_MATTING_DRIFT_HELP)] = "auto",
-        carve_tolerance: Annotated[Optional[int], typer.Option("--carve-tolerance", help=_CARVE_HELP)] = None,
-        refine: Annotated[Optional[str], typer.Option("--refine", help=_REFINE_HELP)] = None,
+        carve_tolerance: Annotated[int | None, typer.Option("--carve-tolerance", help=_CARVE_HELP)] = None,
+        refine: Annotated[str | None, typer.Option("--refine", help=_REFINE_HELP)] = None,
         ground_truth: Annotated[bool, typer.Option("--ground-truth", help=_GROUND_TRUTH_HELP)] = False,
-        alpha_threshold: Annotated[Optional[float], typer.Option("--alpha-threshold", help=_ALPHA_HELP)] = None,
+        alpha_threshold: Annotated[float | None, typer.Option("--alpha-threshold", help=_ALPHA_HELP)] = None,
         cameras: Annotated[str, typer.Option("--cameras", help=_CAMERAS_HELP)] = "auto",
         backdrops: Annotated[str, typer.Option("--backdrops", help=_BACKDROPS_HELP)] = "auto",
-        exclude_view: Annotated[Optional[List[str]], typer.Option("--exclude-view", help=_EXCLUDE_HELP)] = None,
-        hold_out: Annotated[Optional[str], typer.Option("--hold-out", help=_HOLD_OUT_HELP)] = None,
+        exclude_view: Annotated[list[str] | None, typer.Option("--exclude-view", help=_EXCLUDE_HELP)] = None,
+        hold_out: Annotated[str | None, typer.Option("--hold-out", help=_HOLD_OUT_HELP)] = None,
         optimize: Annotated[str, typer.Option("--optimize", help=_OPTIMIZE_HELP)] = "none",
         optimize_iterations: Annotated[
-            Optional[int], typer.Option("--optimize-iterations", help=_OPTIMIZE_ITERATIONS_HELP)
+            int | None, typer.Option("--optimize-iterations", help=_OPTIMIZE_ITERATIONS_HELP)
         ] = None,
-        bounds: Annotated[Optional[str], typer.Option("--bounds", help=_BOUNDS_HELP)] = None,
-        oversample: Annotated[Optional[int], typer.Option("--oversample", help=_OVERSAMPLE_HELP)] = None,
-        max_alpha_std: Annotated[Optional[float], typer.Option("--max-alpha-std", help=_BUILD_ALPHA_STD_HELP)] = None,
+        bounds: Annotated[str | None, typer.Option("--bounds", help=_BOUNDS_HELP)] = None,
+        oversample: Annotated[int | None, typer.Option("--oversample", help=_OVERSAMPLE_HELP)] = None,
+        max_alpha_std: Annotated[float | None, typer.Option("--max-alpha-std", help=_BUILD_ALPHA_STD_HELP)] = None,
         require_all_cameras: Annotated[bool, typer.Option("--require-all-cameras", help=_REQUIRE_ALL_HELP)] = False,
         no_reflectance: Annotated[bool, typer.Option("--no-reflectance", help=_NO_REFLECTANCE_HELP)] = False,
         no_pictures: Annotated[bool, typer.Option("--no-pictures", help="Skip the PNG pictures.")] = False,
-        storage: Annotated[Optional[str], typer.Option("--storage", help=_STORAGE_HELP)] = None,
+        storage: Annotated[str | None, typer.Option("--storage", help=_STORAGE_HELP)] = None,
         reflectance_storage: Annotated[
-            Optional[str], typer.Option("--reflectance-storage", help=_REFLECTANCE_STORAGE_HELP)
+            str | None, typer.Option("--reflectance-storage", help=_REFLECTANCE_STORAGE_HELP)
         ] = None,
-        pca_error: Annotated[Optional[float], typer.Option("--pca-error", help=_PCA_ERROR_HELP)] = None,
-        pca_rank: Annotated[Optional[int], typer.Option("--pca-rank", help=_PCA_RANK_HELP)] = None,
-        pca_block: Annotated[Optional[int], typer.Option("--pca-block", help=_PCA_BLOCK_HELP)] = None,
-        memory_gb: Annotated[Optional[float], typer.Option("--memory-gb", help=_MEMORY_HELP)] = None,
+        pca_error: Annotated[float | None, typer.Option("--pca-error", help=_PCA_ERROR_HELP)] = None,
+        pca_rank: Annotated[int | None, typer.Option("--pca-rank", help=_PCA_RANK_HELP)] = None,
+        pca_block: Annotated[int | None, typer.Option("--pca-block", help=_PCA_BLOCK_HELP)] = None,
+        memory_gb: Annotated[float | None, typer.Option("--memory-gb", help=_MEMORY_HELP)] = None,
         resume: Annotated[bool, typer.Option("--resume", help=_RESUME_HELP)] = False,
         as_json: JsonFlag = False,
         *,
@@ -402,19 +403,24 @@ def register(app, groups) -> None:
                 pca_block=pca_block,
             )
             cfg = replace(cfg, optimize=optimize_mode, optimize_iterations=optimize_iterations)
-        with step_progress("build") as (on_step, prog), flag_names(BUILD_FLAGS), _terminated_says_resume():
-            with open_executor(**executor) as ex, writing_to(out):
-                report = build_model(
-                    session,
-                    out,
-                    config=cfg,
-                    ground_truth=ground_truth,
-                    progress=prog,
-                    on_step=on_step,
-                    resume=resume,
-                    executor=ex,
-                    memory_gb=memory_gb,
-                )
+        with (
+            step_progress("build") as (on_step, prog),
+            flag_names(BUILD_FLAGS),
+            _terminated_says_resume(),
+            open_executor(**executor) as ex,
+            writing_to(out),
+        ):
+            report = build_model(
+                session,
+                out,
+                config=cfg,
+                ground_truth=ground_truth,
+                progress=prog,
+                on_step=on_step,
+                resume=resume,
+                executor=ex,
+                memory_gb=memory_gb,
+            )
         summary = report.summary()
         summary["notes"] = list(report.notes)
         emit(summary, as_json, _human)
@@ -473,9 +479,9 @@ def register(app, groups) -> None:
     def matte(
         ctx: typer.Context,
         out: Annotated[Path, typer.Option("--out", help=_MATTE_OUT_HELP)],
-        over: Annotated[Optional[Path], typer.Option("--over", help="New background for composite.png.")] = None,
+        over: Annotated[Path | None, typer.Option("--over", help="New background for composite.png.")] = None,
         drift: Annotated[str, typer.Option("--drift", help=_DRIFT_HELP)] = "field",
-        max_alpha_std: Annotated[Optional[float], typer.Option("--max-alpha-std", help=_MATTE_ALPHA_STD_HELP)] = None,
+        max_alpha_std: Annotated[float | None, typer.Option("--max-alpha-std", help=_MATTE_ALPHA_STD_HELP)] = None,
         as_json: JsonFlag = False,
     ):
         """Triangulation matting of your own shots: --object A.jpg B.jpg [...] --backdrop A.jpg

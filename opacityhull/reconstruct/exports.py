@@ -12,7 +12,8 @@ from __future__ import annotations
 import json
 import os
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -196,7 +197,7 @@ def export_nerfstudio(
         out = out / "transforms.json"
     base = out.parent.resolve() if out.parent.exists() else out.parent.absolute()
     frames = []
-    for i, (cam, img) in enumerate(zip(cameras, image_paths)):
+    for i, (cam, img) in enumerate(zip(cameras, image_paths, strict=True)):
         fr: dict[str, Any] = {"file_path": _rel_posix(img, base)}
         intr = nerfstudio_intrinsics(cam)
         intr.pop("camera_model", None)
@@ -253,7 +254,7 @@ def plot_reprojection_errors(result, out_path, *, bins: int = 40) -> Path:
         cam = result.rig_cameras[c]
         pts = sorted((parse_view_id(v)[1], r) for v, r in result.per_view_rms_px.items() if v.startswith(f"c{c}_t"))
         if pts:
-            a, r = zip(*pts)
+            a, r = zip(*pts, strict=True)
             ax1.plot(a, r, "o-", ms=3, label=cam.name)
         dropped = [parse_view_id(v)[1] for v in result.dropped_views if v.startswith(f"c{c}_t")]
         if dropped:

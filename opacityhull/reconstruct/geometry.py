@@ -7,7 +7,8 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass, replace
-from typing import Any, Sequence, cast
+from typing import Any, cast
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -68,7 +69,7 @@ def build_geometry(
     rms_px: Sequence[float],
     view_ids: Sequence[str],
     *,
-    config: "BuildConfig",
+    config: BuildConfig,
     rig_session: bool = False,
     fallback_box=None,
     step=None,
@@ -183,7 +184,7 @@ def build_geometry(
                     strong_silhouettes=(
                         None
                         if all(t is None for t in strong_in)
-                        else [enclosed_holes(sl) if t is None else t for t, sl in zip(strong_in, sils_l)]
+                        else [enclosed_holes(sl) if t is None else t for t, sl in zip(strong_in, sils_l, strict=True)]
                     ),
                 ),
             )
@@ -198,7 +199,7 @@ def build_geometry(
             )
         info = {
             "dilate_base_px": base_px,
-            "dilate_px_per_view": dict(zip(view_ids, dil)),
+            "dilate_px_per_view": dict(zip(view_ids, dil, strict=True)),
             "grid_shape": list(grid.shape),
             "voxel_m": grid.voxel_m,
             "lo_m": grid.lo.tolist(),

@@ -7,7 +7,8 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import replace
-from typing import Iterator, Sequence, cast
+from typing import cast
+from collections.abc import Iterator, Sequence
 
 import numpy as np
 
@@ -109,7 +110,7 @@ class _HolesFilled(Sequence):
     """``alphas`` with each view's ``fill`` mask (:class:`PackedMasks`, entries may be
     None) set to 1 on access; one view at a time, like the alphas it wraps."""
 
-    def __init__(self, alphas: Sequence, fill: "PackedMasks"):
+    def __init__(self, alphas: Sequence, fill: PackedMasks):
         if len(alphas) != len(fill):
             raise InputError(f"_HolesFilled: {len(fill)} fill masks for {len(alphas)} alphas")
         self.alphas, self.fill = alphas, fill
@@ -134,12 +135,12 @@ class _HolesFilled(Sequence):
 
 def fill_shadow_holes(
     session: Session,
-    mattes: "Mattes",
+    mattes: Mattes,
     colour: Sequence,
     vids: Sequence[str],
-    config: "BuildConfig",
-    store: "_StepStore",
-) -> tuple["Mattes", dict, "PackedMasks | None", "PackedMasks | None"]:
+    config: BuildConfig,
+    store: _StepStore,
+) -> tuple[Mattes, dict, PackedMasks | None, PackedMasks | None]:
     """The matting step's alphas with the shadow holes of imported masks filled
     (``BuildConfig.fill_shadow_holes``; :func:`hole_masks` on each view's colour
     photograph), one view at a time, ``{"views", "px"}`` filled, and the open holes and
@@ -182,7 +183,7 @@ def fill_shadow_holes(
     return filled, {"views": n_views, "px": n_px}, opened, extensions
 
 
-def _extensions_apply(config: "BuildConfig", tolerant: bool, use_masks: bool) -> bool:
+def _extensions_apply(config: BuildConfig, tolerant: bool, use_masks: bool) -> bool:
     """Whether the bright-extension rule applies: asked for, a tolerant carve (something to
     doubt with) and imported masks (a rig's triangulation mattes are no thresholds)."""
     return bool(config.doubt_bright_extensions and tolerant and use_masks)

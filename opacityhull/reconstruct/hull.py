@@ -100,7 +100,7 @@ class HullGrid:
         object.__setattr__(self, "shape", shape)
 
     @classmethod
-    def from_bounds(cls, lo, hi, resolution: int) -> "HullGrid":
+    def from_bounds(cls, lo, hi, resolution: int) -> HullGrid:
         """The grid with ``resolution`` voxels along the longest side of box ``[lo, hi]``
         (the other sides rounded up, the box centred)."""
         lo = np.asarray(lo, dtype=np.float64)
@@ -196,7 +196,7 @@ def _stack_silhouettes(silhouettes, cameras):
     Wm = max(c.width for c in cameras)
     stack = np.zeros((len(cameras), Hm, Wm), np.uint8)
     sizes = np.zeros((len(cameras), 2), np.int64)
-    for i, (s, c) in enumerate(zip(silhouettes, cameras)):
+    for i, (s, c) in enumerate(zip(silhouettes, cameras, strict=True)):
         s = np.asarray(s)
         if s.shape != (c.height, c.width):
             raise ShapeError(f"silhouette {i} ({c.name}) has shape {s.shape}, expected {(c.height, c.width)}")
@@ -258,7 +258,7 @@ def hull_bounds(
 
     rows = []
     empty = []
-    for i, (s, c) in enumerate(zip(silhouettes, cameras)):
+    for i, (s, c) in enumerate(zip(silhouettes, cameras, strict=True)):
         s = np.asarray(s, dtype=bool)
         ys, xs = _robust_extent(s, min_component_frac)
         if xs.size == 0:
@@ -298,7 +298,7 @@ def hull_bounds(
                 if n > 0:
                     A.append(-a[:3] / n)
                     b.append(a[3] / n)
-        bounds = [(None, None)] * 3 if fb_lo is None or fb_hi is None else list(zip(fb_lo, fb_hi))
+        bounds = [(None, None)] * 3 if fb_lo is None or fb_hi is None else list(zip(fb_lo, fb_hi, strict=True))
         lo, hi = np.empty(3), np.empty(3)
         for ax in range(3):
             for sign, out in ((1.0, lo), (-1.0, hi)):
@@ -432,7 +432,7 @@ def carve_reference(silhouettes, cameras, grid: HullGrid, *, tolerance: int = 0)
     tol = _check_tolerance(tolerance, len(cameras))
     pts = grid.all_centres().reshape(-1, 3)
     rejections = np.zeros(pts.shape[0], np.int64)
-    for s, c in zip(silhouettes, cameras):
+    for s, c in zip(silhouettes, cameras, strict=True):
         if c.has_distortion:
             raise InputError(f"camera {c.name!r} has lens distortion; undistort its silhouette first")
         s = np.asarray(s, dtype=bool)
@@ -817,7 +817,9 @@ def carve_robust(
     else:
         if len(strong_silhouettes) != len(silhouettes):
             raise InputError(f"{len(strong_silhouettes)} strong silhouettes for {len(silhouettes)} views")
-        strong = [np.asarray(t, bool) | np.asarray(s, bool) for t, s in zip(strong_silhouettes, silhouettes)]
+        strong = [
+            np.asarray(t, bool) | np.asarray(s, bool) for t, s in zip(strong_silhouettes, silhouettes, strict=True)
+        ]
     a, sa = carve_octree(strong, cameras, grid, root_cell=root_cell, return_stats=True)
     if tolerance == 0:
         b, sb = carve_octree(silhouettes, cameras, grid, root_cell=root_cell, return_stats=True)

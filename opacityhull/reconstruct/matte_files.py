@@ -110,7 +110,7 @@ def matte_files(
     B = [load_rgb(p, "--backdrop") for p in back]
     ref_shape = C[0].shape
     for flag, paths, ims in (("--object", obj, C), ("--backdrop", back, B)):
-        for p, im in zip(paths, ims):
+        for p, im in zip(paths, ims, strict=True):
             if im.shape != ref_shape:
                 raise InputError(
                     f"{flag} {p}: size {im.shape[1]}x{im.shape[0]} differs from {obj[0]} "

@@ -197,7 +197,7 @@ class MattingOptions:
     noise_floor_rel: float = 1e-3
     fill: bool = True
     drift: DriftMode = "none"
-    drift_options: "DriftOptions" = field(default_factory=lambda: DriftOptions())
+    drift_options: DriftOptions = field(default_factory=lambda: DriftOptions())
 
     def __post_init__(self):
         if isinstance(self.drift_options, dict):  # round trip through asdict (build config)
@@ -232,7 +232,7 @@ class MatteResult:
     confidence: np.ndarray
     flags: np.ndarray
     noise_sigma: float
-    drift: "DriftReport | None" = None
+    drift: DriftReport | None = None
 
     @property
     def unknown(self) -> np.ndarray:
@@ -577,10 +577,7 @@ def solve_matte_reference(
         present = [c for c in range(3) if np.any(chans == c)]
         cols = present + [3]
         A2 = A[:, cols]
-        if A2.shape[0] == 0:
-            x = np.zeros(len(cols))
-        else:
-            x = np.linalg.lstsq(A2, d, rcond=None)[0]
+        x = np.zeros(len(cols)) if A2.shape[0] == 0 else np.linalg.lstsq(A2, d, rcond=None)[0]
         # S = the alpha-alpha entry of the Schur complement of A2^T A2
         if A2.shape[0] > 0:
             M = A2.T @ A2

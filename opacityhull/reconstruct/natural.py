@@ -273,9 +273,9 @@ def nnls_gram(G, h, bb, m, x, passive, excluded, s, Lw, idx):  # pragma: no cove
         excluded[j] = False
     max_outer = 3 * m + 3
     just_added = -1
-    for outer in range(max_outer):
+    for _outer in range(max_outer):
         # ---- inner loop: least squares on the passive set, kept feasible
-        for inner in range(m + 2):
+        for _inner in range(m + 2):
             n = 0
             for j in range(m):
                 if passive[j]:
@@ -575,7 +575,7 @@ def fit_pixel(sat, b, K, rel_tol, boxes, m0, w_out):  # pragma: no cover - compi
         if m < K and err > rel_tol * bb and err > tie:
             # the cached candidates of unchanged kernels need dots with the two new columns
             for q in range(m):
-                if q == k or q == knew:
+                if q in (k, knew):
                     continue
                 for oo in range(2):
                     if not valid[q, oo]:
@@ -1027,14 +1027,13 @@ def save_field(path, field: NaturalField, *, weights_dtype: str = "float32") -> 
     if field.pixel_index is not None:
         arrays["pixel_index"] = np.asarray(field.pixel_index, np.int32)
         arrays["image_hw"] = np.array(field.image_hw, np.int64)
-    with atomic_path(path) as tmp:
-        with open(tmp, "wb") as f:
-            # numpy's stub binds **kwds to the allow_pickle parameter's type
-            np.savez_compressed(f, **arrays)  # pyright: ignore[reportArgumentType]
-            f.flush()
-            import os
+    with atomic_path(path) as tmp, open(tmp, "wb") as f:
+        # numpy's stub binds **kwds to the allow_pickle parameter's type
+        np.savez_compressed(f, **arrays)  # pyright: ignore[reportArgumentType]
+        f.flush()
+        import os
 
-            os.fsync(f.fileno())
+        os.fsync(f.fileno())
     return path
 
 
@@ -1140,10 +1139,8 @@ def display_directions(display, table_deg: float, *, centre_m=(0.0, 0.0, 0.0), s
     local = np.stack([X, Y, np.zeros_like(X), np.ones_like(X)], axis=-1).reshape(H_d, W_d, s * s, 4)
     F = display.frame()
     P = local @ F.T  # rig frame at table angle 0
-    if display.rotates_with_table:
-        obj = P[..., :3]  # it turns with the object: the rig frame at 0 is the object frame
-    else:
-        obj = (P @ object_from_rig(table_deg).T)[..., :3]
+    # a display that turns with the object: the rig frame at 0 is the object frame
+    obj = P[..., :3] if display.rotates_with_table else (P @ object_from_rig(table_deg).T)[..., :3]
     d = obj - np.asarray(centre_m, np.float64)
     return d / np.linalg.norm(d, axis=-1, keepdims=True)
 

@@ -22,7 +22,7 @@ import dataclasses
 import logging
 import time
 from pathlib import Path
-from typing import Callable, Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 
@@ -209,7 +209,7 @@ def estimate_session_natural(
             f"{session.root}: no natural shot lights a single display (an older envmatte capture "
             "showing one image on every display cannot be split into illumination domains)"
         )
-    for (c, a), pv in zip(views, per_view):
+    for (c, a), pv in zip(views, per_view, strict=True):
         missing = [d for d in displays if d not in pv]
         if missing:
             raise InputError(f"{session.root}: view {view_id(c, a)} has no natural shots on display(s) {missing}")
@@ -224,7 +224,7 @@ def estimate_session_natural(
     done = 0
     pixels, nbytes, kern, res, files = 0, 0, [], [], []
     info = {}
-    for i, ((c, a), pv) in enumerate(zip(views, per_view)):
+    for i, ((c, a), pv) in enumerate(zip(views, per_view, strict=True)):
         vid = view_id(c, a)
         mask = natural_mask(alphas[i], alpha_min=alpha_min, fill_holes=fill_holes)
         for d in displays:

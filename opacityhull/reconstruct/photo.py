@@ -75,7 +75,8 @@ import logging
 import math
 import time
 from dataclasses import dataclass
-from typing import Literal, Sequence
+from typing import Literal
+from collections.abc import Sequence
 
 import numpy as np
 from numba import njit, prange
@@ -219,7 +220,7 @@ def _stack(name, arrays, cameras, channels):
     Hm = max(c.height for c in cameras)
     Wm = max(c.width for c in cameras)
     out = np.zeros((V, Hm, Wm), np.float32)
-    for i, (a, c) in enumerate(zip(arrays, cameras)):
+    for i, (a, c) in enumerate(zip(arrays, cameras, strict=True)):
         out[i, : c.height, : c.width] = _plane(name, i, a, c, channels)
     return out
 
@@ -1038,7 +1039,7 @@ def refine_surfels(
     clamped = np.zeros(N, bool)
     target = depth.copy()
     cov_h = None
-    for rnd in range(int(config.coverage_rounds) if config.keep_coverage else 1):
+    for _rnd in range(int(config.coverage_rounds) if config.keep_coverage else 1):
         depth = np.where(fixed, 0.0, target)
         if nb is not None:
             # the median keeps steps between neighbours; averaging tapers them (also towards

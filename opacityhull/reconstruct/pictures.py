@@ -13,7 +13,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -91,7 +91,7 @@ def hull_overlays(
     import cv2
 
     tiles, labels = [], []
-    for img, sil, sm, name in zip(images, silhouettes, surfel_masks, names):
+    for img, sil, sm, name in zip(images, silhouettes, surfel_masks, names, strict=True):
         rgb = np.nan_to_num(np.asarray(img, dtype=np.float32)[..., :3], nan=0.0, posinf=0.0, neginf=0.0)
         scale = float(np.percentile(rgb, 99))
         scale = scale if scale > 0 else 1.0

@@ -197,7 +197,7 @@ def _candidate_views(P, sizes, edt, pa, pb, cand):
         if fu >= 0 and fu < sizes[v, 0] and fv >= 0 and fv < sizes[v, 1]:
             if edt[v, int(fv) // EDT_BLOCK, int(fu) // EDT_BLOCK] > L + 1.5:
                 continue  # the whole segment projects inside the silhouette
-        elif L < 1e6:
+        elif L < 1e6:  # noqa: SIM102  the off-image twin of the branch above
             # inside end off-image: the view matters only if the segment reaches the image
             if (
                 max(u0, u1) < -0.5 - 1.0
@@ -313,7 +313,7 @@ def _fill_crossings(
                 nc_ = _candidate_views(P, sizes, edt, pa, pb, cand)
                 lo_t = t_in
                 hi_t = t_out
-                for it in range(iters):
+                for _it in range(iters):
                     mt = 0.5 * (lo_t + hi_t)
                     pm[axis] = mt
                     pm[ax_b] = cb

@@ -81,7 +81,7 @@ def test_geometry_holdout_through_the_cluster_equals_serial(cluster, serial_mode
         b = run_loo_holdouts(serial_model, views="every:3", holdout="geometry", out=tmp_path / "cluster", executor=ex)
     assert [r["view"] for r in a["per_view"]] == [r["view"] for r in b["per_view"]]
     assert len(a["per_view"]) == 4
-    for ra, rb in zip(a["per_view"], b["per_view"]):
+    for ra, rb in zip(a["per_view"], b["per_view"], strict=True):
         assert ra["surfels"] == rb["surfels"]
         assert ra["psnr"] == rb["psnr"] and ra["ssim"] == rb["ssim"]
 

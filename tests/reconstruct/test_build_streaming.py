@@ -137,7 +137,7 @@ def test_packed_masks_round_trip():
     masks = [rng.random((7, 13)) > 0.5, None, rng.random((5, 9)) > 0.3]
     pm = PackedMasks(masks)
     assert len(pm) == 3 and pm[1] is None
-    for m, got in zip(masks, pm):
+    for m, got in zip(masks, pm, strict=True):
         if m is None:
             assert got is None
         else:

@@ -51,7 +51,7 @@ HELD_OUT = np.arange(22.5, 360.0, 90.0)
 def geometry_dict(elevations=(40.0, 52.0, 65.0, 18.0), azimuths=(0.0, 120.0, -120.0, 60.0), focal_px=430.0):
     return {
         "target_m": [0.0, 0.02, 0.0],
-        "cameras": ring_cameras(W, H, zip(elevations, azimuths), distance_m=0.5, focal_px=focal_px),
+        "cameras": ring_cameras(W, H, zip(elevations, azimuths, strict=True), distance_m=0.5, focal_px=focal_px),
     }
 
 
@@ -255,7 +255,7 @@ def test_view_cameras_follow_the_rig_model(rendered):
     res = rendered["res"]
     views = [(0, 0.0), (1, 45.0), (2, 337.5)]
     cams = view_cameras(res, views)
-    for (c, a), cam in zip(views, cams):
+    for (c, a), cam in zip(views, cams, strict=True):
         assert cam.name == view_id(c, a)
         ref = RigGeometry.view_camera(res.rig_cameras[c], a)
         np.testing.assert_allclose(cam.world_from_cam, ref.world_from_cam, atol=1e-12)
@@ -324,7 +324,7 @@ def test_calibrate_session_reads_images_and_board(rendered, tmp_path):
         charuco=SPEC,
         nominal=rendered["nominal"],
     )
-    for a, b in zip(res.rig_cameras, ref.rig_cameras):
+    for a, b in zip(res.rig_cameras, ref.rig_cameras, strict=True):
         np.testing.assert_allclose(a.world_from_cam, b.world_from_cam, atol=1e-7)  # same images, same fit
         np.testing.assert_allclose(a.K, b.K, rtol=1e-7)
     assert res.seconds["detect"] > 0
@@ -373,7 +373,7 @@ def test_exact_observations_give_the_exact_rig(exact_rig):
     pe = pose_errors(res, true, align_gauge=True)
     assert pe["max_rotation_deg"] < 1e-6 and pe["max_position_mm"] < 1e-5 and pe["max_focal_pct"] < 1e-6
     assert pe["gauge_yaw_deg"] == pytest.approx(2.0, abs=1e-6)
-    for c, t in zip(res.rig_cameras, true):
+    for c, t in zip(res.rig_cameras, true, strict=True):
         np.testing.assert_allclose(c.dist, t.dist, atol=1e-7)
     # In the estimate's own gauge (yaw 0) the board sits at rot_y(-2 deg) of its true offset.
     centre = res.object_from_board[:3, :3] @ np.array([0.14, 0.10, 0.0]) + res.object_from_board[:3, 3]
@@ -530,7 +530,7 @@ def test_tilted_board_frees_the_principal_point(exact_rig):
     assert pe["max_focal_pct"] < 0.3
     # ~1 px of principal point is ~0.2 deg of camera rotation at f = 313 px.
     assert pe["max_rotation_deg"] < 0.3 and pe["max_position_mm"] < 1.5
-    for c, t in zip(res.rig_cameras, true):
+    for c, t in zip(res.rig_cameras, true, strict=True):
         assert c.fx / c.fy == pytest.approx(t.fx / t.fy, abs=2e-3)
     tilt_deg = math.degrees(math.acos(-res.object_from_board[1, 2]))
     assert tilt_deg == pytest.approx(math.degrees(math.acos(-tilt[1, 2])), abs=0.05)

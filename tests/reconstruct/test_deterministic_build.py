@@ -75,7 +75,7 @@ def _grid_shell(h: float):
 def _scene():
     cams = rcsynth.sphere_cameras(12, distance_m=0.16, sizes=((W, H),), focal_px=70.0)
     imgs, alphas = zip(
-        *[rcsynth.sphere_photo(c, r_true=0.8 * R_HULL, r_hull=R_HULL, textured=True, seed=1) for c in cams]
+        *[rcsynth.sphere_photo(c, r_true=0.8 * R_HULL, r_hull=R_HULL, textured=True, seed=1) for c in cams], strict=True
     )
     pos, nrm = _grid_shell(0.004)
     C = np.array([c.centre_world for c in cams])

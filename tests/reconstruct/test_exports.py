@@ -96,7 +96,7 @@ def test_colmap_export_reads_back_in_pycolmap(calibrated, tmp_path):
     by_name = {im.name: im for im in rec.images.values()}
     rng = np.random.default_rng(0)
     X = rng.uniform(-0.05, 0.05, (20, 3)) + [0.0, 0.05, 0.0]
-    for name, cam in zip(names, cams):
+    for name, cam in zip(names, cams, strict=True):
         im = by_name[name]
         M = im.cam_from_world().matrix()
         np.testing.assert_allclose(M, cam.cam_from_world[:3, :], atol=1e-12)
@@ -155,7 +155,7 @@ def test_nerfstudio_export_matches_the_opengl_convention(calibrated, tmp_path):
     meta = json.loads(out.read_text())
     assert meta["camera_model"] == "OPENCV" and "fl_x" not in meta  # per-frame intrinsics only
     X = np.random.default_rng(1).uniform(-0.05, 0.05, (30, 3)) + [0.0, 0.05, 0.0]
-    for fr, cam, (c, a) in zip(meta["frames"], cams, views):
+    for fr, cam, (c, a) in zip(meta["frames"], cams, views, strict=True):
         assert fr["file_path"] == f"images/{view_id(c, a)}.png"
         assert fr["mask_path"] == f"masks/{view_id(c, a)}.png"
         assert (fr["w"], fr["h"]) == (W, H)
@@ -198,7 +198,7 @@ def test_views_of_a_rig_round_trip_through_colmap_text_reader(calibrated, tmp_pa
     names = [view_id(c, a) for c, a in views]
     export_colmap(cams, names, tmp_path / "m", share_intrinsics=True)
     back = dict(read_colmap_text(tmp_path / "m"))
-    for n, cam in zip(names, cams):
+    for n, cam in zip(names, cams, strict=True):
         np.testing.assert_allclose(back[n].world_from_cam, cam.world_from_cam, atol=1e-12)
         np.testing.assert_allclose(back[n].K, cam.K, atol=1e-12)
         np.testing.assert_allclose(back[n].dist, cam.dist, atol=1e-15)

@@ -275,7 +275,7 @@ def test_build_storage_flag_and_the_bytes_per_view_in_the_report(cli_session, tm
     assert m.storage == "half" and summ["metrics"]["storage_pixel_type"] == "half"
     assert _pixel_types(m.view_path(0)) == {OpenEXR.HALF}
     assert _pixel_types(out / "reflectance" / f"{m.views[0].id}.exr") == {OpenEXR.HALF}
-    for a, b in zip(float_views, m.load_views_premul()):
+    for a, b in zip(float_views, m.load_views_premul(), strict=True):
         np.testing.assert_array_equal(b, a.astype(np.float16).astype(np.float32))
     assert 0.35 < summ["metrics"]["disk_bytes_per_view"] / float_bytes < 0.7
     assert summ["metrics"]["storage_clamped_values"] == 0

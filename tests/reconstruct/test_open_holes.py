@@ -105,7 +105,7 @@ def _real_masks(name):
     masks = sorted((root / "masks").glob("*.png"))
     images = sorted((root / "images").glob("*.png"))
     assert len(masks) == len(images) == 16
-    for m, i in zip(masks, images):
+    for m, i in zip(masks, images, strict=True):
         a = (cv2.imread(str(m), cv2.IMREAD_GRAYSCALE) > 127).astype(np.float32)
         rgb = (cv2.imread(str(i), cv2.IMREAD_COLOR)[..., ::-1].astype(np.float32) / 255.0) ** 2.2
         yield a, rgb

@@ -52,7 +52,7 @@ class Counted:
 @pytest.fixture(scope="module")
 def scene():
     cams = cameras(20, sizes=((64, 64), (56, 48), (72, 60)))
-    imgs, alphas = map(list, zip(*[render(c) for c in cams]))
+    imgs, alphas = map(list, zip(*[render(c) for c in cams], strict=True))
     # non-finite pixels and mattes: a NaN pixel invalidates patches, a NaN matte is outside
     imgs[3][20:26, 30:34] = np.nan
     alphas[5][10:40, 25:30] = np.nan
@@ -152,7 +152,7 @@ def test_refinement_equals_the_full_stack_reference(scene, monkeypatch, cfg):
     with monkeypatch.context() as m:
         _full_stack_path(m)
         ref = refine_surfels(pos, nrm, rad, vis, cams, imgs, alphas, config=cfg, exclude_views=[2])
-    for a, b in zip(got[:3], ref[:3]):
+    for a, b in zip(got[:3], ref[:3], strict=True):
         np.testing.assert_array_equal(a, b)
     for key in ("depth_m", "confident", "rim", "ncc"):
         np.testing.assert_array_equal(got[3][key], ref[3][key])

@@ -215,13 +215,13 @@ def test_distorted_camera_silhouette_is_resampled_conservatively():
         oc = o - CENTRE
         b = d @ oc
         sils_d.append((b * b - (oc @ oc - R * R) >= 0).reshape(c.height, c.width))
-    pin = [undistort_silhouette(s, c) for s, c in zip(sils_d, dist_cams)]
+    pin = [undistort_silhouette(s, c) for s, c in zip(sils_d, dist_cams, strict=True)]
     grid = HullGrid.from_bounds(CENTRE - 0.07, CENTRE + 0.07, 32)
     occ = carve_octree([p[0] for p in pin], [p[1] for p in pin], grid)
     # reference: project every centre through the distorted cameras
     pts = grid.all_centres().reshape(-1, 3)
     keep = np.ones(len(pts), bool)
-    for s, c in zip(sils_d, dist_cams):
+    for s, c in zip(sils_d, dist_cams, strict=True):
         uv, z = c.project(pts)
         px = np.floor(uv + 0.5)
         ok = (z > 0) & c.in_image(uv)

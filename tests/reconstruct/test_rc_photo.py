@@ -39,7 +39,7 @@ def render(cam, textured=True, seed=1):
 @pytest.fixture(scope="module")
 def scene():
     cams = cameras()
-    imgs, alphas = zip(*[render(c) for c in cams])
+    imgs, alphas = zip(*[render(c) for c in cams], strict=True)
     pos, nrm, rad, vis = rcsynth.sphere_hull_surfels(400, radius=R_HULL, cameras=cams)
     return cams, list(imgs), list(alphas), pos, nrm, rad, vis
 

@@ -186,10 +186,10 @@ def test_a_rank_deficient_stack_is_exact_at_its_rank(tmp_path):
     keys = [f"l{k}" for k in range(len(imgs))]
     p = tmp_path / "v.exr"
     for block in (None, 4):
-        pv = write_reflectance_pca(p, dict(zip(keys, imgs)), keys, shape=(H, W), error=1e-5, block=block)
+        pv = write_reflectance_pca(p, dict(zip(keys, imgs, strict=True)), keys, shape=(H, W), error=1e-5, block=block)
         assert pv.rank == 2 and pv.rel_error < 1e-6 and set(pv.ranks.ravel()) == {2}
         back = read_reflectance_pca(p, keys, shape=(H, W))
-        for k, img in zip(keys, imgs):
+        for k, img in zip(keys, imgs, strict=True):
             np.testing.assert_allclose(back[k], img, rtol=0, atol=2e-6)
     assert allocate_ranks([np.array([3.0, 1.0, 0.0, 0.0])], target=1e-9) == [2]
     # across blocks the largest sigma^2 are kept first: 4^2 + 3^2 of 4^2 + 3^2 + 1 + 0.5^2

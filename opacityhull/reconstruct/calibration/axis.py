@@ -11,7 +11,7 @@ height, azimuth from the board's x axis at table angle 0 (the gauge fixed by
 from __future__ import annotations
 
 import math
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -83,7 +83,7 @@ def estimate_turntable_axis(
     b = np.concatenate(rhs + [np.array([d @ centre])])
     o = np.linalg.lstsq(A, b, rcond=None)[0]
     back = []
-    for ai, T in zip(a, Ts):
+    for ai, T in zip(a, Ts, strict=True):
         Rb = axis_rotation(d, -math.radians(ai))
         Mb = rigid(Rb, o - Rb @ o)
         back.append(Mb @ T)

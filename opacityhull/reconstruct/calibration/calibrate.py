@@ -10,7 +10,8 @@ from __future__ import annotations
 
 import time
 from dataclasses import replace
-from typing import TYPE_CHECKING, Mapping, Sequence
+from typing import TYPE_CHECKING
+from collections.abc import Mapping, Sequence
 
 import numpy as np
 
@@ -242,7 +243,7 @@ def _calibrate_observations(
     rms_final, rms_init = [float("nan")] * n_cams, [float("nan")] * n_cams
     per_view: dict[str, float] = {}
     rows, row_views = [], []
-    for b, r, r_end, r_start in zip(blocks, res, rms_per_cam(x), initial_rms):
+    for b, r, r_end, r_start in zip(blocks, res, rms_per_cam(x), initial_rms, strict=True):
         K, dist, rv, tv = model.camera_params(b, x)
         cam_from_rig = rigid(rodrigues(rv), tv)
         rig_cams[b.index] = Camera(

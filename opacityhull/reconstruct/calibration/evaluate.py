@@ -11,7 +11,8 @@ from __future__ import annotations
 
 import functools
 import math
-from typing import Sequence
+from contextlib import suppress
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -87,7 +88,7 @@ def pose_errors(
         psi = math.atan2(
             np.sum(Re[:, 2] * Rt[:, 0] - Re[:, 0] * Rt[:, 2]), np.sum(Re[:, 0] * Rt[:, 0] + Re[:, 2] * Rt[:, 2])
         )
-        dy = float(np.mean([t.centre_world[1] - e.centre_world[1] for e, t in zip(est, true)]))
+        dy = float(np.mean([t.centre_world[1] - e.centre_world[1] for e, t in zip(est, true, strict=True)]))
         if X is not None:
             # Then (ψ, dy) minimising the working volume's reprojection differences.
             import nlopt
@@ -97,7 +98,7 @@ def pose_errors(
             def f(p, grad):
                 Gp = rigid(rot_y(p[0]), [0.0, p[1], 0.0])
                 tot = 0.0
-                for e, ut in zip(est, uv_true):
+                for e, ut in zip(est, uv_true, strict=True):
                     d = e.with_pose(Gp @ e.world_from_cam).project(X)[0] - ut
                     tot += float(np.nansum(d * d))
                 return tot
@@ -107,14 +108,12 @@ def pose_errors(
             opt.set_initial_step([math.radians(0.5), 0.005])
             opt.set_xtol_abs([1e-9, 1e-9])
             opt.set_maxeval(400)
-            try:
+            with suppress(nlopt.RoundoffLimited):
                 psi, dy = (float(v) for v in opt.optimize([psi, dy]))
-            except nlopt.RoundoffLimited:
-                pass
         G = rigid(rot_y(psi), [0.0, dy, 0.0])
         yaw = math.degrees(psi)
     rot, pos, foc, pp, vol = [], [], [], [], []
-    for e, t in zip(est, true):
+    for e, t in zip(est, true, strict=True):
         Te = G @ e.world_from_cam
         if volume_m:
             uv_e, _ = e.with_pose(Te).project(X)

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -255,7 +255,7 @@ def fit_intrinsics(
             rms, K, dist, rvecs, tvecs, per_view = fit(views, free_dist, choice)
     held = list(choice.held)
     held += [nm for nm in ("k1", "k2", "p1", "p2", "k3") if nm not in free_dist]
-    poses = [(o, rigid(rodrigues(rv), np.asarray(tv).ravel())) for o, rv, tv in zip(views, rvecs, tvecs)]
+    poses = [(o, rigid(rodrigues(rv), np.asarray(tv).ravel())) for o, rv, tv in zip(views, rvecs, tvecs, strict=True)]
     return IntrinsicsFit(
         K=np.asarray(K, dtype=np.float64),
         dist=np.asarray(dist, dtype=np.float64).ravel()[:5],

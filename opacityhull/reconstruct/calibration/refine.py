@@ -13,6 +13,7 @@ own pose.
 from __future__ import annotations
 
 import math
+from contextlib import suppress
 from dataclasses import dataclass
 from typing import Literal, overload
 
@@ -108,7 +109,7 @@ class RigModel:
     def camera_params(self, b: CamBlock, x: np.ndarray):
         K = b.K.copy()
         dist = b.dist.copy()
-        p = dict(zip(b.free, x[b.offset : b.offset + len(b.free)]))
+        p = dict(zip(b.free, x[b.offset : b.offset + len(b.free)], strict=True))
         if "f" in p:
             K[1, 1] = p["f"]
             K[0, 0] = p["f"] * b.aspect
@@ -234,12 +235,12 @@ def refine_nlopt(model: RigModel, x0: np.ndarray, *, max_iter: int, restarts: in
         # x = x_ref + D⁻¹ L⁻ᵀ δ  ⇒  the Hessian in δ is the identity at x_ref.
         x_ref = x_best.copy()
 
-        def to_x(delta):
+        def to_x(delta, x_ref=x_ref, L=L, d=d):
             return x_ref + solve_triangular(L.T, delta, lower=False) / d
 
         state = {"f": f_best, "x": x_best.copy()}
 
-        def objective(delta, grad):
+        def objective(delta, grad, L=L, d=d, state=state, to_x=to_x):
             x = to_x(delta)
             f, gx, _ = model.cost_grad_hessian(x, want_hessian=False)
             info["evaluations"] += 1
@@ -258,10 +259,9 @@ def refine_nlopt(model: RigModel, x0: np.ndarray, *, max_iter: int, restarts: in
         opt.set_ftol_rel(1e-13)
         opt.set_xtol_rel(1e-12)
         opt.set_vector_storage(min(model.n, 30))
-        try:
+        # L-BFGS hit the floating-point floor: the best point seen is kept
+        with suppress(nlopt.RoundoffLimited, RuntimeError, ValueError):
             opt.optimize(np.zeros(model.n))
-        except (nlopt.RoundoffLimited, RuntimeError, ValueError):
-            pass  # L-BFGS hit the floating-point floor; the best point seen is kept
         info["runs"] += 1
         improved = (f_best - state["f"]) > 1e-9 * max(f_best, 1e-300)
         if state["f"] < f_best:

@@ -10,7 +10,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field, fields
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any
+from collections.abc import Callable, Sequence
 
 from ...errors import InputError
 
@@ -31,7 +32,7 @@ class Step:
     """
 
     name: str
-    run: Callable[["BuildContext"], None]
+    run: Callable[[BuildContext], None]
     inputs: tuple[str, ...] = ()
     product: str | None = None
     params: tuple[str, ...] = ()

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 
@@ -12,7 +12,7 @@ from ...model import BRIGHT_EXTENSIONS, BUILD_DIR, OPEN_HOLES, write_hole_masks
 from ...riggeometry import view_id
 from ...session import Session
 from dataclasses import replace
-from typing import Sequence
+from collections.abc import Sequence
 
 from ...model import Surfels
 from ..lazyviews import _Subset
@@ -42,8 +42,8 @@ def step_geometry(
     progress=None,
     carve_batch: int | None = None,
     photo_slots: int | None = None,
-    open_holes: "PackedMasks | None" = None,
-    extensions: "PackedMasks | None" = None,
+    open_holes: PackedMasks | None = None,
+    extensions: PackedMasks | None = None,
     train: Sequence[int] | None = None,
 ) -> tuple[Geometry, str]:
     """Steps 3-6 (silhouettes, hull, surfels, visibility, refine): :func:`build_geometry`
@@ -157,7 +157,7 @@ def step_geometry(
         # a stale file from an earlier build would make the geometry holdout carve differently
         for name, masks in ((OPEN_HOLES, holes), (BRIGHT_EXTENSIONS, doubtful)):
             if masks is not None:
-                write_hole_masks(store.dir / name, {v: h for v, h in zip(vids, masks) if h is not None})
+                write_hole_masks(store.dir / name, {v: h for v, h in zip(vids, masks, strict=True) if h is not None})
             else:
                 (store.dir / name).unlink(missing_ok=True)
         return g

@@ -20,7 +20,7 @@ from .cameras import _Cameras
 log = logging.getLogger(__name__)
 
 
-def _drift_mode(session: Session, config: "BuildConfig") -> str:
+def _drift_mode(session: Session, config: BuildConfig) -> str:
     """The matting drift correction to use: ``config.matting_drift`` unless "auto".
     Auto corrects ("field") every session except the simulated rig without a sensor
     drift model, whose backdrop and object shots are photometrically identical by
@@ -86,7 +86,7 @@ def step_matting(
     mdir = store.model_dir / BUILD_DIR / "mattes"
     vids = [view_id(c, a) for c, a in views]
     tasks, keys, metas = [], [], {}
-    for i, ((c, a), cam) in enumerate(zip(views, cams.views)):
+    for i, ((c, a), cam) in enumerate(zip(views, cams.views, strict=True)):
         recs = session.select(phase="mask" if use_masks else "matting", camera=c, table_deg=a, kind=None)
         k = _digest(
             {
@@ -139,7 +139,7 @@ def step_matting(
                 off = w0
                 sub = None if progress is None else (lambda d, t, off=off, p=progress: p(off + d, len(items)))
                 done.extend(ex.map(fn, items[w0 : w0 + wave], progress=sub))
-            for (i, _), meta in zip(tasks, done):
+            for (i, _), meta in zip(tasks, done, strict=True):
                 metas[i] = meta
         return len(tasks)
 
@@ -147,7 +147,7 @@ def step_matting(
     cached(
         store,
         "matting",
-        inputs={"views": dict(zip(vids, keys))},
+        inputs={"views": dict(zip(vids, keys, strict=True))},
         params=params,
         run=mat,
         outputs=[f"{BUILD_DIR}/mattes/{v}.npy" for v in vids],

@@ -28,7 +28,7 @@ def _ground_truth_metrics(session, views, vids, alphas, occ, grid, cams, config,
     m: dict = {}
     per_view = []
     true_sils = []
-    for i, ((c, _), vid) in enumerate(zip(views, vids)):
+    for i, ((c, _), vid) in enumerate(zip(views, vids, strict=True)):
         p = gt / "alpha" / f"{vid}.exr"
         if not p.is_file():
             continue
@@ -45,7 +45,7 @@ def _ground_truth_metrics(session, views, vids, alphas, occ, grid, cams, config,
     # carving errors from what no visual hull can see (cavities, concavities)
     true_hull = None
     if len(true_sils) == len(vids):
-        ts = [undistort_silhouette(s, cam)[0] for s, cam in zip(true_sils, [c for c in cams.views])]
+        ts = [undistort_silhouette(s, cam)[0] for s, cam in zip(true_sils, [c for c in cams.views], strict=True)]
         true_hull = carve_octree(ts, pin, grid, root_cell=config.root_cell)
     if per_view:
         w = np.array([r["pixels"] for r in per_view], dtype=np.float64)

@@ -8,7 +8,7 @@ held-out views' visibility bits stay clear, so no renderer blends them
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Sequence
+from collections.abc import Sequence
 
 from ...errors import InputError
 from .base import Step
