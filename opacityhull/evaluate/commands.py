@@ -8,7 +8,7 @@ another folder (:func:`.runner.default_out`).
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated, Optional, get_args
+from typing import Annotated, get_args
 
 import typer
 from rich.markup import escape
@@ -64,8 +64,8 @@ def register(app, groups) -> None:
     @option_group(_LOO_SCHEDULER, into="executor", before="json_out")
     def loo_cmd(
         model: Annotated[Path, typer.Argument(help="Model folder.")],
-        views: Annotated[Optional[str], typer.Option("--views", help=_LOO_VIEWS_HELP)] = None,
-        out: Annotated[Optional[Path], typer.Option("--out", help=_LOO_OUT_HELP)] = None,
+        views: Annotated[str | None, typer.Option("--views", help=_LOO_VIEWS_HELP)] = None,
+        out: Annotated[Path | None, typer.Option("--out", help=_LOO_OUT_HELP)] = None,
         holdout: Annotated[str, typer.Option("--holdout", help=_HOLDOUT_HELP)] = "blend",
         twins: Annotated[str, typer.Option("--twins", help=_TWINS_HELP)] = "together",
         json_out: Annotated[bool, typer.Option("--json", help=_LOO_JSON_HELP)] = False,
@@ -147,7 +147,7 @@ def register(app, groups) -> None:
         model: Annotated[Path, typer.Argument(help="Model folder built with --hold-out.")],
         background: Annotated[str, typer.Option("--background", help=_TEST_BG_HELP)] = "white",
         renderer: Annotated[str, typer.Option("--renderer", help=_TEST_RENDERER_HELP)] = "auto",
-        out: Annotated[Optional[Path], typer.Option("--out", help=_TEST_OUT_HELP)] = None,
+        out: Annotated[Path | None, typer.Option("--out", help=_TEST_OUT_HELP)] = None,
         json_out: Annotated[bool, typer.Option("--json", help=_TEST_JSON_HELP)] = False,
         *,
         render_options: dict,
@@ -190,9 +190,9 @@ def register(app, groups) -> None:
     @_shared_options(envmap_required=True, map_before="out", config_before="json_out")
     def eval_relight_cmd(
         model: Annotated[Path, typer.Argument(help=_EVAL_MODEL_HELP)],
-        out: Annotated[Optional[Path], typer.Option("--out", help=_EVAL_OUT_HELP)] = None,
+        out: Annotated[Path | None, typer.Option("--out", help=_EVAL_OUT_HELP)] = None,
         spp: Annotated[int, typer.Option("--spp", help="Samples per pixel of Mitsuba's ground-truth render.")] = 64,
-        max_views: Annotated[Optional[int], typer.Option("--max-views", help=_MAX_VIEWS_HELP)] = None,
+        max_views: Annotated[int | None, typer.Option("--max-views", help=_MAX_VIEWS_HELP)] = None,
         json_out: Annotated[bool, typer.Option("--json", help=_EVAL_JSON_HELP)] = False,
         *,
         map_options: dict,

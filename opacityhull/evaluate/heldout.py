@@ -18,7 +18,8 @@ from __future__ import annotations
 import math
 import time
 from pathlib import Path
-from typing import Callable, Literal, cast
+from typing import Literal, cast
+from collections.abc import Callable
 
 import numpy as np
 

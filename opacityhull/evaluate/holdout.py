@@ -17,7 +17,8 @@ import logging
 from dataclasses import fields, replace
 from functools import lru_cache
 from pathlib import Path
-from typing import Callable, Literal, Sequence
+from typing import Literal
+from collections.abc import Callable, Sequence
 
 import numpy as np
 
@@ -172,7 +173,7 @@ class _Prefetched:
         if i not in self.cache:
             k = self.order.index(i) if i in self.order else None
             todo = [i] if k is None else [j for j in self.order[k : k + self.batch] if j not in self.cache]
-            for j, s in zip(todo, self.ex.map(rebuild_without, [(self.root, j) for j in todo])):
+            for j, s in zip(todo, self.ex.map(rebuild_without, [(self.root, j) for j in todo]), strict=True):
                 self.cache[j] = s
         return self.cache.pop(i)
 

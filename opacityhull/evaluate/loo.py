@@ -30,7 +30,8 @@ import logging
 import math
 import time
 from pathlib import Path
-from typing import Callable, Literal, Sequence, cast
+from typing import Literal, cast
+from collections.abc import Callable, Sequence
 
 import numpy as np
 

@@ -22,7 +22,7 @@ mask (``evaluate.metrics.relight_metrics``), relative L2 error.
 from __future__ import annotations
 
 import logging
-from typing import Sequence
+from collections.abc import Sequence
 
 import numpy as np
 

@@ -35,7 +35,8 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any
+from collections.abc import Callable, Sequence
 
 import numpy as np
 
@@ -348,7 +349,7 @@ def eval_relight(
         tiles, labels = [], []
         ref_img = rows[len(rows) // 2]
         exposure = auto_exposure(ref_img[0], ref_img[2].astype(np.float32))
-        for (truth, rgba, mask), p in zip(rows, per_view):
+        for (truth, rgba, mask), p in zip(rows, per_view, strict=True):
             err = np.abs(rgba[..., :3] - truth) * mask[..., None]
             tiles += [
                 to_srgb8(truth, exposure=exposure),
