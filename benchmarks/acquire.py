@@ -223,7 +223,7 @@ def main(argv=None) -> int:
         ax2.set_title(f"capture {cap['plan']} on {cap['rig'][:30]}")
         fig.tight_layout()
         fig.savefig(OUT / "acquire.png", dpi=100)
-    except Exception as e:  # pragma: no cover - plotting is optional
+    except Exception as e:  # noqa: BLE001  pragma: no cover - plotting is optional: any matplotlib failure skips the figure, not the summary
         print(f"plot skipped: {e}", file=sys.stderr)
     print(json.dumps(summary) if a.json else "\n".join(md))
     return 0

@@ -212,7 +212,7 @@ def plot(rows, path: Path) -> None:
         x = [r["build_s"] + r["geometry"]["ms_per_view"] / 1e3 for r in rs]
         y = [r["geometry"]["psnr_mean"] for r in rs]
         ax.plot(x, y, "o-", label=s)
-        for xi, yi, r in zip(x, y, rs):
+        for xi, yi, r in zip(x, y, rs, strict=True):
             ax.annotate(r["config"], (xi, yi), fontsize=6)
         if s in BASELINE:
             ax.axhline(BASELINE[s]["psnr"], ls=":", lw=0.8, color=ax.lines[-1].get_color())

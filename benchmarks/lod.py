@@ -51,6 +51,7 @@ def _psnr(a, b) -> float:
 def packed_geometry(tree, stats, *, offset_bits: int = 3) -> dict:
     """The bundle's geometry of ``tree``: packed records, codebooks, visibility dictionary
     and the leaves' octree position code; the decoded tree and statistics."""
+    from opacityhull.errors import InputError
     from opacityhull.render.spg import pack_nodes, unpack_nodes
     from opacityhull.view.octree_code import (
         apply_offsets,
@@ -71,7 +72,7 @@ def packed_geometry(tree, stats, *, offset_bits: int = 3) -> dict:
         try:
             oc = encode_positions(P, cell_m=cell)
             break
-        except Exception:  # a cell over 255 points: refine
+        except InputError:  # a cell over 255 points: refine
             cell *= 0.5
     assert oc is not None
     _, codes_z, counts_z = pack(oc)
@@ -279,10 +280,7 @@ def main(argv=None) -> int:
     ap.add_argument("--json", action="store_true", help="print the results as one JSON object on stdout")
     ap.add_argument("--no-browser", action="store_true", help="skip the viewer bundle's browser timings")
     args = ap.parse_args(argv)
-    if args.quick:
-        res = measure(20_000, (4,), 64, 48)
-    else:
-        res = measure(50_000, (4, 13, 20), 128, 96)
+    res = measure(20_000, (4,), 64, 48) if args.quick else measure(50_000, (4, 13, 20), 128, 96)
     if not args.no_browser:
         res["browser"] = browser_row(res["surfels"])
         print(res["browser"], file=sys.stderr)

@@ -98,7 +98,7 @@ def main(argv=None) -> int:
     for j, (k, lab) in enumerate((("umbrella", "umbrella"), ("marching_cubes", "marching cubes"))):
         ax[0].bar(x + 0.4 * j, [100 * r[k]["manifold_edge_fraction"] for r in rows], 0.4, label=lab)
         ax[1].bar(x + 0.4 * j, [r[k]["chamfer_voxels"] for r in rows], 0.4, label=lab)
-    for a, t in zip(ax, ("manifold edges (%)", "Chamfer to surfels (spacings)")):
+    for a, t in zip(ax, ("manifold edges (%)", "Chamfer to surfels (spacings)"), strict=True):
         a.set_xticks(x + 0.2, names, fontsize=7)
         a.set_title(t)
     ax[0].axhline(99, color="grey", ls=":")

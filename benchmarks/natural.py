@@ -405,7 +405,7 @@ def write_report(res, out: Path) -> None:
     ax[2].set_title(f"moving bar per position, K = 25, N = {sw['per_kind_N']}")
     ax[2].grid(alpha=0.3)
     ax[2].legend(fontsize=8)
-    for a, t in zip(ax[:2], ["held-out natural images", "moving white bar, worst position"]):
+    for a, t in zip(ax[:2], ["held-out natural images", "moving white bar, worst position"], strict=True):
         a.set_xscale("log")
         a.set_xlabel(f"estimation time for {sw['n_pixels']} px (s, one core, contended)")
         a.set_ylabel("PSNR (dB)")
@@ -458,7 +458,7 @@ def bench_sim(out: Path, *, scenes, Ns, n_test, n_bar, scale, camera=2, table_de
         truth_b = [
             ne.render_display_image(rig, camera, table_deg, "back", p, seed=2000 + k) for k, p in enumerate(bars)
         ]
-        L = lambda p: p.astype(np.float64) / 255 * back.max_radiance  # noqa: E731
+        L = lambda p, back=back: p.astype(np.float64) / 255 * back.max_radiance  # noqa: E731
         rows = []
         for N in Ns:
             t1 = time.perf_counter()
@@ -469,11 +469,11 @@ def bench_sim(out: Path, *, scenes, Ns, n_test, n_bar, scale, camera=2, table_de
             f = dataclasses.replace(f, pixel_index=idx.astype(np.int32), image_hw=mask.shape)
             pt = [
                 ne.compare(nt.scatter_pixels(f, nt.relight_natural(f, L(p))), t, mask)["psnr"]
-                for p, t in zip(tests, truth_t)
+                for p, t in zip(tests, truth_t, strict=True)
             ]
             pb = [
                 ne.compare(nt.scatter_pixels(f, nt.relight_natural(f, L(p))), t, mask)["psnr"]
-                for p, t in zip(bars, truth_b)
+                for p, t in zip(bars, truth_b, strict=True)
             ]
             rows.append(
                 dict(

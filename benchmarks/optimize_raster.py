@@ -109,7 +109,7 @@ def _passes(params, cam, d_img, d_alpha, reps: int) -> dict:
     best = {k: math.inf for k in ("fwd_wall", "fwd_cpu", "bwd_wall", "bwd_cpu")}
     for _ in range(reps):
         out, w, c = _timed(lambda: rasterize(params, cam))
-        _, wb, cb = _timed(lambda: rasterize_backward(out, params, cam, dL_dimage=d_img, dL_dalpha=d_alpha))
+        _, wb, cb = _timed(lambda out=out: rasterize_backward(out, params, cam, dL_dimage=d_img, dL_dalpha=d_alpha))
         best = {
             "fwd_wall": min(best["fwd_wall"], w),
             "fwd_cpu": min(best["fwd_cpu"], c),

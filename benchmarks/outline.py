@@ -131,7 +131,7 @@ class ExactOutline:
         doubted = read_hole_masks(root / BUILD_DIR / BRIGHT_EXTENSIONS)
         strong = [
             strong_silhouette(s, open_holes=opened.get(v.id), doubtful_extensions=doubted.get(v.id))[0] | s
-            for v, s in zip(model.views, sils)
+            for v, s in zip(model.views, sils, strict=True)
         ]
         self.sil = np.stack(sils).astype(np.uint8)
         self.strong = np.stack(strong).astype(np.uint8)

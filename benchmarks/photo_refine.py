@@ -281,7 +281,7 @@ def write_outputs(rows, args):
     allrows = [(run["hull_res"], r) for run in runs.values() for r in run["rows"]]
     sets = list(dict.fromkeys(r["set"] for _, r in allrows))
     fig, axes = plt.subplots(1, len(sets), figsize=(6 * len(sets), 3.8), squeeze=False)
-    for ax, s in zip(axes[0], sets):
+    for ax, s in zip(axes[0], sets, strict=True):
         rs = [(h, r) for h, r in allrows if r["set"] == s]
         labels = [f"{h}\n{r['variant']}" + ("" if r["protocol"] == "-" else f"\n{r['protocol']}") for h, r in rs]
         ax.bar(

@@ -176,7 +176,7 @@ def bench_carving(quick: bool) -> dict:
     t_oct = best_of(lambda: carve_octree(sils, cams, grid), reps)
     roots = {}
     for rc in (8, 16, 32, 64):
-        roots[rc] = best_of(lambda: carve_octree(sils, cams, grid, root_cell=rc), 1 if quick else 2)
+        roots[rc] = best_of(lambda rc=rc: carve_octree(sils, cams, grid, root_cell=rc), 1 if quick else 2)
     occ_d = carve_dense(sils, cams, grid)
     t_dense = best_of(lambda: carve_dense(sils, cams, grid), 1 if quick else 2)
     ref_small = carve_reference(sils, cams, HullGrid.from_bounds(lo, hi, 48))

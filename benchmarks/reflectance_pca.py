@@ -49,8 +49,8 @@ def _relit(model, envs):
 
 def _relit_error(ref, got) -> float:
     num = den = 0.0
-    for re_, ge in zip(ref, got):
-        for a, b in zip(re_, ge):
+    for re_, ge in zip(ref, got, strict=True):
+        for a, b in zip(re_, ge, strict=True):
             m = a[..., 3] > 0
             num += float(np.sum((a[..., :3][m].astype(np.float64) - b[..., :3][m]) ** 2))
             den += float(np.sum(a[..., :3][m].astype(np.float64) ** 2))

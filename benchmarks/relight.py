@@ -25,7 +25,8 @@ import sys
 import tempfile
 import time
 from pathlib import Path
-from typing import Callable, TypeVar
+from typing import TypeVar
+from collections.abc import Callable
 
 import numpy as np
 from benchkit import out_dir, parser, print_result, pyplot, report_head, save_figure
@@ -170,7 +171,7 @@ class SphereViews:
         from opacityhull.relight.synthetic import _one_light_images
 
         out = []
-        for (cam, a), (n, h) in zip(self.views, self.hits):
+        for (_cam, a), (n, h) in zip(self.views, self.hits, strict=True):
             d = ls.directions_object(a)
             out.append(_one_light_images(n, h, self.scene.albedo(np.nan_to_num(n)), d, ls.output_rgb))
         return out
@@ -181,7 +182,7 @@ class SphereViews:
 
         errs = []
         t = 0.0
-        for (cam, a), s, tr, al in zip(self.views, stacks, truths, self.alpha):
+        for (_cam, a), s, tr, al in zip(self.views, stacks, truths, self.alpha, strict=True):
             t0 = time.perf_counter()
             w = integrate_envmap(env, ls.directions_object(a), config=config) / ls.output_rgb
             rel = relight_stack(s, w)

@@ -246,8 +246,8 @@ def plots(tp_rows, acc_rows, source):
     knobs = ["k", "filter", "density"]
     models = list(dict.fromkeys(r["model"] for r in acc_rows))
     fig, ax = plt.subplots(len(models), 3, figsize=(13, 3.8 * len(models)), squeeze=False)
-    for row_ax, mname in zip(ax, models):
-        for a, knob in zip(row_ax, knobs):
+    for row_ax, mname in zip(ax, models, strict=True):
+        for a, knob in zip(row_ax, knobs, strict=True):
             b = a.twinx()
             for sh, ls in (("surfel", "-"), ("pixel", "--")):
                 rr = [r for r in acc_rows if r["knob"] == knob and r["model"] == mname and r["shading"] == sh]

@@ -413,7 +413,7 @@ def _dir_bytes_per_view(model, sub: str) -> float:
     return sum(f.stat().st_size for f in files if f.is_file()) / len(model.views)
 
 
-def _copy_model(m, dst: Path, storage: "Storage"):
+def _copy_model(m, dst: Path, storage: Storage):
     """``m`` rewritten through ``write_model`` in ``storage`` (both copies of a pair go
     through the same path, so they differ only in the pixel type)."""
     from opacityhull.model import copy_model
@@ -454,7 +454,7 @@ def storage_comparison(tmp: Path, *, quick: bool) -> dict:
         builds["half"]["disk_bytes_per_view"] / builds["float"]["disk_bytes_per_view"]
     )
     fm, hm = (OpacityHullModel.open(tmp / f"st_build_{st}.model") for st in ("float", "half"))
-    d = [np.max(np.abs(a - b)) for a, b in zip(fm.load_views_premul(), hm.load_views_premul())]
+    d = [np.max(np.abs(a - b)) for a, b in zip(fm.load_views_premul(), hm.load_views_premul(), strict=True)]
     res["build_views_max_abs_err"] = float(max(d))
     for p in (s, tmp / "st_build_float.model", tmp / "st_build_half.model"):
         shutil.rmtree(p, ignore_errors=True)
@@ -571,7 +571,7 @@ def plot(rows: list[dict], sched: dict, path: Path, base_mb: float | None = None
         "resolution (48 views)": [r for r in rows if r["views"] == 48 and r["lights"] == 0],
         "light directions (48 views)": [r for r in rows if r["views"] == 48 and r["width"] == rows[0]["width"]],
     }
-    for a, (title, rr) in zip(ax[:2], [("time", "build_s"), ("peak RSS", "peak_rss_mb")]):
+    for a, (title, rr) in zip(ax[:2], [("time", "build_s"), ("peak RSS", "peak_rss_mb")], strict=True):
         for g, pts in groups.items():
             if len(pts) < 2:
                 continue

@@ -309,7 +309,7 @@ def matting_candidates(scenes=None, *, rounds: int = 4, ref_spp: int = 256, scal
         p2 = {k: (255 - v).astype(np.uint8) for k, v in p1.items()}
         st = [SimState(table_deg=table, displays=p) for p in (p1, p2)]
 
-        def run(cfg, s0):
+        def run(cfg, s0, *, r=r, st=st, cam=cam):  # this iteration's renderer and camera, bound here
             # per pattern: the backdrop shot, then the object shot (its outside pixels
             # from the backdrop pass), as a capture takes them; each pair timed
             r.clear_radiance_cache()
@@ -532,7 +532,7 @@ def write_outputs(
     fig, axes = plt.subplots(1, 2, figsize=(13, 5))
     ax = axes[0]
     phases = sorted({r["phase"] for r in rows})
-    markers = dict(zip(phases, "osD^vP*X"))
+    markers = dict(zip(phases, "osD^vP*X", strict=False))  # fewer phases than markers: the rest go unused
     for r in rows:
         y = max(r["error"], 1e-5)
         ax.scatter(

@@ -50,7 +50,7 @@ def measure(scales, rounds: int) -> list[dict]:
                 "selected": select_effects(sc, "matting", pixels=cam.width * cam.height),
             }
 
-            def pair(cfg, seed):
+            def pair(cfg, seed, *, r=r, cam=cam):  # this iteration's renderer and camera, bound here
                 pat = {
                     d.name: rng.integers(0, 256, (d.resolution[1], d.resolution[0], 3), np.uint8) for d in g.displays
                 }
