@@ -176,6 +176,7 @@ EXCEPTIONS: dict[tuple[str, str], str] = {
     # is the fitting's own forward pass, reached from this one module of render/
     ("opacityhull.render.splats", "opacityhull.optimize.fit"): "the fitted splats' forward pass and loader",
     ("opacityhull.render.splats", "opacityhull.optimize.data"): "the fitted splats' model fingerprint",
+    ("opacityhull.render.splats", "opacityhull.optimize.raster"): "the fitted splats with given (relit) colours",
 }
 
 

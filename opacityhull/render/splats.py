@@ -38,6 +38,7 @@ __all__ = [
     "resolve_renderer",
     "distorted",
     "FittedSplats",
+    "ulr_surfel_colours",
 ]
 
 Renderer = Literal["auto", "fitted", "ulr"]
@@ -128,6 +129,8 @@ class FittedSplats:
     def __init__(self, params: dict[str, np.ndarray]):
         self.params = params
         self.sh_degree = int(round(np.sqrt(params["sh"].shape[1]))) - 1
+        self._nn: np.ndarray | None = None  # nearest hull surfel per splat (nearest_surfels)
+        self._nn_key: int | None = None
 
     @classmethod
     def load(cls, model_root: Path) -> "FittedSplats":
@@ -163,5 +166,115 @@ class FittedSplats:
             weight=a.copy(),
             coverage=np.clip(a, 0.0, 1.0).astype(np.float32),
             camera=camera,
-            stats={"splats": len(self), "ms_total": 1e3 * (time.perf_counter() - t)},
+            stats={"splats": len(self), "ms": {"total": 1e3 * (time.perf_counter() - t)}},
         )
+
+    def nearest_surfels(self, surfels) -> np.ndarray:
+        """(N,) index of the hull surfel nearest to each fitted splat's centre (computed
+        once per ``surfels``): what a splat takes its reflectance from."""
+        key = id(surfels)
+        if self._nn is None or self._nn_key != key:
+            from scipy.spatial import KDTree
+
+            _, nn = KDTree(np.asarray(surfels.positions, np.float64)).query(np.asarray(self.params["means"]), 1)
+            self._nn, self._nn_key = np.asarray(nn, np.int64), key
+        return self._nn
+
+    def render_colours(self, camera: Camera, colours: np.ndarray, *, drawn: np.ndarray | None = None):
+        """The splats' geometry and opacity with given linear ``colours`` (N, 3) (relit
+        colours, say) seen by ``camera``: a :class:`RenderResult` whose ``rgba`` is the
+        straight linear composite (no SH, no display decoding; distortion included).
+        ``drawn`` (N,) bool: splats left out (an opacity of zero) where False."""
+        from ..optimize.raster import RasterCamera, RasterConfig, SplatParams, rasterize
+        from .renderer import RenderResult
+
+        t = time.perf_counter()
+        p = self.params
+        logits = np.asarray(p["opacity_logits"], np.float32)
+        if drawn is not None:
+            logits = np.where(drawn, logits, np.float32(-1e4)).astype(np.float32)
+        sp = SplatParams(
+            means=p["means"],
+            quats=p["quats"],
+            log_scales=p["log_scales"],
+            opacity_logits=logits,
+            colors=np.ascontiguousarray(colours, np.float32),
+        )
+        rc = RasterCamera(
+            K=np.asarray(camera.K, np.float64),
+            cam_from_world=np.asarray(camera.cam_from_world, np.float64)[:3, :4],
+            width=int(camera.width),
+            height=int(camera.height),
+        )
+        out = rasterize(sp, rc, config=RasterConfig())
+        a = np.clip(out.alpha, 0.0, 1.0).astype(np.float32)
+        straight = np.where(a[..., None] > 1e-6, out.image / np.maximum(a[..., None], 1e-6), 0.0)
+        rgba = distorted(np.concatenate([straight, a[..., None]], axis=2).astype(np.float32), camera)
+        a = rgba[..., 3]
+        return RenderResult(
+            rgba=rgba,
+            depth=np.where(a > 0, np.float32(np.nan), np.float32(np.inf)).astype(np.float32),
+            weight=a.copy(),
+            coverage=np.clip(a, 0.0, 1.0).astype(np.float32),
+            camera=camera,
+            stats={"splats": len(self), "ms": {"total": 1e3 * (time.perf_counter() - t)}},
+        )
+
+    def render_relit(self, camera: Camera, surfels, view_cameras, images, *, k: int = 4, exclude_views=()):
+        """The splats seen by ``camera``, each with the Unstructured-Lumigraph blend of
+        ``images`` (e.g. relit views, premultiplied) sampled where the splat itself
+        projects (:func:`ulr_surfel_colours`), over the views that see its nearest hull
+        surfel (the splats carry no visibility of their own): a relit picture of the fitted
+        geometry. Splats whose nearest surfel no view sees are left out."""
+        from ..model import Surfels
+
+        nn = self.nearest_surfels(surfels)
+        at = Surfels(
+            positions=self.params["means"],
+            normals=np.asarray(surfels.normals)[nn],
+            radii=np.exp(np.asarray(self.params["log_scales"], np.float32).max(axis=1)),
+            visibility=np.asarray(surfels.visibility)[nn],
+            n_views=surfels.n_views,
+        )
+        rgba, count = ulr_surfel_colours(
+            at, view_cameras, images, camera.centre_world, k=k, exclude_views=exclude_views
+        )
+        a = rgba[:, 3:4]
+        straight = np.where(a > 1e-6, rgba[:, :3] / np.maximum(a, 1e-6), 0.0)
+        return self.render_colours(camera, straight, drawn=count > 0)
+
+
+def _bilinear(img: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """(M, C) bilinear samples of ``img`` (H, W, C) at pixel coordinates ``uv`` (M, 2)
+    (OpenCV: (0, 0) the top-left pixel's centre); zero outside the image."""
+    H, W = img.shape[:2]
+    x, y = uv[:, 0].astype(np.float64), uv[:, 1].astype(np.float64)
+    x0, y0 = np.floor(x).astype(np.int64), np.floor(y).astype(np.int64)
+    fx, fy = (x - x0)[:, None], (y - y0)[:, None]
+    out = np.zeros((len(uv), img.shape[2]), np.float64)
+    for dx, dy, w in ((0, 0, (1 - fx) * (1 - fy)), (1, 0, fx * (1 - fy)), (0, 1, (1 - fx) * fy), (1, 1, fx * fy)):
+        xi, yi = x0 + dx, y0 + dy
+        ok = (xi >= 0) & (xi < W) & (yi >= 0) & (yi < H)
+        out[ok] += w[ok] * img[yi[ok], xi[ok]]
+    return out
+
+
+def ulr_surfel_colours(
+    surfels, view_cameras, images, desired_centre, *, k: int = 4, exclude_views=()
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per surfel the Unstructured-Lumigraph blend of ``images`` (V premultiplied RGBA
+    (H, W, 4), one per camera) for a camera at ``desired_centre``: the weights of
+    :func:`~opacityhull.render.renderer.ulr_weights`, each view sampled bilinearly at the
+    surfel's projection. Returns (N, 4) float32 premultiplied RGBA and (N,) the number of
+    candidate views (0: no view sees the surfel, its colour is 0)."""
+    from .renderer import ulr_weights
+
+    w = ulr_weights(surfels, list(view_cameras), desired_centre, k=k, exclude_views=list(exclude_views))
+    N = len(surfels)
+    out = np.zeros((N, 4), np.float64)
+    for j in range(w.index.shape[1]):
+        vi = w.index[:, j]
+        for v in np.unique(vi[vi >= 0]):
+            sel = np.flatnonzero(vi == v)
+            out[sel] += w.weight[sel, j, None] * _bilinear(np.asarray(images[v], np.float32), w.uv[sel, j])
+    return out.astype(np.float32), np.asarray(w.count)

@@ -114,3 +114,24 @@ def test_bad_renderer_input_exits_2_and_writes_nothing(model, tmp_path):
     for m in (plain, stale):
         r = run("render", m, "--view", "0,0", "--out", tmp_path / f"{m.name}.png", "--json")
         assert r.exit_code == 0 and json.loads(r.stdout)["renderer"] == "ulr"
+
+
+def test_ulr_surfel_colours_at_a_captured_camera_sample_that_view(model):
+    """At a captured camera the ULR weights are one-hot on that view: each surfel it sees
+    gets the view's texel at its projection (OpenCV's bilinear remap as the reference)."""
+    import cv2
+
+    from opacityhull.render.renderer import model_surfels
+    from opacityhull.render.splats import ulr_surfel_colours
+
+    m = OpacityHullModel.open(model)
+    s = model_surfels(m)
+    cams = [v.camera for v in m.views]
+    images = [_premul(m.load_view_rgba(i)) for i in range(len(m.views))]
+    v = 5
+    rgba, count = ulr_surfel_colours(s, cams, images, cams[v].centre_world, k=4)
+    seen = s.visible_bool()[:, v]
+    assert seen.sum() > 500 and np.all(count[seen] > 0)
+    uv = np.asarray(cams[v].project(s.positions[seen].astype(np.float64))[0], np.float32)
+    ref = cv2.remap(images[v], uv[:, 0], uv[:, 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
+    np.testing.assert_allclose(rgba[seen], ref.reshape(-1, 4), atol=2e-3)
