@@ -1048,8 +1048,10 @@ class Viewer {
     const density = 1.0;
     const tau = this.tau(dist);
     this.lastTau = tau;  // (the CPU reference draws the same cut: bundle.bundle_cut)
-    const fitted = this.renderer === "fitted" && this.splatsReady;
-    const relit = this.lighting !== null && this.relitReady && !fitted;
+    // relit (a bundled map chosen) the page blends the relit views on the hull's surfels:
+    // the splats' SH holds the captured lighting only
+    const fitted = this.renderer === "fitted" && this.splatsReady && this.lighting === null;
+    const relit = this.lighting !== null && this.relitReady;
     if (relit) this.relightViews();
     if (fitted) this._drawSplats(cam, Rt, t, C);
     else {
