@@ -21,6 +21,7 @@ with the fitting.
 from __future__ import annotations
 
 import json
+import logging
 import time
 from pathlib import Path
 from typing import Literal, Sequence
@@ -43,6 +44,8 @@ __all__ = [
 
 Renderer = Literal["auto", "fitted", "ulr"]
 RENDERERS: tuple[Renderer, ...] = ("auto", "fitted", "ulr")
+
+log = logging.getLogger(__name__)
 FittedState = Literal["fitted", "stale", "none"]
 
 
@@ -84,6 +87,12 @@ def resolve_renderer(
         raise InputError(
             f"{flag} fitted: {model_root}'s fitted splats (optimized/splats.ply) {why}; "
             "build with --optimize fast or full"
+        )
+    if renderer == "auto" and state == "stale":
+        log.warning(
+            "%s: its fitted splats (optimized/) were fitted from an earlier build of this folder; drawing the hull "
+            "(build again with --optimize to fit this one)",
+            model_root,
         )
     used: Literal["fitted", "ulr"] = (
         "fitted" if renderer == "fitted" or (renderer == "auto" and state == "fitted") else "ulr"
