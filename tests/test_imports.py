@@ -172,6 +172,11 @@ EXCEPTIONS: dict[tuple[str, str], str] = {
     ("opacityhull.optimize.appearance", "opacityhull.export.sh"): "SH basis (to move to the core)",
     ("opacityhull.optimize.data", "opacityhull.export.sh"): "SH fit (to move to the core)",
     ("opacityhull.optimize.data", "opacityhull.export.samples"): "per-view samples (to move to the core)",
+    # the fitted splats (MODEL/optimized/) are part of the model format; their one renderer
+    # is the fitting's own forward pass, reached from this one module of render/
+    ("opacityhull.render.splats", "opacityhull.optimize.fit"): "the fitted splats' forward pass and loader",
+    ("opacityhull.render.splats", "opacityhull.optimize.data"): "the fitted splats' model fingerprint",
+    ("opacityhull.render.splats", "opacityhull.optimize.raster"): "the fitted splats with given (relit) colours",
 }
 
 
@@ -225,6 +230,8 @@ ARROWS = [
     ("opacityhull.reconstruct.holdout", "opacityhull.render.evaluate", False),  # the old render<->reconstruct pair
     ("opacityhull.render.commands", "opacityhull.reconstruct.holdout", False),
     ("opacityhull.render.renderer", "opacityhull.reconstruct.build", False),
+    ("opacityhull.render.splats", "opacityhull.optimize.fit", True),  # the fitted splats' renderer
+    ("opacityhull.render.runner", "opacityhull.optimize.fit", False),  # ... only through render/splats.py
     ("opacityhull.relight.runner", "opacityhull.render.renderer", True),
     ("opacityhull.relight.evaluate", "opacityhull.sim.render", False),  # only evaluate reaches into sim
     ("opacityhull.evaluate.relight", "opacityhull.sim.render", True),

@@ -27,6 +27,7 @@ from ..errors import InputError
 from ..imageio import srgb_encode
 from ..model import BUILD_DIR, FILLED_HOLES, OpacityHullModel, read_hole_masks
 from ..render.renderer import RenderConfig, model_surfels, prepare_model_views, render_image
+from ..render.splats import RENDERERS, FittedSplats, Renderer, fitted_state, resolve_renderer
 from .loo import _photograph, contact_sheet, loo_metrics
 
 __all__ = [
@@ -42,23 +43,6 @@ __all__ = [
 
 Background = Literal["white", "black"]
 BACKGROUNDS: tuple[Background, ...] = ("white", "black")
-Renderer = Literal["auto", "fitted", "ulr"]
-RENDERERS: tuple[Renderer, ...] = ("auto", "fitted", "ulr")
-
-
-def _distorted(rgba: np.ndarray, cam) -> np.ndarray:
-    """A pinhole rendering (the fitted splats are rasterized without distortion) resampled
-    onto ``cam``'s distorted pixel grid, where the photograph lives."""
-    if not np.any(np.asarray(cam.dist) != 0):
-        return rgba
-    import cv2
-
-    H, W = rgba.shape[:2]
-    v, u = np.mgrid[0:H, 0:W].astype(np.float32)
-    pts = np.stack([u.ravel(), v.ravel()], axis=1)[:, None, :]
-    K = np.asarray(cam.K, np.float64)
-    und = cv2.undistortPoints(pts, K, np.asarray(cam.dist, np.float64), P=K).reshape(H, W, 2)
-    return cv2.remap(rgba, und[..., 0], und[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT)
 
 
 def held_out_views(model: OpacityHullModel) -> list[int]:
@@ -99,26 +83,6 @@ def image_metrics(photo_rgba: np.ndarray, render_rgba: np.ndarray, *, background
     return {"psnr": psnr, "ssim": ssim}
 
 
-def fitted_state(model_root: Path) -> str:
-    """Whether the model has fitted splats its renderers can use: ``"fitted"`` (the
-    ``optimize`` step's ``MODEL/optimized/splats.ply``, fitted from this very model:
-    ``fit.json``'s fingerprint matches ``model.toml`` + ``surfels.ply``), ``"stale"`` (fitted
-    from another build of the folder) or ``"none"``."""
-    import json
-
-    from ..optimize.data import model_fingerprint
-    from ..optimize.fit import OPTIMIZED_DIR, SPLATS_PLY
-
-    d = Path(model_root) / OPTIMIZED_DIR
-    if not (d / SPLATS_PLY).is_file() or not (d / "fit.json").is_file():
-        return "none"
-    try:
-        fp = json.loads((d / "fit.json").read_text()).get("model")
-    except (OSError, ValueError):
-        return "stale"
-    return "fitted" if fp == model_fingerprint(Path(model_root)) else "stale"
-
-
 def eval_test(
     model_path,
     *,
@@ -149,23 +113,10 @@ def eval_test(
 
     if background not in BACKGROUNDS:
         raise InputError(f"--background {background!r}: expected one of {', '.join(BACKGROUNDS)}")
-    if renderer not in RENDERERS:
-        raise InputError(f"--renderer {renderer!r}: expected one of {', '.join(RENDERERS)}")
     model = OpacityHullModel.open(model_path)
     idx = held_out_views(model)
-    state = fitted_state(Path(model.root))
-    if renderer == "fitted" and state != "fitted":
-        why = "were fitted from an earlier build of this folder" if state == "stale" else "are missing"
-        raise InputError(
-            f"--renderer fitted: {model.root}'s fitted splats (optimized/splats.ply) {why}; "
-            "build with --optimize fast or full"
-        )
-    used = "fitted" if renderer == "fitted" or (renderer == "auto" and state == "fitted") else "ulr"
-    fitted_params = None
-    if used == "fitted":
-        from ..optimize.fit import load_fitted
-
-        fitted_params = load_fitted(Path(model.root))
+    used = resolve_renderer(Path(model.root), renderer)
+    fitted = FittedSplats.load(Path(model.root)) if used == "fitted" else None
     out = Path(out) if out is not None else default_out(model_path, "test")
     cams = [v.camera for v in model.views]
     surfels = model_surfels(model)
@@ -183,10 +134,8 @@ def eval_test(
     for j, i in enumerate(idx):
         t0 = time.perf_counter()
         # nothing to exclude: the held-out view's bits are clear, so it is never blended
-        if fitted_params is not None:
-            from ..optimize.fit import render_params
-
-            rgba, coverage = _distorted(render_params(fitted_params, cams[i]), cams[i]), None
+        if fitted is not None:
+            rgba, coverage = fitted.rgba(cams[i]), None
         else:
             res = render_image(surfels, cams, pv, cams[i], config=config)
             rgba, coverage = res.rgba, res.coverage

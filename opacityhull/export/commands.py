@@ -24,6 +24,12 @@ def register(app, groups) -> None:
         sh_degree: int = typer.Option(
             3, "--sh-degree", help="ply: SH degree (1-3) of splats.ply's view-dependent colour."
         ),
+        splats: str = typer.Option(
+            "auto",
+            "--splats",
+            help="ply: fitted (the splats of build --optimize) | hull (the hull's surfels, SH fit to the views) "
+            "| auto (fitted when the model has splats fitted from this build).",
+        ),
         max_points: int = typer.Option(50000, "--max-points", help="colmap: at most this many surfels as points3D."),
         nerfstudio_alpha: str = typer.Option(
             "rgba", "--nerfstudio-alpha", help="nerfstudio: 'rgba' PNGs, or 'mask' (RGB + single-channel mask_path)."
@@ -42,7 +48,7 @@ def register(app, groups) -> None:
 
             raise InputError(f"--format {fmt!r}: expected one of {', '.join(FORMATS)}")
         opts = {
-            "ply": {"sh_degree": sh_degree},
+            "ply": {"sh_degree": sh_degree, "splats": splats},
             "colmap": {"max_points": max_points},
             "nerfstudio": {"alpha": nerfstudio_alpha},
             "mesh": {"method": mesh_method},

@@ -5,7 +5,9 @@
 * ``colmap`` — ``sparse/0`` in COLMAP text and binary (written by pycolmap), ``images/``,
   points3D = surfel positions with their mean colour and tracks from the visibility bits.
 * ``ply`` — ``points.ply`` (x y z nx ny nz red green blue alpha) and ``splats.ply``
-  (the 3DGS layout: ``f_dc_*``, ``f_rest_*``, ``opacity`` logit, ``scale_*`` log, ``rot_*``).
+  (the 3DGS layout: ``f_dc_*``, ``f_rest_*``, ``opacity`` logit, ``scale_*`` log, ``rot_*``):
+  a model built with ``--optimize`` exports its fitted splats (``MODEL/optimized/``), any
+  other the hull's surfels with an SH fit to the views (``--splats`` chooses).
 * ``opencv`` — one FileStorage YAML per physical camera (``world_from_cam`` =
   ``rig_from_cam``) and one per view under ``views/``.
 * ``mesh`` — ``mesh.ply`` and ``mesh.obj`` with vertex colours (:mod:`.mesh`).
@@ -37,6 +39,7 @@ __all__ = [
     "export_nerfstudio_model",
     "export_colmap_model",
     "export_ply",
+    "export_fitted_ply",
     "export_opencv",
     "splat_params",
 ]
@@ -219,10 +222,20 @@ def splat_params(model_or_surfels, *, sigma_radius: float = 0.5):
     return scale.astype(np.float32), rot.astype(np.float32)
 
 
-def export_ply(model: OpacityHullModel, out: Path, *, sh_degree: int = 3) -> dict:
+SplatSource = Literal["auto", "fitted", "hull"]
+SPLAT_SOURCES: tuple[SplatSource, ...] = ("auto", "fitted", "hull")
+
+
+def export_ply(model: OpacityHullModel, out: Path, *, sh_degree: int = 3, splats: str = "auto") -> dict:
     """``points.ply`` (coloured points) and ``splats.ply`` (3DGS layout with SH colour).
 
-    Returns the SH fit report: RMS residual (sRGB [0, 1] units) per degree ≤ ``sh_degree``.
+    ``splats``: ``"fitted"`` exports the fitted splats of ``build --optimize``
+    (:func:`export_fitted_ply`), ``"hull"`` the hull's surfels with an SH fit to the
+    captured views, ``"auto"`` the fitted splats when the model has current ones
+    (:func:`opacityhull.render.splats.fitted_state`).
+
+    Returns, for the hull, the SH fit report: RMS residual (sRGB [0, 1] units) per degree
+    ≤ ``sh_degree``; ``"splats"`` says which was exported.
     """
     from plyfile import PlyData, PlyElement
 
@@ -232,6 +245,8 @@ def export_ply(model: OpacityHullModel, out: Path, *, sh_degree: int = 3) -> dic
 
     if not 1 <= int(sh_degree) <= 3:
         raise InputError(f"--sh-degree {sh_degree!r}: expected 1, 2 or 3")
+    if ply_source(model, splats) == "fitted":
+        return export_fitted_ply(model, out, sh_degree=sh_degree)
     s = model.surfels
     cams = [v.camera for v in model.views]
     images = _views(model)
@@ -262,11 +277,82 @@ def export_ply(model: OpacityHullModel, out: Path, *, sh_degree: int = 3) -> dic
     with atomic_path(out / "splats.ply") as tmp:
         PlyData([PlyElement.describe(arr, "vertex")], text=False, byte_order="<").write(str(tmp))
     return {
+        "splats": "hull",
         "points": len(s),
         "sh_degree": int(sh_degree),
         "sh_rms": {str(k): v for k, v in fit.rms.items()},
         "sh_observations": fit.n_obs,
     }
+
+
+def ply_source(model: OpacityHullModel, splats: str) -> Literal["fitted", "hull"]:
+    """What ``export --format ply --splats SPLATS`` exports from ``model``; an
+    :class:`InputError` naming ``--splats`` for an unknown value or ``fitted`` on a model
+    without current fitted splats."""
+    from ..cliutil import check_choice
+    from ..render.splats import resolve_renderer
+
+    src = check_choice("--splats", splats, SPLAT_SOURCES, one_of=True)
+    used = resolve_renderer(Path(model.root), {"hull": "ulr"}.get(src, src), flag="--splats")
+    return "fitted" if used == "fitted" else "hull"
+
+
+#: The normal-axis std-dev of an exported fitted splat, as a fraction of its smaller
+#: tangent one: the fit's surfels are flat discs (2DGS), a 3DGS viewer wants three scales.
+FLAT_AXIS_FRACTION = 0.01
+
+
+def export_fitted_ply(model: OpacityHullModel, out: Path, *, sh_degree: int = 3) -> dict:
+    """The fitted splats of ``build --optimize`` as a 3DGS viewer opens them.
+
+    ``splats.ply``: per splat, float32, ``x y z`` (m), ``nx ny nz`` (the disc's normal),
+    ``f_dc_0..2`` and ``f_rest_*`` (SH in the display space with 3DGS's ½ offset,
+    channel-major, as 3DGS writes them; the fitted degree, or ``sh_degree`` when lower:
+    the higher bands are dropped), ``opacity`` (logit), ``scale_0 scale_1`` (log tangent
+    std-devs, m) and ``scale_2`` (log of :data:`FLAT_AXIS_FRACTION` × the smaller one: a
+    3DGS viewer draws the flat disc as a thin ellipsoid), ``rot_0..3`` (quaternion wxyz).
+    Every value but ``scale_2`` is the fit's own (``MODEL/optimized/splats.ply``,
+    :mod:`opacityhull.optimize.splatply`). ``points.ply``: the splats' centres with their
+    DC colour (view-independent) and opacity.
+    """
+    from plyfile import PlyData, PlyElement
+
+    from ..export.sh import SH_C0
+    from ..imageio import atomic_path, srgb_decode
+    from ..optimize.surfelparams import normals_of
+    from ..render.splats import FittedSplats
+
+    fs = FittedSplats.load(Path(model.root))
+    p = fs.params
+    N = len(fs)
+    deg = min(int(sh_degree), fs.sh_degree)
+    B = (deg + 1) ** 2
+    sh = p["sh"][:, :B, :]
+    nrm = normals_of(p["quats"]).astype(np.float32)
+    cols: list[tuple[str, np.ndarray]] = [(k, p["means"][:, i]) for i, k in enumerate("xyz")]
+    cols += [(f"n{k}", nrm[:, i]) for i, k in enumerate("xyz")]
+    cols += [(f"f_dc_{c}", sh[:, 0, c]) for c in range(3)]
+    rest = np.transpose(sh[:, 1:, :], (0, 2, 1)).reshape(N, -1)  # (N, 3, B−1): all R, then G, then B
+    cols += [(f"f_rest_{i}", rest[:, i]) for i in range(rest.shape[1])]
+    cols += [("opacity", p["opacity_logits"])]
+    ls = p["log_scales"]
+    cols += [("scale_0", ls[:, 0]), ("scale_1", ls[:, 1])]
+    cols += [("scale_2", np.minimum(ls[:, 0], ls[:, 1]) + np.float32(np.log(FLAT_AXIS_FRACTION)))]
+    cols += [(f"rot_{i}", p["quats"][:, i]) for i in range(4)]
+    arr = np.empty(N, dtype=[(k, "<f4") for k, _ in cols])
+    for k, v in cols:
+        arr[k] = v
+    with atomic_path(out / "splats.ply") as tmp:
+        PlyData(
+            [PlyElement.describe(arr, "vertex")],
+            text=False,
+            byte_order="<",
+            comments=["opacityhull export: the fitted splats of build --optimize (3DGS layout)"],
+        ).write(str(tmp))
+    dc = np.clip(0.5 + SH_C0 * p["sh"][:, 0, :], 0.0, 1.0)
+    opacity = 1.0 / (1.0 + np.exp(-p["opacity_logits"].astype(np.float64)))
+    _points_ply(out / "points.ply", p["means"], nrm, srgb_decode(dc), opacity)
+    return {"splats": "fitted", "points": N, "sh_degree": deg, "sh_degree_fitted": fs.sh_degree}
 
 
 # --------------------------------------------------------------------------- opencv
@@ -321,6 +407,8 @@ def export_model(model_dir, fmt: str, out, *, overwrite: bool = False, **options
     check_output(out, {"MODEL": model_dir}, replaces=True)
     check_replaceable(out, command="export", overwrite=overwrite)
     model = OpacityHullModel.open(model_dir)
+    if fmt == "ply":  # bad --splats before the output folder is made
+        ply_source(model, options.get("splats", "auto"))
     fn = {
         "nerfstudio": export_nerfstudio_model,
         "colmap": export_colmap_model,

@@ -145,6 +145,15 @@ def register(app, groups) -> None:
         fps: Annotated[float, typer.Option("--fps", help=_FPS_HELP)] = 12.0,
         exposure: Annotated[float | None, typer.Option("--exposure", help=_EXPOSURE_HELP)] = None,
         no_views: Annotated[bool, typer.Option("--no-views", help="Do not write the relit captured views.")] = False,
+        renderer: Annotated[
+            str,
+            typer.Option(
+                "--renderer",
+                help="--view/--orbit: fitted (the splats of build --optimize, each coloured by the relit views' ULR "
+                "at its nearest hull surfel) | ulr (the hull's surfels) | auto (fitted when the model has current "
+                "fitted splats).",
+            ),
+        ] = "auto",
         json_out: JsonSummaryFlag = False,
         *,
         map_options: dict,
@@ -161,6 +170,9 @@ def register(app, groups) -> None:
             raise InputError(f"--exposure {exposure}: expected a multiplier > 0 (omit it for automatic exposure)")
         check_output(out, {"MODEL": model, "--envmap": map_options["envmap"]})
         check_writable(out)
+        from ..render.splats import resolve_renderer
+
+        resolve_renderer(model, renderer)  # before anything is written
         cfg = _config(**config_options)
         v = parse_view_spec(view) if view else None
         if map_options["envmap"] is None and not lights:
@@ -181,6 +193,7 @@ def register(app, groups) -> None:
                 config=cfg,
                 exposure=exposure,
                 write_views=not no_views,
+                renderer=renderer,
                 progress=cb,
             )
 

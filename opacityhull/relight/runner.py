@@ -101,6 +101,7 @@ def relight_model(
     exposure: float | None = None,
     write_views: bool = True,
     render_config=None,
+    renderer: str = "auto",
     progress: Callable[[int, int], None] | None = None,
 ) -> dict:
     """Relight a model and write the pictures.
@@ -114,13 +115,21 @@ def relight_model(
     with ``view`` ``out/view_<id>.exr|png``; with ``orbit`` ``out/orbit/frame_NNN.exr|png``,
     ``out/orbit.gif`` (at ``fps``) and ``out/orbit.png``; and ``out/relight.json`` (the summary,
     also returned).
+
+    ``renderer`` (``view``/``orbit``): ``"fitted"`` draws the fitted splats of ``build
+    --optimize``, each with the relit views' ULR colour at its nearest hull surfel
+    (:meth:`opacityhull.render.splats.FittedSplats.render_relit`); ``"ulr"`` the hull's
+    surfels; ``"auto"`` the splats when the model has current ones. The captured views are
+    relit from their own one-light images either way.
     """
     from ..model import OpacityHullModel
+    from ..render.splats import resolve_renderer
 
     t0 = time.perf_counter()
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
     model = OpacityHullModel.open(model_path)
+    used = resolve_renderer(Path(model.root), renderer)
+    out.mkdir(parents=True, exist_ok=True)
     if envmap is None and lights is None:
         raise InputError("relight: no lighting given (an environment map, lights, or both)")
     if lights is not None:
@@ -143,6 +152,8 @@ def relight_model(
             else [{"direction": d.tolist(), "irradiance_rgb": e.tolist()} for d, e in zip(*light_list, strict=True)],
         },
         "n_lights_captured": len(R.lights),
+        # what draws --view/--orbit: the fitted splats (build --optimize) or the hull by ULR
+        "renderer": used,
         "light_spacing_deg": math.degrees(R.lights.spacing_rad()),
         "config": {"kernel": asdict(config.kernel), "near_light": R.near_light, "pca_rank": config.pca_rank},
         "n_views": n,
@@ -217,11 +228,22 @@ def relight_model(
         cams = [v.camera for v in model.views]
         pv = prepare_views(cams, relit)
         surfels = model_surfels(model)
+        fitted = None
+        if used == "fitted":
+            from ..render.splats import FittedSplats
+
+            fitted = FittedSplats.load(Path(model.root))
+
+        def draw(cam):
+            if fitted is not None:
+                return fitted.render_relit(cam, surfels, cams, relit, k=rc.k)
+            return render_image(surfels, cams, pv, cam, config=rc)
+
         done = n
         t2 = time.perf_counter()
         if view is not None:
             cam = view_camera(model, *view)
-            res = render_image(surfels, cams, pv, cam, config=rc)
+            res = draw(cam)
             img = res.over(bg)
             write_exr(out / f"view_{cam.name}.exr", res.premul)  # premultiplied, as every EXR
             write_png(out / f"view_{cam.name}.png", _display(img, exposure))
@@ -238,7 +260,7 @@ def relight_model(
             frames = []
             t3 = time.perf_counter()
             for k, cam in enumerate(orbit_cameras(model, orbit)):
-                res = render_image(surfels, cams, pv, cam, config=rc)
+                res = draw(cam)
                 img = res.over(bg)
                 write_exr(out / "orbit" / f"frame_{k:03d}.exr", res.premul)
                 frames.append(_display(img, exposure))

@@ -105,7 +105,11 @@ _BUDGET_HELP = (
     "view-dependent cut of the sequential point tree (the viewer's level "
     "of detail). Default: every surfel."
 )
-_JSON_HELP = "Print a JSON summary (frames, paths, ms per frame) on stdout."
+_JSON_HELP = "Print a JSON summary (frames, paths, ms per frame, renderer) on stdout."
+_RENDERER_HELP = (
+    "fitted: the splats of build --optimize (optimized/splats.ply) | ulr: the hull's surfels blended "
+    "from the captured views | auto: fitted when the model has splats fitted from this build, else ulr."
+)
 
 _SCHEDULER_HELP = (
     "Where per-view work runs: serial | threads | processes | tcp://HOST:PORT (a dask scheduler; "
@@ -206,6 +210,7 @@ def register(app, groups) -> None:
         ] = [],  # noqa: B006  typer hands the body a fresh list; the body only reads it
         fps: Annotated[float, typer.Option("--fps", help="Frame rate of the orbit animation (> 0).")] = 12.0,
         budget: Annotated[int | None, typer.Option("--budget", help=_BUDGET_HELP)] = None,
+        renderer: Annotated[str, typer.Option("--renderer", help=_RENDERER_HELP)] = "auto",
         json_out: Annotated[bool, typer.Option("--json", help=_JSON_HELP)] = False,
         *,
         render_options: dict,
@@ -232,6 +237,11 @@ def register(app, groups) -> None:
             background=background,
         )
 
+        from .splats import resolve_renderer
+
+        resolve_renderer(
+            model, renderer, ulr_only=(("--budget", budget is not None), ("--exclude-view", bool(exclude)))
+        )
         from .cameras import parse_look_at, parse_view_spec
 
         given = [n for n, v in (("--view", view), ("--look-at", look_at), ("--orbit", orbit)) if v is not None]
@@ -265,6 +275,7 @@ def register(app, groups) -> None:
                 exclude=exclude,
                 fps=fps,
                 budget=budget,
+                renderer=renderer,
                 progress=cb,
                 executor=None if serial else ex,
             )
@@ -273,7 +284,12 @@ def register(app, groups) -> None:
             c = console()
             c.print(
                 f"rendered {s['frames']} frame(s) {s['width']}x{s['height']}, {s['ms_per_frame']:.0f} ms/frame "
-                f"({s['surfels']} surfels, k={s['k']}); warm-up {s['ms_warmup']:.0f} ms and model load "
+                + (
+                    f"({s['surfels']} fitted splats)"
+                    if s["renderer"] == "fitted"
+                    else f"({s['surfels']} surfels, k={s['k']})"
+                )
+                + f"; warm-up {s['ms_warmup']:.0f} ms and model load "
                 f"{s['ms_load']:.0f} ms apart"
             )
             if s.get("budget") is not None:

@@ -9,6 +9,7 @@ import shutil
 import time
 from pathlib import Path
 from collections.abc import Callable, Sequence
+from typing import cast
 
 import numpy as np
 
@@ -19,6 +20,7 @@ from ..model import OpacityHullModel
 from .background import EnvMap, fit_image, load_background
 from .cameras import captured_view_camera, look_at_camera, mean_fov_y_deg, orbit_cameras, resize_camera, scene_target
 from .renderer import RenderConfig, RenderResult, model_surfels, prepare_model_views, render_image
+from .views import PreparedViews
 
 __all__ = [
     "choose_cameras",
@@ -212,15 +214,22 @@ def _seed_surfel_areas(surfels, areas) -> None:
 
 
 class _FrameState:
-    """One opened model with its packed views, sorted surfels and LOD tree: what a
-    worker keeps between :func:`render_frames` tasks."""
+    """One opened model with its packed views, sorted surfels and LOD tree (or, with
+    ``renderer="fitted"``, its fitted splats): what a worker keeps between
+    :func:`render_frames` tasks."""
 
-    def __init__(self, model_path, model: OpacityHullModel | None = None):
+    def __init__(self, model_path, model: OpacityHullModel | None = None, renderer: str = "ulr"):
         import threading
 
         t0 = time.perf_counter()
         self.model = OpacityHullModel.open(model_path) if model is None else model
-        self.pv = prepare_model_views(self.model)
+        self.splats = None
+        if renderer == "fitted":
+            from .splats import FittedSplats
+
+            self.splats = FittedSplats.load(Path(self.model.root))
+        # the splats draw alone: the captured views the ULR renderer blends are not read
+        self.pv = prepare_model_views(self.model) if self.splats is None else cast(PreparedViews, None)
         self.surfels = model_surfels(self.model)
         self.view_cameras = [v.camera for v in self.model.views]
         self.lod = LodCuts(self.surfels)
@@ -231,13 +240,13 @@ class _FrameState:
         self.lock = threading.Lock()
 
 
-def _state_key(model_path) -> tuple[str, int]:
+def _state_key(model_path, renderer: str = "ulr") -> tuple[str, int, str]:
     p = Path(model_path).resolve()
     try:
         mtime = (p / "model.toml").stat().st_mtime_ns
     except OSError:
         mtime = -1  # OpacityHullModel.open names the missing file
-    return str(p), mtime
+    return str(p), mtime, renderer
 
 
 # one model per worker process: a rebuilt model (new model.toml mtime) replaces the old one
@@ -245,20 +254,20 @@ _STATE: dict = {}
 _STATE_LOCK = None
 
 
-def _worker_state(model_path) -> tuple[_FrameState, bool]:
+def _worker_state(model_path, renderer: str = "ulr") -> tuple[_FrameState, bool]:
     """The cached state of ``model_path`` in this process, and whether it was loaded now."""
     global _STATE_LOCK
     import threading
 
     if _STATE_LOCK is None:
         _STATE_LOCK = threading.Lock()
-    key = _state_key(model_path)
+    key = _state_key(model_path, renderer)
     with _STATE_LOCK:
         st = _STATE.get(key)
         if st is not None:
             return st, False
         _STATE.clear()
-        st = _FrameState(model_path)
+        st = _FrameState(model_path, renderer=renderer)
         _STATE[key] = st
         return st, True
 
@@ -279,6 +288,10 @@ def _render_chunk(
     (8-bit sRGB over ``anim_background``) when that is given."""
     from ..pictures import to_srgb8
 
+    if st.splats is not None:
+        return _render_chunk_fitted(
+            st, cams, paths=paths, background=background, anim_background=anim_background, progress=progress
+        )
     ms, splats, taus, gif = [], [], [], []
     ms_tree = 0.0
     ms_warmup = _warm_up(st, cams[0], config=config, exclude=exclude) if cams else 0.0
@@ -303,6 +316,47 @@ def _render_chunk(
         if progress:
             progress(i + 1, len(cams))
     return {"ms": ms, "splats": splats, "taus": taus, "gif": gif, "ms_lod_tree": ms_tree, "ms_warmup": ms_warmup}
+
+
+def _render_chunk_fitted(
+    st: _FrameState,
+    cams: Sequence[Camera],
+    *,
+    paths: Sequence[str],
+    background,
+    anim_background,
+    progress: Callable[[int, int], None] | None = None,
+) -> dict:
+    """:func:`_render_chunk` for the fitted splats (:mod:`.splats`): every splat, every frame."""
+    from ..pictures import to_srgb8
+    from .cameras import resize_camera
+
+    assert st.splats is not None
+    ms_warmup = 0.0
+    with st.lock:
+        if st.ms_warmup is None and cams:  # numba loads (or compiles) the rasterizer once
+            t = time.perf_counter()
+            st.splats.render(resize_camera(cams[0], *WARMUP_SIZE))
+            ms_warmup = st.ms_warmup = 1e3 * (time.perf_counter() - t)
+    ms, gif = [], []
+    for i, (cam, path) in enumerate(zip(cams, paths, strict=True)):
+        t = time.perf_counter()
+        res = st.splats.render(cam)
+        ms.append(1e3 * (time.perf_counter() - t))
+        write_frame(Path(path), res, background)
+        if anim_background is not None:
+            gif.append(to_srgb8(res.over(anim_background)))
+        if progress:
+            progress(i + 1, len(cams))
+    n = len(st.splats)
+    return {
+        "ms": ms,
+        "splats": [n] * len(cams),
+        "taus": [0.0] * len(cams),
+        "gif": gif,
+        "ms_lod_tree": 0.0,
+        "ms_warmup": ms_warmup,
+    }
 
 
 #: Size of the warm-up render (px): enough to run every kernel, too small to cost a frame.
@@ -330,11 +384,12 @@ def render_frames(task: tuple) -> dict:
     """One executor task of ``render --scheduler``: render and write a chunk of frames.
 
     ``task = (model_path, cameras, config, exclude, budget, paths, background,
-    anim_background)``: the model folder (a path the worker can read), the cameras,
+    anim_background, renderer)``: the model folder (a path the worker can read), the cameras,
     the :class:`RenderConfig`, view indices not to blend, the splat budget (or None),
     one output path per camera (the worker writes them), the background passed to
     :func:`write_frame` (None, a colour, an image fitted to the camera or an
-    :class:`EnvMap`) and the GIF's background colour (None: no GIF frames).
+    :class:`EnvMap`), the GIF's background colour (None: no GIF frames) and the
+    renderer, ``"fitted"`` or ``"ulr"`` (:func:`.splats.resolve_renderer`).
 
     The model is opened once per worker process and kept (keyed on the model folder
     and ``model.toml``'s mtime), so an orbit's later chunks only render.
@@ -345,8 +400,9 @@ def render_frames(task: tuple) -> dict:
     frames), ``ms_load`` (0 when the model was already open here), ``ms_warmup`` (the
     first render in this worker, :func:`_warm_up`; 0 when warm) and ``ms_lod_tree``.
     """
-    model_path, cams, config, exclude, budget, paths, background, anim_background = task
-    st, loaded = _worker_state(model_path)
+    model_path, cams, config, exclude, budget, paths, background, anim_background = task[:8]
+    renderer = task[8] if len(task) > 8 else "ulr"
+    st, loaded = _worker_state(model_path, renderer)
     out = _render_chunk(
         st,
         cams,
@@ -377,10 +433,17 @@ def run_render(
     exclude: Sequence[str] = (),
     fps: float = 12.0,
     budget: int | None = None,
+    renderer: str = "auto",
     progress: Callable[[int, int], None] | None = None,
     executor=None,
 ) -> dict:
     """Render one frame or an orbit of a model folder to ``out`` (``.png`` or ``.exr``).
+
+    ``renderer``: ``"fitted"`` draws the splats of ``build --optimize``
+    (:mod:`opacityhull.render.splats`), ``"ulr"`` the hull's surfels blended from the
+    captured views, ``"auto"`` the splats when the model has current ones (the summary's
+    ``"renderer"`` says which). ``budget`` and ``exclude`` belong to the ULR renderer
+    (an :class:`InputError` while the splats draw).
 
     ``budget``: at most this many splats per frame, from a view-dependent cut of the
     sequential point tree (:mod:`opacityhull.render.lod`, the viewer's LOD); None draws
@@ -397,6 +460,13 @@ def run_render(
         raise InputError(f"render output {out}: expected a .png or .exr file name")
     budget = check_budget(budget)
     model = OpacityHullModel.open(model_path)
+    from .splats import resolve_renderer
+
+    used = resolve_renderer(
+        Path(model.root),
+        renderer,
+        ulr_only=(("--budget", budget is not None), ("--exclude-view", bool(list(exclude)))),
+    )
     cams = choose_cameras(model, view=view, look_at=look_at, orbit=orbit, width=width, height=height)
     bg = load_background(background, yaw_deg=env_yaw_deg, kind=background_kind) if background is not None else None
     if isinstance(bg, np.ndarray):
@@ -404,11 +474,13 @@ def run_render(
     excl = []
     for e in exclude:
         excl.append(int(e) if str(e).isdigit() else model.view_index(str(e)))
-    n_surfels = len(model.surfels)
+    n_surfels = len(model.surfels)  # the fitted splats' count replaces it below
     paths = [str(out if orbit is None else out.with_name(f"{out.stem}_{i:03d}{out.suffix}")) for i in range(len(cams))]
     anim_bg = None if orbit is None else (bg if bg is not None else (0.18, 0.18, 0.18))
     if executor is None:
-        st = _FrameState(model_path, model)
+        st = _FrameState(model_path, model, renderer=used)
+        if st.splats is not None:
+            n_surfels = len(st.splats)
         parts = [
             _render_chunk(
                 st,
@@ -439,6 +511,7 @@ def run_render(
                 [str(Path(p).resolve()) for p in paths[i : i + per]],
                 bg,
                 anim_bg,
+                used,
             )
             for i in range(0, len(cams), per)
         ]
@@ -446,11 +519,15 @@ def run_render(
         parts = executor.map(render_frames, tasks, progress=prog)
         t_load_ms = max(p["ms_load"] for p in parts)
         scheduler = executor.scheduler
+        if used == "fitted":
+            n_surfels = parts[0]["splats"][0] if parts and parts[0]["splats"] else 0
     ms = [x for p in parts for x in p["ms"]]
     splats = [x for p in parts for x in p["splats"]]
     taus = [x for p in parts for x in p["taus"]]
     summary = {
         "model": str(model_path),
+        # which model drew the frames: the fitted splats (build --optimize) or the hull by ULR
+        "renderer": used,
         "frames": len(cams),
         "paths": paths,
         "width": cams[0].width,

@@ -122,6 +122,7 @@ def write_bundle(
     yaw_steps: int = 72,
     relight_error: float = 0.01,
     relight_rank: int | None = None,
+    renderer: str = "auto",
     progress=None,
 ) -> dict:
     """Write the viewer bundle of a model folder.
@@ -150,6 +151,11 @@ def write_bundle(
     yaw_steps : rotations of each map the light weights are tabulated at (360 / steps apart).
     relight_error : relative relit error the PCA rank is chosen for.
     relight_rank : fix the PCA rank instead (1..16).
+    renderer : ``"fitted"`` adds the fitted splats of ``build --optimize``
+        (``splats.bin``, :mod:`opacityhull.view.splats`), which the page then draws (the
+        ULR data stay: the page switches between the two); ``"ulr"`` leaves them out;
+        ``"auto"`` adds them when the model has current ones
+        (:func:`opacityhull.render.splats.resolve_renderer`).
     progress : callable(done, total) or None.
 
     Returns
@@ -167,6 +173,9 @@ def write_bundle(
         raise InputError(f"background {background!r}: expected three finite numbers")
     check_output(out, {"MODEL": model_dir, "--envmap": envmap}, replaces=True)
     model = OpacityHullModel.open(model_dir)
+    from ..render.splats import resolve_renderer
+
+    used = resolve_renderer(Path(model.root), renderer)
     s = model.surfels
     V = len(model.views)
     if V > MAX_VIEWS:
@@ -198,6 +207,12 @@ def write_bundle(
     check_replaceable(out, command="view", overwrite=overwrite, legacy=_is_bundle)
     with replacing_dir(out, command="view") as tmp:
         summary = _write(tmp, model, k, bg, first_chunk, progress, position_cell_m, int(offset_bits))
+        summary["renderer"] = used
+        if used == "fitted":
+            from .splats import write_splats
+
+            summary["splats"] = write_splats(tmp, Path(model.root))
+            summary["bytes"] += summary["splats"]["bytes"]
         if env is not None:
             summary["envmap"] = _write_envmap(tmp, env, str(envmap))
         if relight and model.has_reflectance:

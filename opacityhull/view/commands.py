@@ -70,7 +70,11 @@ _PROBES_HELP = (
 _RELIGHT_ERROR_HELP = "Relative relit error the per-view PCA rank is chosen for."
 _RELIGHT_RANK_HELP = "Fix the PCA rank of the relighting data instead (1-16)."
 _YAW_STEPS_HELP = "Rotations of each map the light weights are tabulated at (72: every 5 deg)."
-_JSON_HELP = "Print a JSON summary (bundle path, bytes, URL) on stdout."
+_JSON_HELP = "Print a JSON summary (bundle path, bytes, URL, renderer) on stdout."
+_RENDERER_HELP = (
+    "fitted: bundle the splats of build --optimize, which the page draws (it can switch to ULR) | ulr: leave "
+    "them out | auto: fitted when the model has splats fitted from this build."
+)
 
 
 def register(app, groups) -> None:
@@ -91,6 +95,7 @@ def register(app, groups) -> None:
         relight_error: Annotated[float, typer.Option("--relight-error", help=_RELIGHT_ERROR_HELP)] = 0.01,
         relight_rank: Annotated[int | None, typer.Option("--relight-rank", help=_RELIGHT_RANK_HELP)] = None,
         yaw_steps: Annotated[int, typer.Option("--yaw-steps", help=_YAW_STEPS_HELP)] = 72,
+        renderer: Annotated[str, typer.Option("--renderer", help=_RENDERER_HELP)] = "auto",
         json_out: Annotated[bool, typer.Option("--json", help=_JSON_HELP)] = False,
     ):
         """Open a model in the browser: write a WebGL2 bundle (ULR-blended EWA splats) and serve it on 127.0.0.1."""
@@ -123,6 +128,7 @@ def register(app, groups) -> None:
                     relight_error=relight_error,
                     relight_rank=relight_rank,
                     yaw_steps=yaw_steps,
+                    renderer=renderer,
                     progress=cb,
                 )
             if not serve:
@@ -131,7 +137,9 @@ def register(app, groups) -> None:
                     json_out,
                     lambda s: console().print(
                         f"wrote viewer bundle {s['out']} ({s['bytes'] / 1e6:.1f} MB, {s['surfels']} surfels, "
-                        f"{s['views']} views; positions {_bits(s)}); serve it with any static web server, e.g. "
+                        f"{s['views']} views; positions {_bits(s)}"
+                        + (f"; {s['splats']['count']} fitted splats drawn" if s.get("splats") else "")
+                        + f"); serve it with any static web server, e.g. "
                         f"python -m http.server -b 127.0.0.1 -d {s['out']} 8765"
                     ),
                 )

@@ -445,8 +445,9 @@ precision highp float;
 uniform highp sampler2D u_acc0; uniform highp sampler2D u_acc1;
 uniform float u_covfull; uniform float u_amin; uniform vec3 u_bg; uniform float u_exposure;
 uniform int u_useEnv; uniform highp sampler2D u_env; uniform mat3 u_Rwc; uniform vec4 u_K; uniform float u_H;
-uniform float u_yaw;
+uniform float u_yaw; uniform int u_splats;
 out vec4 o;
+vec3 srgbDecode(vec3 c) { return mix(c / 12.92, pow((c + 0.055) / 1.055, vec3(2.4)), step(0.04045, c)); }
 // equirectangular lookup as render/background.py: u = atan2(x, -z) / 2pi, v = acos(y) / pi,
 // bilinear, wrapping across the seam and clamping at the poles
 vec3 envTexel(ivec2 ij, ivec2 sz) { return texelFetch(u_env, ivec2((ij.x % sz.x + sz.x) % sz.x, clamp(ij.y, 0, sz.y - 1)), 0).rgb; }
@@ -472,7 +473,10 @@ void main() {
     bg = envLookup(u_Rwc * vec3((px.x - u_K.z) / u_K.x, (px.y - u_K.w) / u_K.y, 1.0));
   }
   vec3 col = bg;
-  if (a1.x > 0.0) {
+  if (u_splats == 1) {  // the fitted splats: premultiplied display colour, decoded as render_params does
+    float a = clamp(a0.w, 0.0, 1.0);
+    col = srgbDecode(clamp(a0.rgb, 0.0, 1.0)) + (1.0 - a) * bg;
+  } else if (a1.x > 0.0) {
     float c = clamp(a1.y / u_covfull, 0.0, 1.0);
     float s = c / a1.x;
     float a = clamp(a0.w * s, 0.0, 1.0);
@@ -507,6 +511,73 @@ void main() {
     }
   }
   o = vec4(max(c, vec3(0.0)), alpha);
+}`;
+
+// The fitted splats of build --optimize (manifest "splats", opacityhull/view/splats.py): one
+// instanced quad per splat, in back-to-front order (a_idx), as the fitting's rasterizer
+// (optimize/raster.py) draws them: screen covariance J W S W^T J^T + lowpass I of the two
+// scaled tangent axes, cut at cutoff sigma, alpha = min(alpha_max, o G), fragments under
+// alpha_min dropped; colour = SH of the view direction + 0.5 (display space), clamped at 0.
+const SPLAT_VS = (texels, nsh) => `#version 300 es
+precision highp float; precision highp int; precision highp sampler2D;
+uniform highp sampler2D u_splats; uniform int u_P;
+uniform mat3 u_R; uniform vec3 u_t; uniform vec4 u_K; uniform vec2 u_size; uniform vec3 u_C;
+uniform float u_lowpass; uniform float u_cutoff; uniform float u_near;
+in uint a_idx;
+flat out vec2 v_mu; flat out vec3 v_conic; flat out vec4 v_col;
+void main() {
+  int i = int(a_idx);
+  vec4 r[${texels}];
+  for (int j = 0; j < ${texels}; j++) r[j] = texelFetch(u_splats, ivec2((i % u_P) * ${texels} + j, i / u_P), 0);
+  vec3 m = r[0].xyz, ua = r[1].xyz, ub = vec3(r[1].w, r[2].xy);
+  vec3 tc = u_R * m + u_t;
+  gl_Position = vec4(0.0, 0.0, 2.0, 1.0);  // culled unless drawn below
+  if (tc.z < u_near) return;
+  float iz = 1.0 / tc.z;
+  vec3 j0 = vec3(u_K.x * iz, 0.0, -u_K.x * tc.x * iz * iz), j1 = vec3(0.0, u_K.y * iz, -u_K.y * tc.y * iz * iz);
+  vec3 Ta = u_R * ua, Tb = u_R * ub;
+  vec2 pa = vec2(dot(j0, Ta), dot(j1, Ta)), pb = vec2(dot(j0, Tb), dot(j1, Tb));
+  float a = pa.x * pa.x + pb.x * pb.x + u_lowpass, b = pa.x * pa.y + pb.x * pb.y, c = pa.y * pa.y + pb.y * pb.y + u_lowpass;
+  float det = a * c - b * b;
+  if (!(det > 0.0)) return;
+  v_mu = vec2(u_K.x * tc.x * iz + u_K.z, u_K.y * tc.y * iz + u_K.w);
+  v_conic = vec3(c / det, -b / det, a / det);
+  // colour: real SH (3DGS constants and order) of the direction from the camera centre
+  vec3 d = normalize(m - u_C);
+  float x = d.x, y = d.y, z = d.z, xx = x * x, yy = y * y, zz = z * z;
+  float Y[16];
+  Y[0] = 0.28209479177387814;
+  Y[1] = -0.4886025119029199 * y; Y[2] = 0.4886025119029199 * z; Y[3] = -0.4886025119029199 * x;
+  Y[4] = 1.0925484305920792 * x * y; Y[5] = -1.0925484305920792 * y * z; Y[6] = 0.31539156525252005 * (2.0 * zz - xx - yy);
+  Y[7] = -1.0925484305920792 * x * z; Y[8] = 0.5462742152960396 * (xx - yy);
+  Y[9] = -0.5900435899266435 * y * (3.0 * xx - yy); Y[10] = 2.890611442640554 * x * y * z;
+  Y[11] = -0.4570457994644658 * y * (4.0 * zz - xx - yy); Y[12] = 0.3731763325901154 * z * (2.0 * zz - 3.0 * xx - 3.0 * yy);
+  Y[13] = -0.4570457994644658 * x * (4.0 * zz - xx - yy); Y[14] = 1.445305721320277 * z * (xx - yy);
+  Y[15] = -0.5900435899266435 * x * (xx - 3.0 * yy);
+  vec3 col = vec3(0.5);
+  for (int j = 0; j < ${nsh}; j++) {
+    for (int ch = 0; ch < 3; ch++) { int k = 10 + 3 * j + ch; col[ch] += Y[j] * r[k >> 2][k & 3]; }
+  }
+  v_col = vec4(max(col, vec3(0.0)), r[0].w);
+  // the cutoff ellipse's box (+1 px: every pixel centre inside it gets a fragment)
+  vec2 h = u_cutoff * sqrt(vec2(a, c)) + 1.0;
+  vec2 corner = vec2(float(gl_VertexID & 1), float(gl_VertexID >> 1)) * 2.0 - 1.0;
+  vec2 px = v_mu + corner * h;  // OpenCV pixel coordinates: (0, 0) = the top-left pixel's centre
+  gl_Position = vec4((px.x + 0.5) / u_size.x * 2.0 - 1.0, 1.0 - (px.y + 0.5) / u_size.y * 2.0, 0.0, 1.0);
+}`;
+
+const SPLAT_FS = `#version 300 es
+precision highp float;
+uniform vec2 u_size; uniform float u_cutoff; uniform float u_amin; uniform float u_amax;
+flat in vec2 v_mu; flat in vec3 v_conic; flat in vec4 v_col;
+out vec4 o;
+void main() {
+  vec2 d = vec2(gl_FragCoord.x - 0.5, u_size.y - gl_FragCoord.y - 0.5) - v_mu;
+  float q = (v_conic.x * d.x + 2.0 * v_conic.y * d.y) * d.x + v_conic.z * d.y * d.y;
+  if (q > u_cutoff * u_cutoff) discard;
+  float a = min(u_amax, v_col.w * exp(-0.5 * q));
+  if (a < u_amin) discard;
+  o = vec4(v_col.rgb * a, a);  // premultiplied: blended ONE, ONE_MINUS_SRC_ALPHA back to front
 }`;
 
 function compile(gl, vs, fs, what) {
@@ -560,6 +631,14 @@ class Viewer {
     this.relitReady = false;
     this.exposureOverride = null;
     if (this.relight) this.relightProg = compile(gl, RESOLVE_VS, RELIGHT_FS, "relight");
+    // the fitted splats (build --optimize): drawn instead of the ULR surfels once loaded
+    this.splats = manifest.splats || null;
+    this.renderer = this.splats ? "fitted" : "ulr";
+    this.splatsReady = false;
+    if (this.splats) {
+      const S = this.splats;
+      this.splatProg = compile(gl, SPLAT_VS(S.texels, (S.sh_degree + 1) ** 2), SPLAT_FS, "fitted splats");
+    }
     // positions (float32 x 3 per node: the float chunks' own, the leaves' from the octree code)
     // and the other attributes in a second buffer
     this.posVbo = gl.createBuffer();
@@ -768,6 +847,78 @@ class Viewer {
     this.relitKey = key;
   }
 
+  // the fitted splats' records (float32, 4 * texels each) into an RGBA32F texture, u_P splats a row
+  uploadSplats(buf) {
+    const gl = this.gl, S = this.splats, T = S.texels, N = S.count;
+    const maxSize = gl.getParameter(gl.MAX_TEXTURE_SIZE);
+    const P = Math.max(1, Math.min(1024, Math.floor(maxSize / T)));
+    const rows = Math.max(1, Math.ceil(N / P));
+    if (rows > maxSize) throw new Error(`${N} fitted splats need a ${P * T}x${rows} texture; this browser's WebGL2 allows ${maxSize}x${maxSize}`);
+    const rec = new Float32Array(buf);
+    if (rec.length !== N * 4 * T) throw new Error(`${S.file}: ${rec.length} floats, expected ${N * 4 * T}`);
+    const data = new Float32Array(P * T * 4 * rows);
+    data.set(rec);
+    this.splatTex = gl.createTexture();
+    gl.activeTexture(gl.TEXTURE7);
+    gl.bindTexture(gl.TEXTURE_2D, this.splatTex);
+    gl.pixelStorei(gl.UNPACK_ALIGNMENT, 1);
+    gl.texImage2D(gl.TEXTURE_2D, 0, gl.RGBA32F, P * T, rows, 0, gl.RGBA, gl.FLOAT, data);
+    for (const p of [gl.TEXTURE_MIN_FILTER, gl.TEXTURE_MAG_FILTER]) gl.texParameteri(gl.TEXTURE_2D, p, gl.NEAREST);
+    this.splatP = P;
+    this.splatMeans = new Float32Array(3 * N);
+    for (let i = 0; i < N; i++) for (let c = 0; c < 3; c++) this.splatMeans[3 * i + c] = rec[4 * T * i + c];
+    this.splatOrder = new Uint32Array(N);
+    this.splatDepth = new Float32Array(N);
+    this.splatIdx = gl.createBuffer();
+    this.splatVao = gl.createVertexArray();
+    gl.bindVertexArray(this.splatVao);
+    gl.bindBuffer(gl.ARRAY_BUFFER, this.splatIdx);
+    gl.bufferData(gl.ARRAY_BUFFER, 4 * N, gl.DYNAMIC_DRAW);
+    const l = gl.getAttribLocation(this.splatProg.p, "a_idx");
+    gl.enableVertexAttribArray(l);
+    gl.vertexAttribIPointer(l, 1, gl.UNSIGNED_INT, 4, 0);
+    gl.vertexAttribDivisor(l, 1);
+    gl.bindVertexArray(null);
+    this.splatsReady = true;
+  }
+
+  // the splats in back-to-front order of their float32 view depth (ties: the higher index
+  // first), i.e. the rasterizer's front-to-back (depth, index) order reversed
+  _sortSplats(Rt, t) {
+    const M = this.splatMeans, z = this.splatDepth, o = this.splatOrder, N = o.length;
+    for (let i = 0; i < N; i++) {
+      z[i] = Rt[2] * M[3 * i] + Rt[5] * M[3 * i + 1] + Rt[8] * M[3 * i + 2] + t[2];
+      o[i] = i;
+    }
+    o.sort((a, b) => (z[b] - z[a]) || (b - a));
+    return o;
+  }
+
+  _drawSplats(cam, Rt, t, C) {
+    const gl = this.gl, S = this.splats, u = this.splatProg.u, W = cam.width, H = cam.height;
+    const order = this._sortSplats(Rt, t);
+    gl.bindBuffer(gl.ARRAY_BUFFER, this.splatIdx);
+    gl.bufferSubData(gl.ARRAY_BUFFER, 0, order);
+    gl.bindFramebuffer(gl.FRAMEBUFFER, this.fb);
+    gl.viewport(0, 0, W, H);
+    gl.drawBuffers([gl.COLOR_ATTACHMENT0, gl.NONE]);
+    gl.clearBufferfv(gl.COLOR, 0, [0, 0, 0, 0]);
+    gl.disable(gl.DEPTH_TEST); gl.colorMask(true, true, true, true);
+    gl.enable(gl.BLEND); gl.blendEquation(gl.FUNC_ADD);
+    gl.blendFuncSeparate(gl.ONE, gl.ONE_MINUS_SRC_ALPHA, gl.ONE, gl.ONE_MINUS_SRC_ALPHA);
+    gl.useProgram(this.splatProg.p);
+    gl.activeTexture(gl.TEXTURE7); gl.bindTexture(gl.TEXTURE_2D, this.splatTex);
+    gl.uniform1i(u.u_splats, 7); gl.uniform1i(u.u_P, this.splatP);
+    gl.uniformMatrix3fv(u.u_R, false, Rt); gl.uniform3fv(u.u_t, t); gl.uniform3fv(u.u_C, C);
+    gl.uniform4f(u.u_K, cam.fx, cam.fy, cam.cx, cam.cy); gl.uniform2f(u.u_size, W, H);
+    gl.uniform1f(u.u_lowpass, S.lowpass_px2); gl.uniform1f(u.u_cutoff, S.cutoff_sigma); gl.uniform1f(u.u_near, S.near_m);
+    gl.uniform1f(u.u_amin, S.alpha_min); gl.uniform1f(u.u_amax, S.alpha_max);
+    gl.bindVertexArray(this.splatVao);
+    gl.drawArraysInstanced(gl.TRIANGLE_STRIP, 0, 4, order.length);
+    gl.bindVertexArray(null);
+    gl.disable(gl.BLEND);
+  }
+
   // a chunk of packed inner nodes (17 bytes each), decoded to positions, GPU records and tensors
   uploadChunk(c, buf) {
     const gl = this.gl;
@@ -897,39 +1048,45 @@ class Viewer {
     const density = 1.0;
     const tau = this.tau(dist);
     this.lastTau = tau;  // (the CPU reference draws the same cut: bundle.bundle_cut)
+    // relit (a bundled map chosen) the page blends the relit views on the hull's surfels:
+    // the splats' SH holds the captured lighting only
+    const fitted = this.renderer === "fitted" && this.splatsReady && this.lighting === null;
     const relit = this.lighting !== null && this.relitReady;
     if (relit) this.relightViews();
-    gl.bindFramebuffer(gl.FRAMEBUFFER, this.fb);
-    gl.viewport(0, 0, W, H);
-    gl.drawBuffers([gl.COLOR_ATTACHMENT0, gl.COLOR_ATTACHMENT1]);
-    gl.clearBufferfv(gl.COLOR, 0, [0, 0, 0, 0]);
-    gl.clearBufferfv(gl.COLOR, 1, [0, 0, 0, 0]);
-    gl.clearBufferfv(gl.DEPTH, 0, [1]);
-    gl.enable(gl.DEPTH_TEST);
-    gl.activeTexture(gl.TEXTURE0); gl.bindTexture(gl.TEXTURE_2D_ARRAY, relit ? this.relitTex : this.viewsTex);
-    gl.activeTexture(gl.TEXTURE1); gl.bindTexture(gl.TEXTURE_2D, this.viewTex);
-    for (const [pi, prog] of [[0, this.depthProg], [1, this.shadeProg]]) {
-      const u = prog.u;
-      gl.useProgram(prog.p);
-      gl.uniformMatrix3fv(u.u_R, false, Rt);
-      gl.uniform3fv(u.u_t, t); gl.uniform4f(u.u_K, cam.fx, cam.fy, cam.cx, cam.cy); gl.uniform2f(u.u_size, W, H);
-      gl.uniform3fv(u.u_C, C); gl.uniform1f(u.u_sigma, r.sigma_radius); gl.uniform1f(u.u_filter, r.filter);
-      gl.uniform1f(u.u_cutoff, r.cutoff); gl.uniform1f(u.u_eps, r.epsilon_z); gl.uniform1f(u.u_density, density);
-      gl.uniform1f(u.u_mfloor, r.m_floor); gl.uniform1f(u.u_zdevf, r.zdev_footprints);
-      gl.uniform1i(u.u_nviews, man.n_views); gl.uniform1i(u.u_k, this.k);
-      gl.uniform1i(u.u_views, 0); gl.uniform1i(u.u_viewdata, 1);
-      gl.uniform2f(u.u_layer, man.views.layer_width, man.views.layer_height);
-      gl.uniform1f(u.u_zscale, zscale); gl.uniform1f(u.u_tau, tau);
-      gl.bindVertexArray(this.vaos[pi]);
-      if (pi === 0) {
-        gl.drawBuffers([gl.COLOR_ATTACHMENT0, gl.NONE]);
-        gl.colorMask(false, false, false, false); gl.depthMask(true); gl.depthFunc(gl.LESS); gl.disable(gl.BLEND);
-      } else {
-        gl.drawBuffers([gl.COLOR_ATTACHMENT0, gl.COLOR_ATTACHMENT1]);
-        gl.colorMask(true, true, true, true); gl.depthMask(false); gl.depthFunc(gl.LEQUAL);
-        gl.enable(gl.BLEND); gl.blendFunc(gl.ONE, gl.ONE); gl.blendEquation(gl.FUNC_ADD);
+    if (fitted) this._drawSplats(cam, Rt, t, C);
+    else {
+      gl.bindFramebuffer(gl.FRAMEBUFFER, this.fb);
+      gl.viewport(0, 0, W, H);
+      gl.drawBuffers([gl.COLOR_ATTACHMENT0, gl.COLOR_ATTACHMENT1]);
+      gl.clearBufferfv(gl.COLOR, 0, [0, 0, 0, 0]);
+      gl.clearBufferfv(gl.COLOR, 1, [0, 0, 0, 0]);
+      gl.clearBufferfv(gl.DEPTH, 0, [1]);
+      gl.enable(gl.DEPTH_TEST);
+      gl.activeTexture(gl.TEXTURE0); gl.bindTexture(gl.TEXTURE_2D_ARRAY, relit ? this.relitTex : this.viewsTex);
+      gl.activeTexture(gl.TEXTURE1); gl.bindTexture(gl.TEXTURE_2D, this.viewTex);
+      for (const [pi, prog] of [[0, this.depthProg], [1, this.shadeProg]]) {
+        const u = prog.u;
+        gl.useProgram(prog.p);
+        gl.uniformMatrix3fv(u.u_R, false, Rt);
+        gl.uniform3fv(u.u_t, t); gl.uniform4f(u.u_K, cam.fx, cam.fy, cam.cx, cam.cy); gl.uniform2f(u.u_size, W, H);
+        gl.uniform3fv(u.u_C, C); gl.uniform1f(u.u_sigma, r.sigma_radius); gl.uniform1f(u.u_filter, r.filter);
+        gl.uniform1f(u.u_cutoff, r.cutoff); gl.uniform1f(u.u_eps, r.epsilon_z); gl.uniform1f(u.u_density, density);
+        gl.uniform1f(u.u_mfloor, r.m_floor); gl.uniform1f(u.u_zdevf, r.zdev_footprints);
+        gl.uniform1i(u.u_nviews, man.n_views); gl.uniform1i(u.u_k, this.k);
+        gl.uniform1i(u.u_views, 0); gl.uniform1i(u.u_viewdata, 1);
+        gl.uniform2f(u.u_layer, man.views.layer_width, man.views.layer_height);
+        gl.uniform1f(u.u_zscale, zscale); gl.uniform1f(u.u_tau, tau);
+        gl.bindVertexArray(this.vaos[pi]);
+        if (pi === 0) {
+          gl.drawBuffers([gl.COLOR_ATTACHMENT0, gl.NONE]);
+          gl.colorMask(false, false, false, false); gl.depthMask(true); gl.depthFunc(gl.LESS); gl.disable(gl.BLEND);
+        } else {
+          gl.drawBuffers([gl.COLOR_ATTACHMENT0, gl.COLOR_ATTACHMENT1]);
+          gl.colorMask(true, true, true, true); gl.depthMask(false); gl.depthFunc(gl.LEQUAL);
+          gl.enable(gl.BLEND); gl.blendFunc(gl.ONE, gl.ONE); gl.blendEquation(gl.FUNC_ADD);
+        }
+        gl.drawArrays(gl.POINTS, 0, this.loaded);
       }
-      gl.drawArrays(gl.POINTS, 0, this.loaded);
     }
     gl.bindVertexArray(null);
     gl.disable(gl.BLEND); gl.disable(gl.DEPTH_TEST); gl.depthMask(true);
@@ -939,7 +1096,7 @@ class Viewer {
     gl.useProgram(rp.p);
     gl.activeTexture(gl.TEXTURE2); gl.bindTexture(gl.TEXTURE_2D, this.acc0);
     gl.activeTexture(gl.TEXTURE3); gl.bindTexture(gl.TEXTURE_2D, this.acc1);
-    gl.uniform1i(rp.u.u_acc0, 2); gl.uniform1i(rp.u.u_acc1, 3);
+    gl.uniform1i(rp.u.u_acc0, 2); gl.uniform1i(rp.u.u_acc1, 3); gl.uniform1i(rp.u.u_splats, fitted ? 1 : 0);
     gl.uniform1f(rp.u.u_covfull, r.coverage_full); gl.uniform1f(rp.u.u_amin, r.alpha_min);
     gl.uniform3fv(rp.u.u_bg, this.bg);
     // the background map: the relighting map when relit, else the bundle's --envmap
@@ -986,7 +1143,7 @@ async function main() {
   const RL = man.relight;
   const relightBytes = RL ? RL.basis.bytes + RL.coeffs.bytes + RL.envmaps.reduce((a, e) => a + e.weights.bytes + (e.image.file === (man.envmap && man.envmap.file) ? 0 : e.image.bytes), 0) : 0;
   const S = man.spg;
-  const total = man.views.bytes + S.codebooks.bytes + S.visibility.bytes + man.chunks.reduce((a, c) => a + c.bytes, 0) + (L ? L.bytes + H.codes_bytes + H.counts_bytes + H.offsets_bytes : 0) + relightBytes;
+  const total = (man.splats ? man.splats.bytes : 0) + man.views.bytes + S.codebooks.bytes + S.visibility.bytes + man.chunks.reduce((a, c) => a + c.bytes, 0) + (L ? L.bytes + H.codes_bytes + H.counts_bytes + H.offsets_bytes : 0) + relightBytes;
   let got = 0;
   const report = () => { progress.textContent = `loading ${(100 * got / total).toFixed(0)} % — ${viewer.loaded} / ${man.n_nodes} nodes`; };
   report();
@@ -1006,6 +1163,16 @@ async function main() {
   viewsP.catch(() => {}); chunk0P.catch(() => {});  // awaited below; no "unhandled rejection" noise
   viewer.warmup();
   api.timings.warmup = performance.now();
+  if (man.splats) {  // a fitted model: its splats are the picture, so they come first
+    viewer.uploadSplats(await fetchBytes(man.splats.file, man.splats.bytes, "the fitted splats"));
+    got += man.splats.bytes; report();
+    api.timings.splats = performance.now();
+    viewer.draw();
+    const rs = $("renderer");
+    $("rendererlabel").style.display = "";
+    rs.value = viewer.renderer;
+    rs.onchange = () => { viewer.renderer = rs.value; dirty = true; };
+  }
   viewer.uploadViews(await viewsP);
   got += man.views.bytes; report();
   api.timings.views = performance.now();
@@ -1100,7 +1267,7 @@ async function main() {
       $("bg").appendChild(o);
     }
   }
-  progress.textContent = `${man.n_surfels} surfels, ${man.n_views} views${RL ? `, relightable (PCA rank ${RL.rank}, ${RL.n_lights} lights)` : ""}`;
+  progress.textContent = `${man.splats ? `${man.splats.count} fitted splats, ` : ""}${man.n_surfels} surfels, ${man.n_views} views${RL ? `, relightable (PCA rank ${RL.rank}, ${RL.n_lights} lights)` : ""}`;
   // controls
   sel.onchange = () => { viewer.fit = true; viewer.setView(+sel.value); dirty = true; };
   const kIn = $("k"); kIn.value = viewer.k; $("kval").textContent = viewer.k;
@@ -1139,6 +1306,14 @@ window.opacityhull = {
   setCameraMatrix(cam) { this.viewer.fit = false; this.viewer.setCamera(cam); return this.viewer.draw(); },
   // fill the window (true, the page's default) or draw at the camera's own size (false)
   setFit(on) { this.viewer.setFit(on); return this.viewer.draw(); },
+  // "fitted": the splats of build --optimize (bundles that have them); "ulr": the captured views blended
+  setRenderer(name) {
+    if (name === "fitted" && !this.viewer.splatsReady) throw new Error("this bundle has no fitted splats (the model was not built with --optimize)");
+    if (name !== "fitted" && name !== "ulr") throw new Error(`renderer ${JSON.stringify(name)}: expected "fitted" or "ulr"`);
+    this.viewer.renderer = name;
+    const rs = document.getElementById("renderer"); if (rs) rs.value = name;
+    return this.viewer.draw();
+  },
   setK(k) { this.viewer.k = Math.max(1, Math.min(KMAX, k | 0)); return this.viewer.draw(); },
   setBudget(n) { this.viewer.budget = n === null || n === undefined ? null : Math.max(1, n | 0); return this.viewer.draw(); },
   setBackground(rgb) {  // [r, g, b] (linear) or "envmap"
