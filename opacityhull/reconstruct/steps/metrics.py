@@ -165,7 +165,7 @@ def report(ctx, steps) -> None:
     (what each did: ran / reused / reused k of n views)."""
     import json
 
-    from ...cliutil import to_jsonable
+    from ...jsonio import to_jsonable
     from ...imageio import atomic_path
 
     natural, _ = ctx.natural
