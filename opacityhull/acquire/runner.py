@@ -51,7 +51,7 @@ from ..errors import (
     Terminated,
     write_error,
 )
-from ..rigs.interfaces import GroundTruthSource, ImageOutput, LockablePanels, PhaseAware
+from ..rigs.interfaces import DisplayDrift, GroundTruthSource, ImageOutput, LockablePanels, PhaseAware
 from ..session import Session, SessionWriter, sha256_file
 from ..tomlio import toml_dumps
 from .exr import write_capture_exr
@@ -234,8 +234,6 @@ def _lock_backdrop_panels(rig, *, allow: bool, log: Callable[[str], None]) -> No
     """Before the first backdrop shot: lock the panels' radiance settings over their
     control ports (video-output backdrops with MDC panels) and refuse to go on while one
     may still change its own radiance, unless ``allow``."""
-    from ..rigs.panels import DisplayDrift
-
     bd = rig.backdrops
     if not isinstance(bd, LockablePanels):
         return
@@ -513,7 +511,7 @@ def run_capture(
     allow_display_drift : bool
         Start matting even when a backdrop panel may change its own radiance (its
         auto-brightness or dynamic contrast is on and could not be locked); otherwise
-        :class:`~opacityhull.rigs.panels.DisplayDrift` is raised before the first matting shot.
+        :class:`~opacityhull.rigs.interfaces.DisplayDrift` is raised before the first matting shot.
 
     Returns
     -------

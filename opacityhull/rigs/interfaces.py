@@ -32,6 +32,7 @@ __all__ = [
     "StorageFull",
     "ImageOutput",
     "LockablePanels",
+    "DisplayDrift",
     "CameraDevice",
     "CameraInfo",
     "Rig",
@@ -215,6 +216,12 @@ class ImageOutput(Protocol):
         """Show ``image_rgb8`` (uint8 (rows, cols, 3)) full-screen on ``display``; returns
         once it is on the panel. ``pattern_id`` is what :meth:`Backdrops.shown` reports."""
         ...
+
+
+class DisplayDrift(DeviceError):
+    """A backdrop panel may change its own radiance during matting (auto-brightness,
+    dynamic contrast) and the capture was not told to allow it (raised by the capture
+    runner after :meth:`LockablePanels.lock_panels`)."""
 
 
 @runtime_checkable
