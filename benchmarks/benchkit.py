@@ -71,7 +71,7 @@ def print_result(res: dict, report: Path, *, as_json: bool) -> None:
     """Print ``res`` as one JSON object on stdout (``--json``), else the Markdown report
     the benchmark wrote at ``report``."""
     if as_json:
-        from opacityhull.cliutil import to_jsonable
+        from opacityhull.jsonio import to_jsonable
 
         print(json.dumps(to_jsonable(res)))
     else:

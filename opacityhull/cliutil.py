@@ -16,10 +16,10 @@ from pathlib import Path
 from typing import Annotated, Any, TypeVar, overload
 from collections.abc import Callable, Iterator, Mapping, Sequence
 
-import numpy as np
 import typer
 
 from .errors import EXIT_CODES, InputError, OpacityHullError, Terminated, write_error
+from .jsonio import to_jsonable as to_jsonable  # the CLI's --json; library modules import .jsonio
 
 _C = TypeVar("_C", bound=str)
 
@@ -161,23 +161,6 @@ def out_console():
     from rich.console import Console
 
     return Console(stderr=False)
-
-
-def to_jsonable(obj: Any):
-    """Recursively convert numpy scalars/arrays and paths for ``json.dumps``."""
-    if isinstance(obj, dict):
-        return {str(k): to_jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [to_jsonable(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return to_jsonable(obj.tolist())
-    if isinstance(obj, np.generic):
-        return obj.item()
-    if isinstance(obj, float) and (obj != obj or obj in (float("inf"), float("-inf"))):
-        return None  # JSON has no NaN/Inf
-    if hasattr(obj, "__fspath__"):
-        return str(obj)
-    return obj
 
 
 def emit(summary: dict, as_json: bool, human: Callable[[dict], None] | None = None, *, primary: bool = False) -> None:

@@ -320,7 +320,7 @@ def run_demo(
         f"relit glass under {probe} (natural-illumination field)": gl.get("views_sheet"),
         "relit glass vs Mitsuba": (gl.get("eval") or {}).get("sheet"),
     }
-    from .cliutil import to_jsonable
+    from .jsonio import to_jsonable
 
     with atomic_path(out / "demo.json") as tmp:
         tmp.write_text(json.dumps(to_jsonable(summary), indent=1))

@@ -3,7 +3,8 @@
 
 Layout of a model folder::
 
-    model.toml              [model] format, units, software version, created;
+    model.toml              [model] format, units, software version (no time:
+                            report.json records when it was built, #35);
                             [provenance] session, rig source, build options
                             ([provenance.build_config] a table, the options that
                             were None listed in build_config_none; before: a JSON
@@ -64,7 +65,6 @@ listed in ``[storage] clamped``; NaN and ±Inf are stored as they are, as in flo
 from __future__ import annotations
 
 import logging
-import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal, get_args
@@ -677,7 +677,6 @@ def write_model(
             "format": MODEL_FORMAT,
             "units": "m",
             "software_version": __version__,
-            "created_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
             "n_views": len(views),
             "n_surfels": len(surfels),
         },

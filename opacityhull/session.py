@@ -48,7 +48,7 @@ if TYPE_CHECKING:
 from . import __version__
 from .errors import FormatError, InputError
 from .riggeometry import RigGeometry, view_id
-from .tomlio import read_toml, toml_dumps  # toml_dumps: re-exported for rigs/config.py
+from .tomlio import read_toml, toml_dumps  # toml_dumps: also still importable from here
 
 log = logging.getLogger(__name__)
 

@@ -269,8 +269,6 @@ def test_no_module_is_over_1200_lines_but_the_kernel_modules():
     allowed = {
         "reconstruct/matting.py": "numba: triangulation matting and drift kernels with their twins",
         "reconstruct/natural.py": "numba: NNLS box-kernel estimation with its SciPy reference",
-        # 1,211 lines: the branch that moves terminate_as_interrupt out takes it to 1,165
-        "acquire/runner.py": "pending the #35 branch's move (then remove this line)",
     }
     long = {
         str(p.relative_to(ROOT)): n

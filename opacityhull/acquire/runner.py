@@ -52,11 +52,12 @@ from ..errors import (
     Terminated,
     write_error,
 )
-from ..rigs.interfaces import GroundTruthSource, PhaseAware
+from ..rigs.interfaces import DisplayDrift, GroundTruthSource, ImageOutput, LockablePanels, PhaseAware
 from ..session import Session, SessionWriter, sha256_file
 from ..tomlio import toml_dumps
 from .exr import write_capture_exr
-from .patterns import Pattern, check_saved_patterns, plan_patterns, save_patterns
+from .pattern_cache import PatternSlots, device_pattern_id, pattern_slots
+from .patterns import check_saved_patterns, plan_patterns, save_patterns
 from .plan import CapturePlan
 from .schedule import Estimate, MotionRates, PlannedShot, Stage, estimate, expected_counts, image_bytes, schedule
 
@@ -123,16 +124,6 @@ class CaptureResult:
         if self.stopped:
             d["stopped"] = self.stopped
         return d
-
-
-def device_pattern_id(pattern_id: int, display_index: int) -> int:
-    """Controller slot of a session pattern on one display.
-
-    The controller stores patterns globally, not per output, while each display has
-    its own image for a session pattern id; so slot = id * 16 + display index."""
-    if not 0 <= display_index < 16:
-        raise ConfigError(f"at most 16 displays are supported, got display index {display_index}")
-    return int(pattern_id) * 16 + int(display_index)
 
 
 def views_of(stages: Sequence[Stage]) -> list[tuple[int, float]]:
@@ -240,165 +231,16 @@ class _SessionLock:
 # --------------------------------------------------------------------------- the rig, driven
 
 
-class _PatternSlots:
-    """The display controller's pattern store, used as a least-recently-used cache.
-
-    A controller stores a fixed number of patterns (``slots=M`` in its IDENTIFY reply: 64
-    on the OHDC-2) while a natural-illumination phase shows N images on every display (N =
-    200 in the paper), so uploading every pattern up front cannot work. A pattern is
-    uploaded when it is first shown; when the store is full, the least recently shown one
-    that the current shot does not need is deleted first (patterns the controller held
-    before this run, e.g. another session's, go before any of ours). The driver's
-    ``upload`` skips a stored pattern whose size and CRC-32 match, so a resume or a
-    re-check after a manual step costs one PATTERN_INFO per slot, not a re-upload.
-
-    A controller that does not report its capacity is filled until it answers
-    STORAGE_FULL, then evicted one pattern at a time.
-
-    Identical images share one slot: every natural pattern is black on the displays it
-    does not light, and each display has its own slot per pattern id (:func:`device_pattern_id`),
-    so without sharing a two-display natural phase would upload N black images and
-    re-upload them at every table angle once the store cycles. A pattern whose bytes a
-    slot checked this run already holds is shown from that slot.
-    """
-
-    def __init__(
-        self, backdrops, patterns: dict[int, Pattern], displays: Sequence[str], log, capacity: int | None = None
-    ):
-        from collections import OrderedDict
-
-        self.bd = backdrops
-        self.patterns = patterns
-        self.displays = list(displays)
-        self.log = log
-        self.capacity = capacity if capacity is not None else _controller_slots(backdrops)
-        self.stored: OrderedDict[int, None] = OrderedDict()  # on the controller, least recently shown first
-        self.verified: set[int] = set()  # content checked (or sent) since the last forget()
-        self.by_content: dict[bytes, int] = {}  # image digest -> a verified slot holding it
-        self.showing: dict[str, int] = {}  # display -> slot it shows now (never evicted for the next)
-        self.uploads = 0
-        self.evictions = 0
-        self._synced = False
-
-    def forget(self) -> None:
-        """After a manual step or a device error the controller may have been power-cycled:
-        re-read what it stores and re-check each pattern before showing it again."""
-        self.verified.clear()
-        self.by_content.clear()
-        self.showing.clear()
-        self._synced = False
-
-    def _sync(self) -> None:
-        stored = getattr(self.bd, "stored", None)  # optional: not in the Backdrops protocol
-        listed: Any = stored() if callable(stored) else list(self.stored)
-        ids = [int(x) for x in listed]
-        fresh = [x for x in ids if x not in self.stored]
-        order = fresh + [x for x in self.stored if x in set(ids)]
-        self.stored.clear()
-        for x in order:
-            self.stored[x] = None
-        self._synced = True
-
-    def _evict_one(self, keep: set[int]) -> bool:
-        delete = getattr(self.bd, "delete", None)
-        if not callable(delete):
-            return False
-        victim = next((x for x in self.stored if x not in keep), None)
-        if victim is None:
-            return False
-        try:
-            delete(victim)
-        except DeviceError as e:
-            from ..rigs import display_protocol as dp
-
-            if getattr(e, "reason", None) != dp.NAK_NO_PATTERN:  # already gone is what we wanted
-                raise
-        del self.stored[victim]
-        self.verified.discard(victim)
-        self.by_content = {k: v for k, v in self.by_content.items() if v != victim}
-        self.showing = {k: v for k, v in self.showing.items() if v != victim}
-        self.evictions += 1
-        return True
-
-    def ensure(self, display: str, slot: int, image: np.ndarray, keep: set[int]) -> None:
-        """Make ``slot`` hold ``image`` on the controller, evicting outside ``keep`` if full."""
-        from ..rigs import display_protocol as dp
-
-        if not self._synced:
-            self._sync()
-        keep = keep | {v for k, v in self.showing.items() if k != display}  # what the other displays show
-        if slot in self.verified:
-            self.stored.move_to_end(slot)
-            return
-        if slot not in self.stored and self.capacity is not None:
-            while len(self.stored) >= self.capacity:
-                if not self._evict_one(keep):
-                    raise ConfigError(
-                        f"backdrops {getattr(self.bd, 'name', '?')}: the controller stores {self.capacity} "
-                        f"patterns and none can be deleted to make room for pattern {slot} (one shot needs "
-                        f"{len(keep)}, or the device has no DELETE)"
-                    )
-        while True:
-            try:
-                sent = self.bd.upload(display, slot, image)
-                break
-            except DeviceError as e:
-                if getattr(e, "reason", None) == dp.NAK_STORAGE_FULL and self._evict_one(keep | {slot}):
-                    continue
-                raise
-        if sent is not False:
-            self.uploads += 1
-        self.stored[slot] = None
-        self.stored.move_to_end(slot)
-        self.verified.add(slot)
-        self.by_content.setdefault(_image_digest(image), slot)
-
-    def show(self, display: str, index: int, pattern_id: int, *, keep: set[int]) -> int:
-        """Show session pattern ``pattern_id`` on ``display`` (rig display ``index``);
-        returns the slot shown (its own, or one already holding the same image)."""
-        from ..rigs import display_protocol as dp
-
-        image = self.patterns[pattern_id].images[display]
-        show_image = getattr(self.bd, "show_image", None)
-        if callable(show_image):  # a video output shows images as they are: no store, no slots
-            own = device_pattern_id(pattern_id, index)
-            show_image(display, image, pattern_id=own)
-            self.showing[display] = own
-            return own
-        for attempt in range(2):
-            if not self._synced:
-                self._sync()
-            own = device_pattern_id(pattern_id, index)
-            alias = self.by_content.get(_image_digest(image))
-            slot = alias if alias is not None and alias in self.verified else own
-            self.ensure(display, slot, image, keep)
-            try:
-                self.bd.show(display, slot)
-            except DeviceError as e:
-                if attempt or getattr(e, "reason", None) != dp.NAK_NO_PATTERN:
-                    raise
-                # lost since it was checked (a power cycle between shots): upload it again, once
-                self.log(f"backdrops: pattern {slot} vanished from the controller; uploading it again")
-                self.forget()
-                continue
-            self.showing[display] = slot
-            return slot
-        raise AssertionError("unreachable")  # pragma: no cover
-
-
 def _lock_backdrop_panels(rig, *, allow: bool, log: Callable[[str], None]) -> None:
     """Before the first backdrop shot: lock the panels' radiance settings over their
     control ports (video-output backdrops with MDC panels) and refuse to go on while one
     may still change its own radiance, unless ``allow``."""
-    from ..rigs.panels import DisplayDrift
-
     bd = rig.backdrops
-    lock = getattr(bd, "lock_panels", None)
-    if bd is None or not callable(lock):
+    if not isinstance(bd, LockablePanels):
         return
     problems: list[str] = []
     try:
-        lock()
+        bd.lock_panels()
     except DeviceError as e:  # a NAKed (locked) setting: what remains is named below
         problems.append(str(e))
     try:
@@ -419,32 +261,10 @@ def _lock_backdrop_panels(rig, *, allow: bool, log: Callable[[str], None]) -> No
     )
 
 
-def _image_digest(image: np.ndarray) -> bytes:
-    import hashlib
-
-    a = np.ascontiguousarray(image)
-    return hashlib.sha256(repr((a.shape, a.dtype.str)).encode() + a.tobytes()).digest()
-
-
-def _controller_slots(backdrops) -> int | None:
-    """The controller's pattern capacity from its IDENTIFY reply (``...;slots=M;...``), or
-    None when it does not say."""
-    import re
-
-    n = getattr(backdrops, "slots", None)
-    if isinstance(n, int) and not isinstance(n, bool) and n > 0:
-        return n
-    ident = getattr(backdrops, "identity", None)
-    if not callable(ident):
-        return None
-    m = re.search(r"(?:^|;)slots=(\d+)(?:;|$)", str(ident()))
-    return int(m.group(1)) if m and int(m.group(1)) > 0 else None
-
-
 class _RigDriver:
     """Issues device commands only when the state changes; forgets the state after an error."""
 
-    def __init__(self, rig, log: Callable[[str], None] | None, slots: _PatternSlots | None = None):
+    def __init__(self, rig, log: Callable[[str], None] | None, slots: PatternSlots | None = None):
         self.rig = rig
         self.log = log or (lambda msg: None)
         self.table: float | None = None
@@ -692,7 +512,7 @@ def run_capture(
     allow_display_drift : bool
         Start matting even when a backdrop panel may change its own radiance (its
         auto-brightness or dynamic contrast is on and could not be locked); otherwise
-        :class:`~opacityhull.rigs.panels.DisplayDrift` is raised before the first matting shot.
+        :class:`~opacityhull.rigs.interfaces.DisplayDrift` is raised before the first matting shot.
 
     Returns
     -------
@@ -914,7 +734,7 @@ def _capture(
                 drift_checked = False
                 try:
                     if any(pend for _, pend in todo) and patterns:
-                        drv.slots = _pattern_slots(rig, patterns, displays, log)
+                        drv.slots = pattern_slots(rig.backdrops, patterns, displays, log)
                     for st, pend in todo:
                         if not pend:
                             continue
@@ -994,7 +814,7 @@ def _capture(
                         sink.close()
                     finally:
                         collect(report=False)
-            if drv.slots is not None and not callable(getattr(rig.backdrops, "show_image", None)):
+            if drv.slots is not None and not isinstance(rig.backdrops, ImageOutput):
                 log(f"backdrop patterns: {drv.slots.uploads} uploaded, {drv.slots.evictions} deleted to make room")
             result.complete = result.images == n_planned
             if result.complete and isinstance(rig, GroundTruthSource) and (taken or not (out / "groundtruth").is_dir()):
@@ -1182,24 +1002,6 @@ def _session_meta(rig, cam_info, plan, geometry, stages, patterns, rig_source) -
         device_ids = {d: device_pattern_id(pid, i) for i, d in enumerate(p.images)}
         meta["patterns"][f"p{pid:03d}"] = pattern_entry(pid, p, device_ids=device_ids)
     return _strip_none(meta)
-
-
-def _pattern_slots(rig, patterns: dict[int, Pattern], displays: list[str], log) -> _PatternSlots:
-    """The run's pattern cache: patterns are uploaded as they are first shown (the
-    controller may have been power-cycled since the last run; the driver skips identical
-    stored patterns)."""
-    bd = rig.backdrops
-    if bd is None:
-        raise ConfigError("the plan shows backdrop patterns but the rig has no backdrops device")
-    slots = _PatternSlots(bd, patterns, displays, log)
-    if callable(getattr(bd, "show_image", None)):
-        log(f"{len(patterns)} pattern(s) on {len(displays)} display(s), drawn as shown (video output)")
-        return slots
-    log(
-        f"{len(patterns)} pattern(s) on {len(displays)} display(s), uploaded as shown "
-        f"(controller capacity: {slots.capacity if slots.capacity is not None else 'not reported'} slots)"
-    )
-    return slots
 
 
 def _check_image(img, spec, cam) -> np.ndarray:

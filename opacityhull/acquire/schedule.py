@@ -487,7 +487,7 @@ def _pattern_uploads(
     plan: CapturePlan, geometry: RigGeometry, stages: Sequence[Stage], rates: MotionRates
 ) -> tuple[int, int]:
     """Uploads and link bytes of the runner's least-recently-used pattern store
-    (``_PatternSlots`` in runner.py) over the schedule, on an empty controller.
+    (``PatternSlots`` in pattern_cache.py) over the schedule, on an empty controller.
 
     Every display has its own slot per pattern id, except that identical images share
     one: the black a natural pattern shows on the displays it does not light. Once the

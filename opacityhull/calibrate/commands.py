@@ -129,7 +129,7 @@ def register(app, groups) -> None:
             with writing_to(out):
                 s["outputs"] = write_outputs(run, out)
                 (out / "rejected.json").write_text(json.dumps(s["rejected"], indent=1) + "\n")
-                from ..cliutil import to_jsonable
+                from ..jsonio import to_jsonable
 
                 (out / "calibration.json").write_text(json.dumps(to_jsonable(s), indent=1) + "\n")
         emit(s, as_json, _human)

@@ -107,7 +107,7 @@ def eval_test(
     :func:`fitted_state`), else ULR."""
     import json
 
-    from ..cliutil import to_jsonable
+    from ..jsonio import to_jsonable
     from ..imageio import atomic_path
     from .runner import default_out
 

@@ -203,7 +203,7 @@ def run_loo_holdouts(
     ``rebuild_ms`` then measures the wait for a rebuild, not its cost. ``on_step(name)``
     is called as each holdout starts (``"blend holdout"``, ``"geometry holdout"``), and
     ``progress(done, total)`` counts that holdout's views."""
-    from ..cliutil import to_jsonable
+    from ..jsonio import to_jsonable
     from ..imageio import atomic_path
     from .loo import held_out_groups, leave_one_out, select_views
     from .runner import default_out

@@ -249,7 +249,7 @@ def eval_relight(
     ``out/eval_relight.json``."""
     import json
 
-    from ..cliutil import to_jsonable
+    from ..jsonio import to_jsonable
     from ..imageio import atomic_path
     from ..model import OpacityHullModel
 

@@ -39,7 +39,7 @@ def run_loo(
     """Leave-one-out evaluation (blend holdout) of a model folder; writes ``loo.json`` and
     ``loo_sheet.png`` to ``out`` (default ``MODEL/eval/loo``). ``twins``: see
     :func:`~opacityhull.evaluate.loo.leave_one_out`."""
-    from ..cliutil import to_jsonable
+    from ..jsonio import to_jsonable
     from ..imageio import atomic_path
     from ..model import OpacityHullModel
     from .loo import leave_one_out, select_views

@@ -260,12 +260,21 @@ class BuildConfig:
 
 @dataclass
 class BuildReport:
-    """What :func:`build_model` did: counts, timings per step (s), metrics, decisions."""
+    """What :func:`build_model` did: counts, timings per step (s), metrics, decisions.
+
+    ``report.json`` is the one file of a model that records wall-clock times (#35): the
+    creation time, the step seconds, the calibration's stage seconds and the photo
+    refinement's and natural field's seconds (in ``hull``). Every other file of two
+    builds of one session is byte-identical."""
 
     model_dir: str
     views: int
     surfels: int
     seconds: dict = field(default_factory=dict)
+    #: when the build finished, ``YYYY-MM-DDTHH:MM:SSZ`` (model.toml records no time)
+    created_utc: str = ""
+    #: the calibration's stages (detect, intrinsics, axis, refine), s, when it ran in this build
+    calibration_seconds: dict = field(default_factory=dict)
     metrics: dict = field(default_factory=dict)
     camera_source: str = ""
     backdrop_source: str = ""
@@ -315,6 +324,9 @@ class BuildReport:
 class _Timer:
     def __init__(self, on_step):
         self.seconds: dict[str, float] = {}
+        #: a step's own wall-clock figures (``buildstore.pop_timings``), kept out of its
+        #: pickled product: "calibration", "refine", "natural" -> {name: value}
+        self.detail: dict[str, dict[str, float]] = {}
         self.on_step = on_step
 
     @contextmanager

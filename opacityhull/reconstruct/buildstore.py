@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import json
 import logging
-import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Generic, TypeVar, cast
@@ -41,6 +40,18 @@ _NOT_GEOMETRY = (
     "optimize",  # the fit runs on the written model, after the geometry
     "optimize_iterations",
 )
+
+
+#: keys of a product's dicts that hold wall-clock figures (the photo refinement's and the
+#: natural field's ``seconds``, the calibration's stage seconds are a whole dict): they
+#: are popped before a product is pickled and go to ``report.json`` only, the one file of
+#: a model that records this run's times (#35: two builds repeat byte for byte elsewhere)
+TIMING_KEYS = ("seconds", "seconds_cost_volume", "pixels_per_s")
+
+
+def pop_timings(d: dict, keys: Sequence[str] = TIMING_KEYS) -> dict:
+    """The wall-clock entries ``keys`` of ``d``, removed from it (in place)."""
+    return {k: d.pop(k) for k in keys if k in d}
 
 
 def _digest(obj) -> str:
@@ -193,7 +204,6 @@ class _StepStore:
         inputs: dict,
         params: dict,
         outputs: Sequence[str],
-        seconds: float,
         status: str = "ran",
         digest_outputs: bool = True,
     ) -> None:
@@ -204,7 +214,6 @@ class _StepStore:
             "inputs": inputs,
             "params": params,
             "outputs": list(outputs),
-            "seconds": round(float(seconds), 4),
         }
         if digest_outputs:
             entry["digests"] = {
@@ -300,7 +309,6 @@ def cached(
             store.reuse(name)
             e = store.steps.get(name, {})
             return Cached(cast(T, on_reuse(e) if on_reuse is not None else None), key, True)
-    t = time.perf_counter()
     value = run()
     outs = list(outputs(value) if callable(outputs) else outputs)
     if pickle_as is not None:
@@ -312,7 +320,6 @@ def cached(
         inputs=inputs,
         params=params,
         outputs=outs,
-        seconds=time.perf_counter() - t,
         status=status(value) if status is not None else "ran",
         digest_outputs=reuse,
     )

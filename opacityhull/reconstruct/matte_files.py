@@ -163,7 +163,7 @@ def matte_files(
         "notes": notes,
         "seconds": time.perf_counter() - t0,
     }
-    from ..cliutil import to_jsonable
+    from ..jsonio import to_jsonable
     from ..imageio import atomic_path
 
     files_json = out / "matte.json"

@@ -22,7 +22,7 @@ log = logging.getLogger(__name__)
 
 
 def _jsonable(d):
-    from ..cliutil import to_jsonable
+    from ..jsonio import to_jsonable
 
     return to_jsonable(d)
 

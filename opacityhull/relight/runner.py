@@ -290,7 +290,7 @@ def relight_model(
         summary["render_s"] = time.perf_counter() - t2
     summary["total_s"] = time.perf_counter() - t0
     with atomic_path(out / "relight.json") as tmp:
-        from ..cliutil import to_jsonable
+        from ..jsonio import to_jsonable
 
         tmp.write_text(json.dumps(to_jsonable(summary), indent=2))
     return summary

@@ -12,15 +12,16 @@ come from the blended mattes**: the hull only decides where to look, so the silh
 is the photographs' and interior α is the mattes'. Texture sharpness is bounded by the
 photographs' resolution, not the surfel density.
 
-The renderer (``RenderConfig(shading="pixel")``, :func:`opacityhull.render.renderer.render_image`)
-adds two image-space steps around :func:`deferred_shade`: :func:`close_gbuffer` fills
+The driver, :func:`render_deferred` (what :func:`opacityhull.render.renderer.render_image`
+runs with ``RenderConfig(shading="pixel")``, the default), lives here beside its parts.
+It adds two image-space steps around :func:`deferred_shade`: :func:`close_gbuffer` fills
 the geometry buffer's pinholes before shading, and α is clipped to the EWA coverage
 afterwards (``coverage_clip``) — beyond the hull's limb the back-projected point lies on
 the extrapolated tangent plane and would take opaque matte from the neighbours. The
 clip replaces a hard coverage threshold (``min_coverage``, default 0 in the renderer):
 a threshold of ½ dropped the fractional silhouette pixels, measured −1.1 dB on the
 temple ring against the clip. Inside the hull's projection (``opaque_interior``, the
-renderer's :func:`~opacityhull.render.renderer.hull_interior`) the clip is off and α is
+:func:`hull_interior`) the clip is off and α is
 raised to the blend of the views' mattes dilated by the carve's silhouette tolerance, so
 that interior α is 1 wherever the source mattes say opaque.
 
@@ -36,11 +37,28 @@ Every kernel here has a NumPy twin in :mod:`opacityhull.render.reference`
 from __future__ import annotations
 
 import math
+import time
 
 import numpy as np
 from numba import njit
 
+from ..imageio import straight_from_premul
+from ..model import Surfels
 from . import kernels as K
+from .config import RenderConfig
+from .frame import (
+    ALPHA_MIN,
+    RenderResult,
+    _remap_buffers,
+    _stage_end,
+    _stage_ms,
+    _view_stats,
+    coverage_from,
+    setup_splats,
+    surfel_areas,
+)
+from .view_io import dilated_matte_views
+from .views import PreparedViews
 
 __all__ = [
     "MIN_COVERAGE",
@@ -52,11 +70,13 @@ __all__ = [
     "backproject",
     "pixel_order",
     "deferred_shade",
+    "render_deferred",
+    "hull_interior",
 ]
 
 MIN_COVERAGE = 0.5
 """Default of :func:`deferred_shade`: EWA coverage (fraction of full, see
-:func:`opacityhull.render.renderer.coverage_full`) below which a pixel is outside the
+:func:`opacityhull.render.frame.coverage_full`) below which a pixel is outside the
 hull's projection and not shaded (α = 0)."""
 
 MIN_VIEW_COS = -1.0
@@ -407,3 +427,173 @@ def _aligned_shade(pix, head, views, order, s_lb, k, shape, align, threads):
     ok = count > 0
     out, _ = float_blend(pix[ok], points[ok], idx[ok], w[ok], uv[ok], views, shape, config=align)
     return out, int(ok.sum())
+
+
+# --------------------------------------------------------------------------- the pixel-shading driver
+
+
+def render_deferred(
+    surfels, pv, allowed, camera, pin, grid, cam_row, C, splat, valid, config, exclude_views, progress, times
+) -> RenderResult:
+    """The rest of :func:`~opacityhull.render.renderer.render_image` with ``shading="pixel"``
+    (its camera, the pinhole canvas and remap ``grid``, the packed camera row, the centre
+    ``C``, the frame's splat records and the stage ``times`` so far): geometry-only EWA pass
+    (depth, coverage, winning surfel), then per-pixel ULR shading (:mod:`.deferred`).
+    Every valid splat is geometry, whether or not a view sees it: visibility is decided
+    per pixel from the winner's bits."""
+    t0, t_prep, t_setup = times
+    H, W = pin.height, pin.width
+    threads = config.n_threads
+    scratch = K.SCRATCH
+    draw = np.flatnonzero(valid).astype(np.int64)
+    geo, winner = geometry_frame(
+        splat, draw, H, W, float(config.cutoff_sigma), int(config.band_rows), threads=threads, scratch=scratch
+    )
+    wsum = geo[..., 0].copy()
+    has = wsum > 0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        depth = np.where(has, geo[..., 1] / np.where(has, wsum, 1.0), np.inf).astype(np.float32)
+    cov = coverage_from(geo[..., 2], wsum, config)
+    if config.close_holes:
+        depth, cov, winner = close_gbuffer(depth, wsum, cov, winner)
+    refined = config.shading_surface == "refined" and surfels.depth_m is not None
+    if refined:
+        depth = _shading_depth(surfels, cam_row, W, H, depth, config, threads, scratch)
+    t_raster = _stage_end(progress, 2)
+
+    def shade(views: PreparedViews, align):
+        # the same pixels, views and weights for the colour and for the dilated mattes
+        return deferred_shade(
+            depth,
+            cov,
+            winner,
+            cam_row,
+            C,
+            surfels.visibility,
+            surfels.normals,
+            views,
+            allowed,
+            k=int(config.k),
+            min_coverage=float(config.min_coverage),
+            min_view_cos=float(config.min_view_cos),
+            fallback=bool(config.fallback_views),
+            threads=threads,
+            align=align,
+        )
+
+    premul, n_shaded = shade(pv, _align_config(config))
+    interior = None
+    if config.opaque_interior:
+        interior = hull_interior(cov, winner, erode_px=int(config.interior_px))
+        premul = _opaque_interior(premul, interior, pv, config, shade)
+    if config.coverage_clip:
+        # inside the hull's projection the coverage's dips are the splats' sampling gaps,
+        # not a silhouette: only the outline clips
+        clip_to = cov if interior is None else np.where(interior, np.float32(1.0), cov)
+        a = premul[..., 3]
+        clipped = np.minimum(a, clip_to)
+        scale = np.where(a > clipped, clipped / np.where(a > 0, a, 1.0), 1.0).astype(np.float32)
+        premul *= scale[..., None]
+    t_shade = time.perf_counter()
+    if grid is not None:
+        premul, wsum, cov, depth = _remap_buffers(premul, wsum, cov, depth, grid)
+    rgba_img = straight_from_premul(premul)
+    t_end = _stage_end(progress, 3)
+    stats = {
+        "surfels": len(surfels),
+        **_view_stats(camera, config, threads, exclude_views, pv, valid, draw),
+        "pixels_covered": int((cov >= config.min_coverage).sum()),
+        "pixels_shaded": n_shaded,
+        "shading": "pixel",
+        "shading_surface": "refined" if refined else "hull",
+        "ms": _stage_ms(t0, prepare=t_prep, setup=t_setup, raster=t_raster, shade=t_shade, finish=t_end),
+    }
+    return RenderResult(rgba_img, depth, np.ascontiguousarray(wsum, dtype=np.float32), cov, camera, config, stats)
+
+
+def hull_interior(coverage: np.ndarray, winner: np.ndarray, *, erode_px: int = 4, close_px: int = 1) -> np.ndarray:
+    """(H, W) bool: the pixels deep inside the hull's projection, where the ray enters the
+    hull away from its outline. The covered pixels (coverage ≥ ½ with a winning surfel)
+    are closed by a disc of ``close_px`` (the splats' sampling seams are not part of the
+    outline; a wider closing also shut the temple's carved see-through slots, −0.03 dB)
+    and eroded by a disc of ``erode_px`` (the antialiased outline, where the coverage and
+    the blended mattes decide the silhouette, stays out)."""
+    import cv2
+
+    m = ((np.asarray(coverage) >= 0.5) & (np.asarray(winner) >= 0)).astype(np.uint8)
+    if close_px > 0:
+        k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * close_px + 1, 2 * close_px + 1))
+        m = cv2.morphologyEx(m, cv2.MORPH_CLOSE, k, borderType=cv2.BORDER_CONSTANT, borderValue=0)
+    if erode_px > 0:
+        k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * erode_px + 1, 2 * erode_px + 1))
+        m = cv2.erode(m, k, borderType=cv2.BORDER_CONSTANT, borderValue=0)
+    return m.astype(bool)
+
+
+def _opaque_interior(premul, interior, pv: PreparedViews, config, shade):
+    """Interior α where the source mattes say opaque: inside the hull's projection
+    (``interior``) α is raised to the blend, with the same views and weights, of the
+    views' mattes whose opaque part is dilated by ``config.matte_tolerance_px``
+    (:func:`dilated_matte_views`) — the hull was carved from silhouettes dilated that much, so a
+    hull point up to that far outside a view's matte is consistent with it, and on a
+    crease the back-projected point lands just there. Colour stays the blend's
+    (straight); pixels that no view gave colour take their neighbours' (normalised box
+    filter of the premultiplied colour)."""
+    if not interior.any():
+        return premul
+    dil, _ = shade(dilated_matte_views(pv, int(config.matte_tolerance_px)), None)
+    a = premul[..., 3]
+    target = np.where(interior, np.maximum(a, np.clip(dil[..., 3], 0.0, 1.0)), a).astype(np.float32)
+    up = target > a
+    if not up.any():
+        return premul
+    out = premul.copy()
+    has = a > ALPHA_MIN
+    fix = up & has
+    out[fix] *= (target[fix] / a[fix])[:, None]
+    none = up & ~has
+    if none.any():
+        import cv2
+
+        box = cv2.boxFilter(premul, -1, (5, 5), normalize=False, borderType=cv2.BORDER_CONSTANT)
+        n = box[..., 3]
+        ok = none & (n > ALPHA_MIN)
+        out[ok, :3] = box[ok, :3] / n[ok, None] * target[ok, None]
+        out[ok, 3] = target[ok]
+    return out
+
+
+def _align_config(config: RenderConfig):
+    if config.align == "none":
+        return None
+    from .floating import FlowAlignConfig
+
+    return FlowAlignConfig()
+
+
+def _shading_depth(
+    surfels: Surfels, cam_row, W: int, H: int, hull_depth: np.ndarray, config: RenderConfig, threads: int, scratch
+) -> np.ndarray:
+    """Per-pixel depth of the photo-consistent surface: a second geometry-only EWA pass of
+    the surfels displaced to ``positions − depth_m·normals``. Pixels it leaves empty keep
+    the hull's depth; a displaced point is never in front of the hull (it lies inside it),
+    so where the pass reports a nearer depth (a rim splat spreading past the hull's
+    outline) the hull's depth is kept too. The coverage and winner of the hull pass are
+    left alone: opacity and visibility stay the hull's."""
+    N = len(surfels)
+    shade_at = surfels.shading_positions()
+    splat = scratch.get("splat_shade", (N, K.SPLAT_FIELDS), np.float32)
+    valid = scratch.get("valid_shade", (N,), np.bool_)
+    setup_splats(surfels, shade_at, surfel_areas(surfels), cam_row, W, H, config, threads, splat, valid)
+    draw = np.flatnonzero(valid).astype(np.int64)
+    # no scratch here: the hull pass's winner may still live in the scratch buffers
+    geo, winner = geometry_frame(splat, draw, H, W, float(config.cutoff_sigma), int(config.band_rows), threads=threads)
+    wsum = geo[..., 0]
+    has = wsum > 0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        dr = np.where(has, geo[..., 1] / np.where(has, wsum, 1.0), np.inf).astype(np.float32)
+    if config.close_holes:
+        cov = coverage_from(geo[..., 2], wsum, config)
+        dr, _, _ = close_gbuffer(dr, wsum.copy(), cov, winner)
+    use = np.isfinite(dr) & np.isfinite(hull_depth) & (dr >= hull_depth)
+    return np.where(use, dr, hull_depth).astype(np.float32)

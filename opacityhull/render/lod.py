@@ -31,6 +31,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..model import Surfels
+from .morton import morton_codes
 
 log = logging.getLogger(__name__)
 
@@ -89,12 +90,7 @@ def build_point_tree(surfels: Surfels, areas: np.ndarray | None = None, *, depth
     if not 1 <= depth <= 21:
         raise InputError(f"build_point_tree: depth {depth}, expected 1..21")
     A = (np.pi * surfels.radii.astype(np.float64) ** 2) if areas is None else np.asarray(areas, np.float64)
-    lo = P.min(axis=0)
-    span = float((P.max(axis=0) - lo).max()) or 1.0
-    q = np.clip((P - lo) / span * (2**depth - 1), 0, 2**depth - 1).astype(np.uint64)
-    from .renderer import _part1by2  # the renderer's Morton code
-
-    code = _part1by2(q[:, 0]) | (_part1by2(q[:, 1]) << np.uint64(1)) | (_part1by2(q[:, 2]) << np.uint64(2))
+    code = morton_codes(P, bits=depth)  # the renderer's Morton order
     order = np.argsort(code, kind="stable")
     # node storage (appended level by level); leaves first
     pos: list[np.ndarray] = [P[order]]

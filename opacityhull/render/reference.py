@@ -294,7 +294,9 @@ def render_image_ref(
     (distortion-free desired cameras only). Returns (rgba straight, depth, weight), and
     with ``return_margin`` (pixel shading) also the (H, W) bool map of pixels whose
     winning surfel is clear of the runner-up by more than the kernels' exp-table error."""
-    from .renderer import RenderConfig, coverage_from, normalise, straight_from_premul, surfel_areas
+    from ..imageio import straight_from_premul
+    from .config import RenderConfig
+    from .frame import coverage_from, normalise, surfel_areas
 
     cfg = config or RenderConfig(align="none")
     if camera.has_distortion:
@@ -480,7 +482,9 @@ def _opaque_interior_ref(premul, cov, winner, view_rgba_premul, cfg, shade):
     the hull's interior). ``shade(views)`` is the deferred shading of the frame."""
     from scipy import ndimage
 
-    from .renderer import ALPHA_MIN, OPAQUE_MATTE, hull_interior
+    from .deferred import hull_interior
+    from .frame import ALPHA_MIN
+    from .view_io import OPAQUE_MATTE
 
     interior = hull_interior(cov, winner, erode_px=int(cfg.interior_px))
     r = int(cfg.matte_tolerance_px)

@@ -7,9 +7,10 @@ from __future__ import annotations
 import logging
 import shutil
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from collections.abc import Callable, Sequence
-from typing import cast
+from typing import Any, cast
 
 import numpy as np
 
@@ -26,6 +27,7 @@ __all__ = [
     "choose_cameras",
     "check_budget",
     "LodCuts",
+    "FrameTask",
     "render_frames",
     "run_render",
     "run_demo_step",
@@ -137,17 +139,15 @@ class LodCuts:
         from dataclasses import replace
 
         from .lod import build_point_tree
-        from .renderer import _part1by2, surfel_areas
+        from .morton import morton_codes
+        from .renderer import surfel_areas
 
         t = time.perf_counter()
         tree = build_point_tree(self.surfels, surfel_areas(self.surfels))
         # the same tree with its nodes in Morton order (the cut does not depend on node
         # order): a cut then comes out spatially sorted, and gathering it reads memory
         # in order (in the tree's r_max order the gather cost as much as the render)
-        P = tree.positions.astype(np.float64)
-        lo = P.min(axis=0)
-        q = np.clip((P - lo) / (float((P.max(axis=0) - lo).max()) or 1.0) * 65535, 0, 65535).astype(np.uint64)
-        key = _part1by2(q[:, 0]) | (_part1by2(q[:, 1]) << np.uint64(1)) | (_part1by2(q[:, 2]) << np.uint64(2))
+        key = morton_codes(tree.positions, bits=16)
         perm = np.argsort(key, kind="stable")
         inv = np.empty_like(perm)
         inv[perm] = np.arange(len(perm))
@@ -205,9 +205,8 @@ def _seed_surfel_areas(surfels, areas) -> None:
     checks the renderer picks it up. (Better: an ``areas=`` argument of render_image.)"""
     import weakref
 
-    from . import renderer
+    from .frame import _AREA_CACHE as cache
 
-    cache = renderer._AREA_CACHE
     key = id(surfels)
     ref = weakref.ref(surfels, lambda _r, key=key: cache.pop(key, None))
     cache[key] = (ref, np.ascontiguousarray(areas, dtype=np.float32))
@@ -380,16 +379,37 @@ def _warm_up(st: _FrameState, camera: Camera, *, config: RenderConfig, exclude: 
         return st.ms_warmup
 
 
-def render_frames(task: tuple) -> dict:
-    """One executor task of ``render --scheduler``: render and write a chunk of frames.
+@dataclass(frozen=True, kw_only=True)
+class FrameTask:
+    """One executor task of ``render --scheduler`` (:func:`render_frames`): a chunk of
+    consecutive frames of one model.
 
-    ``task = (model_path, cameras, config, exclude, budget, paths, background,
-    anim_background, renderer)``: the model folder (a path the worker can read), the cameras,
-    the :class:`RenderConfig`, view indices not to blend, the splat budget (or None),
-    one output path per camera (the worker writes them), the background passed to
-    :func:`write_frame` (None, a colour, an image fitted to the camera or an
-    :class:`EnvMap`), the GIF's background colour (None: no GIF frames) and the
-    renderer, ``"fitted"`` or ``"ulr"`` (:func:`.splats.resolve_renderer`).
+    model_path : the model folder (a path the worker can read).
+    cameras : the frames' cameras.
+    config : the :class:`RenderConfig`.
+    exclude : view indices not to blend.
+    budget : the splat budget per frame (None: every surfel).
+    paths : one output path per camera (the worker writes them).
+    background : what :func:`write_frame` composites over (None, a colour, an image
+        fitted to the camera or an :class:`EnvMap`).
+    anim_background : the GIF frames' background (None: no GIF frames).
+    renderer : ``"fitted"`` or ``"ulr"`` (:func:`.splats.resolve_renderer`).
+    """
+
+    model_path: str
+    cameras: Sequence[Camera]
+    config: RenderConfig
+    exclude: Sequence[int]
+    budget: int | None
+    paths: Sequence[str]
+    background: Any = None
+    anim_background: Any = None
+    renderer: str = "ulr"
+
+
+def render_frames(task: FrameTask) -> dict:
+    """One executor task of ``render --scheduler``: render and write a chunk of frames
+    (:class:`FrameTask`).
 
     The model is opened once per worker process and kept (keyed on the model folder
     and ``model.toml``'s mtime), so an orbit's later chunks only render.
@@ -400,18 +420,16 @@ def render_frames(task: tuple) -> dict:
     frames), ``ms_load`` (0 when the model was already open here), ``ms_warmup`` (the
     first render in this worker, :func:`_warm_up`; 0 when warm) and ``ms_lod_tree``.
     """
-    model_path, cams, config, exclude, budget, paths, background, anim_background = task[:8]
-    renderer = task[8] if len(task) > 8 else "ulr"
-    st, loaded = _worker_state(model_path, renderer)
+    st, loaded = _worker_state(task.model_path, task.renderer)
     out = _render_chunk(
         st,
-        cams,
-        config=config,
-        exclude=exclude,
-        budget=budget,
-        paths=paths,
-        background=background,
-        anim_background=anim_background,
+        task.cameras,
+        config=task.config,
+        exclude=task.exclude,
+        budget=task.budget,
+        paths=task.paths,
+        background=task.background,
+        anim_background=task.anim_background,
     )
     out["ms_load"] = st.ms_load if loaded else 0.0
     return out
@@ -502,16 +520,16 @@ def run_render(
         # background), yet a slow worker does not hold up the whole orbit
         per = max(1, -(-len(cams) // max(1, 2 * int(getattr(executor, "n_workers", 1)))))
         tasks = [
-            (
-                str(Path(model_path).resolve()),
-                cams[i : i + per],
-                config,
-                excl,
-                budget,
-                [str(Path(p).resolve()) for p in paths[i : i + per]],
-                bg,
-                anim_bg,
-                used,
+            FrameTask(
+                model_path=str(Path(model_path).resolve()),
+                cameras=cams[i : i + per],
+                config=config,
+                exclude=excl,
+                budget=budget,
+                paths=[str(Path(p).resolve()) for p in paths[i : i + per]],
+                background=bg,
+                anim_background=anim_bg,
+                renderer=used,
             )
             for i in range(0, len(cams), per)
         ]

@@ -1,4 +1,5 @@
-"""Driver of the plasma-display controller (implements :class:`~opacityhull.rigs.interfaces.Backdrops`).
+"""Driver of the plasma-display controller (implements :class:`~opacityhull.rigs.interfaces.Backdrops`
+and :class:`~opacityhull.rigs.interfaces.PatternStore`).
 
 Transport: any :class:`~opacityhull.rigs.transport.Transport` (``from_url``: a serial one); wire protocol:
 :mod:`opacityhull.rigs.display_protocol` (documented in ``docs/display-protocol.md``).
@@ -20,13 +21,13 @@ import numpy as np
 
 from ..errors import ConfigError, DeviceError, InputError
 from . import display_protocol as dp
-from .interfaces import DeviceInfo
+from .interfaces import DeviceInfo, PatternMissing, StorageFull
 from .transport import DeviceGone, DeviceTimeout, OverTransport, ProtocolError, Transport, driver_name
 from .transport import SerialSettings, SerialTransport, reopen
 
 log = logging.getLogger(__name__)
 
-__all__ = ["DISPLAY_SERIAL", "DisplayController", "DisplayNak"]
+__all__ = ["DISPLAY_SERIAL", "DisplayController", "DisplayNak", "DisplayPatternMissing", "DisplayStorageFull"]
 
 #: 115200 baud RS-232; a command is resent 3 times, a vanished port re-opened twice, 0.2 s apart.
 DISPLAY_SERIAL = SerialSettings(baudrate=115200, timeout_s=2.0, retries=3, reconnect_attempts=2, reconnect_delay_s=0.2)
@@ -38,6 +39,21 @@ class DisplayNak(ProtocolError):
     def __init__(self, message: str, reason: int):
         super().__init__(message)
         self.reason = reason
+
+
+class DisplayPatternMissing(DisplayNak, PatternMissing):
+    """NAK no such stored pattern (:data:`~.display_protocol.NAK_NO_PATTERN`)."""
+
+
+class DisplayStorageFull(DisplayNak, StorageFull):
+    """NAK pattern storage full (:data:`~.display_protocol.NAK_STORAGE_FULL`)."""
+
+
+def display_nak(message: str, reason: int) -> DisplayNak:
+    """The NAK error of ``reason``: typed (:class:`PatternMissing`, :class:`StorageFull`)
+    where the pattern-store protocol names it."""
+    cls = {dp.NAK_NO_PATTERN: DisplayPatternMissing, dp.NAK_STORAGE_FULL: DisplayStorageFull}.get(reason, DisplayNak)
+    return cls(message, reason)
 
 
 def _check_display_options(name: str, outputs: Mapping[str, int], chunk_bytes: int) -> None:
@@ -216,7 +232,7 @@ class DisplayController(OverTransport):
                     attempt += 1
                     self.stats["resends"] += 1
                     continue
-                raise DisplayNak(f"{self.name}: controller refused {what}: {text}", reason)
+                raise display_nak(f"{self.name}: controller refused {what}: {text}", reason)
             problems.append(f"unexpected reply {reply.name}")
             attempt += 1
         self.last_error = problems[-1] if problems else "no reply"
@@ -338,7 +354,7 @@ class DisplayController(OverTransport):
             self._transact(*dp.show(out, pattern_id), what=f"SHOW {pattern_id} on {display}")
         except DisplayNak as e:
             if e.reason == dp.NAK_NO_PATTERN:
-                raise DisplayNak(
+                raise DisplayPatternMissing(
                     f"{self.name}: pattern {pattern_id} is not stored in the controller — upload it first", e.reason
                 ) from None
             raise
@@ -368,8 +384,13 @@ class DisplayController(OverTransport):
             out[disp] = st.shown[idx] if st.power[idx] else None
         return out
 
+    # ---- PatternStore protocol
     def stored(self) -> list[int]:
         return list(self.state().stored)
+
+    def slots(self) -> int | None:
+        """The controller's pattern capacity, from its IDENTIFY reply (None: not reported)."""
+        return dp.parse_identity_slots(self.identity())
 
     def delete(self, pattern_id: int | None = None) -> None:
         """Delete one stored pattern (or all with None)."""

@@ -340,7 +340,7 @@ class RigConfig:
         return copy.deepcopy(self.raw)
 
     def to_toml(self) -> str:
-        from ..session import toml_dumps
+        from ..tomlio import toml_dumps
 
         return toml_dumps(self.to_dict())
 

@@ -88,6 +88,7 @@ __all__ = [
     "ControllerState",
     "PatternInfo",
     "identify",
+    "parse_identity_slots",
     "query_state",
     "power",
     "show",
@@ -328,6 +329,15 @@ def _pid(v: int) -> int:
 
 def identify() -> tuple[int, bytes]:
     return CMD_IDENTIFY, b""
+
+
+def parse_identity_slots(identity: str) -> int | None:
+    """The pattern capacity ``M`` of an IDENTIFY reply (``model;fw=X.Y.Z;outputs=N;slots=M;max=WxH``),
+    None when it names none (or a non-positive one)."""
+    import re
+
+    m = re.search(r"(?:^|;)slots=(\d+)(?:;|$)", str(identity))
+    return int(m.group(1)) if m and int(m.group(1)) > 0 else None
 
 
 def query_state() -> tuple[int, bytes]:

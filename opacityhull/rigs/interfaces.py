@@ -28,6 +28,12 @@ __all__ = [
     "RotaryAxis",
     "LightArray",
     "Backdrops",
+    "PatternStore",
+    "PatternMissing",
+    "StorageFull",
+    "ImageOutput",
+    "LockablePanels",
+    "DisplayDrift",
     "CameraDevice",
     "CameraInfo",
     "Rig",
@@ -163,6 +169,74 @@ class Backdrops(Protocol):
         ...
 
     def check(self) -> DeviceInfo: ...
+
+
+class PatternMissing(DeviceError):
+    """The display controller holds no pattern of that id (SHOW or DELETE of an id it
+    does not store: never uploaded, or lost in a power cycle)."""
+
+
+class StorageFull(DeviceError):
+    """The display controller's pattern store is full: delete a pattern before uploading."""
+
+
+@runtime_checkable
+class PatternStore(Protocol):
+    """Backdrops whose controller stores uploaded patterns in a fixed number of slots
+    (the display controller). The capture runner uses the store as a least-recently-used
+    cache (:mod:`opacityhull.acquire.pattern_cache`); :meth:`Backdrops.upload` raises
+    :class:`StorageFull` when it is full and :meth:`Backdrops.show` / :meth:`delete`
+    :class:`PatternMissing` for an id it does not hold. Backdrops without a store (a
+    video output, :class:`ImageOutput`) are not a ``PatternStore``."""
+
+    def stored(self) -> list[int]:
+        """The pattern ids the controller holds now (it may have been power-cycled)."""
+        ...
+
+    def delete(self, pattern_id: int | None = None) -> None:
+        """Delete one stored pattern (None: all of them)."""
+        ...
+
+    def slots(self) -> int | None:
+        """How many patterns the store holds (the controller's IDENTIFY ``slots=``),
+        None when the controller does not say: then it is filled until :class:`StorageFull`.
+        (A method, not a property: asking may talk to the device, and ``isinstance`` on a
+        runtime protocol reads every member.)"""
+        ...
+
+    def identity(self) -> str:
+        """The controller's IDENTIFY reply (model, firmware, outputs, slots)."""
+        ...
+
+
+@runtime_checkable
+class ImageOutput(Protocol):
+    """Backdrops that draw any image as it is shown (a video output): no upload, no store."""
+
+    def show_image(self, display: str, image_rgb8: np.ndarray, *, pattern_id: int | None = -1) -> object:
+        """Show ``image_rgb8`` (uint8 (rows, cols, 3)) full-screen on ``display``; returns
+        once it is on the panel. ``pattern_id`` is what :meth:`Backdrops.shown` reports."""
+        ...
+
+
+class DisplayDrift(DeviceError):
+    """A backdrop panel may change its own radiance during matting (auto-brightness,
+    dynamic contrast) and the capture was not told to allow it (raised by the capture
+    runner after :meth:`LockablePanels.lock_panels`)."""
+
+
+@runtime_checkable
+class LockablePanels(Protocol):
+    """Backdrops whose panels' radiance settings (auto-brightness, dynamic contrast) can
+    be locked over a control port (video outputs on MDC panels)."""
+
+    def lock_panels(self) -> dict[str, Any]:
+        """Lock every panel's radiance settings; their states (raises DeviceError on a NAK)."""
+        ...
+
+    def drift(self) -> dict[str, list[str]]:
+        """Per display, what still lets its panel change its own radiance (empty: locked)."""
+        ...
 
 
 @dataclass(frozen=True)

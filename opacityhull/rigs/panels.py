@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 
 from ..errors import ConfigError, DeviceError, InputError
 from . import mdc_protocol as mdc
-from .interfaces import DeviceInfo
+from .interfaces import DeviceInfo, DisplayDrift
 from .transport import DeviceGone, DeviceTimeout, OverTransport, ProtocolError, SerialSettings, SerialTransport
 from .transport import Transport, driver_name, reopen
 
@@ -32,11 +32,6 @@ __all__ = ["MDC_SERIAL", "DisplayDrift", "MdcPanel", "PanelNak", "PanelSettings"
 
 #: 9600 8N1 as the MDC document specifies; 1 s per reply, 2 resends, 2 re-opens.
 MDC_SERIAL = SerialSettings(baudrate=9600, timeout_s=1.0, retries=2, reconnect_attempts=2, reconnect_delay_s=0.2)
-
-
-class DisplayDrift(DeviceError):
-    """A backdrop panel may change its own radiance during matting (auto-brightness,
-    dynamic contrast) and the capture was not told to allow it."""
 
 
 class PanelNak(ProtocolError):

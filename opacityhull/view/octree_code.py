@@ -62,9 +62,9 @@ class OctreeCode:
 
 
 def _morton(q: np.ndarray) -> np.ndarray:
-    from ..render.renderer import _part1by2
+    from ..render.morton import interleave3
 
-    return _part1by2(q[:, 0]) | (_part1by2(q[:, 1]) << np.uint64(1)) | (_part1by2(q[:, 2]) << np.uint64(2))
+    return interleave3(q)
 
 
 def depth_for_spacing(positions, spacing_m: float) -> int:

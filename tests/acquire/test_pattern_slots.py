@@ -17,9 +17,11 @@ import rigkit
 
 from opacityhull.acquire.patterns import plan_patterns
 from opacityhull.acquire.plan import parse_plan
-from opacityhull.acquire.runner import _controller_slots, _PatternSlots, device_pattern_id, run_capture
+from opacityhull.acquire.pattern_cache import PatternSlots, controller_slots, device_pattern_id
+from opacityhull.acquire.runner import run_capture
 from opacityhull.errors import ConfigError
 from opacityhull.rigs import display_protocol as dp
+from opacityhull.rigs.interfaces import Backdrops, ImageOutput, PatternStore, StorageFull
 from opacityhull.session import Session
 
 
@@ -120,23 +122,26 @@ def test_cut_capture_resumes_on_a_power_cycled_controller(tmp_path):
     _check_shown(watch2, sess, patterns, start=50)
 
 
-class FakeBackdrops:
-    """A controller that does not report its capacity: only STORAGE_FULL says it is full."""
+class PlainBackdrops:
+    """Backdrops with a pattern store it does not declare (no :class:`PatternStore`): it
+    can be uploaded to and shown from, and says :class:`StorageFull` when full."""
 
     name = "fake"
 
-    def __init__(self, capacity: int, *, can_delete: bool = True):
+    def __init__(self, capacity: int):
         self.capacity = capacity
         self.store: dict[int, bytes] = {}
         self.log: list[tuple[str, int]] = []
-        if not can_delete:
-            self.delete = None  # type: ignore[assignment]
+
+    @property
+    def displays(self):
+        return ["a", "b"]
 
     def upload(self, display, pattern_id, image):
-        from opacityhull.rigs.backdrops import DisplayNak
+        from opacityhull.rigs.backdrops import DisplayStorageFull
 
         if pattern_id not in self.store and len(self.store) >= self.capacity:
-            raise DisplayNak("storage full", dp.NAK_STORAGE_FULL)
+            raise DisplayStorageFull("storage full", dp.NAK_STORAGE_FULL)
         self.store[pattern_id] = np.asarray(image).tobytes()
         self.log.append(("upload", pattern_id))
 
@@ -144,9 +149,33 @@ class FakeBackdrops:
         assert pattern_id in self.store
         self.log.append(("show", pattern_id))
 
+    def blank(self, display=None):
+        pass
+
+    def shown(self):
+        return {}
+
+    last_error = None
+
+    def check(self):
+        raise NotImplementedError
+
+
+class FakeBackdrops(PlainBackdrops):
+    """A :class:`PatternStore` that does not report its capacity: only STORAGE_FULL says it is full."""
+
+    def stored(self):
+        return list(self.store)
+
     def delete(self, pattern_id=None):
         del self.store[pattern_id]
         self.log.append(("delete", pattern_id))
+
+    def slots(self):
+        return None
+
+    def identity(self):
+        return "fake;fw=0"
 
 
 class _P:
@@ -156,7 +185,7 @@ class _P:
 
 def test_lru_without_reported_capacity_evicts_least_recently_shown():
     bd = FakeBackdrops(3)
-    slots = _PatternSlots(bd, {k: _P(k) for k in range(1, 6)}, ["a", "b"], lambda m: None)
+    slots = PatternSlots(bd, {k: _P(k) for k in range(1, 6)}, ["a", "b"], lambda m: None)
     assert slots.capacity is None
     order = [1, 2, 3, 1, 4, 2, 5]
     for pid in order:
@@ -179,30 +208,46 @@ def test_lru_without_reported_capacity_evicts_least_recently_shown():
 
 
 def test_full_store_that_cannot_delete_is_a_named_error():
-    bd = FakeBackdrops(1, can_delete=False)
-    slots = _PatternSlots(bd, {k: _P(k) for k in range(1, 3)}, ["a", "b"], lambda m: None, capacity=1)
+    bd = PlainBackdrops(1)
+    slots = PatternSlots(bd, {k: _P(k) for k in range(1, 3)}, ["a", "b"], lambda m: None, capacity=1)
     slots.show("a", 0, 1, keep=set())
     with pytest.raises(ConfigError, match="stores 1 patterns"):
         slots.show("a", 0, 2, keep=set())
 
 
+def test_a_backdrop_without_a_pattern_store_is_known_by_its_type():
+    """The cache asks the protocol, not the attributes: backdrops that are no
+    :class:`PatternStore` are never read back, sized or deleted from, whatever attributes
+    they carry (an emulator's ``slots`` count, a ``delete`` that is not the store's), and a
+    full store surfaces as the typed :class:`StorageFull`."""
+    bd = PlainBackdrops(1)
+    bd.slots = 1  # an int, as the emulator has: not the protocol's slots()
+    bd.delete = lambda pattern_id=None: pytest.fail("a backdrop without a store is not deleted from")
+    assert isinstance(bd, Backdrops) and not isinstance(bd, PatternStore) and not isinstance(bd, ImageOutput)
+    assert controller_slots(bd) is None
+    slots = PatternSlots(bd, {k: _P(k) for k in range(1, 3)}, ["a", "b"], lambda m: None)
+    assert slots.store is None and slots.capacity is None
+    slots.show("a", 0, 1, keep=set())
+    with pytest.raises(StorageFull):
+        slots.show("a", 0, 2, keep=set())
+    assert [x[0] for x in bd.log] == ["upload", "show"]
+    full = FakeBackdrops(1)
+    assert isinstance(full, PatternStore) and controller_slots(full) is None
+
+
 def test_capacity_is_read_from_identify():
-    class Ident:
-        def identity(self):
-            return "OHDC-2;fw=1.3.0;outputs=2;slots=17;max=512x512"
-
-    class Silent:
-        def identity(self):
-            return "OHDC-2;fw=1.3.0"
-
-    assert _controller_slots(Ident()) == 17
-    assert _controller_slots(Silent()) is None
-    assert _controller_slots(object()) is None
+    assert dp.parse_identity_slots("OHDC-2;fw=1.3.0;outputs=2;slots=17;max=512x512") == 17
+    assert dp.parse_identity_slots("OHDC-2;fw=1.3.0") is None
+    assert dp.parse_identity_slots("OHDC-2;slots=0") is None
+    with rigkit.LabRig() as rig:
+        bd = rig.backdrops
+        assert isinstance(bd, PatternStore) and not isinstance(bd, ImageOutput)
+        assert controller_slots(bd) == rig.display_emulator.slots == bd.slots()
 
 
 def test_identical_images_share_a_slot_and_a_shown_slot_is_never_evicted():
     bd = FakeBackdrops(2)
-    slots = _PatternSlots(bd, {k: _P(k) for k in range(1, 4)}, ["a", "b"], lambda m: None, capacity=2)
+    slots = PatternSlots(bd, {k: _P(k) for k in range(1, 4)}, ["a", "b"], lambda m: None, capacity=2)
     s = device_pattern_id
     shown_b = [slots.show("b", 1, pid, keep={s(pid, 0), s(pid, 1)}) for pid in (1, 2, 3)]
     assert shown_b == [s(1, 1)] * 3  # every "b" image is the same black: one slot, one upload

@@ -14,7 +14,7 @@ from opacityhull.executor import open_executor
 from opacityhull.imageio import read_exr
 from opacityhull.render import runner
 from opacityhull.render.config import RenderConfig
-from opacityhull.render.runner import render_frames, run_render
+from opacityhull.render.runner import FrameTask, render_frames, run_render
 from opacityhull.render.synthetic import write_sphere_model
 
 distributed = pytest.importorskip("distributed")
@@ -84,15 +84,13 @@ def test_a_worker_opens_the_model_once_and_again_when_it_is_rebuilt(tiny_model, 
     cams = orbit_cameras([v.camera for v in m.views], 2, width=16, height=12)
 
     def task(tag):
-        return (
-            str(tiny_model),
-            cams,
-            RenderConfig(),
-            [],
-            None,
-            [str(tmp_path / f"{tag}_{i}.png") for i in range(2)],
-            None,
-            None,
+        return FrameTask(
+            model_path=str(tiny_model),
+            cameras=cams,
+            config=RenderConfig(),
+            exclude=[],
+            budget=None,
+            paths=[str(tmp_path / f"{tag}_{i}.png") for i in range(2)],
         )
 
     a = render_frames(task("a"))

@@ -22,7 +22,7 @@ from scipy.spatial.transform import Rotation
 from opacityhull.acquire.plan import load_plan
 from opacityhull.rigs.bringup import BringupOptions, board_rotation_deg, open_for_bringup, run_bringup
 from opacityhull.rigs.config import parse_rig_config
-from opacityhull.session import toml_dumps
+from opacityhull.tomlio import toml_dumps
 from opacityhull.sim.simrig import DEFAULT_RIG_TOML, bringup_sim_rig
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -10,7 +10,7 @@ from opacityhull.rigs import display_protocol as dp
 from opacityhull.rigs.backdrops import DISPLAY_SERIAL, DisplayController, DisplayNak
 from opacityhull.rigs.emulators.base import EmulatorServer
 from opacityhull.rigs.emulators.display import DisplayEmulator
-from opacityhull.rigs.interfaces import Backdrops
+from opacityhull.rigs.interfaces import Backdrops, ImageOutput, PatternMissing, PatternStore, StorageFull
 from opacityhull.rigs.transport import DeviceGone, DeviceTimeout
 
 OUTPUTS = {"bottom": 0, "back": 1}
@@ -53,8 +53,25 @@ def ctl(emu):
 
 
 def test_implements_backdrops_protocol(ctl):
-    assert isinstance(ctl, Backdrops)
+    assert isinstance(ctl, Backdrops) and isinstance(ctl, PatternStore) and not isinstance(ctl, ImageOutput)
     assert ctl.displays == ["bottom", "back"]
+
+
+def test_pattern_store_errors_are_typed():
+    """STORAGE_FULL and NO_PATTERN NAKs are the protocol's StorageFull and PatternMissing
+    (still DisplayNak with the reason): the capture runner catches them by type."""
+    e = DisplayEmulator(outputs=2, slots=2)
+    with EmulatorServer(e) as srv, _small_chunk_controller(srv, retries=1, reconnect_attempts=0) as c:
+        assert c.slots() == 2 and c.stored() == []
+        c.upload("bottom", 1, pattern(1))
+        c.upload("bottom", 2, pattern(2))
+        with pytest.raises(StorageFull) as full:
+            c.upload("bottom", 3, pattern(3))
+        assert isinstance(full.value, DisplayNak) and full.value.reason == dp.NAK_STORAGE_FULL
+        c.delete(1)
+        assert c.stored() == [2]
+        with pytest.raises(PatternMissing):
+            c.show("back", 1)
 
 
 def test_upload_show_blank_roundtrip(emu, ctl):
@@ -141,7 +158,7 @@ def test_busy_nak_is_retried_semantic_nak_is_not(emu, ctl):
     n_show = sum(1 for k, _ in e.history if k == "SHOW")
     with pytest.raises(DisplayNak, match="pattern 99 is not stored.*upload it first") as ei:
         ctl.show("back", 99)
-    assert ei.value.reason == dp.NAK_NO_PATTERN
+    assert ei.value.reason == dp.NAK_NO_PATTERN and isinstance(ei.value, PatternMissing)
     assert sum(1 for k, _ in e.history if k == "SHOW") == n_show + 1  # no pointless resends
 
 

@@ -97,7 +97,7 @@ def test_bad_lamp_radius_exits_2_through_the_cli(tmp_path):
 
     from opacityhull.cli import app
     from opacityhull.sim.simrig import sim_rig_config
-    from opacityhull.session import toml_dumps
+    from opacityhull.tomlio import toml_dumps
 
     cfg = sim_rig_config(None)
     cfg["geometry"]["lights"][2]["radius_m"] = -0.02

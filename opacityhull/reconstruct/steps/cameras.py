@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 from collections.abc import Sequence
@@ -229,9 +229,12 @@ def _rig_volume(geo: RigGeometry | None) -> tuple[np.ndarray, np.ndarray] | None
     return np.array([-r, 0.0, -r]), np.array([r, top, r])
 
 
-def step_cameras(session: Session, config: BuildConfig, store: _StepStore, *, progress=None):
+def step_cameras(
+    session: Session, config: BuildConfig, store: _StepStore, *, progress=None, timings: dict | None = None
+):
     """Step 1: (views kept, cameras, key, notes). Inputs: the calibration phase's images,
-    ``calibration/``, ``cameras/``, the rig table and the view list."""
+    ``calibration/``, ``cameras/``, the rig table and the view list. A calibration run
+    here leaves its stage seconds in ``timings`` (not in the pickled cameras)."""
     params = {
         "cameras": config.cameras,
         "drop_uncalibrated_cameras": config.drop_uncalibrated_cameras,
@@ -256,6 +259,11 @@ def step_cameras(session: Session, config: BuildConfig, store: _StepStore, *, pr
         cams = resolve_cameras(
             session, views, source=config.cameras, progress=progress, drop_uncalibrated=config.drop_uncalibrated_cameras
         )
+        cal = cams.calibration
+        if cal is not None and cal.seconds:
+            if timings is not None:
+                timings.update(cal.seconds)
+            cams = replace(cams, calibration=replace(cal, seconds={}))
         return (views, cams)
 
     got = cached(
@@ -294,7 +302,13 @@ class CameraProduct:
 
 def run(ctx) -> None:
     with ctx.timer.step("cameras"):
-        views, cams, key, notes = step_cameras(ctx.session, ctx.config, ctx.store, progress=ctx.progress)
+        views, cams, key, notes = step_cameras(
+            ctx.session,
+            ctx.config,
+            ctx.store,
+            progress=ctx.progress,
+            timings=ctx.timer.detail.setdefault("calibration", {}),
+        )
         ctx.notes.extend(notes)
     ctx.cameras = CameraProduct(views=views, vids=[view_id(c, a) for c, a in views], cams=cams, key=key)
 

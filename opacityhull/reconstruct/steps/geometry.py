@@ -17,7 +17,7 @@ from collections.abc import Sequence
 from ...model import Surfels
 from ..lazyviews import _Subset
 from ..buildconfig import BuildConfig, _is_rig_session, default_carve_tolerance
-from ..buildstore import _NOT_GEOMETRY, _digest, _records_digest, _StepStore, cached
+from ..buildstore import _NOT_GEOMETRY, _digest, _records_digest, _StepStore, cached, pop_timings
 from ..geometry import Geometry, build_geometry
 from ..holes import _extensions_apply, bright_extension_masks, open_hole_masks
 from ..lazyviews import Mattes, PackedMasks, _view_rgba
@@ -45,6 +45,7 @@ def step_geometry(
     open_holes: PackedMasks | None = None,
     extensions: PackedMasks | None = None,
     train: Sequence[int] | None = None,
+    timings: dict | None = None,
 ) -> tuple[Geometry, str]:
     """Steps 3-6 (silhouettes, hull, surfels, visibility, refine): :func:`build_geometry`
     over the mattes, stored as ``build/geometry.pkl``. ``open_holes`` and ``extensions``: the
@@ -52,7 +53,8 @@ def step_geometry(
     (:func:`fill_shadow_holes`), else judged here. ``train``: the views the geometry is
     built from (``build --hold-out``; None: all); the other views' visibility bits stay
     clear and the returned geometry's per-view lists (silhouettes, pinhole cameras,
-    dilations) cover the training views only."""
+    dilations) cover the training views only. The photo refinement's seconds go to
+    ``timings``, not into the pickled geometry."""
     vids = [view_id(c, a) for c, a in views]
     rig_session = _is_rig_session(session)
     # imported sessions have no [rig] table; a corrupt one is a FormatError, not "no rig"
@@ -162,12 +164,21 @@ def step_geometry(
                 (store.dir / name).unlink(missing_ok=True)
         return g
 
+    def untimed() -> Geometry:
+        g = make()
+        refine = g.info.get("refine")
+        if isinstance(refine, dict):
+            got = pop_timings(refine)
+            if timings is not None:
+                timings.update(got)
+        return g
+
     got = cached(
         store,
         "geometry",
         inputs=inputs,
         params=params,
-        run=make,
+        run=untimed,
         pickle_as=f"{BUILD_DIR}/geometry.pkl",
         expect=Geometry,
         outputs=lambda _: [f"{BUILD_DIR}/{n}" for n in (OPEN_HOLES, BRIGHT_EXTENSIONS) if (store.dir / n).is_file()],
@@ -219,6 +230,7 @@ def run(ctx) -> None:
         open_holes=ctx.holes.open_holes,
         extensions=ctx.holes.extensions,
         train=train if len(train) < len(views) else None,
+        timings=ctx.timer.detail.setdefault("refine", {}),
     )
     ctx.notes.extend(g.notes)
     hull_info = dict(g.info)

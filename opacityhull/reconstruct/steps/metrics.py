@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import time
 from dataclasses import asdict
 
 import numpy as np
@@ -164,13 +165,16 @@ def report(ctx, steps) -> None:
     (what each did: ran / reused / reused k of n views)."""
     import json
 
-    from ...cliutil import to_jsonable
+    from ...jsonio import to_jsonable
     from ...imageio import atomic_path
 
     natural, _ = ctx.natural
     hull = ctx.geometry.hull_info
+    timer = ctx.timer
+    if "refine" in hull and "refine" in timer.detail:
+        hull["refine"] = {**hull["refine"], **timer.detail["refine"]}
     if natural is not None:
-        hull["natural"] = {k: v for k, v in natural.items() if k != "files"}
+        hull["natural"] = {k: v for k, v in natural.items() if k != "files"} | timer.detail.get("natural", {})
     ctx.notes.extend(n for n in ctx.store.notes if n not in ctx.notes)
     g = ctx.geometry.geometry
     rep = BuildReport(
@@ -185,9 +189,10 @@ def report(ctx, steps) -> None:
     rep.pictures = list(ctx.pictures or [])
     rep.metrics = ctx.metrics
     rep.optimize = dict(ctx.fit or {})
-    timer = ctx.timer
     rep.seconds = {k: round(v, 4) for k, v in timer.seconds.items()}
     rep.seconds["total"] = round(sum(timer.seconds.values()), 4)
+    rep.calibration_seconds = {k: round(v, 4) for k, v in timer.detail.get("calibration", {}).items()}
+    rep.created_utc = time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
     rep.steps = {s.name: ctx.store.status[s.name] for s in steps if s.name in ctx.store.status}
     rep.scheduler = getattr(ctx.executor, "scheduler", "serial")
     rep.memory_budget_gb = float(ctx.budget_gb)

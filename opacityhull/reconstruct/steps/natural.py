@@ -5,7 +5,7 @@ Pfister 2004) of each view and display, from the session's natural-image shots
 from __future__ import annotations
 
 from ...model import BUILD_DIR
-from ..buildstore import _digest, _records_digest, cached
+from ..buildstore import _digest, _records_digest, cached, pop_timings
 from .base import Step
 
 
@@ -30,7 +30,7 @@ def run(ctx) -> None:
 
             def estimate():
                 out.mkdir(parents=True, exist_ok=True)
-                return estimate_session_natural(
+                got = estimate_session_natural(
                     session,
                     ctx.cameras.views,
                     ctx.cameras.cams.views,
@@ -39,6 +39,8 @@ def run(ctx) -> None:
                     n_kernels=config.natural_kernels,
                     progress=ctx.progress,
                 )
+                ctx.timer.detail["natural"] = pop_timings(got)  # the pickle carries no time
+                return got
 
             got = cached(
                 ctx.store,
