@@ -105,6 +105,11 @@ _BUDGET_HELP = (
     "view-dependent cut of the sequential point tree (the viewer's level "
     "of detail). Default: every surfel."
 )
+_PRIMITIVES_HELP = (
+    "splats: EWA splats only | hybrid: a surfel whose umbrella (PMR umbrella mesh) projects larger than "
+    "--hybrid-px pixels is drawn as its triangles, the others as splats (close-ups; no --budget)."
+)
+_HYBRID_PX_HELP = "With --primitives hybrid: umbrella size in pixels above which a surfel is drawn as triangles."
 _JSON_HELP = "Print a JSON summary (frames, paths, ms per frame) on stdout."
 
 _SCHEDULER_HELP = (
@@ -206,6 +211,8 @@ def register(app, groups) -> None:
         ] = [],
         fps: Annotated[float, typer.Option("--fps", help="Frame rate of the orbit animation (> 0).")] = 12.0,
         budget: Annotated[Optional[int], typer.Option("--budget", help=_BUDGET_HELP)] = None,
+        primitives: Annotated[str, typer.Option("--primitives", help=_PRIMITIVES_HELP)] = "splats",
+        hybrid_px: Annotated[float, typer.Option("--hybrid-px", help=_HYBRID_PX_HELP)] = 2.0,
         json_out: Annotated[bool, typer.Option("--json", help=_JSON_HELP)] = False,
         *,
         render_options: dict,
@@ -231,6 +238,9 @@ def register(app, groups) -> None:
             budget=budget,
             background=background,
         )
+        from .runner import check_primitives
+
+        check_primitives(primitives, hybrid_px, budget)
 
         from .cameras import parse_look_at, parse_view_spec
 
@@ -267,6 +277,8 @@ def register(app, groups) -> None:
                 budget=budget,
                 progress=cb,
                 executor=None if serial else ex,
+                primitives=primitives,
+                hybrid_px=hybrid_px,
             )
 
         def human(s):
@@ -278,6 +290,12 @@ def register(app, groups) -> None:
             )
             if s.get("budget") is not None:
                 c.print(f"  budget {s['budget']} splats: drew {max(s['splats_per_frame'])} at most per frame")
+            if s.get("primitives") == "hybrid":
+                c.print(
+                    f"  hybrid (> {s['hybrid_px']:g} px: triangles): {max(s['triangles_per_frame'])} triangles and "
+                    f"{max(s['splats_per_frame'])} splats at most per frame; umbrella mesh "
+                    f"{s['ms_hybrid_mesh']:.0f} ms"
+                )
             c.print(f"  {s['paths'][0]}" + (f" ... {s['paths'][-1]}" if len(s["paths"]) > 1 else ""))
             if "gif" in s:
                 c.print(f"  animation: {s['gif']}")

@@ -8,7 +8,7 @@ import logging
 import shutil
 import time
 from pathlib import Path
-from typing import Callable, Sequence
+from typing import TYPE_CHECKING, Callable, Sequence
 
 import numpy as np
 
@@ -20,9 +20,14 @@ from .background import EnvMap, fit_image, load_background
 from .cameras import captured_view_camera, look_at_camera, mean_fov_y_deg, orbit_cameras, resize_camera, scene_target
 from .renderer import RenderConfig, RenderResult, model_surfels, prepare_model_views, render_image
 
+if TYPE_CHECKING:
+    from .hybrid import HybridMesh
+
 __all__ = [
     "choose_cameras",
     "check_budget",
+    "check_primitives",
+    "PRIMITIVES",
     "LodCuts",
     "render_frames",
     "run_render",
@@ -115,6 +120,27 @@ def check_budget(budget) -> int | None:
     if not ok:
         raise InputError(f"splat budget {budget!r}: expected a whole number of splats >= 1")
     return int(budget)
+
+
+PRIMITIVES = ("splats", "hybrid")
+
+
+def check_primitives(primitives: str, hybrid_px: float, budget: int | None) -> float | None:
+    """The hybrid threshold (px) for ``primitives == "hybrid"``, None for splats; bad
+    values are :class:`InputError` naming the flag."""
+    if primitives not in PRIMITIVES:
+        raise InputError(f"--primitives {primitives!r}: expected one of {', '.join(PRIMITIVES)}")
+    if primitives == "splats":
+        return None
+    try:
+        px = float(hybrid_px)
+    except (TypeError, ValueError):
+        px = float("nan")
+    if not px >= 0:
+        raise InputError(f"--hybrid-px {hybrid_px!r}: expected a number of pixels >= 0")
+    if budget is not None:
+        raise InputError("--primitives hybrid draws every surfel (as triangles or splats); drop --budget")
+    return px
 
 
 class LodCuts:
@@ -227,6 +253,8 @@ class _FrameState:
         self.surfels = model_surfels(self.model)
         self.view_cameras = [v.camera for v in self.model.views]
         self.lod = LodCuts(self.surfels)
+        self.hybrid_mesh: HybridMesh | None = None  # the umbrella mesh (render --primitives hybrid), built on first use
+        self.ms_hybrid_mesh = 0.0
         self.ms_load = 1e3 * (time.perf_counter() - t0)
         self.ms_warmup: float | None = None  # set by the first frame rendered here (_warm_up)
         # threads of one worker share this state; building the LOD tree twice is only waste,
@@ -277,12 +305,13 @@ def _render_chunk(
     background,
     anim_background,
     progress: Callable[[int, int], None] | None = None,
+    hybrid_px: float | None = None,
 ) -> dict:
     """Render ``cams`` with an opened state, write frame i to ``paths[i]``; the GIF frame
     (8-bit sRGB over ``anim_background``) when that is given."""
     from ..pictures import to_srgb8
 
-    ms, splats, taus, gif = [], [], [], []
+    ms, splats, taus, gif, tris = [], [], [], [], []
     ms_tree = 0.0
     ms_warmup = _warm_up(st, cams[0], config=config, exclude=exclude) if cams else 0.0
     for i, (cam, path) in enumerate(zip(cams, paths)):
@@ -294,18 +323,58 @@ def _render_chunk(
             if st.lod.tree is not None and not had_tree:
                 ms_tree = st.lod.ms_build
                 t += ms_tree / 1e3  # the tree is built once per model, not per frame
-        splats.append(len(drawn))
+        if hybrid_px is not None:
+            had_mesh = st.hybrid_mesh is not None
+            res = _render_hybrid_frame(st, cam, config=config, exclude=exclude, threshold_px=hybrid_px)
+            if not had_mesh:
+                t += st.ms_hybrid_mesh / 1e3  # built once per model, not per frame
+            splats.append(res.stats["splats"])
+            tris.append(res.stats["triangles"])
+        else:
+            splats.append(len(drawn))
+            res = render_image(
+                drawn, st.view_cameras, st.pv, cam, config=config, exclude_views=list(exclude), splat_cov=cov
+            )
         taus.append(tau)
-        res = render_image(
-            drawn, st.view_cameras, st.pv, cam, config=config, exclude_views=list(exclude), splat_cov=cov
-        )
         ms.append(1e3 * (time.perf_counter() - t))
         write_frame(Path(path), res, background)
         if anim_background is not None:
             gif.append(to_srgb8(res.over(anim_background)))
         if progress:
             progress(i + 1, len(cams))
-    return {"ms": ms, "splats": splats, "taus": taus, "gif": gif, "ms_lod_tree": ms_tree, "ms_warmup": ms_warmup}
+    return {
+        "ms": ms,
+        "splats": splats,
+        "triangles": tris,
+        "taus": taus,
+        "gif": gif,
+        "ms_lod_tree": ms_tree,
+        "ms_hybrid_mesh": st.ms_hybrid_mesh,
+        "ms_warmup": ms_warmup,
+    }
+
+
+def _render_hybrid_frame(st: _FrameState, cam: Camera, *, config: RenderConfig, exclude, threshold_px: float):
+    """``render --primitives hybrid``: umbrella triangles close up, splats elsewhere
+    (:mod:`.hybrid`); the umbrella mesh is built on the first frame, once per model."""
+    from .hybrid import build_hybrid_mesh, render_hybrid
+
+    with st.lock:
+        mesh = st.hybrid_mesh
+        if mesh is None:
+            t = time.perf_counter()
+            mesh = st.hybrid_mesh = build_hybrid_mesh(st.surfels)
+            st.ms_hybrid_mesh = 1e3 * (time.perf_counter() - t)
+    return render_hybrid(
+        st.surfels,
+        st.view_cameras,
+        st.pv,
+        cam,
+        mesh=mesh,
+        config=config,
+        threshold_px=threshold_px,
+        exclude_views=list(exclude),
+    )
 
 
 #: Size of the warm-up render (px): enough to run every kernel, too small to cost a frame.
@@ -333,11 +402,12 @@ def render_frames(task: tuple) -> dict:
     """One executor task of ``render --scheduler``: render and write a chunk of frames.
 
     ``task = (model_path, cameras, config, exclude, budget, paths, background,
-    anim_background)``: the model folder (a path the worker can read), the cameras,
+    anim_background[, hybrid_px])``: the model folder (a path the worker can read), the cameras,
     the :class:`RenderConfig`, view indices not to blend, the splat budget (or None),
     one output path per camera (the worker writes them), the background passed to
     :func:`write_frame` (None, a colour, an image fitted to the camera or an
-    :class:`EnvMap`) and the GIF's background colour (None: no GIF frames).
+    :class:`EnvMap`), the GIF's background colour (None: no GIF frames) and, optionally,
+    the umbrella threshold (px) of ``--primitives hybrid`` (None: splats only).
 
     The model is opened once per worker process and kept (keyed on the model folder
     and ``model.toml``'s mtime), so an orbit's later chunks only render.
@@ -348,7 +418,7 @@ def render_frames(task: tuple) -> dict:
     frames), ``ms_load`` (0 when the model was already open here), ``ms_warmup`` (the
     first render in this worker, :func:`_warm_up`; 0 when warm) and ``ms_lod_tree``.
     """
-    model_path, cams, config, exclude, budget, paths, background, anim_background = task
+    model_path, cams, config, exclude, budget, paths, background, anim_background, *rest = task
     st, loaded = _worker_state(model_path)
     out = _render_chunk(
         st,
@@ -359,6 +429,7 @@ def render_frames(task: tuple) -> dict:
         paths=paths,
         background=background,
         anim_background=anim_background,
+        hybrid_px=rest[0] if rest else None,
     )
     out["ms_load"] = st.ms_load if loaded else 0.0
     return out
@@ -382,12 +453,18 @@ def run_render(
     budget: int | None = None,
     progress: Callable[[int, int], None] | None = None,
     executor=None,
+    primitives: str = "splats",
+    hybrid_px: float = 2.0,
 ) -> dict:
     """Render one frame or an orbit of a model folder to ``out`` (``.png`` or ``.exr``).
 
     ``budget``: at most this many splats per frame, from a view-dependent cut of the
     sequential point tree (:mod:`opacityhull.render.lod`, the viewer's LOD); None draws
     every surfel.
+
+    ``primitives``: ``"splats"`` (EWA splats only) or ``"hybrid"`` (:mod:`.hybrid`: a
+    surfel whose umbrella projects larger than ``hybrid_px`` pixels is drawn as its
+    umbrella triangles, the others as splats; every surfel, so no ``budget``).
 
     ``executor``: an :class:`opacityhull.executor.Executor` (``render --scheduler``) to
     render the frames on, in chunks of consecutive frames (:func:`render_frames`): each
@@ -399,6 +476,7 @@ def run_render(
     if out.suffix.lower() not in _SUFFIXES:
         raise InputError(f"render output {out}: expected a .png or .exr file name")
     budget = check_budget(budget)
+    hybrid = check_primitives(primitives, hybrid_px, budget)
     model = OpacityHullModel.open(model_path)
     cams = choose_cameras(model, view=view, look_at=look_at, orbit=orbit, width=width, height=height)
     bg = load_background(background, yaw_deg=env_yaw_deg, kind=background_kind) if background is not None else None
@@ -423,6 +501,7 @@ def run_render(
                 background=bg,
                 anim_background=anim_bg,
                 progress=progress,
+                hybrid_px=hybrid,
             )
         ]
         t_load_ms = st.ms_load
@@ -442,6 +521,7 @@ def run_render(
                 [str(Path(p).resolve()) for p in paths[i : i + per]],
                 bg,
                 anim_bg,
+                hybrid,
             )
             for i in range(0, len(cams), per)
         ]
@@ -470,7 +550,12 @@ def run_render(
         "lod_tau": taus,
         "ms_lod_tree": max(p["ms_lod_tree"] for p in parts),
         "scheduler": scheduler,
+        "primitives": primitives,
     }
+    if hybrid is not None:
+        summary["hybrid_px"] = hybrid
+        summary["triangles_per_frame"] = [x for p in parts for x in p["triangles"]]
+        summary["ms_hybrid_mesh"] = max(p["ms_hybrid_mesh"] for p in parts)
     if orbit is not None:
         summary.update(_animation([g for p in parts for g in p["gif"]], out.with_name(out.stem), fps))
     return summary

@@ -151,3 +151,38 @@ def test_hybrid_rejects_bad_input(sphere_small, sphere_views_premul, sphere_hybr
             replace(cam, dist=np.array([0.1, 0, 0, 0, 0])),
             mesh=sphere_hybrid,
         )
+
+
+def test_render_cli_primitives_hybrid(sphere_dir, tmp_path):
+    """`render --primitives hybrid` writes the frame the API renders; a far view is the
+    splat render bit for bit; bad values and --budget exit 2 naming the flag."""
+    import json
+
+    from typer.testing import CliRunner
+
+    from opacityhull.cli import app
+    from opacityhull.imageio import read_exr
+
+    root, _ = sphere_dir
+    run = CliRunner().invoke
+    close = "0,0.12,0.3,0,0.1,0,40"
+    res = run(
+        app,
+        ["render", str(root), "--out", str(tmp_path / "h.exr"), "--look-at", close, "--primitives", "hybrid", "--json"],
+    )
+    assert res.exit_code == 0, res.output
+    s = json.loads(res.stdout.strip().splitlines()[-1])
+    assert s["primitives"] == "hybrid" and s["triangles_per_frame"][0] > 0 and s["hybrid_px"] == 2.0
+    assert np.isfinite(read_exr(tmp_path / "h.exr")).all()
+    far = "0,0.12,4,0,0.1,0,40"
+    for p in ("splats", "hybrid"):
+        res = run(app, ["render", str(root), "--out", str(tmp_path / f"{p}.exr"), "--look-at", far, "--primitives", p])
+        assert res.exit_code == 0, res.output
+    np.testing.assert_array_equal(read_exr(tmp_path / "splats.exr"), read_exr(tmp_path / "hybrid.exr"))
+    for extra, flag in (
+        (["--primitives", "mesh"], "--primitives"),
+        (["--primitives", "hybrid", "--budget", "10"], "--budget"),
+        (["--primitives", "hybrid", "--hybrid-px", "-1"], "--hybrid-px"),
+    ):
+        res = run(app, ["render", str(root), "--out", str(tmp_path / "x.png"), *extra])
+        assert res.exit_code == 2 and flag in res.output, res.output
