@@ -106,8 +106,18 @@ def build_hybrid_mesh(surfels: Surfels, *, max_points: int = 10000, refined: boo
     return hybrid_mesh_from(P, Nrm, u.triangles, depth_m=surfels.depth_m if refined else None)
 
 
-def hybrid_mesh_from(positions, normals, triangles, *, depth_m=None) -> HybridMesh:
-    """:class:`HybridMesh` of a given triangulation over the surfels (see :func:`build_hybrid_mesh`)."""
+#: Rings of vertices around an open umbrella that stay splats (see :func:`hybrid_mesh_from`).
+OPEN_RINGS = 2
+
+
+def hybrid_mesh_from(positions, normals, triangles, *, depth_m=None, open_rings: int = OPEN_RINGS) -> HybridMesh:
+    """:class:`HybridMesh` of a given triangulation over the surfels (see :func:`build_hybrid_mesh`).
+
+    ``open_rings``: the surfels within this many edges of an open umbrella are not
+    ``closed`` either (they stay splats): the triangles around a mesh hole are often
+    folded. Measured at a 4x close-up of the simulated cup (23.5 k surfels, 54 % of the
+    umbrellas closed), interior pixels left see-through: 3.9 % with 0 rings, 2.7 % with 1,
+    1.7 % with 2 (splats only: 1.2 %)."""
     P = np.asarray(positions, np.float64)
     F = np.asarray(triangles, np.int64).reshape(-1, 3)
     N = len(P)
@@ -129,6 +139,9 @@ def hybrid_mesh_from(positions, normals, triangles, *, depth_m=None) -> HybridMe
         e = np.sort(np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]]), axis=1)
         ue, cnt = np.unique(e, axis=0, return_counts=True)
         closed[ue[cnt != 2].ravel()] = False
+        for _ in range(int(open_rings)):
+            near_open = (~closed[F]).any(axis=1)
+            closed[F[near_open].ravel()] = False
     return HybridMesh(vertices=V, triangles=F, umbrella_radius=ur, closed=closed)
 
 

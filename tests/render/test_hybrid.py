@@ -92,7 +92,7 @@ def test_open_umbrellas_are_not_closed():
     # a square fan around vertex 4 (closed) with one triangle missing (4 and its rim open)
     P = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0.5, 0.5, 0]], float)
     N = np.tile([0, 0, 1.0], (5, 1))
-    full = hybrid_mesh_from(P, N, [[0, 1, 4], [1, 2, 4], [2, 3, 4], [3, 0, 4]])
+    full = hybrid_mesh_from(P, N, [[0, 1, 4], [1, 2, 4], [2, 3, 4], [3, 0, 4]], open_rings=0)
     assert full.closed[4] and not full.closed[:4].any()  # the rim has boundary edges
     np.testing.assert_allclose(full.umbrella_radius[4], np.sqrt(0.5))
     open_ = hybrid_mesh_from(P, N, [[0, 1, 4], [1, 2, 4], [2, 3, 4]])
@@ -186,3 +186,15 @@ def test_render_cli_primitives_hybrid(sphere_dir, tmp_path):
     ):
         res = run(app, ["render", str(root), "--out", str(tmp_path / "x.png"), *extra])
         assert res.exit_code == 2 and flag in res.output, res.output
+
+
+def test_open_rings_spread_from_open_umbrellas():
+    # a strip of fans: vertex 0's umbrella is open (the strip's end), the rings reach inwards
+    P = np.array([[i, j, 0.0] for i in range(5) for j in range(3)])
+    idx = np.arange(15).reshape(5, 3)
+    F = [[idx[i, j], idx[i + 1, j], idx[i + 1, j + 1]] for i in range(4) for j in range(2)]
+    F += [[idx[i, j], idx[i + 1, j + 1], idx[i, j + 1]] for i in range(4) for j in range(2)]
+    N = np.tile([0, 0, 1.0], (15, 1))
+    m0 = hybrid_mesh_from(P, N, F, open_rings=0)
+    m1 = hybrid_mesh_from(P, N, F, open_rings=1)
+    assert m0.closed.sum() == 3 and m1.closed.sum() == 0  # only the middle row is interior
