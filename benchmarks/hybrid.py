@@ -151,6 +151,9 @@ def cup_rows(model_path: Path, zooms, repeats: int) -> tuple[list[dict], dict]:
     tables = sorted({v.table_deg for v in m.views})
     step = (tables[1] - tables[0]) if len(tables) > 1 else 60.0
     base = captured_view_camera(m.views, m.views[0].camera_index, tables[0] + 0.5 * step)
+    K = base.K.copy()
+    K[1, 1] = K[0, 0]  # a novel camera with square pixels (Mitsuba's sensor has no other)
+    base = replace(base, K=K)
     about = outline_point(render_ground_truth(rig.scene, base, spp=4, renderer=rig.renderer)["alpha"])
     rows, pics = [], {}
     for z in zooms:
