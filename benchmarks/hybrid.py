@@ -252,9 +252,13 @@ def main(argv=None) -> int:
         a.set_title(t, fontsize=9)
         a.legend(fontsize=6)
     for a, (name, (s_img, h_img, g_img)) in zip(ax[2:], pics.items()):
-        strip = np.concatenate([premul(s_img)[..., :3], premul(h_img)[..., :3], premul(g_img)[..., :3]], axis=1)
+
+        def over_grey(x):
+            return premul(x)[..., :3] + 0.25 * (1 - x[..., 3:4])
+
+        strip = np.concatenate([over_grey(s_img), over_grey(h_img), over_grey(g_img)], axis=1)
         a.imshow(np.clip(strip, 0, 1) ** (1 / 2.2))
-        a.set_title(f"{name} 4x: splats | hybrid | ground truth" + (" α" if name == "cup" else ""), fontsize=8)
+        a.set_title(f"{name} 4x over grey: splats | hybrid | truth" + (" α" if name == "cup" else ""), fontsize=8)
         a.axis("off")
     fig.tight_layout()
     save_figure(fig, OUT / f"{stem}.png", dpi=110)
