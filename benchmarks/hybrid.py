@@ -76,8 +76,8 @@ def premul(rgba):
 
 
 def timed(fn, repeats: int):
-    fn()  # warm: numba kernels, dilated mattes, area cache
-    ms, res = [], None
+    res = fn()  # warm: numba kernels, dilated mattes, area cache
+    ms = []
     for _ in range(repeats):
         t = time.perf_counter()
         res = fn()

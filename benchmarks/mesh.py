@@ -92,7 +92,7 @@ def truth_scores(sp: float, P, meshes: dict, gt) -> dict:
     shape = tuple(np.ceil((hi - lo) / sp).astype(int) + 1)
     g_solid = solid(G, lo, sp, shape)
     tg = KDTree(G)
-    out = {"gt_faces": int(len(Fg))}
+    out: dict = {"gt_faces": int(len(Fg))}
     for k, X in shapes.items():
         d1, _ = tg.query(X)
         d2, _ = KDTree(X).query(G)
