@@ -124,6 +124,13 @@ def test_hybrid_is_at_least_as_close_as_splats_close_up(sphere_small, sphere_vie
     splat = render_hybrid(m.surfels, m.cameras, sphere_views_premul, cam, mesh=sphere_hybrid, threshold_px=np.inf)
     hyb = render_hybrid(m.surfels, m.cameras, sphere_views_premul, cam, mesh=sphere_hybrid, threshold_px=2.0)
     assert hyb.stats["triangle_pixels"] > 1000 and splat.stats["triangles"] == 0
+    # the frame draws exactly the rule's surfels as triangles, the rest as splats
+    from opacityhull.render.hybrid import project_vertices
+
+    _, z = project_vertices(sphere_hybrid.vertices, cam)
+    rule = triangle_nodes(sphere_hybrid.umbrella_radius, z, np.sqrt(cam.fx * cam.fy), threshold_px=2.0)
+    rule &= sphere_hybrid.closed
+    assert hyb.stats["triangle_nodes"] == rule.sum() and hyb.stats["splats"] == len(rule) - rule.sum()
     assert np.isfinite(hyb.rgba).all()
     p_s, p_h = _psnr(_premul(splat.rgba), _premul(exact)), _psnr(_premul(hyb.rgba), _premul(exact))
     a_s, a_h = _psnr(splat.rgba[..., 3], exact[..., 3]), _psnr(hyb.rgba[..., 3], exact[..., 3])
