@@ -110,6 +110,11 @@ _RENDERER_HELP = (
     "fitted: the splats of build --optimize (optimized/splats.ply) | ulr: the hull's surfels blended "
     "from the captured views | auto: fitted when the model has splats fitted from this build, else ulr."
 )
+_PRIMITIVES_HELP = (
+    "splats: EWA splats only | hybrid: a surfel whose umbrella (PMR umbrella mesh) projects larger than "
+    "--hybrid-px pixels is drawn as its triangles, the others as splats (close-ups; no --budget)."
+)
+_HYBRID_PX_HELP = "With --primitives hybrid: umbrella size in pixels above which a surfel is drawn as triangles."
 
 _SCHEDULER_HELP = (
     "Where per-view work runs: serial | threads | processes | tcp://HOST:PORT (a dask scheduler; "
@@ -211,6 +216,8 @@ def register(app, groups) -> None:
         fps: Annotated[float, typer.Option("--fps", help="Frame rate of the orbit animation (> 0).")] = 12.0,
         budget: Annotated[int | None, typer.Option("--budget", help=_BUDGET_HELP)] = None,
         renderer: Annotated[str, typer.Option("--renderer", help=_RENDERER_HELP)] = "auto",
+        primitives: Annotated[str, typer.Option("--primitives", help=_PRIMITIVES_HELP)] = "splats",
+        hybrid_px: Annotated[float, typer.Option("--hybrid-px", help=_HYBRID_PX_HELP)] = 2.0,
         json_out: Annotated[bool, typer.Option("--json", help=_JSON_HELP)] = False,
         *,
         render_options: dict,
@@ -236,11 +243,20 @@ def register(app, groups) -> None:
             budget=budget,
             background=background,
         )
+        from .runner import check_primitives
+
+        check_primitives(primitives, hybrid_px, budget)
 
         from .splats import resolve_renderer
 
         resolve_renderer(
-            model, renderer, ulr_only=(("--budget", budget is not None), ("--exclude-view", bool(exclude)))
+            model,
+            renderer,
+            ulr_only=(
+                ("--budget", budget is not None),
+                ("--exclude-view", bool(exclude)),
+                ("--primitives hybrid", primitives == "hybrid"),
+            ),
         )
         from .cameras import parse_look_at, parse_view_spec
 
@@ -278,6 +294,8 @@ def register(app, groups) -> None:
                 renderer=renderer,
                 progress=cb,
                 executor=None if serial else ex,
+                primitives=primitives,
+                hybrid_px=hybrid_px,
             )
 
         def human(s):
@@ -294,6 +312,12 @@ def register(app, groups) -> None:
             )
             if s.get("budget") is not None:
                 c.print(f"  budget {s['budget']} splats: drew {max(s['splats_per_frame'])} at most per frame")
+            if s.get("primitives") == "hybrid":
+                c.print(
+                    f"  hybrid (> {s['hybrid_px']:g} px: triangles): {max(s['triangles_per_frame'])} triangles and "
+                    f"{max(s['splats_per_frame'])} splats at most per frame; umbrella mesh "
+                    f"{s['ms_hybrid_mesh']:.0f} ms"
+                )
             c.print(f"  {s['paths'][0]}" + (f" ... {s['paths'][-1]}" if len(s["paths"]) > 1 else ""))
             if "gif" in s:
                 c.print(f"  animation: {s['gif']}")

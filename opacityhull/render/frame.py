@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import math
 import time
+import weakref
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -240,7 +241,6 @@ def surfel_areas(surfels: Surfels, *, neighbours: int = 12) -> np.ndarray:
     lattice gives single-k estimates. Cached per Surfels object (a model is opened once,
     rendered many times).
     """
-    import weakref
 
     key = id(surfels)
     hit = _AREA_CACHE.get(key)
@@ -267,3 +267,14 @@ def surfel_areas(surfels: Surfels, *, neighbours: int = 12) -> np.ndarray:
     ref = weakref.ref(surfels, lambda _r, key=key: _AREA_CACHE.pop(key, None))
     _AREA_CACHE[key] = (ref, areas)
     return areas
+
+
+def seed_surfel_areas(surfels, areas) -> None:
+    """Hand :func:`surfel_areas` (so ``render_image``) these areas for ``surfels``
+    instead of its k-nearest-neighbour estimate: an LOD cut's summed subtree areas (the
+    estimate costs more than the render of a cut: 120 ms for 15 k nodes), or the full
+    model's areas for the splat part of a hybrid frame. The entry lives as long as
+    ``surfels``."""
+    key = id(surfels)
+    ref = weakref.ref(surfels, lambda _r, key=key: _AREA_CACHE.pop(key, None))
+    _AREA_CACHE[key] = (ref, np.ascontiguousarray(areas, dtype=np.float32))

@@ -10,7 +10,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 from collections.abc import Callable, Sequence
-from typing import Any, cast
+from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
 
@@ -23,9 +23,14 @@ from .cameras import captured_view_camera, look_at_camera, mean_fov_y_deg, orbit
 from .renderer import RenderConfig, RenderResult, model_surfels, prepare_model_views, render_image
 from .views import PreparedViews
 
+if TYPE_CHECKING:
+    from .hybrid import HybridMesh
+
 __all__ = [
     "choose_cameras",
     "check_budget",
+    "check_primitives",
+    "PRIMITIVES",
     "LodCuts",
     "FrameTask",
     "render_frames",
@@ -118,6 +123,27 @@ def check_budget(budget) -> int | None:
     return int(budget)
 
 
+PRIMITIVES = ("splats", "hybrid")
+
+
+def check_primitives(primitives: str, hybrid_px: float, budget: int | None) -> float | None:
+    """The hybrid threshold (px) for ``primitives == "hybrid"``, None for splats; bad
+    values are :class:`InputError` naming the flag."""
+    if primitives not in PRIMITIVES:
+        raise InputError(f"--primitives {primitives!r}: expected one of {', '.join(PRIMITIVES)}")
+    if primitives == "splats":
+        return None
+    try:
+        px = float(hybrid_px)
+    except (TypeError, ValueError):
+        px = float("nan")
+    if not px >= 0:
+        raise InputError(f"--hybrid-px {hybrid_px!r}: expected a number of pixels >= 0")
+    if budget is not None:
+        raise InputError("--primitives hybrid draws every surfel (as triangles or splats); drop --budget")
+    return px
+
+
 class LodCuts:
     """The sequential point tree of a model's surfels, cut per camera under a splat
     budget (``render --budget``): the CPU twin of the viewer's level of detail.
@@ -199,17 +225,11 @@ class LodCuts:
 
 
 def _seed_surfel_areas(surfels, areas) -> None:
-    """Hand the renderer a cut's areas (the nodes' summed subtree areas) instead of its
-    k-nearest-neighbour estimate, which costs more than the render of a cut (120 ms
-    for 15 k nodes). Same entry layout as ``renderer.surfel_areas`` stores; a test
-    checks the renderer picks it up. (Better: an ``areas=`` argument of render_image.)"""
-    import weakref
+    """A cut's areas for the renderer (:func:`.frame.seed_surfel_areas`); a test checks
+    the renderer picks them up. (Better: an ``areas=`` argument of render_image.)"""
+    from .frame import seed_surfel_areas
 
-    from .frame import _AREA_CACHE as cache
-
-    key = id(surfels)
-    ref = weakref.ref(surfels, lambda _r, key=key: cache.pop(key, None))
-    cache[key] = (ref, np.ascontiguousarray(areas, dtype=np.float32))
+    seed_surfel_areas(surfels, areas)
 
 
 class _FrameState:
@@ -232,6 +252,8 @@ class _FrameState:
         self.surfels = model_surfels(self.model)
         self.view_cameras = [v.camera for v in self.model.views]
         self.lod = LodCuts(self.surfels)
+        self.hybrid_mesh: HybridMesh | None = None  # the umbrella mesh (render --primitives hybrid), built on first use
+        self.ms_hybrid_mesh = 0.0
         self.ms_load = 1e3 * (time.perf_counter() - t0)
         self.ms_warmup: float | None = None  # set by the first frame rendered here (_warm_up)
         # threads of one worker share this state; building the LOD tree twice is only waste,
@@ -282,6 +304,7 @@ def _render_chunk(
     background,
     anim_background,
     progress: Callable[[int, int], None] | None = None,
+    hybrid_px: float | None = None,
 ) -> dict:
     """Render ``cams`` with an opened state, write frame i to ``paths[i]``; the GIF frame
     (8-bit sRGB over ``anim_background``) when that is given."""
@@ -291,7 +314,7 @@ def _render_chunk(
         return _render_chunk_fitted(
             st, cams, paths=paths, background=background, anim_background=anim_background, progress=progress
         )
-    ms, splats, taus, gif = [], [], [], []
+    ms, splats, taus, gif, tris = [], [], [], [], []
     ms_tree = 0.0
     ms_warmup = _warm_up(st, cams[0], config=config, exclude=exclude) if cams else 0.0
     for i, (cam, path) in enumerate(zip(cams, paths, strict=True)):
@@ -303,18 +326,58 @@ def _render_chunk(
             if st.lod.tree is not None and not had_tree:
                 ms_tree = st.lod.ms_build
                 t += ms_tree / 1e3  # the tree is built once per model, not per frame
-        splats.append(len(drawn))
+        if hybrid_px is not None:
+            had_mesh = st.hybrid_mesh is not None
+            res = _render_hybrid_frame(st, cam, config=config, exclude=exclude, threshold_px=hybrid_px)
+            if not had_mesh:
+                t += st.ms_hybrid_mesh / 1e3  # built once per model, not per frame
+            splats.append(res.stats["splats"])
+            tris.append(res.stats["triangles"])
+        else:
+            splats.append(len(drawn))
+            res = render_image(
+                drawn, st.view_cameras, st.pv, cam, config=config, exclude_views=list(exclude), splat_cov=cov
+            )
         taus.append(tau)
-        res = render_image(
-            drawn, st.view_cameras, st.pv, cam, config=config, exclude_views=list(exclude), splat_cov=cov
-        )
         ms.append(1e3 * (time.perf_counter() - t))
         write_frame(Path(path), res, background)
         if anim_background is not None:
             gif.append(to_srgb8(res.over(anim_background)))
         if progress:
             progress(i + 1, len(cams))
-    return {"ms": ms, "splats": splats, "taus": taus, "gif": gif, "ms_lod_tree": ms_tree, "ms_warmup": ms_warmup}
+    return {
+        "ms": ms,
+        "splats": splats,
+        "triangles": tris,
+        "taus": taus,
+        "gif": gif,
+        "ms_lod_tree": ms_tree,
+        "ms_hybrid_mesh": st.ms_hybrid_mesh,
+        "ms_warmup": ms_warmup,
+    }
+
+
+def _render_hybrid_frame(st: _FrameState, cam: Camera, *, config: RenderConfig, exclude, threshold_px: float):
+    """``render --primitives hybrid``: umbrella triangles close up, splats elsewhere
+    (:mod:`.hybrid`); the umbrella mesh is built on the first frame, once per model."""
+    from .hybrid import build_hybrid_mesh, render_hybrid
+
+    with st.lock:
+        mesh = st.hybrid_mesh
+        if mesh is None:
+            t = time.perf_counter()
+            mesh = st.hybrid_mesh = build_hybrid_mesh(st.surfels)
+            st.ms_hybrid_mesh = 1e3 * (time.perf_counter() - t)
+    return render_hybrid(
+        st.surfels,
+        st.view_cameras,
+        st.pv,
+        cam,
+        mesh=mesh,
+        config=config,
+        threshold_px=threshold_px,
+        exclude_views=list(exclude),
+    )
 
 
 def _render_chunk_fitted(
@@ -394,6 +457,7 @@ class FrameTask:
         fitted to the camera or an :class:`EnvMap`).
     anim_background : the GIF frames' background (None: no GIF frames).
     renderer : ``"fitted"`` or ``"ulr"`` (:func:`.splats.resolve_renderer`).
+    hybrid_px : the umbrella threshold (px) of ``--primitives hybrid`` (None: splats only).
     """
 
     model_path: str
@@ -405,6 +469,7 @@ class FrameTask:
     background: Any = None
     anim_background: Any = None
     renderer: str = "ulr"
+    hybrid_px: float | None = None
 
 
 def render_frames(task: FrameTask) -> dict:
@@ -430,6 +495,7 @@ def render_frames(task: FrameTask) -> dict:
         paths=task.paths,
         background=task.background,
         anim_background=task.anim_background,
+        hybrid_px=task.hybrid_px,
     )
     out["ms_load"] = st.ms_load if loaded else 0.0
     return out
@@ -454,6 +520,8 @@ def run_render(
     renderer: str = "auto",
     progress: Callable[[int, int], None] | None = None,
     executor=None,
+    primitives: str = "splats",
+    hybrid_px: float = 2.0,
 ) -> dict:
     """Render one frame or an orbit of a model folder to ``out`` (``.png`` or ``.exr``).
 
@@ -467,6 +535,10 @@ def run_render(
     sequential point tree (:mod:`opacityhull.render.lod`, the viewer's LOD); None draws
     every surfel.
 
+    ``primitives``: ``"splats"`` (EWA splats only) or ``"hybrid"`` (:mod:`.hybrid`: a
+    surfel whose umbrella projects larger than ``hybrid_px`` pixels is drawn as its
+    umbrella triangles, the others as splats; every surfel, so no ``budget``).
+
     ``executor``: an :class:`opacityhull.executor.Executor` (``render --scheduler``) to
     render the frames on, in chunks of consecutive frames (:func:`render_frames`): each
     worker opens the model from ``model_path`` and writes its frames to ``out``'s
@@ -477,13 +549,18 @@ def run_render(
     if out.suffix.lower() not in _SUFFIXES:
         raise InputError(f"render output {out}: expected a .png or .exr file name")
     budget = check_budget(budget)
+    hybrid = check_primitives(primitives, hybrid_px, budget)
     model = OpacityHullModel.open(model_path)
     from .splats import resolve_renderer
 
     used = resolve_renderer(
         Path(model.root),
         renderer,
-        ulr_only=(("--budget", budget is not None), ("--exclude-view", bool(list(exclude)))),
+        ulr_only=(
+            ("--budget", budget is not None),
+            ("--exclude-view", bool(list(exclude))),
+            ("--primitives hybrid", hybrid is not None),
+        ),
     )
     cams = choose_cameras(model, view=view, look_at=look_at, orbit=orbit, width=width, height=height)
     bg = load_background(background, yaw_deg=env_yaw_deg, kind=background_kind) if background is not None else None
@@ -510,6 +587,7 @@ def run_render(
                 background=bg,
                 anim_background=anim_bg,
                 progress=progress,
+                hybrid_px=hybrid,
             )
         ]
         t_load_ms = st.ms_load
@@ -530,6 +608,7 @@ def run_render(
                 background=bg,
                 anim_background=anim_bg,
                 renderer=used,
+                hybrid_px=hybrid,
             )
             for i in range(0, len(cams), per)
         ]
@@ -562,7 +641,12 @@ def run_render(
         "lod_tau": taus,
         "ms_lod_tree": max(p["ms_lod_tree"] for p in parts),
         "scheduler": scheduler,
+        "primitives": primitives,
     }
+    if hybrid is not None:
+        summary["hybrid_px"] = hybrid
+        summary["triangles_per_frame"] = [x for p in parts for x in p["triangles"]]
+        summary["ms_hybrid_mesh"] = max(p["ms_hybrid_mesh"] for p in parts)
     if orbit is not None:
         summary.update(_animation([g for p in parts for g in p["gif"]], out.with_name(out.stem), fps))
     return summary
