@@ -1,0 +1,173 @@
+"""The first goal of issue 29 measured on the Mitsuba-rendered synthetic set
+(``benchmarks/synthetic_set.py``: a detailed toy bulldozer, 100 RGBA views of 400×400 on
+the hemisphere): every 10th view held out, PSNR / SSIM over the whole image on white
+(the NeRF papers' protocol) and over the mask union, and the build time per step.
+
+    .venv/bin/python benchmarks/synthetic_eval.py [--quick] [--modes none,fast,full] [--work DIR] [--json]
+
+Per mode it runs the user's commands (the CLI, in a subprocess, so the times are a
+build's own):
+
+    opacityhull import nerfstudio --transforms SET/transforms.json --out WORK/session
+    opacityhull build WORK/session --out WORK/model_MODE --hold-out every:10 [--optimize MODE] --no-pictures
+    opacityhull eval test WORK/model_MODE --background white --json
+
+``none`` is the default build (``build`` without ``--optimize``). The set is rendered
+first when missing (``--quick``: the 24-view 160×160 version, ``--modes none``). Writes
+``benchmarks/out/synthetic.md``, ``synthetic.json`` and ``synthetic_sheet_MODE.png``
+(the held-out views: ground truth, render, difference — ``eval test``'s contact
+sheet). The goal: ≥ 30 dB on white with a build of ≤ 15 min on 2 cores. Figures taken
+while other jobs share the two cores are slow by that load.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+from benchkit import out_dir, parser, print_result, report_head
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+OUT = out_dir()  # benchmarks/out, or benchmarks/out/quick with --quick (benchkit)
+GOAL_DB, GOAL_MIN = 30.0, 15.0
+_CLI = "import sys; from opacityhull.cli import main; sys.exit(main())"
+
+
+def cli(*args: str, log=True) -> dict:
+    """Run ``opacityhull ARGS --json`` in a subprocess (this interpreter, this checkout
+    first on the path); the printed JSON object, plus ``wall_s``."""
+    env = dict(os.environ)
+    root = str(Path(__file__).resolve().parents[1])
+    env["PYTHONPATH"] = root + (os.pathsep + env["PYTHONPATH"] if env.get("PYTHONPATH") else "")
+    t0 = time.perf_counter()
+    r = subprocess.run(
+        [sys.executable, "-c", _CLI, *args, "--json"],
+        stdout=subprocess.PIPE,
+        stderr=None if log else subprocess.DEVNULL,
+        text=True,
+        env=env,
+    )
+    wall = time.perf_counter() - t0
+    if r.returncode != 0:
+        raise RuntimeError(f"opacityhull {' '.join(args)} exited {r.returncode}")
+    lines = [ln for ln in r.stdout.splitlines() if ln.strip().startswith("{")]
+    out = json.loads(lines[-1]) if lines else {}
+    out["wall_s"] = wall
+    return out
+
+
+def build_and_test(
+    session: Path, model: Path, *, hold_out: str, extra: tuple[str, ...] = (), backgrounds=("white",)
+) -> dict:
+    """``build SESSION --out MODEL --hold-out HOLD_OUT EXTRA`` then ``eval test`` per
+    background: ``{"build": build summary, "white": eval summary, ...}``."""
+    if model.exists():
+        shutil.rmtree(model)
+    b = cli("build", str(session), "--out", str(model), "--hold-out", hold_out, "--no-pictures", *extra)
+    res = {"build": b}
+    for bg in backgrounds:
+        out = model / "eval" / f"test_{bg}"
+        res[bg] = cli("eval", "test", str(model), "--background", bg, "--out", str(out))
+    return res
+
+
+def _row(mode: str, r: dict) -> dict:
+    b, w = r["build"], r["white"]
+    secs = b.get("seconds", {})
+    opt = b.get("optimize", {}) or {}
+    return {
+        "mode": mode,
+        "psnr_white": w["psnr_mean"],
+        "ssim_white": w["ssim_mean"],
+        "psnr_mask": w["psnr_mask_mean"],
+        "ssim_mask": w["ssim_mask_mean"],
+        "coverage_iou": w["coverage_iou_mean"],
+        "alpha_mae": w["alpha_mae"],
+        "renderer": w.get("renderer"),
+        "build_s": b["wall_s"],
+        "steps_s": {k: round(float(v), 1) for k, v in secs.items()},
+        "iterations": opt.get("iterations"),
+        "surfels": b.get("surfels"),
+        "carve_tolerance": b.get("carve_tolerance"),
+        "train_views": w.get("train_views"),
+        "test_views": len(w.get("views", [])),
+        "per_view_white": [round(p["psnr"], 2) for p in w["per_view"]],
+        "sheet": w.get("sheet"),
+    }
+
+
+def main(argv=None) -> dict:
+    ap = parser(__doc__)
+    ap.add_argument("--quick", action="store_true", help="the 24-view 160x160 set, default build only")
+    ap.add_argument("--modes", default=None, help="comma list of none, fast, full (default none,fast; quick: none)")
+    ap.add_argument("--work", type=Path, help="keep the session and models here (default: a folder under OUT)")
+    ap.add_argument("--json", action="store_true")
+    a = ap.parse_args(argv)
+    from synthetic_set import HOLD_OUT_EVERY, ensure_set
+
+    modes = (a.modes or ("none" if a.quick else "none,fast")).split(",")
+    transforms = ensure_set(a.quick, log=lambda *x, **k: print(*x, file=sys.stderr))
+    info = json.loads((transforms.parent / "synthetic_set.json").read_text())
+    work = a.work or OUT / "synthetic_work"
+    work.mkdir(parents=True, exist_ok=True)
+    session = work / "session"
+    if session.exists():
+        shutil.rmtree(session)
+    imp = cli("import", "nerfstudio", "--transforms", str(transforms), "--out", str(session))
+    rows = []
+    for mode in modes:
+        extra = () if mode == "none" else ("--optimize", mode)
+        r = build_and_test(session, work / f"model_{mode}", hold_out=f"every:{HOLD_OUT_EVERY}", extra=extra)
+        row = _row(mode, r)
+        if row["sheet"]:
+            dst = OUT / f"synthetic_sheet_{mode}.png"
+            shutil.copyfile(row["sheet"], dst)
+            row["sheet"] = str(dst.relative_to(OUT.parent) if OUT.parent in dst.parents else dst)
+        rows.append(row)
+        print(f"{mode}: {row['psnr_white']:.2f} dB white, {row['build_s']:.0f} s", file=sys.stderr)
+    res = {"set": info, "import_s": imp["wall_s"], "hold_out": f"every:{HOLD_OUT_EVERY}", "rows": rows}
+    OUT.mkdir(parents=True, exist_ok=True)
+    (OUT / "synthetic.json").write_text(json.dumps(res, indent=1))
+    lines = report_head(
+        "Synthetic set: held-out PSNR of the default build (issue 29, first goal)",
+        f"Set: `benchmarks/synthetic_set.py{' --quick' if a.quick else ''}` — {info['views']} RGBA views of "
+        f"{info['size_px']}×{info['size_px']} ({info['spp']} spp, Mitsuba `{info['variant']}`, {info['parts']} meshes, "
+        f"{info['triangles']} triangles, rendered in {info['seconds']:.0f} s). Every {HOLD_OUT_EVERY}th view held out "
+        f"({rows[0]['test_views'] if rows else '?'} test views, {rows[0]['train_views'] if rows else '?'} to build from).",
+        "Commands: `opacityhull import nerfstudio --transforms SET/transforms.json --out S`; `opacityhull build S "
+        f"--out M --hold-out every:{HOLD_OUT_EVERY} --no-pictures [--optimize MODE]`; `opacityhull eval test M "
+        "--background white --json`. Times are wall seconds of the build subprocess on 2 cores shared with other "
+        "jobs (slow by that load); `steps` are report.json's seconds per step.",
+        f"Goal: ≥ {GOAL_DB:.0f} dB on white over the whole image, build ≤ {GOAL_MIN:.0f} min.",
+    )
+    lines += [
+        "| build | renderer | PSNR white (dB) | SSIM white | PSNR mask (dB) | SSIM mask | coverage IoU | alpha MAE "
+        "| build (min) | surfels | carve tol. |",
+        "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+    ]
+    for r in rows:
+        lines.append(
+            f"| {'default' if r['mode'] == 'none' else '--optimize ' + r['mode']} | {r['renderer']} "
+            f"| {r['psnr_white']:.2f} | {r['ssim_white']:.3f} | {r['psnr_mask']:.2f} | {r['ssim_mask']:.3f} "
+            f"| {r['coverage_iou']:.3f} | {r['alpha_mae']:.4f} | {r['build_s'] / 60:.1f} | {r['surfels']} "
+            f"| {r['carve_tolerance']} |"
+        )
+    lines.append("")
+    for r in rows:
+        steps = ", ".join(f"{k} {v:.0f} s" for k, v in sorted(r["steps_s"].items(), key=lambda kv: -kv[1]) if v >= 1)
+        lines.append(f"- {r['mode']}: steps {steps}; per test view (white) {r['per_view_white']}")
+    lines.append("")
+    report = OUT / "synthetic.md"
+    report.write_text("\n".join(lines) + "\n")
+    print_result(res, report, as_json=a.json)
+    return res
+
+
+if __name__ == "__main__":
+    main()
