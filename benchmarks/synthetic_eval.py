@@ -14,9 +14,8 @@ build's own):
 
 ``none`` is the default build (``build`` without ``--optimize``). The set is rendered
 first when missing (``--quick``: the 24-view 160×160 version, ``--modes none``). Writes
-``benchmarks/out/synthetic.md``, ``synthetic.json`` and ``synthetic_sheet_MODE.png``
-(the held-out views: ground truth, render, difference — ``eval test``'s contact
-sheet). The goal: ≥ 30 dB on white with a build of ≤ 15 min on 2 cores. Figures taken
+``benchmarks/out/synthetic.md``, ``synthetic.json`` and ``synthetic_sheet.png`` (three
+held-out views on white: ground truth, each mode's render, the error). The goal: ≥ 30 dB on white with a build of ≤ 15 min on 2 cores. Figures taken
 while other jobs share the two cores are slow by that load.
 """
 
@@ -29,7 +28,9 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Sequence
 
+import numpy as np
 from benchkit import out_dir, parser, print_result, report_head
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
@@ -102,11 +103,72 @@ def _row(mode: str, r: dict) -> dict:
     }
 
 
+def _test_render(model_dir: Path, i: int) -> np.ndarray:
+    """Held-out view ``i`` of a model as ``eval test --renderer auto`` renders it
+    (straight linear RGBA)."""
+    from opacityhull.evaluate.heldout import fitted_state
+    from opacityhull.model import OpacityHullModel
+    from opacityhull.render.renderer import RenderConfig, model_surfels, prepare_model_views, render_image
+
+    m = OpacityHullModel.open(model_dir)
+    cams = [v.camera for v in m.views]
+    if fitted_state(model_dir) == "fitted":
+        from opacityhull.optimize.fit import load_fitted, render_params
+
+        return render_params(load_fitted(model_dir), cams[i])
+    pv = prepare_model_views(m)
+    return render_image(model_surfels(m), cams, pv, cams[i], config=RenderConfig()).rgba
+
+
+def write_sheet(work: Path, modes: Sequence[str], path: Path, *, test_views=(0, 40, 80)) -> Path:
+    """Test views (rows) on white: ground truth | each mode's render | |error| ×4 of the
+    last mode, cropped to the object, at full resolution (a PNG)."""
+    import cv2
+
+    from opacityhull.imageio import srgb_encode, write_png
+    from opacityhull.model import OpacityHullModel
+
+    def on_white(rgba):
+        a = np.clip(np.nan_to_num(rgba[..., 3:4]), 0, 1)
+        return srgb_encode(np.clip(np.nan_to_num(rgba[..., :3]), 0, 1) * a + (1 - a))
+
+    crops_per_row = []
+    first = OpacityHullModel.open(work / f"model_{modes[0]}")
+    for i in test_views:
+        if i >= len(first.views):
+            continue
+        gt = first.load_view_rgba(i)
+        tiles = [on_white(gt)] + [on_white(_test_render(work / f"model_{m}", i)) for m in modes]
+        err = np.clip(4 * np.abs(tiles[-1] - tiles[0]).mean(axis=2, keepdims=True), 0, 1)
+        tiles.append(np.repeat(1 - err, 3, axis=2))
+        ys, xs = np.nonzero(gt[..., 3] > 0.01)
+        pad = 6
+        y0, y1 = max(ys.min() - pad, 0), min(ys.max() + pad + 1, gt.shape[0])
+        x0, x1 = max(xs.min() - pad, 0), min(xs.max() + pad + 1, gt.shape[1])
+        crops_per_row.append([t[y0:y1, x0:x1] for t in tiles])
+    tile_w = max(c[0].shape[1] for c in crops_per_row) + 4
+    rows = []
+    for crops in crops_per_row:
+        row = np.concatenate(
+            [np.pad(c, ((0, 4), (0, tile_w - c.shape[1]), (0, 0)), constant_values=1.0) for c in crops], axis=1
+        )
+        rows.append(row)
+    img = np.concatenate(rows, axis=0)
+    head = np.full((22, img.shape[1], 3), 255, np.uint8)
+    names = ["ground truth"] + [("default" if m == "none" else m) for m in modes] + [f"|err| x4 ({modes[-1]})"]
+    for k, name in enumerate(names):
+        cv2.putText(head, name, (4 + k * tile_w, 15), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
+    # the image is sRGB-encoded already: write it as data
+    write_png(path, np.concatenate([head.astype(np.float32) / 255, img], axis=0), linear=True)
+    return path
+
+
 def main(argv=None) -> dict:
     ap = parser(__doc__)
     ap.add_argument("--quick", action="store_true", help="the 24-view 160x160 set, default build only")
     ap.add_argument("--modes", default=None, help="comma list of none, fast, full (default none,fast; quick: none)")
     ap.add_argument("--work", type=Path, help="keep the session and models here (default: a folder under OUT)")
+    ap.add_argument("--sheet-only", action="store_true", help="redraw the sheet from the models in --work")
     ap.add_argument("--json", action="store_true")
     a = ap.parse_args(argv)
     from synthetic_set import HOLD_OUT_EVERY, ensure_set
@@ -115,6 +177,10 @@ def main(argv=None) -> dict:
     transforms = ensure_set(a.quick, log=lambda *x, **k: print(*x, file=sys.stderr))
     info = json.loads((transforms.parent / "synthetic_set.json").read_text())
     work = a.work or OUT / "synthetic_work"
+    if a.sheet_only:
+        path = write_sheet(work, modes, OUT / "synthetic_sheet.png")
+        print(path)
+        return {"sheet": str(path)}
     work.mkdir(parents=True, exist_ok=True)
     session = work / "session"
     if session.exists():
@@ -125,14 +191,12 @@ def main(argv=None) -> dict:
         extra = () if mode == "none" else ("--optimize", mode)
         r = build_and_test(session, work / f"model_{mode}", hold_out=f"every:{HOLD_OUT_EVERY}", extra=extra)
         row = _row(mode, r)
-        if row["sheet"]:
-            dst = OUT / f"synthetic_sheet_{mode}.png"
-            shutil.copyfile(row["sheet"], dst)
-            row["sheet"] = str(dst.relative_to(OUT.parent) if OUT.parent in dst.parents else dst)
         rows.append(row)
         print(f"{mode}: {row['psnr_white']:.2f} dB white, {row['build_s']:.0f} s", file=sys.stderr)
     res = {"set": info, "import_s": imp["wall_s"], "hold_out": f"every:{HOLD_OUT_EVERY}", "rows": rows}
     OUT.mkdir(parents=True, exist_ok=True)
+    sheet = write_sheet(work, modes, OUT / "synthetic_sheet.png")
+    res["sheet"] = str(sheet)
     (OUT / "synthetic.json").write_text(json.dumps(res, indent=1))
     lines = report_head(
         "Synthetic set: held-out PSNR of the default build (issue 29, first goal)",
@@ -162,7 +226,13 @@ def main(argv=None) -> dict:
     for r in rows:
         steps = ", ".join(f"{k} {v:.0f} s" for k, v in sorted(r["steps_s"].items(), key=lambda kv: -kv[1]) if v >= 1)
         lines.append(f"- {r['mode']}: steps {steps}; per test view (white) {r['per_view_white']}")
-    lines.append("")
+    lines += [
+        "",
+        f"![test views](synthetic_sheet.png) `synthetic_sheet.png`: test views {', '.join(str(v) for v in (0, 40, 80))} "
+        "on white — ground truth, each build's render, the last one's error ×4 (eval test's own sheets, all 10 "
+        "views with the alpha error, are in WORK/model_MODE/eval/test_white/).",
+        "",
+    ]
     report = OUT / "synthetic.md"
     report.write_text("\n".join(lines) + "\n")
     print_result(res, report, as_json=a.json)
