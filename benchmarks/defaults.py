@@ -15,10 +15,15 @@ by ``eval test`` (white background):
   the figure of merit is the mask-union PSNR (``eval loo``'s metric);
 * ``synthetic``: ``benchmarks/synthetic_set.py`` (100 RGBA views of 400×400, true
   alpha), ``import nerfstudio``, every 10th view held out (90 views: the rule gives 2);
-  figure of merit the whole image on white (the NeRF protocol), mask union beside it.
+  figure of merit the whole image on white (the NeRF protocol), mask union beside it;
+* ``demo`` (``--sets ...,demo``): the simulated diffuse cup, captured with
+  ``capture --rig sim:builtin:diffuse?scale=2 --plan tests/render/data/demo_views.toml``
+  (48 views; minutes), built with ``--cameras groundtruth``, every 8th view held out; a
+  rig session, so the rule gives 0; merit the mask union.
 
 A rule tolerance equal to a measured fixed one is not built twice. ``--quick``: the
-24-view synthetic set only. Writes ``benchmarks/out/defaults.md`` and
+24-view synthetic set only. Rows of sets not named by ``--sets`` are kept from the last
+``defaults.json``. Writes ``benchmarks/out/defaults.md`` and
 ``defaults.json``. Builds run as CLI subprocesses (``synthetic_eval.cli``) with the
 default options otherwise (``--optimize none``, ``--no-pictures``).
 """
@@ -37,18 +42,29 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 ROOT = Path(__file__).resolve().parents[1]
 OUT = out_dir()  # benchmarks/out, or benchmarks/out/quick with --quick (benchkit)
 DATA = ROOT / "tests" / "data" / "real"
-EVERY = {"temple": 4, "dino": 4, "synthetic": 10}
+EVERY = {"temple": 4, "dino": 4, "synthetic": 10, "demo": 8}
 #: the figure of merit per set: the key of eval test's summary
-MERIT = {"temple": "psnr_mask_mean", "dino": "psnr_mask_mean", "synthetic": "psnr_mean"}
+MERIT = {"temple": "psnr_mask_mean", "dino": "psnr_mask_mean", "synthetic": "psnr_mean", "demo": "psnr_mask_mean"}
+#: the simulated demo scene: the diffuse cup under the demo plan's 48 views (as benchmarks/optimize.py)
+DEMO_RIG = "sim:builtin:diffuse?scale=2"
+DEMO_PLAN = ROOT / "tests" / "render" / "data" / "demo_views.toml"
+#: per set, build options besides the split and the tolerance
+EXTRA = {"demo": ("--cameras", "groundtruth")}
 
 
-def import_set(name: str, session: Path, *, quick: bool) -> None:
+def import_set(name: str, session: Path, *, quick: bool, demo_session: Path | None = None) -> Path:
+    """The session of a set: imported (the rings, the synthetic set) or captured on the
+    simulated rig (``demo``; ``demo_session`` reuses an earlier capture)."""
     from synthetic_eval import cli
     from synthetic_set import ensure_set
 
+    if name == "demo" and demo_session is not None:
+        return demo_session
     if session.exists():
         shutil.rmtree(session)
-    if name == "synthetic":
+    if name == "demo":
+        cli("capture", "--rig", DEMO_RIG, "--plan", str(DEMO_PLAN), "--out", str(session))
+    elif name == "synthetic":
         t = ensure_set(quick, log=lambda *x, **k: print(*x, file=sys.stderr))
         cli("import", "nerfstudio", "--transforms", str(t), "--out", str(session))
     else:
@@ -65,20 +81,22 @@ def import_set(name: str, session: Path, *, quick: bool) -> None:
             "--out",
             str(session),
         )
+    return session
 
 
-def measure_set(name: str, work: Path, tolerances: list[int], *, quick: bool) -> list[dict]:
+def measure_set(
+    name: str, work: Path, tolerances: list[int], *, quick: bool, demo_session: Path | None = None
+) -> list[dict]:
     """Rows ``{"set", "tolerance", "rule", "psnr_white", "psnr_mask", ...}``: the rule's
     build first, then each fixed tolerance it did not already give."""
     from synthetic_eval import build_and_test
 
-    session = work / f"{name}_session"
-    import_set(name, session, quick=quick)
+    session = import_set(name, work / f"{name}_session", quick=quick, demo_session=demo_session)
     hold = f"every:{EVERY[name]}"
     rows = []
 
     def run(tol: int | None) -> dict:
-        extra = () if tol is None else ("--carve-tolerance", str(tol))
+        extra = EXTRA.get(name, ()) + (() if tol is None else ("--carve-tolerance", str(tol)))
         r = build_and_test(session, work / f"{name}_model", hold_out=hold, extra=extra)
         b, w = r["build"], r["white"]
         row = {
@@ -114,8 +132,11 @@ def main(argv=None) -> dict:
     ap = parser(__doc__)
     ap.add_argument("--quick", action="store_true", help="the 24-view synthetic set only")
     ap.add_argument(
-        "--sets", default=None, help="comma list of temple, dino, synthetic (default all; quick: synthetic)"
+        "--sets",
+        default=None,
+        help="comma list of temple, dino, synthetic, demo (default the first three; quick: synthetic)",
     )
+    ap.add_argument("--demo-session", type=Path, help="a captured demo session to reuse (else demo captures one)")
     ap.add_argument("--tolerances", default="0,1,2")
     ap.add_argument("--work", type=Path, help="scratch folder (default OUT/defaults_work)")
     ap.add_argument("--json", action="store_true")
@@ -126,9 +147,12 @@ def main(argv=None) -> dict:
     work.mkdir(parents=True, exist_ok=True)
     rows = []
     for name in sets:
-        rows += measure_set(name, work, tolerances, quick=a.quick)
+        rows += measure_set(name, work, tolerances, quick=a.quick, demo_session=a.demo_session)
+    prev = OUT / "defaults.json"
+    if prev.is_file():  # keep the rows of the sets not measured this time (e.g. --sets demo)
+        rows = [r for r in json.loads(prev.read_text())["rows"] if r["set"] not in sets] + rows
     res: dict = {"rows": rows, "best": {}}
-    for name in sets:
+    for name in dict.fromkeys(r["set"] for r in rows):
         mine = [r for r in rows if r["set"] == name]
         best = max(mine, key=lambda r: r["merit"])
         rule = next(r for r in mine if r["rule"])
@@ -142,12 +166,13 @@ def main(argv=None) -> dict:
     lines = report_head(
         "Defaults that generalise: the carve tolerance (issue 29, item 6)",
         "Held-out PSNR (`eval test`, white background) per set and carve tolerance; `rule` is the default "
-        "(`build.default_carve_tolerance`: imported sets 0 under 8 views, 1 from 8, 2 from 16). Merit: mask-union "
-        "PSNR on the real rings (every 4th view held out, 12 to build from), whole image on white on the "
+        "(`build.default_carve_tolerance`: imported sets 0 under 8 views, 1 from 8, 2 from 16; rig sessions 0). "
+        "Merit: mask-union PSNR on the real rings (every 4th view held out, 12 to build from) and the simulated "
+        "demo cup (rig capture, every 8th held out, `--cameras groundtruth`), whole image on white on the "
         "synthetic set (every 10th held out). Commands: `benchmarks/defaults.py"
-        f"{' --quick' if a.quick else ''}` (import colmap / import nerfstudio, then `build --hold-out every:N "
-        "[--carve-tolerance T] --no-pictures` and `eval test --background white`). Build times under load "
-        "(2 cores shared with other jobs).",
+        f"{' --quick' if a.quick else ''} [--sets demo]` (import colmap / import nerfstudio / capture, then "
+        "`build --hold-out every:N [--carve-tolerance T] --no-pictures` and `eval test --background white`). "
+        "Build times under load (2 cores shared with other jobs, NUMBA_NUM_THREADS=1).",
     )
     lines += [
         "| set | split | tolerance | PSNR mask (dB) | SSIM mask | PSNR white (dB) | SSIM white | coverage IoU | build (s) |",
