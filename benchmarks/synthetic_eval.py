@@ -261,6 +261,9 @@ def analyse(res: dict, work: Path) -> None:
     """Add the error budget to each row and draw the sheet (renders the test views again)."""
     for r in res["rows"]:
         r["error_budget"] = error_budget(work, r["mode"])
+        rep = work / f"model_{r['mode']}" / "report.json"
+        if r.get("surfels_end") is None and rep.is_file():
+            r["surfels_end"] = (json.loads(rep.read_text()).get("optimize") or {}).get("n_surfels_end")
     res["sheet"] = str(write_sheet(work, [r["mode"] for r in res["rows"]], OUT / "synthetic_sheet.png"))
 
 
