@@ -251,7 +251,9 @@ def main(argv=None) -> int:
         a.set_xlabel("zoom")
         a.set_title(t, fontsize=9)
         a.legend(fontsize=6)
-    for a, (name, (s_img, h_img, g_img)) in zip(ax[2:], pics.items(), strict=False):  # more axes than pictures when a set is skipped
+    for a, (name, (s_img, h_img, g_img)) in zip(
+        ax[2:], pics.items(), strict=False
+    ):  # more axes than pictures when a set is skipped
 
         def over_grey(x):
             return premul(x)[..., :3] + 0.25 * (1 - x[..., 3:4])
