@@ -29,7 +29,9 @@ class FitConfig:
         exponentially to ``lr_position_final`` over the iterations.
     lr_sh_dc, lr_sh_rest : SH colour coefficients (DC, higher degrees).
     lr_opacity, lr_scale, lr_rotation : opacity logits, log tangent scales, quaternions.
-    ssim_weight : λ of (1 − λ)·L1 + λ·D-SSIM on the display (sRGB-encoded) colour.
+    ssim_weight : λ of (1 − λ)·D + λ·D-SSIM on the display (sRGB-encoded) colour.
+    color_loss : D, ``"l1"`` (mean absolute error, 3DGS) or ``"l2"`` (mean squared error,
+        what PSNR scores: where the views disagree, the mean rather than the median).
     alpha_weight : weight of the L1 between rendered α and each view's matte.
     sh_degree : final SH degree (0..3); the degree grows by one every
         ``sh_degree_every`` iterations from 0 (3DGS practice), or starts at the final
@@ -65,6 +67,7 @@ class FitConfig:
     lr_scale: float = 1e-2
     lr_rotation: float = 1e-3
     ssim_weight: float = 0.2
+    color_loss: Literal["l1", "l2"] = "l1"
     alpha_weight: float = 0.5
     sh_degree: int = 3
     sh_degree_every: int = 150
@@ -109,6 +112,8 @@ class FitConfig:
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
                 raise ConfigError(f"optimize {name} {v!r}: expected a finite number >= 0")
+        if self.color_loss not in ("l1", "l2"):
+            raise ConfigError(f"optimize color_loss {self.color_loss!r}: expected l1 or l2")
         if self.start_surface not in ("hull", "refined"):
             raise ConfigError(f"optimize start_surface {self.start_surface!r}: expected hull or refined")
         if int(self.checkpoint_every) < 0 or int(self.max_surfels) < 1:
