@@ -299,7 +299,8 @@ def main(argv=None) -> int:
     stem = "optimize_quick" if a.quick else "optimize"
     md = report_head(
         "Optimized opacity hull: held-out PSNR against fitting steps and time",
-        f"`benchmarks/optimize.py{' --quick' if a.quick else ''}`: every 4th view held out (demo every 8th), "
+        f"`benchmarks/optimize.py {' '.join(sys.argv[1:] if argv is None else argv)}`: every 4th view held out "
+        "(demo every 8th), "
         "with its coincident twins, out of the hull, the start colour and the fit. PSNR/SSIM over the union of "
         "the photograph's mask and the rendered coverage, colour over black, sRGB (`eval loo`'s metric). "
         "`hull` is today's model (hull rebuilt without the held-out views, ULR of the training views), `start` "
