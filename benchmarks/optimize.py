@@ -6,7 +6,8 @@ seconds, per set and appearance mode (issue 29, item 7).
 
 Sets: the Middlebury rings (``tests/data/real/templeSR``, ``dinoSR``; imported and
 built with the defaults unless ``--model temple=DIR`` names a built model), every 4th
-view held out; ``--model demo=DIR`` (e.g. ``out/demo/model``) every 8th. A held-out
+view held out; ``--model demo=DIR`` (e.g. ``out/demo/model``) every 8th; ``--model
+tiny=DIR`` (the README's ``capture --plan builtin:tiny`` session, built) every 4th. A held-out
 view's coincident twins are held out with it. The held-out views are in nothing the fit
 sees: the hull, surfels and visibility are rebuilt without them
 (:func:`opacityhull.evaluate.holdout.geometry_without`, what ``eval loo --holdout
@@ -45,7 +46,7 @@ from benchkit import out_dir, parser, print_result, pyplot, report_head, save_fi
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT / "tests" / "data" / "real"
 OUT = out_dir()  # benchmarks/out, or benchmarks/out/quick with --quick (benchkit)
-EVERY = {"temple": 4, "dino": 4, "demo": 8}
+EVERY = {"temple": 4, "dino": 4, "demo": 8, "tiny": 4}
 GOALS = {"temple": 20.0, "dino": 19.0, "demo": 30.0}
 
 
@@ -298,7 +299,8 @@ def main(argv=None) -> int:
     stem = "optimize_quick" if a.quick else "optimize"
     md = report_head(
         "Optimized opacity hull: held-out PSNR against fitting steps and time",
-        f"`benchmarks/optimize.py{' --quick' if a.quick else ''}`: every 4th view held out (demo every 8th), "
+        f"`benchmarks/optimize.py {' '.join(sys.argv[1:] if argv is None else argv)}`: every 4th view held out "
+        "(demo every 8th), "
         "with its coincident twins, out of the hull, the start colour and the fit. PSNR/SSIM over the union of "
         "the photograph's mask and the rendered coverage, colour over black, sRGB (`eval loo`'s metric). "
         "`hull` is today's model (hull rebuilt without the held-out views, ULR of the training views), `start` "

@@ -146,17 +146,22 @@ def step_loss(
     *,
     ssim_weight: float,
     alpha_weight: float,
+    color_loss: str = "l1",
 ) -> tuple[float, np.ndarray, np.ndarray]:
     """The loss of one rendered view and its gradient.
 
-    (1 − λ)·mean|I − T| + λ·(1 − SSIM(I, T)) + w_α·mean|α − A| with I, T (H, W, 3) display
-    colour over black, α, A (H, W). Returns (loss, ∂L/∂I, ∂L/∂α).
+    (1 − λ)·D(I, T) + λ·(1 − SSIM(I, T)) + w_α·mean|α − A| with I, T (H, W, 3) display
+    colour over black, α, A (H, W), and D the mean |I − T| (``color_loss="l1"``) or the
+    mean (I − T)² (``"l2"``). Returns (loss, ∂L/∂I, ∂L/∂α).
     """
     d = image - target
     n = d.size
-    l1 = float(np.abs(d).mean())
-    g_img = ((1 - ssim_weight) / n) * np.sign(d)
-    loss = (1 - ssim_weight) * l1
+    if color_loss == "l2":
+        g_img = ((1 - ssim_weight) * 2.0 / n) * d
+        loss = (1 - ssim_weight) * float(np.mean(d * d))
+    else:
+        g_img = ((1 - ssim_weight) / n) * np.sign(d)
+        loss = (1 - ssim_weight) * float(np.abs(d).mean())
     if ssim_weight > 0:
         s, gs = ssim_and_grad(image, target)
         loss += ssim_weight * (1 - s)
@@ -236,7 +241,9 @@ def fit_params(
     from .raster import RasterConfig, rasterize, rasterize_backward, spatial_order
 
     t_start = time.perf_counter()
-    rc = RasterConfig()
+    # the screen filter is a fixed area in pixels: at train_scale < 1 it would let the splats
+    # shrink below a full-resolution pixel, which then renders holes (measured on the demo cup)
+    rc = RasterConfig(lowpass_px2=RasterConfig().lowpass_px2 * config.train_scale**2)
     surf = data.surfels
     keep, grow = thin_start(len(surf), config.max_start_surfels, seed=config.seed)
     pos = surf.shading_positions() if config.start_surface == "refined" else surf.positions
@@ -288,6 +295,7 @@ def fit_params(
             view.alpha,
             ssim_weight=config.ssim_weight,
             alpha_weight=config.alpha_weight,
+            color_loss=config.color_loss,
         )
         g = rasterize_backward(out, sp, cam, dL_dimage=g_img, dL_dalpha=g_a, config=rc)
         grads = {

@@ -125,8 +125,10 @@ class BuildConfig:
     optimize : the ``optimize`` step (``build --optimize``): ``"none"`` (the hull model as
         built), ``"fast"`` or ``"full"`` (:func:`opacityhull.optimize.config.fit_preset`):
         the surfels fitted to the training views by differentiable splatting, written to
-        ``MODEL/optimized/``. The default is none: the measured fits gain +0.4–1.2 dB held
-        out on the real rings (templeSR, dinoSR) at a cost of minutes (ARCHITECTURE.md).
+        ``MODEL/optimized/``. The default is none (today's model); ``fast`` measured +1.4 to
+        +4.5 dB held out over it on templeSR, dinoSR, the simulated demo cup and the tiny
+        session in 7-143 s of steps (benchmarks/out/optimize.md), but downstream (render, view, relight, export)
+        reads the fitted splats only as issue 29's item 4 lands.
     optimize_iterations : overrides the preset's iteration count (None: the preset's).
     drop_uncalibrated_cameras : with a calibration phase, a camera that cannot be
         calibrated (fewer than three usable board views) is left out with its views and a

@@ -231,9 +231,9 @@ _HOLD_OUT_HELP = (
 )
 _OPTIMIZE_HELP = (
     "Fit the surfels to the training views by differentiable splatting (a resumable build step into "
-    "MODEL/optimized/; `eval test` then renders the fitted splats): none, fast or full. Default none: the fits "
-    "measured so far gain only +0.4 to +1.2 dB on held-out views of the real rings (templeSR, dinoSR) at a cost "
-    "of minutes."
+    "MODEL/optimized/; `eval test` then renders the fitted splats): none, fast or full. Default none; fast "
+    "(900 steps at half resolution) measured +1.4 to +4.5 dB on held-out views over the unfitted model "
+    "(templeSR, dinoSR, the simulated demo cup) in 0.5 to 2.5 minutes of steps."
 )
 _OPTIMIZE_MODES: tuple[Literal["none", "fast", "full"], ...] = ("none", "fast", "full")
 _OPTIMIZE_ITERATIONS_HELP = "Iterations of the fit (default: the --optimize preset's; fast 600, full 3000)."

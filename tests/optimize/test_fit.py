@@ -32,11 +32,16 @@ CFG = FitConfig(
 )
 
 
-def _scene(root: Path, *, inflate: float = 1.1, texture_freq: float = 1.0):
+def _scene(root: Path, *, inflate: float = 1.1, texture_freq: float = 1.0, width: int = 64, n_surfels: int = 3000):
     """An analytic textured sphere seen by 10 views on a ring (36° apart), its surfels on
     a sphere ``inflate`` times too large — a visual hull's error — and their radii with it."""
     m = make_sphere_model(
-        3000, width=64, height=48, table_step_deg=36, elevations_deg=(20.0,), texture_freq=texture_freq
+        n_surfels,
+        width=width,
+        height=width * 3 // 4,
+        table_step_deg=36,
+        elevations_deg=(20.0,),
+        texture_freq=texture_freq,
     )
     c = np.asarray(m.scene.centre)
     s = m.surfels

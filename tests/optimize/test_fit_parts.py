@@ -14,6 +14,7 @@ from opacityhull.optimize.adam import Adam, exp_decay
 from opacityhull.optimize.appearance import sh_colors, sh_colors_backward
 from opacityhull.optimize.config import FitConfig, fit_preset
 from opacityhull.optimize.densify import GradStats, densify_and_prune
+from opacityhull.optimize.fit import step_loss
 from opacityhull.optimize.splatply import read_splat_ply, write_splat_ply
 from opacityhull.optimize.ssim import ssim_and_grad, ssim_map
 from opacityhull.optimize.surfelparams import normals_of, quat_to_rotmat, quats_from_normals, start_params
@@ -229,6 +230,7 @@ def test_splat_ply_round_trip(tmp_path):
         {"sh_degree": 4},
         {"train_scale": 0.0},
         {"start_surface": "middle"},
+        {"color_loss": "l3"},
     ],
 )
 def test_config_bad_values_are_named_errors(kw):
@@ -242,3 +244,30 @@ def test_presets():
     assert fit_preset("fast", seed=3).seed == 3
     with pytest.raises(ConfigError, match="fastest"):
         fit_preset("fastest")  # type: ignore[arg-type]
+
+
+@settings(max_examples=10, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), color_loss=st.sampled_from(["l1", "l2"]))
+def test_step_loss_gradient_equals_finite_differences(seed, color_loss):
+    rng = np.random.default_rng(seed)
+    img = rng.uniform(0, 1, (12, 13, 3))
+    tgt = rng.uniform(0, 1, (12, 13, 3))
+    a, m = rng.uniform(0, 1, (12, 13)), rng.uniform(0, 1, (12, 13))
+
+    def loss(i, al):
+        return step_loss(i, al, tgt, m, ssim_weight=0.2, alpha_weight=0.5, color_loss=color_loss)
+
+    _, g_img, g_a = loss(img, a)
+    h = 1e-6
+    for _ in range(6):  # |x| is smooth away from 0: the random values are almost surely away from it
+        y, x, c = rng.integers(12), rng.integers(13), rng.integers(3)
+        up, dn = img.copy(), img.copy()
+        up[y, x, c] += h
+        dn[y, x, c] -= h
+        fd = (loss(up, a)[0] - loss(dn, a)[0]) / (2 * h)
+        assert g_img[y, x, c] == pytest.approx(fd, rel=1e-3, abs=1e-9)
+        up, dn = a.copy(), a.copy()
+        up[y, x] += h
+        dn[y, x] -= h
+        fd = (loss(img, up)[0] - loss(img, dn)[0]) / (2 * h)
+        assert g_a[y, x] == pytest.approx(fd, rel=1e-3, abs=1e-9)
