@@ -21,7 +21,7 @@ from .write import _storage_metrics
 log = logging.getLogger(__name__)
 
 
-def _ground_truth_metrics(session, views, vids, alphas, occ, grid, cams, config, pin, dilations) -> dict:
+def _ground_truth_metrics(session, views, vids, alphas, occ, grid, cams, config, pin, dilations, view_cams) -> dict:
     from ...imageio import read_exr
     from ..metrics import alpha_mae, ground_truth_checks, hull_iou, read_mesh_ply, voxelize_mesh
 
@@ -46,7 +46,8 @@ def _ground_truth_metrics(session, views, vids, alphas, occ, grid, cams, config,
     # carving errors from what no visual hull can see (cavities, concavities)
     true_hull = None
     if len(true_sils) == len(vids):
-        ts = [undistort_silhouette(s, cam)[0] for s, cam in zip(true_sils, [c for c in cams.views], strict=True)]
+        # the cameras of ``views`` (the training views of a --hold-out build), not every view's
+        ts = [undistort_silhouette(s, cam)[0] for s, cam in zip(true_sils, view_cams, strict=True)]
         true_hull = carve_octree(ts, pin, grid, root_cell=config.root_cell)
     if per_view:
         w = np.array([r["pixels"] for r in per_view], dtype=np.float64)
@@ -145,6 +146,7 @@ def run(ctx) -> None:
                     config,
                     g.pin,
                     ctx.geometry.dilations,
+                    [cams.views[j] for j in ctx.geometry.train],
                 )
             )
     if ctx.nonfinite:
