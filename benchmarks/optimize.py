@@ -168,7 +168,9 @@ def run_set(name: str, model_dir: Path, tmp: Path, cfg, *, observe_every: int, m
     clock["start"] = t0 = time.perf_counter()
     params, rep = fit_params(data, cfg, observe=observe, observe_every=observe_every)
     res["fit_wall_s"] = round(time.perf_counter() - t0, 1)
-    res["fit"] = {**rep.summary(), "step_s": round(float(np.sum(rep.step_ms)) / 1e3, 1)}
+    t = rep.timings()
+    res["fit"] = {**rep.summary(), "seconds": t["seconds"], "ms_per_iteration": t["ms_per_iteration"]}
+    res["fit"]["step_s"] = round(float(np.sum(rep.step_ms)) / 1e3, 1)
     res["sh"] = curve[-1]
     res["curve"] = curve
     res["densify"] = rep.densify

@@ -74,7 +74,8 @@ class FitProgress:
 
 @dataclass
 class FitReport:
-    """What :func:`fit_model` returns (and writes as ``optimized/fit.json``).
+    """What :func:`fit_model` returns (and writes as ``optimized/fit.json``, less the
+    wall-clock ``seconds`` and ``step_ms``: :meth:`timings`).
 
     loss : per step, the total loss. psnr : per step, the training view's PSNR (dB) over
     the mask union. step_ms : per step, wall time. n_surfels : start and end counts.
@@ -95,15 +96,24 @@ class FitReport:
     config: dict = field(default_factory=dict)
 
     def summary(self) -> dict:
+        """The fit's outcome without wall-clock times (``fit.json``; see :meth:`timings`)."""
         tail = [p for p in self.psnr[-20:] if math.isfinite(p)]
         return {
             "iterations": self.iterations,
-            "seconds": self.seconds,
-            "ms_per_iteration": float(np.mean(self.step_ms)) if self.step_ms else float("nan"),
             "train_psnr_last": float(np.mean(tail)) if tail else float("nan"),
             "n_surfels_start": self.n_surfels_start,
             "n_surfels_end": self.n_surfels_end,
             "stopped_by": self.stopped_by,
+        }
+
+    def timings(self) -> dict:
+        """This run's wall-clock times (``seconds``, ``ms_per_iteration``, ``step_ms``):
+        kept out of ``fit.json`` and the checkpoint so that a model repeats byte for byte
+        (#35); the build step puts them into ``report.json``'s ``optimize`` only."""
+        return {
+            "seconds": self.seconds,
+            "ms_per_iteration": float(np.mean(self.step_ms)) if self.step_ms else float("nan"),
+            "step_ms": list(self.step_ms),
         }
 
 
@@ -197,7 +207,9 @@ def _save_checkpoint(path: Path, meta: dict, it: int, params, adam: Adam, stats:
     arrays.update(adam.state())
     arrays["grad_accum"] = stats.accum
     arrays["grad_count"] = stats.count
-    rep = {"loss": report.loss, "psnr": report.psnr, "step_ms": report.step_ms, "densify": report.densify}
+    # no wall-clock times: a checkpoint repeats byte for byte (#35); a resumed fit's step_ms
+    # holds only the steps run since
+    rep = {"loss": report.loss, "psnr": report.psnr, "densify": report.densify}
     arrays["meta"] = np.frombuffer(json.dumps({**meta, "iteration": it, "report": rep}).encode(), np.uint8)
     with atomic_path(path) as tmp, open(tmp, "wb") as f:
         np.savez(f, **arrays)
@@ -263,12 +275,7 @@ def fit_params(
         stats.accum, stats.count = z["grad_accum"].copy(), z["grad_count"].copy()
         start_it = int(got["iteration"])
         rep = got["report"]
-        report.loss, report.psnr, report.step_ms, report.densify = (
-            rep["loss"],
-            rep["psnr"],
-            rep["step_ms"],
-            rep["densify"],
-        )
+        report.loss, report.psnr, report.densify = rep["loss"], rep["psnr"], rep["densify"]
         report.resumed_from = start_it
         log.info("fit: resumed from %s at step %d", checkpoint_path, start_it)
     T = int(config.iterations)
@@ -416,7 +423,6 @@ def fit_model(
                     "model": model_fingerprint(model_dir),
                     "loss": report.loss,
                     "psnr": report.psnr,
-                    "step_ms": report.step_ms,
                     "densify": report.densify,
                     "config": report.config,
                 }

@@ -125,10 +125,11 @@ class BuildConfig:
     optimize : the ``optimize`` step (``build --optimize``): ``"none"`` (the hull model as
         built), ``"fast"`` or ``"full"`` (:func:`opacityhull.optimize.config.fit_preset`):
         the surfels fitted to the training views by differentiable splatting, written to
-        ``MODEL/optimized/``. The default is none (today's model); ``fast`` measured +1.4 to
-        +4.5 dB held out over it on templeSR, dinoSR, the simulated demo cup and the tiny
-        session in 7-143 s of steps (benchmarks/out/optimize.md), but downstream (render, view, relight, export)
-        reads the fitted splats only as issue 29's item 4 lands.
+        ``MODEL/optimized/``, which render, eval, view, relight and export then read. The
+        default is fast: held out it measured over ``none`` templeSR 15.67 → 19.87 dB,
+        dinoSR 17.46 → 21.55, the simulated demo cup 18.50 → 23.02, the README's tiny
+        session 14.54 → 15.98 and a 100-view Mitsuba set 28.44 → 33.06 (whole image on
+        white; benchmarks/out/optimize.md); ``none`` keeps the hull-and-blend model alone.
     optimize_iterations : overrides the preset's iteration count (None: the preset's).
     drop_uncalibrated_cameras : with a calibration phase, a camera that cannot be
         calibrated (fewer than three usable board views) is left out with its views and a
@@ -182,7 +183,7 @@ class BuildConfig:
     backdrops: str = "auto"
     exclude_views: tuple[str, ...] = ()
     hold_out: str | None = None
-    optimize: Literal["none", "fast", "full"] = "none"
+    optimize: Literal["none", "fast", "full"] = "fast"
     optimize_iterations: int | None = None
     drop_uncalibrated_cameras: bool = True
     root_cell: int = 32

@@ -51,8 +51,11 @@ def test_build_json_summary_and_files(session):
     # progress went to stderr; a pipe gets one line per finished step (no live bar), each
     # step of the summary's timings once, then the total
     err = p.stderr
-    for step in ("cameras", "matting", "hull", "surfels", "visibility"):
+    for step in ("cameras", "matting", "hull", "surfels", "visibility", "optimize"):
         assert err.count(f"build: {step} done in ") == 1, (step, err)
+    # the default build fits the surfels to the photographs (--optimize fast, #29)
+    assert s["optimize"]["mode"] == "fast" and s["optimize"]["iterations"] == 900
+    assert (out / "optimized" / "splats.ply").is_file() and (out / "optimized" / "fit.json").is_file()
     assert "build: done in " in err and "0/?" not in err
     m = OpacityHullModel.open(out)
     assert len(m.views) == 12

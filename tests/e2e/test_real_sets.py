@@ -78,7 +78,9 @@ def real_model(request, tmp_path_factory):
     src = DATA / f"{name}SR"
     tmp = tmp_path_factory.mktemp(name)
     import_colmap(src / "sparse", src / "images", tmp / "session", masks_dir=src / "masks")
-    report = build_model(tmp / "session", tmp / "model", config=BuildConfig(pictures=False))
+    # the hull-and-blend model these leave-one-out figures score: no fit (the default
+    # --optimize fast adds MODEL/optimized/, which eval loo does not read)
+    report = build_model(tmp / "session", tmp / "model", config=BuildConfig(pictures=False, optimize="none"))
     return name, tmp, report
 
 
@@ -170,7 +172,9 @@ def test_geometry_holdout_of_a_refined_build(tmp_path):
 
     src = DATA / "templeSR"
     import_colmap(src / "sparse", src / "images", tmp_path / "s", masks_dir=src / "masks")
-    rep = build_model(tmp_path / "s", tmp_path / "m", config=BuildConfig(hull_res=64, refine=True, pictures=False))
+    rep = build_model(
+        tmp_path / "s", tmp_path / "m", config=BuildConfig(hull_res=64, refine=True, pictures=False, optimize="none")
+    )
     assert rep.hull["refine"]["n_surfels"] == rep.surfels
     model = OpacityHullModel.open(tmp_path / "m")
     assert build_config_of(model)[0].refine

@@ -200,7 +200,7 @@ def test_rig_sessions_never_use_the_rule(tmp_path):
     write_synthetic_session(
         s, SyntheticSessionConfig(n_table=2, width_px=40, height_px=30, groundtruth=False, threads=1)
     )
-    cfg = BuildConfig(pictures=False, reflectance=False, natural=False)
+    cfg = BuildConfig(pictures=False, reflectance=False, natural=False, optimize="none")  # the hull alone
     on = build_model(s, tmp_path / "on", config=cfg)
     build_model(s, tmp_path / "off", config=replace(cfg, doubt_bright_extensions=False))
     assert on.hull["carve_tolerance"] == 0 and on.hull["bright_extensions"] == {"views": 0, "px": 0}
@@ -216,7 +216,8 @@ def test_imported_build_records_what_it_doubted_and_the_holdout_reads_it(tmp_pat
 
     src = REAL / "dinoSR"
     import_colmap(src / "sparse", src / "images", tmp_path / "s", masks_dir=src / "masks")
-    cfg = BuildConfig(hull_res=48, refine="none", pictures=False, reflectance=False, natural=False)
+    # the hull's carving alone: no fit (the default --optimize fast took ~140 s of this test)
+    cfg = BuildConfig(hull_res=48, refine="none", pictures=False, reflectance=False, natural=False, optimize="none")
     on = build_model(tmp_path / "s", tmp_path / "on", config=cfg)
     ext = read_hole_masks(tmp_path / "on" / "build" / BRIGHT_EXTENSIONS)
     assert on.hull["carve_tolerance"] == 2 and len(ext) == 16  # 16 imported views

@@ -48,6 +48,8 @@ def test_two_builds_of_one_session_are_byte_identical(tmp_path):
     assert files == sorted(str(p.relative_to(b)) for p in b.rglob("*") if p.is_file())
     assert "surfels.ply" in files and any(f.startswith("calibration/") for f in files)
     assert {"build/cameras.pkl", "build/geometry.pkl", "build/manifest.json", "model.toml"} <= set(files)
+    # the default build fits (--optimize fast): the fit is seeded and its times are in report.json only
+    assert {"optimized/splats.ply", "optimized/fit.json"} <= set(files)
     for name in files:
         if name not in TIMED:
             assert (a / name).read_bytes() == (b / name).read_bytes(), name
@@ -55,6 +57,7 @@ def test_two_builds_of_one_session_are_byte_identical(tmp_path):
     assert rep["created_utc"].endswith("Z") and rep["seconds"]["total"] > 0
     assert set(rep["calibration_seconds"]) >= {"detect", "intrinsics", "axis", "refine"}
     assert rep["hull"]["refine"]["seconds"] > 0
+    assert rep["optimize"]["mode"] == "fast" and rep["optimize"]["ms_per_iteration"] > 0
 
 
 W = H = 64

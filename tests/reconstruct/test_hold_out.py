@@ -17,7 +17,8 @@ from opacityhull.model import OpacityHullModel, read_surfels_ply
 from opacityhull.reconstruct.build import BuildConfig, build_model
 from opacityhull.reconstruct.steps.split import resolve_hold_out
 
-CFG = BuildConfig(hull_res=40, pictures=False, reflectance=False)
+# the split of the hull-and-blend model (ULR renders the test views): no fit
+CFG = BuildConfig(hull_res=40, pictures=False, reflectance=False, optimize="none")
 
 
 def invoke(argv):

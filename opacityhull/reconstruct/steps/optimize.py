@@ -4,7 +4,8 @@ EWA splatting (:func:`opacityhull.optimize.fit.fit_model`), into ``MODEL/optimiz
 (``splats.ply``, ``fit.json``). The fit checkpoints into ``MODEL/build/optimize/`` and
 resumes from there; a finished fit is reused by ``build --resume`` while the written
 model, the training views and the options are unchanged. ``report.json``'s ``optimize``
-gives the loss and training-PSNR curves and the time per iteration.
+gives the loss and training-PSNR curves and the time per iteration: the fit's wall-clock
+times go there only (not into ``fit.json`` or the checkpoint, #35).
 
 ``none`` (the default) fits nothing and removes an earlier build's ``optimized/``, which
 would no longer match the model."""
@@ -54,15 +55,18 @@ def fit_config(config):
     return fc
 
 
-def _summary(fit: dict) -> dict:
-    """``report.json``'s ``optimize`` from ``fit.json``."""
-    keep = ("iterations", "seconds", "ms_per_iteration", "train_psnr_last", "n_surfels_start", "n_surfels_end")
+def _summary(fit: dict, timings: dict) -> dict:
+    """``report.json``'s ``optimize`` from ``fit.json`` and this run's ``timings``
+    (:meth:`~opacityhull.optimize.fit.FitReport.timings`; empty when the fit was reused)."""
+    keep = ("iterations", "train_psnr_last", "n_surfels_start", "n_surfels_end")
     out = {k: fit[k] for k in keep if k in fit}
     out |= {
+        "seconds": timings.get("seconds"),
+        "ms_per_iteration": timings.get("ms_per_iteration"),
         "stopped_by": fit.get("stopped_by"),
         "loss": list(fit.get("loss", [])),
         "train_psnr": list(fit.get("psnr", [])),
-        "step_ms": list(fit.get("step_ms", [])),
+        "step_ms": list(timings.get("step_ms", [])),
         "train_views": list(fit.get("train_views", [])),
         "splats": SPLATS_PLY,
     }
@@ -97,17 +101,20 @@ def run(ctx) -> None:
         ctx.fit = {"mode": "none"}
         return
     train = list(ctx.split.train)
+    # the fit's wall-clock times reach report.json from here, never through a file (#35)
+    timings: dict = {}
 
     def fit() -> dict:
         ckpt_dir = out / BUILD_DIR / CHECKPOINT_DIR
         report = _reporter(ctx, fc.iterations)
         try:
-            fit_model(out, train_views=train, config=fc, progress=report, checkpoint_dir=ckpt_dir)
+            rep = fit_model(out, train_views=train, config=fc, progress=report, checkpoint_dir=ckpt_dir)
         except CheckpointError as e:
             # a checkpoint of an earlier model or other options: the fit starts over
             ctx.notes.append(f"optimize: {e}; its checkpoint was removed and the fit started over")
             shutil.rmtree(ckpt_dir, ignore_errors=True)
-            fit_model(out, train_views=train, config=fc, progress=report, checkpoint_dir=ckpt_dir)
+            rep = fit_model(out, train_views=train, config=fc, progress=report, checkpoint_dir=ckpt_dir)
+        timings.update(rep.timings())
         return json.loads((out / OPTIMIZED_DIR / "fit.json").read_text())
 
     def reuse(_entry) -> dict:
@@ -123,9 +130,11 @@ def run(ctx) -> None:
             outputs=[f"{OPTIMIZED_DIR}/{SPLATS_PLY}", f"{OPTIMIZED_DIR}/fit.json"],
             on_reuse=reuse,
         )
-    ctx.fit = {"mode": fc.mode, **_summary(got.value)}
-    s = ctx.fit
-    log.info("optimize %s: %s iterations, %.1f ms each", fc.mode, s.get("iterations"), s.get("ms_per_iteration", 0))
+    ctx.fit = {"mode": fc.mode, **_summary(got.value, timings)}
+    if timings:
+        log.info(
+            "optimize %s: %s iterations, %.1f ms each", fc.mode, ctx.fit.get("iterations"), timings["ms_per_iteration"]
+        )
 
 
 STEP = Step(
