@@ -27,7 +27,7 @@ from ..errors import InputError
 from ..imageio import atomic_path, srgb_decode
 from .adam import Adam, exp_decay
 from .appearance import sh_colors, sh_colors_backward, view_dirs
-from .config import FitConfig
+from .config import FitConfig, position_rates
 from .data import FitData, load_fit_data, model_fingerprint
 from .densify import GradStats, densify_and_prune
 from .splatply import read_splat_ply, write_splat_ply
@@ -280,6 +280,7 @@ def fit_params(
         log.info("fit: resumed from %s at step %d", checkpoint_path, start_it)
     T = int(config.iterations)
     order = view_order(len(data.views), T, config.seed)
+    lr_start, lr_final = position_rates(config, len(data.views))
     cams = [_raster_camera(v.camera) for v in data.views]
     B = params["sh"].shape[1]
     it = start_it
@@ -312,7 +313,7 @@ def fit_params(
             "opacity_logits": g.opacity_logits,
             "sh": sh_colors_backward(g.colors, basis, positive, B),
         }
-        lr_pos = exp_decay(it, T, start=config.lr_position * extent, final=config.lr_position_final * extent)
+        lr_pos = exp_decay(it, T, start=lr_start * extent, final=lr_final * extent)
         sh_lr = np.full((B, 1), config.lr_sh_rest, np.float32)
         sh_lr[0] = config.lr_sh_dc
         lrs = {

@@ -271,3 +271,20 @@ def test_step_loss_gradient_equals_finite_differences(seed, color_loss):
         dn[y, x] -= h
         fd = (loss(img, up)[0] - loss(img, dn)[0]) / (2 * h)
         assert g_a[y, x] == pytest.approx(fd, rel=1e-3, abs=1e-9)
+
+
+def test_position_rate_follows_the_view_count_unless_given():
+    """The default position rate is the sparse-view one up to SPARSE_VIEWS training views
+    and 3e-3 -> 3e-4 above (the measured table in position_rates); a given rate wins."""
+    from opacityhull.optimize.config import SPARSE_VIEWS, FitConfig, position_rates
+
+    cfg = FitConfig()
+    assert position_rates(cfg, 12) == pytest.approx((1e-2, 1e-3))
+    assert position_rates(cfg, SPARSE_VIEWS) == pytest.approx((1e-2, 1e-3))
+    assert position_rates(cfg, SPARSE_VIEWS + 1) == pytest.approx((3e-3, 3e-4))
+    assert position_rates(cfg, 90) == pytest.approx((3e-3, 3e-4))
+    given = FitConfig(lr_position=5e-3, lr_position_final=2e-4)
+    assert position_rates(given, 12) == pytest.approx((5e-3, 2e-4))
+    assert position_rates(given, 90) == pytest.approx((5e-3, 2e-4))
+    with pytest.raises(ConfigError):
+        FitConfig(lr_position=-1.0)
