@@ -199,13 +199,9 @@ def select_views(model: OpacityHullModel, spec: str | Sequence | None) -> list[i
     if isinstance(spec, str):
         s = spec.strip()
         if s.startswith("every:"):
-            try:
-                step = int(s[6:])
-            except ValueError:
-                step = 0
-            if step < 1:
-                raise InputError(f"--views {spec!r}: every:N needs an integer N >= 1")
-            return list(range(0, V, step))
+            from ..reconstruct.steps.split import every_step
+
+            return list(range(0, V, every_step(s, flag=f"--views {spec!r}", need="an integer N >= 1")))
         if s.startswith("camera:"):
             try:
                 c = int(s[7:])

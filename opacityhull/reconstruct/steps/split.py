@@ -13,7 +13,7 @@ from collections.abc import Sequence
 from ...errors import InputError
 from .base import Step
 
-__all__ = ["Split", "resolve_hold_out", "STEP"]
+__all__ = ["Split", "every_step", "resolve_hold_out", "STEP"]
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -23,6 +23,18 @@ class Split:
     train: tuple[int, ...]
     held_out: tuple[int, ...]
     spec: str | None = None
+
+
+def every_step(spec: str, *, flag: str, need: str) -> int:
+    """N of an ``every:N`` view selection (``spec`` starts with ``every:``); an N that is
+    not a whole number >= 1 is an :class:`InputError` naming ``flag`` and ``need``."""
+    try:
+        step = int(spec.strip()[6:])
+    except ValueError:
+        step = 0
+    if step < 1:
+        raise InputError(f"{flag}: every:N needs {need}")
+    return step
 
 
 def resolve_hold_out(spec: str | None, view_ids: Sequence[str]) -> tuple[int, ...]:
@@ -36,12 +48,7 @@ def resolve_hold_out(spec: str | None, view_ids: Sequence[str]) -> tuple[int, ..
     s = str(spec).strip()
     flag = f"--hold-out {spec!r}"
     if s.startswith("every:"):
-        try:
-            step = int(s[6:])
-        except ValueError:
-            step = 0
-        if step < 1:
-            raise InputError(f"{flag}: every:N needs a whole number N >= 2 (every N-th view is a test view)")
+        step = every_step(s, flag=flag, need="a whole number N >= 2 (every N-th view is a test view)")
         held = tuple(range(0, V, step))
     else:
         items = [t.strip() for t in s.split(",") if t.strip()]
