@@ -400,7 +400,7 @@ def main(argv=None) -> int:
     if args.relit_only:
         return relit_main(args)
 
-    from opacityhull.export.sh import fit_sh
+    from opacityhull.sh import fit_sh
     from opacityhull.render.synthetic import write_sphere_model
     from opacityhull.view.browser import close_browser, find_chromium, open_browser
     from opacityhull.view.bundle import write_bundle
