@@ -428,7 +428,8 @@ def storage_comparison(tmp: Path, *, quick: bool) -> dict:
     the stored values. Each model pair is written from the same data, differing only in
     ``write_model(storage=...)``."""
     from opacityhull.model import OpacityHullModel
-    from opacityhull.relight.envmap import EnvironmentMap, downsample_latlong, load_envmap
+    from opacityhull.envmap import EnvironmentMap
+    from opacityhull.relight.envmap import downsample_latlong, load_envmap
     from opacityhull.relight.relit import Relighter
     from opacityhull.relight.synthetic import SphereScene, sphere_groundtruth
     from opacityhull.relight.synthetic import write_sphere_model as write_relight_sphere

@@ -378,8 +378,8 @@ def render_set(out: Path, cfg: SetConfig, *, log=print) -> dict:
 
     Returns ``{"out", "views", "size_px", "spp", "seconds", "variant", "radius_m"}``."""
     from opacityhull.camera import nerfstudio_transform_matrix
-    from opacityhull.camera import mitsuba_sensor_params
     from opacityhull.imageio import straight_from_premul, write_png
+    from opacityhull.sim.mitsuba_sensor import sensor_dict
     from opacityhull.sim.variants import use_mitsuba
 
     mi = use_mitsuba()
@@ -394,25 +394,8 @@ def render_set(out: Path, cfg: SetConfig, *, log=print) -> dict:
         scene = mi.load_dict(scene_dict(mi, parts, Path(tmp), cfg.seed, max_depth=cfg.max_depth))
         frames = []
         for i, cam in enumerate(cams):
-            p = mitsuba_sensor_params(cam)
-            sensor = mi.load_dict(
-                {
-                    "type": "perspective",
-                    "fov": p["fov"],
-                    "fov_axis": "y",
-                    "principal_point_offset_x": p["principal_point_offset_x"],
-                    "principal_point_offset_y": p["principal_point_offset_y"],
-                    "to_world": mi.ScalarTransform4f(np.asarray(p["to_world"])),
-                    "film": {
-                        "type": "hdrfilm",
-                        "width": cam.width,
-                        "height": cam.height,
-                        "rfilter": {"type": "box"},
-                        "pixel_format": "rgba",
-                    },
-                    "sampler": {"type": "independent", "sample_count": int(cfg.spp)},
-                }
-            )
+            # Mitsuba's default clip planes (0.01, 1e4 m), as the published set was rendered
+            sensor = mi.load_dict(sensor_dict(mi, cam, sampler="independent", spp=int(cfg.spp), clip_m=None))
             img = mi.render(scene, sensor=sensor, spp=int(cfg.spp), seed=i)  # pyright: ignore[reportArgumentType]
             img = np.array(img, dtype=np.float32)
             rgba = straight_from_premul(np.clip(img, 0.0, None))

@@ -115,7 +115,7 @@ def relit_rows(
     from opacityhull.relight.envmap import load_envmap
     from opacityhull.relight.relit import Relighter
     from opacityhull.relight.runner import relight_model
-    from opacityhull.render.background import EnvMap, composite_over, resolve_background
+    from opacityhull.render.background import composite_over, resolve_background
     from opacityhull.render.config import RenderConfig
     from opacityhull.render.renderer import render_image
     from opacityhull.render.views import prepare_views
@@ -162,7 +162,7 @@ def relit_rows(
         for yaw, vi in cases:
             vi = vi % len(cams)
             env = load_envmap(f"builtin:{probe}", yaw_deg=yaw)
-            bg = EnvMap(np.asarray(env.radiance))
+            bg = env
             pv = prepare_views(cams, [R.relight_view(i, envmap=env) for i in range(len(cams))])
             t = time.perf_counter()
             drv.execute_script(f"window.opacityhull.setCamera({vi}); window.opacityhull.setRelight({n}, {yaw})")
@@ -400,7 +400,7 @@ def main(argv=None) -> int:
     if args.relit_only:
         return relit_main(args)
 
-    from opacityhull.export.sh import fit_sh
+    from opacityhull.sh import fit_sh
     from opacityhull.render.synthetic import write_sphere_model
     from opacityhull.view.browser import close_browser, find_chromium, open_browser
     from opacityhull.view.bundle import write_bundle

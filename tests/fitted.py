@@ -10,6 +10,7 @@ SH, the tangent scales and the opacities are the fitting's own, not a start valu
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 _MEMO: dict[str, Path] = {}
@@ -33,6 +34,6 @@ def sphere(tmp_path_factory, *, n_surfels: int = 2000, width: int = 64, height: 
     root = tmp_path_factory.mktemp("fitted") / "sphere"
     write_sphere_model(root, n_surfels=n_surfels, width=width, height=height, table_step_deg=45.0)
     V = len(OpacityHullModel.open(root).views)
-    fit_model(root, train_views=list(range(V)), config=fit_preset("fast", **FIT))
+    fit_model(root, train_views=list(range(V)), config=replace(fit_preset("fast"), **FIT))
     _MEMO[key] = root
     return root

@@ -167,11 +167,6 @@ EXCEPTIONS: dict[tuple[str, str], str] = {
     ("opacityhull.acquire.commands", "opacityhull.sim"): "the CLI resolves --rig sim:SCENE",
     ("opacityhull.acquire.commands", "opacityhull.sim.scenes"): "the CLI resolves --rig sim:SCENE (a dry run "
     "loads the scene as the capture will)",
-    # the fitting library uses the exporters' SH basis and per-view samples (pure NumPy on
-    # the model format); they should move to the core with the optimize merge
-    ("opacityhull.optimize.appearance", "opacityhull.export.sh"): "SH basis (to move to the core)",
-    ("opacityhull.optimize.data", "opacityhull.export.sh"): "SH fit (to move to the core)",
-    ("opacityhull.optimize.data", "opacityhull.export.samples"): "per-view samples (to move to the core)",
     # the fitted splats (MODEL/optimized/) are part of the model format; their one renderer
     # is the fitting's own forward pass, reached from this one module of render/
     ("opacityhull.render.splats", "opacityhull.optimize.fit"): "the fitted splats' forward pass and loader",

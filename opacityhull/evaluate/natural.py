@@ -95,7 +95,7 @@ def bar_patterns(display, n_positions: int = 16, *, bar_fraction: float = 0.125)
 def masked_envmap(envmap, geometry, table_deg: float, *, centre_m, displays: Sequence[str] | None = None):
     """``envmap`` with every direction that misses the displays (from ``centre_m``,
     object frame at ``table_deg``) set to 0: what a display-domain field can reproduce."""
-    from ..relight.envmap import EnvironmentMap
+    from ..envmap import EnvironmentMap
     from ..reconstruct.natural import display_hit_mask
 
     dirs = envmap.directions()

@@ -43,7 +43,8 @@ import numpy as np
 from ..errors import FormatError, InputError
 from ..imageio import write_exr
 from ..pictures import auto_exposure, contact_sheet, to_srgb8, write_sheet
-from ..relight.envmap import EnvironmentMap, require_light
+from ..envmap import EnvironmentMap
+from ..relight.envmap import require_light
 from .metrics import relight_metrics
 from ..relight.relit import Relighter, RelightConfig
 

@@ -112,7 +112,7 @@ def export_nerfstudio_model(model: OpacityHullModel, out: Path, *, alpha: Litera
             write_png(mp, (rgba[..., 3] >= 0.5).astype(np.float32), bits=8, linear=True)
             masks.append(mp.relative_to(out))
         imgs.append(p.relative_to(out))
-    from .samples import mean_colours
+    from ..surfel_samples import mean_colours
 
     s = model.surfels
     rgb, a = mean_colours(s, [v.camera for v in model.views], _views(model))
@@ -143,7 +143,7 @@ def export_colmap_model(model: OpacityHullModel, out: Path, *, max_points: int =
 
     from ..camera import colmap_reconstruction
     from ..imageio import srgb_encode
-    from .samples import iter_view_samples, mean_colours
+    from ..surfel_samples import iter_view_samples, mean_colours
 
     if max_points < 0:
         raise InputError(f"--max-points {max_points}: expected >= 0")
@@ -240,8 +240,8 @@ def export_ply(model: OpacityHullModel, out: Path, *, sh_degree: int = 3, splats
     from plyfile import PlyData, PlyElement
 
     from ..imageio import atomic_path
-    from .samples import mean_colours
-    from .sh import fit_sh
+    from ..surfel_samples import mean_colours
+    from ..sh import fit_sh
 
     if not 1 <= int(sh_degree) <= 3:
         raise InputError(f"--sh-degree {sh_degree!r}: expected 1, 2 or 3")
@@ -317,7 +317,7 @@ def export_fitted_ply(model: OpacityHullModel, out: Path, *, sh_degree: int = 3)
     """
     from plyfile import PlyData, PlyElement
 
-    from ..export.sh import SH_C0
+    from ..sh import SH_C0
     from ..imageio import atomic_path, srgb_decode
     from ..optimize.surfelparams import normals_of
     from ..render.splats import FittedSplats

@@ -3,7 +3,7 @@ distance (default) or PMR's umbrella mesh (:mod:`opacityhull.render.pmr`, ``--me
 umbrella``) — as ``mesh.ply`` (binary, float32 x y z nx ny nz + uchar red green blue alpha, int32 face
 lists) and ``mesh.obj`` (``v x y z r g b`` — the vertex-colour extension MeshLab,
 Blender and trimesh read — ``vn``, ``f a//a b//b c//c``), vertex colours the blended
-views' (:func:`opacityhull.export.samples.mean_colours`, sRGB), and a quality report:
+views' (:func:`opacityhull.surfel_samples.mean_colours`, sRGB), and a quality report:
 manifold edges, holes and the Chamfer distance to the surfels
 (:func:`opacityhull.render.pmr.mesh_quality`).
 
@@ -96,7 +96,7 @@ def export_mesh(model: OpacityHullModel, out: Path, *, method: str = "marching-c
     from ..errors import InputError
     from ..imageio import srgb_encode
     from ..render.pmr import mesh_quality, umbrella_triangulation
-    from .samples import mean_colours
+    from ..surfel_samples import mean_colours
 
     if method not in MESH_METHODS:
         raise InputError(f"--mesh-method {method!r}: expected one of {', '.join(MESH_METHODS)}")

@@ -1,6 +1,6 @@
 """Per-surfel view-dependent colour: real spherical harmonics evaluated per view.
 
-The basis is :func:`opacityhull.export.sh.sh_basis` (3DGS constants, order and signs),
+The basis is :func:`opacityhull.sh.sh_basis` (3DGS constants, order and signs),
 and the convention is 3DGS's: ``colour = Σ_j c_j Y_j(d) + ½``, clamped at 0, in the
 display (sRGB-encoded) space, d the unit direction from the camera centre to the
 surfel. The fitted model's PLY is then what a 3DGS/2DGS viewer expects as it is.
@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..export.sh import sh_basis
+from ..sh import sh_basis
 
 __all__ = ["view_dirs", "sh_colors", "sh_colors_backward"]
 

@@ -125,16 +125,25 @@ class FitConfig:
             raise ConfigError("optimize checkpoint_every must be >= 0 and max_surfels >= 1")
 
 
-def fit_preset(mode: FitMode, **overrides) -> FitConfig:
+def fit_preset(mode: FitMode, *, iterations: int | None = None, **overrides) -> FitConfig:
     """The :class:`FitConfig` of a mode (``none``, ``fast``, ``full``), with ``overrides``.
 
     ``fast`` is 900 steps at half resolution, densifying every 75 through step 600 (about
     two minutes of steps on templeSR, 12 views of 640×480, on a loaded 2-core machine);
     ``full`` runs 3000 steps with densification through step 1500 and the
     SH degree grown to 3.
+
+    ``iterations`` (``build --optimize-iterations``) shortens or lengthens the preset to
+    that many steps and keeps its schedules inside them: densification from at most
+    ¼ through at most ¾ of the steps, at least every ¼, each SH degree grown within
+    ``iterations / (sh_degree + 1)`` steps, a checkpoint at least halfway. ``overrides``
+    apply after that (a given field wins; ``dataclasses.replace`` of the preset sets
+    ``iterations`` alone, schedules untouched). Mode ``none`` has no steps to set.
     """
     if mode not in FIT_MODES:
         raise ConfigError(f"optimize mode {mode!r}: expected one of {', '.join(FIT_MODES)}")
+    if iterations is not None and mode == "none":
+        raise ConfigError(f"optimize mode 'none' with {iterations} iterations: the mode fits nothing")
     if mode == "none":
         base = FitConfig(mode="none", iterations=0)
     elif mode == "fast":
@@ -158,6 +167,17 @@ def fit_preset(mode: FitMode, **overrides) -> FitConfig:
             densify_until=1500,
             densify_every=100,
             checkpoint_every=500,
+        )
+    if iterations is not None:
+        n = int(iterations)
+        base = replace(
+            base,
+            iterations=n,
+            densify_from=min(base.densify_from, n // 4),
+            densify_until=min(base.densify_until, (3 * n) // 4),
+            densify_every=max(1, min(base.densify_every, n // 4)),
+            sh_degree_every=min(base.sh_degree_every, max(1, n // (base.sh_degree + 1))),
+            checkpoint_every=min(base.checkpoint_every, max(1, n // 2)) if base.checkpoint_every else 0,
         )
     return replace(base, **overrides)
 

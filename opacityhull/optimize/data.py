@@ -90,14 +90,14 @@ def load_fit_data(
 ) -> FitData:
     """Read the training views and the start surfels of the model at ``model_dir``.
 
-    The start colour is the SH DC of :func:`opacityhull.export.sh.fit_sh` at degree 0
+    The start colour is the SH DC of :func:`opacityhull.sh.fit_sh` at degree 0
     over the training views only (the mean visible colour, cos²-weighted, in display
     space), sampled on the hull or, with ``start_surface="refined"``, at the surfels'
     photo-consistent depth; surfels no training view saw start mid-grey.
     """
     import cv2
 
-    from ..export.sh import fit_sh
+    from ..sh import fit_sh
 
     model = OpacityHullModel.open(model_dir)
     V = len(model.views)

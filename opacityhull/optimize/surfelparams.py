@@ -99,7 +99,7 @@ def start_params(
     radii : (N,) m, the disc radii that cover the hull without holes; the Gaussian's
         tangent std-dev is ``sigma_radius · radius`` (the renderer's own
         :attr:`~opacityhull.render.config.RenderConfig.sigma_radius`).
-    sh_dc : (N, 3) the SH DC coefficients (:func:`opacityhull.export.sh.fit_sh`).
+    sh_dc : (N, 3) the SH DC coefficients (:func:`opacityhull.sh.fit_sh`).
     sh_degree : the coefficients allocated, (sh_degree+1)² per channel, the rest 0.
     opacity : start opacity of every surfel.
     """

@@ -1174,7 +1174,7 @@ def relight_view_natural(
     Parameters
     ----------
     fields : {display name: NaturalField} of one view (fields with ``pixel_index``).
-    envmap : :class:`~opacityhull.relight.envmap.EnvironmentMap`, object frame.
+    envmap : :class:`~opacityhull.envmap.EnvironmentMap`, object frame.
     geometry : RigGeometry (the displays).
     table_deg : the view's table angle.
 

@@ -72,7 +72,8 @@ import numpy as np
 
 from ..camera import object_from_rig
 from ..errors import ConfigError, FormatError, InputError, ShapeError
-from .envmap import EnvironmentMap, downsample_latlong, latlong_directions, latlong_solid_angles
+from ..envmap import EnvironmentMap, latlong_directions, latlong_solid_angles
+from .envmap import downsample_latlong
 
 __all__ = [
     "KernelConfig",

@@ -1,7 +1,8 @@
-"""Environment maps: reading, validating, orienting and integrating HDR light probes.
+"""Environment maps from files: reading, validating and converting HDR light probes.
 
-In memory an environment map is an equirectangular (latitude-longitude) float32 RGB
-image in the project convention (DESIGN.md): +Y up, row 0 looks at the zenith, the
+The in-memory map is :class:`opacityhull.envmap.EnvironmentMap` (the core: one class
+for render backgrounds and relighting): an equirectangular (latitude-longitude) float32
+RGB image in the project convention (DESIGN.md): +Y up, row 0 looks at the zenith, the
 centre column looks along +Z and the column index grows towards −X, so that
 ``u = 0.25`` is +X and the seam (``u = 0`` / ``u = 1``) is −Z. This is the OpenEXR
 ``LatLongMap`` and Mitsuba ``envmap`` convention; texel (r, c) has its centre at
@@ -24,28 +25,28 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
 import numpy as np
 
-from ..envmap import direction_to_uv as _direction_to_uv
-from ..envmap import default_yaw_deg, resolve_envmap_path
+from ..envmap import (
+    EnvironmentMap,
+    bilinear_latlong,
+    default_yaw_deg,
+    direction_to_uv,
+    latlong_solid_angles,
+    resolve_envmap_path,
+    validate_radiance,
+)
 from ..errors import FormatError, InputError, ShapeError
 
 log = logging.getLogger(__name__)
 
 __all__ = [
-    "EnvironmentMap",
     "require_light",
     "PROBE_FORMATS",
     "load_envmap",
-    "validate_radiance",
-    "latlong_directions",
-    "latlong_solid_angles",
-    "direction_to_uv",
-    "rotate_latlong_yaw",
     "angular_to_latlong",
     "mirrorball_to_latlong",
     "latlong_to_angular",
@@ -59,175 +60,7 @@ PROBE_FORMATS = ("latlong", "angular", "mirror")
 ProbeFormat = Literal["latlong", "angular", "mirror"]
 
 
-# --------------------------------------------------------------------------- geometry
-
-
-def latlong_directions(height: int, width: int) -> np.ndarray:
-    """Unit directions of texel centres, (H, W, 3) float64, project convention."""
-    theta = (np.arange(height) + 0.5) * (math.pi / height)
-    phi = (np.arange(width) + 0.5) * (2.0 * math.pi / width)
-    st, ct = np.sin(theta)[:, None], np.cos(theta)[:, None]
-    sp, cp = np.sin(phi)[None, :], np.cos(phi)[None, :]
-    return np.stack(np.broadcast_arrays(st * sp, ct * np.ones_like(sp), -st * cp), axis=-1)
-
-
-def latlong_solid_angles(height: int, width: int) -> np.ndarray:
-    """Solid angle of each texel row, (H,) float64 steradians.
-
-    Exact for the row's band: ``(2π / W) (cos θ₀ − cos θ₁)`` (the integral of sin θ
-    over the row), so the rows sum to 4π to rounding — the sin θ-at-the-centre rule
-    would be off by O(Δθ²) and never exactly 4π.
-    """
-    edges = np.arange(height + 1) * (math.pi / height)
-    return (2.0 * math.pi / width) * (np.cos(edges[:-1]) - np.cos(edges[1:]))
-
-
-def direction_to_uv(directions) -> tuple[np.ndarray, np.ndarray]:
-    """Lat-long coordinates of directions (:func:`opacityhull.envmap.direction_to_uv`): a
-    zero, NaN or Inf vector raises :class:`InputError` (a light direction that is a bug)."""
-    return _direction_to_uv(directions, invalid="raise")
-
-
-def _bilinear_latlong(img: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """Bilinear lookup, periodic in u, clamped in v. img (H, W, C); u, v same shape."""
-    H, W = img.shape[:2]
-    x = u * W - 0.5
-    y = np.clip(v * H - 0.5, 0.0, H - 1.0)
-    x0 = np.floor(x)
-    y0 = np.floor(y)
-    fx = (x - x0)[..., None]
-    fy = (y - y0)[..., None]
-    x0 = x0.astype(np.int64) % W
-    x1 = (x0 + 1) % W
-    y0 = y0.astype(np.int64)
-    y1 = np.minimum(y0 + 1, H - 1)
-    top = img[y0, x0] * (1 - fx) + img[y0, x1] * fx
-    bot = img[y1, x0] * (1 - fx) + img[y1, x1] * fx
-    return top * (1 - fy) + bot * fy
-
-
-# --------------------------------------------------------------------------- class
-
-
-@dataclass(frozen=True, eq=False)
-class EnvironmentMap:
-    """An equirectangular HDR environment map in the project convention.
-
-    Attributes
-    ----------
-    radiance : (H, W, 3) float32, linear Rec.709 radiance, finite and ≥ 0.
-    source : str, where it came from (file name and conversions), for messages.
-    """
-
-    radiance: np.ndarray
-    source: str = "<array>"
-
-    def __post_init__(self):
-        a = np.asarray(self.radiance)
-        if a.ndim != 3 or a.shape[2] != 3 or a.shape[0] < 1 or a.shape[1] < 1:
-            raise ShapeError(f"environment map {self.source} has shape {a.shape}, expected (H, W, 3)")
-        a = np.array(a, dtype=np.float32, order="C", copy=True)  # never freeze the caller's array
-        validate_radiance(a, self.source)
-        a.setflags(write=False)
-        object.__setattr__(self, "radiance", a)
-
-    @property
-    def height(self) -> int:
-        return self.radiance.shape[0]
-
-    @property
-    def width(self) -> int:
-        return self.radiance.shape[1]
-
-    def directions(self) -> np.ndarray:
-        """(H, W, 3) float64 unit directions of the texel centres."""
-        return latlong_directions(self.height, self.width)
-
-    def solid_angles(self) -> np.ndarray:
-        """(H, W) float64 per-texel solid angles in steradians (sum 4π)."""
-        return np.broadcast_to(latlong_solid_angles(self.height, self.width)[:, None], (self.height, self.width))
-
-    def lookup(self, directions, *, interpolation: Literal["bilinear", "nearest"] = "bilinear") -> np.ndarray:
-        """Radiance towards ``directions`` (..., 3) → (..., 3) float32."""
-        u, v = direction_to_uv(directions)
-        if interpolation == "nearest":
-            c = np.minimum((u * self.width).astype(np.int64), self.width - 1)
-            r = np.minimum((v * self.height).astype(np.int64), self.height - 1)
-            return self.radiance[r, c]
-        if interpolation != "bilinear":
-            raise InputError(f"interpolation must be 'bilinear' or 'nearest', got {interpolation!r}")
-        return _bilinear_latlong(self.radiance.astype(np.float64), u, v).astype(np.float32)
-
-    def integral(self, *, upper_only: bool = False) -> np.ndarray:
-        """∫ L dω over the sphere (or the upper hemisphere, θ < 90°), (3,) float64.
-
-        With ``upper_only`` a row straddling the horizon (odd H) counts half.
-        """
-        w = latlong_solid_angles(self.height, self.width)
-        if upper_only:
-            w = w * _upper_fraction(self.height)
-        return np.einsum("h,hwc->c", w, self.radiance.astype(np.float64))
-
-    def rotated(self, yaw_deg: float) -> EnvironmentMap:
-        """The map turned by ``yaw_deg`` about +Y (+Z towards +X): the radiance that came
-        from d now comes from R_y(yaw) d."""
-        if yaw_deg % 360.0 == 0.0:
-            return self
-        return EnvironmentMap(rotate_latlong_yaw(self.radiance, yaw_deg), f"{self.source} yaw {yaw_deg:g}")
-
-    def scaled(self, factor: float) -> EnvironmentMap:
-        return EnvironmentMap(self.radiance * np.float32(factor), f"{factor:g} x {self.source}")
-
-    def stats(self) -> dict:
-        lum = self.radiance @ np.array([0.2126, 0.7152, 0.0722], np.float32)
-        med = float(np.median(lum))
-        return {
-            "source": self.source,
-            "size": [self.width, self.height],
-            "max": float(self.radiance.max()),
-            "median_luminance": med,
-            "dynamic_range": float(lum.max() / med) if med > 0 else None,
-            "integral_rgb": self.integral().tolist(),
-        }
-
-
-def _upper_fraction(height: int) -> np.ndarray:
-    """(H,) fraction of each row's solid angle above the horizon (θ < π/2)."""
-    edges = np.arange(height + 1) * (math.pi / height)
-    c0, c1 = np.cos(edges[:-1]), np.cos(edges[1:])
-    # fraction of ∫ sin θ over the row with cos θ > 0
-    up = np.clip(c0, 0, None) - np.clip(c1, 0, None)
-    return np.where(c0 - c1 > 0, up / (c0 - c1), 0.0)
-
-
-# --------------------------------------------------------------------------- validation
-
-
-def validate_radiance(radiance: np.ndarray, where: str) -> None:
-    """Raise :class:`InputError` unless every value is finite and ≥ 0.
-
-    The message names ``where``, the number of bad values and the first bad texel
-    (row, column, channel), because a single Inf texel would turn every relit pixel
-    into Inf or NaN.
-    """
-    a = np.asarray(radiance)
-    bad_nan = np.isnan(a)
-    bad_inf = np.isinf(a)
-    if bad_nan.any() or bad_inf.any():
-        idx = np.argwhere(bad_nan | bad_inf)[0]
-        raise InputError(
-            f"environment map {where}: {int(bad_nan.sum())} NaN and {int(bad_inf.sum())} Inf values "
-            f"(first at row {idx[0]}, column {idx[1]}, channel {'RGB'[idx[2]] if len(idx) > 2 else 0}); "
-            "radiance must be finite"
-        )
-    neg = a < 0
-    if neg.any():
-        idx = np.argwhere(neg)[0]
-        raise InputError(
-            f"environment map {where}: {int(neg.sum())} negative radiance values "
-            f"(min {float(a.min()):.6g}, first at row {idx[0]}, column {idx[1]}, "
-            f"channel {'RGB'[idx[2]] if len(idx) > 2 else 0}); radiance must be >= 0"
-        )
+# --------------------------------------------------------------------------- file checks
 
 
 def _exr_is_half(path: Path) -> bool:
@@ -244,26 +77,7 @@ def _exr_is_half(path: Path) -> bool:
         return False
 
 
-# --------------------------------------------------------------------------- orientation
-
-
-def rotate_latlong_yaw(radiance: np.ndarray, yaw_deg: float) -> np.ndarray:
-    """Rotate an equirectangular map about +Y: ``out(R_y(yaw) d) = in(d)``.
-
-    R_y(α) d(φ) = d(φ − α), so out(φ) = in(φ + α): a shift of the columns by
-    α W / 360. Whole-texel shifts are an exact ``np.roll``; fractional ones are
-    linear interpolation along the (periodic) rows, which keeps each row's integral
-    exactly.
-    """
-    a = np.asarray(radiance, dtype=np.float32)
-    W = a.shape[1]
-    shift = (float(yaw_deg) / 360.0) * W  # out[c] = in[c + shift]
-    k = math.floor(shift)
-    f = shift - k
-    out = np.roll(a, -k, axis=1)
-    if f > 1e-9:
-        out = (1.0 - f) * out + f * np.roll(out, -1, axis=1)
-    return np.ascontiguousarray(out, dtype=np.float32)
+# --------------------------------------------------------------------------- probe layouts
 
 
 def _supersampled_inverse_map(out_h: int, out_w: int, fetch, *, ss: int = 4) -> np.ndarray:
@@ -344,7 +158,7 @@ def latlong_to_angular(latlong: np.ndarray, size: int) -> np.ndarray:
     s = np.where(r > 1e-12, np.sin(theta) / np.maximum(r, 1e-12), math.pi)
     d = np.stack([u * s, v * s, np.cos(theta)], -1)
     uu, vv = direction_to_uv(d)
-    out = _bilinear_latlong(np.asarray(latlong, np.float64), uu, vv)
+    out = bilinear_latlong(np.asarray(latlong, np.float64), uu, vv)
     out[r > 1] = 0
     return out.astype(np.float32)
 

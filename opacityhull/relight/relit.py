@@ -47,7 +47,7 @@ from .basis import (
     light_set_from_model,
     prepare_envmap,
 )
-from .envmap import EnvironmentMap
+from ..envmap import EnvironmentMap
 
 __all__ = [
     "RelightConfig",

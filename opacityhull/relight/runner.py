@@ -21,7 +21,8 @@ from ..camera import Camera
 from ..errors import InputError
 from ..imageio import atomic_path, straight_from_premul, write_exr, write_png
 from ..pictures import auto_exposure, contact_sheet, to_srgb8, write_animation, write_sheet
-from .envmap import EnvironmentMap, default_yaw_deg, load_envmap
+from ..envmap import EnvironmentMap
+from .envmap import default_yaw_deg, load_envmap
 from .relit import Relighter, RelightConfig
 
 __all__ = [
@@ -200,9 +201,9 @@ def relight_model(
         exposure = auto_exposure(mid[..., :3], mid[..., 3])
     summary["exposure"] = exposure
 
-    from ..render.background import EnvMap, composite_over, resolve_background
+    from ..render.background import composite_over, resolve_background
 
-    bg = EnvMap(np.asarray(env.radiance)) if env is not None else (0.0, 0.0, 0.0)
+    bg = env if env is not None else (0.0, 0.0, 0.0)
     if write_views:
         tiles, labels = [], []
         for i, rgba in enumerate(relit):

@@ -28,7 +28,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from ..errors import InputError
-from .envmap import EnvironmentMap, latlong_solid_angles
+from ..envmap import EnvironmentMap, latlong_solid_angles
 
 __all__ = ["SphereSplit", "sphere_split", "split_envmap"]
 

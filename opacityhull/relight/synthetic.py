@@ -24,7 +24,7 @@ import numpy as np
 from ..camera import Camera
 from ..model import LightSample, Surfels, ViewInfo, light_key, write_model
 from ..riggeometry import RigGeometry, view_id
-from .envmap import EnvironmentMap, latlong_directions, latlong_solid_angles
+from ..envmap import EnvironmentMap, latlong_directions, latlong_solid_angles
 
 __all__ = ["SphereScene", "paper_light_rig", "sphere_rig", "write_sphere_model", "sphere_hits", "sphere_groundtruth"]
 

@@ -5,8 +5,10 @@ colours, images and environment maps, novel-view cameras, and leave-one-out eval
 Public API (used by ``relight`` and the CLI)::
 
     RenderConfig, RenderResult, render_image, render_model, ulr_weights, UlrWeights,
-    PreparedViews, prepare_views, prepare_model_views, EnvMap, envmap_lookup,
-    spatially_sorted
+    PreparedViews, prepare_views, prepare_model_views, envmap_background,
+    composite_over, spatially_sorted
+
+(The environment map itself is the core's :class:`opacityhull.envmap.EnvironmentMap`.)
 
 Imports are lazy: numba kernels load (or compile) on first use.
 """
@@ -16,7 +18,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 if TYPE_CHECKING:  # what the lazy __getattr__ below resolves, for type checkers
-    from .background import EnvMap, composite_over, envmap_lookup
+    from .background import composite_over, envmap_background
     from .config import RenderConfig
     from .renderer import (
         RenderResult,
@@ -40,8 +42,7 @@ _EXPORTS = {
     "spatially_sorted": ".renderer",
     "PreparedViews": ".views",
     "prepare_views": ".views",
-    "EnvMap": ".background",
-    "envmap_lookup": ".background",
+    "envmap_background": ".background",
     "composite_over": ".background",
 }
 
@@ -65,7 +66,6 @@ __all__ = [
     "prepare_views",
     "prepare_model_views",
     "spatially_sorted",
-    "EnvMap",
-    "envmap_lookup",
+    "envmap_background",
     "composite_over",
 ]

@@ -81,7 +81,7 @@ class RenderConfig:
     threads : int or None
         Worker threads (None: the CPUs this process may use). 1 runs everything on the
         calling thread.
-    background : None, colour, image or :class:`EnvMap`
+    background : None, colour, image or :class:`~opacityhull.envmap.EnvironmentMap`
         Default background of :meth:`RenderResult.over`.
     shading : "pixel" or "surfel"
         ``"surfel"``: ULR-blended RGBA per surfel, splatted and normalised (alpha scaled

@@ -70,6 +70,7 @@ __all__ = [
     "backproject",
     "pixel_order",
     "deferred_shade",
+    "shade_with",
     "render_deferred",
     "hull_interior",
 ]
@@ -432,6 +433,42 @@ def _aligned_shade(pix, head, views, order, s_lb, k, shape, align, threads):
 # --------------------------------------------------------------------------- the pixel-shading driver
 
 
+def shade_with(
+    config: RenderConfig,
+    depth,
+    coverage,
+    winner,
+    cam_row,
+    desired_centre,
+    surfels: Surfels,
+    views: PreparedViews,
+    allowed,
+    *,
+    align=None,
+) -> tuple[np.ndarray, int]:
+    """:func:`deferred_shade` with ``config``'s ULR options (``k``, ``min_coverage``,
+    ``min_view_cos``, ``fallback_views``, ``n_threads``) and the surfels' visibility and
+    normals: the one call of the splat renderer's per-pixel path and the hybrid's
+    triangles (:mod:`.hybrid`)."""
+    return deferred_shade(
+        depth,
+        coverage,
+        winner,
+        cam_row,
+        desired_centre,
+        surfels.visibility,
+        surfels.normals,
+        views,
+        allowed,
+        k=int(config.k),
+        min_coverage=float(config.min_coverage),
+        min_view_cos=float(config.min_view_cos),
+        fallback=bool(config.fallback_views),
+        threads=config.n_threads,
+        align=align,
+    )
+
+
 def render_deferred(
     surfels, pv, allowed, camera, pin, grid, cam_row, C, splat, valid, config, exclude_views, progress, times
 ) -> RenderResult:
@@ -463,23 +500,7 @@ def render_deferred(
 
     def shade(views: PreparedViews, align):
         # the same pixels, views and weights for the colour and for the dilated mattes
-        return deferred_shade(
-            depth,
-            cov,
-            winner,
-            cam_row,
-            C,
-            surfels.visibility,
-            surfels.normals,
-            views,
-            allowed,
-            k=int(config.k),
-            min_coverage=float(config.min_coverage),
-            min_view_cos=float(config.min_view_cos),
-            fallback=bool(config.fallback_views),
-            threads=threads,
-            align=align,
-        )
+        return shade_with(config, depth, cov, winner, cam_row, C, surfels, views, allowed, align=align)
 
     premul, n_shaded = shade(pv, _align_config(config))
     interior = None

@@ -74,7 +74,7 @@ class RenderResult:
 
     def over(self, background=None) -> np.ndarray:
         """Composite over a background: None (``config.background``, else black), a
-        colour (number or RGB triple), an (H, W, 3|4) image, or an :class:`EnvMap`
+        colour (number or RGB triple), an (H, W, 3|4) image, or an :class:`~opacityhull.envmap.EnvironmentMap`
         (looked up along this camera's pixel rays). Returns (H, W, 3) float32 linear."""
         bg = self.config.background if background is None else background
         return composite_over(self.rgba, resolve_background(bg, self.camera))

@@ -16,7 +16,7 @@ the NumPy twin :func:`rasterize_triangles_reference`): perspective-correct depth
 barycentrics at the pixel centres (integer coordinates, the project's convention),
 triangles with a vertex at or behind the near plane skipped (not clipped), degenerate
 triangles skipped. A triangle pixel is shaded like the splat renderer's per-pixel path:
-ULR at the back-projected surface point (:func:`~opacityhull.render.deferred.deferred_shade`),
+ULR at the back-projected surface point (:func:`~opacityhull.render.deferred.shade_with`),
 its visibility and normal those of the triangle's nearest vertex. The two layers meet in
 a depth test: the triangle wins where it is not behind the splats by more than the
 ε-z-buffer's tolerance.
@@ -432,22 +432,8 @@ def render_hybrid(
         allowed = _allowed(pv.n_views, exclude_views)
 
         def shade(views):
-            return D.deferred_shade(
-                d_t,
-                front.astype(np.float32),
-                winner,
-                cam_row,
-                camera.centre_world,
-                surfels.visibility,
-                surfels.normals,
-                views,
-                allowed,
-                k=int(config.k),
-                min_coverage=float(config.min_coverage),
-                min_view_cos=float(config.min_view_cos),
-                fallback=bool(config.fallback_views),
-                threads=config.n_threads,
-            )[0]
+            coverage = front.astype(np.float32)
+            return D.shade_with(config, d_t, coverage, winner, cam_row, camera.centre_world, surfels, views, allowed)[0]
 
         premul_t = shade(pv)
         if config.opaque_interior:

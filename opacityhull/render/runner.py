@@ -18,7 +18,8 @@ from ..camera import Camera
 from ..errors import InputError
 from ..imageio import write_exr, write_png
 from ..model import OpacityHullModel
-from .background import EnvMap, fit_image, load_background
+from ..envmap import EnvironmentMap
+from .background import fit_image, load_background
 from .cameras import captured_view_camera, look_at_camera, mean_fov_y_deg, orbit_cameras, resize_camera, scene_target
 from .renderer import RenderConfig, RenderResult, model_surfels, prepare_model_views, render_image
 from .views import PreparedViews
@@ -454,7 +455,7 @@ class FrameTask:
     budget : the splat budget per frame (None: every surfel).
     paths : one output path per camera (the worker writes them).
     background : what :func:`write_frame` composites over (None, a colour, an image
-        fitted to the camera or an :class:`EnvMap`).
+        fitted to the camera or an :class:`~opacityhull.envmap.EnvironmentMap`).
     anim_background : the GIF frames' background (None: no GIF frames).
     renderer : ``"fitted"`` or ``"ulr"`` (:func:`.splats.resolve_renderer`).
     hybrid_px : the umbrella threshold (px) of ``--primitives hybrid`` (None: splats only).
@@ -635,7 +636,7 @@ def run_render(
         "ms_first_frame": ms[0],
         "ms_warmup": max(p["ms_warmup"] for p in parts),
         "ms_load": t_load_ms,
-        "background": None if background is None else ("envmap" if isinstance(bg, EnvMap) else str(background)),
+        "background": None if background is None else ("envmap" if isinstance(bg, EnvironmentMap) else str(background)),
         "budget": budget,
         "splats_per_frame": splats,
         "lod_tau": taus,

@@ -87,6 +87,7 @@ from ..errors import InputError
 from ..riggeometry import DisplaySpec, RigGeometry
 from . import shapes as S
 from .effects import EffectConfig, backdrop_only_effects, select_effects
+from .mitsuba_sensor import NEAR_CLIP_M, sensor_dict
 from .scenes import MaterialSpec, Part, SceneSpec, board_parts
 from .variants import choose_variant, use_mitsuba
 
@@ -111,10 +112,6 @@ __all__ = [
 
 #: Panels are rendered this far behind their nominal plane (see module docstring).
 DISPLAY_SETBACK_M = 0.0005
-
-#: Near clip plane of the simulated cameras (z, metres). Mitsuba starts camera rays on
-#: this plane, so the aov ``depth`` (ray distance) is measured from it.
-NEAR_CLIP_M = 0.005
 
 _DIAG_FLIP_Y = np.diag([1.0, -1.0, 1.0, 1.0])
 
@@ -522,34 +519,6 @@ def display_to_world(display: DisplaySpec, table_deg: float) -> np.ndarray:
     return T
 
 
-def _sensor_dict(mi, cam: Camera, sampler: str, spp: int) -> dict:
-    p = mitsuba_sensor_params(cam)
-    if sampler == "stratified":
-        side = max(1, int(round(math.sqrt(spp))))
-        smp = {"type": "stratified", "sample_count": side * side, "jitter": True}
-    else:
-        smp = {"type": "independent", "sample_count": int(spp)}
-    return {
-        "type": "perspective",
-        "fov": p["fov"],
-        "fov_axis": "y",
-        "principal_point_offset_x": p["principal_point_offset_x"],
-        "principal_point_offset_y": p["principal_point_offset_y"],
-        "near_clip": NEAR_CLIP_M,
-        "far_clip": 100.0,
-        "to_world": mi.ScalarTransform4f(np.asarray(p["to_world"])),
-        "film": {
-            "type": "hdrfilm",
-            "width": cam.width,
-            "height": cam.height,
-            "rfilter": {"type": "box"},
-            "pixel_format": "rgba",
-            "sample_border": False,
-        },
-        "sampler": smp,
-    }
-
-
 def _integrator_dict(cfg: EffectConfig) -> dict:
     if cfg.integrator == "direct":
         return {"type": "direct"}
@@ -955,7 +924,11 @@ class SimRenderer:
         with self._cache_lock:
             loaded = self._cache.get(full_key)
             if loaded is None:
-                d = {"type": "scene", "integrator": integrator, "sensor": _sensor_dict(mi, camera_object, sampler, spp)}
+                d = {
+                    "type": "scene",
+                    "integrator": integrator,
+                    "sensor": sensor_dict(mi, camera_object, sampler=sampler, spp=spp),
+                }
                 d.update(part_dicts(mi, parts))
                 d.update(extra or {})
                 sc = mi.load_dict(d, optimize=False)  # keep shapes separate: their params are rewritten
@@ -1028,7 +1001,7 @@ class SimRenderer:
         d: dict = {
             "type": "scene",
             "integrator": _integrator_dict(cfg),
-            "sensor": _sensor_dict(mi, cam, cfg.sampler, cfg.spp),
+            "sensor": sensor_dict(mi, cam, sampler=cfg.sampler, spp=cfg.spp),
         }
         d.update(part_dicts(mi, parts))
         emitting = set(mode[1]) if mode[0] == "displays" else set()
@@ -1092,7 +1065,7 @@ class SimRenderer:
         key = (view.width, view.height, cfg.sampler, cfg.spp)
         s = sensors.get(key)
         if s is None:
-            sensor = mi.load_dict(_sensor_dict(mi, view, cfg.sampler, cfg.spp))
+            sensor = mi.load_dict(sensor_dict(mi, view, sampler=cfg.sampler, spp=cfg.spp))
             params = mi.traverse(sensor)
             params.keep([r"to_world", r"x_fov", r"principal_point_offset_.*"])
             s = sensors[key] = _Loaded(sensor, params, {})

@@ -188,19 +188,18 @@ def write_bundle(
     elif relight and (probes is not None or relight_rank is not None):
         log.warning("%s: the model has no reflectance (no one-light images): nothing to relight", model.root)
     env = None
+    env_yaw = 0.0
     if envmap is not None:
+        from ..envmap import EnvironmentMap
         from ..relight.envmap import default_yaw_deg, resolve_envmap_path
         from ..render.background import load_background
 
-        yaw = default_yaw_deg(envmap) if env_yaw_deg is None else float(env_yaw_deg)
-        from ..render.background import EnvMap
-
-        env = load_background(str(resolve_envmap_path(envmap)), yaw_deg=yaw, kind="envmap")
-        if not isinstance(env, EnvMap):  # kind="envmap" always gives one; the check narrows the type
+        env_yaw = default_yaw_deg(envmap) if env_yaw_deg is None else float(env_yaw_deg)
+        # the page turns the map by its yaw at lookup: the bundle stores it unturned
+        # (EnvironmentMap checks the radiance is finite and >= 0, naming the file)
+        env = load_background(str(resolve_envmap_path(envmap)), yaw_deg=0.0, kind="envmap")
+        if not isinstance(env, EnvironmentMap):  # kind="envmap" always gives one; the check narrows the type
             raise InputError(f"--envmap {envmap}: not an equirectangular environment map")
-        img = env.image
-        if not np.all(np.isfinite(img)) or (img < 0).any():
-            raise InputError(f"--envmap {envmap}: the map has non-finite or negative texels")
     out = Path(out)
     # replace only an earlier bundle (its written-files list, or an older bundle's
     # manifest.json), never a folder of something else
@@ -214,14 +213,14 @@ def write_bundle(
             summary["splats"] = write_splats(tmp, Path(model.root))
             summary["bytes"] += summary["splats"]["bytes"]
         if env is not None:
-            summary["envmap"] = _write_envmap(tmp, env, str(envmap))
+            summary["envmap"] = _write_envmap(tmp, env, env_yaw, str(envmap))
         if relight and model.has_reflectance:
             summary["relight"] = _write_relight(
                 tmp,
                 model,
                 summary,
                 probes=probes,
-                envmap=None if env is None else (str(envmap), float(env.yaw_deg), "envmap.bin"),
+                envmap=None if env is None else (str(envmap), env_yaw, "envmap.bin"),
                 yaw_steps=yaw_steps,
                 relight_error=relight_error,
                 relight_rank=relight_rank,
@@ -299,17 +298,17 @@ def _write_relight(
     }
 
 
-def _write_envmap(tmp: Path, env, spec: str) -> dict:
-    img = np.ascontiguousarray(env.image[:, :, :3], dtype="<f4")
+def _write_envmap(tmp: Path, env, yaw_deg: float, spec: str) -> dict:
+    img = np.ascontiguousarray(env.radiance, dtype="<f4")
     (tmp / "envmap.bin").write_bytes(img.tobytes())
     meta = {
         "file": "envmap.bin",
         "width": int(img.shape[1]),
         "height": int(img.shape[0]),
         "bytes": img.nbytes,
-        "yaw_deg": float(env.yaw_deg),
+        "yaw_deg": float(yaw_deg),
         "source": spec,
-        "encoding": "float32 linear RGB, equirectangular (render/background.py convention)",
+        "encoding": "float32 linear RGB, equirectangular (opacityhull/envmap.py convention)",
     }
     mp = tmp / "manifest.json"
     man = json.loads(mp.read_text())

@@ -53,7 +53,7 @@ RANK_MAX = 16
 def weight_table(relighter, env, table_degs: Sequence[float], *, yaw_steps: int = 72) -> np.ndarray:
     """(S, T, K, 3) float64 calibrated weights ``relighter.weights(table_degs[t],
     envmap=env.rotated(360 s / S))`` for S = ``yaw_steps`` rotations of ``env`` (an
-    :class:`~opacityhull.relight.envmap.EnvironmentMap` at yaw 0) about +Y."""
+    :class:`~opacityhull.envmap.EnvironmentMap` at yaw 0) about +Y."""
     S = int(yaw_steps)
     if S < 1:
         raise InputError(f"yaw_steps {yaw_steps!r}: expected at least 1 rotation step")

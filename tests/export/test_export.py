@@ -14,7 +14,7 @@ import pytest
 
 from opacityhull.errors import InputError
 from opacityhull.export.formats import export_model
-from opacityhull.export.sh import SH_C0, eval_sh, sh_basis
+from opacityhull.sh import SH_C0, eval_sh, sh_basis
 from opacityhull.imageio import srgb_encode
 from opacityhull.render.synthetic import fibonacci_sphere
 

@@ -4,6 +4,8 @@ densification invariants, the splat PLY round trip, the config's named errors.""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -244,6 +246,46 @@ def test_presets():
     assert fit_preset("fast", seed=3).seed == 3
     with pytest.raises(ConfigError, match="fastest"):
         fit_preset("fastest")  # type: ignore[arg-type]
+    with pytest.raises(ConfigError, match="fits nothing"):
+        fit_preset("none", iterations=10)
+
+
+def _shortened_oracle(mode, n):
+    """The schedule ``build --optimize-iterations N`` fitted with before #34 (written
+    out in reconstruct/steps/optimize.fit_config: the preset's fields, then each window
+    clipped to the N steps)."""
+    fc = replace(fit_preset(mode), iterations=n)
+    return replace(
+        fc,
+        densify_from=min(fc.densify_from, n // 4),
+        densify_until=min(fc.densify_until, (3 * n) // 4),
+        densify_every=max(1, min(fc.densify_every, n // 4)),
+        sh_degree_every=min(fc.sh_degree_every, max(1, n // (fc.sh_degree + 1))),
+        checkpoint_every=min(fc.checkpoint_every, max(1, n // 2)) if fc.checkpoint_every else 0,
+    )
+
+
+@settings(max_examples=60, deadline=None)
+@given(mode=st.sampled_from(["fast", "full"]), n=st.integers(1, 20_000))
+def test_preset_iterations_keep_the_schedules_inside_them(mode, n):
+    from opacityhull.reconstruct.buildconfig import BuildConfig
+    from opacityhull.reconstruct.steps.optimize import fit_config
+
+    fc = fit_preset(mode, iterations=n)
+    assert fc == _shortened_oracle(mode, n)
+    assert fit_config(BuildConfig(optimize=mode, optimize_iterations=n)) == fc  # what build fits
+    assert fc.iterations == n and fc.densify_until <= max(3 * n // 4, 0) and fc.densify_every >= 1
+    # an explicit field still wins over the shortened schedule
+    assert fit_preset(mode, iterations=n, densify_every=7).densify_every == 7
+
+
+def test_build_without_iterations_fits_the_preset():
+    from opacityhull.reconstruct.buildconfig import BuildConfig
+    from opacityhull.reconstruct.steps.optimize import fit_config
+
+    assert fit_config(BuildConfig(optimize="full")) == fit_preset("full")
+    assert fit_config(BuildConfig(optimize="none", optimize_iterations=5)) == fit_preset("none")
+    assert fit_preset("fast", iterations=900) == fit_preset("fast")  # the preset's own length
 
 
 @settings(max_examples=10, deadline=None)

@@ -22,7 +22,8 @@ from opacityhull.relight.basis import (
     parse_lights,
     partition_weights,
 )
-from opacityhull.relight.envmap import EnvironmentMap, direction_to_uv, latlong_directions, sun_envmap
+from opacityhull.envmap import EnvironmentMap, direction_to_uv, latlong_directions
+from opacityhull.relight.envmap import sun_envmap
 
 
 def unit(v):

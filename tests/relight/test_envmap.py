@@ -10,17 +10,19 @@ from hypothesis import strategies as st
 
 from opacityhull.errors import InputError
 from opacityhull.imageio import read_hdr, write_exr, write_hdr
-from opacityhull.relight.envmap import (
+from opacityhull.envmap import (
     EnvironmentMap,
-    angular_to_latlong,
     direction_to_uv,
-    downsample_latlong,
     latlong_directions,
     latlong_solid_angles,
+    rotate_latlong_yaw,
+)
+from opacityhull.relight.envmap import (
+    angular_to_latlong,
+    downsample_latlong,
     latlong_to_angular,
     load_envmap,
     mirrorball_to_latlong,
-    rotate_latlong_yaw,
 )
 
 

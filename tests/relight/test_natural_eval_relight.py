@@ -75,7 +75,8 @@ def test_relit_part_and_truth_use_one_mapping(glass_model):
     turned upside down."""
     from opacityhull.model import OpacityHullModel
     from opacityhull.evaluate import natural as ne
-    from opacityhull.relight.envmap import EnvironmentMap, default_yaw_deg, load_envmap
+    from opacityhull.envmap import EnvironmentMap
+    from opacityhull.relight.envmap import default_yaw_deg, load_envmap
     from opacityhull.evaluate.relight import find_scene
     from opacityhull.relight.natural_views import natural_centre_m
 

@@ -20,7 +20,7 @@ from opacityhull.errors import InputError
 from opacityhull.reconstruct.natural_field import estimate_session_natural
 from opacityhull.reconstruct import natural as nt
 from opacityhull.relight import natural_synthetic as ns
-from opacityhull.relight.envmap import EnvironmentMap
+from opacityhull.envmap import EnvironmentMap
 from opacityhull.riggeometry import RigGeometry, back_display, bottom_display
 from opacityhull.session import ShotRecord, shot_key
 

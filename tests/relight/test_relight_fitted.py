@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import shutil
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -36,7 +37,7 @@ def fitted_sphere(tmp_path_factory):
     root = tmp_path_factory.mktemp("relit_fitted") / "sphere"
     write_sphere_model(root, width=48, height=40, n_surfels=4000)
     V = len(OpacityHullModel.open(root).views)
-    fit_model(root, train_views=list(range(V)), config=fit_preset("fast", **fitted.FIT))
+    fit_model(root, train_views=list(range(V)), config=replace(fit_preset("fast"), **fitted.FIT))
     return root
 
 

@@ -10,7 +10,8 @@ import pytest
 from opacityhull.errors import FormatError, InputError
 from opacityhull.model import OpacityHullModel
 from opacityhull.relight.basis import KernelConfig
-from opacityhull.relight.envmap import EnvironmentMap, downsample_latlong, load_envmap
+from opacityhull.envmap import EnvironmentMap
+from opacityhull.relight.envmap import downsample_latlong, load_envmap
 from opacityhull.relight.relit import (
     PARALLEL_MIN_WORK,
     Relighter,

@@ -16,7 +16,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from opacityhull.errors import InputError
-from opacityhull.relight.envmap import EnvironmentMap
+from opacityhull.envmap import EnvironmentMap
 from opacityhull.relight.split import sphere_split, split_envmap
 from opacityhull.sim.groundtruth import default_geometry
 

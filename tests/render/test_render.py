@@ -4,6 +4,7 @@ environment maps (Mitsuba as the oracle of the convention), and camera helpers."
 from __future__ import annotations
 
 import math
+import re
 from pathlib import Path
 
 import numpy as np
@@ -11,13 +12,13 @@ import pytest
 import scipy.ndimage as ndi
 
 import opacityhull
-from opacityhull.camera import Camera, look_at_world_from_cam
+from opacityhull.camera import Camera, look_at_world_from_cam, rot_y
+from opacityhull.envmap import EnvironmentMap
 from opacityhull.errors import InputError, ShapeError
 from opacityhull.model import Surfels
 from opacityhull.render.background import (
-    EnvMap,
     direction_to_equirect,
-    envmap_lookup,
+    envmap_background,
     equirect_to_direction,
     load_background,
 )
@@ -251,21 +252,38 @@ def test_equirect_convention():
 
 def test_envmap_lookup_wraps_the_seam_and_clamps_the_poles():
     h, w = 8, 16
-    env = np.zeros((h, w, 3), np.float32)
-    env[:, :, 0] = np.arange(w)[None, :]  # red = column index
-    env[:, :, 1] = np.arange(h)[:, None]  # green = row index
+    img = np.zeros((h, w, 3), np.float32)
+    img[:, :, 0] = np.arange(w)[None, :]  # red = column index
+    img[:, :, 1] = np.arange(h)[:, None]  # green = row index
+    env = EnvironmentMap(img)
     # −Z is the seam (u = 0 = 1): halfway between the last and the first column
-    seam = envmap_lookup(env, np.array([[0.0, 0.0, -1.0]]))[0]
+    seam = env.lookup(np.array([[0.0, 0.0, -1.0]]))[0]
     assert seam[0] == pytest.approx((w - 1 + 0) / 2)
     # a quarter texel either side of the seam blends column 0 with column w−1 (not clamped)
     d = equirect_to_direction(np.array([0.25 / w, 1 - 0.25 / w]), np.array([0.5, 0.5]))
-    np.testing.assert_allclose(envmap_lookup(env, d)[:, 0], [0.25 * (w - 1), 0.75 * (w - 1)], rtol=1e-5)
+    np.testing.assert_allclose(env.lookup(d)[:, 0], [0.25 * (w - 1), 0.75 * (w - 1)], rtol=1e-5)
     # the poles clamp to the first / last row
-    assert envmap_lookup(env, np.array([[0.0, 1.0, 0.0]]))[0, 1] == pytest.approx(0.0)
-    assert envmap_lookup(env, np.array([[0.0, -1.0, 0.0]]))[0, 1] == pytest.approx(h - 1)
+    assert env.lookup(np.array([[0.0, 1.0, 0.0]]))[0, 1] == pytest.approx(0.0)
+    assert env.lookup(np.array([[0.0, -1.0, 0.0]]))[0, 1] == pytest.approx(h - 1)
     # yaw 180° swaps +Z and −Z
     d = np.array([[0.0, 0.0, 1.0]])
-    np.testing.assert_allclose(envmap_lookup(env, d, yaw_deg=180), envmap_lookup(env, -d))
+    np.testing.assert_allclose(env.rotated(180).lookup(d), env.lookup(-d))
+    # a degenerate ray: a background sees the zenith, lighting raises
+    np.testing.assert_allclose(env.lookup(np.zeros((1, 3)), invalid="zenith"), env.lookup(np.array([[0, 1.0, 0]])))
+    with pytest.raises(InputError, match="zero, NaN or Inf"):
+        env.lookup(np.zeros((1, 3)))
+
+
+@pytest.mark.parametrize("yaw_deg", [0.0, 22.5, 90.0, 180.0, -67.5, 337.5])
+def test_a_turned_map_sees_what_the_map_shows_at_the_turned_back_direction(yaw_deg):
+    """``rotated(yaw)`` (a column shift, the one way a map is turned) against the
+    definition: a direction d sees what the unturned map shows at R_y(−yaw) d. Exact to
+    float32 rounding when the yaw is whole texels (every yaw here on a 32-wide map)."""
+    rng = np.random.default_rng(3)
+    env = EnvironmentMap(rng.random((16, 32, 3)).astype(np.float32))
+    d = rng.normal(size=(500, 3))
+    turned_back = d @ rot_y(math.radians(-yaw_deg)).T
+    np.testing.assert_allclose(env.rotated(yaw_deg).lookup(d), env.lookup(turned_back), atol=2e-6)
 
 
 def test_envmap_background_agrees_with_mitsuba():
@@ -322,25 +340,40 @@ def _envmap_vs_mitsuba(mi):
             }
         )
         ref = np.array(mi.render(scene))
-        mine = EnvMap(env).render(cam)
+        mine = envmap_background(EnvironmentMap(env), cam)
         assert np.mean(np.abs(ref - mine)) < 0.01
         assert np.mean(np.abs(ref[:, ::-1] - mine)) > 0.05
 
 
 def test_envmap_over_and_probe_file(sphere64, tmp_path):
     m, pv = sphere64
-    env = EnvMap.from_file(str(GRACE), yaw_deg=180)
+    env = load_background(str(GRACE), yaw_deg=180)
+    assert isinstance(env, EnvironmentMap)
     cam = m.cameras[0]
     r = render_image(m.surfels, m.cameras, pv, cam)
     out = r.over(env)
-    bg = env.render(cam)
+    bg = envmap_background(env, cam)
     np.testing.assert_allclose(out[0, 0], bg[0, 0], rtol=1e-6)  # a background corner
     assert np.all(np.isfinite(out)) and bg.max() > 1.0  # HDR values survive
-    assert isinstance(load_background(str(GRACE)), EnvMap)
+    assert isinstance(load_background(str(GRACE)), EnvironmentMap)
     assert load_background("0.1,0.2,0.3") == (0.1, 0.2, 0.3)
     assert load_background("white") == (1.0, 1.0, 1.0)
     with pytest.raises(InputError, match="neither a colour nor an existing image"):
         load_background(str(tmp_path / "nope.png"))
+
+
+@pytest.mark.parametrize("bad, what", [(np.nan, "1 NaN"), (-0.5, "1 negative")])
+def test_a_background_map_with_bad_radiance_is_refused_naming_the_file(tmp_path, bad, what):
+    """The one EnvironmentMap checks a background map as it checks a light: NaN, Inf or
+    negative radiance would reach every composited pixel."""
+    from opacityhull.imageio import write_exr
+
+    img = np.full((8, 16, 3), 0.5, np.float32)
+    img[2, 3, 1] = bad
+    path = tmp_path / "sky.exr"
+    write_exr(path, img)
+    with pytest.raises(InputError, match=re.escape(f"{tmp_path / 'sky.exr'}: {what}") + ".*row 2, column 3, channel G"):
+        load_background(str(path))
 
 
 def test_camera_helpers(sphere64):

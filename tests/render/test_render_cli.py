@@ -83,13 +83,16 @@ def test_render_look_at_over_environment_map(sphere_dir, tmp_path):
     assert s["background"] == "envmap"
     img = read_exr(tmp_path / "la.exr")
     assert img.shape == (48, 64, 3) and np.all(np.isfinite(img))
-    from opacityhull.render.background import EnvMap
+    from opacityhull.envmap import EnvironmentMap
+    from opacityhull.render.background import envmap_background, load_background
     from opacityhull.render.runner import choose_cameras
 
     from opacityhull.render.cameras import parse_look_at
 
     cam = choose_cameras(OpacityHullModel.open(root), look_at=parse_look_at("0,0.3,0.5,0,0.1,0,30"))[0]
-    bg = EnvMap.from_file(str(GRACE), yaw_deg=180).render(cam)
+    env = load_background(str(GRACE), yaw_deg=180)
+    assert isinstance(env, EnvironmentMap)
+    bg = envmap_background(env, cam)
     np.testing.assert_allclose(img[0], bg[0], rtol=1e-5)  # the top row is all environment
     assert np.abs(img[24, 32] - bg[24, 32]).max() > 0.05  # the object covers the centre
 

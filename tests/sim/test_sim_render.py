@@ -11,7 +11,8 @@ from opacityhull.camera import Camera, look_at_world_from_cam, rig_from_object
 from opacityhull.riggeometry import CameraSpec, RigGeometry
 from opacityhull.sim.commands import make_pattern
 from opacityhull.sim.groundtruth import render_ground_truth
-from opacityhull.sim.render import SimRenderer, SimState, _sensor_dict
+from opacityhull.sim.mitsuba_sensor import sensor_dict
+from opacityhull.sim.render import SimRenderer, SimState
 from opacityhull.sim.scenes import builtin_names, load_scene
 from opacityhull.sim.variants import use_mitsuba
 
@@ -49,7 +50,7 @@ def test_sensor_rays_project_back_to_their_pixels():
         assert np.all(z > 0)
         assert np.max(np.abs(proj - uv)) < 0.05
 
-    scene = mi.load_dict({"type": "scene", "sensor": _sensor_dict(mi, cam, "independent", 1)})
+    scene = mi.load_dict({"type": "scene", "sensor": sensor_dict(mi, cam, sampler="independent", spp=1)})
     check(scene.sensors()[0], cam)
     # the capture path re-poses a loaded sensor: change pose and field of view through params
     r = SimRenderer(load_scene("builtin:sphere"), None)

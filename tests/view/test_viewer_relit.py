@@ -166,7 +166,7 @@ def test_browser_relit_matches_cpu_relighter(browser, relit_model, relit_bundle,
     and the issue's 30 dB."""
     from opacityhull.imageio import read_image
     from opacityhull.relight.runner import relight_model
-    from opacityhull.render.background import EnvMap, composite_over, resolve_background
+    from opacityhull.render.background import composite_over, resolve_background
     from opacityhull.render.config import RenderConfig
     from opacityhull.render.renderer import render_image
     from opacityhull.render.views import prepare_views
@@ -184,7 +184,7 @@ def test_browser_relit_matches_cpu_relighter(browser, relit_model, relit_bundle,
         assert r["ok"], r["error"]
         for yaw, vi in ((180.0, 2), (67.5, 5)):
             env = load_envmap("builtin:grace", yaw_deg=yaw)
-            bg = EnvMap(np.asarray(env.radiance))
+            bg = env
             pv = prepare_views(cams, [R.relight_view(i, envmap=env) for i in range(len(cams))])
             browser.execute_script(
                 f"window.opacityhull.setCamera({vi}); return window.opacityhull.setRelight('grace', {yaw})"

@@ -36,23 +36,9 @@ CHECKPOINT_DIR = "optimize"
 def fit_config(config):
     """The :class:`~opacityhull.optimize.config.FitConfig` of a
     :class:`~..buildconfig.BuildConfig` (``optimize``, ``optimize_iterations``)."""
-    over = {} if config.optimize_iterations is None else {"iterations": int(config.optimize_iterations)}
     if config.optimize == "none":
         return fit_preset("none")
-    fc = fit_preset(config.optimize, **over)
-    if config.optimize_iterations is not None:
-        # a shortened schedule keeps its densification and SH growth inside the iterations
-        n = fc.iterations
-        fc = fit_preset(
-            config.optimize,
-            **over,
-            densify_from=min(fc.densify_from, n // 4),
-            densify_until=min(fc.densify_until, (3 * n) // 4),
-            densify_every=max(1, min(fc.densify_every, n // 4)),
-            sh_degree_every=min(fc.sh_degree_every, max(1, n // (fc.sh_degree + 1))),
-            checkpoint_every=min(fc.checkpoint_every, max(1, n // 2)) if fc.checkpoint_every else 0,
-        )
-    return fc
+    return fit_preset(config.optimize, iterations=config.optimize_iterations)
 
 
 def _summary(fit: dict, timings: dict) -> dict:

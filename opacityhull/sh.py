@@ -4,6 +4,9 @@
 with d the unit direction from the camera centre to the Gaussian, colours in the
 images' [0, 1] (sRGB-encoded) values, and the basis constants below. The fit here is a
 per-surfel ridge-regularised least squares over the views that saw the surfel.
+
+In the core: the exporters (``export/formats.py``) and the fitting
+(``optimize/appearance.py``, ``optimize/data.py``) use the same basis.
 """
 
 from __future__ import annotations
@@ -13,8 +16,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from ..errors import InputError
-from ..model import Surfels
+from .errors import InputError
+from .model import Surfels
 
 __all__ = ["SH_C0", "sh_basis", "n_coeffs", "ShFit", "fit_sh", "eval_sh"]
 
@@ -108,8 +111,8 @@ def fit_sh(
     :class:`ShFit`. The target colour is the sRGB-encoded straight colour (what 3DGS
     trains against); surfels seen by no view get the DC of mid-grey.
     """
-    from ..imageio import srgb_encode
-    from .samples import iter_view_samples
+    from .imageio import srgb_encode
+    from .surfel_samples import iter_view_samples
 
     if not 0 <= int(degree) <= 3:
         raise InputError(f"SH degree {degree!r}: expected 0..3")

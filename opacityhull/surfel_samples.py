@@ -1,6 +1,7 @@
 """Per-surfel samples of the opacity light field: what each captured view saw of each surfel.
 
-Shared by every export that turns the surfel model into coloured points or splats: the
+Shared by every export that turns the surfel model into coloured points or splats and by
+the fitting's start colours (:mod:`opacityhull.optimize.data`), hence in the core: the
 visibility bits say which views saw a surfel (depth-tested), and the surfel's projection
 into such a view gives the colour and alpha the view recorded there.
 """
@@ -13,8 +14,8 @@ from collections.abc import Iterator, Sequence
 
 import numpy as np
 
-from ..camera import Camera
-from ..model import Surfels
+from .camera import Camera
+from .model import Surfels
 
 log = logging.getLogger(__name__)
 
