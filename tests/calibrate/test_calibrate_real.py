@@ -4,13 +4,21 @@ estimates.
 
 Thresholds from measured spread:
 
-- OpenCV photographs: the four photographs constrain the focal length to ±15.8 px (3.5 %,
-  σ from the Jacobian; OpenCV's ``stdDeviationsIntrinsics`` says the same), and changing
-  only the sub-pixel corner refinement window (none, 3, 5, 7, 11 px) moves fx over
-  445.8–469.4 px. OpenCV's ``calibrateCamera`` on our corners gives our estimate to 1e-5
-  px, so the gap to OpenCV's published 452.5 is the corner detector of 2021 vs today's,
-  not the solver. Asserted: every intrinsic within 1σ of the reference and within 1.1 %
-  (measured fx +1.06 %, fy +0.99 %, cx −0.15 %, cy −0.77 %), RMS ≤ 0.25 px (0.188).
+- OpenCV photographs. OpenCV's reference (reference_camera.yml, 2021) came from its
+  ``calibrate_camera_charuco`` sample: markers decoded, a first calibration from the marker
+  corners (``calibrateCameraAruco``), the ChArUco corners interpolated through that camera,
+  then ``calibrateCameraCharuco``, flags 0. ``calibrate``'s default ``--interpolate
+  aruco-calib`` is that pipeline: fx/fy/cx/cy +0.63/+0.77/-0.08/+0.28 % of the reference and
+  RMS 0.1828 px against its 0.1823 (the RMS agreeing to 0.3 % says it is the same corners).
+  Asserted: within 1 % (the goal) and 1 sigma, RMS within 0.005 px of the reference's.
+  Why not tighter: the four photographs pin fx to +-15.9 px (3.5 %, sigma from the
+  Jacobian, equal to OpenCV's ``stdDeviationsIntrinsics``), and ``cornerSubPix`` stops at
+  0.1 px (OpenCV's ``cornerRefinementMinAccuracy``), so where a corner's refinement starts
+  moves fx: the one-pass ``homography`` interpolation gives +1.06 %, a second pass through
+  our own calibration +1.05 to +1.17 %, through it with fx scaled by 0.97/1.03 +1.73/+0.67 %;
+  refining to convergence with a fixed window of 3..10 px gives fx 421.9-473.1 px
+  (benchmarks/calibration_real.py). A 1 % goal on these four photographs is met, and is
+  within their noise.
 """
 
 from __future__ import annotations
@@ -29,6 +37,7 @@ OPENCV = DATA / "opencv"
 CALISCOPE = DATA / "caliscope"
 BOARD = "squares=5x7,square_m=0.04,marker_m=0.02,dictionary=DICT_6X6_250"
 REF = {"fx": 452.51072219637672, "fy": 456.76707935146891, "cx": 317.70297317353277, "cy": 277.75155919135995}
+REF_RMS_PX = 0.18234905535936044
 
 
 @pytest.fixture(scope="module")
@@ -44,22 +53,67 @@ def test_opencv_photos_match_opencvs_own_calibration(opencv_run):
     s, _ = opencv_run
     (cam,) = s["cameras"]
     assert cam["rms_px"] <= 0.25
+    assert abs(cam["rms_px"] - REF_RMS_PX) <= 0.005, cam["rms_px"]  # measured 0.1828
+    for k, ref in REF.items():
+        assert abs(cam[k] - ref) <= cam["std"][k], (k, cam[k], ref, cam["std"][k])
+        assert abs(cam[k] / ref - 1) <= 0.01, (k, cam[k], ref)  # measured +0.63/+0.77/-0.08/+0.28 %
+    assert s["rejected"] == [] and s["left_out"] == []
+
+
+def test_opencv_default_is_opencvs_sample_pipeline(opencv_run):
+    """The default equals OpenCV's ``calibrate_camera_charuco`` sample written out with
+    OpenCV alone (markers, ``calibrateCamera`` on their corners, the ChArUco corners
+    interpolated through that camera, ``calibrateCamera`` on them, flags 0)."""
+    import cv2
+
+    s, _ = opencv_run
+    d = cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_6X6_250)
+    board = cv2.aruco.CharucoBoard((5, 7), 0.04, 0.02, d)
+    grays = [np.asarray(cv2.imread(str(p), cv2.IMREAD_GRAYSCALE)) for p in sorted(OPENCV.glob("img_0*.jpg"))]
+    markers = [cv2.aruco.ArucoDetector(d, cv2.aruco.DetectorParameters()).detectMarkers(g)[:2] for g in grays]
+    obj_of = {int(i): p for i, p in zip(np.ravel(board.getIds()), board.getObjPoints(), strict=True)}
+    mo = [np.concatenate([obj_of[int(i)] for i in ids.ravel()]).astype(np.float32) for _, ids in markers]
+    mi = [np.concatenate([c.reshape(-1, 2) for c in corners]).astype(np.float32) for corners, _ in markers]
+    _, K0, d0, _, _ = cv2.calibrateCamera(mo, mi, (640, 480), None, None)  # pyright: ignore[reportCallIssue, reportArgumentType]
+    params = cv2.aruco.CharucoParameters()
+    params.cameraMatrix, params.distCoeffs = K0, d0
+    det = cv2.aruco.CharucoDetector(board, params, cv2.aruco.DetectorParameters())
+    objs, imgs = [], []
+    for g, (corners, ids) in zip(grays, markers, strict=True):
+        cc, ci, _, _ = det.detectBoard(g, markerCorners=corners, markerIds=ids)
+        o, i = board.matchImagePoints(cc, ci)  # pyright: ignore[reportCallIssue, reportArgumentType]
+        objs.append(o.astype(np.float32))
+        imgs.append(i.astype(np.float32))
+    rms, K, _, _, _ = cv2.calibrateCamera(objs, imgs, (640, 480), None, None)  # pyright: ignore[reportCallIssue, reportArgumentType]
+    cam = s["cameras"][0]
+    np.testing.assert_allclose([cam["fx"], cam["fy"], cam["cx"], cam["cy"]], K[[0, 1, 0, 1], [0, 1, 2, 2]], rtol=1e-6)
+    assert abs(cam["rms_px"] - rms) <= 1e-6
+
+
+def test_opencv_photos_one_pass_interpolation():
+    """``--interpolate homography`` (one decoding pass, OpenCV's ``CharucoDetector`` alone):
+    within 1 sigma and 1.1 % (measured +1.06/+1.00/-0.15/-0.77 %, RMS 0.1878 px), a worse
+    RMS than the default's on the same photographs."""
+    imgs = sorted(OPENCV.glob("img_0*.jpg"))
+    r = invoke_cli(["calibrate", *imgs, "--board", BOARD, "--json", "--interpolate", "homography"])
+    assert r.exit_code == 0, r.stderr
+    (cam,) = json.loads(r.stdout)["cameras"]
+    assert REF_RMS_PX + 0.003 <= cam["rms_px"] <= 0.25
     for k, ref in REF.items():
         assert abs(cam[k] - ref) <= cam["std"][k], (k, cam[k], ref, cam["std"][k])
         assert abs(cam[k] / ref - 1) <= 0.011, (k, cam[k], ref)
-    assert s["rejected"] == [] and s["left_out"] == []
 
 
 def test_opencv_std_matches_opencvs_jacobian(opencv_run):
     """The per-parameter σ against OpenCV's own ``stdDeviationsIntrinsics`` on the same corners."""
     import cv2
 
-    from opacityhull.calibrate.inputs import camera_inputs, detect_frames, parse_board
+    from opacityhull.calibrate.inputs import camera_inputs, detect_frames, parse_board, reinterpolate_frames
 
     s, _ = opencv_run
     spec = parse_board(BOARD)
     (cam_in,) = camera_inputs(sorted(OPENCV.glob("img_0*.jpg")))
-    dc = detect_frames(cam_in, charuco=spec)
+    dc = reinterpolate_frames(detect_frames(cam_in, charuco=spec), charuco=spec)
     objs = [o.detection.object_points.astype(np.float32) for o in dc.observations]
     imgs = [o.detection.image_points.astype(np.float32) for o in dc.observations]
     out = cv2.calibrateCameraExtended(objs, imgs, (640, 480), np.eye(3), np.zeros(5))
