@@ -19,11 +19,21 @@ Thresholds from measured spread:
   refining to convergence with a fixed window of 3..10 px gives fx 421.9-473.1 px
   (benchmarks/calibration_real.py). A 1 % goal on these four photographs is met, and is
   within their noise.
+- caliscope's webcams. The focal and centre goals are met on every frame of the extrinsic
+  videos (vendored as corners); the 1 deg rotation goal only with caliscope's intrinsics
+  held. With ours, the rotations differ as the principal points do, and a hold-out shows the
+  videos cannot tell the two sets of intrinsics apart (each frame's pose absorbs the
+  principal point). Trusted where they differ: caliscope's principal points (its own
+  intrinsic recordings, 33-40 boards, are not in its repository; ours rest on 27-45 frames
+  with sigma 4-16 px) and our poses given them; the focal lengths agree within our sigma.
+  The intrinsic/ videos are another session (prerecorded_calibration, with its own
+  caliscope estimate): not comparable with camera_array.toml (benchmarks/calibration_real.py).
 """
 
 from __future__ import annotations
 
 import json
+import math
 import shutil
 from pathlib import Path
 
@@ -144,15 +154,157 @@ def test_opencv_outputs_read_back(opencv_run):
     assert json.loads((out / "rejected.json").read_text()) == []
 
 
+def _caliscope_ref():
+    import tomllib
+
+    ref = tomllib.loads((CALISCOPE / "camera_array.toml").read_text())["cameras"]
+    K = {i: np.array(ref[str(i)]["matrix"]) for i in range(4)}
+    D = {i: np.array(ref[str(i)]["distortions"]) for i in range(4)}
+    R = {i: np.array(ref[str(i)]["rotation"]) for i in range(4)}
+    C = np.array([-R[i].T @ np.array(ref[str(i)]["translation"]) for i in range(4)])
+    return K, D, R, C
+
+
+def _video_corners():
+    """The corners ``calibrate`` found in every frame of caliscope's four extrinsic videos
+    (extrinsic_corners.npz, written by benchmarks/calibration_real.py --write-corners; see
+    SOURCE.txt), as the detections ``calibrate_detected`` takes."""
+    from opacityhull.calibrate.inputs import CameraInput, DetectedCamera, FrameObservation, parse_board
+    from opacityhull.charuco import BoardDetection
+
+    spec = parse_board(str(CALISCOPE / "charuco.toml"))
+    board_xyz = np.asarray(spec.board().getChessboardCorners(), dtype=np.float64).reshape(-1, 3)
+    z = np.load(CALISCOPE / "extrinsic_corners.npz")
+    dets = [
+        DetectedCamera(camera=CameraInput(index=i, source=f"cam_{i}.mp4"), size=(1280, 720), frames_read=111)
+        for i in range(4)
+    ]
+    for k in range(len(z["camera"])):
+        c = int(z["camera"][k])
+        s0, s1 = int(z["start"][k]), int(z["start"][k + 1])
+        ids = z["corner_id"][s0:s1].astype(np.int32)
+        det = BoardDetection(
+            ids=ids, image_points=z["corner_xy"][s0:s1].astype(np.float64), object_points=board_xyz[ids]
+        )
+        dets[c].observations.append(
+            FrameObservation(
+                camera=c,
+                instant=str(z["instant"][k]),
+                where=f"cam_{c}.mp4#{int(z['frame'][k])}",
+                detection=det,
+                sharpness=float(z["sharpness"][k]),
+            )
+        )
+    return spec, dets
+
+
+def _calibrate_video_corners(intrinsics=()):
+    from opacityhull.calibrate.run import CalibrateOptions, calibrate_detected
+
+    spec, dets = _video_corners()
+    opts = CalibrateOptions(intrinsics=intrinsics)
+    return calibrate_detected(dets, charuco=spec, options=opts, cameras=[d.camera for d in dets])
+
+
+def _poses_vs_caliscope(cams) -> tuple[np.ndarray, dict[tuple[int, int], float]]:
+    _, _, Rr, C_ref = _caliscope_ref()
+    C = np.array([-cams[i].cam_from_world[:3, :3].T @ cams[i].cam_from_world[:3, 3] for i in range(4)])
+    rot = {}
+    for i in range(4):
+        for j in range(i + 1, 4):
+            Ro = cams[j].cam_from_world[:3, :3] @ cams[i].cam_from_world[:3, :3].T
+            rot[(i, j)] = _rotation_deg(Ro.T @ (Rr[j] @ Rr[i].T))
+    return _similarity_residuals(C, C_ref), rot
+
+
+def test_caliscope_full_videos_intrinsics_and_centres():
+    """Every frame of caliscope's four extrinsic videos (their corners, vendored), each
+    camera calibrated from all the frames it sees the board in (the out-of-sync ones too:
+    44/27/43/45 frames), against caliscope's camera_array.toml:
+
+    - focal length (fx + fy) / 2 within 2 % (the goal; measured +0.4/+1.1/-0.2/-0.3 %, each
+      within 1 sigma of our Jacobian's 0.4/1.1/1.3/2.3 %), fx within 2 % (+1.2/+0.1/-0.5/-0.1);
+      each camera's own RMS <= 0.6 px (0.09-0.20);
+    - the centres within 2 cm after a similarity alignment (0.40-0.59 cm).
+
+    The relative rotations (1.7-4.5 deg) are not within the 1 deg goal. They differ from
+    caliscope's as the two principal points do (ours 3-33 px from caliscope's, sigma 4-16 px):
+    each pair within 3 sigma of the rotation those sigmas imply (measured at most 2.75).
+    With the out-of-sync frames left out (before), cam 2's focal was -4.3 %."""
+    run = _calibrate_video_corners()
+    cams = run.result.cameras
+    Kc, _, _, _ = _caliscope_ref()
+    for i in range(4):
+        f = cams[i]
+        focal, ref = (f.K[0, 0] + f.K[1, 1]) / 2, (Kc[i][0, 0] + Kc[i][1, 1]) / 2
+        assert abs(focal / ref - 1) <= 0.02, (i, focal, ref)
+        assert abs(f.K[0, 0] / Kc[i][0, 0] - 1) <= 0.02, (i, f.K[0, 0])
+        assert f.intrinsic_rms_px <= 0.6
+    assert [sum(1 for n in run.notes if n.startswith(f"camera {i}: ") and "out of sync" in n) for i in range(4)] == [
+        1
+    ] * 4
+    centres, rot = _poses_vs_caliscope(cams)
+    assert centres.max() <= 0.02, centres
+    sig = {i: math.degrees(math.hypot(cams[i].std["cx"], cams[i].std["cy"]) / cams[i].K[0, 0]) for i in range(4)}
+    for (i, j), e in rot.items():
+        assert e <= 3.0 * math.hypot(sig[i], sig[j]), (i, j, e, sig[i], sig[j])
+
+
+def test_caliscope_full_videos_poses_with_its_intrinsics():
+    """The same corners with caliscope's intrinsics held: the six relative rotations within
+    1 deg (the goal; measured 0.34-0.79) and the centres within 2 cm (0.32-0.61 cm)."""
+    Kc, Dc, _, _ = _caliscope_ref()
+    held = tuple((i, Kc[i], Dc[i], (1280, 720), "camera_array.toml") for i in range(4))
+    run = _calibrate_video_corners(held)
+    centres, rot = _poses_vs_caliscope(run.result.cameras)
+    assert centres.max() <= 0.02, centres
+    assert max(rot.values()) <= 1.0, rot
+
+
+def test_caliscope_videos_cannot_tell_the_two_intrinsics_apart():
+    """Four-fold hold-out on each camera's frames: intrinsics fitted on 3/4, the other
+    quarter's per-frame PnP residual through them and through caliscope's. Ours are never
+    worse by more than 0.005 px (measured: better by up to 0.023 px on cam 0, within 0.002 px
+    elsewhere), though the two principal points are up to 33 px apart: a frame's own pose
+    absorbs the principal point, which is why the relative rotations rest on it."""
+    import cv2
+
+    from opacityhull.calibrate.inputs import screen_frames
+
+    Kc, Dc, _, _ = _caliscope_ref()
+    spec, dets = _video_corners()
+
+    def rms(obs, K, dist):
+        e = []
+        for o in obs:
+            _, rv, tv = cv2.solvePnP(o.detection.object_points, o.detection.image_points, K, dist)
+            uv, _ = cv2.projectPoints(o.detection.object_points, rv, tv, K, dist)
+            e.append(np.sum((uv.reshape(-1, 2) - o.detection.image_points) ** 2, axis=1))
+        return float(np.sqrt(np.mean(np.concatenate(e))))
+
+    for i, d in enumerate(dets):
+        obs = screen_frames(d, charuco=spec).observations
+        for fold in range(4):
+            train = [o for k, o in enumerate(obs) if k % 4 != fold]
+            test = [o for k, o in enumerate(obs) if k % 4 == fold]
+            _, K, dist, _, _ = cv2.calibrateCamera(  # pyright: ignore[reportCallIssue]
+                [o.detection.object_points.astype(np.float32) for o in train],
+                [o.detection.image_points.astype(np.float32) for o in train],
+                (1280, 720),
+                None,  # pyright: ignore[reportArgumentType]
+                None,  # pyright: ignore[reportArgumentType]
+            )
+            assert rms(test, K, dist) <= rms(test, Kc[i], Dc[i]) + 0.005, (i, fold)
+
+
 def test_caliscope_inverted_board_four_cameras(tmp_path):
     """The vendored frames of caliscope's four webcams (inverted print, found by trying both
-    polarities), every camera calibrated from them alone: each camera's own RMS ≤ 0.6 px
-    (measured 0.16–0.33) and the centres within 2 cm of caliscope's after a similarity
-    alignment (measured 0.66–1.47 cm). The focal lengths (+1.4, −1.0, −6.8, +1.0 %) and
-    relative rotations (2–5°) are NOT asserted against caliscope's: with 9–14 frames of a
-    12-corner board, σ_fx is 8–39 px (1–6 %) and σ_cx 13–34 px (a principal-point error of
-    σ_cx/f rad turns the camera by 1–3°); see the next test for the poses with caliscope's
-    intrinsics."""
+    polarities), every camera calibrated from them alone: each camera's own RMS <= 0.6 px
+    (measured 0.14-0.23) and the centres within 2 cm of caliscope's after a similarity
+    alignment (measured 0.49-1.45 cm). The focal lengths (+1.4/-2.4/-6.5/+0.9 % on fx) and
+    relative rotations (1.6-8.7 deg) are NOT asserted here: these 9-14 frames of a 12-corner
+    board pin fx to 7-30 px (1-5 %) and the principal point to 7-39 px. The goals are
+    asserted on every frame of the videos (test_caliscope_full_videos_*)."""
     import tomllib
 
     r = invoke_cli(
@@ -184,7 +336,7 @@ def _rotation_deg(R: np.ndarray) -> float:
 def test_caliscope_poses_with_its_intrinsics(tmp_path):
     """The same frames with caliscope's intrinsics held (``--intrinsics``, one OpenCV YAML
     per camera): the four centres within 2 cm of caliscope's after a similarity alignment
-    (measured 0.25–0.50 cm) and the six relative rotations within 1° (measured 0.18–0.55°,
+    (measured 0.25–0.47 cm) and the six relative rotations within 1° (measured 0.19–0.54°,
     1–2 σ of our Jacobian's 0.14–0.26°). The ~1 px joint RMS is in the data: frames of one
     instant are exposed up to 5 ms apart while the board moves by hand (held intrinsics or
     ours, the joint RMS is the same)."""
