@@ -232,6 +232,7 @@ class CameraFit:
     n_frames: int
     n_points: int
     intrinsic_rms_px: float = float("nan")  # the camera calibrated alone (its own frames)
+    intrinsic_frames: int = 0  # frames of that (with --sync, out-of-sync ones too)
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -80,7 +80,9 @@ def register(app, groups) -> None:
         max_skew: Annotated[
             float,
             typer.Option(
-                "--max-skew", help="With --sync frame_time: drop instants whose frames lie further apart (s)."
+                "--max-skew",
+                help="With --sync frame_time: instants whose frames lie further apart (s) calibrate "
+                "each camera's intrinsics only.",
             ),
         ] = 0.005,
         refine_intrinsics: Annotated[

@@ -35,6 +35,7 @@ def summary(run: CalibrateRun) -> dict:
                 "dist": [float(v) for v in f.dist],
                 "rms_px": f.rms_px,
                 "intrinsic_rms_px": f.intrinsic_rms_px,
+                "intrinsic_frames": f.intrinsic_frames,
                 # fx = fy tied ("f" free): both carry f's σ, and the aspect is what is held
                 "std": f.std | ({"fx": f.std["f"], "fy": f.std["f"]} if "f" in f.std else {}),
                 "held": [

@@ -226,7 +226,10 @@ def _calibrate_detected(
     if len(inits) == 1:
         c0 = sorted(inits)[0]
         result = alone[c0]
-        result = replace(result, cameras={c0: replace(result.cameras[c0], intrinsic_rms_px=result.cameras[c0].rms_px)})
+        fit0 = result.cameras[c0]
+        result = replace(
+            result, cameras={c0: replace(fit0, intrinsic_rms_px=fit0.rms_px, intrinsic_frames=fit0.n_frames)}
+        )
     else:
         # Together, the poses; intrinsics held at each camera's own unless asked: an
         # instant's cameras are exposed milliseconds apart while the board moves by hand,
@@ -249,7 +252,13 @@ def _calibrate_detected(
                     **alone[c].cameras[c].std,
                     **{k: v for k, v in f.std.items() if k not in alone[c].cameras[c].std},
                 }
-                cams_fit[c] = replace(f, free=inits[c].free, std=std, intrinsic_rms_px=alone[c].cameras[c].rms_px)
+                cams_fit[c] = replace(
+                    f,
+                    free=inits[c].free,
+                    std=std,
+                    intrinsic_rms_px=alone[c].cameras[c].rms_px,
+                    intrinsic_frames=alone[c].cameras[c].n_frames,
+                )
             result = replace(result, cameras=cams_fit)
     for why in left_out.values():
         log.warning(why)

@@ -251,6 +251,7 @@ def test_caliscope_full_videos_intrinsics_and_centres():
         assert abs(focal / ref - 1) <= 0.02, (i, focal, ref)
         assert abs(f.K[0, 0] / Kc[i][0, 0] - 1) <= 0.02, (i, f.K[0, 0])
         assert f.intrinsic_rms_px <= 0.6
+    assert [cams[i].intrinsic_frames for i in range(4)] == [44, 27, 43, 45]
     assert [sum(1 for n in run.notes if n.startswith(f"camera {i}: ") and "out of sync" in n) for i in range(4)] == [
         1
     ] * 4
