@@ -34,6 +34,8 @@ __all__ = [
     "rot_x",
     "BoardDetection",
     "detect_board",
+    "reinterpolate_board",
+    "marker_points",
     "tonemap_for_detection",
     "laplacian_sharpness",
     "single_threaded_solvers",
@@ -211,6 +213,10 @@ class BoardDetection:
         left-right (a webcam's mirrored preview).
     upscale : int
         Resolution factor the corners were found at.
+    marker_corners : (M, 4, 2) float64 array
+        The decoded ArUco markers' corners, pixels, same frame as ``image_points``
+        (what :func:`reinterpolate_board` and an ArUco-marker calibration start from).
+    marker_ids : (M,) int32 array
     """
 
     ids: np.ndarray
@@ -222,6 +228,8 @@ class BoardDetection:
     mirrored: bool = False
     upscale: int = 1
     variant_tries: tuple[str, ...] = field(default=())
+    marker_corners: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 2)))
+    marker_ids: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int32))
 
     def __len__(self) -> int:
         return int(self.ids.shape[0])
@@ -253,24 +261,33 @@ def _empty(n_markers: int = 0) -> BoardDetection:
 
 
 def _detect_once(gray: np.ndarray, spec: CharucoSpec, *, legacy: bool, upscale: Sequence[int], max_upscaled_px: int):
-    """Best (corners, ids, factor, n_markers) over the upscale factors of one variant."""
+    """Best (corners, ids, factor, n_markers, marker corners, marker ids) over the upscale
+    factors of one variant."""
     import cv2
 
     board, det = _charuco_detector(spec, legacy)
     n_total = (spec.squares_x - 1) * (spec.squares_y - 1)
-    best = (None, None, 1, 0)
+    best = (None, None, 1, 0, None, None)
     for f in upscale:
         f = int(f)
         if f < 1 or (f > 1 and max(gray.shape) * f > max_upscaled_px):
             continue
         g = gray if f == 1 else cv2.resize(gray, None, fx=f, fy=f, interpolation=cv2.INTER_CUBIC)
-        corners, ids, _, mids = det.detectBoard(g)
+        corners, ids, mcorners, mids = det.detectBoard(g)
         n = 0 if ids is None or corners is None else len(ids)
         if n > (0 if best[1] is None else len(best[1])):
-            best = (corners, ids, f, 0 if mids is None else len(mids))
+            best = (corners, ids, f, 0 if mids is None else len(mids), mcorners, mids)
         if n >= n_total:
             break
     return board, best
+
+
+def _from_upscaled(points, f: int) -> np.ndarray:
+    """Pixels of an image upscaled ``f`` times → the original's (OpenCV pixel centres)."""
+    if points is None or len(points) == 0:
+        return np.zeros((0, 2))
+    p = np.concatenate([np.asarray(q, dtype=np.float64).reshape(-1, 2) for q in points])
+    return (p + 0.5) / f - 0.5
 
 
 def detect_board(
@@ -329,7 +346,7 @@ def detect_board(
         g = 255 - g0 if inv else g0
         if mir:
             g = np.ascontiguousarray(g[:, ::-1])
-        board, (corners, ids, f, nm) = _detect_once(
+        board, (corners, ids, f, nm, mcorners, mids) = _detect_once(
             g, charuco, legacy=leg, upscale=upscale, max_upscaled_px=max_upscaled_px
         )
         tried.append(("inverted" if inv else "normal") + ("+legacy" if leg else "") + ("+mirrored" if mir else ""))
@@ -348,10 +365,71 @@ def detect_board(
                 legacy=leg,
                 mirrored=mir,
                 upscale=f,
+                marker_corners=_from_upscaled(mcorners, f).reshape(-1, 4, 2),
+                marker_ids=np.asarray(mids, dtype=np.int32).ravel(),
             )
         if len(best) >= max(1, n_total // 2):
             break  # half the board or more: the other variants would find nothing better
     return replace(best, variant_tries=tuple(tried))
+
+
+def marker_points(det: BoardDetection, charuco: CharucoSpec) -> tuple[np.ndarray, np.ndarray]:
+    """The decoded markers' corners of ``det`` as (object (4M, 3) metres, image (4M, 2)
+    pixels) pairs, for a calibration from ArUco marker corners (OpenCV's
+    ``calibrateCameraAruco``)."""
+    board = charuco.board(legacy=det.legacy)
+    obj = {
+        int(i): np.asarray(p, dtype=np.float64).reshape(4, 3)
+        for i, p in zip(np.ravel(board.getIds()), board.getObjPoints(), strict=True)
+    }
+    keep = [k for k, i in enumerate(det.marker_ids) if int(i) in obj]
+    if not keep:
+        return np.zeros((0, 3)), np.zeros((0, 2))
+    o = np.concatenate([obj[int(det.marker_ids[k])] for k in keep])
+    return o, det.marker_corners[keep].reshape(-1, 2)
+
+
+def reinterpolate_board(gray, det: BoardDetection, *, charuco: CharucoSpec, K, dist) -> BoardDetection:
+    """The ChArUco corners of ``det`` found again through a camera model: OpenCV's
+    interpolation with ``CharucoParameters.cameraMatrix`` set (the board pose from the
+    decoded markers, the corners projected through ``K``/``dist``, then the same
+    ``cornerSubPix``), as OpenCV's ``calibrate_camera_charuco`` sample does with the camera
+    of a first calibration from the marker corners. Same variant, markers and upscale
+    factor as ``det``; ``K``/``dist`` are for the image as ``det`` gives its pixels
+    (flipped when ``det.mirrored``)."""
+    import cv2
+
+    g = np.ascontiguousarray(np.asarray(gray))
+    if g.dtype != np.uint8 or g.ndim != 2:
+        raise ConfigError(f"reinterpolate_board: expected an (H, W) uint8 image, got {g.dtype} {g.shape}")
+    if len(det.marker_ids) == 0:
+        return det
+    if det.inverted:
+        g = 255 - g
+    if det.mirrored:
+        g = np.ascontiguousarray(g[:, ::-1])
+    f = int(det.upscale)
+    Kf = np.asarray(K, dtype=np.float64).copy()
+    if f > 1:
+        g = cv2.resize(g, None, fx=f, fy=f, interpolation=cv2.INTER_CUBIC)
+        Kf[:2, :2] *= f
+        Kf[:2, 2] = (Kf[:2, 2] + 0.5) * f - 0.5
+    board = charuco.board(legacy=det.legacy)
+    params = cv2.aruco.CharucoParameters()
+    params.cameraMatrix = Kf
+    params.distCoeffs = np.asarray(dist, dtype=np.float64).reshape(1, -1)
+    detector = cv2.aruco.CharucoDetector(board, params, cv2.aruco.DetectorParameters())
+    mc = [((m + 0.5) * f - 0.5).astype(np.float32).reshape(1, 4, 2) for m in det.marker_corners]
+    corners, ids, _, _ = detector.detectBoard(g, markerCorners=mc, markerIds=det.marker_ids.reshape(-1, 1))
+    if ids is None or corners is None or len(ids) == 0:
+        return det
+    obj, img = board.matchImagePoints(corners, ids)  # pyright: ignore[reportCallIssue, reportArgumentType]
+    return replace(
+        det,
+        ids=np.asarray(ids, dtype=np.int32).ravel(),
+        image_points=(np.asarray(img, dtype=np.float64).reshape(-1, 2) + 0.5) / f - 0.5,
+        object_points=np.asarray(obj, dtype=np.float64).reshape(-1, 3),
+    )
 
 
 def tonemap_for_detection(image, *, percentile: float = 99.5) -> np.ndarray:

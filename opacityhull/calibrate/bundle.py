@@ -104,6 +104,8 @@ def init_camera(
     dist_model: str = "k1k2pk3",
     min_plane_spread_deg: float = 10.0,
     max_view_rms_px: float = 2.0,
+    fix_principal_point: bool = False,
+    fix_aspect_ratio: bool = False,
 ) -> CameraInit:
     """Step 1 for one camera (``obs``: its frames, at least 3, checked by the caller)."""
     import cv2
@@ -125,7 +127,9 @@ def init_camera(
         m /= np.linalg.norm(m)
         spread = float(np.degrees(np.arccos(np.clip(N @ m, -1, 1))).max() * 2.0)
     notes = []
-    free: list[str] = ["fx", "fy", "cx", "cy"]
+    free: list[str] = ["f"] if fix_aspect_ratio else ["fx", "fy"]
+    if not fix_principal_point:
+        free += ["cx", "cy"]
     if spread < min_plane_spread_deg:
         free = ["f"]
         notes.append(
@@ -228,6 +232,7 @@ class CameraFit:
     n_frames: int
     n_points: int
     intrinsic_rms_px: float = float("nan")  # the camera calibrated alone (its own frames)
+    intrinsic_frames: int = 0  # frames of that (with --sync, out-of-sync ones too)
 
 
 @dataclass(frozen=True, kw_only=True)

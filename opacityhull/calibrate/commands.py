@@ -80,7 +80,9 @@ def register(app, groups) -> None:
         max_skew: Annotated[
             float,
             typer.Option(
-                "--max-skew", help="With --sync frame_time: drop instants whose frames lie further apart (s)."
+                "--max-skew",
+                help="With --sync frame_time: instants whose frames lie further apart (s) calibrate "
+                "each camera's intrinsics only.",
             ),
         ] = 0.005,
         refine_intrinsics: Annotated[
@@ -94,6 +96,22 @@ def register(app, groups) -> None:
                 "to hold its intrinsics as given (e.g. from `calibrate` on its own video); repeat per camera.",
             ),
         ] = None,
+        interpolate: Annotated[
+            str,
+            typer.Option(
+                "--interpolate",
+                help="How ChArUco corners are placed before sub-pixel refinement: aruco-calib (OpenCV's "
+                "calibrate_camera_charuco sample: through a first calibration from the marker corners) or "
+                "homography (OpenCV's CharucoDetector alone, one decoding pass).",
+            ),
+        ] = "aruco-calib",
+        fix_principal_point: Annotated[
+            bool,
+            typer.Option("--fix-principal-point", help="Hold cx, cy at the image centre (CALIB_FIX_PRINCIPAL_POINT)."),
+        ] = False,
+        fix_aspect_ratio: Annotated[
+            bool, typer.Option("--fix-aspect-ratio", help="Hold fx = fy (CALIB_FIX_ASPECT_RATIO).")
+        ] = False,
         as_json: JsonFlag = False,
     ):
         """Calibrate cameras from ChArUco photographs or videos: intrinsics, distortion,
@@ -122,6 +140,9 @@ def register(app, groups) -> None:
             step=every,
             max_skew_s=max_skew,
             refine_intrinsics=refine_intrinsics,
+            interpolate=interpolate,  # pyright: ignore[reportArgumentType]  (checked by CalibrateOptions)
+            fix_principal_point=fix_principal_point,
+            fix_aspect_ratio=fix_aspect_ratio,
         )
         run = calibrate_cameras(list(inputs), charuco=spec, sync=sync, options=opts)
         s = summary(run)

@@ -35,8 +35,15 @@ def summary(run: CalibrateRun) -> dict:
                 "dist": [float(v) for v in f.dist],
                 "rms_px": f.rms_px,
                 "intrinsic_rms_px": f.intrinsic_rms_px,
-                "std": f.std,
-                "held": [k for k in ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3") if k not in f.free],
+                "intrinsic_frames": f.intrinsic_frames,
+                # fx = fy tied ("f" free): both carry f's σ, and the aspect is what is held
+                "std": f.std | ({"fx": f.std["f"], "fy": f.std["f"]} if "f" in f.std else {}),
+                "held": [
+                    k
+                    for k in ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3")
+                    if k not in f.free and not (k in ("fx", "fy") and "f" in f.free)
+                ]
+                + (["aspect"] if "f" in f.free else []),
                 "frames": f.n_frames,
                 "corners": f.n_points,
                 "cam_from_world": f.cam_from_world,

@@ -12,7 +12,18 @@ import numpy as np
 from ..charuco import CharucoSpec, single_threaded_solvers
 from ..errors import InputError
 from .bundle import DIST_MODELS, BundleResult, CameraInit, Obs, bundle_adjust, chain_cameras, init_camera
-from .inputs import CameraInput, DetectedCamera, Rejection, camera_inputs, detect_frames, read_sync_csv, screen_frames
+from .inputs import (
+    CameraInput,
+    DetectedCamera,
+    Interpolation,
+    UNSYNCED,
+    Rejection,
+    camera_inputs,
+    detect_frames,
+    read_sync_csv,
+    reinterpolate_frames,
+    screen_frames,
+)
 
 log = logging.getLogger(__name__)
 
@@ -33,6 +44,9 @@ class CalibrateOptions:
     min_plane_spread_deg: float = 3.0
     refine_intrinsics: bool = False
     max_skew_s: float = 0.005
+    fix_principal_point: bool = False
+    fix_aspect_ratio: bool = False
+    interpolate: Interpolation = "aruco-calib"
     #: (camera index, K (3, 3), dist (5,), (width, height), source) held as given (``--intrinsics``)
     intrinsics: tuple[tuple[int, np.ndarray, np.ndarray, tuple[int, int], str], ...] = ()
 
@@ -43,6 +57,8 @@ class CalibrateOptions:
             raise InputError(f"--min-corners {self.min_corners}: expected at least 4")
         if self.step < 1:
             raise InputError(f"--every {self.step}: expected at least 1")
+        if self.interpolate not in ("homography", "aruco-calib"):
+            raise InputError(f"--interpolate {self.interpolate!r}: expected homography or aruco-calib")
 
 
 @dataclass(kw_only=True)
@@ -175,6 +191,8 @@ def _calibrate_detected(
                 size=d.size,
                 dist_model=options.dist_model,
                 min_plane_spread_deg=options.min_plane_spread_deg,
+                fix_principal_point=options.fix_principal_point,
+                fix_aspect_ratio=options.fix_aspect_ratio,
             )
         notes += inits[c].notes
     if not inits:
@@ -208,14 +226,25 @@ def _calibrate_detected(
     if len(inits) == 1:
         c0 = sorted(inits)[0]
         result = alone[c0]
-        result = replace(result, cameras={c0: replace(result.cameras[c0], intrinsic_rms_px=result.cameras[c0].rms_px)})
+        fit0 = result.cameras[c0]
+        result = replace(
+            result, cameras={c0: replace(fit0, intrinsic_rms_px=fit0.rms_px, intrinsic_frames=fit0.n_frames)}
+        )
     else:
         # Together, the poses; intrinsics held at each camera's own unless asked: an
         # instant's cameras are exposed milliseconds apart while the board moves by hand,
         # and free intrinsics absorb that (measured on caliscope's set: focal lengths
         # 12-17 % off with them free, 0.8-1.8 % with them held).
         joint = {c: replace(ini, free=ini.free if options.refine_intrinsics else ()) for c, ini in inits.items()}
-        result = bundle_adjust(joint, cam_from_world, world_from_board, all_obs)
+        synced = [o for o in all_obs if not o.instant.startswith(UNSYNCED)]
+        for c in sorted(inits):
+            n_un = sum(1 for o in all_obs if o.camera == c and o.instant.startswith(UNSYNCED))
+            if n_un:
+                notes.append(
+                    f"camera {c}: {n_un} frame(s) whose instant is out of sync (--max-skew) calibrate its "
+                    "intrinsics only"
+                )
+        result = bundle_adjust(joint, cam_from_world, world_from_board, synced)
         if not options.refine_intrinsics:
             cams_fit = {}
             for c, f in result.cameras.items():
@@ -223,7 +252,13 @@ def _calibrate_detected(
                     **alone[c].cameras[c].std,
                     **{k: v for k, v in f.std.items() if k not in alone[c].cameras[c].std},
                 }
-                cams_fit[c] = replace(f, free=inits[c].free, std=std, intrinsic_rms_px=alone[c].cameras[c].rms_px)
+                cams_fit[c] = replace(
+                    f,
+                    free=inits[c].free,
+                    std=std,
+                    intrinsic_rms_px=alone[c].cameras[c].rms_px,
+                    intrinsic_frames=alone[c].cameras[c].n_frames,
+                )
             result = replace(result, cameras=cams_fit)
     for why in left_out.values():
         log.warning(why)
@@ -262,4 +297,6 @@ def calibrate_cameras(
         )
         for c in cams
     ]
+    if options.interpolate == "aruco-calib":
+        detected = [reinterpolate_frames(d, charuco=charuco, step=options.step) for d in detected]
     return calibrate_detected(detected, charuco=charuco, options=options, cameras=cams)

@@ -120,7 +120,9 @@ def _errors_in_sigma(seed: int, n_cams: int, noise: float) -> list[float]:
     assert sorted(res.cameras) == list(range(n_cams))
     z = []
     for c, f in res.cameras.items():
-        assert f.rms_px < 1.5 * noise
+        # the 2-D RMS of Gaussian noise σ per axis is √2 σ; over ~240 corners it varies by
+        # ~3 % (seed 5345079, 2 cameras, σ 0.5 px: 1.504 σ), so 1.6 σ is 4 standard deviations off
+        assert f.rms_px < 1.6 * noise
         z.append(abs(f.K[0, 0] - Ks[c][0, 0]) / f.std["fx"])
         if c == 0:
             continue
