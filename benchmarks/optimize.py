@@ -3,6 +3,7 @@ seconds, per set and appearance mode (issue 29, item 7).
 
     .venv/bin/python benchmarks/optimize.py [--quick] [--json] [--sets temple,dino]
         [--model NAME=DIR ...] [--iterations N] [--train-scale S]
+        [--modes hull,ulr,sh+ulr] [--residual-steps N] [--stem NAME]
 
 Sets: the Middlebury rings (``tests/data/real/templeSR``, ``dinoSR``; imported and
 built with the defaults unless ``--model temple=DIR`` names a built model), every 4th
@@ -24,6 +25,14 @@ holes):
 * ``ulr`` — the fitted geometry (positions, normals, sizes; surfels of opacity < ½
   dropped; visibility recomputed by the z-buffer test) shaded by today's ULR of the
   captured training views: the opacity light field on optimized geometry.
+* ``sh+ulr`` — SH plus a ULR residual: the fitted geometry of ``sh`` (frozen), every
+  surfel shaded by the per-surfel ULR blend of the training views (a training view
+  itself and its coincident twins excluded from its own blend, so that fitting and test
+  see the same kind of colour), plus per-surfel SH coefficients fitted for
+  ``--residual-steps`` steps as the signed residual photograph − ULR
+  (``colour = max(ULR + Σ c_j Y_j, 0)``: :func:`opacityhull.optimize.appearance.sh_colors`
+  with ``base``), rendered by the rasterizer. ``ulr-r`` is its start (residual 0): the
+  same per-surfel ULR through the rasterizer, with the fitted opacities and shapes.
 
 Writes ``benchmarks/out/optimize.md``, ``.json`` and ``.png`` (``optimize_quick.*``
 with ``--quick``: fewer steps at half resolution, untracked). Figures taken while other
@@ -96,6 +105,7 @@ def score(model, test: list[int], render) -> dict:
         "ssim": float(np.mean([r["ssim"] for r in rows])),
         "coverage_iou": float(np.mean([r["coverage_iou"] for r in rows])),
         "render_ms": float(np.mean(ms)),
+        "psnr_views": [float(r["psnr"]) for r in rows],
     }
 
 
@@ -116,7 +126,167 @@ def ulr_surfels(params: dict, cameras, held: list[int]):
     return Surfels.from_bool(pos, nrm, rad, vis)
 
 
-def run_set(name: str, model_dir: Path, tmp: Path, cfg, *, observe_every: int, modes: list[str]) -> dict:
+def surfel_ulr_display(surf, pv, centre, exclude, *, k: int = 4) -> tuple[np.ndarray, np.ndarray]:
+    """Per-surfel ULR colour seen from ``centre``: (N, 3) float32 display (sRGB) colour of
+    the k-view blend (premultiplied, then divided by the blended α, as the renderer's
+    per-surfel shading), and (N,) bool where some allowed view saw the surfel."""
+    from opacityhull.imageio import srgb_encode
+    from opacityhull.render import kernels as K
+    from opacityhull.render.renderer import _allowed
+
+    N = len(surf)
+    allowed = _allowed(pv.n_views, sorted(set(int(v) for v in exclude)))
+    out = np.zeros((N, 4), np.float32)
+    ok = np.zeros(N, np.bool_)
+    order, s_lb = np.arange(pv.n_views, dtype=np.int64), np.zeros(pv.n_views)
+    C = np.asarray(centre, np.float64).reshape(3)
+    K.parallel_for(
+        K.ulr_shade,
+        N,
+        (
+            K.UlrHead(surf.positions, surf.visibility, np.ones(N, np.bool_), allowed, C, pv.centres, pv.cams, pv.sizes),
+            pv.offsets,
+            pv.texels,
+            order,
+            s_lb,
+            pv.tie_rank,
+            int(k),
+            out,
+            0,
+            ok,
+        ),
+        threads=1,
+    )
+    a = out[:, 3:4]
+    straight = np.where(a > 1e-4, out[:, :3] / np.maximum(a, 1e-4), 0.0)
+    return srgb_encode(np.clip(straight, 0.0, 1.0)).astype(np.float32), ok & (a[:, 0] > 1e-4)
+
+
+def render_colored(params: dict, colors: np.ndarray, camera) -> np.ndarray:
+    """:func:`opacityhull.optimize.fit.render_params` with given (N, 3) display colours."""
+    from opacityhull.imageio import srgb_decode
+    from opacityhull.optimize.fit import _raster_camera, _splat_params
+    from opacityhull.optimize.raster import RasterConfig, rasterize
+
+    out = rasterize(_splat_params(params, colors), _raster_camera(camera), config=RasterConfig())
+    a = np.clip(out.alpha, 0.0, 1.0).astype(np.float32)
+    premul = srgb_decode(np.clip(out.image, 0.0, 1.0))
+    straight = np.where(a[..., None] > 1e-6, premul / np.maximum(a[..., None], 1e-6), 0.0)
+    return np.concatenate([straight, a[..., None]], axis=2).astype(np.float32)
+
+
+def residual_fit(params: dict, data, base: list[np.ndarray], cfg, *, steps: int, observe):
+    """Fit per-surfel SH coefficients (degree ``cfg.sh_degree``, zero start) as the
+    residual over the per-surfel ULR colours ``base[j]`` of ``data.views[j]``, the
+    geometry frozen. Same loss, Adam,
+    rates and screen filter as the fit. Returns (coefficients (N, B, 3), ms per step)."""
+    from opacityhull.optimize.adam import Adam
+    from opacityhull.optimize.appearance import sh_colors, sh_colors_backward, view_dirs
+    from opacityhull.optimize.fit import _raster_camera, _splat_params, step_loss, view_order
+    from opacityhull.optimize.raster import RasterConfig, rasterize, rasterize_backward
+
+    rc = RasterConfig(lowpass_px2=RasterConfig().lowpass_px2 * cfg.train_scale**2)
+    deg = int(cfg.sh_degree)
+    B = (deg + 1) ** 2
+    res = np.zeros((len(params["means"]), B, 3), np.float32)
+    adam = Adam({"sh": res})
+    lr = np.full((B, 1), cfg.lr_sh_rest, np.float32)
+    lr[0] = cfg.lr_sh_dc
+    order = view_order(len(data.views), steps, cfg.seed + 1)
+    cams = [_raster_camera(v.camera) for v in data.views]
+    ms = []
+    observe(0, res)
+    for it in range(steps):
+        t0 = time.perf_counter()
+        j = int(order[it])
+        view = data.views[j]
+        dirs = view_dirs(params["means"], view.camera.centre_world)
+        colors, basis, positive = sh_colors(res, dirs, degree=deg, base=base[j])
+        sp = _splat_params(params, colors)
+        out = rasterize(sp, cams[j], config=rc)
+        _, g_img, g_a = step_loss(
+            out.image,
+            out.alpha,
+            view.target,
+            view.alpha,
+            ssim_weight=cfg.ssim_weight,
+            alpha_weight=cfg.alpha_weight,
+            color_loss=cfg.color_loss,
+        )
+        g = rasterize_backward(out, sp, cams[j], dL_dimage=g_img, dL_dalpha=g_a, config=rc)
+        adam.step({"sh": res}, {"sh": sh_colors_backward(g.colors, basis, positive, B)}, {"sh": lr})
+        ms.append(1e3 * (time.perf_counter() - t0))
+        if (it + 1) % max(1, steps // 3) == 0 or it + 1 == steps:
+            observe(it + 1, res)
+    return res, float(np.mean(ms)) if ms else float("nan")
+
+
+def fitted_surfels(params: dict, cameras, held: list[int]):
+    """Every fitted surfel as ULR surfels (the ``ulr`` mode's :func:`ulr_surfels` without
+    its opacity cut: the residual needs a base colour under each surfel the rasterizer
+    draws); the z-buffer sees them all."""
+    from opacityhull.model import Surfels
+    from opacityhull.optimize.surfelparams import normals_of
+    from opacityhull.reconstruct.visibility import surfel_visibility
+
+    pos = params["means"].astype(np.float64)
+    nrm = normals_of(params["quats"]).astype(np.float64)
+    rad = np.exp(params["log_scales"].astype(np.float64)).max(axis=1) / 0.5
+    vis = np.asarray(surfel_visibility(pos, nrm, rad, cameras, depth_tol_m=float(np.percentile(rad, 99))), bool)
+    vis[:, held] = False
+    return Surfels.from_bool(pos, nrm, rad, vis)
+
+
+def run_residual(name, wm, params, data, cfg, cams, pv, test, held, train, *, steps: int) -> dict:
+    """The ``ulr-r`` and ``sh+ulr`` modes on the fitted ``params`` (see the module docstring)."""
+    from opacityhull.evaluate.loo import held_out_groups
+    from opacityhull.optimize.appearance import sh_colors, view_dirs
+
+    t0 = time.perf_counter()
+    fs = fitted_surfels(params, cams, held)
+    twins = held_out_groups(wm, train)
+    dc, _, _ = sh_colors(params["sh"], view_dirs(params["means"], np.zeros(3)), degree=0)  # the fit's own DC colour
+
+    def with_fallback(col, ok):
+        return np.where(ok[:, None], col, dc).astype(np.float32)
+
+    base_train, drawn = [], []
+    for v in data.views:
+        col, ok = surfel_ulr_display(fs, pv, cams[v.index].centre_world, set(held) | set(twins[v.index]))
+        base_train.append(with_fallback(col, ok))
+        drawn.append(float(ok.mean()))
+    base_test = {}
+    for i in test:
+        col, ok = surfel_ulr_display(fs, pv, cams[i].centre_world, held)
+        base_test[i] = with_fallback(col, ok)
+    prep_s = time.perf_counter() - t0
+    deg = int(cfg.sh_degree)
+    out: dict = {"curve": []}
+
+    def observe(it, res):
+        def render(i):
+            col, _, _ = sh_colors(res, view_dirs(params["means"], cams[i].centre_world), degree=deg, base=base_test[i])
+            return render_colored(params, col, cams[i])
+
+        sc = score(wm, test, render)
+        out["curve"].append({"iteration": it, **sc})
+        print(f"{name}: sh+ulr residual step {it} test {sc['psnr']:.2f} dB", file=sys.stderr)
+
+    t1 = time.perf_counter()
+    _, ms = residual_fit(params, data, base_train, cfg, steps=steps, observe=observe)
+    return {
+        "ulr-r": {**out["curve"][0], "surfels": len(fs)},
+        "sh+ulr": {**out["curve"][-1], "surfels": len(fs), "residual_steps": steps, "residual_ms_per_step": ms},
+        "residual_curve": out["curve"],
+        "residual_prep_s": round(prep_s, 1),
+        "residual_wall_s": round(time.perf_counter() - t1, 1),
+        "ulr_drawn_fraction_train": float(np.mean(drawn)),
+    }
+
+
+def run_set(
+    name: str, model_dir: Path, tmp: Path, cfg, *, observe_every: int, modes: list[str], residual_steps: int = 300
+) -> dict:
     from opacityhull.model import OpacityHullModel
     from opacityhull.optimize.data import load_fit_data
     from opacityhull.optimize.fit import fit_params, render_params
@@ -186,7 +356,12 @@ def run_set(name: str, model_dir: Path, tmp: Path, cfg, *, observe_every: int, m
             "surfels": len(us),
         }
         print(f"{name}: ulr on fitted geometry {res['ulr']['psnr']:.2f} dB", file=sys.stderr)
+    if "sh+ulr" in modes:
+        res.update(run_residual(name, wm, params, data, cfg, cams, pv, test, held, train, steps=residual_steps))
     return res
+
+
+MODES = ("hull", "start", "sh", "ulr", "ulr-r", "sh+ulr")
 
 
 def table(rows: list[dict]) -> str:
@@ -196,19 +371,39 @@ def table(rows: list[dict]) -> str:
     ]
     for r in rows:
         fit = r["fit"]
-        for mode in ("hull", "start", "sh", "ulr"):
+        for mode in MODES:
             if mode not in r:
                 continue
             m = r[mode]
-            steps = fit["iterations"] if mode in ("sh", "ulr") else 0
-            secs = fit["step_s"] if mode in ("sh", "ulr") else 0
+            fitted = mode not in ("hull", "start")
+            steps = fit["iterations"] if fitted else 0
+            secs = fit["step_s"] if fitted else 0
+            ms = fit["ms_per_iteration"] if fitted else float("nan")
+            if mode == "sh+ulr":
+                steps += m["residual_steps"]
+                secs += m["residual_steps"] * m["residual_ms_per_step"] / 1e3
+                ms = m["residual_ms_per_step"]
             n = m.get("surfels", m.get("n_surfels", r["surfels_hull"] if mode == "hull" else fit["n_surfels_start"]))
             out.append(
                 f"| {r['set']} | {mode} | {m['psnr']:.2f} | {m['ssim']:.3f} | {m['coverage_iou']:.3f} | {steps} | "
-                f"{secs:.0f} | {fit['ms_per_iteration'] if mode in ('sh', 'ulr') else float('nan'):.0f} | {n} | "
-                f"{GOALS.get(r['set'], float('nan')):.1f} |"
+                f"{secs:.0f} | {ms:.0f} | {n} | {GOALS.get(r['set'], float('nan')):.1f} |"
             )
     return "\n".join(out)
+
+
+def paired(rows: list[dict], a: str = "sh", b: str = "sh+ulr") -> list[str]:
+    """Per held-out view PSNR of ``b`` − ``a``: mean and the spread (sample std-dev) over views."""
+    out = []
+    for r in rows:
+        if a in r and b in r:
+            d = np.subtract(r[b]["psnr_views"], r[a]["psnr_views"])
+            sd = float(np.std(d, ddof=1)) if d.size > 1 else float("nan")
+            out.append(
+                f"- {r['set']}: {b} − {a} per held-out view "
+                + ", ".join(f"{x:+.2f}" for x in d)
+                + f" dB; mean {d.mean():+.2f}, spread (std over views) {sd:.2f} dB"
+            )
+    return out
 
 
 def write_sheets(rows: list[dict], path: Path) -> None:
@@ -237,7 +432,7 @@ def plot(rows: list[dict], path: Path) -> None:
         ps = [p["psnr"] for p in c]
         (line,) = ax[0].plot(it, ps, "o-", label=f"{r['set']} sh")
         ax[1].plot(s, ps, "o-", color=line.get_color(), label=f"{r['set']} sh")
-        for mode, mk in (("hull", "--"), ("ulr", ":")):
+        for mode, mk in (("hull", "--"), ("ulr", ":"), ("sh+ulr", "-.")):
             if mode in r:
                 for a in ax:
                     a.axhline(r[mode]["psnr"], ls=mk, color=line.get_color(), lw=1, label=f"{r['set']} {mode}")
@@ -261,7 +456,9 @@ def main(argv=None) -> int:
     ap.add_argument("--model", action="append", default=[], help="NAME=DIR: a built model (temple, dino, demo)")
     ap.add_argument("--iterations", type=int, default=None)
     ap.add_argument("--train-scale", type=float, default=None)
-    ap.add_argument("--modes", default="hull,ulr", help="besides sh: hull, ulr")
+    ap.add_argument("--modes", default="hull,ulr,sh+ulr", help="besides sh: hull, ulr, sh+ulr")
+    ap.add_argument("--residual-steps", type=int, default=300, help="sh+ulr: steps of the residual SH fit")
+    ap.add_argument("--stem", default=None, help="output file stem (default optimize, optimize_quick)")
     ap.add_argument("--observe-every", type=int, default=None)
     ap.add_argument("--set", action="append", default=[], help="KEY=VALUE: a FitConfig field (JSON value)")
     a = ap.parse_args(argv)
@@ -296,9 +493,19 @@ def main(argv=None) -> int:
                 print(f"unknown set {name!r}: expected one of {', '.join(EVERY)}", file=sys.stderr)
                 return 2
             md = Path(models[name]) if name in models else build_real(name, tmp)
-            rows.append(run_set(name, md, tmp, cfg, observe_every=every, modes=a.modes.split(",")))
+            rows.append(
+                run_set(
+                    name,
+                    md,
+                    tmp,
+                    cfg,
+                    observe_every=every,
+                    modes=a.modes.split(","),
+                    residual_steps=a.residual_steps,
+                )
+            )
     OUT.mkdir(parents=True, exist_ok=True)
-    stem = "optimize_quick" if a.quick else "optimize"
+    stem = a.stem or ("optimize_quick" if a.quick else "optimize")
     md = report_head(
         "Optimized opacity hull: held-out PSNR against fitting steps and time",
         f"`benchmarks/optimize.py {' '.join(sys.argv[1:] if argv is None else argv)}`: every 4th view held out "
@@ -307,11 +514,13 @@ def main(argv=None) -> int:
         "the photograph's mask and the rendered coverage, colour over black, sRGB (`eval loo`'s metric). "
         "`hull` is today's model (hull rebuilt without the held-out views, ULR of the training views), `start` "
         "the fit's start (hull surfels, blended colour, the rasterizer), `sh` the fitted surfels with SH colour, "
-        "`ulr` the fitted geometry shaded by ULR. Times are wall seconds of the fitting steps alone on a 2-core "
+        "`ulr` the fitted geometry shaded by ULR (today's renderer), `ulr-r` the per-surfel ULR of the training "
+        "views on the fitted surfels through the rasterizer, `sh+ulr` that plus a fitted SH residual (the fitted "
+        "geometry of `sh` frozen; the module docstring). Times are wall seconds of the fitting steps alone on a 2-core "
         "machine shared with other work (slow by that load).",
         "Fit options: " + json.dumps({k: v for k, v in asdict(cfg).items()}),
     )
-    md += [table(rows), ""]
+    md += [table(rows), "", *paired(rows), ""]
     for r in rows:
         md.append(
             f"- {r['set']}: "

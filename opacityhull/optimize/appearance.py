@@ -3,7 +3,9 @@
 The basis is :func:`opacityhull.sh.sh_basis` (3DGS constants, order and signs),
 and the convention is 3DGS's: ``colour = Σ_j c_j Y_j(d) + ½``, clamped at 0, in the
 display (sRGB-encoded) space, d the unit direction from the camera centre to the
-surfel. The fitted model's PLY is then what a 3DGS/2DGS viewer expects as it is.
+surfel. With a per-surfel ``base`` colour instead of ½ the same coefficients model a
+signed residual over another shading (``colour = base + Σ_j c_j Y_j``, e.g. over the
+ULR blend of the captured views: ``benchmarks/optimize.py``'s ``sh+ulr`` mode). The fitted model's PLY is then what a 3DGS/2DGS viewer expects as it is.
 The gradient is taken with respect to the coefficients only (as the direction depends
 on the position only through d, whose effect on a surfel's colour is second order
 next to the image-space gradient of its position).
@@ -25,7 +27,9 @@ def view_dirs(means: np.ndarray, centre_world: np.ndarray) -> np.ndarray:
     return d / np.maximum(n, 1e-12)
 
 
-def sh_colors(coeffs: np.ndarray, dirs: np.ndarray, *, degree: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def sh_colors(
+    coeffs: np.ndarray, dirs: np.ndarray, *, degree: int, base: float | np.ndarray = 0.5
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Colour of every surfel seen along ``dirs``.
 
     Parameters
@@ -33,16 +37,18 @@ def sh_colors(coeffs: np.ndarray, dirs: np.ndarray, *, degree: int) -> tuple[np.
     coeffs : (N, B, 3) SH coefficients, B ≥ (degree+1)², 3DGS order (DC first).
     dirs : (N, 3) unit view directions.
     degree : the degree evaluated (the higher coefficients are ignored).
+    base : the colour the SH sum is added to: ½ (3DGS), or (N, 3) per-surfel colours
+        in the same display space (the SH then a signed residual over them).
 
     Returns
     -------
-    colors : (N, 3) float32, ``max(Σ_j c_j Y_j + ½, 0)``.
+    colors : (N, 3) float32, ``max(Σ_j c_j Y_j + base, 0)``.
     basis : (N, (degree+1)²) float32, the basis values (for :func:`sh_colors_backward`).
     positive : (N, 3) bool, where the clamp let the gradient through.
     """
     b = (int(degree) + 1) ** 2
     Y = sh_basis(dirs, int(degree)).astype(np.float32)
-    raw = np.einsum("nb,nbc->nc", Y, coeffs[:, :b, :]) + 0.5
+    raw = np.einsum("nb,nbc->nc", Y, coeffs[:, :b, :]) + np.asarray(base, np.float32)
     positive = raw > 0
     return np.where(positive, raw, 0.0).astype(np.float32), Y, positive
 

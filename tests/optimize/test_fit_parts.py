@@ -63,6 +63,45 @@ def test_sh_dc_only_is_the_3dgs_constant():
     assert pos.all()
 
 
+@settings(max_examples=20, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1))
+def test_sh_residual_over_a_base_equals_the_degree_one_formula_and_its_finite_differences(seed):
+    # the sh+ulr mode: colour = max(base + Σ c_j Y_j, 0) with a per-surfel base (the ULR
+    # colour), no ½; the degree-1 basis written out (3DGS: C0, −C1·y, C1·z, −C1·x)
+    rng = np.random.default_rng(seed)
+    n = 6
+    coeffs = rng.normal(0, 0.3, (n, 16, 3))
+    dirs = _unit(rng, n)
+    base = rng.uniform(-0.2, 1.2, (n, 3))
+    w = rng.standard_normal((n, 3))
+    C0, C1 = 0.28209479177387814, 0.4886025119029199
+    x, y, z = dirs.T
+    Y = np.stack([np.full(n, C0), -C1 * y, C1 * z, -C1 * x], axis=1)
+    ref = np.maximum(base + np.einsum("nb,nbc->nc", Y, coeffs[:, :4]), 0.0)
+    col, basis, pos = sh_colors(coeffs, dirs, degree=1, base=base)
+    np.testing.assert_allclose(col, ref, atol=1e-5)
+    zero, _, _ = sh_colors(np.zeros_like(coeffs), dirs, degree=1, base=base)
+    np.testing.assert_allclose(zero, np.maximum(base, 0), atol=1e-6)  # a zero residual is the base
+    g = sh_colors_backward(w.astype(np.float32), basis, pos, 16)
+    assert np.all(g[:, 4:] == 0) and np.all(g[~pos[:, None, :].repeat(16, 1)] == 0)
+
+    def loss(c):
+        cc, _, _ = sh_colors(c, dirs, degree=1, base=base)
+        return float(np.sum(w * cc.astype(np.float64)))
+
+    h = 1e-3
+    for i in range(n):
+        for c in range(3):
+            raw = base[i, c] + float(Y[i] @ coeffs[i, :4, c])
+            if abs(raw) < 0.05:  # the clamp's kink
+                continue
+            j = int(rng.integers(4))
+            e = np.zeros_like(coeffs)
+            e[i, j, c] = h
+            fd = (loss(coeffs + e) - loss(coeffs - e)) / (2 * h)
+            assert g[i, j, c] == pytest.approx(fd, rel=2e-3, abs=2e-4)
+
+
 def test_ssim_equals_skimage_away_from_the_border():
     from skimage.metrics import structural_similarity
 
