@@ -5,7 +5,10 @@ Pipeline (each step a pure function over arrays, in its own module;
 
 1. **Detection** (:mod:`.detect`, :func:`detect_charuco`, :func:`screen_observation`):
    linear images tone-mapped to 8 bit and searched with OpenCV 5's ``CharucoDetector``;
-   views with too few or (nearly) collinear corners are dropped with the reason.
+   views with too few or (nearly) collinear corners are dropped with the reason. With
+   ``CalibrationConfig.interpolate="aruco-calib"`` (:mod:`.reinterpolate`) the corners
+   are found again through a first calibration from the marker corners, as
+   ``opacityhull calibrate`` does (off by default: not better on the simulated rig).
 2. **Intrinsics per camera** (:mod:`.intrinsics`): ``cv2.calibrateCamera`` over that
    camera's usable views, holding what a single board plane cannot constrain (principal
    point, aspect ratio, ``k2``), the distortion model chosen by BIC, misdetections
@@ -33,9 +36,10 @@ from ...se3 import rodrigues as _rodrigues  # noqa: F401  (benchmarks/calibratio
 from ...se3 import rotation_angle_deg
 from .axis import estimate_turntable_axis
 from .calibrate import calibrate_observations, calibrate_session
-from .config import CalibrationConfig, CalibrationError, ProgressCallback
+from .config import CalibrationConfig, CalibrationError, Interpolation, ProgressCallback
 from .detect import CharucoObservation, detect_charuco, screen_observation, tonemap_for_detection
 from .evaluate import pose_errors, render_charuco_view
+from .reinterpolate import reinterpolate_views
 from .result import CalibrationResult, view_cameras
 
 __all__ = [
@@ -44,6 +48,8 @@ __all__ = [
     "CharucoObservation",
     "CalibrationResult",
     "ProgressCallback",
+    "Interpolation",
+    "reinterpolate_views",
     "tonemap_for_detection",
     "detect_charuco",
     "screen_observation",

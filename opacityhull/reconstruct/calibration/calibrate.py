@@ -16,16 +16,17 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 
 from ...camera import Camera, rig_from_object
-from ...charuco import CharucoSpec, single_threaded_solvers
+from ...charuco import BoardDetection, CharucoSpec, detect_board, single_threaded_solvers
 from ...errors import FormatError, InputError
 from ...riggeometry import RigGeometry, view_id
 from ...se3 import invert_rigid, mean_pose, rigid, rodrigues
 from .axis import estimate_turntable_axis, rig_from_axis
 from .board import board_params, board_pose
 from .config import CalibrationConfig, CalibrationError, ProgressCallback
-from .detect import CharucoObservation, detect_charuco, screen_observation
+from .detect import CharucoObservation, detection_gray, observation_from, screen_observation
 from .intrinsics import fit_intrinsics
 from .refine import CamBlock, RigModel, refine_nlopt
+from .reinterpolate import reinterpolate_views
 from .result import CalibrationResult, reprojection_rms_px
 
 if TYPE_CHECKING:
@@ -312,7 +313,8 @@ def calibrate_session(
     Returns
     -------
     CalibrationResult
-        ``seconds["detect"]`` holds the detection time.
+        ``seconds["detect"]`` holds the detection time (both passes with
+        ``config.interpolate="aruco-calib"``, whose per-camera notes lead ``notes``).
 
     Raises
     ------
@@ -335,7 +337,7 @@ def calibrate_session(
     for r in recs:
         shots.setdefault(r.shot, r)
     t0 = time.perf_counter()
-    observations: list[CharucoObservation] = []
+    detections: list[tuple[CharucoObservation, BoardDetection]] = []
     dropped: dict[str, str] = {}
     # Calibrate every camera the session used (in any phase): a camera the plan left out
     # entirely needs no calibration; one with images but no usable board views is an error.
@@ -369,27 +371,35 @@ def calibrate_session(
             )
             continue
         seen_size[r.camera] = sizes[r.camera] = (w, h)
-        observations.append(
-            detect_charuco(
-                img,
-                charuco=spec,
-                camera=r.camera,
-                table_deg=r.table_deg,
-                percentile=config.tonemap_percentile,
-                upscale=config.detect_upscale,
-                max_upscaled_px=config.detect_max_upscaled_px,
-            )
+        det = detect_board(
+            detection_gray(img, percentile=config.tonemap_percentile),
+            charuco=spec,
+            upscale=config.detect_upscale,
+            max_upscaled_px=config.detect_max_upscaled_px,
         )
+        detections.append((observation_from(det, camera=r.camera, table_deg=r.table_deg), det))
     if progress is not None:
         progress(total, total)
-    t_detect = time.perf_counter() - t0
     # Nominal intrinsics scaled to the image size actually captured.
     nom = list(nominal)
     for i in sizes:
         w, h = sizes[i]
         c = nominal[i]
         nom[i] = c if (w, h) == (c.width, c.height) else c.scaled(w / c.width)
+    observations = [o for o, _ in detections]
+    notes: list[str] = []
+    if config.interpolate == "aruco-calib":
+
+        def gray_of(vid: str) -> np.ndarray:
+            # loaded again rather than kept: a rig's views at full resolution are large
+            return detection_gray(session.load_radiance(by_view[vid]), percentile=config.tonemap_percentile)
+
+        with single_threaded_solvers():
+            observations, notes = reinterpolate_views(
+                detections, gray_of=gray_of, image_sizes=sizes, charuco=spec, nominal=nom, config=config
+            )
+    t_detect = time.perf_counter() - t0
     result = calibrate_observations(
         observations, image_sizes=sizes, charuco=spec, nominal=nom, config=config, dropped=dropped
     )
-    return replace(result, seconds={"detect": t_detect, **result.seconds})
+    return replace(result, seconds={"detect": t_detect, **result.seconds}, notes=tuple(notes) + result.notes)

@@ -5,12 +5,17 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from collections.abc import Callable
+from typing import Literal
 
 from ...errors import ConfigError, InputError
 
-__all__ = ["CalibrationError", "CalibrationConfig", "ProgressCallback"]
+__all__ = ["CalibrationError", "CalibrationConfig", "ProgressCallback", "Interpolation"]
 
 ProgressCallback = Callable[[int, int], None]
+
+#: How ChArUco corners are placed before sub-pixel refinement; the names of
+#: ``opacityhull calibrate --interpolate`` (see :mod:`opacityhull.calibrate.inputs`).
+Interpolation = Literal["homography", "aruco-calib"]
 
 
 class CalibrationError(InputError):
@@ -81,6 +86,24 @@ class CalibrationConfig:
         Resolution factors the detector tries (see :func:`detect_charuco`).
     detect_max_upscaled_px : int
         Upscaled images stay below this size on their long side.
+    interpolate : {"aruco-calib", "homography"}
+        How :func:`calibrate_session` places the ChArUco corners before ``cornerSubPix``.
+        ``homography``: OpenCV's ``CharucoDetector`` without a camera (each corner from
+        its neighbouring markers' homography), one pass. ``aruco-calib``: as
+        ``opacityhull calibrate`` (OpenCV's ``calibrate_camera_charuco`` sample): each
+        camera first calibrated from the decoded markers' corners (step 2's
+        :func:`fit_intrinsics`, with its held intrinsics), every view's corners found
+        again through that camera (:func:`opacityhull.charuco.reinterpolate_board`),
+        then the calibration solved from those corners. ``homography`` is the default
+        here (unlike the ``calibrate`` command) because the simulated rig is not better
+        with ``aruco-calib`` (benchmarks/turntable_interpolation.py): the corners land as
+        close or closer to the true projections, and the RMS drops (tiny plan 0.176 ->
+        0.158 px, demo 0.153 -> 0.141 px), but with 3-7 views per camera the lower
+        residual lets BIC choose a spurious distortion (demo cam0: k1 = 0.49 on a
+        pinhole) and the working volume reprojects worse (tiny 0.20 -> 0.77 px, demo
+        0.16 -> 0.80 px, rotation 0.20 -> 0.35 deg); at twice the resolution rotation is
+        equal and the volume better (0.14 -> 0.11 px) but position and focal worse
+        (5.9 -> 8.1 mm, 0.44 -> 0.74 %).
     """
 
     min_corners: int = 8
@@ -105,6 +128,7 @@ class CalibrationConfig:
     tonemap_percentile: float = 99.5
     detect_upscale: tuple[int, ...] = (1, 2, 3)
     detect_max_upscaled_px: int = 2048
+    interpolate: Interpolation = "homography"
 
     def __post_init__(self):
         if int(self.min_corners) < 4:
@@ -125,5 +149,9 @@ class CalibrationConfig:
             )
         if not self.detect_upscale or any(int(f) < 1 for f in self.detect_upscale):
             raise ConfigError(f"CalibrationConfig.detect_upscale={self.detect_upscale!r}: expected factors >= 1")
+        if self.interpolate not in ("aruco-calib", "homography"):
+            raise ConfigError(
+                f"CalibrationConfig.interpolate={self.interpolate!r}: expected 'aruco-calib' or 'homography'"
+            )
         if not 50.0 <= float(self.tonemap_percentile) <= 100.0:
             raise ConfigError(f"CalibrationConfig.tonemap_percentile={self.tonemap_percentile}: expected 50..100")

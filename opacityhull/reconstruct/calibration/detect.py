@@ -16,12 +16,20 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from ...charuco import CharucoSpec, detect_board, tonemap_for_detection
+from ...charuco import BoardDetection, CharucoSpec, detect_board, marker_points, tonemap_for_detection
 from ...errors import ShapeError
 from ...riggeometry import view_id
 from .config import CalibrationConfig
 
-__all__ = ["CharucoObservation", "tonemap_for_detection", "detect_charuco", "screen_observation"]
+__all__ = [
+    "CharucoObservation",
+    "tonemap_for_detection",
+    "detect_charuco",
+    "detection_gray",
+    "observation_from",
+    "marker_observation",
+    "screen_observation",
+]
 
 
 @dataclass(frozen=True)
@@ -103,15 +111,35 @@ def detect_charuco(
     CharucoObservation
         Corner positions in the original image's pixels; possibly zero corners.
     """
+    gray = detection_gray(image, percentile=percentile)
+    det = detect_board(gray, charuco=charuco, upscale=upscale, max_upscaled_px=max_upscaled_px)
+    return observation_from(det, camera=camera, table_deg=table_deg)
+
+
+def detection_gray(image, *, percentile: float = 99.5) -> np.ndarray:
+    """The (H, W) uint8 image the detector searches: a linear float image tone-mapped
+    (:func:`tonemap_for_detection`), an 8-bit one as it is (channels averaged)."""
     a = np.asarray(image)
     if a.dtype == np.uint8:
-        gray = (
+        return (
             a if a.ndim == 2 else (a[..., :3].mean(axis=2).round().astype(np.uint8) if a.shape[2] >= 3 else a[..., 0])
         )
-    else:
-        gray = tonemap_for_detection(a, percentile=percentile)
-    det = detect_board(gray, charuco=charuco, upscale=upscale, max_upscaled_px=max_upscaled_px)
+    return tonemap_for_detection(a, percentile=percentile)
+
+
+def observation_from(det: BoardDetection, *, camera: int, table_deg: float) -> CharucoObservation:
+    """The ChArUco corners of ``det`` as the observation of view (``camera``, ``table_deg``)."""
     return CharucoObservation(camera, table_deg, det.ids, det.image_points, det.object_points)
+
+
+def marker_observation(
+    det: BoardDetection, *, charuco: CharucoSpec, camera: int, table_deg: float
+) -> CharucoObservation:
+    """The decoded ArUco markers' corners of ``det`` as an observation (ids 0..4M-1, not
+    ChArUco corner ids): what a first calibration from marker corners fits
+    (:func:`opacityhull.charuco.marker_points`)."""
+    obj, img = marker_points(det, charuco)
+    return CharucoObservation(camera, table_deg, np.arange(len(obj)), img, obj)
 
 
 def _minor_std(points2: np.ndarray) -> float:
