@@ -476,6 +476,7 @@ def test_cli_matte_writes_files_and_json(small_set, tmp_path):
     assert summary["clear_fraction"] > 0.75 and summary["fractional_fraction"] < 0.2
     assert json.loads((out / "matte.json").read_text())["clear_fraction"] == summary["clear_fraction"]
     assert len(summary["drift"]["shots"]) == 2 and len(summary["registration_px"]) == 2
+    assert all(s["flow_px_p50"] is not None for s in summary["drift"]["shots"])  # the flow is on by default
     fg = cv2.imread(str(out / "foreground_premul.png"), cv2.IMREAD_UNCHANGED)
     comp = cv2.imread(str(out / "composite.png"))
     win = cv2.imread(str(d / "window.png"))
