@@ -188,7 +188,11 @@ def _human_matte(summary: dict) -> None:
             shift = (
                 "n/a" if sh is None else f"({sh[0]:+.2f}, {sh[1]:+.2f}) px" + (" applied" if s["shift_applied"] else "")
             )
-            c.print(f"pair {k}: drift gain R,G,B = {', '.join(f'{g:.3f}' for g in s['gain'])}; registration {shift}")
+            fl = s.get("flow_px_p50")
+            flow = "" if fl is None else f"; non-rigid flow median {fl:.2f} px (p99 {s['flow_px_p99']:.2f})"
+            c.print(
+                f"pair {k}: drift gain R,G,B = {', '.join(f'{g:.3f}' for g in s['gain'])}; registration {shift}{flow}"
+            )
     for n in summary.get("notes", []):
         c.print(f"[yellow]note:[/] {n}")
 

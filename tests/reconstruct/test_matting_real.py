@@ -6,20 +6,30 @@ and a dark cloth, the cloths alone; JPEG, downscaled to 640×960, see SOURCE.txt
 Without correction the backdrop shots drift against the object shots (exposure ×0.95,
 white balance ×(0.82, 0.96, 1.28), varying over the frame by ±10 %): only 53 % of the
 pure-backdrop band (left quarter, top 60 %) gets alpha < 0.05 and 40 % of the frame is
-fractional. Measured with ``drift="field"`` (default of ``opacityhull matte``):
+fractional. Measured with ``drift="field"`` (default of ``opacityhull matte``; figures
+from ``benchmarks/matting_real.py``, ``benchmarks/out/matting_real.md``):
 
-=========================  ===========  ================  ==============
-                           640×960      1280×1920 (orig)  no correction
-band alpha < 0.05          98.8 %       98.8 %            53 %
-band minus the leaf tip    99.7 %       99.7 %            55 %
-band alpha p99             0.061        0.060             0.23
-frame fractional           10.4 %       10.0 %            40 %
-=========================  ===========  ================  ==============
+=========================  ===========  ===========  ==============
+                           640×960      640×960      no correction
+                           field+flow   field only
+band alpha < 0.05          99.04 %      98.90 %      53 %
+band minus the leaf tip    99.95 %      99.80 %      55 %
+band alpha p99             0.05         0.05         0.23
+frame fractional           9.9 %        10.2 %       40 %
+=========================  ===========  ===========  ==============
 
 The band is not pure backdrop at the vendored framing: the tip of the leftmost leaf
-(rows 527-552, columns 91-159 at 640×960) reaches into it and is rightly opaque, which
-caps the raw band statistic at ~99.0 %; the test asserts >= 99 % on the band minus a box
-around that tip, and >= 98.5 % on the raw band. Global per-channel gain or 3×3 + offset models
+(rows 527-552, columns 91-159 at 640×960) reaches into it and is rightly opaque (829
+pixels at alpha >= 0.05, connected to opaque ones), which caps the raw band statistic at
+99.10 %. What the gain field alone leaves (183 pixels outside the leaf box; 278 with
+the field of before, ``field_sigma_rel`` 0.004: 98.79 %) lies along a cloth fold near
+the left edge that moved between backdrop shot A and object shot A: the non-rigid
+registration (``DriftOptions.flow``) takes the motion and the finer field the changed
+shading, leaving 47. The test asserts >= 99 % on the raw band. The margin, measured
+under one-at-a-time perturbations of the parameters around the default (field_sigma_rel
+0.0025 / 0.0035, flow_sigma_px 0.7 / 1.5, flow_prior 0.5 / 2, flow_iters 10, rounds 4,
+object_margin_rel 0.003 / 0.006): 99.012 - 99.047 %, i.e. 11 to 43 pixels to spare; the
+band minus the leaf tip stays >= 99.92 % (asserted >= 99.9 %). Global per-channel gain or 3×3 + offset models
 reach only 64 % / 69 % of the band (the drift varies over the frame: the lighting changed
 the fold shading), which is why ``opacityhull matte`` defaults to the gain field.
 
@@ -45,15 +55,17 @@ from hypothesis import strategies as st
 from typer.testing import CliRunner
 
 from opacityhull.cli import app
-from opacityhull.errors import InputError
+from opacityhull.errors import InputError, ShapeError
 from opacityhull.imageio import read_png
 from opacityhull.reconstruct.matting import (
     DriftOptions,
     MattingOptions,
     correct_photometric_drift,
+    estimate_backdrop_flow,
     object_support,
     shift_image,
     solve_matte,
+    warp_image,
 )
 
 DATA = Path(__file__).resolve().parents[1] / "data" / "real" / "matting-flowers"
@@ -79,7 +91,11 @@ def flowers():
 @pytest.fixture(scope="module")
 def mattes(flowers):
     C, B = flowers
-    return {"field": solve_matte(C, B, options=MattingOptions(drift="field")), "none": solve_matte(C, B)}
+    return {
+        "field": solve_matte(C, B, options=MattingOptions(drift="field")),
+        "noflow": solve_matte(C, B, options=MattingOptions(drift="field", drift_options=DriftOptions(flow=False))),
+        "none": solve_matte(C, B),
+    }
 
 
 def _band(a):
@@ -98,9 +114,10 @@ def test_real_backdrop_band_is_clear(mattes):
     a, a0 = mattes["field"].alpha, mattes["none"].alpha
     # the drift is real: uncorrected, about half of the band shows the cloth
     assert np.mean(_band(a0) < 0.05) < 0.6
-    assert np.mean(_band(a) < 0.05) >= 0.985
+    # the moved cloth fold: the gain field alone stays under 99 %, the flow clears it
+    assert np.mean(_band(mattes["noflow"].alpha) < 0.05) < 0.99 <= np.mean(_band(a) < 0.05)
     clean = _band_minus_leaf(a)
-    assert np.mean(clean < 0.05) >= 0.99
+    assert np.mean(clean < 0.05) >= 0.999
     assert np.percentile(clean, 99) < 0.05
     fractional = np.mean((a >= 0.05) & (a <= 0.95))
     assert fractional < 0.15 < np.mean((a0 >= 0.05) & (a0 <= 0.95))
@@ -114,6 +131,7 @@ def test_real_petals_and_stems_stay_opaque(mattes, name):
     assert np.median(r) > min_median
     assert np.percentile(r, 5) > min_p5
     assert abs(np.median(r) - np.median(r0)) < 0.02
+    assert abs(np.median(r) - np.median(mattes["noflow"].alpha[y0:y1, x0:x1])) < 0.01
 
 
 def test_real_leaf_tip_in_the_band_stays_opaque(mattes):
@@ -136,6 +154,9 @@ def test_real_drift_report(mattes):
         assert s.residual_after < 0.5 * s.residual_before
         assert s.shift_px is not None and np.hypot(*s.shift_px) < 0.5 and not s.shift_applied
         assert 0.5 < s.fit_fraction < 0.95
+        # the flow is sub-pixel where it matters and clipped at flow_max_px
+        assert 0.1 < s.flow_px_p50 < 1.0 and s.flow_px_p99 <= 2.0 + 1e-6
+    assert mattes["noflow"].drift.shots[0].flow_px_p50 is None
     json.dumps(rep.to_dict())  # plain data for report.json
 
 
@@ -235,6 +256,103 @@ def test_registration_recovers_subpixel_shift(d):
     if s0.shift_applied:
         inner = (slice(4, -4), slice(4, -4))
         assert np.abs(Bc[0] - truth[0])[inner].max() < 0.01
+
+
+def _bend(H, W):
+    """A smooth non-rigid displacement (px) like a cloth fold that moved: up to 0.9 px."""
+    y, x = np.mgrid[0:H, 0:W].astype(np.float64)
+    return 0.9 * np.sin(x / 17.0) * np.cos(y / 23.0), 0.5 * np.cos(x / 29.0 + y / 19.0)
+
+
+def _cloth(H, W, fx=0.0, fy=0.0):
+    """A texture with structure in every direction (one channel varies along x, one along
+    y, one diagonally), seen through the displacement ``(fx, fy)``: the value at x is the
+    texture at ``x - f``."""
+    y, x = np.mgrid[0:H, 0:W].astype(np.float64)
+    x, y = x - fx, y - fy
+    return np.stack(
+        [0.4 + 0.1 * np.sin(0.4 * x), 0.4 + 0.1 * np.sin(0.37 * y + 1.0), 0.4 + 0.1 * np.sin(0.3 * (x + y))], -1
+    )
+
+
+def test_flow_recovers_a_non_rigid_displacement():
+    H, W = 96, 128
+    alpha, F, _ = _scene(H, W, seed=6)
+    dx, dy = _bend(H, W)
+    truth = _cloth(H, W)
+    moved = _cloth(H, W, dx, dy)
+    # the flow f with moved(x + f(x)) = truth(x) solves f = d(x + f): a fixed point
+    y, x = np.mgrid[0:H, 0:W].astype(np.float64)
+    fx, fy = np.zeros((H, W)), np.zeros((H, W))
+    for _ in range(30):
+        fx = 0.9 * np.sin((x + fx) / 17.0) * np.cos((y + fy) / 23.0)
+        fy = 0.5 * np.cos((x + fx) / 29.0 + (y + fy) / 19.0)
+    C = _observe(alpha, F, truth)
+    w = (alpha == 0).astype(float)
+    flow = estimate_backdrop_flow(C, moved, w, sigma_px=2.0, iters=8)
+    inner = np.zeros((H, W), bool)
+    inner[6:-6, 6:-6] = True
+    sel = inner & (w > 0)
+    err = np.hypot(flow[..., 0] - fx, flow[..., 1] - fy)[sel]
+    assert np.median(err) < 0.02 and np.percentile(err, 95) < 0.05
+    back = np.abs(warp_image(moved, flow) - truth)[sel]
+    assert back.max() < 0.1 * np.abs(moved - truth)[sel].max()
+
+
+def test_flow_stays_near_zero_on_noise_and_without_texture():
+    rng = np.random.default_rng(7)
+    H, W = 64, 80
+    flat = np.full((H, W, 3), 0.4)
+    C = flat + rng.normal(0, 0.01, flat.shape)
+    B = flat + rng.normal(0, 0.01, flat.shape)
+    f = estimate_backdrop_flow(C, B, np.ones((H, W)))
+    # the Tikhonov weight is the residual's noise variance: noise moves nothing much
+    assert np.percentile(np.hypot(f[..., 0], f[..., 1]), 95) < 0.25
+    assert np.all(np.isfinite(f)) and np.abs(f).max() <= 2.0 + 1e-6
+    # nothing to register on: zeros
+    assert not estimate_backdrop_flow(C, B, np.zeros((H, W))).any()
+
+
+def test_field_with_flow_clears_a_moved_backdrop():
+    """The backdrop shot of pair 0 moved non-rigidly and drifted in gain: the gain field
+    alone leaves the moved texture in the matte; with the flow the backdrop clears, and
+    the opaque disk and the alpha-0.5 ring are kept."""
+    H, W = 96, 128
+    alpha, F, bd = _scene(H, W, seed=8)
+    dx, dy = _bend(H, W)
+    C = np.stack([_observe(alpha, F, 0.9 * _cloth(H, W)), _observe(alpha, F, bd(1))])
+    B = np.stack([_cloth(H, W, dx, dy), bd(1)]).astype(np.float32)
+    res = {}
+    for flow in (False, True):
+        opts = DriftOptions(register=False, flow=flow, flow_sigma_px=2.0)
+        res[flow] = solve_matte(C, B, options=MattingOptions(drift="field", drift_options=opts))
+    a0, a1 = res[False].alpha, res[True].alpha
+    # the backdrop away from the object's margin and the frame's edge
+    far = cv2.erode((alpha == 0).astype(np.uint8), np.ones((13, 13), np.uint8)).astype(bool)
+    far[:6] = far[-6:] = False
+    far[:, :6] = far[:, -6:] = False
+    # the flow is fitted against the backdrop under the fine gain field of the round
+    # before, which has already taken part of this smooth motion as gain (on the
+    # flowers a wider reference does worse): it removes a good part of what is left,
+    # not all (0.027 -> 0.016 at the 99th percentile)
+    p0, p1 = np.percentile(a0[far], 99), np.percentile(a1[far], 99)
+    assert p0 > 0.02 and p1 < 0.7 * p0
+    assert np.mean(a1[far]) < 0.7 * np.mean(a0[far])
+    assert np.all(a1[alpha == 1] > 0.97)
+    np.testing.assert_allclose(np.median(a1[alpha == 0.5]), 0.5, atol=0.03)
+    s = res[True].drift.shots
+    assert s[0].flow_px_p99 > 0.3 and res[False].drift.shots[0].flow_px_p50 is None
+
+
+def test_warp_image_convention_matches_shift_image():
+    _, _, bd = _scene(seed=9)
+    img = bd(0).astype(np.float32)
+    H, W = img.shape[:2]
+    flow = np.broadcast_to(np.array([0.3, -0.6], np.float32), (H, W, 2))
+    inner = (slice(3, -3), slice(3, -3))
+    np.testing.assert_allclose(warp_image(img, flow)[inner], shift_image(img, (0.3, -0.6))[inner], atol=2e-3)
+    with pytest.raises(ShapeError):
+        warp_image(img, flow[:, :-1])
 
 
 def test_shift_image_convention():
@@ -358,6 +476,7 @@ def test_cli_matte_writes_files_and_json(small_set, tmp_path):
     assert summary["clear_fraction"] > 0.75 and summary["fractional_fraction"] < 0.2
     assert json.loads((out / "matte.json").read_text())["clear_fraction"] == summary["clear_fraction"]
     assert len(summary["drift"]["shots"]) == 2 and len(summary["registration_px"]) == 2
+    assert all(s["flow_px_p50"] is not None for s in summary["drift"]["shots"])  # the flow is on by default
     fg = cv2.imread(str(out / "foreground_premul.png"), cv2.IMREAD_UNCHANGED)
     comp = cv2.imread(str(out / "composite.png"))
     win = cv2.imread(str(d / "window.png"))
