@@ -12,7 +12,9 @@ build's own):
     opacityhull build WORK/session --out WORK/model_MODE --hold-out every:10 [--optimize MODE] --no-pictures
     opacityhull eval test WORK/model_MODE --background white --json
 
-``none`` is the default build (``build`` without ``--optimize``). The set is rendered
+Each mode is passed as ``--optimize MODE`` (``none``: no fit; ``fast`` is the default
+build). ``--append`` keeps the rows of modes not run from the previous ``synthetic.json``
+(so one mode can be re-measured alone). The set is rendered
 first when missing (``--quick``: the 24-view 160×160 version, ``--modes none``). Writes
 ``benchmarks/out/synthetic.md``, ``synthetic.json`` and ``synthetic_sheet.png`` (three
 held-out views on white: ground truth, each mode's render, the error). The goal: ≥ 30 dB on white with a build of ≤ 15 min on 2 cores. Figures taken
@@ -157,7 +159,7 @@ def write_sheet(work: Path, modes: Sequence[str], path: Path) -> Path:
         rows.append(row)
     img = np.concatenate(rows, axis=0)
     head = np.full((22, img.shape[1], 3), 255, np.uint8)
-    names = ["ground truth"] + [("default" if m == "none" else m) for m in modes] + [f"|err| x4 ({modes[-1]})"]
+    names = ["ground truth"] + [("no fit" if m == "none" else m) for m in modes] + [f"|err| x4 ({modes[-1]})"]
     for k, name in enumerate(names):
         cv2.putText(head, name, (4 + k * tile_w, 15), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
     # the image is sRGB-encoded already: write it as data
@@ -226,7 +228,7 @@ def write_report(res: dict, *, quick: bool) -> Path:
     for r in rows:
         eb = r.get("error_budget") or {}
         lines.append(
-            f"| {'default' if r['mode'] == 'none' else '--optimize ' + r['mode']} | {r['renderer']} "
+            f"| --optimize {r['mode']}{' (default)' if r['mode'] == 'fast' else ''} | {r['renderer']} "
             f"| {r['psnr_white']:.2f} | {r['ssim_white']:.3f} | {r['psnr_mask']:.2f} | {r['ssim_mask']:.3f} "
             f"| {r['coverage_iou']:.3f} | {r['alpha_mae']:.4f} | {r['build_s'] / 60:.1f} | {r.get('iterations') or 0} "
             f"| {r.get('surfels_end') or r['surfels']} "
@@ -277,6 +279,7 @@ def main(argv=None) -> dict:
         action="store_true",
         help="only redo the sheet, error budget and report from synthetic.json and --work",
     )
+    ap.add_argument("--append", action="store_true", help="keep the previous rows of modes not run")
     ap.add_argument("--json", action="store_true")
     a = ap.parse_args(argv)
     from synthetic_set import HOLD_OUT_EVERY, ensure_set
@@ -295,11 +298,15 @@ def main(argv=None) -> dict:
         imp = cli("import", "nerfstudio", "--transforms", str(transforms), "--out", str(session))
         rows = []
         for mode in modes:
-            extra = () if mode == "none" else ("--optimize", mode)
+            extra = ("--optimize", mode)
             r = build_and_test(session, work / f"model_{mode}", hold_out=f"every:{HOLD_OUT_EVERY}", extra=extra)
             row = _row(mode, r)
             rows.append(row)
             print(f"{mode}: {row['psnr_white']:.2f} dB white, {row['build_s']:.0f} s", file=sys.stderr)
+        if a.append and (OUT / "synthetic.json").is_file():
+            kept = [r for r in json.loads((OUT / "synthetic.json").read_text())["rows"] if r["mode"] not in modes]
+            order = {"none": 0, "fast": 1, "full": 2}
+            rows = sorted(kept + rows, key=lambda r: order.get(r["mode"], 3))
         res = {"set": info, "import_s": imp["wall_s"], "hold_out": f"every:{HOLD_OUT_EVERY}", "rows": rows}
     OUT.mkdir(parents=True, exist_ok=True)
     analyse(res, work)
