@@ -219,11 +219,13 @@ def register(app, groups) -> None:
     ):
         """Capture a session: run a plan on a rig, resumably (exit 5 = stopped early, resumable; 130 = Ctrl-C)."""
         from .plan import load_plan
-        from .schedule import MotionRates, estimate, expected_counts, schedule
+        from .schedule import MotionRates, estimate, expected_counts, lamps_for_plan, schedule
 
         the_plan = load_plan(plan)
         if dry_run:
             geometry, devices = rig_static(rig)
+            # the simulator fits the plan's lamps; a rig TOML must already say them
+            geometry = lamps_for_plan(the_plan, geometry, can_fit=rig.startswith("sim:"))
             stages = schedule(the_plan, geometry)
             est = estimate(the_plan, geometry, MotionRates.from_devices(devices), stages)
             summary = {
