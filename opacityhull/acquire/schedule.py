@@ -43,6 +43,8 @@ __all__ = [
     "ArrayCoverage",
     "array_coverage",
     "require_array_coverage",
+    "natural_view_note",
+    "NATURAL_VIEW_SPACING_DEG",
 ]
 
 
@@ -265,6 +267,32 @@ def require_array_coverage(plan: CapturePlan, geometry: RigGeometry) -> ArrayCov
             "outside the displays"
         )
     return cov
+
+
+#: Widest table step at which a glass (natural phase) is relit at a new viewpoint between
+#: two captured ones within the issue's goal (relative error <= 0.3), measured by
+#: ``benchmarks/glass.py --heldout`` (benchmarks/out/glass.md).
+NATURAL_VIEW_SPACING_DEG = 6.0
+
+
+def natural_view_note(plan: CapturePlan) -> str | None:
+    """What a plan with a natural phase can relight: its captured viewpoints, and new ones
+    only where its table angles are at most :data:`NATURAL_VIEW_SPACING_DEG` apart (a
+    refracting object changes faster with the viewpoint than ULR interpolates). None for a
+    plan without a natural phase or whose table steps are that fine."""
+    if plan.natural is None:
+        return None
+    a = sorted(plan.table_deg)
+    gaps = [(b - x) for x, b in zip(a, a[1:] + [a[0] + 360.0], strict=True)] if len(a) > 1 else [360.0]
+    widest = max(gaps)
+    if widest <= NATURAL_VIEW_SPACING_DEG + 1e-9:
+        return None
+    return (
+        f"{plan.source or 'plan'}: a relightable glass (natural phase) is relit at its {len(a)} captured table "
+        f"angle(s) x cameras; a new viewpoint between them is only as good as ULR across {widest:g} deg "
+        f"(measured on sim:builtin:glass: relative error <= 0.3 needs table angles <= "
+        f"{NATURAL_VIEW_SPACING_DEG:g} deg apart, benchmarks/out/glass.md)"
+    )
 
 
 def _lights_at(spec, table_deg: float) -> float:
