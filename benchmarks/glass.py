@@ -91,6 +91,7 @@ def run(argv: list[str], log: Path) -> tuple[float, float, str]:
 
 def captured(work: Path, *, rig: str, plan: str, envmaps: list[str], build_args=()) -> dict:
     S, M = work / "S", work / "M"
+    work.mkdir(parents=True, exist_ok=True)
     res: dict = {"rig": rig, "plan": plan, "commands": []}
     for name, argv in (
         ("capture", ["capture", "--rig", rig, "--plan", plan, "--out", str(S)]),

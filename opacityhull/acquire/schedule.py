@@ -287,11 +287,15 @@ def natural_view_note(plan: CapturePlan) -> str | None:
     widest = max(gaps)
     if widest <= NATURAL_VIEW_SPACING_DEG + 1e-9:
         return None
+    between = (
+        "one table angle, so no new viewpoint"
+        if len(a) == 1
+        else f"table angles up to {widest:g} deg apart, so a new viewpoint between them is a guess"
+    )
     return (
-        f"{plan.source or 'plan'}: a relightable glass (natural phase) is relit at its {len(a)} captured table "
-        f"angle(s) x cameras; a new viewpoint between them is only as good as ULR across {widest:g} deg "
-        f"(measured on sim:builtin:glass: relative error <= 0.3 needs table angles <= "
-        f"{NATURAL_VIEW_SPACING_DEG:g} deg apart, benchmarks/out/glass.md)"
+        f"{plan.source or 'plan'}: a glass captured with this plan is relit at its captured viewpoints ({between}): "
+        f"measured on sim:builtin:glass, a new viewpoint within relative error 0.3 needs table angles at most "
+        f"{NATURAL_VIEW_SPACING_DEG:g} deg apart (benchmarks/out/glass.md)"
     )
 
 
