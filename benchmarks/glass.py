@@ -5,6 +5,7 @@ table angles.
 
     .venv/bin/python benchmarks/glass.py [--quick] [--json] [--work DIR] [--envmaps uffizi,grace]
         [--plan builtin:natural] [--rig sim:builtin:glass] [--heldout] [--spacings 3,6,9]
+        [--radii 0.15,0.3]
 
 1. Captured viewpoints: ``opacityhull capture --rig RIG --plan PLAN --out S``,
    ``opacityhull build S --out M`` (the default build, as a user runs it), then per map
@@ -19,6 +20,9 @@ table angles.
    (``--optimize none``); for each s the relit views at ±s (array half + display half, as
    ``relight`` makes them) are ULR-blended onto the hull from camera 2 at table 0 — a view
    s degrees from both neighbours — and compared with Mitsuba's truth there.
+
+3. ``--radii``: PLAN again with ``lamp_radius_m`` set to each radius (build
+   ``--optimize none``; the errors do not depend on the fit): the lamp-size sweep.
 
 ``--quick`` (``make bench``): 1 camera, 1 table angle, a 2-light array and N = 25
 (not a figure of the shipped plan: only that the script runs). The machine is shared:
@@ -250,12 +254,34 @@ def report(res: dict) -> Path:
                     f"| {env} | {r['spacing_deg']:g} | {r['rel_err']:.3f} | {r['psnr_norm']:.1f} | {r['psnr']:.1f} |"
                 )
         lines.append("")
+    if res.get("radii"):
+        lines += [
+            "Lamp-size sweep (PLAN with `lamp_radius_m` replaced, build `--optimize none`):",
+            "",
+            "| lamp radius (m) | map | rel. err | PSNR (dB) | light-array half |",
+            "|---|---|---|---|---|",
+        ]
+        for r, c in res["radii"].items():
+            for env in res["envmaps"]:
+                e = c[env]
+                lines.append(
+                    f"| {r} | {env} | {e['rel_err_mean']:.3f} | {e['psnr_mean']:.1f} | {e['array_part_rel_err']:.3f} |"
+                )
+        lines.append("")
     lines += res.get("notes", [])
     OUT.mkdir(parents=True, exist_ok=True)
     path = OUT / "glass.md"
     path.write_text("\n".join(lines) + "\n")
     (OUT / "glass.json").write_text(json.dumps(res, indent=1))
     return path
+
+
+def _plan_text(plan: str) -> str:
+    from opacityhull.acquire.plan import _BUILTIN_DIR
+
+    if plan.startswith("builtin:"):
+        return (_BUILTIN_DIR / f"{plan.split(':', 1)[1]}.toml").read_text()
+    return Path(plan).read_text()
 
 
 def main() -> None:
@@ -268,6 +294,7 @@ def main() -> None:
     ap.add_argument("--envmaps", default="uffizi,grace")
     ap.add_argument("--heldout", action="store_true")
     ap.add_argument("--spacings", default="3,6,9")
+    ap.add_argument("--radii", default="", help="lamp radii (m) to sweep, comma-separated")
     args = ap.parse_args()
     import tempfile
 
@@ -281,15 +308,22 @@ def main() -> None:
     res: dict = {"quick": args.quick, "envmaps": envmaps}
     res["captured"] = captured(work / "captured", rig=args.rig, plan=plan, envmaps=envmaps)
     if args.heldout and not args.quick:
-        from opacityhull.acquire.plan import _BUILTIN_DIR
-
-        text = (
-            (_BUILTIN_DIR / f"{plan.split(':', 1)[1]}.toml").read_text()
-            if plan.startswith("builtin:")
-            else Path(plan).read_text()
-        )
+        text = _plan_text(plan)
         spacings = [float(x) for x in args.spacings.split(",")]
         res["heldout"] = heldout(work / "heldout", rig=args.rig, plan_text=text, spacings=spacings, envmaps=envmaps)
+    if args.radii and not args.quick:
+        import re
+
+        text = _plan_text(plan)
+        res["radii"] = {}
+        for r in [float(x) for x in args.radii.split(",")]:
+            pt = re.sub(r"(?m)^lamp_radius_m\s*=.*$", f"lamp_radius_m = {r}", text)
+            d = work / f"radius_{r:g}"
+            d.mkdir(parents=True, exist_ok=True)
+            (d / "plan.toml").write_text(pt)
+            res["radii"][f"{r:g}"] = captured(
+                d, rig=args.rig, plan=str(d / "plan.toml"), envmaps=envmaps, build_args=["--optimize", "none"]
+            )
     print_result(res, report(res), as_json=args.json)
 
 
