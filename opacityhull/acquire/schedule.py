@@ -151,10 +151,11 @@ def lamps_for_plan(plan: CapturePlan, geometry: RigGeometry, *, can_fit: bool) -
     if r is None or all(L.radius_m is not None and abs(L.radius_m - r) <= 1e-6 for L in geometry.lights):
         return geometry
     if not can_fit:
-        have = sorted({L.radius_m for L in geometry.lights}, key=lambda x: -1.0 if x is None else x)
+        radii = sorted({L.radius_m for L in geometry.lights if L.radius_m is not None})
+        have = "are points (no radius_m)" if not radii else f"have radius_m {radii} m"
         raise ConfigError(
-            f"{plan.source or 'plan'}: [phases.reflectance].lamp_radius_m = {r} m but the rig's lamps have radius_m "
-            f"{have}; fit the lamps' diffusers and set radius_m = {r} on every [[geometry.lights]] of the rig TOML"
+            f"{plan.source or 'plan'}: [phases.reflectance].lamp_radius_m = {r} m but the rig's lamps {have}; "
+            f"fit the lamps' diffusers and set radius_m = {r} on every [[geometry.lights]] of the rig TOML"
         )
     raw = copy.deepcopy(geometry.to_dict())
     for L in raw.get("lights", []):

@@ -133,7 +133,7 @@ def test_lamp_radius_is_parsed_and_fitted(geometry):
     assert [c.name for c in fitted.cameras] == [c.name for c in geometry.cameras]
     assert lamps_for_plan(plan, fitted, can_fit=False) is fitted  # the TOML already says it
     assert lamps_for_plan(_plan(array_deg=[0.0]), geometry, can_fit=False) is geometry
-    with pytest.raises(ConfigError, match=r"lamp_radius_m = 0.2 m but the rig's lamps have radius_m \[None\]"):
+    with pytest.raises(ConfigError, match=r"lamp_radius_m = 0.2 m but the rig's lamps are points \(no radius_m\)"):
         lamps_for_plan(plan, geometry, can_fit=False)
     for bad in (0.0, -0.1, float("nan"), float("inf"), "big"):
         with pytest.raises(ConfigError, match=r"\[phases.reflectance\].lamp_radius_m"):
