@@ -137,6 +137,8 @@ def _print_estimate(summary: dict) -> None:
     )
     for w in summary.get("warnings", []):
         c.print(f"[yellow]warning:[/] {w}", highlight=False, markup=True, soft_wrap=True)
+    for n in summary.get("notes", []):
+        c.print(f"note: {n}", highlight=False, markup=False, soft_wrap=True)
 
 
 @contextmanager
@@ -219,11 +221,13 @@ def register(app, groups) -> None:
     ):
         """Capture a session: run a plan on a rig, resumably (exit 5 = stopped early, resumable; 130 = Ctrl-C)."""
         from .plan import load_plan
-        from .schedule import MotionRates, estimate, expected_counts, schedule
+        from .schedule import MotionRates, estimate, expected_counts, lamps_for_plan, natural_view_note, schedule
 
         the_plan = load_plan(plan)
         if dry_run:
             geometry, devices = rig_static(rig)
+            # the simulator fits the plan's lamps; a rig TOML must already say them
+            geometry = lamps_for_plan(the_plan, geometry, can_fit=rig.startswith("sim:"))
             stages = schedule(the_plan, geometry)
             est = estimate(the_plan, geometry, MotionRates.from_devices(devices), stages)
             summary = {
@@ -237,6 +241,9 @@ def register(app, groups) -> None:
                 "estimate": est.to_dict(),
                 "warnings": _calibration_forecast(the_plan, geometry),
             }
+            note = natural_view_note(the_plan)
+            if note:
+                summary["notes"] = [note]
             emit(summary, json_out, _print_estimate)
             return
         if out is None:

@@ -45,6 +45,7 @@ A plan is a TOML file (or a built-in, ``builtin:tiny`` / ``builtin:demo`` /
     array_steps = 4               # or array_deg = [0, 90, ...]
     lights = [0, 1, 2, 3]         # default: every light of the rig
     level = 255
+    lamp_radius_m = 0.2           # optional: the lamps' emitting radius the plan needs (diffusers)
 
     [phases.natural]              # natural images, one display at a time (alias: envmatte)
     images = 200                  # N per display domain (a count), or a list of image paths
@@ -288,6 +289,9 @@ class ReflectancePhase:
     lights: tuple[int, ...] | int | None = None  # ids, a count (evenly spread), None = every light
     level: int = 255
     exposures_s: tuple[float, ...] | None = None
+    #: the lamps' emitting radius this plan needs, metres (diffusers fitted for it); None =
+    #: the rig's lamps as they are. See :func:`~opacityhull.acquire.schedule.lamps_for_plan`.
+    lamp_radius_m: float | None = None
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -489,14 +493,34 @@ def parse_plan(
         ph = ph_table("reflectance")
         w = f"{where}: [phases.reflectance]"
         _check_keys(
-            w, ph, {"array_steps", "array_step_deg", "array_deg", "start_deg", "lights", "level", "exposures_s"}
+            w,
+            ph,
+            {
+                "array_steps",
+                "array_step_deg",
+                "array_deg",
+                "start_deg",
+                "lights",
+                "level",
+                "exposures_s",
+                "lamp_radius_m",
+            },
         )
         arr = _sweep(w, ph, steps_key="array_steps", step_key="array_step_deg", list_key="array_deg", default_steps=1)
         lights = _all_count_or_ids(f"{w}.lights", ph.get("lights"), "light id", "a non-empty list of light ids")
         level = _level(w, ph, 255)
         if level == 0:
             raise ConfigError(f"{w}.level: must be > 0 (one light at a time needs the light on)")
-        kw["reflectance"] = ReflectancePhase(array_deg=arr, lights=lights, level=level, exposures_s=ph_exp(w, ph))
+        radius = None
+        if "lamp_radius_m" in ph:
+            radius = _number(f"{w}.lamp_radius_m", ph["lamp_radius_m"])
+            if not (math.isfinite(radius) and radius > 0):
+                raise ConfigError(
+                    f"{w}.lamp_radius_m: expected a lamp radius > 0 in metres, got {ph['lamp_radius_m']!r}"
+                )
+        kw["reflectance"] = ReflectancePhase(
+            array_deg=arr, lights=lights, level=level, exposures_s=ph_exp(w, ph), lamp_radius_m=radius
+        )
     if "envmatte" in phases:
         kw["envmatte"] = _parse_natural(
             f"{where}: [phases.{phase_name.get('envmatte', 'envmatte')}]",

@@ -59,7 +59,17 @@ from .exr import write_capture_exr
 from .pattern_cache import PatternSlots, device_pattern_id, pattern_slots
 from .patterns import check_saved_patterns, plan_patterns, save_patterns
 from .plan import CapturePlan
-from .schedule import Estimate, MotionRates, PlannedShot, Stage, estimate, expected_counts, image_bytes, schedule
+from .schedule import (
+    Estimate,
+    MotionRates,
+    PlannedShot,
+    Stage,
+    estimate,
+    expected_counts,
+    image_bytes,
+    lamps_for_plan,
+    schedule,
+)
 
 __all__ = [
     "CaptureResult",
@@ -529,7 +539,11 @@ def run_capture(
     """
     t_start = time.monotonic()
     log = log or (lambda msg: None)
-    geometry = rig.geometry
+    fit = getattr(rig, "fit_lamps", None)
+    geometry = lamps_for_plan(plan, rig.geometry, can_fit=fit is not None)
+    if geometry is not rig.geometry and fit is not None:
+        fit(geometry)
+        geometry = rig.geometry
     stages = schedule(plan, geometry)
     planned = expected_counts(stages)
     n_planned = sum(planned.values())

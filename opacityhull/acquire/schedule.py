@@ -14,8 +14,11 @@ no full return move is made between sweeps.
 from __future__ import annotations
 
 import math
+import copy
 from dataclasses import dataclass, field
 from collections.abc import Mapping, Sequence
+
+import numpy as np
 
 from ..errors import ConfigError
 from ..riggeometry import RigGeometry
@@ -36,6 +39,12 @@ __all__ = [
     "expected_counts",
     "natural_displays",
     "natural_pattern_ids",
+    "lamps_for_plan",
+    "ArrayCoverage",
+    "array_coverage",
+    "require_array_coverage",
+    "natural_view_note",
+    "NATURAL_NEW_VIEW_REL_ERR",
 ]
 
 
@@ -122,6 +131,170 @@ def select_lights(plan: CapturePlan, geometry: RigGeometry) -> tuple[int, ...]:
             f"{plan.source or 'plan'}: [phases.reflectance].lights: id(s) {bad} not in the rig (light ids: {ids})"
         )
     return tuple(ph.lights)
+
+
+def lamps_for_plan(plan: CapturePlan, geometry: RigGeometry, *, can_fit: bool) -> RigGeometry:
+    """``geometry`` with the lamps the plan needs: every light's ``radius_m`` set to
+    ``[phases.reflectance].lamp_radius_m`` when the plan gives one.
+
+    ``can_fit``: the rig can take the plan's lamps itself (the simulator swaps its
+    emitters); a physical rig cannot, so its TOML must already say the radius (the
+    operator fits the diffusers and records them), else the capture is refused: the
+    session records the lamps it was taken under.
+
+    Raises
+    ------
+    ConfigError
+        A rig that cannot fit the lamps and whose lights differ from the plan's radius.
+    """
+    r = plan.reflectance.lamp_radius_m if plan.reflectance is not None else None
+    if r is None or all(L.radius_m is not None and abs(L.radius_m - r) <= 1e-6 for L in geometry.lights):
+        return geometry
+    if not can_fit:
+        radii = sorted({L.radius_m for L in geometry.lights if L.radius_m is not None})
+        have = "are points (no radius_m)" if not radii else f"have radius_m {radii} m"
+        raise ConfigError(
+            f"{plan.source or 'plan'}: [phases.reflectance].lamp_radius_m = {r} m but the rig's lamps {have}; "
+            f"fit the lamps' diffusers and set radius_m = {r} on every [[geometry.lights]] of the rig TOML"
+        )
+    raw = copy.deepcopy(geometry.to_dict())
+    for L in raw.get("lights", []):
+        L["radius_m"] = float(r)
+    return RigGeometry.from_dict(raw, where=f"{plan.source or 'plan'}: lamps of radius {r} m on the rig")
+
+
+@dataclass(frozen=True, kw_only=True)
+class ArrayCoverage:
+    """Which one-light shots of a plan light the light array's share of the sphere (the
+    directions the natural phase's displays do not cover, :mod:`opacityhull.relight.split`).
+
+    Attributes
+    ----------
+    displays : names of the natural phase's displays.
+    shots : (light id, array angle °, table angle °) of every one-light position.
+    outside : per shot, whether any direction of the lamp (its centre, or its disc's rim
+        for a lamp with area) seen from the object misses every display.
+    """
+
+    displays: tuple[str, ...]
+    shots: tuple[tuple[int, float, float], ...]
+    outside: tuple[bool, ...]
+
+    @property
+    def n_covering(self) -> int:
+        return int(sum(self.outside))
+
+
+def _lamp_cap_directions(pos: np.ndarray, centre: np.ndarray, radius_m: float | None, n_rim: int = 8) -> np.ndarray:
+    """(1 + n_rim, 3) unit directions from ``centre`` to a lamp at ``pos``: its centre
+    and, for a lamp with area, ``n_rim`` directions on the rim of its disc as seen."""
+    d = pos - centre
+    dist = float(np.linalg.norm(d))
+    w = d / dist
+    if not radius_m:
+        return w[None]
+    half = math.asin(min(1.0, radius_m / dist))
+    a = np.array([1.0, 0.0, 0.0]) if abs(w[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    u = np.cross(w, a)
+    u /= np.linalg.norm(u)
+    v = np.cross(w, u)
+    phi = np.arange(n_rim) * (2.0 * math.pi / n_rim)
+    rim = math.cos(half) * w[None] + math.sin(half) * (np.cos(phi)[:, None] * u + np.sin(phi)[:, None] * v)
+    return np.vstack([w[None], rim])
+
+
+def _hits_display(display, table_deg: float, dirs: np.ndarray, centre: np.ndarray) -> np.ndarray:
+    """Whether rays from ``centre`` along ``dirs`` (rig frame) meet ``display``'s rectangle
+    at ``table_deg`` (the same test as the sphere split, in the rig frame)."""
+    from ..camera import rig_from_object
+
+    F = display.frame()
+    if display.rotates_with_table:
+        F = rig_from_object(table_deg) @ F
+    Finv = np.linalg.inv(F)
+    o = Finv[:3, :3] @ centre + Finv[:3, 3]
+    v = dirs @ Finv[:3, :3].T
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = -o[2] / v[:, 2]
+    x = o[0] + t * v[:, 0]
+    y = o[1] + t * v[:, 1]
+    w, h = display.size_m
+    return np.isfinite(t) & (t > 0) & (np.abs(x) <= w / 2) & (np.abs(y) <= h / 2)
+
+
+def array_coverage(plan: CapturePlan, geometry: RigGeometry) -> ArrayCoverage | None:
+    """The :class:`ArrayCoverage` of a plan with both a natural and a reflectance phase
+    (the model relights with the sphere split), else None. Directions are taken from the
+    rig's aim point ``target_m`` on the table axis (the object's centre, as captured)."""
+    if plan.natural is None or plan.reflectance is None or not geometry.lights:
+        return None
+    names = natural_displays(plan, geometry)
+    disps = [geometry.display(n) for n in names]
+    centre = np.asarray(geometry.target_m, np.float64)
+    shots, outside = [], []
+    for lid in select_lights(plan, geometry):
+        L = geometry.light(lid)
+        for ad in plan.reflectance.array_deg:
+            pos = L.position_rig(ad)
+            dirs = _lamp_cap_directions(np.asarray(pos, np.float64), centre, L.radius_m)
+            for a in plan.table_deg:
+                hit = np.zeros(len(dirs), bool)
+                for d in disps:
+                    hit |= _hits_display(d, a, dirs, centre)
+                shots.append((int(lid), float(ad), float(a)))
+                outside.append(bool(not hit.all()))
+    return ArrayCoverage(displays=tuple(names), shots=tuple(shots), outside=tuple(outside))
+
+
+def require_array_coverage(plan: CapturePlan, geometry: RigGeometry) -> ArrayCoverage | None:
+    """:func:`array_coverage`, refusing a plan whose light array covers no direction of
+    its share: every lamp, at every array and table angle, is seen inside a display, so
+    the one-light images would relight nothing and the split's array share (every
+    direction the displays do not cover) would be dark in every relit image.
+
+    Raises
+    ------
+    ConfigError
+        The light array covers no direction outside the natural phase's displays.
+    """
+    cov = array_coverage(plan, geometry)
+    if cov is not None and cov.shots and cov.n_covering == 0:
+        raise ConfigError(
+            f"{plan.source or 'plan'}: [phases.reflectance] covers no direction of the light array's share: "
+            f"all {len(cov.shots)} lamp positions (lights {sorted({s[0] for s in cov.shots})} x array angles "
+            f"{sorted(plan.reflectance.array_deg) if plan.reflectance else []}) are seen inside the displays "
+            f"{list(cov.displays)} of [phases.natural], which relight those directions; relighting splits the "
+            "sphere, so the directions no display covers would stay dark — give array angles or lights "
+            "outside the displays"
+        )
+    return cov
+
+
+#: A glass relit at a new viewpoint s degrees from both captured neighbours (ULR of the
+#: relit views onto the hull, true cameras): relative error against Mitsuba under uffizi
+#: by s, measured by ``benchmarks/glass.py --heldout`` (benchmarks/out/glass.md). s = 0
+#: is a captured viewpoint drawn by the same renderer; relit directly it is 0.36-0.39.
+NATURAL_NEW_VIEW_REL_ERR = {0.0: 0.51, 3.0: 0.73, 6.0: 0.83, 9.0: 0.90}
+
+
+def natural_view_note(plan: CapturePlan) -> str | None:
+    """What a plan with a natural phase can relight: its captured viewpoints; a new
+    viewpoint of a refracting object between them is far worse at every table spacing
+    measured (:data:`NATURAL_NEW_VIEW_REL_ERR`). None for a plan without a natural phase."""
+    if plan.natural is None:
+        return None
+    a = sorted(plan.table_deg)
+    gaps = [(b - x) for x, b in zip(a, a[1:] + [a[0] + 360.0], strict=True)] if len(a) > 1 else [360.0]
+    widest = max(gaps)
+    between = "one table angle" if len(a) == 1 else f"table angles up to {widest:g} deg apart"
+    figs = ", ".join(f"{v:.2f} at {s:g} deg" for s, v in NATURAL_NEW_VIEW_REL_ERR.items() if s > 0)
+    return (
+        f"{plan.source or 'plan'}: a glass captured with this plan is relit faithfully at its captured "
+        f"viewpoints only ({between}); measured on sim:builtin:glass under uffizi, a new viewpoint between "
+        f"captured table angles has relative error {figs} from its neighbours "
+        f"({NATURAL_NEW_VIEW_REL_ERR[0.0]:.2f} at a captured one drawn the same way) — "
+        "no table spacing of 3 deg or more gives a new viewpoint within 0.3 (benchmarks/out/glass.md)"
+    )
 
 
 def _lights_at(spec, table_deg: float) -> float:
@@ -212,6 +385,7 @@ def schedule(plan: CapturePlan, geometry: RigGeometry) -> list[Stage]:
         if not all_lights:
             raise ConfigError(f"{plan.source or 'plan'}: [phases.reflectance] needs lights; the rig has none")
         lights = select_lights(plan, geometry)
+        require_array_coverage(plan, geometry)
         exps = plan.exposures("reflectance")
         arr_dir = 1
         for a in sweep(plan.table_deg):

@@ -299,6 +299,10 @@ def eval_relight(
             n_all = float(np.linalg.norm(truth[mask])) if mask.any() else 0.0
             n_out = float(np.linalg.norm((truth - truth_disp)[mask])) if mask.any() else 0.0
             m["display_part"] = {"psnr": d["psnr"], "rel_err": d["rel_err"]}
+            # the light array's half: the one-light images' sum against the truth outside the fields
+            arr = rgba[..., :3] - (part if part is not None else 0.0)
+            a = relight_metrics(arr, truth - truth_disp, mask)
+            m["array_part"] = {"psnr": a["psnr"], "rel_err": a["rel_err"]}
             m["truth_outside_fields"] = n_out / n_all if n_all > 0 else float("nan")
         if i in R.pca_stats:
             m["pca"] = R.pca_stats[i]
@@ -330,6 +334,7 @@ def eval_relight(
             natural["info"],
             display_part_psnr_mean=float(np.mean([p["display_part"]["psnr"] for p in good])),
             display_part_rel_err_mean=float(np.mean([p["display_part"]["rel_err"] for p in good])),
+            array_part_rel_err_mean=float(np.mean([p["array_part"]["rel_err"] for p in good])),
             truth_outside_fields_mean=float(np.mean([p["truth_outside_fields"] for p in good])),
         ),
         "config": {

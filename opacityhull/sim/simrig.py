@@ -317,6 +317,19 @@ class SimRig:
         self.operator_log: list[tuple[str, dict]] = []
         self.phase: str | None = None  # the capture phase declared by note_phase (None: undeclared)
 
+    def fit_lamps(self, geometry: RigGeometry) -> None:
+        """Render from now on with ``geometry``'s lamps (a plan's ``lamp_radius_m``:
+        :func:`~opacityhull.acquire.schedule.lamps_for_plan`); cameras and displays must
+        be this rig's. ``describe()`` and the session then record the lamps used."""
+        self.config_dict = copy.deepcopy(self.config_dict)
+        self.config_dict["geometry"] = copy.deepcopy(geometry.to_dict())
+        from ..rigs.config import parse_rig_config
+
+        self.config = parse_rig_config(self.config_dict, source=self.source)
+        self.geometry = self.config.geometry
+        r = self.renderer
+        self.renderer = SimRenderer(self.scene, self.geometry, variant=r.variant, overrides=r.overrides)
+
     # ---- lifecycle
     @property
     def variant(self) -> str:

@@ -50,3 +50,14 @@ def test_demo_cli_has_the_glass_switch():
     assert res.exit_code == 0, res.output
     assert "--with-glass" in res.output and "--no-glass" in res.output
     assert inspect.signature(run_demo).parameters["with_glass"].default is True
+
+
+def test_glass_plans_say_which_viewpoints_they_relight():
+    from opacityhull.acquire.plan import load_plan
+    from opacityhull.acquire.schedule import natural_view_note
+
+    demo = natural_view_note(parse_plan(tomllib.loads(GLASS_PLAN), where="demo glass plan", source="demo:glass"))
+    assert demo is not None and "captured viewpoints only (one table angle)" in demo
+    shipped = natural_view_note(load_plan("builtin:natural"))
+    assert shipped is not None and "up to 180 deg apart" in shipped and "0.83 at 6 deg" in shipped
+    assert natural_view_note(load_plan("builtin:demo")) is None  # no natural phase
