@@ -24,8 +24,8 @@ API::
     background.log()                       -> [{"key", "seconds", "returncode"}]
 
 Each job runs ``argv`` in its own process group, at a lower priority (``nice`` 10: the
-tests in the foreground keep their speed, the job takes what they leave; :func:`hurry`
-restores it when the foreground waits) and with one numba thread unless asked (two
+tests in the foreground keep their speed, the job takes what they leave; :func:`hurried`
+restores it while the foreground waits) and with one numba thread unless asked (two
 jobs fill two cores when nothing else runs). The products do not depend on either (the
 fit's kernels give the same bytes whatever the thread count, see
 opacityhull/optimize/raster.py). Output goes to ``<root>/<key>.log``, the products to
@@ -43,7 +43,7 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-__all__ = ["configure", "root", "start", "wait", "hurry", "stop_all", "log"]
+__all__ = ["configure", "root", "start", "wait", "hurried", "stop_all", "log"]
 
 #: the background jobs' scheduling priority (``os.nice`` increment)
 NICE = 10
@@ -99,7 +99,7 @@ def start(key: str, argv: list[str], *, numba_threads: int | None = 1) -> Path:
             env=env,
             stdout=out,
             stderr=subprocess.STDOUT,
-            start_new_session=True,  # its own process group: hurry() and stop_all() reach its children
+            start_new_session=True,  # its own process group: hurried() and stop_all() reach its children
             preexec_fn=_lower_priority,
         )
     _JOBS[key] = _Job(proc, log_path, time.perf_counter())
@@ -112,9 +112,9 @@ def wait(key: str, *, timeout_s: float) -> None:
     job = _JOBS.get(key)
     if job is None:
         raise AssertionError(f"background job {key!r} was never started")
-    hurry()
     try:
-        rc = job.proc.wait(timeout=timeout_s)
+        with hurried():
+            rc = job.proc.wait(timeout=timeout_s)
     except subprocess.TimeoutExpired:
         with contextlib.suppress(OSError):
             os.killpg(job.proc.pid, signal.SIGKILL)
@@ -128,14 +128,25 @@ def wait(key: str, *, timeout_s: float) -> None:
         raise AssertionError(f"background job {key!r} failed ({what}); {job.log_path}:\n{tail}")
 
 
-def hurry() -> None:
-    """The foreground idles until a job is done: every running job (with its children)
-    back to normal priority where allowed (lowering a nice value needs root; otherwise
-    they keep it, and have the cores to themselves anyway)."""
-    for job in _JOBS.values():
+@contextlib.contextmanager
+def hurried():
+    """While the foreground idles (waiting for a job's product): every running job, with
+    its children, at normal priority where allowed (lowering a nice value needs root;
+    otherwise they keep it, and have the cores to themselves anyway); back to their own
+    after, for the jobs still running."""
+    was = {}
+    for key, job in _JOBS.items():
         if job.proc.poll() is None:
             with contextlib.suppress(OSError):
+                was[key] = os.getpriority(os.PRIO_PROCESS, job.proc.pid)
                 os.setpriority(os.PRIO_PGRP, job.proc.pid, 0)
+    try:
+        yield
+    finally:
+        for key, nice in was.items():
+            if _JOBS[key].proc.poll() is None:
+                with contextlib.suppress(OSError):
+                    os.setpriority(os.PRIO_PGRP, _JOBS[key].proc.pid, nice)
 
 
 def stop_all() -> None:

@@ -155,8 +155,8 @@ def _locked(key: str):
             # foreground's share of the cores
             import background
 
-            background.hurry()
-            fcntl.flock(f, fcntl.LOCK_EX)
+            with background.hurried():
+                fcntl.flock(f, fcntl.LOCK_EX)
         try:
             yield
         finally:

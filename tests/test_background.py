@@ -82,3 +82,19 @@ def test_a_job_past_its_time_and_a_running_one_are_stopped_with_their_children(j
     while _alive(child) and time.perf_counter() - t < 10:
         time.sleep(0.05)  # SIGTERM reached it; its exit may take a moment
     assert not _alive(child)
+
+
+def test_jobs_run_at_normal_priority_only_while_the_foreground_waits(jobs):
+    d = jobs.start("sleeper", [sys.executable, "-c", SLEEPER])
+    child = _child_pid(d)
+    pid = jobs._JOBS["sleeper"].proc.pid
+
+    def nice() -> tuple[int, int]:
+        return os.getpriority(os.PRIO_PROCESS, pid), os.getpriority(os.PRIO_PROCESS, child)
+
+    low = min(os.getpriority(os.PRIO_PROCESS, 0) + jobs.NICE, 19)
+    assert nice() == (low, low)
+    with jobs.hurried():
+        # lowering a nice value needs root; without it the job keeps its own
+        assert nice() == ((0, 0) if os.geteuid() == 0 else (low, low))
+    assert nice() == (low, low)
