@@ -297,6 +297,10 @@ def report(model_dir) -> dict:
 
 if __name__ == "__main__":  # the job of start_prefetch(): ROOT '[[scene, plan, scale], ...]'
     configure(sys.argv[1])
+    # stopped (background.stop_all, or the parent's death): the capture in progress too
+    import signal
+
+    signal.signal(signal.SIGTERM, lambda *_: os.killpg(0, signal.SIGKILL))
     for _scene, _plan, _scale in json.loads(sys.argv[2]):
         try:
             captured(_scene, _plan, _scale)

@@ -98,3 +98,30 @@ def test_jobs_run_at_normal_priority_only_while_the_foreground_waits(jobs):
         # lowering a nice value needs root; without it the job keeps its own
         assert nice() == ((0, 0) if os.geteuid() == 0 else (low, low))
     assert nice() == (low, low)
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="PR_SET_PDEATHSIG is Linux's")
+def test_a_job_ends_with_the_process_that_started_it(tmp_path):
+    """A pytest killed outright runs no teardown: its jobs must not outlive it."""
+    code = (
+        "import sys, time; sys.path.insert(0, sys.argv[1]); import background; "
+        "background.configure(sys.argv[2]); "
+        "background.start('orphan', [sys.executable, '-c', 'import time; time.sleep(60)']); "
+        "print(background._JOBS['orphan'].proc.pid, flush=True); time.sleep(60)"
+    )
+    import subprocess
+
+    p = subprocess.Popen(
+        [sys.executable, "-c", code, os.path.dirname(background.__file__), str(tmp_path)],
+        stdout=subprocess.PIPE,
+        text=True,
+    )
+    assert p.stdout is not None
+    job = int(p.stdout.readline())
+    assert _alive(job)
+    p.kill()
+    p.wait()
+    t = time.perf_counter()
+    while _alive(job) and time.perf_counter() - t < 10:
+        time.sleep(0.05)
+    assert not _alive(job)
