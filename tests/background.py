@@ -103,6 +103,7 @@ def start(key: str, argv: list[str], *, numba_threads: int | None = 1) -> Path:
             argv,
             cwd=job_dir,
             env=env,
+            stdin=subprocess.DEVNULL,
             stdout=out,
             stderr=subprocess.STDOUT,
             start_new_session=True,  # its own process group: hurried() and stop_all() reach its children
