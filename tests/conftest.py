@@ -58,3 +58,43 @@ def dask_cluster():
         yield lc.scheduler_address
     finally:
         lc.close()
+
+
+def _prebuilds(items) -> list:
+    """The distinct modules among ``items`` that define ``prebuild()`` (tests/background.py)."""
+    mods = []
+    for item in items:
+        mod = getattr(item, "module", None)
+        if mod is not None and callable(getattr(mod, "prebuild", None)) and mod not in mods:
+            mods.append(mod)
+    return mods
+
+
+@pytest.hookimpl(trylast=True)
+def pytest_collection_modifyitems(config, items):
+    """Modules with a ``prebuild()`` run last: their background jobs, started with the
+    session, are done by then (tests/background.py)."""
+    late = set(_prebuilds(items))
+    if late:
+        items[:] = [i for i in items if getattr(i, "module", None) not in late] + [
+            i for i in items if getattr(i, "module", None) in late
+        ]
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _background_jobs(request, tmp_path_factory, _simcache_root):
+    """Start the selected modules' ``prebuild()`` jobs when the session begins and stop
+    what still runs when it ends. pytest-xdist workers do not prebuild (each would start
+    every job): their fixtures start the jobs they need on demand."""
+    import background
+    import simcache
+
+    background.configure(tmp_path_factory.getbasetemp() / "background")
+    if "PYTEST_XDIST_WORKER" not in os.environ:
+        for mod in _prebuilds(request.session.items):
+            mod.prebuild()
+        simcache.start_prefetch()
+    try:
+        yield
+    finally:
+        background.stop_all()

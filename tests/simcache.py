@@ -46,6 +46,15 @@ scale and build options, *not* the code — clear the directory after changing t
 simulator, acquire or reconstruct).
 
 Timings of what was actually captured or built in this run: :func:`log`.
+
+Captures ahead of need: a test module's ``prebuild()`` (tests/background.py) calls
+:func:`prefetch` for the captures its fixtures will ask for; when the session begins,
+tests/conftest.py starts :func:`start_prefetch`, one background process that captures
+them in turn (at a lower priority, on the cores the foreground leaves idle), and moves
+those modules to the end of the run. The fixtures call :func:`captured` as before: the
+per-key file lock makes them wait for a capture in progress, and a finished one is
+reused; a prefetch that failed leaves nothing behind, so the fixture captures again
+and reports the error itself.
 """
 
 from __future__ import annotations
@@ -62,7 +71,18 @@ import time
 from contextlib import contextmanager
 from pathlib import Path
 
-__all__ = ["captured", "built", "report", "configure", "root", "log", "CI_PLAN", "CI_SCALE"]
+__all__ = [
+    "captured",
+    "built",
+    "report",
+    "configure",
+    "root",
+    "log",
+    "prefetch",
+    "start_prefetch",
+    "CI_PLAN",
+    "CI_SCALE",
+]
 
 CI_PLAN = Path(__file__).parent / "e2e" / "data" / "sim_ci.toml"
 CI_SCALE = 1.0
@@ -71,6 +91,7 @@ _ROOT: Path | None = None
 _MEMO: dict[str, Path] = {}
 _FAILED: dict[str, str] = {}
 _LOG: list[dict] = []
+_PREFETCH: list[tuple[str, str, float]] = []
 
 
 def configure(path) -> Path:
@@ -127,7 +148,15 @@ def _capture_key(scene: str, plan_path, scale: float) -> str:
 def _locked(key: str):
     lock = root() / f".{key}.lock"
     with open(lock, "w") as f:
-        fcntl.flock(f, fcntl.LOCK_EX)
+        try:
+            fcntl.flock(f, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            # held by another worker or by the prefetch job: that job now has the
+            # foreground's share of the cores
+            import background
+
+            with background.hurried():
+                fcntl.flock(f, fcntl.LOCK_EX)
         try:
             yield
         finally:
@@ -238,6 +267,43 @@ def built(scene: str, plan_path, scale: float = CI_SCALE, **build_config) -> Pat
     return model
 
 
+def prefetch(scene: str, plan_path, scale: float = CI_SCALE) -> None:
+    """Ask for :func:`captured` ``(scene, plan_path, scale)`` ahead of need (from a test
+    module's ``prebuild()``; :func:`start_prefetch` captures what was asked, in order)."""
+    # the job runs in its own folder: a relative plan path would not resolve there
+    plan = str(plan_path) if str(plan_path).startswith("builtin:") else str(Path(plan_path).resolve())
+    spec = (scene, plan, float(scale))
+    if spec not in _PREFETCH:
+        _PREFETCH.append(spec)
+
+
+def start_prefetch() -> None:
+    """Start one background job (tests/background.py) capturing every :func:`prefetch`
+    ed session that is not captured yet, in the order asked."""
+    import background
+
+    todo = [s for s in _PREFETCH if not (root() / _capture_key(*s) / "capture.done").is_file()]
+    if todo:
+        # the capture's own threads: no numba thread limit
+        background.start(
+            "simcache_prefetch", [sys.executable, __file__, str(root()), json.dumps(todo)], numba_threads=None
+        )
+
+
 def report(model_dir) -> dict:
     """``report.json`` of a model built by :func:`built` (metrics, seconds, notes...)."""
     return json.loads((Path(model_dir) / "report.json").read_text())
+
+
+if __name__ == "__main__":  # the job of start_prefetch(): ROOT '[[scene, plan, scale], ...]'
+    configure(sys.argv[1])
+    # stopped (background.stop_all, or the parent's death): the capture in progress too
+    import signal
+
+    signal.signal(signal.SIGTERM, lambda *_: os.killpg(0, signal.SIGKILL))
+    for _scene, _plan, _scale in json.loads(sys.argv[2]):
+        try:
+            captured(_scene, _plan, _scale)
+            print(f"prefetched {_scene} {_plan} {_scale:g}", flush=True)
+        except Exception as e:  # noqa: BLE001 - the fixture that needs it captures again and fails there
+            print(f"prefetch of {_scene} {_plan} {_scale:g} failed: {e}", flush=True)

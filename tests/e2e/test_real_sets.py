@@ -10,8 +10,9 @@ per-pixel ULR, hull rebuilt without the held-out view: 17.9 dB temple, 17.6 dB d
 from __future__ import annotations
 
 import json
-
+import sys
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -69,19 +70,38 @@ THRESHOLDS = {
 }
 
 
-@pytest.fixture(scope="module", params=["temple", "dino"])
-def real_model(request, tmp_path_factory):
+RINGS = ("temple", "dino")
+
+
+def build_ring(name: str, out: Path) -> None:
+    """``import colmap`` and the build of ring ``name`` into ``out/session``, ``out/model``."""
     from opacityhull.acquire.importers import import_colmap
     from opacityhull.reconstruct.build import BuildConfig, build_model
 
-    name = request.param
     src = DATA / f"{name}SR"
-    tmp = tmp_path_factory.mktemp(name)
-    import_colmap(src / "sparse", src / "images", tmp / "session", masks_dir=src / "masks")
+    import_colmap(src / "sparse", src / "images", out / "session", masks_dir=src / "masks")
     # the hull-and-blend model these leave-one-out figures score: no fit (the default
     # --optimize fast adds MODEL/optimized/, which eval loo does not read)
-    report = build_model(tmp / "session", tmp / "model", config=BuildConfig(pictures=False, optimize="none"))
-    return name, tmp, report
+    build_model(out / "session", out / "model", config=BuildConfig(pictures=False, optimize="none"))
+
+
+def prebuild(rings: tuple[str, ...] = RINGS) -> dict[str, Path]:
+    """The rings' builds as background jobs from the start of the run
+    (tests/background.py). Returns each ring's job folder."""
+    import background
+
+    return {name: background.start(f"real_loo_{name}", [sys.executable, __file__, name, "."]) for name in rings}
+
+
+@pytest.fixture(scope="module", params=RINGS)
+def real_model(request):
+    """(ring, its folder, the build's report.json as attributes: ``hull``, ``surfels``...)."""
+    import background
+
+    name = request.param
+    tmp = prebuild((name,))[name]  # already started with the run, unless under xdist
+    background.wait(f"real_loo_{name}", timeout_s=1500)
+    return name, tmp, SimpleNamespace(**json.loads((tmp / "model" / "report.json").read_text()))
 
 
 def test_default_build_reaches_capture_resolution(real_model):
@@ -184,3 +204,7 @@ def test_geometry_holdout_of_a_refined_build(tmp_path):
     s = geometry_without(model)(3)
     assert len(s) > 1000 and not s.visible_bool()[:, 3].any()
     assert loaded.count(3) == 1  # its alpha is read once up front (then dropped), never its colour
+
+
+if __name__ == "__main__":  # a background job of prebuild(): RING OUT_DIR
+    build_ring(sys.argv[1], Path(sys.argv[2]).resolve())

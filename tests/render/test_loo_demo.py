@@ -52,6 +52,13 @@ def build(scene: str, plan, *, alpha_threshold: float) -> Path:
     return simcache.built(scene, plan, simcache.CI_SCALE, alpha_threshold=alpha_threshold, **BUILD)
 
 
+def prebuild() -> None:
+    """The 48-view captures, taken in the background from the start of the run
+    (tests/simcache.py :func:`~simcache.prefetch`)."""
+    for scene, plan in (("diffuse", PLAN), ("fuzzy", PLAN), ("diffuse", simcache.CI_PLAN)):
+        simcache.prefetch(scene, plan, simcache.CI_SCALE)
+
+
 def test_plan_is_the_demo_plan_without_calibration_and_reflectance():
     import opacityhull.acquire.plan as plan_mod
 
