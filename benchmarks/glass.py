@@ -5,7 +5,7 @@ table angles.
 
     .venv/bin/python benchmarks/glass.py [--quick] [--json] [--work DIR] [--envmaps uffizi,grace]
         [--plan builtin:natural] [--rig sim:builtin:glass] [--heldout] [--spacings 3,6,9]
-        [--radii 0.15,0.3]
+        [--radii 0.15,0.3] [--lights 4x15,6x20,8x30,10x48,5x15@10,9x30@10 [--scale 1] [--scene builtin:glass]]
 
 1. Captured viewpoints: ``opacityhull capture --rig RIG --plan PLAN --out S``,
    ``opacityhull build S --out M`` (the default build, as a user runs it), then per map
@@ -24,6 +24,20 @@ table angles.
 
 3. ``--radii``: PLAN again with ``lamp_radius_m`` set to each radius (build
    ``--optimize none``; the errors do not depend on the fit): the lamp-size sweep.
+
+4. ``--lights``: how many lamps and array positions the glass needs. Each setting
+   ``LAMPSxSTEPS[@LOWEST]`` is a rig of LAMPS lamps on the overhead arc, evenly from
+   LOWEST degrees of elevation (default 30, the shipped rig's lowest) to the zenith, swept
+   through STEPS array angles over 360 degrees, with the lamp radius scaled to the cells'
+   angular size (0.2 m at the shipped 4x15 = 60:
+   ``0.2 * sqrt(d_el * d_az / (20 * 24))``). The rest is PLAN (its natural phase
+   unchanged; ``--rig`` is not used: ``--scene`` on the simulator's default rig), at
+   ``--scale`` of the rig's resolution, built ``--optimize none --cameras groundtruth``
+   (no calibration phase). Each half's share of the error (``split_contributions``) and
+   a fit ``c + b / sqrt(n)`` (``lights_fit``: where the error goes with many lamps).
+   A re-run in the same ``--work`` reuses captures, builds and figures. Appends
+   (replaces) a section of benchmarks/out/glass.md and writes glass_lights.json; the
+   other figures there are kept.
 
 ``--quick`` (``make bench``): 1 camera at 2 table angles, a 2-light array and N = 25,
 true cameras, no fit (not a figure of the shipped plan: only that the script runs). The machine is shared:
@@ -94,7 +108,7 @@ def run(argv: list[str], log: Path) -> tuple[float, float, str]:
     return wall, cpu, p.stdout
 
 
-def captured(work: Path, *, rig: str, plan: str, envmaps: list[str], build_args=()) -> dict:
+def captured(work: Path, *, rig: str, plan: str, envmaps: list[str], build_args=(), reuse_evals: bool = False) -> dict:
     S, M = work / "S", work / "M"
     work.mkdir(parents=True, exist_ok=True)
     res: dict = {"rig": rig, "plan": plan, "commands": []}
@@ -103,10 +117,12 @@ def captured(work: Path, *, rig: str, plan: str, envmaps: list[str], build_args=
         ("build", ["build", str(S), "--out", str(M), *build_args]),
     ):
         if name == "capture" and (S / "session.toml").is_file() or name == "build" and (M / "model.toml").is_file():
-            res[name] = {"reused": True}
+            timed = work / f"{name}_time.json"
+            res[name] = {"reused": True, **(json.loads(timed.read_text()) if timed.is_file() else {})}
             continue
         wall, cpu, _ = run(argv, work / f"{name}.log")
         res[name] = {"wall_s": wall, "cpu_s": cpu}
+        (work / f"{name}_time.json").write_text(json.dumps(res[name]))
         res["commands"].append("opacityhull " + " ".join(argv))
         print(f"{name}: {wall:.0f} s wall, {cpu:.0f} s CPU", file=sys.stderr, flush=True)
     if "wall_s" in res["capture"] and "wall_s" in res["build"]:
@@ -118,8 +134,12 @@ def captured(work: Path, *, rig: str, plan: str, envmaps: list[str], build_args=
         }
     for env in envmaps:
         argv = ["eval", "relight", str(M), "--envmap", f"builtin:{env}", "--json", "--out", str(work / f"eval_{env}")]
-        wall, _, out = run(argv, work / f"eval_{env}.log")
-        d = json.loads(out)
+        done = work / f"eval_{env}" / "eval_relight.json"
+        if reuse_evals and res["build"].get("reused") and done.is_file():
+            wall, d = float("nan"), json.loads(done.read_text())
+        else:
+            wall, _, out = run(argv, work / f"eval_{env}.log")
+            d = json.loads(out)
         nat = d.get("natural") or {}
         res[env] = {
             "rel_err_mean": d["rel_err_mean"],
@@ -290,6 +310,224 @@ def report(res: dict) -> Path:
     return path
 
 
+LIGHTS_SECTION = "## Lamps and array positions (`--lights`)"
+
+
+def lights_setting(spec: str) -> dict:
+    """``LAMPSxSTEPS[@LOWEST]`` -> lamps, steps, elevations (deg), radius (m)."""
+    body, _, low = spec.partition("@")
+    lamps, steps = (int(x) for x in body.lower().split("x"))
+    lowest = float(low) if low else 30.0
+    if lamps < 2 or steps < 1 or not 0.0 <= lowest < 90.0:
+        raise SystemExit(f"--lights {spec!r}: expected LAMPSxSTEPS[@LOWEST] with LAMPS >= 2, LOWEST in [0, 90)")
+    d_el = (90.0 - lowest) / (lamps - 1)
+    d_az = 360.0 / steps
+    # the shipped 0.2 m lamps fill cells of 20 x 24 degrees; keep the lamp's angular
+    # size in the same ratio to its cell (a smaller lamp sparkles, a larger one blurs)
+    radius = 0.2 * float(np.sqrt(d_el * d_az / (20.0 * 24.0)))
+    elev = [lowest + k * d_el for k in range(lamps)]
+    return {
+        "spec": spec,
+        "lamps": lamps,
+        "steps": steps,
+        "n_lights": lamps * steps,
+        "elevations_deg": elev,
+        "d_el_deg": d_el,
+        "d_az_deg": d_az,
+        "radius_m": round(radius, 4),
+    }
+
+
+def lights_rig_toml(setting: dict) -> str:
+    """The simulator's default rig with the setting's lamps on the arc (the zenith lamp as
+    the shipped rig has it: azimuth 0)."""
+    import tomllib
+
+    from opacityhull.sim.simrig import DEFAULT_RIG_TOML
+    from opacityhull.tomlio import toml_dumps
+
+    d = tomllib.loads(DEFAULT_RIG_TOML.read_text())
+    d["geometry"]["lights"] = [
+        {"id": i, "elevation_deg": e, "azimuth_deg": 0.0 if e >= 90.0 else 90.0, "distance_m": 1.0}
+        for i, e in enumerate(setting["elevations_deg"])
+    ]
+    d["devices"]["light_array"]["channels"] = {str(i): i + 1 for i in range(setting["lamps"])}
+    return toml_dumps(d)
+
+
+def lights_plan_toml(plan_text: str, setting: dict) -> str:
+    import tomllib
+
+    from opacityhull.tomlio import toml_dumps
+
+    d = tomllib.loads(plan_text)
+    refl = d["phases"]["reflectance"]
+    for k in ("array_deg", "array_step_deg", "lights"):
+        refl.pop(k, None)
+    refl["array_steps"] = setting["steps"]
+    refl["lamp_radius_m"] = setting["radius_m"]
+    d["plan"]["name"] = f"glass-lights-{setting['n_lights']}"
+    # the simulator's true cameras (build --cameras groundtruth): the board calibration at a
+    # reduced --scale is not what is measured, and its renders are skipped
+    d["phases"].pop("calibration", None)
+    return toml_dumps(d)
+
+
+def split_contributions(model_dir: Path, env_name: str, *, spp: int = 64) -> dict:
+    """Each half's share of the relit error, as ``eval relight`` builds the view: per
+    captured view, ``||e_display|| / ||truth||`` (the error left if the light-array half
+    were exact: the floor no light array lowers) and ``||e_array|| / ||truth||`` (the
+    error left if the display half were exact: what more lamps can lower)."""
+    from opacityhull.evaluate.relight import MASK_ALPHA, _natural_eval, _truth_renderer, find_scene
+    from opacityhull.model import OpacityHullModel
+    from opacityhull.relight.relit import Relighter
+    from opacityhull.relight.runner import builtin_envmap
+
+    model = OpacityHullModel.open(model_dir)
+    env = builtin_envmap(env_name)
+    kind, ref = find_scene(model)
+    truth_fn = _truth_renderer(model, kind, ref, spp=spp)
+    nat = _natural_eval(model, kind, ref)
+    if nat is None:
+        raise SystemExit(f"{model_dir}: no natural-illumination field to split")
+    R = Relighter(model)
+    floor, arr_only = [], []
+    for i in range(len(model.views)):
+        arr = R.relight_view(i, envmap=nat["array_env"](i, env))[..., :3]
+        part = nat["part"](i, env)
+        truth_a, cover = truth_fn(i, env)
+        truth_d = nat["truth"](i, env) * cover[..., None]
+        mask = cover >= MASK_ALPHA
+        n = float(np.linalg.norm((truth_a + truth_d)[mask]))
+        floor.append(float(np.linalg.norm(((0.0 if part is None else part) - truth_d)[mask])) / n)
+        arr_only.append(float(np.linalg.norm((arr - truth_a)[mask])) / n)
+    return {"display_floor": float(np.mean(floor)), "array_only": float(np.mean(arr_only))}
+
+
+def lights_sweep(work: Path, *, scene: str, plan_text: str, specs: list[str], scale: float, envmaps: list[str]) -> dict:
+    rows = {}
+    for spec in specs:
+        st = lights_setting(spec)
+        d = work / f"lights_{spec.replace('@', '_at')}"
+        d.mkdir(parents=True, exist_ok=True)
+        (d / "rig.toml").write_text(lights_rig_toml(st))
+        (d / "plan.toml").write_text(lights_plan_toml(plan_text, st))
+        rig = f"sim:{scene}@{d / 'rig.toml'}?scale={scale:g}"
+        print(f"lights {spec}: {st}", file=sys.stderr, flush=True)
+        rows[spec] = {
+            "setting": st,
+            **captured(
+                d,
+                rig=rig,
+                plan=str(d / "plan.toml"),
+                envmaps=envmaps,
+                build_args=["--optimize", "none", "--cameras", "groundtruth"],
+                # a re-run (to add settings) reads the figures of models it did not rebuild
+                reuse_evals=True,
+            ),
+        }
+        for env in envmaps:
+            cached = d / f"split_{env}.json"
+            if not (rows[spec]["build"].get("reused") and cached.is_file()):
+                cached.write_text(json.dumps(split_contributions(d / "M", env)))
+            rows[spec][env].update(json.loads(cached.read_text()))
+            print(f"{spec} {env} split: {rows[spec][env]}", file=sys.stderr, flush=True)
+        (OUT / "glass_lights.json").write_text(
+            json.dumps({"scale": scale, "settings": rows, "fit": {e: lights_fit(rows, e) for e in envmaps}}, indent=1)
+        )
+    return rows
+
+
+def lights_fit(rows: dict, env: str, *, goal: float = 0.15) -> dict:
+    """Least-squares ``err = c + b / sqrt(n)`` over the settings with the shipped lowest
+    lamp (n lights; the cells' linear size goes as 1/sqrt(n)), for the relit error and the
+    array's share; ``c`` is the error with infinitely many lamps. ``n_goal``: lights for
+    ``goal`` by the fit (None when ``c >= goal``: it floors)."""
+    pts = [(r["setting"]["n_lights"], r[env]) for r in rows.values() if r["setting"]["elevations_deg"][0] == 30.0]
+    out: dict = {"settings": len(pts)}
+    if len(pts) < 2:
+        return out
+    x = np.array([n**-0.5 for n, _ in pts])
+    A = np.stack([np.ones_like(x), x], axis=1)
+    for key in ("rel_err_mean", "array_only"):
+        (c, b), *_ = np.linalg.lstsq(A, np.array([e[key] for _, e in pts]), rcond=None)
+        n_goal = (b / (goal - c)) ** 2 if c < goal and b > 0 else None
+        out[key] = {"c": float(c), "b": float(b), "n_goal": None if n_goal is None else float(n_goal)}
+    out["display_floor"] = float(np.mean([e["display_floor"] for _, e in pts]))
+    return out
+
+
+def lights_report(rows: dict, *, scale: float, envmaps: list[str], notes: list[str]) -> Path:
+    lines = [
+        LIGHTS_SECTION,
+        "",
+        f"`benchmarks/glass.py --lights {','.join(rows)} --scale {scale:g}`: `sim:builtin:glass` at {scale:g}x the "
+        "rig's resolution, PLAN `builtin:natural` with its light array replaced (lamps evenly on the arc from the "
+        "lowest elevation to the zenith, the lamp radius scaled to the cell: 0.2 m at 4x15), N = 30 natural images "
+        "per display as shipped, 4 views, no calibration phase: build `--optimize none --cameras groundtruth`, `eval relight` at the captured viewpoints. "
+        "Wall times taken under load (shared 2-core machine, other helpers' jobs and the lead's tests); CPU is "
+        "the children's user + system time. The array half / display half columns are each half's error "
+        "against its own part of the truth (as `eval relight` reports them); 'error of the array / of the "
+        "displays' is each half's error over the whole truth's norm (`split_contributions`): the error "
+        "left if the other half were exact. The displays' share is the floor no light array lowers.",
+        "",
+        "| setting | lights | lowest lamp (°) | cell (° el x az) | lamp radius (m) | "
+        + " | ".join(
+            f"{e} rel. err / PSNR (dB) | {e} array half / display half | {e} error of the array / of the displays"
+            for e in envmaps
+        )
+        + " | capture CPU / wall (s) | build CPU / wall (s) |",
+        "|---|---|---|---|---|" + "---|---|---|" * len(envmaps) + "---|---|",
+    ]
+    for spec, r in rows.items():
+        st = r["setting"]
+        cells = []
+        for e in envmaps:
+            x = r.get(e)
+            if not x:
+                cells += ["-", "-", "-"]
+                continue
+            cells += [
+                f"{x['rel_err_mean']:.3f} / {x['psnr_mean']:.1f}",
+                f"{x['array_part_rel_err']:.3f} / {x['display_part_rel_err']:.3f}",
+                f"{x['array_only']:.3f} / {x['display_floor']:.3f}",
+            ]
+
+        def t(k: str, r: dict = r) -> str:
+            c = r.get(k, {})
+            return f"{c['cpu_s']:.0f} / {c['wall_s']:.0f}" if "cpu_s" in c else "-"
+
+        lines.append(
+            f"| {spec} | {st['n_lights']} | {st['elevations_deg'][0]:g} | {st['d_el_deg']:.1f} x {st['d_az_deg']:.0f} "
+            f"| {st['radius_m']:.3f} | " + " | ".join(cells) + f" | {t('capture')} | {t('build')} |"
+        )
+    fits = {e: lights_fit(rows, e) for e in envmaps}
+    lines.append("")
+    for e, f in fits.items():
+        if "rel_err_mean" not in f:
+            continue
+        r, a = f["rel_err_mean"], f["array_only"]
+
+        def goal(x: dict) -> str:
+            return "never (floors)" if x["n_goal"] is None else f"{x['n_goal']:.0f} lights"
+
+        lines.append(
+            f"- {e}, fit `err = c + b / sqrt(n)` over the {f['settings']} settings with the lowest lamp at 30°: "
+            f"relit error -> {r['c']:.3f} as n -> inf (b = {r['b']:.2f}; rel. err <= 0.15 at {goal(r)}); the "
+            f"array's share -> {a['c']:.3f} (b = {a['b']:.2f}; <= 0.15 at {goal(a)}); the displays' share "
+            f"(N = 30, no lamp changes it) {f['display_floor']:.3f}."
+        )
+    lines += [""] + notes
+    path = OUT / "glass.md"
+    old = path.read_text() if path.is_file() else "# Glass relit under a whole environment (#30)\n"
+    # replace an earlier run of this section, keep every other figure
+    head, _, tail = old.partition(LIGHTS_SECTION)
+    rest = tail.split("\n## ", 1)[1] if "\n## " in tail else ""
+    text = head.rstrip("\n") + "\n\n" + "\n".join(lines) + "\n" + (f"\n## {rest}" if rest else "")
+    path.write_text(text)
+    return path
+
+
 def _plan_text(plan: str) -> str:
     from opacityhull.acquire.plan import _BUILTIN_DIR
 
@@ -309,6 +547,9 @@ def main() -> None:
     ap.add_argument("--heldout", action="store_true")
     ap.add_argument("--spacings", default="3,6,9")
     ap.add_argument("--radii", default="", help="lamp radii (m) to sweep, comma-separated")
+    ap.add_argument("--lights", default="", help="light-array settings LAMPSxSTEPS[@LOWEST_DEG], comma-separated")
+    ap.add_argument("--scale", type=float, default=1.0, help="--lights: rig resolution scale")
+    ap.add_argument("--scene", default="builtin:glass", help="--lights: the simulated scene")
     args = ap.parse_args()
     import tempfile
 
@@ -319,6 +560,16 @@ def main() -> None:
     if args.quick:
         (work / "quick.toml").write_text(QUICK_PLAN)
         plan, envmaps = str(work / "quick.toml"), envmaps[:1]
+    if args.lights and not args.quick:
+        # the sweep only: the section is appended to glass.md, the shipped plan's figures kept
+        specs = args.lights.split(",")
+        rows = lights_sweep(
+            work, scene=args.scene, plan_text=_plan_text(plan), specs=specs, scale=args.scale, envmaps=envmaps
+        )
+        print_result(
+            {"lights": rows}, lights_report(rows, scale=args.scale, envmaps=envmaps, notes=[]), as_json=args.json
+        )
+        return
     res: dict = {"quick": args.quick, "envmaps": envmaps}
     # the quick plan has no calibration phase: the simulator's true cameras
     quick_build = ["--cameras", "groundtruth", "--optimize", "none"] if args.quick else []
