@@ -107,8 +107,14 @@ _FOLDED_FLAGS = {"--json"}
 
 
 def main() -> None:  # console-script entry point
+    import faulthandler
+    import signal
     import sys
 
+    # `kill -USR1 PID` prints every thread's stack to stderr: what a stuck capture or build
+    # is waiting on, without stopping it (the tests send it before giving up on a child).
+    if hasattr(signal, "SIGUSR1"):
+        faulthandler.register(signal.SIGUSR1, all_threads=True)
     app(args=normalize_argv(sys.argv[1:]), prog_name="opacityhull")
 
 

@@ -50,6 +50,25 @@ def _start(out: Path, *extra) -> subprocess.Popen:
     )
 
 
+def _finish(p: subprocess.Popen, timeout: float) -> tuple[str, str]:
+    """``p.communicate(timeout)``; a child still running after it has its threads' stacks
+    printed (SIGUSR1: the CLI's faulthandler) into the failure, then is killed."""
+    try:
+        return p.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        p.send_signal(signal.SIGUSR1)
+        try:
+            _, err = p.communicate(timeout=20)
+        except subprocess.TimeoutExpired as e:
+            err = e.stderr or b""
+        p.kill()
+        p.communicate()
+        text = err.decode(errors="replace") if isinstance(err, bytes) else (err or "")
+        raise AssertionError(
+            f"capture still running {timeout} s after its signal; its threads:\n{text[-8000:]}"
+        ) from None
+
+
 def _signal_after(proc: subprocess.Popen, out: Path, n_images: int, sig, deadline_s: float = 240.0) -> None:
     """Send ``sig`` once ``n_images`` are listed (polling the manifest the process appends to)."""
     t_end = time.monotonic() + deadline_s
@@ -85,7 +104,7 @@ def test_capture_interrupt_kill_resume_verify(tmp_path):
     # 1. Ctrl-C: exit 130, the JSON summary says incomplete, the rig was left safe
     p = _start(out)
     _signal_after(p, out, k1, signal.SIGINT)
-    stdout, stderr = p.communicate(timeout=120)
+    stdout, stderr = _finish(p, 120)
     assert p.returncode == 130, stderr[-2000:]
     summary = json.loads(stdout)  # --json: stdout holds exactly one JSON object, even after Ctrl-C
     assert summary["complete"] is False and k1 <= summary["images"] < total
@@ -94,14 +113,14 @@ def test_capture_interrupt_kill_resume_verify(tmp_path):
     # 2. resume, then SIGKILL mid-run (no clean-up at all)
     p = _start(out, "--resume")
     _signal_after(p, out, k2, signal.SIGKILL)
-    p.communicate(timeout=120)
+    _finish(p, 120)
     assert p.returncode == -signal.SIGKILL
     n2 = _listed(out)
     assert n1 < n2 < total
 
     # 3. resume to the end
     p = _start(out, "--resume")
-    stdout, stderr = p.communicate(timeout=300)
+    stdout, stderr = _finish(p, 300)
     assert p.returncode == 0, stderr[-3000:]
     res = json.loads(stdout)
     assert res["complete"] and res["images"] == total and res["taken"] == total - n2
