@@ -76,14 +76,27 @@ def root() -> Path:
     return _ROOT  # type: ignore[return-value]
 
 
+def _libc():
+    try:
+        import ctypes
+
+        return ctypes.CDLL(None)
+    except OSError:
+        return None
+
+
+# loaded here, not in the child: between fork and exec only calls that take no lock
+# another thread of pytest might hold at the fork (an import would) are safe
+_LIBC = _libc()
+_PR_SET_PDEATHSIG = 1
+
+
 def _lower_priority() -> None:
     os.nice(NICE)
     # a pytest killed outright (SIGTERM/SIGKILL skips its fixtures' teardown) takes its
     # jobs with it: Linux's PR_SET_PDEATHSIG; elsewhere they run to their end
-    with contextlib.suppress(Exception):
-        import ctypes
-
-        ctypes.CDLL(None).prctl(1, signal.SIGTERM)
+    if _LIBC is not None and hasattr(_LIBC, "prctl"):
+        _LIBC.prctl(_PR_SET_PDEATHSIG, int(signal.SIGTERM))
 
 
 def start(key: str, argv: list[str], *, numba_threads: int | None = 1) -> Path:
