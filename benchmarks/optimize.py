@@ -181,9 +181,8 @@ def residual_fit(params: dict, data, base: list[np.ndarray], cfg, *, steps: int,
     geometry frozen. Same loss, Adam,
     rates and screen filter as the fit. Returns (coefficients (N, B, 3), ms per step)."""
     from opacityhull.optimize.adam import Adam
-    from opacityhull.optimize.appearance import sh_colors, sh_colors_backward, view_dirs
-    from opacityhull.optimize.fit import _raster_camera, _splat_params, step_loss, view_order
-    from opacityhull.optimize.raster import RasterConfig, rasterize, rasterize_backward
+    from opacityhull.optimize.fit import _raster_camera, view_gradient, view_order
+    from opacityhull.optimize.raster import RasterConfig
 
     rc = RasterConfig(lowpass_px2=RasterConfig().lowpass_px2 * cfg.train_scale**2)
     deg = int(cfg.sh_degree)
@@ -200,21 +199,21 @@ def residual_fit(params: dict, data, base: list[np.ndarray], cfg, *, steps: int,
         t0 = time.perf_counter()
         j = int(order[it])
         view = data.views[j]
-        dirs = view_dirs(params["means"], view.camera.centre_world)
-        colors, basis, positive = sh_colors(res, dirs, degree=deg, base=base[j])
-        sp = _splat_params(params, colors)
-        out = rasterize(sp, cams[j], config=rc)
-        _, g_img, g_a = step_loss(
-            out.image,
-            out.alpha,
+        vg = view_gradient(
+            params,
+            res,
+            cams[j],
+            view.camera.centre_world,
             view.target,
             view.alpha,
+            degree=deg,
+            raster_config=rc,
             ssim_weight=cfg.ssim_weight,
             alpha_weight=cfg.alpha_weight,
             color_loss=cfg.color_loss,
+            base=base[j],
         )
-        g = rasterize_backward(out, sp, cams[j], dL_dimage=g_img, dL_dalpha=g_a, config=rc)
-        adam.step({"sh": res}, {"sh": sh_colors_backward(g.colors, basis, positive, B)}, {"sh": lr})
+        adam.step({"sh": res}, {"sh": vg.sh}, {"sh": lr})
         ms.append(1e3 * (time.perf_counter() - t0))
         if (it + 1) % max(1, steps // 3) == 0 or it + 1 == steps:
             observe(it + 1, res)

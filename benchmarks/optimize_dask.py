@@ -50,9 +50,8 @@ def view_grads(params: dict, views: list, which: list[int], cfg: dict) -> dict:
     """Summed gradients of the fit's loss over ``views[which]`` (the task a worker runs;
     also the local step). ``views[j]`` = (RasterCamera, centre (3,), target (H, W, 3),
     matte (H, W)). Returns the gradients (as the fit's names) and ``compute_ms``."""
-    from opacityhull.optimize.appearance import sh_colors, sh_colors_backward, view_dirs
-    from opacityhull.optimize.fit import _splat_params, step_loss
-    from opacityhull.optimize.raster import RasterConfig, rasterize, rasterize_backward
+    from opacityhull.optimize.fit import view_gradient
+    from opacityhull.optimize.raster import RasterConfig
 
     t0, c0 = time.perf_counter(), time.thread_time()
     rc = RasterConfig(lowpass_px2=RasterConfig().lowpass_px2 * cfg["train_scale"] ** 2)
@@ -61,20 +60,26 @@ def view_grads(params: dict, views: list, which: list[int], cfg: dict) -> dict:
     total: dict = {"fragments": 0}
     for j in which:
         cam, centre, target, matte = views[j]
-        colors, basis, positive = sh_colors(params["sh"], view_dirs(params["means"], centre), degree=deg)
-        sp = _splat_params(params, colors)
-        out = rasterize(sp, cam, config=rc)
-        _, g_img, g_a = step_loss(
-            out.image, out.alpha, target, matte, ssim_weight=cfg["ssim_weight"], alpha_weight=cfg["alpha_weight"]
+        vg = view_gradient(
+            params,
+            params["sh"],
+            cam,
+            centre,
+            target,
+            matte,
+            degree=deg,
+            raster_config=rc,
+            ssim_weight=cfg["ssim_weight"],
+            alpha_weight=cfg["alpha_weight"],
         )
-        g = rasterize_backward(out, sp, cam, dL_dimage=g_img, dL_dalpha=g_a, config=rc)
-        total["fragments"] += int(out.n_fragments)
+        g = vg.raster
+        total["fragments"] += int(vg.out.n_fragments)
         grads = {
             "means": g.means,
             "quats": g.quats,
             "log_scales": g.log_scales,
             "opacity_logits": g.opacity_logits,
-            "sh": sh_colors_backward(g.colors, basis, positive, B),
+            "sh": vg.sh,
         }
         for k, v in grads.items():
             if k in total:

@@ -19,6 +19,7 @@ import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from collections.abc import Callable, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -46,6 +47,8 @@ __all__ = [
     "render_params",
     "load_fitted",
     "step_loss",
+    "view_gradient",
+    "ViewGradient",
 ]
 
 log = logging.getLogger(__name__)
@@ -182,6 +185,59 @@ def step_loss(
     return loss, g_img.astype(np.float32), g_a.astype(np.float32)
 
 
+@dataclass(frozen=True)
+class ViewGradient:
+    """One view's forward and backward pass (:func:`view_gradient`)."""
+
+    loss: float
+    out: Any  # raster.RasterOutput: the rendered image, alpha, n_fragments
+    raster: Any  # raster.RasterGrads: per-surfel gradients, means2d_abs, visible
+    sh: np.ndarray  # (N, B, 3) float32, dL/d(SH coefficients)
+
+
+def view_gradient(
+    params: dict[str, np.ndarray],
+    sh: np.ndarray,
+    raster_camera,
+    centre_world: np.ndarray,
+    target: np.ndarray,
+    matte: np.ndarray,
+    *,
+    degree: int,
+    raster_config,
+    ssim_weight: float,
+    alpha_weight: float,
+    color_loss: str = "l1",
+    base: np.ndarray | float = 0.5,
+) -> ViewGradient:
+    """Render one view of the surfels with SH colour ``sh`` (N, B, 3) over ``base``
+    (:func:`appearance.sh_colors`), score it against ``target`` (H, W, 3) and ``matte``
+    (H, W) with :func:`step_loss`, and take the gradients back to every parameter: the
+    one step the fit, the residual-SH benchmark and the Dask benchmark all take."""
+    from .raster import rasterize, rasterize_backward
+
+    dirs = view_dirs(params["means"], centre_world)
+    colors, basis, positive = sh_colors(sh, dirs, degree=degree, base=base)
+    sp = _splat_params(params, colors)
+    out = rasterize(sp, raster_camera, config=raster_config)
+    loss, g_img, g_a = step_loss(
+        out.image,
+        out.alpha,
+        target,
+        matte,
+        ssim_weight=ssim_weight,
+        alpha_weight=alpha_weight,
+        color_loss=color_loss,
+    )
+    g = rasterize_backward(out, sp, raster_camera, dL_dimage=g_img, dL_dalpha=g_a, config=raster_config)
+    return ViewGradient(
+        loss=loss,
+        out=out,
+        raster=g,
+        sh=sh_colors_backward(g.colors, basis, positive, sh.shape[1]),
+    )
+
+
 def _sh_degree_at(config: FitConfig, it: int) -> int:
     if config.sh_degree_every <= 0:
         return int(config.sh_degree)
@@ -250,7 +306,7 @@ def fit_params(
 
     ``observe(step, params)`` is called every ``observe_every`` steps and after the
     last (a benchmark scores held-out views there; its time is not in ``step_ms``)."""
-    from .raster import RasterConfig, rasterize, rasterize_backward, spatial_order
+    from .raster import RasterConfig, spatial_order
 
     t_start = time.perf_counter()
     # the screen filter is a fixed area in pixels: at train_scale < 1 it would let the splats
@@ -292,26 +348,26 @@ def fit_params(
         view = data.views[int(order[it])]
         cam = cams[int(order[it])]
         deg = _sh_degree_at(config, it)
-        dirs = view_dirs(params["means"], view.camera.centre_world)
-        colors, basis, positive = sh_colors(params["sh"], dirs, degree=deg)
-        sp = _splat_params(params, colors)
-        out = rasterize(sp, cam, config=rc)
-        loss, g_img, g_a = step_loss(
-            out.image,
-            out.alpha,
+        vg = view_gradient(
+            params,
+            params["sh"],
+            cam,
+            view.camera.centre_world,
             view.target,
             view.alpha,
+            degree=deg,
+            raster_config=rc,
             ssim_weight=config.ssim_weight,
             alpha_weight=config.alpha_weight,
             color_loss=config.color_loss,
         )
-        g = rasterize_backward(out, sp, cam, dL_dimage=g_img, dL_dalpha=g_a, config=rc)
+        loss, out, g = vg.loss, vg.out, vg.raster
         grads = {
             "means": g.means,
             "quats": g.quats,
             "log_scales": g.log_scales,
             "opacity_logits": g.opacity_logits,
-            "sh": sh_colors_backward(g.colors, basis, positive, B),
+            "sh": vg.sh,
         }
         lr_pos = exp_decay(it, T, start=lr_start * extent, final=lr_final * extent)
         sh_lr = np.full((B, 1), config.lr_sh_rest, np.float32)
