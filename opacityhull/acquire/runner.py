@@ -42,6 +42,7 @@ import numpy as np
 
 from .. import __version__
 from ..cliutil import terminate_as_interrupt
+from ..interrupts import signals_off_this_thread
 from ..errors import (
     CaptureInterrupted,
     ConfigError,
@@ -427,6 +428,7 @@ class _ImageQueue:
             raise
 
     def _run(self) -> None:
+        signals_off_this_thread()  # a C signal handler must not interrupt the EXR encoder's malloc
         q = self._q
         assert q is not None
         while True:

@@ -18,6 +18,7 @@ import time
 from collections.abc import Mapping
 
 from ..errors import ConfigError, DeviceError, InputError
+from ..interrupts import signals_off_this_thread
 from . import enttec_protocol as ep
 from .interfaces import DeviceInfo, RotaryAxis, check_opened
 from .transport import DeviceGone, DeviceTimeout, OverTransport, SerialSettings, SerialTransport, Transport, driver_name
@@ -226,6 +227,7 @@ class EnttecDmx(OverTransport):
         self._keepalive_stop.clear()
 
         def run():
+            signals_off_this_thread()
             while not self._keepalive_stop.wait(period_s):
                 try:
                     if self._last is not None:

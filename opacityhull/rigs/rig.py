@@ -16,7 +16,6 @@ from __future__ import annotations
 import logging
 import signal
 import sys
-import threading
 import time
 import warnings
 from contextlib import contextmanager
@@ -25,6 +24,7 @@ from typing import TYPE_CHECKING, Any
 from collections.abc import Callable, Iterator, Sequence
 
 from ..errors import CaptureInterrupted, ConfigError, DeviceError, Terminated
+from ..interrupts import deferred_signals
 from .config import AxisConfig, CameraConfig, RigConfig, load_rig_config, parse_emulator_url
 from .backdrops import DisplayController
 from .interfaces import Backdrops, CameraDevice, DeviceInfo, LightArray, Port, RotaryAxis, Turntable
@@ -282,7 +282,9 @@ class HardwareRig(OpenClose):
             yield self
             ok = True
         finally:
-            with _sigint_deferred() as pending:
+            # SIGTERM/SIGHUP too: a capture turns them into an interrupt (acquire.runner),
+            # and one arriving mid-clean-up must not cut the lights-off short either
+            with deferred_signals("rig clean-up", deliver=False) as pending:
                 self.safe_errors = self.make_safe()
             if self.safe_errors:
                 text = "; ".join(f"{s}: {e}" for s, e in self.safe_errors)
@@ -355,37 +357,6 @@ def _stdin_is_tty() -> bool:
         return sys.stdin is not None and sys.stdin.isatty()
     except (ValueError, AttributeError):
         return False
-
-
-@contextmanager
-def _sigint_deferred():
-    """Hold back SIGINT during a critical section (main thread only); yields a list that
-    is non-empty afterwards if a SIGINT arrived meanwhile."""
-    pending: list[int] = []
-    if threading.current_thread() is not threading.main_thread():
-        yield pending
-        return
-    # SIGTERM/SIGHUP too: a capture turns them into an interrupt (acquire.runner), and
-    # one arriving mid-clean-up must not cut the lights-off short either
-    sigs = [
-        s for s in (signal.SIGINT, getattr(signal, "SIGTERM", None), getattr(signal, "SIGHUP", None)) if s is not None
-    ]
-    old = {}
-    try:
-        for s in sigs:
-            if s != signal.SIGINT and signal.getsignal(s) is signal.SIG_IGN:
-                continue  # ignored on purpose (nohup): stays ignored
-            old[s] = signal.signal(s, lambda signum, frame: pending.append(signum))
-    except ValueError:  # not the main interpreter
-        for s, h in old.items():
-            signal.signal(s, h)
-        yield pending
-        return
-    try:
-        yield pending
-    finally:
-        for s, h in old.items():
-            signal.signal(s, h)
 
 
 def _safe_check(dev) -> DeviceInfo:

@@ -70,6 +70,7 @@ pass keeps the noise of the seed it was first rendered with.
 from __future__ import annotations
 
 import hashlib
+import logging
 import math
 import os
 import threading
@@ -84,12 +85,15 @@ import numpy as np
 from ..camera import Camera, mitsuba_sensor_params, object_from_rig
 from ..charuco import CharucoSpec
 from ..errors import InputError
+from ..interrupts import deferred_signals
 from ..riggeometry import DisplaySpec, RigGeometry
 from . import shapes as S
 from .effects import EffectConfig, backdrop_only_effects, select_effects
 from .mitsuba_sensor import NEAR_CLIP_M, sensor_dict
 from .scenes import MaterialSpec, Part, SceneSpec, board_parts
 from .variants import choose_variant, use_mitsuba
+
+log = logging.getLogger(__name__)
 
 __all__ = [
     "SimState",
@@ -940,17 +944,11 @@ class SimRenderer:
             for k, v in (updates or {}).items():
                 loaded.assign(k, _signature(v), lambda v=v: v)
             loaded.params.update()
-            # the stubs type seed as mi.UInt32; Mitsuba converts a Python int
-            img = mi.render(
-                loaded.scene,
-                loaded.params,
-                seed=int(seed) & 0x7FFFFFFF,  # pyright: ignore[reportArgumentType]
-                spp=int(spp),
-            )
+            img = _render_array(mi, loaded.scene, loaded.params, seed=seed, spp=spp)
             self.renders += 1
             if shape_names_out is not None:
                 shape_names_out.update(shape_index_names(mi, loaded.scene))
-            return np.array(img, dtype=np.float32)
+            return img
 
     def cache_info(self) -> dict:
         """Mitsuba scenes loaded and renders run; radiance-cache entries, bytes and hits."""
@@ -1124,16 +1122,28 @@ class SimRenderer:
                     loaded.assign("light.to_world", T.tobytes(), lambda T=T: mi.AffineTransform4f(T))  # pyright: ignore[reportCallIssue, reportArgumentType]
                     loaded.assign("light.emitter.radiance.value", rad, lambda: mi.Color3f(*rad))
             params.update()
-            # the stubs type seed as mi.UInt32; Mitsuba converts a Python int
-            img = mi.render(
-                loaded.scene,
-                params,
-                sensor=sensor,
-                seed=int(seed) & 0x7FFFFFFF,  # pyright: ignore[reportArgumentType]
-                spp=int(cfg.spp),
-            )
+            img = _render_array(mi, loaded.scene, params, sensor=sensor, seed=seed, spp=cfg.spp)
             self.renders += 1
-            return np.array(img, dtype=np.float32)[:, :, :3]
+            return img[:, :, :3]
+
+
+def _render_array(mi, scene, params, *, sensor=0, seed: int, spp: int) -> np.ndarray:
+    """``mi.render`` evaluated into a float32 (H, W, C) array, with Ctrl-C, SIGTERM and
+    SIGHUP held back until it is done (:func:`~opacityhull.interrupts.deferred_signals`):
+    raised inside the render, an interrupt comes out of Dr.Jit as a ``RuntimeError`` or
+    cancels Mitsuba's integrator, and a capture must see it between two exposures. The
+    kernel runs in ``np.array`` (``mi.render`` only traces it), so both are covered."""
+    with deferred_signals("mi.render"):
+        log.debug("mi.render: %d spp, seed %d", int(spp), int(seed))
+        # the stubs type seed as mi.UInt32; Mitsuba converts a Python int
+        img = mi.render(
+            scene,
+            params,
+            sensor=sensor,
+            seed=int(seed) & 0x7FFFFFFF,  # pyright: ignore[reportArgumentType]
+            spp=int(spp),
+        )
+        return np.array(img, dtype=np.float32)
 
 
 def shape_index_names(mi, scene) -> dict[int, str]:

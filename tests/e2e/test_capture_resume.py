@@ -1,7 +1,8 @@
 """End to end: `opacityhull capture` of builtin:tiny on the simulated rig (real drivers,
 emulators over ptys, Mitsuba cameras) in a subprocess, interrupted with Ctrl-C and then
 killed outright mid-run, resumed to the end; `session verify` passes with exactly the
-planned number of images per phase and nothing duplicated."""
+planned number of images per phase and nothing duplicated. A Ctrl-C sent while Mitsuba
+renders an exposure stops the capture after that render, resumably, just the same."""
 
 from __future__ import annotations
 
@@ -11,6 +12,7 @@ import random
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -39,9 +41,25 @@ def _default_sigint() -> None:
     signal.signal(signal.SIGINT, signal.SIG_DFL)
 
 
-def _start(out: Path, *extra) -> subprocess.Popen:
+# the CLI with the renderer's and the signal deferral's debug lines on stderr: a line
+# "opacityhull.sim.render: mi.render: ..." is written inside the deferral, as the render starts
+_TRACED_CLI = (
+    "import logging, sys\n"
+    "h = logging.StreamHandler(sys.stderr)\n"
+    "h.setFormatter(logging.Formatter('%(name)s: %(message)s'))\n"
+    "for name in ('opacityhull.sim.render', 'opacityhull.interrupts'):\n"
+    "    logging.getLogger(name).setLevel(logging.DEBUG)\n"
+    "    logging.getLogger(name).addHandler(h)\n"
+    "sys.argv[0] = 'opacityhull'\n"
+    "from opacityhull.cli import main\n"
+    "main()\n"
+)
+
+
+def _start(out: Path, *extra, rig: str = RIG, plan: str = PLAN, traced: bool = False) -> subprocess.Popen:
+    args = ("capture", "--rig", rig, "--plan", plan, "--out", str(out), "--json", *extra)
     return subprocess.Popen(
-        _cli("capture", "--rig", RIG, "--plan", PLAN, "--out", str(out), "--json", *extra),
+        [sys.executable, "-c", _TRACED_CLI, *args] if traced else _cli(*args),
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
@@ -74,7 +92,8 @@ def _signal_after(proc: subprocess.Popen, out: Path, n_images: int, sig, deadlin
     t_end = time.monotonic() + deadline_s
     while _listed(out) < n_images:
         if proc.poll() is not None:
-            raise AssertionError(f"capture ended before {n_images} images: {proc.stderr.read()[-2000:]}")
+            err = proc.stderr.read() if proc.stderr is not None else ""
+            raise AssertionError(f"capture ended before {n_images} images: {err[-2000:]}")
         if time.monotonic() > t_end:
             proc.kill()
             raise AssertionError(f"capture did not reach {n_images} images within {deadline_s} s")
@@ -118,14 +137,21 @@ def test_capture_interrupt_kill_resume_verify(tmp_path):
     n2 = _listed(out)
     assert n1 < n2 < total
 
-    # 3. resume to the end
-    p = _start(out, "--resume")
+    # 3. resume to the end, 4. verify
+    _resume_to_end_and_verify(out, planned, n2)
+
+
+def _resume_to_end_and_verify(out: Path, planned: dict[str, int], n_before: int, **start) -> None:
+    """Resume the session in ``out`` (``n_before`` images listed) to the end, then check
+    with `session verify` every file and hash, the exact counts per phase (``planned``)
+    and that nothing is listed twice. ``start``: :func:`_start`'s rig and plan."""
+    total = sum(planned.values())
+    p = _start(out, "--resume", **start)
     stdout, stderr = _finish(p, 300)
     assert p.returncode == 0, stderr[-3000:]
     res = json.loads(stdout)
-    assert res["complete"] and res["images"] == total and res["taken"] == total - n2
+    assert res["complete"] and res["images"] == total and res["taken"] == total - n_before
 
-    # 4. verify: every file and hash, exact counts per phase, no duplicates
     v = subprocess.run(_cli("session", "verify", str(out), "--json"), capture_output=True, text=True, timeout=120)
     assert v.returncode == 0, v.stdout + v.stderr
     rep = json.loads(v.stdout)
@@ -137,4 +163,47 @@ def test_capture_interrupt_kill_resume_verify(tmp_path):
     # the simulated rig wrote ground truth for the captured views
     assert (out / "groundtruth").is_dir()
     runs = [json.loads(x) for x in (out / "runs.jsonl").read_text().splitlines()]
-    assert len(runs) >= 2 and runs[-1]["complete"]  # the SIGKILLed run could not log itself
+    assert len(runs) >= 2 and runs[-1]["complete"]  # a SIGKILLed run cannot log itself
+
+
+def test_ctrl_c_during_a_render_stops_at_the_exposure_and_resumes(tmp_path):
+    """SIGINT while Mitsuba renders an exposure (the child says so on stderr, from inside
+    the signal deferral, as the render starts): the render finishes, the signal is
+    delivered after it, the capture exits 130 keeping the image before, and resumes."""
+    plan = Path(__file__).with_name("interrupt_plan.toml")
+    rig = "sim:builtin:diffuse"  # 200x150: a render outlasts the parent's reaction to its line
+    out = tmp_path / "session"
+    p = _start(out, rig=rig, plan=str(plan), traced=True)
+    assert p.stderr is not None
+    seen: list[str] = []
+    armed = False
+    # once the first image is listed, stop inside the next image render (an spp above the
+    # 1-spp aov pass each view also takes)
+    watchdog = threading.Timer(120, p.kill)  # a child that never gets there must not hang the suite
+    watchdog.start()
+    try:
+        while True:
+            line = p.stderr.readline()
+            if not line:
+                p.wait(30)
+                raise AssertionError(f"capture ended (exit {p.returncode}) before a 2nd image: {''.join(seen)[-2000:]}")
+            seen.append(line)
+            if not line.startswith("opacityhull.sim.render: mi.render: "):
+                continue
+            if armed and int(line.split("mi.render: ", 1)[1].split()[0]) > 1:
+                break
+            armed = _listed(out) >= 1
+    finally:
+        watchdog.cancel()
+    t_sig = time.monotonic()
+    p.send_signal(signal.SIGINT)
+    stdout, stderr = _finish(p, 60)
+    latency_s = time.monotonic() - t_sig
+    stderr = "".join(seen) + stderr
+    assert p.returncode == 130, stderr[-2000:]
+    assert "opacityhull.interrupts: mi.render: SIGINT arrived during it, delivered now" in stderr, stderr[-2000:]
+    assert latency_s < 30, latency_s
+    summary = json.loads(stdout)
+    n1 = _listed(out)
+    assert summary["complete"] is False and summary["images"] == n1 and 1 <= n1 < 3
+    _resume_to_end_and_verify(out, {"lightfield": 3}, n1, rig=rig, plan=str(plan))

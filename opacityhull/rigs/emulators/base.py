@@ -23,6 +23,8 @@ import tty
 from dataclasses import dataclass, field
 from collections.abc import Iterable
 
+from ...interrupts import signals_off_this_thread
+
 log = logging.getLogger(__name__)
 
 __all__ = ["Reply", "Faults", "EmulatedDevice", "EmulatorServer", "noise"]
@@ -360,6 +362,7 @@ class EmulatorServer:
                 self._send_now(data)
 
     def _run(self) -> None:
+        signals_off_this_thread()
         while not self._stop.is_set() and not self._gone:
             fd = None
             if self.kind == "pty":
