@@ -189,6 +189,8 @@ def _read_progress(stream, last: dict, t_last: list[float]) -> None:
     """The stress child's progress lines into ``last``, their time into ``t_last[0]``
     (Mitsuba's own log lines share the stream: "Received interrupt signal" in colour)."""
     for line in stream:
+        if "Received interrupt signal" in line:
+            last["mitsuba_handler"] = last.get("mitsuba_handler", 0) + 1
         i = line.find("{")
         try:
             last.update(json.loads(line[i:]) if i >= 0 else {})
@@ -206,6 +208,7 @@ def _stress(tree: Path, *, signals: int, max_gap_ms: float, stall_s: float, seed
     rng = random.Random(seed)
     env = dict(os.environ, PYTHONUNBUFFERED="1", PYTHONPATH=str(tree), NUMBA_NUM_THREADS="1")
     tot = {"signals": 0, "renders": 0, "ok": 0, "interrupt": 0, "wrapped": 0, "other": 0, "died": 0, "hangs": 0}
+    tot["mitsuba_handler"] = 0
     hang_stacks: list[str] = []
     while tot["signals"] < signals:
         p = subprocess.Popen(
@@ -251,7 +254,7 @@ def _stress(tree: Path, *, signals: int, max_gap_ms: float, stall_s: float, seed
         p.wait()
         for t in threads:
             t.join(5)
-        for k in ("renders", "ok", "interrupt", "wrapped", "other"):
+        for k in ("renders", "ok", "interrupt", "wrapped", "other", "mitsuba_handler"):
             tot[k] += int(last.get(k, 0))
     return {"summary": tot, "stacks": hang_stacks}
 
@@ -368,7 +371,8 @@ def _main_stress(a) -> None:
         "Ctrl-C during renders, in process (benchmarks/interrupt.py --mode stress)",
         f"The simulated camera ({RIG}, camera 0, one lamp) renders in a loop; SIGINTs arrive U(0, "
         f"{a.max_gap_ms:g} ms) apart, {a.hogs} CPU hog(s) running. `interrupt`: a KeyboardInterrupt; `wrapped`: "
-        "the RuntimeError Dr.Jit makes of one raised inside mi.render; `other`: any other error; a hang = no "
+        "the RuntimeError Dr.Jit makes of one raised inside mi.render; `other`: any other error; "
+        "`mitsuba_handler`: times Mitsuba's own SIGINT handler logged; a hang = no "
         f"progress for {a.stall_s:g} s (stacks below).",
     )
     md += ["| figure | value |", "|---|---|"] + [f"| {k} | {v} |" for k, v in summary.items()] + [""]

@@ -44,7 +44,8 @@ def signals_off_this_thread() -> None:
 
 @contextmanager
 def deferred_signals(what: str = "critical section", *, deliver: bool = True) -> Iterator[list[int]]:
-    """Record SIGINT, SIGTERM and SIGHUP during the block instead of acting on them.
+    """Record SIGINT, SIGTERM and SIGHUP during the block instead of acting on them (and
+    block them in this thread, so that no C-level handler interrupts it either).
 
     Yields the list of signal numbers that arrived meanwhile (in arrival order). On
     leaving the block the previous handlers are restored, then, with ``deliver``, the
@@ -82,11 +83,11 @@ def deferred_signals(what: str = "critical section", *, deliver: bool = True) ->
         yield pending
         return
     # Blocked in this thread too: a handler set from C during the block (Mitsuba's, for
-    # the length of Integrator.render: it logs, which allocates) must not run on top of
-    # this thread's own allocations — it deadlocked there (benchmarks/interrupt.py
-    # --mode stress). The kernel hands the signal to another thread meanwhile, or keeps
-    # it pending until the mask is restored; either way `record` gets it.
-    mask = signal.pthread_sigmask(signal.SIG_BLOCK, old) if old and hasattr(signal, "pthread_sigmask") else None
+    # the length of Integrator.render) logs, which allocates and locks — not
+    # async-signal-safe: run on top of this thread's own malloc it would deadlock it. The
+    # kernel hands the signal to another thread meanwhile (whose C handler trips Python's
+    # flag) or keeps it pending until the mask is restored; either way `record` gets it.
+    mask = signal.pthread_sigmask(signal.SIG_BLOCK, list(old)) if old and hasattr(signal, "pthread_sigmask") else None
     try:
         yield pending
     finally:
