@@ -210,6 +210,7 @@ def _stress(tree: Path, *, signals: int, max_gap_ms: float, stall_s: float, seed
     tot = {"signals": 0, "renders": 0, "ok": 0, "interrupt": 0, "wrapped": 0, "other": 0, "died": 0, "hangs": 0}
     tot["mitsuba_handler"] = 0
     hang_stacks: list[str] = []
+    died: list[str] = []
     while tot["signals"] < signals:
         p = subprocess.Popen(
             [sys.executable, "-c", _STRESS_CHILD, RIG],
@@ -249,14 +250,15 @@ def _stress(tree: Path, *, signals: int, max_gap_ms: float, stall_s: float, seed
         if p.poll() is None:
             time.sleep(0.5)  # let the last signal land, then stop
             p.kill()
-        elif p.returncode not in (-signal.SIGKILL,):
-            tot["died"] += 1
         p.wait()
         for t in threads:
             t.join(5)
+        if p.returncode != -signal.SIGKILL:
+            tot["died"] += 1  # ended on its own: the exit code and stderr tail go into the report
+            died.append(f"exit {p.returncode}: " + "".join(errs)[-600:])
         for k in ("renders", "ok", "interrupt", "wrapped", "other", "mitsuba_handler"):
             tot[k] += int(last.get(k, 0))
-    return {"summary": tot, "stacks": hang_stacks}
+    return {"summary": tot, "stacks": hang_stacks, "died": died}
 
 
 def _native_stacks(pid: int) -> str:
@@ -378,6 +380,8 @@ def _main_stress(a) -> None:
     md += ["| figure | value |", "|---|---|"] + [f"| {k} | {v} |" for k, v in summary.items()] + [""]
     for st in res["stacks"]:
         md += ["## hang", "", "```", st, "```", ""]
+    for d in res["died"]:
+        md += ["## child ended", "", "```", d, "```", ""]
     (OUT / "interrupt_stress.md").write_text("\n".join(md))
     print(json.dumps(summary) if a.json else "\n".join(md))
 

@@ -83,10 +83,11 @@ def deferred_signals(what: str = "critical section", *, deliver: bool = True) ->
         yield pending
         return
     # Blocked in this thread too: a handler set from C during the block (Mitsuba's, for
-    # the length of Integrator.render) logs, which allocates and locks — not
-    # async-signal-safe: run on top of this thread's own malloc it would deadlock it. The
-    # kernel hands the signal to another thread meanwhile (whose C handler trips Python's
-    # flag) or keeps it pending until the mask is restored; either way `record` gets it.
+    # the length of Integrator.render) logs, which allocates — not async-signal-safe: run
+    # on top of this thread's own malloc it deadlocked on the arena lock (gdb, 1 in 3,000
+    # SIGINTs: benchmarks/out/interrupt_stress_before.md). The kernel hands the signal to
+    # another thread meanwhile (whose C handler trips Python's flag) or keeps it pending
+    # until the mask is restored; either way `record` gets it.
     mask = signal.pthread_sigmask(signal.SIG_BLOCK, list(old)) if old and hasattr(signal, "pthread_sigmask") else None
     try:
         yield pending

@@ -1130,9 +1130,10 @@ class SimRenderer:
 def _render_array(mi, scene, params, *, sensor=0, seed: int, spp: int) -> np.ndarray:
     """``mi.render`` evaluated into a float32 (H, W, C) array, with Ctrl-C, SIGTERM and
     SIGHUP held back until it is done (:func:`~opacityhull.interrupts.deferred_signals`):
-    raised inside the render, an interrupt comes out of Dr.Jit as a ``RuntimeError`` or
-    cancels Mitsuba's integrator, and a capture must see it between two exposures. The
-    kernel runs in ``np.array`` (``mi.render`` only traces it), so both are covered."""
+    raised inside the render, an interrupt comes out of Dr.Jit as a ``RuntimeError``;
+    Mitsuba's own SIGINT handler, run on this thread while it traces, can deadlock it in
+    ``malloc``; and a capture must see the interrupt between two exposures. The kernel
+    runs in ``np.array`` (``mi.render`` only traces it), so both are covered."""
     with deferred_signals("mi.render"):
         log.debug("mi.render: %d spp, seed %d", int(spp), int(seed))
         # the stubs type seed as mi.UInt32; Mitsuba converts a Python int
