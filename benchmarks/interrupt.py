@@ -287,7 +287,9 @@ def main() -> None:
     ap = parser(__doc__)
     ap.add_argument("--quick", action="store_true", help="3 tries per mode")
     ap.add_argument("--tries", type=int, default=30, help="tries per mode")
-    ap.add_argument("--hogs", type=int, default=3, help="`yes > /dev/null` processes running meanwhile")
+    ap.add_argument(
+        "--hogs", type=int, default=None, help="`yes > /dev/null` processes running meanwhile (3; --quick: 0)"
+    )
     ap.add_argument("--mode", choices=("delay", "render", "both", "stress"), default="both")
     ap.add_argument("--signals", type=int, default=1500, help="SIGINTs of the `stress` mode")
     ap.add_argument("--max-gap-ms", type=float, default=40.0, help="`stress`: signals U(0, this) apart")
@@ -299,6 +301,8 @@ def main() -> None:
     ap.add_argument("--json", action="store_true", help="print the records as JSON")
     a = ap.parse_args()
     tries = 3 if a.quick else a.tries
+    if a.hogs is None:
+        a.hogs = 0 if a.quick else 3  # `make bench` runs every benchmark --quick: no hogs there
     if a.mode == "stress":
         _main_stress(a)
         return
@@ -374,7 +378,8 @@ def _main_stress(a) -> None:
         f"The simulated camera ({RIG}, camera 0, one lamp) renders in a loop; SIGINTs arrive U(0, "
         f"{a.max_gap_ms:g} ms) apart, {a.hogs} CPU hog(s) running. `interrupt`: a KeyboardInterrupt; `wrapped`: "
         "the RuntimeError Dr.Jit makes of one raised inside mi.render; `other`: any other error; "
-        "`mitsuba_handler`: times Mitsuba's own SIGINT handler logged; a hang = no "
+        "`mitsuba_handler`: times Mitsuba's own SIGINT handler logged; `died`: children that ended on their own "
+        "(so far a KeyboardInterrupt on the loop's own line, outside its try: exit -2); a hang = no "
         f"progress for {a.stall_s:g} s (stacks below).",
     )
     md += ["| figure | value |", "|---|---|"] + [f"| {k} | {v} |" for k, v in summary.items()] + [""]
