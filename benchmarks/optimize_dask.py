@@ -72,16 +72,8 @@ def view_grads(params: dict, views: list, which: list[int], cfg: dict) -> dict:
             ssim_weight=cfg["ssim_weight"],
             alpha_weight=cfg["alpha_weight"],
         )
-        g = vg.raster
         total["fragments"] += int(vg.out.n_fragments)
-        grads = {
-            "means": g.means,
-            "quats": g.quats,
-            "log_scales": g.log_scales,
-            "opacity_logits": g.opacity_logits,
-            "sh": vg.sh,
-        }
-        for k, v in grads.items():
+        for k, v in vg.param_grads().items():
             if k in total:
                 total[k] += v
             else:
