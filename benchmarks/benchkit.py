@@ -12,9 +12,16 @@ never rewrites a tracked table.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
+import logging
 import sys
+from collections.abc import Iterator
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from distributed import LocalCluster
 
 #: The tracked reports of full runs.
 OUT_FULL = Path(__file__).resolve().parent / "out"
@@ -76,3 +83,26 @@ def print_result(res: dict, report: Path, *, as_json: bool) -> None:
         print(json.dumps(to_jsonable(res)))
     else:
         print(report.read_text())
+
+
+@contextlib.contextmanager
+def local_cluster(*, n_workers: int, threads_per_worker: int) -> Iterator[LocalCluster]:
+    """A Dask ``distributed.LocalCluster`` of ``n_workers`` worker processes with
+    ``threads_per_worker`` threads each, on 127.0.0.1, without a dashboard and with its
+    logs below ERROR silenced; closed when the block ends. The benchmarks open their
+    executor (and so their Client) on its ``scheduler_address``
+    (``opacityhull.executor.open_executor``)."""
+    from distributed import LocalCluster
+
+    lc = LocalCluster(
+        n_workers=n_workers,
+        threads_per_worker=threads_per_worker,
+        processes=True,
+        host="127.0.0.1",
+        dashboard_address=None,  # pyright: ignore[reportArgumentType]  (None: no dashboard, as distributed documents)
+        silence_logs=logging.ERROR,
+    )
+    try:
+        yield lc
+    finally:
+        lc.close()

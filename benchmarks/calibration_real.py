@@ -32,7 +32,6 @@ import copy
 import json
 import sys
 import time
-import tomllib
 from pathlib import Path
 
 import numpy as np
@@ -102,12 +101,13 @@ def _opencv_part() -> dict:
 
 
 def _caliscope_ref():
-    ref = tomllib.loads((VENDORED / "caliscope" / "camera_array.toml").read_text())["cameras"]
-    K = {i: np.array(ref[str(i)]["matrix"]) for i in range(4)}
-    D = {i: np.array(ref[str(i)]["distortions"]) for i in range(4)}
-    R = {i: np.array(ref[str(i)]["rotation"]) for i in range(4)}
-    C = np.array([-R[i].T @ np.array(ref[str(i)]["translation"]) for i in range(4)])
-    return K, D, R, C
+    from opacityhull.calibrate.caliscope import read_camera_array
+
+    cams = read_camera_array(VENDORED / "caliscope" / "camera_array.toml")
+    K = {i: c.K for i, c in cams.items()}
+    D = {i: c.dist for i, c in cams.items()}
+    R = {i: c.R_cam_from_world for i, c in cams.items()}
+    return K, D, R, np.array([c.centre_world for c in cams.values()])
 
 
 def detect_extrinsic(interp: str):
@@ -130,64 +130,13 @@ def detect_extrinsic(interp: str):
     return spec, dets
 
 
-def write_corners(dets, path: Path) -> None:
-    """The detections as a small npz (what tests/calibrate reads instead of the videos)."""
-    cam, frame, instant, start, ids, xy, sharp = [], [], [], [0], [], [], []
-    for d in dets:
-        for o in d.observations:
-            cam.append(o.camera)
-            frame.append(int(o.where.rsplit("#", 1)[1]))
-            instant.append(o.instant)
-            ids.append(o.detection.ids)
-            sharp.append(o.sharpness)
-            xy.append(o.detection.image_points)
-            start.append(start[-1] + len(o.detection.ids))
-    np.savez_compressed(
-        path,
-        camera=np.array(cam, np.int16),
-        frame=np.array(frame, np.int32),
-        instant=np.array(instant),
-        sharpness=np.array(sharp, np.float32),
-        start=np.array(start, np.int32),
-        corner_id=np.concatenate(ids).astype(np.int16),
-        corner_xy=np.concatenate(xy).astype(np.float32),
-        mirrored=np.array([d.variants.get("inverted+mirrored", 0) > 0 for d in dets]),
-    )
-
-
 def load_corners(path: Path = CORNERS_NPZ):
-    """(spec, detected cameras) from :func:`write_corners`' file."""
-    from opacityhull.calibrate.inputs import CameraInput, DetectedCamera, FrameObservation, parse_board
-    from opacityhull.charuco import BoardDetection
+    """(spec, detected cameras) from the vendored corners (:func:`opacityhull.calibrate.corners.read_corners`)."""
+    from opacityhull.calibrate.corners import read_corners
+    from opacityhull.calibrate.inputs import parse_board
 
     spec = parse_board(str(VENDORED / "caliscope" / "charuco.toml"))
-    board_xy = np.asarray(spec.board().getChessboardCorners(), dtype=np.float64).reshape(-1, 3)
-    z = np.load(path)
-    dets = [
-        DetectedCamera(camera=CameraInput(index=i, source=f"cam_{i}.mp4 (vendored corners)"), size=(1280, 720))
-        for i in range(4)
-    ]
-    for k in range(len(z["camera"])):
-        c = int(z["camera"][k])
-        s0, s1 = int(z["start"][k]), int(z["start"][k + 1])
-        ids = z["corner_id"][s0:s1].astype(np.int32)
-        det = BoardDetection(
-            ids=ids,
-            image_points=z["corner_xy"][s0:s1].astype(np.float64),
-            object_points=board_xy[ids],
-            inverted=True,
-            mirrored=bool(z["mirrored"][c]),
-        )
-        dets[c].observations.append(
-            FrameObservation(
-                camera=c,
-                instant=str(z["instant"][k]),
-                where=f"cam_{c}.mp4#{int(z['frame'][k])}",
-                detection=det,
-                sharpness=float(z["sharpness"][k]),
-            )
-        )
-    return spec, dets
+    return spec, read_corners(path, charuco=spec, size=(1280, 720), sources=[f"cam_{i}.mp4" for i in range(4)])
 
 
 def _sim_residuals(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
@@ -331,7 +280,9 @@ def run(quick: bool, write: bool) -> dict:
     if videos:
         spec, dets = detect_extrinsic("aruco-calib")
         if write:
-            write_corners(dets, CORNERS_NPZ)
+            from opacityhull.calibrate.corners import write_corners
+
+            write_corners(CORNERS_NPZ, dets)
         _, dets_h = detect_extrinsic("homography")
     else:
         spec, dets = load_corners()

@@ -40,7 +40,7 @@ import time
 from pathlib import Path
 
 import numpy as np
-from benchkit import out_dir, parser, print_result, report_head
+from benchkit import local_cluster, out_dir, parser, print_result, report_head
 
 ROOT = Path(__file__).resolve().parents[1]
 OUT = out_dir()
@@ -72,16 +72,8 @@ def view_grads(params: dict, views: list, which: list[int], cfg: dict) -> dict:
             ssim_weight=cfg["ssim_weight"],
             alpha_weight=cfg["alpha_weight"],
         )
-        g = vg.raster
         total["fragments"] += int(vg.out.n_fragments)
-        grads = {
-            "means": g.means,
-            "quats": g.quats,
-            "log_scales": g.log_scales,
-            "opacity_logits": g.opacity_logits,
-            "sh": vg.sh,
-        }
-        for k, v in grads.items():
+        for k, v in vg.param_grads().items():
             if k in total:
                 total[k] += v
             else:
@@ -108,7 +100,6 @@ def build_temple(tmp: Path) -> Path:
 def main(argv=None) -> int:
     import numba
     import psutil
-    from distributed import LocalCluster
 
     from opacityhull.executor import numba_max_threads, open_executor
     from opacityhull.optimize.config import fit_preset
@@ -148,16 +139,8 @@ def main(argv=None) -> int:
     picks = {b: [rng.choice(len(views), b, replace=False).tolist() for _ in range(a.repeats)] for b in batches}
 
     os.environ.setdefault("MALLOC_TRIM_THRESHOLD_", "65536")  # what a nanny sets anyway (the plugin undoes it)
-    lc = LocalCluster(
-        n_workers=2,
-        threads_per_worker=1,
-        processes=True,
-        host="127.0.0.1",
-        dashboard_address=None,  # pyright: ignore[reportArgumentType]  (None: no dashboard, as distributed documents)
-        silence_logs=40,
-    )
     rows: list[dict] = []
-    try:
+    with local_cluster(n_workers=2, threads_per_worker=1) as lc:
         ex = open_executor(lc.scheduler_address, numba_threads=1)
         client = ex.client  # pyright: ignore[reportAttributeAccessIssue]
         workers = sorted(client.scheduler_info(n_workers=-1)["workers"])
@@ -233,8 +216,6 @@ def main(argv=None) -> int:
             rows.append({"batch": b, **best, **med, "sent_B": sent, "recv_B": recv})
             print(f"B={b}: {rows[-1]}", file=sys.stderr)
         ex.close()
-    finally:
-        lc.close()
     numba.set_num_threads(numba_max_threads())
     res = {
         "model": str(model_dir),

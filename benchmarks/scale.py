@@ -49,7 +49,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
-from benchkit import out_dir, parser
+from benchkit import local_cluster, out_dir, parser
 
 if TYPE_CHECKING:
     from opacityhull.model import Storage
@@ -320,8 +320,6 @@ def memory_table(mem: dict, summary: dict) -> list[str]:
 def scheduler_comparison(tmp: Path, *, n_table: int, width: int, height: int, repeats: int) -> dict:
     """Per-view matting of one session: serial, 2 threads, 2 spawn processes, 2-worker
     LocalCluster; warm, best of ``repeats``, alternating."""
-    from distributed import LocalCluster
-
     from opacityhull.executor import open_executor, worker_info
     from opacityhull.reconstruct.perview import matte_view_checksum, view_tasks
 
@@ -329,15 +327,7 @@ def scheduler_comparison(tmp: Path, *, n_table: int, width: int, height: int, re
     make_session(s, n_table=n_table, width=width, height=height, lights=0)
     tasks = view_tasks(s)
     res: dict = {"views": len(tasks), "width": width, "height": height}
-    lc = LocalCluster(
-        n_workers=2,
-        threads_per_worker=1,
-        processes=True,
-        host="127.0.0.1",
-        dashboard_address=None,  # pyright: ignore[reportArgumentType]  (None: no dashboard, as distributed documents)
-        silence_logs=40,
-    )
-    try:
+    with local_cluster(n_workers=2, threads_per_worker=1) as lc:
         execs = {
             "serial": open_executor("serial"),
             "threads": open_executor("threads", workers=2),
@@ -386,8 +376,6 @@ def scheduler_comparison(tmp: Path, *, n_table: int, width: int, height: int, re
         overhead_s = (time.perf_counter() - t) / len(noop) * execs["cluster"].n_workers
         for ex in set(execs.values()):
             ex.close()
-    finally:
-        lc.close()
     shutil.rmtree(s, ignore_errors=True)
     best = {k: min(v) for k, v in times.items()}
     res["build_matting_seconds"] = {k: min(v) for k, v in build_times.items()}

@@ -194,6 +194,19 @@ class ViewGradient:
     raster: Any  # raster.RasterGrads: per-surfel gradients, means2d_abs, visible
     sh: np.ndarray  # (N, B, 3) float32, dL/d(SH coefficients)
 
+    def param_grads(self) -> dict[str, np.ndarray]:
+        """The gradient of every fitted parameter, keyed as the parameters are
+        (``means``, ``quats``, ``log_scales``, ``opacity_logits``, ``sh``): what
+        :meth:`Adam.step` takes."""
+        g = self.raster
+        return {
+            "means": g.means,
+            "quats": g.quats,
+            "log_scales": g.log_scales,
+            "opacity_logits": g.opacity_logits,
+            "sh": self.sh,
+        }
+
 
 def view_gradient(
     params: dict[str, np.ndarray],
@@ -362,13 +375,7 @@ def fit_params(
             color_loss=config.color_loss,
         )
         loss, out, g = vg.loss, vg.out, vg.raster
-        grads = {
-            "means": g.means,
-            "quats": g.quats,
-            "log_scales": g.log_scales,
-            "opacity_logits": g.opacity_logits,
-            "sh": vg.sh,
-        }
+        grads = vg.param_grads()
         lr_pos = exp_decay(it, T, start=lr_start * extent, final=lr_final * extent)
         sh_lr = np.full((B, 1), config.lr_sh_rest, np.float32)
         sh_lr[0] = config.lr_sh_dc

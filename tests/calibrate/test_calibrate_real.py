@@ -166,47 +166,25 @@ def test_opencv_outputs_read_back(opencv_run):
 
 
 def _caliscope_ref():
-    import tomllib
+    """caliscope's camera_array.toml: K, dist and cam_from_world rotation by camera, (4, 3) centres."""
+    from opacityhull.calibrate.caliscope import read_camera_array
 
-    ref = tomllib.loads((CALISCOPE / "camera_array.toml").read_text())["cameras"]
-    K = {i: np.array(ref[str(i)]["matrix"]) for i in range(4)}
-    D = {i: np.array(ref[str(i)]["distortions"]) for i in range(4)}
-    R = {i: np.array(ref[str(i)]["rotation"]) for i in range(4)}
-    C = np.array([-R[i].T @ np.array(ref[str(i)]["translation"]) for i in range(4)])
-    return K, D, R, C
+    cams = read_camera_array(CALISCOPE / "camera_array.toml")
+    K = {i: c.K for i, c in cams.items()}
+    D = {i: c.dist for i, c in cams.items()}
+    return K, D, {i: c.R_cam_from_world for i, c in cams.items()}, np.array([c.centre_world for c in cams.values()])
 
 
 def _video_corners():
     """The corners ``calibrate`` found in every frame of caliscope's four extrinsic videos
     (extrinsic_corners.npz, written by benchmarks/calibration_real.py --write-corners; see
     SOURCE.txt), as the detections ``calibrate_detected`` takes."""
-    from opacityhull.calibrate.inputs import CameraInput, DetectedCamera, FrameObservation, parse_board
-    from opacityhull.charuco import BoardDetection
+    from opacityhull.calibrate.corners import read_corners
+    from opacityhull.calibrate.inputs import parse_board
 
     spec = parse_board(str(CALISCOPE / "charuco.toml"))
-    board_xyz = np.asarray(spec.board().getChessboardCorners(), dtype=np.float64).reshape(-1, 3)
-    z = np.load(CALISCOPE / "extrinsic_corners.npz")
-    dets = [
-        DetectedCamera(camera=CameraInput(index=i, source=f"cam_{i}.mp4"), size=(1280, 720), frames_read=111)
-        for i in range(4)
-    ]
-    for k in range(len(z["camera"])):
-        c = int(z["camera"][k])
-        s0, s1 = int(z["start"][k]), int(z["start"][k + 1])
-        ids = z["corner_id"][s0:s1].astype(np.int32)
-        det = BoardDetection(
-            ids=ids, image_points=z["corner_xy"][s0:s1].astype(np.float64), object_points=board_xyz[ids]
-        )
-        dets[c].observations.append(
-            FrameObservation(
-                camera=c,
-                instant=str(z["instant"][k]),
-                where=f"cam_{c}.mp4#{int(z['frame'][k])}",
-                detection=det,
-                sharpness=float(z["sharpness"][k]),
-            )
-        )
-    return spec, dets
+    sources = [f"cam_{i}.mp4" for i in range(4)]
+    return spec, read_corners(CALISCOPE / "extrinsic_corners.npz", charuco=spec, size=(1280, 720), sources=sources)
 
 
 def _calibrate_video_corners(intrinsics=()):
