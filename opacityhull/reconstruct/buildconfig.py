@@ -92,7 +92,9 @@ class BuildConfig:
         "surfels"/"none". Figures: ``benchmarks/out/fidelity.md``.
     natural, natural_kernels : estimate the natural-illumination reflectance field
         (:mod:`.natural_field`, K box kernels per pixel) when the session has the
-        natural (``envmatte``) phase.
+        natural (``envmatte``) phase. ``natural_kernels=None`` (default) takes K from
+        the session's plan (``[phases.natural] kernels``, 25 when it does not say), so
+        the K a plan asks for is the K the build fits.
     verify_checksums : check every manifest record's sha256 before building (sizes and
         duplicate ids are always checked); the report says which was done.
     alpha_threshold : silhouette = alpha > threshold.
@@ -166,7 +168,7 @@ class BuildConfig:
     verify_checksums: bool = True
     refine: Literal["shading", "surfels", "none"] | bool = "shading"
     natural: bool = True
-    natural_kernels: int = 25
+    natural_kernels: int | None = None
     alpha_threshold: float = 0.5
     matting: MattingOptions = MattingOptions()
     dilate_base_px: float | None = None
@@ -218,8 +220,10 @@ class BuildConfig:
             raise ConfigError(f"carve_tolerance must be None or an integer >= 0, got {self.carve_tolerance!r}")
         if self.matting_drift not in DRIFT_MODES:
             raise ConfigError(f"matting_drift must be auto, none, gain, affine or field, got {self.matting_drift!r}")
-        if not (isinstance(self.natural_kernels, int) and 1 <= self.natural_kernels <= 256):
-            raise ConfigError(f"natural_kernels must be an integer in [1, 256], got {self.natural_kernels!r}")
+        if self.natural_kernels is not None and not (
+            isinstance(self.natural_kernels, int) and 1 <= self.natural_kernels <= 255
+        ):
+            raise ConfigError(f"natural_kernels must be None or an integer in [1, 255], got {self.natural_kernels!r}")
         if int(self.surfel_oversample) < 1:
             raise ConfigError(f"surfel_oversample must be >= 1, got {self.surfel_oversample}")
         if not (0.0 <= self.alpha_threshold < 1.0):

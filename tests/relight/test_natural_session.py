@@ -237,6 +237,27 @@ def test_natural_mask_fills_enclosed_low_alpha_only():
     assert not natural_mask(np.full((4, 4), np.nan)).any()  # NaN is not > alpha_min
 
 
+def test_natural_mask_grows_into_low_alpha_glass_at_the_outline():
+    """Low-α glass that reaches the outline (not enclosed) joins the field through
+    α > alpha_low when it touches the α > 0.5 region; isolated backdrop noise and a gap
+    at α ≈ 0 do not (measured on the simulated glass: the display half 0.29 -> 0.08)."""
+    from opacityhull.reconstruct.natural_field import natural_mask
+
+    a = np.zeros((10, 12))
+    a[2:8, 2:6] = 0.9
+    a[2:8, 6:9] = 0.2  # glass seen edge-on at the right-hand outline: open to the background
+    a[0, 11] = 0.3  # matte noise on the backdrop, not connected
+    a[8:10, 2:6] = 0.05  # below alpha_low: stays out
+    m = natural_mask(a)
+    assert m[2:8, 2:9].all()
+    assert not m[0, 11] and not m[8:10].any() and not m[:, 9:].any()
+    assert np.array_equal(natural_mask(a, alpha_low=None), a > 0.5)
+    # growth is monotone in alpha_low and never leaves the α > alpha_low pixels
+    for lo in (0.01, 0.1, 0.25, 0.49):
+        g = natural_mask(a, alpha_low=lo, fill_holes=False)
+        assert (g <= ((a > lo) | (a > 0.5))).all() and (natural_mask(a, alpha_low=lo / 2, fill_holes=False) >= g).all()
+
+
 def test_envmap_display_layers_reconstruct_the_display_image():
     """The layers the eval truth renders sum (as emitted radiance x to_env) to the image
     relight feeds the field, to 1/2 of 255^-2 of the peak; one 8-bit layer loses the dim
