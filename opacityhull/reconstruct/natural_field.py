@@ -23,6 +23,7 @@ import logging
 import time
 from pathlib import Path
 from collections.abc import Callable, Sequence
+from typing import cast
 
 import numpy as np
 
@@ -149,7 +150,7 @@ def natural_mask(
     m = a > alpha_min
     if alpha_low is not None and alpha_low < alpha_min and m.any():
         low = a > alpha_low
-        lab = np.asarray(ndi.label(low)[0])
+        lab, _ = cast("tuple[np.ndarray, int]", ndi.label(low))
         keep = np.unique(lab[m & low])
         m = m | np.isin(lab, keep[keep > 0])
     return np.asarray(ndi.binary_fill_holes(m), bool) if fill_holes else m
