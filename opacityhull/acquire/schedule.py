@@ -274,7 +274,7 @@ def require_array_coverage(plan: CapturePlan, geometry: RigGeometry) -> ArrayCov
 #: relit views onto the hull, true cameras): relative error against Mitsuba under uffizi
 #: by s, measured by ``benchmarks/glass.py --heldout`` (benchmarks/out/glass.md). s = 0
 #: is a captured viewpoint drawn by the same renderer; relit directly it is 0.36-0.39.
-NATURAL_NEW_VIEW_REL_ERR = {0.0: 0.51, 3.0: 0.73, 6.0: 0.83, 9.0: 0.90}
+NATURAL_NEW_VIEW_REL_ERR = {0.0: 0.51, 3.0: 0.73, 6.0: 0.83, 9.0: 0.88}
 
 
 def natural_view_note(plan: CapturePlan) -> str | None:
