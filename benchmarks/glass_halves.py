@@ -63,9 +63,11 @@ def display_sweep(model, rig, centre, envs: dict, *, views, images, kernels, wor
     n_max = max(images)
     rows = []
     cache: dict = {}
+    names: dict[int, list[str]] = {}
     for vi in views:
         v = model.views[vi]
         fields = load_view_fields(model.root, v.id)
+        names[vi] = sorted(fields)
         for dname, f0 in sorted(fields.items()):
             d = rig.geometry.display(dname)
             pix = np.asarray(f0.pixel_index, np.int64)
@@ -108,20 +110,12 @@ def display_sweep(model, rig, centre, envs: dict, *, views, images, kernels, wor
             for env_name in envs:
                 errs = []
                 for vi in views:
-                    v = model.views[vi]
-                    names = sorted(load_view_fields(model.root, v.id))
-                    est = sum(cache[(vi, dn, n, K, env_name)] for dn in names)
-                    tru = sum(cache[(vi, dn, env_name, "truth")] for dn in names)
+                    est = sum(cache[(vi, dn, n, K, env_name)] for dn in names[vi])
+                    tru = sum(cache[(vi, dn, env_name, "truth")] for dn in names[vi])
                     errs.append(float(np.linalg.norm(est - tru) / np.linalg.norm(tru)))
                 row[env_name] = float(np.mean(errs))
                 row[f"{env_name}_per_view"] = errs
-            row["estimate_cpu_s"] = float(
-                sum(
-                    cache[(vi, dn, n, K, "s")]
-                    for vi in views
-                    for dn in sorted(load_view_fields(model.root, model.views[vi].id))
-                )
-            )
+            row["estimate_cpu_s"] = float(sum(cache[(vi, dn, n, K, "s")] for vi in views for dn in names[vi]))
             rows.append(row)
             print(f"display sweep: {row}", file=sys.stderr, flush=True)
     return rows

@@ -165,6 +165,7 @@ def estimate_session_natural(
     *,
     n_kernels: int = 25,
     alpha_min: float = 0.5,
+    alpha_low: float | None = 0.1,
     fill_holes: bool = True,
     rel_tol: float = 1e-8,
     weights_dtype: str = "float16",
@@ -178,7 +179,7 @@ def estimate_session_natural(
     views : [(camera index, table_deg)], the model's views, in model order.
     view_cameras : the views' cameras (recorded only for consistency checks of size).
     alphas : per view float (H, W) matte; pixels with α > ``alpha_min``, grown through
-        the connected pixels with α > 0.1, and the holes that region encloses
+        the connected pixels with α > ``alpha_low``, and the holes that region encloses
         (``fill_holes``, :func:`natural_mask`), are estimated.
         The photographs are the whole radiance reaching the camera, the backdrop seen
         past the object included; where α is small outside the object that backdrop is
@@ -242,7 +243,7 @@ def estimate_session_natural(
     info = {}
     for i, ((c, a), pv) in enumerate(zip(views, per_view, strict=True)):
         vid = view_id(c, a)
-        mask = natural_mask(alphas[i], alpha_min=alpha_min, fill_holes=fill_holes)
+        mask = natural_mask(alphas[i], alpha_min=alpha_min, alpha_low=alpha_low, fill_holes=fill_holes)
         for d in displays:
             f = estimate_view_natural(session, pv[d], d, mask, n_kernels=n_kernels, rel_tol=rel_tol)
             f = dataclasses.replace(
@@ -252,7 +253,7 @@ def estimate_session_natural(
                     "display": d,
                     "n_kernels": n_kernels,
                     "alpha_min": alpha_min,
-                    "alpha_low": 0.1,
+                    "alpha_low": alpha_low,
                     "fill_holes": fill_holes,
                     "rel_tol": rel_tol,
                     "patterns": [p for p, _ in pv[d]],
